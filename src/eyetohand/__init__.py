@@ -1,0 +1,3 @@
+"""eyetohand: calibrate a fixed camera to an industrial robot."""
+
+__version__ = "0.1.0"
