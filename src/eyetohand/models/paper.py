@@ -1,0 +1,122 @@
+"""The paper's own model: the 12-element matrix B of equations (7)–(13), mapped exactly as written.
+
+Equation (8): (u, v, 1) = B · (x, y, z, 1), with B = A / Zc. Equation (13): R = M⁻¹ P with
+M = B[:, :3] and P = (u − b14, v − b24, 1 − b34). The parameter vector is the paper's encoding
+[b11 b12 b13 b14 b21 b22 b23 b24 b31 b32 b33 b34], so a solver optimises the same 12 numbers as the
+paper's hybrid PSO.
+
+Estimation:
+- pairs at two or more heights: equation (5) by normalised DLT, then B = A / mean(Zc);
+- coplanar pairs (the paper's own data): equation (5) has rank 9 of 11 and its minimum-norm solution
+  is the degenerate Zc ≈ 0, so B is initialised from the planar solution instead — the least-squares
+  affine robot→image map (u, v) = A₂ₓ₃ (x, y, 1) on the plane z = z0, placed in B as
+  [[a11 a12 0 a13], [a21 a22 0 a23], [0 0 1/z0 0]], which makes equation (13) reproduce that affine
+  map and return z = z0. ``meta["init"]`` records which path was taken and the rank found.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import DegenerateError
+from ..normalize import hartley, spread_ratio
+from .base import Model, batch_inverse3, check_enough, check_not_collinear
+from .dlt3d import COPLANAR_RATIO, dlt_projection
+
+
+def equation5_rank(uv_px: np.ndarray, xyz_mm: np.ndarray) -> tuple[int, float]:
+    """Numerical rank of the paper's 2n×11 matrix of equation (5), built in normalised coordinates
+    (a34 = 1), and its condition number."""
+    T_uv, uv_n = hartley(uv_px)
+    _, X_n = hartley(xyz_mm) if spread_ratio(xyz_mm) > 0 else (None, xyz_mm - xyz_mm.mean(0))
+    n = len(uv_n)
+    Xh = np.column_stack([X_n, np.ones(n)])
+    zeros = np.zeros((n, 4))
+    B = np.vstack(
+        [
+            np.hstack([Xh, zeros, -uv_n[:, :1] * X_n]),
+            np.hstack([zeros, Xh, -uv_n[:, 1:2] * X_n]),
+        ]
+    )
+    s = np.linalg.svd(B, compute_uv=False)
+    rank = int((s > 1e-9 * s[0]).sum())
+    return rank, float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+
+
+class PaperB(Model):
+    name = "paper"
+    n_params = 12
+    min_pairs = 3
+    summary = "12 unknowns: the paper's matrix B, equation (13) (affine on one plane)"
+
+    @classmethod
+    def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> PaperB:
+        uv = np.asarray(uv_px, float)
+        xyz = np.asarray(xyz_mm, float)
+        check_enough(cls.name, cls.min_pairs, len(uv))
+        rank, cond = equation5_rank(uv, xyz)
+        if spread_ratio(xyz) >= COPLANAR_RATIO and len(uv) >= 6:
+            P, T_uv, T3, cond = dlt_projection(uv, xyz, cls.name)
+            A = np.linalg.inv(T_uv) @ P @ T3
+            zc = np.column_stack([xyz, np.ones(len(xyz))]) @ A[2]
+            B = A / zc.mean()
+            init = f"equation (5), rank {rank} of 11; B = A / mean(Zc)"
+        else:
+            check_not_collinear(cls.name, uv, xyz[:, :2])
+            z = xyz[:, 2]
+            if np.ptp(z) > 1e-3:
+                raise DegenerateError(
+                    f"model '{cls.name}': pairs lie on one tilted plane; equation (5) is "
+                    "rank-deficient there and the planar start needs a horizontal plane"
+                )
+            z0 = float(z.mean())
+            if abs(z0) < 1e-9:
+                raise DegenerateError(
+                    f"model '{cls.name}': the plane is z = 0, where the paper's B (third row "
+                    "1/z0) is undefined; use affine or homography"
+                )
+            T_xy, xy_n = hartley(xyz[:, :2])
+            T_uv, uv_n = hartley(uv)
+            design = np.column_stack([xy_n, np.ones(len(xy_n))])
+            sol, *_ = np.linalg.lstsq(design, uv_n, rcond=None)  # robot -> image, normalised
+            A = np.linalg.inv(T_uv) @ np.vstack([sol.T, [0, 0, 1]]) @ T_xy  # px from mm
+            B = np.array(
+                [
+                    [A[0, 0], A[0, 1], 0.0, A[0, 2]],
+                    [A[1, 0], A[1, 1], 0.0, A[1, 2]],
+                    [0.0, 0.0, 1.0 / z0, 0.0],
+                ]
+            )
+            cond = float(np.linalg.cond(design))
+            init = (
+                f"coplanar pairs (z = {z0:g} mm): equation (5) has rank {rank} of 11, so B was "
+                "initialised from the planar least-squares solution, not the degenerate Zc ≈ 0"
+            )
+        meta = {"init": init, "equation5_rank": rank, "condition_number": cond}
+        return cls(B.reshape(-1), meta)
+
+    def batch_image_to_robot(self, params, uv_px, z_mm):
+        B = np.asarray(params, float).reshape(-1, 3, 4)
+        Minv, _ = batch_inverse3(B[:, :, :3])
+        uv = np.asarray(uv_px, float)
+        P = np.empty((len(B), len(uv), 3))
+        P[..., 0] = uv[None, :, 0] - B[:, None, 0, 3]
+        P[..., 1] = uv[None, :, 1] - B[:, None, 1, 3]
+        P[..., 2] = 1.0 - B[:, None, 2, 3]
+        return np.einsum("pij,pnj->pni", Minv, P)
+
+    def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
+        """Equation (13). ``z_mm`` is ignored: the paper's model computes z itself."""
+        return super().image_to_robot(uv_px, 0.0)
+
+    def residuals(self, uv_px, xyz_mm) -> np.ndarray:
+        return self.image_to_robot(uv_px) - np.asarray(xyz_mm, float)
+
+    @property
+    def matrix_B(self) -> np.ndarray:
+        return self.params.reshape(3, 4).copy()
+
+    def robot_to_image(self, xyz_mm) -> np.ndarray:
+        """Equation (8) literally: (u, v) = B[:2] · (x, y, z, 1)."""
+        xyz = np.atleast_2d(np.asarray(xyz_mm, dtype=float))
+        return np.column_stack([xyz, np.ones(len(xyz))]) @ self.matrix_B[:2].T

@@ -1,0 +1,406 @@
+"""Point pairs: image centres (u, v) in pixels with the robot's (x, y, z) in mm.
+
+Loaders validate at the boundary, so everything past them can trust the arrays: finite numbers,
+unique ids, no repeated pair. Each error names the file, the line (CSV) or the entry (JSON), and the
+field. Geometry that depends on the model (too few pairs, collinear, coplanar) is checked when a model
+is fitted, because what is "enough" depends on the model.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+REQUIRED = ("u", "v", "x", "y")
+OPTIONAL = ("z", "id", "angle")
+MAX_FILE_BYTES = 200 * 1024 * 1024
+
+
+@dataclass(frozen=True, eq=False)
+class PointPairs:
+    """Immutable arrays of pairs: ``uv_px`` (N, 2), ``xyz_mm`` (N, 3), ``ids`` (N,) strings.
+
+    ``angle_deg`` (N,) is the tool's rotation for each pair when the source had an ``angle`` column
+    (used to estimate a tool-centre offset), else None. ``notes`` says what the loader assumed.
+    """
+
+    uv_px: np.ndarray
+    xyz_mm: np.ndarray
+    ids: tuple[str, ...]
+    source: str = "<arrays>"
+    angle_deg: np.ndarray | None = None
+    notes: tuple[str, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        uv = np.array(self.uv_px, dtype=float).reshape(-1, 2)
+        xyz = np.array(self.xyz_mm, dtype=float).reshape(-1, 3)
+        if len(uv) != len(xyz) or len(uv) != len(self.ids):
+            raise InputError(
+                f"{self.source}: uv_px, xyz_mm and ids differ in length "
+                f"({len(uv)}, {len(xyz)}, {len(self.ids)})"
+            )
+        uv.flags.writeable = False
+        xyz.flags.writeable = False
+        object.__setattr__(self, "uv_px", uv)
+        object.__setattr__(self, "xyz_mm", xyz)
+        object.__setattr__(self, "ids", tuple(str(i) for i in self.ids))
+        if self.angle_deg is not None:
+            ang = np.array(self.angle_deg, dtype=float).reshape(-1)
+            ang.flags.writeable = False
+            object.__setattr__(self, "angle_deg", ang)
+
+    @classmethod
+    def from_arrays(
+        cls,
+        uv_px,
+        xyz_mm,
+        ids=None,
+        *,
+        source: str = "<arrays>",
+        angle_deg=None,
+    ) -> PointPairs:
+        """Build validated pairs from arrays. ``xyz_mm`` may be (N, 2): then z = 0 (a note says so)."""
+        uv = np.asarray(uv_px, dtype=float)
+        xyz = np.asarray(xyz_mm, dtype=float)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise InputError(f"{source}: uv_px must have shape (N, 2), got {uv.shape}")
+        notes: list[str] = []
+        if xyz.ndim == 2 and xyz.shape[1] == 2:
+            xyz = np.column_stack([xyz, np.zeros(len(xyz))])
+            notes.append(f"{source}: no z given: pairs taken on the plane z = 0 mm")
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise InputError(f"{source}: xyz_mm must have shape (N, 3) or (N, 2), got {xyz.shape}")
+        if ids is None:
+            ids = [str(i) for i in range(len(uv))]
+        pairs = cls(uv, xyz, tuple(ids), source, angle_deg, tuple(notes))
+        _check_values(pairs, [f"row {i}" for i in range(len(uv))])
+        return pairs
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @property
+    def z_levels_mm(self) -> np.ndarray:
+        """Distinct heights (mm), rounded to 1 µm."""
+        return np.unique(np.round(self.xyz_mm[:, 2], 3))
+
+    def subset(self, index) -> PointPairs:
+        """Pairs selected by a boolean mask or an index array (kept in order)."""
+        index = np.asarray(index)
+        if index.dtype == bool:
+            index = np.flatnonzero(index)
+        ang = None if self.angle_deg is None else self.angle_deg[index]
+        return PointPairs(
+            self.uv_px[index],
+            self.xyz_mm[index],
+            tuple(self.ids[i] for i in index),
+            self.source,
+            ang,
+            self.notes,
+        )
+
+    def sha256(self) -> str:
+        """SHA-256 of the pairs' values (ids, u, v, x, y, z, angle) — independent of file formatting."""
+        h = hashlib.sha256()
+        h.update("\n".join(self.ids).encode())
+        h.update(np.ascontiguousarray(self.uv_px, dtype="<f8").tobytes())
+        h.update(np.ascontiguousarray(self.xyz_mm, dtype="<f8").tobytes())
+        if self.angle_deg is not None:
+            h.update(np.ascontiguousarray(self.angle_deg, dtype="<f8").tobytes())
+        return h.hexdigest()
+
+    def to_records(self) -> list[dict]:
+        """One dict per pair: ``{"id", "u", "v", "x", "y", "z"}`` (and ``angle``)."""
+        out = []
+        for i, pid in enumerate(self.ids):
+            rec = {
+                "id": pid,
+                "u": float(self.uv_px[i, 0]),
+                "v": float(self.uv_px[i, 1]),
+                "x": float(self.xyz_mm[i, 0]),
+                "y": float(self.xyz_mm[i, 1]),
+                "z": float(self.xyz_mm[i, 2]),
+            }
+            if self.angle_deg is not None:
+                rec["angle"] = float(self.angle_deg[i])
+            out.append(rec)
+        return out
+
+    def to_csv_text(self) -> str:
+        """The pairs as CSV text with header ``id,u,v,x,y,z`` (and ``angle``)."""
+        cols = ["id", "u", "v", "x", "y", "z"] + (["angle"] if self.angle_deg is not None else [])
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(cols)
+        for rec in self.to_records():
+            w.writerow([rec["id"]] + [repr(rec[c]) for c in cols[1:]])
+        return buf.getvalue()
+
+
+def load_pairs(path: str | os.PathLike) -> PointPairs:
+    """Load pairs from a CSV file (header names the columns) or a JSON file (``{"pairs": [...]}``).
+
+    CSV: columns ``u,v,x,y`` required, ``z``, ``id`` and ``angle`` optional, in any order; other
+    columns are ignored. A missing ``z`` means the plane z = 0 (recorded in ``notes``).
+    """
+    path = Path(path)
+    name = str(path)
+    text = _read_text(path)
+    if path.suffix.lower() == ".json" or text.lstrip().startswith(("{", "[")):
+        return _parse_json(text, name)
+    return _parse_csv(text, name)
+
+
+def pairs_from_records(records, source: str = "<records>") -> PointPairs:
+    """Pairs from a list of dicts with keys u, v, x, y (z, id, angle optional), as in JSON input."""
+    return _from_records(records, source, entry_label="pairs[{i}]")
+
+
+# ---------------------------------------------------------------- internals
+
+
+def _read_text(path: Path) -> str:
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, expected a CSV or JSON file of point pairs")
+    if size > MAX_FILE_BYTES:
+        raise InputError(f"{path}: file is {size} bytes, more than the {MAX_FILE_BYTES} limit")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    if not data.strip():
+        raise InputError(f"{path}: empty file, expected a header line 'u,v,x,y[,z][,id]' and rows")
+    if b"\x00" in data:
+        raise InputError(f"{path}: binary file, expected CSV or JSON text")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise InputError(f"{path} line {line}: not UTF-8 text (byte {exc.start})") from None
+
+
+def _parse_csv(text: str, name: str) -> PointPairs:
+    lines = text.splitlines()
+    first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
+    header_line = lines[first]
+    if "," not in header_line:
+        for delim, label in ((";", "';'"), ("\t", "tab"), ("|", "'|'")):
+            if delim in header_line:
+                raise InputError(
+                    f"{name} line {first + 1}: columns separated by {label}, expected commas "
+                    "(header 'u,v,x,y[,z][,id]')"
+                )
+    reader = csv.reader(io.StringIO(text))
+    rows = list(reader)
+    header = [h.strip().lower() for h in rows[first]]
+    header_lineno = first + 1
+    seen: dict[str, int] = {}
+    for j, h in enumerate(header):
+        if h in REQUIRED + OPTIONAL and h in seen:
+            raise InputError(f"{name} line {header_lineno}: column '{h}' appears twice")
+        seen.setdefault(h, j)
+    missing = [c for c in REQUIRED if c not in seen]
+    if missing:
+        raise InputError(
+            f"{name} line {header_lineno}: missing column(s) {', '.join(missing)}; "
+            f"the header has {', '.join(repr(h) for h in header)}, expected u,v,x,y[,z][,id]"
+        )
+    records = []
+    for k, row in enumerate(rows[first + 1 :], start=first + 2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) != len(header):
+            raise InputError(
+                f"{name} line {k}: {len(row)} fields, the header has {len(header)}"
+            )
+        rec = {c: row[seen[c]].strip() for c in REQUIRED + OPTIONAL if c in seen}
+        rec["_where"] = f"{name} line {k}"
+        records.append(rec)
+    if not records:
+        raise InputError(f"{name}: header only, no data rows")
+    return _from_records(records, name, entry_label=None, z_given="z" in seen)
+
+
+def _parse_json(text: str, name: str) -> PointPairs:
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{name} line {exc.lineno}: invalid JSON ({exc.msg})") from None
+    if isinstance(doc, dict) and "pairs" in doc:
+        records = doc["pairs"]
+    elif isinstance(doc, list):
+        records = doc
+    else:
+        raise InputError(f"{name}: expected a JSON object with a 'pairs' list")
+    if not isinstance(records, list):
+        raise InputError(f"{name}: 'pairs' must be a list of objects")
+    if not records:
+        raise InputError(f"{name}: 'pairs' is empty")
+    return _from_records(records, name, entry_label="pairs[{i}]")
+
+
+def _from_records(records, name: str, entry_label: str | None, z_given: bool | None = None):
+    n = len(records)
+    uv = np.empty((n, 2))
+    xyz = np.zeros((n, 3))
+    ids: list[str] = []
+    wheres: list[str] = []
+    angles = None
+    has_angle = False
+    if z_given is None:
+        z_given = all(isinstance(r, dict) and "z" in r for r in records)
+        if not z_given and any(isinstance(r, dict) and "z" in r for r in records):
+            i = next(i for i, r in enumerate(records) if not (isinstance(r, dict) and "z" in r))
+            raise InputError(f"{name} {entry_label.format(i=i)}: field 'z' missing (others have it)")
+    for i, rec in enumerate(records):
+        if entry_label is not None:
+            where = f"{name} {entry_label.format(i=i)}"
+            if not isinstance(rec, dict):
+                raise InputError(f"{where}: expected an object with u, v, x, y")
+            for c in REQUIRED:
+                if c not in rec:
+                    raise InputError(f"{where}: field '{c}' missing")
+        else:
+            where = rec["_where"]
+        wheres.append(where)
+        for j, c in enumerate(("u", "v")):
+            uv[i, j] = _number(rec[c], where, c)
+        for j, c in enumerate(("x", "y", "z")):
+            if c in rec:
+                xyz[i, j] = _number(rec[c], where, c)
+        if "angle" in rec and rec["angle"] not in ("", None):
+            has_angle = True
+            if angles is None:
+                angles = np.full(n, np.nan)
+            angles[i] = _number(rec["angle"], where, "angle")
+        pid = rec.get("id")
+        ids.append(str(i) if pid in (None, "") else str(pid).strip())
+    if has_angle and np.isnan(angles).any():
+        i = int(np.flatnonzero(np.isnan(angles))[0])
+        raise InputError(f"{wheres[i]}, field 'angle': empty while other rows have an angle")
+    notes = () if z_given else (f"{name}: no z column: pairs taken on the plane z = 0 mm",)
+    pairs = PointPairs(uv, xyz, tuple(ids), name, angles, notes)
+    _check_values(pairs, wheres)
+    return pairs
+
+
+def _number(value, where: str, field_name: str) -> float:
+    if isinstance(value, bool):
+        raise InputError(f"{where}, field '{field_name}': {value!r} is not a number")
+    if isinstance(value, (int, float)):
+        x = float(value)
+    else:
+        s = str(value).strip()
+        if s == "":
+            raise InputError(f"{where}, field '{field_name}': empty, expected a number")
+        try:
+            x = float(s)
+        except ValueError:
+            shown = s if len(s) <= 30 else s[:27] + "..."
+            raise InputError(f"{where}, field '{field_name}': {shown!r} is not a number") from None
+    if not math.isfinite(x):
+        raise InputError(f"{where}, field '{field_name}': {value!r} is not a finite number")
+    return x
+
+
+def _check_values(pairs: PointPairs, wheres: list[str]) -> None:
+    name = pairs.source
+    if not np.isfinite(pairs.uv_px).all() or not np.isfinite(pairs.xyz_mm).all():
+        bad = int(np.flatnonzero(~np.isfinite(np.c_[pairs.uv_px, pairs.xyz_mm]).all(1))[0])
+        raise InputError(f"{wheres[bad]}: values must be finite numbers")
+    first_seen: dict[str, int] = {}
+    for i, pid in enumerate(pairs.ids):
+        if pid in first_seen:
+            first = wheres[first_seen[pid]]
+            raise InputError(f"{wheres[i]}, field 'id': duplicate id {pid!r} (first at {first})")
+        first_seen[pid] = i
+    _check_repeats(pairs.uv_px, "(u, v)", wheres)
+    if pairs.angle_deg is None:
+        _check_repeats(pairs.xyz_mm, "(x, y, z)", wheres)
+    else:
+        _check_repeats(np.c_[pairs.xyz_mm, pairs.angle_deg], "(x, y, z, angle)", wheres)
+    if len(pairs) == 0:
+        raise InputError(f"{name}: no pairs")
+
+
+def _check_repeats(values: np.ndarray, label: str, wheres: list[str]) -> None:
+    if len(values) < 2:
+        return
+    _, first, inverse = np.unique(values, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    dup = np.flatnonzero(first[inverse] != np.arange(len(values)))
+    if len(dup):
+        i = int(dup[0])
+        j = int(first[inverse[i]])
+        raise InputError(f"{wheres[i]}: repeats the {label} of {wheres[j]}; each pair must be distinct")
+
+
+@dataclass(frozen=True, eq=False)
+class ImagePoints:
+    """Image points to map in production: ``uv_px`` (N, 2), optional heights ``z_mm`` (N,), and the
+    source table (header and rows) so that the output keeps every input column."""
+
+    uv_px: np.ndarray
+    z_mm: np.ndarray | None
+    header: tuple[str, ...]
+    rows: tuple[tuple[str, ...], ...]
+
+    def with_columns(self, columns: dict[str, np.ndarray]) -> str:
+        """CSV text: the input table with ``columns`` added (replacing same-named ones)."""
+        keep = [j for j, h in enumerate(self.header) if h.strip().lower() not in columns]
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow([self.header[j] for j in keep] + list(columns))
+        for i, row in enumerate(self.rows):
+            w.writerow([row[j] for j in keep] + [repr(float(columns[c][i])) for c in columns])
+        return buf.getvalue()
+
+
+def load_image_points(path: str | os.PathLike) -> ImagePoints:
+    """Read a CSV with columns ``u,v`` (and optionally ``z``, mm) to map with a calibration."""
+    path = Path(path)
+    name = str(path)
+    text = _read_text(path)
+    rows = [r for r in csv.reader(io.StringIO(text))]
+    first = next(i for i, r in enumerate(rows) if r and any(c.strip() for c in r))
+    header = [h.strip() for h in rows[first]]
+    lower = [h.lower() for h in header]
+    missing = [c for c in ("u", "v") if c not in lower]
+    if missing:
+        raise InputError(
+            f"{name} line {first + 1}: missing column(s) {', '.join(missing)}; expected u,v[,z]"
+        )
+    ju, jv = lower.index("u"), lower.index("v")
+    jz = lower.index("z") if "z" in lower else None
+    uv, z, body = [], [], []
+    for k, row in enumerate(rows[first + 1 :], start=first + 2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) != len(header):
+            raise InputError(f"{name} line {k}: {len(row)} fields, the header has {len(header)}")
+        where = f"{name} line {k}"
+        uv.append((_number(row[ju], where, "u"), _number(row[jv], where, "v")))
+        if jz is not None:
+            z.append(_number(row[jz], where, "z"))
+        body.append(tuple(row))
+    if not uv:
+        raise InputError(f"{name}: header only, no data rows")
+    return ImagePoints(
+        np.array(uv, float), np.array(z, float) if jz is not None else None, tuple(header), tuple(body)
+    )
