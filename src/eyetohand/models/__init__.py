@@ -8,10 +8,11 @@ from .base import Model
 from .dlt3d import DLT3D
 from .homography import Homography
 from .paper import PaperB
+from .pinhole import PinholeCamera
 from .radial import HomographyRadial
 
 MODELS: dict[str, type[Model]] = {
-    cls.name: cls for cls in (Affine, PaperB, Homography, HomographyRadial, DLT3D)
+    cls.name: cls for cls in (Affine, PaperB, Homography, HomographyRadial, DLT3D, PinholeCamera)
 }
 MODEL_CHOICES = ("auto", *MODELS)
 
