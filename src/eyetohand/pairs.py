@@ -195,19 +195,28 @@ def _read_text(path: Path) -> str:
         raise InputError(f"{path} line {line}: not UTF-8 text (byte {exc.start})") from None
 
 
-def _parse_csv(text: str, name: str) -> PointPairs:
+def _csv_rows(text: str, name: str) -> tuple[list[list[str]], int]:
+    """Rows of a CSV text split on any line break, and the index of the header (first non-blank)."""
     lines = text.splitlines()
     first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
-    header_line = lines[first]
-    if "," not in header_line:
+    if first is None:
+        raise InputError(f"{name}: empty file, expected a header line 'u,v,x,y[,z][,id]' and rows")
+    try:
+        rows = list(csv.reader(lines))
+    except csv.Error as exc:
+        raise InputError(f"{name}: not a readable CSV file ({exc})") from None
+    return rows, first
+
+
+def _parse_csv(text: str, name: str) -> PointPairs:
+    rows, first = _csv_rows(text, name)
+    if len(rows[first]) == 1:  # no comma in the header: another delimiter?
         for delim, label in ((";", "';'"), ("\t", "tab"), ("|", "'|'")):
-            if delim in header_line:
+            if delim in rows[first][0]:
                 raise InputError(
                     f"{name} line {first + 1}: columns separated by {label}, expected commas "
                     "(header 'u,v,x,y[,z][,id]')"
                 )
-    reader = csv.reader(io.StringIO(text))
-    rows = list(reader)
     header = [h.strip().lower() for h in rows[first]]
     header_lineno = first + 1
     seen: dict[str, int] = {}
@@ -376,9 +385,7 @@ def load_image_points(path: str | os.PathLike) -> ImagePoints:
     """Read a CSV with columns ``u,v`` (and optionally ``z``, mm) to map with a calibration."""
     path = Path(path)
     name = str(path)
-    text = _read_text(path)
-    rows = [r for r in csv.reader(io.StringIO(text))]
-    first = next(i for i, r in enumerate(rows) if r and any(c.strip() for c in r))
+    rows, first = _csv_rows(_read_text(path), name)
     header = [h.strip() for h in rows[first]]
     lower = [h.lower() for h in header]
     missing = [c for c in ("u", "v") if c not in lower]

@@ -18,7 +18,7 @@ class Affine(Model):
 
     name = "affine"
     n_params = 6
-    min_pairs = 3
+    min_pairs = 4
     summary = "6 unknowns: scale, rotation, shear, offset (camera looking straight down)"
 
     @classmethod

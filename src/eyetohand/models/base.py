@@ -141,7 +141,8 @@ def _as_uv(uv_px) -> np.ndarray:
 def check_enough(model_name: str, min_pairs: int, n: int) -> None:
     if n < min_pairs:
         raise DegenerateError(
-            f"model '{model_name}' needs at least {min_pairs} pairs, got {n}"
+            f"model '{model_name}' needs at least {min_pairs} pairs (one more than determine it, "
+            f"so that its error can be measured), got {n}"
         )
 
 

@@ -18,7 +18,7 @@ COPLANAR_RATIO = 1e-4
 
 def dlt_projection(uv_px: np.ndarray, xyz_mm: np.ndarray, model_name: str):
     """Normalised DLT: returns (P_n (3×4, P_n[2,3] = 1), T_uv, T_xyz, condition number)."""
-    check_enough(model_name, 6, len(uv_px))
+    check_enough(model_name, 7, len(uv_px))
     ratio = spread_ratio(xyz_mm)
     if ratio < COPLANAR_RATIO:
         z = xyz_mm[:, 2]
@@ -53,7 +53,7 @@ class DLT3D(Model):
 
     name = "dlt3d"
     n_params = 11
-    min_pairs = 6
+    min_pairs = 7
     multi_height = True
     uses_z = True
     summary = "11 unknowns: the paper's equation (5), pairs at 2+ heights, no lens distortion"

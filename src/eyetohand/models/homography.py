@@ -39,7 +39,7 @@ class Homography(Model):
 
     name = "homography"
     n_params = 8
-    min_pairs = 4
+    min_pairs = 5
     summary = "8 unknowns: plane-to-plane perspective (tilted camera), no lens distortion"
 
     @classmethod

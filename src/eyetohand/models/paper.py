@@ -25,28 +25,29 @@ from .dlt3d import COPLANAR_RATIO, dlt_projection
 
 
 def equation5_rank(uv_px: np.ndarray, xyz_mm: np.ndarray) -> tuple[int, float]:
-    """Numerical rank of the paper's 2n×11 matrix of equation (5), built in normalised coordinates
-    (a34 = 1), and its condition number."""
-    T_uv, uv_n = hartley(uv_px)
-    _, X_n = hartley(xyz_mm) if spread_ratio(xyz_mm) > 0 else (None, xyz_mm - xyz_mm.mean(0))
-    n = len(uv_n)
-    Xh = np.column_stack([X_n, np.ones(n)])
-    zeros = np.zeros((n, 4))
-    B = np.vstack(
-        [
-            np.hstack([Xh, zeros, -uv_n[:, :1] * X_n]),
-            np.hstack([zeros, Xh, -uv_n[:, 1:2] * X_n]),
-        ]
-    )
+    """Numerical rank of the paper's 2n×11 matrix of equation (5) as printed (a34 = 1), and its
+    condition number. Columns are scaled to unit norm first (which leaves the rank unchanged);
+    centring the points, as Hartley normalisation does, would change the equation's rank on
+    coplanar data, so it is not used here."""
+    uv = np.asarray(uv_px, float)
+    X = np.asarray(xyz_mm, float)
+    n = len(uv)
+    B = np.zeros((2 * n, 11))
+    B[0::2, 0:3], B[0::2, 3] = X, 1.0
+    B[1::2, 4:7], B[1::2, 7] = X, 1.0
+    B[0::2, 8:11] = -uv[:, :1] * X
+    B[1::2, 8:11] = -uv[:, 1:2] * X
+    norms = np.linalg.norm(B, axis=0)
+    B = B / np.where(norms > 0, norms, 1.0)
     s = np.linalg.svd(B, compute_uv=False)
-    rank = int((s > 1e-9 * s[0]).sum())
+    rank = int((s > 1e-10 * s[0]).sum())
     return rank, float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
 class PaperB(Model):
     name = "paper"
     n_params = 12
-    min_pairs = 3
+    min_pairs = 4
     summary = "12 unknowns: the paper's matrix B, equation (13) (affine on one plane)"
 
     @classmethod
@@ -55,7 +56,7 @@ class PaperB(Model):
         xyz = np.asarray(xyz_mm, float)
         check_enough(cls.name, cls.min_pairs, len(uv))
         rank, cond = equation5_rank(uv, xyz)
-        if spread_ratio(xyz) >= COPLANAR_RATIO and len(uv) >= 6:
+        if spread_ratio(xyz) >= COPLANAR_RATIO and len(uv) >= 7:
             P, T_uv, T3, cond = dlt_projection(uv, xyz, cls.name)
             A = np.linalg.inv(T_uv) @ P @ T3
             zc = np.column_stack([xyz, np.ones(len(xyz))]) @ A[2]

@@ -1,0 +1,61 @@
+"""Synthetic point pairs from an independent camera model (OpenCV's projectPoints).
+
+A camera above the robot's plane, looking down with a tilt; robot points on a grid at one or more
+heights; image points projected with OpenCV (optionally with lens distortion) plus Gaussian pixel noise.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from eyetohand.pairs import PointPairs
+
+
+def make_camera(tilt_deg=8.0, height_mm=450.0, f_px=2600.0, size=(2448, 2048), dist=None, seed=0,
+                pp_offset_px=(6.0, -4.0)):
+    rng = np.random.default_rng(seed)
+    w, h = size
+    du, dv = pp_offset_px
+    K = np.array([[f_px, 0, (w - 1) / 2 + du], [0, f_px, (h - 1) / 2 + dv], [0, 0, 1.0]])
+    # camera looking down (-z of the robot) with a small tilt about a random horizontal axis
+    axis = rng.normal(size=2)
+    axis /= np.linalg.norm(axis)
+    R_down = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])
+    R_tilt, _ = cv2.Rodrigues(np.r_[axis, 0.0] * np.deg2rad(tilt_deg))
+    R = R_tilt @ R_down
+    centre = np.array([20.0, 600.0, height_mm])  # camera position in robot mm
+    t = -R @ centre
+    rvec, _ = cv2.Rodrigues(R)
+    d = np.zeros(5) if dist is None else np.asarray(dist, float)
+    return {"K": K, "dist": d, "rvec": rvec.ravel(), "tvec": t, "size": size, "centre": centre}
+
+
+def project(cam, xyz_mm):
+    uv, _ = cv2.projectPoints(np.asarray(xyz_mm, float).reshape(-1, 1, 3), cam["rvec"], cam["tvec"],
+                              cam["K"], cam["dist"])
+    return uv.reshape(-1, 2)
+
+
+def grid_pairs(cam, n_side=5, heights=(0.0,), span_mm=120.0, noise_px=0.0, seed=1, jitter_mm=0.0):
+    """Robot grid points (n_side × n_side per height) under the camera, with projected image points."""
+    rng = np.random.default_rng(seed)
+    g = np.linspace(-span_mm / 2, span_mm / 2, n_side)
+    xx, yy = np.meshgrid(g, g)
+    pts = []
+    for z in heights:
+        xy = np.c_[xx.ravel(), yy.ravel()] + cam["centre"][:2]
+        xy = xy + rng.normal(scale=jitter_mm, size=xy.shape) if jitter_mm else xy
+        pts.append(np.c_[xy, np.full(len(xy), z)])
+    xyz = np.vstack(pts)
+    uv = project(cam, xyz) + rng.normal(scale=noise_px, size=(len(xyz), 2))
+    return PointPairs.from_arrays(uv, xyz)
+
+
+def random_pairs(cam, n, heights=(0.0,), span_mm=120.0, noise_px=0.0, seed=2):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-span_mm / 2, span_mm / 2, size=(n, 2)) + cam["centre"][:2]
+    z = rng.choice(np.asarray(heights, float), size=n)
+    xyz = np.c_[xy, z]
+    uv = project(cam, xyz) + rng.normal(scale=noise_px, size=(n, 2))
+    return PointPairs.from_arrays(uv, xyz)

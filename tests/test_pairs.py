@@ -1,0 +1,118 @@
+"""Point-pair loaders: formats, validation errors naming file/line/field, property-based round trips."""
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from eyetohand import InputError, PointPairs, load_pairs
+from eyetohand.pairs import load_image_points
+
+
+def write(tmp_path, name, content):
+    p = tmp_path / name
+    if isinstance(content, bytes):
+        p.write_bytes(content)
+    else:
+        p.write_text(content, encoding="utf-8")
+    return p
+
+
+def test_csv_any_order_extra_columns_and_ids(tmp_path):
+    p = write(tmp_path, "p.csv", "note,z,y,x,v,u,id\na,5,2,1,20,10,p1\nb,5,4,3,40,30,p2\n")
+    pairs = load_pairs(p)
+    assert pairs.ids == ("p1", "p2")
+    np.testing.assert_array_equal(pairs.uv_px, [[10, 20], [30, 40]])
+    np.testing.assert_array_equal(pairs.xyz_mm, [[1, 2, 5], [3, 4, 5]])
+    assert pairs.notes == ()
+
+
+def test_csv_without_z_is_plane_zero_and_says_so(tmp_path):
+    pairs = load_pairs(write(tmp_path, "p.csv", "u,v,x,y\n1,2,3,4\n5,6,7,8\n"))
+    assert (pairs.xyz_mm[:, 2] == 0).all()
+    assert any("z = 0" in n for n in pairs.notes)
+    assert pairs.ids == ("0", "1")
+
+
+def test_json_pairs(tmp_path):
+    doc = {"pairs": [{"u": 1, "v": 2, "x": 3, "y": 4, "z": 5}, {"u": 6, "v": 7, "x": 8, "y": 9, "z": 5}]}
+    pairs = load_pairs(write(tmp_path, "p.json", json.dumps(doc)))
+    np.testing.assert_array_equal(pairs.xyz_mm[:, 2], [5, 5])
+
+
+def test_paper_files_load(paper_pairs):
+    train, check = paper_pairs
+    assert len(train) == 16 and len(check) == 9
+    assert np.ptp(train.xyz_mm[:, 2]) == 0
+
+
+BAD = [
+    ("empty.csv", "", r"empty\.csv: empty file"),
+    ("hdr.csv", "u,v,x,y,z\n", r"header only"),
+    ("miss.csv", "u,v,x\n1,2,3\n", r"line 1: missing column\(s\) y"),
+    ("text.csv", "u,v,x,y\n1,2,3,4\n1,abc,3,5\n", r"line 3, field 'v': 'abc' is not a number"),
+    ("nan.csv", "u,v,x,y\n1,2,3,4\nnan,2,3,5\n", r"line 3, field 'u': 'nan' is not a finite number"),
+    ("inf.csv", "u,v,x,y\n1,2,3,4\n2,2,inf,5\n", r"line 3, field 'x': 'inf' is not a finite number"),
+    ("dup.csv", "id,u,v,x,y\na,1,2,3,4\na,5,6,7,8\n", r"line 3, field 'id': duplicate id 'a'"),
+    ("rep.csv", "u,v,x,y\n1,2,3,4\n1,2,3,4\n", r"line 3: repeats the \(u, v\) of .*line 2"),
+    ("ragged.csv", "u,v,x,y\n1,2,3,4\n5,6,7\n", r"line 3: 3 fields, the header has 4"),
+    ("semi.csv", "u;v;x;y\n1;2;3;4\n", r"separated by ';', expected commas"),
+    ("trunc.json", '{"pairs": [{"u": 1, "v": 2,', r"trunc\.json line 1: invalid JSON"),
+    ("field.json", '{"pairs": [{"u": 1, "v": 2, "x": 3}]}', r"pairs\[0\]: field 'y' missing"),
+    ("bin.csv", b"\x00\x01\x02\x03u,v", r"binary file"),
+    ("latin.csv", "u,v,x,y\n1,2,3,4 \xe9\n".encode("latin-1"), r"line 2: not UTF-8"),
+    ("bool.json", '{"pairs": [{"u": true, "v": 2, "x": 3, "y": 4}]}', r"field 'u': True is not a number"),
+]
+
+
+@pytest.mark.parametrize("name,content,match", BAD, ids=[b[0] for b in BAD])
+def test_bad_files_name_file_line_and_field(tmp_path, name, content, match):
+    with pytest.raises(InputError, match=match):
+        load_pairs(write(tmp_path, name, content))
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(InputError, match=r"no such file"):
+        load_pairs(tmp_path / "nope.csv")
+
+
+def test_image_points_keep_columns(tmp_path):
+    table = load_image_points(write(tmp_path, "in.csv", "name,u,v\na,1,2\nb,3,4\n"))
+    out = table.with_columns({"x": np.array([1.5, 2.5]), "y": np.array([0.0, 1.0]), "z": np.zeros(2)})
+    assert out.splitlines()[0] == "name,u,v,x,y,z"
+    assert out.splitlines()[2].startswith("b,3,4,2.5")
+
+
+finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.tuples(finite, finite, finite, finite, finite), min_size=1, max_size=20,
+                unique_by=(lambda r: (r[0], r[1]), lambda r: (r[2], r[3], r[4]))))
+def test_csv_round_trip_is_exact(tmp_path, rows):
+    arr = np.array(rows, float)
+    pairs = PointPairs.from_arrays(arr[:, :2], arr[:, 2:])
+    p = tmp_path / "rt.csv"
+    p.write_text(pairs.to_csv_text())
+    back = load_pairs(p)
+    np.testing.assert_array_equal(back.uv_px, pairs.uv_px)
+    np.testing.assert_array_equal(back.xyz_mm, pairs.xyz_mm)
+    assert back.sha256() == pairs.sha256()
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.one_of(st.text(max_size=200), st.binary(max_size=200)))
+def test_garbage_raises_only_input_error(tmp_path, content):
+    p = tmp_path / "g.csv"
+    if isinstance(content, bytes):
+        p.write_bytes(content)
+    else:
+        p.write_text(content, encoding="utf-8")
+    try:
+        pairs = load_pairs(p)
+    except InputError as exc:
+        assert "\n" not in str(exc)
+    else:  # whatever loads is finite and consistent
+        assert np.isfinite(pairs.uv_px).all() and len(pairs.ids) == len(pairs.uv_px)
