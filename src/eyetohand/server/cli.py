@@ -1,0 +1,124 @@
+"""``eyetohand serve``: the workbench page and JSON API (uvicorn), and optionally the TCP line service."""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import os
+import sys
+
+from ..errors import InputError
+
+
+class ServeError(InputError):
+    """Bad ``serve`` options (exit 2)."""
+
+
+def is_loopback(host: str) -> bool:
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def parse_hostport(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ServeError(f"--tcp: expected HOST:PORT (e.g. 127.0.0.1:7001), got {text!r}")
+    return host.strip("[]"), int(port)
+
+
+def check_options(args) -> None:
+    """Refuse unsafe or incomplete option sets before anything binds."""
+    if args.token is not None and len(args.token) < 8:
+        raise ServeError("--token: use at least 8 characters")
+    if not is_loopback(args.host) and not args.token:
+        raise ServeError(
+            f"--host {args.host}: serving beyond this machine needs --token T "
+            "(or EYETOHAND_TOKEN); refusing to start without one"
+        )
+    if args.tcp:
+        host, _ = parse_hostport(args.tcp)
+        if not is_loopback(host) and not args.token:
+            raise ServeError(f"--tcp {args.tcp}: a non-loopback address needs --token T; refusing to start")
+        if not args.calibration:
+            raise ServeError("--tcp needs --calibration NAME (the stored calibration to serve)")
+    elif args.calibration:
+        raise ServeError("--calibration is for the TCP service: give --tcp HOST:PORT too")
+
+
+async def _serve(args, data_dir) -> None:
+    import uvicorn
+
+    from .app import LOOPBACK_HOSTS, create_app
+    from .storage import NotFound, Store
+    from .tcp import LineServer
+
+    line_server = None
+    if args.tcp:
+        host, port = parse_hostport(args.tcp)
+        store = Store(data_dir)
+        try:
+            rec = store.find(args.calibration)
+            ver = store.version(rec.id)
+        except NotFound as exc:
+            raise ServeError(f"--calibration: {exc} in {store.path}") from None
+        finally:
+            store.close()
+        from ..calibration import Calibration
+
+        cal = Calibration.from_dict(ver.calibration, f"calibration {rec.name!r}")
+        line_server = LineServer(cal, host, port, token=args.token)
+        await line_server.start()
+        print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with calibration {rec.name!r} "
+              f"(id {rec.id}, version {ver.version}, model {cal.model_name})", flush=True)
+
+    app = create_app(data_dir, token=args.token,
+                     allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None)
+    print(f"workbench: http://{args.host}:{args.port}/  (API docs: /docs; data: {data_dir})", flush=True)
+    config = uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level,
+                            timeout_graceful_shutdown=5)
+    server = uvicorn.Server(config)
+    try:
+        await server.serve()
+    finally:
+        if line_server is not None:
+            line_server.close()
+
+
+def cmd_serve(args) -> int:
+    from .storage import default_data_dir
+
+    args.token = args.token or os.environ.get("EYETOHAND_TOKEN") or None
+    check_options(args)
+    data_dir = args.data or default_data_dir()
+    try:
+        asyncio.run(_serve(args, data_dir))
+    except OSError as exc:
+        print(f"error: cannot serve: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="the calibration workbench (web page + JSON API) and the TCP positioning service",
+    )
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1; a non-loopback one needs --token)")
+    p.add_argument("--port", type=int, default=8765, help="HTTP port (default 8765)")
+    p.add_argument("--data", metavar="DIR", default=None,
+                   help="folder of the calibration database (default: $XDG_DATA_HOME/eyetohand "
+                        "or ~/.local/share/eyetohand)")
+    p.add_argument("--token", default=None,
+                   help="require 'Authorization: Bearer T' on the API (and 'AUTH T' on TCP); "
+                        "default $EYETOHAND_TOKEN")
+    p.add_argument("--tcp", metavar="HOST:PORT", default=None,
+                   help="also answer 'u,v[,z]' lines with 'x,y,z' on this TCP address")
+    p.add_argument("--calibration", metavar="NAME", default=None,
+                   help="stored calibration (name or id) the TCP service uses (its current version)")
+    p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    p.set_defaults(func=cmd_serve)

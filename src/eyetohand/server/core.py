@@ -1,0 +1,337 @@
+"""What the app does with a request, without HTTP: build pairs, fit, summarise, map, run jobs."""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+import uuid
+from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..errors import InputError
+from ..evaluate import Stats, stats_from_residuals
+from ..fit import calibrate
+from ..pairs import PointPairs, pairs_from_records
+from .schemas import FitOptions
+
+
+class ApiError(Exception):
+    """An error answered as ``{"error": message, "field": field}`` with ``status``."""
+
+    def __init__(self, status: int, message: str, field: str | None = None, line: int | None = None):
+        super().__init__(message)
+        self.status = status
+        self.message = message
+        self.field = field
+        self.line = line
+
+
+_ENTRY = re.compile(r"\b(pairs|check)\[(\d+)\](?:, field '(\w+)')?")
+_LINE = re.compile(r" line (\d+)(?:, field '(\w+)')?")
+
+
+def input_error(exc: InputError, default_field: str | None = None, status: int = 422) -> ApiError:
+    """An InputError from the library as an ApiError naming the field (``pairs[3].u``) when it can."""
+    msg = str(exc)
+    m = _ENTRY.search(msg)
+    if m:
+        fld = f"{m.group(1)}[{m.group(2)}]" + (f".{m.group(3)}" if m.group(3) else "")
+        return ApiError(status, msg, fld)
+    m = _LINE.search(msg)
+    if m:
+        return ApiError(status, msg, default_field, int(m.group(1)))
+    return ApiError(status, msg, default_field)
+
+
+def to_pairs(records, label: str) -> PointPairs:
+    """Validated PointPairs from request records; errors name ``label[i].field``."""
+    recs = [{k: v for k, v in r.model_dump().items() if v is not None} for r in records]
+    try:
+        return pairs_from_records(recs, source=label)
+    except InputError as exc:
+        # the loader says "<label> pairs[i]"; the request field is "<label>[i]"
+        raise input_error(InputError(str(exc).replace(f"{label} pairs[", f"{label}[")), label) from None
+
+
+def parse_text(text: str, source: str) -> PointPairs:
+    """Pairs from CSV or JSON text, with the same rules and messages as ``eyetohand calibrate``."""
+    from .. import pairs as _pairs
+
+    name = source.strip() or "pasted"
+    if "\x00" in text:
+        raise ApiError(422, f"{name}: binary data, expected CSV or JSON text", "text")
+    try:
+        if text.lstrip().startswith(("{", "[")):
+            return _pairs._parse_json(text, name)
+        if not text.strip():
+            raise InputError(f"{name}: empty, expected a header line 'u,v,x,y[,z][,id]' and rows")
+        return _pairs._parse_csv(text, name)
+    except InputError as exc:
+        err = input_error(exc, "text")
+        err.field = "text"
+        if err.line is None:
+            m = re.search(r"pairs\[(\d+)\]", str(exc))
+            if m:
+                err.field = f"text: pairs[{m.group(1)}]"
+        raise err from None
+
+
+@dataclass
+class Fitted:
+    """A fit's result: the calibration with the inputs it was made from."""
+
+    calibration: Calibration
+    pairs: PointPairs  # every pair given, excluded ones included
+    check: PointPairs | None
+    excluded: tuple[str, ...]
+    request: dict
+
+    def summary(self) -> dict:
+        return summarize(self.calibration, self.pairs, self.check, self.excluded)
+
+
+def split_excluded(pairs: PointPairs, exclude) -> tuple[PointPairs, PointPairs | None]:
+    ids = list(pairs.ids)
+    for i, pid in enumerate(exclude):
+        if pid not in ids:
+            raise ApiError(422, f"exclude[{i}]: no pair with id {pid!r}", f"exclude[{i}]")
+    mask = np.array([pid in set(exclude) for pid in ids], bool)
+    if mask.all():
+        raise ApiError(422, "exclude: every pair is excluded; nothing is left to fit", "exclude")
+    kept = pairs.subset(~mask)
+    return kept, (pairs.subset(mask) if mask.any() else None)
+
+
+def fit(opts: FitOptions, callback=None) -> Fitted:
+    pairs = to_pairs(opts.pairs, "pairs")
+    check = to_pairs(opts.check, "check") if opts.check else None
+    kept, _ = split_excluded(pairs, opts.exclude)
+    try:
+        cal = calibrate(
+            kept, model=opts.model, optimizer=opts.optimizer, objective=opts.objective, check=check,
+            image_size=opts.image_size, seed=opts.seed, callback=callback,
+            n_particles=opts.particles, iterations=opts.iterations,
+        )
+    except InputError as exc:
+        raise input_error(exc, "pairs") from None
+    except np.linalg.LinAlgError as exc:
+        raise ApiError(422, f"pairs: the model cannot be solved on these pairs ({exc})", "pairs") from None
+    request = opts.model_dump(exclude={"pairs", "check", "name", "note"})
+    return Fitted(cal, pairs, check, tuple(opts.exclude), request)
+
+
+def _finite(x) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def _vectors(cal: Calibration, pairs: PointPairs | None) -> list[dict]:
+    """Per pair: the image displacement that its robot-space error corresponds to (px)."""
+    if pairs is None:
+        return []
+    try:
+        with np.errstate(all="ignore"):
+            back = cal.robot_to_image(pairs.xyz_mm)
+            d = pairs.uv_px - back
+    except Exception:  # a model without a usable inverse: no arrows, the table still shows errors
+        d = np.full((len(pairs), 2), np.nan)
+    return [
+        {"id": pid, "u": float(uv[0]), "v": float(uv[1]), "du_px": _finite(dd[0]), "dv_px": _finite(dd[1])}
+        for pid, uv, dd in zip(pairs.ids, pairs.uv_px, d, strict=True)
+    ]
+
+
+def _stats(s: Stats | None) -> dict | None:
+    return None if s is None else s.to_dict()
+
+
+def summarize(cal: Calibration, pairs: PointPairs, check: PointPairs | None, excluded=()) -> dict:
+    kept, out = split_excluded(pairs, list(excluded)) if excluded else (pairs, None)
+    ex_stats = None
+    if out is not None:
+        ex_stats = stats_from_residuals(cal.model.residuals(out.uv_px, out.xyz_mm), out.ids)
+    fit = cal.fit
+    return {
+        "model": cal.model_name,
+        "optimizer": fit.optimizer,
+        "objective": fit.objective,
+        "fitness_mm": _finite(fit.fitness),
+        "history": [_finite(h) for h in fit.history],
+        "nfev": int(fit.nfev),
+        "seconds": float(fit.seconds),
+        "seed": fit.seed,
+        "uses_z": bool(cal.model.uses_z),
+        "plane_z_mm": cal.model.meta.get("plane_z_mm"),
+        "n_pairs": len(kept),
+        "excluded_ids": list(excluded),
+        "notes": list(cal.notes),
+        "selection": cal.selection,
+        "train": cal.train.to_dict(),
+        "loo": _stats(cal.loo),
+        "check": _stats(cal.check),
+        "excluded": _stats(ex_stats),
+        "vectors": {"train": _vectors(cal, kept), "check": _vectors(cal, check),
+                    "excluded": _vectors(cal, out)},
+    }
+
+
+def map_points(cal: Calibration, points: np.ndarray, z) -> np.ndarray:
+    """(N, 2) px → (N, 3) mm, with the request's ``z`` (None, a number, or one per point)."""
+    if isinstance(z, list):
+        if len(z) != len(points):
+            raise ApiError(422, f"z: {len(z)} heights for {len(points)} points; give one, or one per point",
+                           "z")
+        z = np.asarray(z, float)
+    try:
+        with np.errstate(all="ignore"):
+            out = cal.image_to_robot(points, z)
+    except InputError as exc:
+        raise ApiError(422, str(exc), "z" if "z" in str(exc) else "points") from None
+    if not np.isfinite(out).all():
+        i = int(np.flatnonzero(~np.isfinite(out).all(axis=1))[0])
+        raise ApiError(422, f"points[{i}]: maps to no finite robot point (on the model's horizon)",
+                       f"points[{i}]")
+    return out
+
+
+# ---------------------------------------------------------------------- background jobs
+
+
+@dataclass
+class Job:
+    id: str
+    kind: str
+    iterations: int
+    status: str = "queued"
+    phase: str = "waiting for a free worker"
+    history: list[float | None] = field(default_factory=list)
+    created: float = field(default_factory=time.monotonic)
+    started: float | None = None
+    finished: float | None = None
+    fitted: Fitted | None = None
+    compare: list[dict] | None = None
+    error: dict | None = None
+    saved: dict | None = None
+    cancel: threading.Event = field(default_factory=threading.Event)
+    done: threading.Event = field(default_factory=threading.Event)
+
+    def elapsed(self) -> float:
+        if self.started is None:
+            return 0.0
+        return (self.finished or time.monotonic()) - self.started
+
+    def view(self, since: int = 0) -> dict:
+        since = max(0, min(since, len(self.history)))
+        return {
+            "id": self.id, "kind": self.kind, "status": self.status, "phase": self.phase,
+            "iterations": self.iterations, "history_from": since, "history": self.history[since:],
+            "elapsed_s": round(self.elapsed(), 3),
+            "result": self.fitted.summary() if (self.fitted and self.status == "done") else None,
+            "compare": self.compare, "error": self.error, "saved": self.saved,
+        }
+
+
+class Jobs:
+    """Fits and comparisons run one at a time on a worker thread (the machine's cores go to the
+    solver's vectorised numpy); at most ``max_pending`` wait. Finished jobs are kept (the latest
+    ``keep``) so that their results can be saved, mapped through or looked at again."""
+
+    def __init__(self, max_pending: int = 8, keep: int = 50, workers: int = 1):
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="eyetohand-job")
+        self._jobs: OrderedDict[str, Job] = OrderedDict()
+        self._lock = threading.Lock()
+        self.max_pending = max_pending
+        self.keep = keep
+
+    def get(self, job_id: str) -> Job:
+        with self._lock:
+            job = self._jobs.get(job_id)
+        if job is None:
+            raise ApiError(404, f"no job {job_id!r} (finished jobs are kept until {self.keep} newer ones)",
+                           "id")
+        return job
+
+    def submit(self, kind: str, work, iterations: int = 0) -> Job:
+        with self._lock:
+            pending = sum(1 for j in self._jobs.values() if j.status in ("queued", "running"))
+            if pending >= self.max_pending:
+                raise ApiError(429, f"{pending} jobs are queued or running; wait for one to finish")
+            job = Job(uuid.uuid4().hex, kind, iterations)
+            self._jobs[job.id] = job
+            finished = [k for k, j in self._jobs.items() if j.done.is_set()]
+            for k in finished[: max(0, len(finished) - self.keep)]:
+                del self._jobs[k]
+        self._pool.submit(self._run, job, work)
+        return job
+
+    def _run(self, job: Job, work) -> None:
+        if job.cancel.is_set():
+            job.status, job.phase = "cancelled", "cancelled before it started"
+            job.done.set()
+            return
+        job.status, job.started = "running", time.monotonic()
+        try:
+            work(job)
+            if job.cancel.is_set():
+                job.status, job.phase, job.fitted = "cancelled", "cancelled", None
+            else:
+                job.status, job.phase = "done", "done"
+        except ApiError as exc:
+            job.status, job.phase = "failed", "failed"
+            job.error = {"status": exc.status, "error": exc.message, "field": exc.field, "line": exc.line}
+        except Exception as exc:  # noqa: BLE001 - a job must report, not vanish
+            job.status, job.phase = "failed", "failed"
+            job.error = {"status": 500, "error": f"internal error: {type(exc).__name__}: {exc}",
+                         "field": None}
+        finally:
+            job.finished = time.monotonic()
+            job.done.set()
+
+    def fit_job(self, opts: FitOptions) -> Job:
+        pso = opts.optimizer in ("pso", "hybrid-pso")
+
+        def work(job: Job) -> None:
+            job.phase = ("choosing the model by cross-validation, then fitting" if opts.model == "auto"
+                         else f"fitting {opts.model} with {opts.optimizer}")
+
+            def progress(iteration, best, *_):
+                job.history.append(_finite(best))
+                if iteration + 1 >= opts.iterations:
+                    job.phase = "leave-one-out refits and check points"
+                else:
+                    job.phase = f"{opts.optimizer}: iteration {iteration + 1} of {opts.iterations}"
+                return job.cancel.is_set()
+
+            job.fitted = fit(opts, progress if pso else None)
+            if not pso:
+                job.history = list(job.fitted.summary()["history"])
+
+        return self.submit("fit", work, opts.iterations if pso else 0)
+
+    def compare_job(self, pairs: PointPairs, check: PointPairs, seed: int) -> Job:
+        from ..compare import compare
+
+        def work(job: Job) -> None:
+            job.phase = "fitting every model with every solver, then scoring on the check points"
+            try:
+                rows = compare(pairs, check, seed=seed)
+            except InputError as exc:
+                raise input_error(exc, "pairs") from None
+            job.compare = [{k: (_finite(v) if isinstance(v, float) else v) for k, v in r.items()}
+                           for r in rows]
+            for r in job.compare:
+                if "check_errors_mm" in r:
+                    r["check_errors_mm"] = [_finite(e) for e in r["check_errors_mm"]]
+
+        return self.submit("compare", work)
+
+    def shutdown(self) -> None:
+        with self._lock:
+            for j in self._jobs.values():
+                j.cancel.set()
+        self._pool.shutdown(wait=True, cancel_futures=True)

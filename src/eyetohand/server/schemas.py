@@ -1,0 +1,274 @@
+"""Request and response models of the JSON API: they are the OpenAPI schema (types, units, limits)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..models import MODEL_CHOICES
+from ..objectives import OBJECTIVES
+from ..solvers import OPTIMIZERS
+
+MAX_BODY_BYTES = 64 * 1024 * 1024
+"""Largest request body (bytes); a larger one gets 413."""
+MAX_POINTS = 1_000_000
+"""Most image points in one image-to-robot request; more gets 413."""
+MAX_PAIRS = 5_000
+"""Most point pairs (or check pairs) in one fit request."""
+MAX_TEXT_CHARS = 16 * 1024 * 1024
+"""Longest CSV/JSON text sent to /api/pairs/parse."""
+MAX_NAME = 100
+MAX_PARTICLES = 1000
+MAX_ITERATIONS = 1000
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Name = Annotated[
+    str,
+    Field(min_length=1, max_length=MAX_NAME, pattern=r"^[^\x00-\x1f\x7f]*\S[^\x00-\x1f\x7f]*$",
+          description="display name: 1–100 printable characters, stored as data only"),
+]
+Px = Annotated[int, Field(ge=1, le=100_000)]
+ModelName = Literal[MODEL_CHOICES]  # type: ignore[valid-type]
+OptimizerName = Literal[OPTIMIZERS]  # type: ignore[valid-type]
+ObjectiveName = Literal[OBJECTIVES]  # type: ignore[valid-type]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class PairIn(Strict):
+    """One point pair: the image centre (u, v) in px and the robot position (x, y, z) in mm."""
+
+    id: str | None = Field(None, min_length=1, max_length=64, description="pair id (default: its index)")
+    u: Finite = Field(description="image column, px")
+    v: Finite = Field(description="image row, px")
+    x: Finite = Field(description="robot x, mm")
+    y: Finite = Field(description="robot y, mm")
+    z: Finite | None = Field(None, description="robot z, mm (all pairs or none; none means z = 0)")
+
+
+class FitOptions(Strict):
+    pairs: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS, description="calibration pairs")
+    check: list[PairIn] | None = Field(
+        None, min_length=1, max_length=MAX_PAIRS, description="check pairs, not used for fitting")
+    model: ModelName = Field("auto", description="transform model; 'auto' picks by cross-validation")
+    optimizer: OptimizerName = Field("lm", description="solver refining the model")
+    objective: ObjectiveName = Field("l2", description="robot-space objective (mm)")
+    seed: int | None = Field(None, ge=0, le=2**32 - 1, description="seed of the stochastic solvers")
+    exclude: list[Annotated[str, Field(max_length=64)]] = Field(
+        default_factory=list, max_length=MAX_PAIRS,
+        description="ids of pairs left out of the fit (their errors are still reported)")
+    particles: int = Field(200, ge=2, le=MAX_PARTICLES, description="swarm size (pso, hybrid-pso)")
+    iterations: int = Field(150, ge=1, le=MAX_ITERATIONS, description="iterations (pso, hybrid-pso)")
+    image_size: tuple[Px, Px] | None = Field(
+        None, description="image width and height, px (sets the distortion centre)")
+
+
+class CreateCalibration(FitOptions):
+    name: Name
+
+
+class NewVersion(FitOptions):
+    note: str = Field("refit", max_length=200, description="what changed")
+
+
+class SaveJob(Strict):
+    name: Name | None = Field(None, description="save as a new calibration with this name")
+    calibration_id: int | None = Field(
+        None, ge=1, le=2**62, description="or: add the result as a new version of this calibration")
+    note: str = Field("", max_length=200)
+
+
+class Rename(Strict):
+    name: Name
+
+
+class Rollback(Strict):
+    version: int = Field(ge=1, le=2**62, description="the version to make current again")
+
+
+class MapRequest(Strict):
+    points: list[tuple[Finite, Finite]] = Field(
+        min_length=1, json_schema_extra={"maxItems": MAX_POINTS},
+        description=f"image points [u, v] in px; at most {MAX_POINTS} (more gets 413)")
+    z: Finite | list[Finite] | None = Field(
+        None, description="object height, mm: one value, one per point, or none (calibration plane)")
+
+
+class MapResponse(BaseModel):
+    id: int | None = Field(None, description="calibration id (absent for an unsaved job result)")
+    version: int | None = None
+    units: Literal["mm"] = "mm"
+    points: list[tuple[float, float, float]] = Field(description="robot points [x, y, z] in mm")
+
+
+class ParseRequest(Strict):
+    text: str = Field(min_length=1, max_length=MAX_TEXT_CHARS,
+                      description="CSV with header u,v,x,y[,z][,id], or JSON {\"pairs\": [...]}")
+    source: str = Field("pasted", max_length=200, pattern=r"^[^\x00-\x1f\x7f]*$",
+                        description="label used in error messages (e.g. the file's name); data only")
+
+
+class PairOut(BaseModel):
+    id: str
+    u: float
+    v: float
+    x: float
+    y: float
+    z: float
+
+
+class ParseResponse(BaseModel):
+    source: str
+    n: int
+    pairs: list[PairOut]
+    notes: list[str]
+    z_levels_mm: list[float]
+
+
+class PointErrorOut(BaseModel):
+    id: str
+    dx_mm: float
+    dy_mm: float
+    dz_mm: float
+    error_mm: float
+    outlier: bool
+
+
+class StatsOut(BaseModel):
+    n: int
+    rms_mm: float
+    mean_mm: float
+    max_mm: float
+    p95_mm: float
+    outliers: list[str]
+    points: list[PointErrorOut]
+
+
+class VectorOut(BaseModel):
+    id: str
+    u: float
+    v: float
+    du_px: float | None = Field(description="image displacement equivalent to the error, px")
+    dv_px: float | None
+
+
+class Summary(BaseModel):
+    """A fitted calibration: how it was made and how good it is (all errors in mm)."""
+
+    model: str
+    optimizer: str
+    objective: str
+    fitness_mm: float | None
+    history: list[float | None] = Field(description="best fitness after each iteration, mm")
+    nfev: int
+    seconds: float
+    seed: int | None
+    uses_z: bool
+    plane_z_mm: float | None
+    n_pairs: int
+    excluded_ids: list[str]
+    notes: list[str]
+    selection: dict[str, Any] | None
+    train: StatsOut
+    loo: StatsOut | None
+    check: StatsOut | None
+    excluded: StatsOut | None
+    vectors: dict[str, list[VectorOut]]
+
+
+class CalibrationOut(BaseModel):
+    id: int
+    name: str
+    version: int = Field(description="the version shown")
+    current_version: int
+    created_utc: str
+    updated_utc: str
+    note: str
+    request: dict[str, Any]
+    summary: Summary
+
+
+class CalibrationDetail(CalibrationOut):
+    pairs: list[PairOut]
+    check: list[PairOut] | None
+    calibration: dict[str, Any] = Field(description="the calibration file (what `eyetohand apply` reads)")
+
+
+class CalibrationBrief(BaseModel):
+    id: int
+    name: str
+    current_version: int
+    updated_utc: str
+    model: str
+    optimizer: str
+    fitness_mm: float | None
+    train_rms_mm: float
+    check_rms_mm: float | None
+
+
+class VersionBrief(BaseModel):
+    version: int
+    created_utc: str
+    note: str
+    model: str
+    optimizer: str
+    fitness_mm: float | None
+    train_rms_mm: float
+    check_rms_mm: float | None
+
+
+class VersionList(BaseModel):
+    id: int
+    name: str
+    current_version: int
+    versions: list[VersionBrief]
+
+
+class EvaluateRequest(Strict):
+    pairs: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
+
+
+class CompareRequest(Strict):
+    pairs: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
+    check: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
+    seed: int = Field(0, ge=0, le=2**32 - 1)
+
+
+class JobCreated(BaseModel):
+    id: str
+    kind: Literal["fit", "compare"]
+    status: str
+
+
+class JobOut(BaseModel):
+    id: str
+    kind: Literal["fit", "compare"]
+    status: Literal["queued", "running", "done", "failed", "cancelled"]
+    phase: str
+    iterations: int = Field(description="iterations expected (PSO), else 0")
+    history_from: int = Field(description="index of the first entry of history in this answer")
+    history: list[float | None] = Field(description="best fitness after each iteration so far, mm")
+    elapsed_s: float
+    result: Summary | None = None
+    compare: list[dict[str, Any]] | None = None
+    error: dict[str, Any] | None = None
+    saved: dict[str, Any] | None = None
+
+
+class ErrorOut(BaseModel):
+    error: str = Field(description="what is wrong, in one line")
+    field: str | None = Field(None, description="the request field it is about, e.g. pairs[3].u")
+    line: int | None = Field(None, description="line of the pasted/uploaded text, when it is about one")
+
+
+class Meta(BaseModel):
+    version: str
+    models: list[str]
+    optimizers: list[str]
+    objectives: list[str]
+    presets: dict[str, dict[str, Any]]
+    limits: dict[str, int]
+    auth: bool
