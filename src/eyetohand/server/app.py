@@ -74,6 +74,9 @@ STATIC_DIR = Path(str(resources.files("eyetohand.server") / "static"))
 PAPER_PRESET = {"model": "paper", "optimizer": "hybrid-pso", "objective": "l2", "particles": 200,
                 "iterations": 150, "seed": 0}
 LOOPBACK_HOSTS = ["127.0.0.1", "localhost", "::1", "[::1]"]
+FAVICON = (b'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 16 16">'
+           b'<circle cx="8" cy="8" r="6" fill="none" stroke="#1f5fae" stroke-width="2"/>'
+           b'<circle cx="8" cy="8" r="2" fill="#1f5fae"/></svg>')
 
 CalId = Annotated[int, PathParam(ge=1, le=2**62, description="calibration id")]
 VersionQ = Annotated[int | None, Query(ge=1, le=2**62, description="version (default: current)")]
@@ -360,6 +363,10 @@ def create_app(
     @app.get("/", include_in_schema=False)
     def index():
         return FileResponse(STATIC_DIR / "index.html", headers={"Cache-Control": "no-store"})
+
+    @app.get("/favicon.ico", include_in_schema=False)
+    def favicon():
+        return Response(FAVICON, media_type="image/svg+xml")
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 

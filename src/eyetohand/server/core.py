@@ -299,12 +299,13 @@ class Jobs:
             job.phase = ("choosing the model by cross-validation, then fitting" if opts.model == "auto"
                          else f"fitting {opts.model} with {opts.optimizer}")
 
-            def progress(iteration, best, *_):
+            def progress(_iteration, best, *_):
                 job.history.append(_finite(best))
-                if iteration + 1 >= opts.iterations:
+                done = len(job.history)
+                if done >= opts.iterations:
                     job.phase = "leave-one-out refits and check points"
                 else:
-                    job.phase = f"{opts.optimizer}: iteration {iteration + 1} of {opts.iterations}"
+                    job.phase = f"{opts.optimizer}: iteration {done} of {opts.iterations}"
                 return job.cancel.is_set()
 
             job.fitted = fit(opts, progress if pso else None)

@@ -1,0 +1,728 @@
+// eyetohand workbench: plain JS, no build step, no external resources.
+"use strict";
+
+const $ = (sel) => document.querySelector(sel);
+const state = {
+  meta: null,
+  pairs: null,        // records from /api/pairs/parse
+  check: null,
+  job: null,          // current fit job id
+  history: [],
+  iterations: 0,
+  result: null,       // Summary of the last finished fit
+  resultRequest: null,
+  excluded: new Set(),
+  saved: [],
+  poll: null,
+};
+
+// ------------------------------------------------------------------ helpers
+
+function fmt(x, digits = 4) {
+  if (x === null || x === undefined || Number.isNaN(x)) return "–";
+  return Number(x).toFixed(digits);
+}
+function esc(s) {
+  return String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
+}
+function el(tag, attrs = {}, text = null) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+  if (text !== null) e.textContent = text;
+  return e;
+}
+function td(text, cls) { const c = el("td", cls ? { class: cls } : {}, text); return c; }
+
+async function api(method, path, body) {
+  const headers = {};
+  const tok = $("#token").value;
+  if (tok) headers["Authorization"] = "Bearer " + tok;
+  const opts = { method, headers };
+  if (body !== undefined) { headers["Content-Type"] = "application/json"; opts.body = JSON.stringify(body); }
+  let resp;
+  try { resp = await fetch(path, opts); }
+  catch (e) { return { ok: false, status: 0, data: { error: "cannot reach the server (" + e.message + ")", field: null } }; }
+  let data = null;
+  if (resp.status !== 204) {
+    const text = await resp.text();
+    try { data = text ? JSON.parse(text) : null; }
+    catch { data = { error: `HTTP ${resp.status}: ${text.slice(0, 200)}`, field: null }; }
+  }
+  if (resp.status === 401) { $("#token-box").hidden = false; }
+  return { ok: resp.ok, status: resp.status, data };
+}
+
+// Show an API error next to where it happened: the box `boxId`, plus the field's own marker.
+function showError(boxId, err, scope) {
+  const box = $(boxId);
+  const where = err.line ? ` (line ${err.line})` : "";
+  box.textContent = (err.error || "error") + where;
+  box.hidden = false;
+  const field = err.field || "";
+  const root = scope ? $(scope) : document;
+  root.querySelectorAll(".field-err").forEach((s) => {
+    if (s.dataset.field === field || field.startsWith(s.dataset.field + "[")) {
+      s.textContent = err.error;
+      const input = s.parentElement.querySelector("input, select");
+      if (input) input.classList.add("bad");
+    }
+  });
+  return field;
+}
+function clearError(boxId, scope) {
+  $(boxId).hidden = true;
+  $(boxId).textContent = "";
+  const root = scope ? $(scope) : document;
+  root.querySelectorAll(".field-err").forEach((s) => { s.textContent = ""; });
+  root.querySelectorAll(".bad").forEach((e) => e.classList.remove("bad"));
+}
+
+// ------------------------------------------------------------------ 1. point pairs
+
+async function loadPairs(set, text, source) {
+  clearError(`#${set}-err`, `#loader-${set}`);
+  $(`#${set}-notes`).innerHTML = "";
+  const r = await api("POST", "/api/pairs/parse", { text, source });
+  if (!r.ok) {
+    showError(`#${set}-err`, r.data);
+    $(`#${set}-text`).classList.add("bad");
+    state[set] = null;
+    $(`#${set}-count`).textContent = "not loaded";
+    $(`#${set}-count`).classList.remove("ok");
+    updateButtons();
+    return;
+  }
+  const d = r.data;
+  state[set] = d.pairs.map((p) => ({ id: p.id, u: p.u, v: p.v, x: p.x, y: p.y, z: p.z }));
+  if (set === "pairs") state.excluded = new Set();
+  const z = d.z_levels_mm.length === 1 ? `z = ${fmt(d.z_levels_mm[0], 4)} mm` : `${d.z_levels_mm.length} heights`;
+  $(`#${set}-count`).textContent = `${d.n} pairs from ${d.source}, ${z}`;
+  $(`#${set}-count`).classList.add("ok");
+  for (const n of d.notes) $(`#${set}-notes`).appendChild(el("li", {}, n));
+  updateButtons();
+}
+
+function wireLoader(set) {
+  $(`#${set}-file`).addEventListener("change", async (ev) => {
+    const f = ev.target.files[0];
+    if (!f) return;
+    const limit = state.meta ? state.meta.limits.max_text_chars : 16 * 2 ** 20;
+    if (f.size > limit) {
+      showError(`#${set}-err`, { error: `${f.name}: ${f.size} bytes, more than the ${limit} byte limit`, field: "text" });
+      return;
+    }
+    const text = await f.text();
+    $(`#${set}-text`).value = text;
+    await loadPairs(set, text, f.name);
+  });
+  $(`#${set}-load`).addEventListener("click", () => loadPairs(set, $(`#${set}-text`).value, "pasted text"));
+}
+
+// ------------------------------------------------------------------ 2. model and solver
+
+function fillSelect(sel, values, value) {
+  const s = $(sel);
+  s.innerHTML = "";
+  for (const v of values) s.appendChild(el("option", { value: v }, v));
+  if (value) s.value = value;
+}
+
+function applyPreset() {
+  if ($("#preset").value !== "paper") return;
+  const p = state.meta.presets.paper;
+  $("#model").value = p.model;
+  $("#optimizer").value = p.optimizer;
+  $("#objective").value = p.objective;
+  $("#particles").value = p.particles;
+  $("#iterations").value = p.iterations;
+  $("#seed").value = p.seed;
+  updateButtons();
+}
+
+function fitRequest() {
+  const req = {
+    pairs: state.pairs,
+    model: $("#model").value,
+    optimizer: $("#optimizer").value,
+    objective: $("#objective").value,
+    exclude: [...state.excluded],
+  };
+  if (state.check) req.check = state.check;
+  const num = (id) => ($(id).value === "" ? null : Number($(id).value));
+  if ($("#optimizer").value.includes("pso")) {
+    req.particles = num("#particles");
+    req.iterations = num("#iterations");
+    req.seed = num("#seed");
+  }
+  for (const k of ["particles", "iterations", "seed"]) if (req[k] === null) delete req[k];
+  return req;
+}
+
+async function runFit() {
+  clearError("#fit-err", "#sec-fit");
+  clearError("#fit-err");
+  if (!state.pairs) { showError("#fit-err", { error: "load calibration pairs first (section 1)", field: "pairs" }); return; }
+  const req = fitRequest();
+  const r = await api("POST", "/api/jobs/fit", req);
+  if (!r.ok) { reportFitError(r.data); return; }
+  startJob(r.data.id, req);
+}
+
+function reportFitError(err) {
+  const field = showError("#fit-err", err, "#sec-fit");
+  const m = /^(pairs|check)\[(\d+)\]/.exec(field || "");
+  if (m) {  // point at the row of the table the pair came from
+    const box = m[1] === "pairs" ? "#pairs-err" : "#check-err";
+    showError(box, { error: `row ${Number(m[2]) + 1} of the loaded ${m[1] === "pairs" ? "pairs" : "check points"}: ${err.error}` });
+  } else if (field === "pairs" || field === "exclude" || (field || "").startsWith("exclude")) {
+    $("#fit-err").textContent = err.error;
+  }
+}
+
+function startJob(id, req) {
+  state.job = id;
+  state.history = [];
+  state.iterations = req.optimizer.includes("pso") ? (req.iterations || 150) : 0;
+  state.resultRequest = req;
+  $("#run").disabled = true;
+  $("#cancel").disabled = false;
+  setJobState({ status: "queued", phase: "submitted", elapsed_s: 0 });
+  drawCurve();
+  if (state.poll) clearTimeout(state.poll);
+  pollJob();
+}
+
+async function pollJob() {
+  const id = state.job;
+  const r = await api("GET", `/api/jobs/${id}?since=${state.history.length}`);
+  if (id !== state.job) return;
+  if (!r.ok) { showError("#fit-err", r.data); finishJob(); return; }
+  const j = r.data;
+  if (j.history_from === state.history.length) state.history.push(...j.history);
+  if (j.iterations) state.iterations = j.iterations;
+  setJobState(j);
+  drawCurve();
+  if (j.status === "queued" || j.status === "running") { state.poll = setTimeout(pollJob, 150); return; }
+  finishJob();
+  if (j.status === "done") showResult(j.result, null);
+  else if (j.status === "failed") reportFitError(j.error);
+  else showError("#fit-err", { error: "the fit was cancelled; nothing changed" });
+}
+
+function finishJob() {
+  $("#run").disabled = !state.pairs;
+  $("#cancel").disabled = true;
+}
+
+function setJobState(j) {
+  const s = $("#job-status");
+  s.textContent = j.status;
+  s.className = "status-" + j.status;
+  $("#job-phase").textContent = j.phase || "–";
+  const n = state.history.length;
+  $("#job-iter").textContent = state.iterations ? `${n} of ${state.iterations}` : (n ? "closed form / LM" : "–");
+  const best = n ? state.history[n - 1] : null;
+  $("#job-best").textContent = best === null ? "–" : `${fmt(best, 5)} mm`;
+  $("#job-elapsed").textContent = `${fmt(j.elapsed_s, 1)} s`;
+}
+
+// The convergence curve: best fitness (mm) against iteration, log scale when it spans a decade.
+function drawCurve() {
+  const c = $("#curve");
+  const ctx = c.getContext("2d");
+  const W = c.width, H = c.height, L = 76, R = 14, T = 12, B = 36;
+  ctx.clearRect(0, 0, W, H);
+  ctx.font = "12px system-ui, sans-serif";
+  ctx.fillStyle = "#5f6b7a";
+  ctx.strokeStyle = "#d5dae1";
+  ctx.strokeRect(L, T, W - L - R, H - T - B);
+  ctx.fillText("iteration", L + (W - L - R) / 2 - 24, H - 6);
+  ctx.save(); ctx.translate(12, T + (H - T - B) / 2 + 50); ctx.rotate(-Math.PI / 2);
+  ctx.fillText("best fitness (mm)", 0, 0); ctx.restore();
+  const ys = state.history.filter((v) => v !== null && v > 0);
+  c.dataset.points = String(state.history.length);
+  if (!ys.length) { ctx.fillText("no iterations yet", L + 10, T + 20); return; }
+  const nmax = Math.max(state.iterations || 0, state.history.length, 2);
+  let lo = Math.min(...ys), hi = Math.max(...ys);
+  const log = hi / lo > 10;
+  if (hi === lo) { hi = lo * 1.05; lo = lo * 0.95; }
+  const fy = log ? (v) => Math.log10(v) : (v) => v;
+  const y0 = fy(lo), y1 = fy(hi);
+  const X = (i) => L + (W - L - R) * (i / (nmax - 1 || 1));
+  const Y = (v) => T + (H - T - B) * (1 - (fy(v) - y0) / (y1 - y0 || 1));
+  // ticks
+  ctx.fillStyle = "#5f6b7a";
+  for (let k = 0; k <= 4; k++) {
+    const v = log ? 10 ** (y0 + (y1 - y0) * k / 4) : lo + (hi - lo) * k / 4;
+    const y = Y(v);
+    ctx.textAlign = "right"; ctx.fillText(v.toPrecision(4), L - 4, y + 4); ctx.textAlign = "left";
+    ctx.beginPath(); ctx.moveTo(L, y); ctx.lineTo(W - R, y); ctx.strokeStyle = "#eef0f3"; ctx.stroke();
+  }
+  for (let k = 0; k <= 5; k++) {
+    const i = Math.round((nmax - 1) * k / 5);
+    ctx.fillText(String(i + 1), X(i) - 6, H - B + 16);
+  }
+  ctx.beginPath();
+  ctx.strokeStyle = "#1f5fae"; ctx.lineWidth = 2;
+  state.history.forEach((v, i) => { if (v === null) return; const x = X(i), y = Y(v); if (i === 0) ctx.moveTo(x, y); else ctx.lineTo(x, y); });
+  ctx.stroke(); ctx.lineWidth = 1;
+  if (log) ctx.fillText("log scale", W - R - 60, T + 14);
+}
+
+// ------------------------------------------------------------------ 4. result
+
+function statsRow(tbody, label, s) {
+  if (!s) return;
+  const tr = el("tr");
+  tr.appendChild(td(label, "text"));
+  tr.appendChild(td(String(s.n)));
+  for (const k of ["rms_mm", "mean_mm", "p95_mm", "max_mm"]) tr.appendChild(td(fmt(s[k])));
+  tr.appendChild(td(s.outliers.length ? s.outliers.join(", ") : "none", "text"));
+  tbody.appendChild(tr);
+}
+
+// `saved`: {id, name, version} when the result is a stored calibration, else null (an unsaved fit).
+function showResult(sum, saved) {
+  state.result = sum;
+  state.resultSaved = saved;
+  state.excluded = new Set(sum.excluded_ids);
+  $("#sec-result").hidden = false;
+  const what = saved ? `saved “${saved.name}” version ${saved.version}` : "unsaved fit";
+  $("#result-title").textContent =
+    `${what}: model ${sum.model}, ${sum.optimizer}, objective ${sum.objective}, fitness ${fmt(sum.fitness_mm, 5)} mm, ` +
+    `${sum.n_pairs} pairs, ${fmt(sum.seconds, 2)} s`;
+  const tb = $("#stats-table tbody");
+  tb.innerHTML = "";
+  statsRow(tb, "calibration pairs (fit)", sum.train);
+  statsRow(tb, "leave-one-out", sum.loo);
+  statsRow(tb, "check points", sum.check);
+  statsRow(tb, "excluded pairs", sum.excluded);
+  const notes = $("#result-notes");
+  notes.innerHTML = "";
+  for (const n of sum.notes) notes.appendChild(el("li", {}, n));
+  if (sum.selection) notes.appendChild(el("li", {}, `auto: chose ${sum.selection.chosen} — ${sum.selection.reason}`));
+  renderTrainTable(sum);
+  renderCheckTable(sum);
+  drawVectors(sum);
+  state.history = sum.history.slice();
+  state.iterations = sum.optimizer.includes("pso") ? sum.history.length : 0;
+  drawCurve();
+  $("#save-state").textContent = saved ? `this is “${saved.name}” v${saved.version}` : "not saved yet";
+  updateButtons();
+  refreshMapSources(saved ? `cal:${saved.id}` : "job");
+}
+
+function renderTrainTable(sum) {
+  const tb = $("#train-table tbody");
+  tb.innerHTML = "";
+  const loo = new Map((sum.loo ? sum.loo.points : []).map((p) => [p.id, p.error_mm]));
+  const pts = new Map(sum.train.points.map((p) => [p.id, p]));
+  const ex = new Map((sum.excluded ? sum.excluded.points : []).map((p) => [p.id, p]));
+  const uv = new Map([...sum.vectors.train, ...sum.vectors.excluded].map((v) => [v.id, v]));
+  const ids = [...sum.vectors.train, ...sum.vectors.excluded].map((v) => v.id);
+  for (const id of ids) {
+    const p = pts.get(id) || ex.get(id);
+    const excluded = ex.has(id);
+    const tr = el("tr", { "data-id": id });
+    if (excluded) tr.classList.add("excluded");
+    if (p.outlier) tr.classList.add("outlier");
+    const cb = el("input", { type: "checkbox", "aria-label": `use pair ${id}` });
+    cb.checked = !state.excluded.has(id);
+    cb.addEventListener("change", () => {
+      if (cb.checked) state.excluded.delete(id); else state.excluded.add(id);
+      $("#refit-hint").textContent = state.excluded.size ? `${state.excluded.size} pair(s) to leave out: ${[...state.excluded].join(", ")}` : "";
+    });
+    const c0 = el("td"); c0.appendChild(cb); tr.appendChild(c0);
+    tr.appendChild(td(id, "text"));
+    tr.appendChild(td(fmt(uv.get(id).u, 2)));
+    tr.appendChild(td(fmt(uv.get(id).v, 2)));
+    for (const k of ["dx_mm", "dy_mm", "dz_mm", "error_mm"]) tr.appendChild(td(fmt(p[k])));
+    tr.appendChild(td(excluded ? "(excluded)" : fmt(loo.get(id))));
+    tb.appendChild(tr);
+  }
+  $("#refit-hint").textContent = "";
+}
+
+function renderCheckTable(sum) {
+  const tb = $("#check-table tbody");
+  tb.innerHTML = "";
+  $("#check-block").hidden = !sum.check;
+  if (!sum.check) return;
+  const src = new Map((state.check || []).map((p) => [p.id, p]));
+  const uv = new Map(sum.vectors.check.map((v) => [v.id, v]));
+  for (const p of sum.check.points) {
+    const tr = el("tr", { "data-id": p.id });
+    if (p.outlier) tr.classList.add("outlier");
+    const s = src.get(p.id) || {};
+    tr.appendChild(td(p.id, "text"));
+    tr.appendChild(td(fmt(uv.get(p.id).u, 2)));
+    tr.appendChild(td(fmt(uv.get(p.id).v, 2)));
+    tr.appendChild(td(fmt(s.x)));
+    tr.appendChild(td(fmt(s.y)));
+    for (const k of ["dx_mm", "dy_mm", "dz_mm", "error_mm"]) tr.appendChild(td(fmt(p[k])));
+    tb.appendChild(tr);
+  }
+}
+
+// Residual vectors over the image: each pair at its (u, v); the arrow is the image displacement
+// that its robot-space error corresponds to, magnified so that the largest is ~8 % of the frame.
+function drawVectors(sum) {
+  const svg = $("#vectors");
+  const NS = "http://www.w3.org/2000/svg";
+  svg.innerHTML = "";
+  const groups = [["train", sum.vectors.train, sum.train, "var(--train)"],
+                  ["check", sum.vectors.check, sum.check, "var(--check)"],
+                  ["excluded", sum.vectors.excluded, sum.excluded, "var(--excl)"]];
+  const all = groups.flatMap((g) => g[1]);
+  if (!all.length) return;
+  const us = all.map((p) => p.u), vs = all.map((p) => p.v);
+  let u0 = Math.min(...us), u1 = Math.max(...us), v0 = Math.min(...vs), v1 = Math.max(...vs);
+  const span = Math.max(u1 - u0, v1 - v0, 1);
+  const pad = span * 0.12;
+  u0 -= pad; u1 += pad; v0 -= pad; v1 += pad;
+  const Wv = 800, Hv = Math.max(300, Math.min(640, 800 * (v1 - v0) / (u1 - u0)));
+  svg.setAttribute("viewBox", `0 0 ${Wv} ${Hv + 30}`);
+  const sx = Wv / (u1 - u0), sy = Hv / (v1 - v0), s = Math.min(sx, sy);
+  const X = (u) => (u - u0) * s, Y = (v) => (v - v0) * s;
+  const lens = all.map((p) => Math.hypot(p.du_px || 0, p.dv_px || 0)).filter((x) => x > 0);
+  const maxLen = lens.length ? Math.max(...lens) : 1;
+  const gain = (0.08 * Math.hypot(Wv, Hv)) / (maxLen * s);
+  const mk = (tag, attrs) => { const e = document.createElementNS(NS, tag); for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v); return e; };
+  const defs = mk("defs", {});
+  for (const [name, , , color] of groups) {
+    const m = mk("marker", { id: `arrow-${name}`, viewBox: "0 0 10 10", refX: "9", refY: "5", markerWidth: "7", markerHeight: "7", orient: "auto-start-reverse" });
+    m.appendChild(mk("path", { d: "M0,0 L10,5 L0,10 z", fill: color }));
+    defs.appendChild(m);
+  }
+  svg.appendChild(defs);
+  svg.appendChild(mk("rect", { x: 0, y: 0, width: Wv, height: Hv, fill: "none", stroke: "#d5dae1" }));
+  for (const [name, vecs, stats, color] of groups) {
+    if (!stats) continue;
+    const err = new Map(stats.points.map((p) => [p.id, p]));
+    for (const p of vecs) {
+      const g = mk("g", { class: `pt pt-${name}`, "data-id": p.id });
+      const e = err.get(p.id);
+      const title = mk("title", {});
+      title.textContent = `${name} ${p.id}: u ${fmt(p.u, 1)} px, v ${fmt(p.v, 1)} px; error ${fmt(e.error_mm)} mm ` +
+        `(dx ${fmt(e.dx_mm)}, dy ${fmt(e.dy_mm)} mm)`;
+      g.appendChild(title);
+      g.appendChild(mk("circle", { cx: X(p.u), cy: Y(p.v), r: 4, fill: color }));
+      if (p.du_px !== null && p.dv_px !== null) {
+        g.appendChild(mk("line", { x1: X(p.u), y1: Y(p.v), x2: X(p.u) + p.du_px * gain * s, y2: Y(p.v) + p.dv_px * gain * s,
+          stroke: color, "stroke-width": 1.6, "marker-end": `url(#arrow-${name})` }));
+      }
+      const t = mk("text", { x: X(p.u) + 6, y: Y(p.v) - 6, "font-size": 11, fill: "#5f6b7a" });
+      t.textContent = p.id;
+      g.appendChild(t);
+      svg.appendChild(g);
+    }
+  }
+  // frame labels in image pixels
+  const lab = (x, y, txt, anchor) => { const t = mk("text", { x, y, "font-size": 11, fill: "#5f6b7a", "text-anchor": anchor }); t.textContent = txt; svg.appendChild(t); };
+  lab(4, Hv + 14, `u ${fmt(u0, 0)} px`, "start");
+  lab(Wv - 4, Hv + 14, `u ${fmt(u1, 0)} px`, "end");
+  lab(4, 14, `v ${fmt(v0, 0)} px`, "start");
+  lab(4, Hv - 4, `v ${fmt(v1, 0)} px`, "start");
+  svg.dataset.gain = String(gain);
+  $("#vectors-caption").innerHTML =
+    `Residual vectors over the image (u right, v down). <b style="color:var(--train)">●</b> calibration pairs, ` +
+    `<b style="color:var(--check)">●</b> check points, <b style="color:var(--excl)">●</b> excluded. ` +
+    `Each arrow is the image displacement equivalent to the pair's robot-space error, magnified ×${gain.toPrecision(3)}; ` +
+    `the tables give the errors in mm. Hover a point for its values.`;
+}
+
+// ------------------------------------------------------------------ 5. save
+
+async function saveResult(asVersion) {
+  clearError("#save-err", "#sec-save");
+  const body = { note: $("#save-note").value };
+  if (asVersion) {
+    body.calibration_id = Number($("#save-target").value);
+    if (!body.calibration_id) { showError("#save-err", { error: "no saved calibration to add a version to", field: "calibration_id" }); return; }
+  } else {
+    body.name = $("#save-name").value.trim();
+    if (!body.name) { showError("#save-err", { error: "name: give the calibration a name", field: "name" }, "#sec-save"); return; }
+  }
+  const r = await api("POST", `/api/jobs/${state.job}/save`, body);
+  if (!r.ok) { showError("#save-err", r.data, "#sec-save"); return; }
+  const d = r.data;
+  $("#save-state").textContent = `saved as “${d.name}” (id ${d.id}) version ${d.version}`;
+  state.resultSaved = { id: d.id, name: d.name, version: d.version };
+  await refreshSaved();
+  refreshMapSources(`cal:${d.id}`);
+}
+
+// ------------------------------------------------------------------ 6. map a point
+
+function refreshMapSources(select) {
+  const s = $("#map-source");
+  const prev = select || s.value;
+  s.innerHTML = "";
+  if (state.job && state.result) s.appendChild(el("option", { value: "job" }, "last fit (unsaved result)"));
+  for (const c of state.saved) s.appendChild(el("option", { value: `cal:${c.id}` }, `${c.name} (id ${c.id}, v${c.current_version})`));
+  if ([...s.options].some((o) => o.value === prev)) s.value = prev;
+}
+
+async function mapPoint() {
+  clearError("#map-err", "#sec-map");
+  const src = $("#map-source").value;
+  if (!src) { showError("#map-err", { error: "no calibration: run a fit or save one first" }); return; }
+  const u = $("#map-u").value, v = $("#map-v").value, z = $("#map-z").value;
+  const missing = [["points[0][0]", u, "u"], ["points[0][1]", v, "v"]].filter((x) => x[1] === "");
+  if (missing.length) { showError("#map-err", { error: `${missing[0][2]}: type a number of pixels`, field: missing[0][0] }, "#sec-map"); return; }
+  const body = { points: [[Number(u), Number(v)]] };
+  if (z !== "") body.z = Number(z);
+  const path = src === "job" ? `/api/jobs/${state.job}/image-to-robot` : `/api/calibrations/${src.slice(4)}/image-to-robot`;
+  const r = await api("POST", path, body);
+  if (!r.ok) { showError("#map-err", r.data, "#sec-map"); $("#map-out").textContent = "x – mm, y – mm, z – mm"; return; }
+  const p = r.data.points[0];
+  $("#map-out").textContent = `x ${fmt(p[0])} mm, y ${fmt(p[1])} mm, z ${fmt(p[2])} mm`;
+}
+
+// ------------------------------------------------------------------ 7. compare methods
+
+async function compareMethods() {
+  clearError("#compare-err");
+  if (!state.pairs || !state.check) { showError("#compare-err", { error: "load calibration pairs and check points first (section 1)" }); return; }
+  $("#compare-go").disabled = true;
+  const r = await api("POST", "/api/jobs/compare", { pairs: state.pairs, check: state.check, seed: 0 });
+  if (!r.ok) { showError("#compare-err", r.data); $("#compare-go").disabled = false; return; }
+  const id = r.data.id;
+  const tick = async () => {
+    const q = await api("GET", `/api/jobs/${id}`);
+    if (!q.ok) { showError("#compare-err", q.data); $("#compare-go").disabled = false; return; }
+    const j = q.data;
+    $("#compare-state").textContent = `${j.status}: ${j.phase} (${fmt(j.elapsed_s, 1)} s)`;
+    if (j.status === "queued" || j.status === "running") { setTimeout(tick, 300); return; }
+    $("#compare-go").disabled = false;
+    if (j.status !== "done") { showError("#compare-err", j.error || { error: j.status }); return; }
+    renderCompare(j.compare);
+  };
+  tick();
+}
+
+function renderCompare(rows) {
+  const tb = $("#compare-table tbody");
+  tb.innerHTML = "";
+  const ok = rows.filter((r) => !r.error && r.check_rms_mm !== null);
+  const best = ok.length ? Math.min(...ok.map((r) => r.check_rms_mm)) : null;
+  for (const r of rows) {
+    const tr = el("tr");
+    tr.appendChild(td(r.model, "text"));
+    tr.appendChild(td(r.optimizer, "text"));
+    if (r.error) {
+      const c = td(r.error, "errcell"); c.colSpan = 4; tr.appendChild(c); tr.classList.add("bad");
+    } else {
+      if (r.check_rms_mm === best) tr.classList.add("best");
+      tr.appendChild(td(fmt(r.fitness_mm, 5)));
+      tr.appendChild(td(fmt(r.check_rms_mm)));
+      tr.appendChild(td(fmt(r.check_max_mm)));
+      tr.appendChild(td(fmt(r.seconds, 2)));
+    }
+    tb.appendChild(tr);
+  }
+  $("#compare-table").hidden = false;
+}
+
+// ------------------------------------------------------------------ 8. saved calibrations
+
+async function refreshSaved() {
+  const r = await api("GET", "/api/calibrations");
+  if (!r.ok) { showError("#saved-err", r.data); return; }
+  state.saved = r.data;
+  const tb = $("#saved-table tbody");
+  tb.innerHTML = "";
+  const target = $("#save-target");
+  const prevTarget = target.value;
+  target.innerHTML = "";
+  for (const c of r.data) {
+    target.appendChild(el("option", { value: c.id }, `${c.name} (id ${c.id})`));
+    const tr = el("tr", { "data-id": c.id });
+    const cb = el("input", { type: "checkbox", class: "pick", value: c.id, "aria-label": `pick ${c.name}` });
+    const c0 = el("td"); c0.appendChild(cb); tr.appendChild(c0);
+    tr.appendChild(td(String(c.id)));
+    tr.appendChild(td(c.name, "text"));
+    tr.appendChild(td(String(c.current_version)));
+    tr.appendChild(td(c.model, "text"));
+    tr.appendChild(td(c.optimizer, "text"));
+    tr.appendChild(td(fmt(c.fitness_mm, 5)));
+    tr.appendChild(td(fmt(c.train_rms_mm)));
+    tr.appendChild(td(fmt(c.check_rms_mm)));
+    tr.appendChild(td(c.updated_utc.replace("T", " ").slice(0, 19), "text"));
+    const acts = el("td", { class: "text" });
+    const btn = (label, fn, cls) => { const b = el("button", { type: "button", class: "link " + (cls || "") }, label); b.addEventListener("click", fn); acts.appendChild(b); };
+    btn("open", () => openSaved(c.id));
+    btn("history", () => showVersions(c.id));
+    const a = el("a", { href: `/api/calibrations/${c.id}/export`, download: "" }, "export JSON");
+    a.addEventListener("click", (ev) => { if ($("#token").value) { ev.preventDefault(); exportWithToken(c.id); } });
+    acts.appendChild(a);
+    btn("delete", () => deleteSaved(c), "danger");
+    tr.appendChild(acts);
+    tb.appendChild(tr);
+  }
+  if ([...target.options].some((o) => o.value === prevTarget)) target.value = prevTarget;
+  $("#db-info").textContent = `${r.data.length} stored`;
+  refreshMapSources();
+  updateButtons();
+}
+
+async function exportWithToken(id) {
+  const resp = await fetch(`/api/calibrations/${id}/export`, { headers: { Authorization: "Bearer " + $("#token").value } });
+  if (!resp.ok) { showError("#saved-err", { error: `export failed: HTTP ${resp.status}` }); return; }
+  const blob = await resp.blob();
+  const a = el("a", { href: URL.createObjectURL(blob), download: `calibration-${id}.json` });
+  document.body.appendChild(a); a.click(); a.remove();
+}
+
+async function openSaved(id, version) {
+  clearError("#saved-err");
+  const r = await api("GET", `/api/calibrations/${id}` + (version ? `?version=${version}` : ""));
+  if (!r.ok) { showError("#saved-err", r.data); return; }
+  const d = r.data;
+  state.pairs = d.pairs; state.check = d.check;
+  $("#pairs-count").textContent = `${d.pairs.length} pairs from “${d.name}” v${d.version}`;
+  $("#check-count").textContent = d.check ? `${d.check.length} pairs from “${d.name}” v${d.version}` : "none loaded";
+  const req = d.request;
+  for (const k of ["model", "optimizer", "objective"]) $("#" + k).value = req[k];
+  for (const k of ["particles", "iterations", "seed"]) $("#" + k).value = req[k] ?? "";
+  $("#preset").value = "custom";
+  state.job = null;
+  showResult(d.summary, { id: d.id, name: d.name, version: d.version });
+  $("#save-target").value = String(d.id);
+  $("#sec-result").scrollIntoView({ behavior: "smooth" });
+}
+
+async function showVersions(id) {
+  const r = await api("GET", `/api/calibrations/${id}/versions`);
+  if (!r.ok) { showError("#saved-err", r.data); return; }
+  const d = r.data;
+  $("#versions-block").hidden = false;
+  $("#versions-name").textContent = `“${d.name}” (current: version ${d.current_version})`;
+  const tb = $("#versions-table tbody");
+  tb.innerHTML = "";
+  for (const v of d.versions.slice().reverse()) {
+    const tr = el("tr");
+    if (v.version === d.current_version) tr.classList.add("best");
+    tr.appendChild(td(String(v.version)));
+    tr.appendChild(td(v.created_utc.replace("T", " ").slice(0, 19), "text"));
+    tr.appendChild(td(v.note, "text"));
+    tr.appendChild(td(v.model, "text"));
+    tr.appendChild(td(v.optimizer, "text"));
+    tr.appendChild(td(fmt(v.fitness_mm, 5)));
+    tr.appendChild(td(fmt(v.train_rms_mm)));
+    tr.appendChild(td(fmt(v.check_rms_mm)));
+    const acts = el("td", { class: "text" });
+    const open = el("button", { type: "button", class: "link" }, "open");
+    open.addEventListener("click", () => openSaved(id, v.version));
+    acts.appendChild(open);
+    if (v.version !== d.current_version) {
+      const rb = el("button", { type: "button", class: "link" }, "roll back to this");
+      rb.addEventListener("click", async () => {
+        const q = await api("POST", `/api/calibrations/${id}/rollback`, { version: v.version });
+        if (!q.ok) { showError("#saved-err", q.data); return; }
+        await refreshSaved(); await showVersions(id);
+      });
+      acts.appendChild(rb);
+    }
+    tr.appendChild(acts);
+    tb.appendChild(tr);
+  }
+}
+
+async function deleteSaved(c) {
+  if (!window.confirm(`Delete “${c.name}” and its ${c.current_version} version(s)? This cannot be undone.`)) return;
+  const r = await api("DELETE", `/api/calibrations/${c.id}`);
+  if (!r.ok) { showError("#saved-err", r.data); return; }
+  $("#versions-block").hidden = true;
+  await refreshSaved();
+}
+
+async function compareSaved() {
+  clearError("#saved-err");
+  const ids = [...document.querySelectorAll("#saved-table input.pick:checked")].map((x) => Number(x.value));
+  if (!ids.length) { showError("#saved-err", { error: "tick one or more calibrations to compare" }); return; }
+  const tb = $("#saved-compare-table tbody");
+  tb.innerHTML = "";
+  for (const id of ids) {
+    const r = await api("GET", `/api/calibrations/${id}`);
+    if (!r.ok) { showError("#saved-err", r.data); continue; }
+    const d = r.data, s = d.summary;
+    let ev = null;
+    if (state.check) {
+      const q = await api("POST", `/api/calibrations/${id}/evaluate`, { pairs: state.check });
+      ev = q.ok ? q.data : null;
+      if (!q.ok) showError("#saved-err", q.data);
+    }
+    const tr = el("tr");
+    tr.appendChild(td(`${d.name} v${d.version}`, "text"));
+    tr.appendChild(td(s.model, "text"));
+    tr.appendChild(td(s.optimizer, "text"));
+    tr.appendChild(td(fmt(s.train.rms_mm)));
+    tr.appendChild(td(s.loo ? fmt(s.loo.rms_mm) : "–"));
+    tr.appendChild(td(s.check ? fmt(s.check.rms_mm) : "–"));
+    tr.appendChild(td(ev ? fmt(ev.rms_mm) : "–"));
+    tr.appendChild(td(ev ? fmt(ev.max_mm) : "–"));
+    tb.appendChild(tr);
+  }
+  $("#saved-compare-table").hidden = false;
+}
+
+// ------------------------------------------------------------------ wiring
+
+function updateButtons() {
+  const running = !$("#cancel").disabled;
+  $("#run").disabled = !state.pairs || running;
+  $("#run-hint").textContent = state.pairs ? "" : "load calibration pairs first";
+  const pso = $("#optimizer").value.includes("pso");
+  document.querySelectorAll("label.pso").forEach((l) => { l.style.opacity = pso ? 1 : 0.45; l.querySelector("input").disabled = !pso; });
+  const unsaved = state.job && state.result && !state.resultSaved;
+  $("#save-new").disabled = !(state.job && state.result);
+  $("#save-version").disabled = !(state.job && state.result) || !state.saved.length;
+  if (unsaved) $("#save-state").textContent = "not saved yet";
+  $("#compare-state").textContent = state.pairs && state.check ? "ready: takes a few seconds (16 fits)" : "needs calibration pairs and check points";
+}
+
+async function init() {
+  const m = await api("GET", "/api/meta");
+  if (!m.ok) {
+    $("#server-status").textContent = "server error";
+    const g = $("#global-err"); g.textContent = m.data ? m.data.error : "cannot reach the server"; g.hidden = false;
+    if (m.status === 401) $("#token-box").hidden = false;
+    return;
+  }
+  state.meta = m.data;
+  $("#server-status").textContent = `server v${m.data.version} · body ≤ ${m.data.limits.max_body_bytes / 2 ** 20} MiB · ≤ ${m.data.limits.max_pairs} pairs`;
+  if (m.data.auth) $("#token-box").hidden = false;
+  fillSelect("#model", m.data.models, "auto");
+  fillSelect("#optimizer", m.data.optimizers, "lm");
+  fillSelect("#objective", m.data.objectives, "l2");
+  $("#preset").addEventListener("change", applyPreset);
+  for (const id of ["#model", "#optimizer", "#objective", "#particles", "#iterations", "#seed"]) {
+    $(id).addEventListener("change", () => { $("#preset").value = "custom"; updateButtons(); });
+  }
+  wireLoader("pairs");
+  wireLoader("check");
+  $("#check-clear").addEventListener("click", () => {
+    state.check = null; $("#check-text").value = ""; $("#check-file").value = "";
+    $("#check-count").textContent = "none loaded"; $("#check-count").classList.remove("ok");
+    clearError("#check-err"); updateButtons();
+  });
+  $("#run").addEventListener("click", runFit);
+  $("#cancel").addEventListener("click", async () => { if (state.job) await api("DELETE", `/api/jobs/${state.job}`); });
+  $("#refit").addEventListener("click", async () => {
+    if (!state.pairs) { showError("#fit-err", { error: "no pairs loaded" }); return; }
+    await runFit();
+    $("#sec-progress").scrollIntoView({ behavior: "smooth" });
+  });
+  $("#save-new").addEventListener("click", () => saveResult(false));
+  $("#save-version").addEventListener("click", () => saveResult(true));
+  $("#map-go").addEventListener("click", mapPoint);
+  $("#compare-go").addEventListener("click", compareMethods);
+  $("#saved-compare").addEventListener("click", compareSaved);
+  $("#token").addEventListener("change", () => { $("#global-err").hidden = true; refreshSaved(); });
+  drawCurve();
+  updateButtons();
+  await refreshSaved();
+}
+
+init();
