@@ -9,11 +9,12 @@ The mapping, robot → image (OpenCV's conventions)::
 
 and image → robot at a known height z: undistort (Newton on the 2×2 Jacobian, a fixed number of
 steps so that a whole swarm of parameter vectors is mapped at once), cast the ray from the camera
-centre, and intersect it with the plane z. Parameters (class ``PinholeCamera``, name ``camera``):
-``fx, fy, cx, cy, k1, k2, rx, ry, rz, tx, ty, tz`` (12). ``fx``/``fy`` absorb a pixel aspect ratio;
-k3 and the tangential terms p1, p2 are left out by default because on eye-to-hand data (a few dozen
-pairs, a narrow lens) they cost more in variance than they gain in bias (docs/simulator.md measures
-the variants on the simulator).
+centre, and intersect it with the plane z. Parameters (class ``PinholeCamera``, name ``camera``, 13):
+``f, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` — square pixels (fx = fy = f), radial k1, k2
+and tangential p1, p2, the pose as a Rodrigues vector and a translation. Chosen by evidence on the
+simulator (docs/simulator.md): a free aspect ratio and k3 cost more in variance than they gain on a
+few dozen pairs; the tangential terms cost ~4 % on a lens without much of them and halve the error on
+a lens with p ≈ 5e-4.
 
 Estimation: normalised DLT (the paper's equation 5) → RQ decomposition into K, R, t; then
 Levenberg–Marquardt on the image reprojection error (the maximum-likelihood fit when the pixel
@@ -115,15 +116,16 @@ def decompose_projection(P: np.ndarray):
 
 
 class PinholeCamera(Model):
-    """Pinhole camera with radial distortion k1, k2 and a free pose: see the module docstring."""
+    """Pinhole camera (square pixels) with distortion k1, k2, p1, p2 and a free pose: see the module
+    docstring. ``terms`` names the camera parameters estimated (``fx`` without ``fy``: fy = fx)."""
 
     name = "camera"
-    terms: ClassVar[tuple[str, ...]] = ("fx", "fy", "cx", "cy", "k1", "k2")
-    n_params = 12
+    terms: ClassVar[tuple[str, ...]] = ("fx", "cx", "cy", "k1", "k2", "p1", "p2")
+    n_params = 13
     min_pairs = 8
     multi_height = True
     uses_z = True
-    summary = ("12 unknowns: pinhole camera fx fy cx cy, radial k1 k2 and pose; pairs at 2+ heights, "
+    summary = ("13 unknowns: pinhole camera f cx cy, lens k1 k2 p1 p2 and pose; pairs at 2+ heights, "
                "lens distortion")
 
     # -------------------------------------------------------------- estimation
