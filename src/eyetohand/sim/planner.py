@@ -1,0 +1,153 @@
+"""Monte Carlo planner: how accurate will a calibration plan be in this cell, before you run it?
+
+For each plan, ``runs`` independent sessions are simulated (fresh robot and detection noise each,
+see :mod:`eyetohand.sim.simulate`), calibrated as ``eyetohand calibrate`` would (default model
+``auto``: chosen by cross-validation on the first run, then kept for the others so that the runs
+differ by noise only), and scored on noise-free check points. The prediction is the median over runs
+of the check RMS and of the check max; the 90th percentiles say how unlucky a session can be.
+
+The recommended plan is the one with the fewest pairs whose predicted error (max by default, or RMS)
+meets the target.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from ..fit import calibrate
+from .cell import Cell
+from .plans import parse_plan
+from .simulate import simulate
+
+DEFAULT_PLANS = ("grid:3x3", "grid:4x4", "grid:5x5", "radial:17", "random:25", "grid:7x7")
+METRICS = ("max", "rms")
+
+
+def predict_plan(
+    cell: Cell,
+    plan: str,
+    heights_mm=(150.0,),
+    *,
+    runs: int = 20,
+    n_check: int = 30,
+    check_heights_mm=None,
+    model: str = "auto",
+    optimizer: str = "lm",
+    seed: int = 0,
+) -> dict:
+    """Predicted check RMS and max (mm) of ``plan`` at ``heights_mm`` over ``runs`` simulated sessions."""
+    if not isinstance(runs, (int, np.integer)) or runs < 1:
+        raise InputError(f"runs: expected a whole number >= 1, got {runs!r}")
+    p = parse_plan(plan)
+    seeds = np.random.SeedSequence(seed).generate_state(runs)
+    rms, mx = [], []
+    chosen = model
+    n_pairs = None
+    for i, s in enumerate(seeds):
+        sim = simulate(cell, p, heights_mm, n_check=n_check, check_heights_mm=check_heights_mm, seed=int(s))
+        n_pairs = len(sim.pairs)
+        try:
+            cal = calibrate(sim.pairs, model=chosen, optimizer=optimizer, check=sim.check,
+                            image_size=cell.image_size, seed=int(s), loo=False)
+        except InputError as exc:
+            return {"plan": p.label, "heights": [float(h) for h in np.atleast_1d(heights_mm)],
+                    "n_pairs": n_pairs, "error": str(exc), "predicted_rms_mm": None,
+                    "predicted_max_mm": None}
+        if i == 0:
+            chosen = cal.model_name
+        rms.append(cal.check.rms_mm)
+        mx.append(cal.check.max_mm)
+    rms, mx = np.array(rms), np.array(mx)
+    return {
+        "plan": p.label,
+        "heights": [float(h) for h in np.atleast_1d(heights_mm)],
+        "n_pairs": n_pairs,
+        "model": chosen,
+        "runs": int(runs),
+        "predicted_rms_mm": float(np.median(rms)),
+        "predicted_max_mm": float(np.median(mx)),
+        "rms_p90_mm": float(np.percentile(rms, 90)),
+        "max_p90_mm": float(np.percentile(mx, 90)),
+        "rms_runs_mm": [float(v) for v in rms],
+    }
+
+
+def plan_study(
+    cell: Cell,
+    plans=DEFAULT_PLANS,
+    heights_mm=(150.0,),
+    *,
+    target_error_mm: float | None = None,
+    metric: str = "max",
+    runs: int = 20,
+    n_check: int = 30,
+    check_heights_mm=None,
+    model: str = "auto",
+    seed: int = 0,
+) -> dict:
+    """Predictions for every plan and the smallest plan that meets ``target_error_mm``."""
+    if metric not in METRICS:
+        raise InputError(f"target metric {metric!r}: choose one of {', '.join(METRICS)}")
+    if target_error_mm is not None and not (np.isfinite(target_error_mm) and target_error_mm > 0):
+        raise InputError(f"target error: expected a positive number of mm, got {target_error_mm!r}")
+    labels = [parse_plan(p).label for p in plans]  # validate all before the long part
+    if not labels:
+        raise InputError("plan: give at least one plan")
+    rows = [predict_plan(cell, p, heights_mm, runs=runs, n_check=n_check, check_heights_mm=check_heights_mm,
+                         model=model, seed=seed) for p in labels]
+    key = f"predicted_{metric}_mm"
+    recommended = None
+    if target_error_mm is not None:
+        for r in rows:
+            r["meets_target"] = r.get(key) is not None and r[key] <= target_error_mm
+        ok = [r for r in rows if r["meets_target"]]
+        if ok:
+            best = min(ok, key=lambda r: (r["n_pairs"], r[key]))
+            recommended = best["plan"]
+    return {
+        "plans": rows,
+        "recommended": recommended,
+        "target_error_mm": target_error_mm,
+        "target_metric": metric,
+        "runs": int(runs),
+        "check_points_per_height": int(n_check),
+    }
+
+
+def plot_study(study: dict, path) -> None:
+    """Bar chart of predicted RMS and max per plan (fewest pairs first), the target as a line (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..io import atomic_write_bytes
+
+    rows = sorted([r for r in study["plans"] if r.get("predicted_rms_mm") is not None],
+                  key=lambda r: r["n_pairs"])
+    if not rows:
+        raise InputError("plot: no plan could be calibrated, nothing to plot")
+    x = np.arange(len(rows))
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.1 * len(rows) + 2), 4.0), dpi=110)
+    rms = [r["predicted_rms_mm"] for r in rows]
+    mx = [r["predicted_max_mm"] for r in rows]
+    mx90 = [r["max_p90_mm"] for r in rows]
+    ax.bar(x - 0.2, rms, 0.4, label="predicted RMS (median of runs)")
+    ax.bar(x + 0.2, mx, 0.4, label="predicted max (median of runs)",
+           yerr=[np.zeros(len(rows)), np.subtract(mx90, mx)], capsize=3)
+    if study.get("target_error_mm") is not None:
+        ax.axhline(study["target_error_mm"], color="k", ls="--", lw=1,
+                   label=f"target ({study['target_metric']}) {study['target_error_mm']:g} mm")
+    ax.set_xticks(x, [f"{r['plan']}\n{r['n_pairs']} pairs" for r in rows], fontsize=8)
+    ax.set_ylabel("check error (mm)")
+    heights = ", ".join(f"{h:g}" for h in rows[0]["heights"])
+    ax.set_title(f"Monte Carlo over {study['runs']} runs, heights {heights} mm", fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
