@@ -27,7 +27,8 @@ from .pairs import load_image_points, load_pairs
 from .solvers import OPTIMIZERS
 
 # Modules that add subcommands; each has register(subparsers).
-COMMAND_MODULES = ("eyetohand.cli", "eyetohand.demo", "eyetohand.server.cli", "eyetohand.sim.cli")
+COMMAND_MODULES = ("eyetohand.cli", "eyetohand.demo", "eyetohand.report", "eyetohand.server.cli",
+                   "eyetohand.sim.cli")
 
 
 class CliError(InputError):

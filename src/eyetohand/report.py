@@ -1,0 +1,727 @@
+"""HTML reports of a calibration (``eyetohand report``) and of the paper reproduction (``demo --out``).
+
+A report is a folder with ``index.html`` and the PNG plots. ``index.html`` is self-contained: inline
+CSS, the plots embedded as base64, so the one file can be mailed or archived alone; the PNGs are
+written beside it for reuse. Everything is computed in memory first and then written file by file
+atomically, ``index.html`` last: a run that fails leaves an earlier report as it was.
+
+Units everywhere: robot errors, fitness and statistics in mm, image positions in px.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import datetime as _dt
+import html
+import io
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .calibration import Calibration
+from .errors import InputError
+from .evaluate import Stats, evaluate
+from .io import atomic_write_bytes, atomic_write_text
+from .pairs import PointPairs
+
+__all__ = ["build_report", "build_demo_report", "write_report", "write_demo_report", "register"]
+
+PNG_NAMES = ("convergence.png", "check_errors.png", "train_errors.png", "residual_vectors.png",
+             "point_errors.png")
+
+
+# ------------------------------------------------------------------ small helpers
+
+
+def _e(text) -> str:
+    return html.escape(str(text), quote=True)
+
+
+def mm(value, digits: int = 4) -> str:
+    """A millimetre value as the tables print it (4 decimals: 0.1 µm); '—' for a missing value."""
+    if value is None:
+        return "—"
+    v = float(value)
+    if not np.isfinite(v):
+        return "—"
+    text = f"{v:.{digits}f}"
+    return text[1:] if text.startswith("-") and float(text) == 0 else text  # no "-0.0000"
+
+
+_PLACEHOLDERS = ("", "—", "n/a", "illegible")
+
+
+def _is_numeric(cell: str) -> bool:
+    """True for a formatted number such as '0.0269', '-3', '+12 %', '16'."""
+    text = str(cell).strip().removesuffix("%").strip()
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _png(ax) -> bytes:
+    """The figure of ``ax`` as PNG bytes (rendered in memory)."""
+    buf = io.BytesIO()
+    ax.figure.savefig(buf, format="png", dpi=110)
+    return buf.getvalue()
+
+
+def _fitness_label(objective: str) -> str:
+    return {
+        "l2": "best fitness, eq. (16): ‖residuals‖₂ [mm]",
+        "linf": "best fitness: largest point error [mm]",
+        "huber": "best fitness: Σ Huber loss [mm²]",
+    }.get(objective, "best fitness [mm]")
+
+
+def _jacobian(model, uv_px: np.ndarray, z_mm: np.ndarray, step_px: float = 0.5) -> np.ndarray:
+    """(N, 2, 2) derivative of robot (x, y) [mm] with respect to image (u, v) [px], central differences."""
+    cols = []
+    for k in range(2):
+        dv = np.zeros(2)
+        dv[k] = step_px
+        plus = model.image_to_robot(uv_px + dv, z_mm)[:, :2]
+        minus = model.image_to_robot(uv_px - dv, z_mm)[:, :2]
+        cols.append((plus - minus) / (2 * step_px))
+    return np.stack(cols, axis=2)
+
+
+class _Doc:
+    """An HTML document being assembled, with the PNGs it embeds."""
+
+    def __init__(self, title: str):
+        self.title = title
+        self.parts: list[str] = []
+        self.files: dict[str, bytes] = {}
+
+    def add(self, fragment: str) -> None:
+        self.parts.append(fragment)
+
+    def h2(self, text: str, anchor: str) -> None:
+        self.add(f'<h2 id="{_e(anchor)}">{_e(text)}</h2>')
+
+    def p(self, text: str, cls: str = "") -> None:
+        c = f' class="{cls}"' if cls else ""
+        self.add(f"<p{c}>{_e(text)}</p>")
+
+    def figure(self, name: str, ax, caption: str) -> None:
+        data = _png(ax)
+        self.files[name] = data
+        b64 = base64.b64encode(data).decode("ascii")
+        self.add(
+            f'<figure><img src="data:image/png;base64,{b64}" alt="{_e(caption)}">'
+            f"<figcaption>{_e(caption)} <span class=\"muted\">(also saved as {_e(name)})</span>"
+            "</figcaption></figure>"
+        )
+
+    def table(self, header: list[str] | None, rows: list[list[str]], *,
+              row_classes: list[str] | None = None) -> None:
+        """A table of already formatted cells. Numeric cells (and their columns' headers) are right
+        aligned in tabular figures; ``header=None`` gives a key–value table without a header row."""
+        ncol = max([len(header or [])] + [len(r) for r in rows])
+        numeric_col = [
+            all(_is_numeric(r[i]) for r in rows if i < len(r) and r[i] not in _PLACEHOLDERS)
+            and any(i < len(r) and r[i] not in _PLACEHOLDERS for r in rows)
+            for i in range(ncol)
+        ]
+        out = ['<div class="scroll"><table>']
+        if header:
+            out.append("<thead><tr>")
+            for i, h in enumerate(header):
+                out.append(f'<th class="{"num" if numeric_col[i] else ""}">{_e(h)}</th>')
+            out.append("</tr></thead>")
+        out.append("<tbody>")
+        for r_i, row in enumerate(rows):
+            rc = row_classes[r_i] if row_classes else ""
+            out.append(f'<tr class="{rc}">' if rc else "<tr>")
+            for i, cell in enumerate(row):
+                cls = "num" if numeric_col[i] else ("key" if header is None and i == 0 else "")
+                out.append(f'<td class="{cls}">{_e(cell)}</td>' if cls else f"<td>{_e(cell)}</td>")
+            out.append("</tr>")
+        out.append("</tbody></table></div>")
+        self.add("".join(out))
+
+    def render(self, subtitle: str = "") -> str:
+        now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+        return (
+            "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<meta name=\"generator\" content=\"eyetohand {_e(__version__)}\">"
+            "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
+            f"<title>{_e(self.title)}</title><style>{CSS}</style></head><body><main>"
+            f"<header><h1>{_e(self.title)}</h1><p class=\"muted\">{_e(subtitle)}"
+            f"{' · ' if subtitle else ''}generated {_e(now)} by eyetohand {_e(__version__)} · "
+            "units: robot mm, image px</p></header>\n"
+            + "\n".join(self.parts)
+            + "\n</main></body></html>\n"
+        )
+
+
+CSS = """
+:root { --fg:#1b1f24; --muted:#5b6570; --line:#d6dbe1; --zebra:#f5f7f9; --accent:#0072B2; --warn:#b35900; }
+* { box-sizing: border-box; }
+body { margin:0; color:var(--fg); background:#fff;
+  font: 14px/1.45 system-ui, -apple-system, "Segoe UI", Roboto, "Helvetica Neue", Arial, sans-serif; }
+main { max-width: 1080px; margin: 0 auto; padding: 24px 28px 60px; }
+header { border-bottom: 2px solid var(--accent); margin-bottom: 18px; }
+h1 { font-size: 22px; margin: 0 0 4px; }
+h2 { font-size: 17px; margin: 30px 0 8px; padding-bottom: 3px; border-bottom: 1px solid var(--line); }
+h3 { font-size: 14.5px; margin: 18px 0 6px; }
+p { margin: 6px 0; }
+.muted { color: var(--muted); font-size: 12.5px; }
+.warn { color: var(--warn); }
+.cards { display: flex; flex-wrap: wrap; gap: 12px; margin: 10px 0 4px; }
+.card { border: 1px solid var(--line); border-radius: 6px; padding: 8px 14px; min-width: 150px; }
+.card .k { color: var(--muted); font-size: 12px; }
+.card .v { font-size: 20px; font-weight: 600; font-variant-numeric: tabular-nums; }
+.card .u { font-size: 12px; color: var(--muted); margin-left: 3px; }
+table { border-collapse: collapse; margin: 8px 0 12px; font-size: 13px; }
+th, td { padding: 3px 10px; border-bottom: 1px solid var(--line); text-align: left; vertical-align: top; }
+th { background: #eef1f4; font-weight: 600; vertical-align: bottom; }
+th.num { text-align: right; }
+td.num { text-align: right; font-variant-numeric: tabular-nums;
+  font-family: ui-monospace, "SFMono-Regular", Menlo, Consolas, monospace; }
+.scroll { overflow-x: auto; max-width: 100%; }
+tbody tr:nth-child(even) { background: var(--zebra); }
+td.key { color: var(--muted); white-space: nowrap; padding-right: 18px; }
+tr.outlier td { background: #fff1e0; }
+tr.summary td { font-weight: 600; border-top: 2px solid var(--line); }
+figure { margin: 12px 0 18px; }
+figure img { max-width: 100%; height: auto; border: 1px solid var(--line); }
+figcaption { font-size: 12.5px; color: var(--muted); margin-top: 3px; }
+ul.notes { margin: 4px 0; padding-left: 20px; }
+pre { background: var(--zebra); padding: 6px 8px; overflow-x: auto; font-size: 12px; margin: 2px 0; }
+details { margin: 8px 0; }
+summary { cursor: pointer; font-weight: 600; }
+nav a { margin-right: 12px; font-size: 13px; }
+@media print { details { display: block; } main { padding: 0; } }
+"""
+
+
+def _cards(doc: _Doc, items: list[tuple[str, str, str]]) -> None:
+    parts = ['<div class="cards">']
+    for k, v, u in items:
+        parts.append(f'<div class="card"><div class="k">{_e(k)}</div><div class="v">{_e(v)}'
+                     f'<span class="u">{_e(u)}</span></div></div>')
+    parts.append("</div>")
+    doc.add("".join(parts))
+
+
+def _stats_table(doc: _Doc, sets: list[tuple[str, Stats | None, str]]) -> None:
+    rows, classes = [], []
+    for label, s, what in sets:
+        if s is None:
+            continue
+        outl = ("id " + ", ".join(s.outliers)) if s.outliers else "none"
+        rows.append([label, str(s.n), mm(s.rms_mm), mm(s.mean_mm), mm(s.p95_mm), mm(s.max_mm), outl, what])
+        classes.append("")
+    if rows:
+        doc.table(["set", "n", "RMS [mm]", "mean [mm]", "p95 [mm]", "max [mm]", "outliers", "what it is"],
+                  rows, row_classes=classes)
+        doc.p("Error of a point = ‖predicted − actual‖ in robot space. Outlier: error above median + "
+              "3 robust σ (1.4826 × MAD) of the set's errors.", "muted")
+
+
+def _uv_by_id(pairs: PointPairs | None) -> dict[str, tuple[float, float]]:
+    if pairs is None:
+        return {}
+    return {i: (float(u), float(v)) for i, (u, v) in zip(pairs.ids, pairs.uv_px, strict=True)}
+
+
+def _points_table(doc: _Doc, s: Stats, pairs: PointPairs | None, loo: Stats | None = None) -> None:
+    uv = _uv_by_id(pairs)
+    loo_e = {p.id: p.error_mm for p in loo.points} if loo else {}
+    show_dz = any(abs(p.dz_mm) > 0 for p in s.points)
+    header = ["id"] + (["u [px]", "v [px]"] if uv else []) + ["dx [mm]", "dy [mm]"]
+    header += (["dz [mm]"] if show_dz else []) + ["‖Δ‖ [mm]"] + (["leave-one-out ‖Δ‖ [mm]"] if loo else [])
+    header += ["flag"]
+    rows, classes = [], []
+    for p in s.points:
+        row = [p.id]
+        if uv:
+            u, v = uv.get(p.id, (float("nan"), float("nan")))
+            row += [f"{u:.2f}" if np.isfinite(u) else "—", f"{v:.2f}" if np.isfinite(v) else "—"]
+        row += [mm(p.dx_mm), mm(p.dy_mm)] + ([mm(p.dz_mm)] if show_dz else []) + [mm(p.error_mm)]
+        if loo:
+            row.append(mm(loo_e.get(p.id)))
+        row.append("outlier" if p.outlier else "")
+        rows.append(row)
+        classes.append("outlier" if p.outlier else "")
+    doc.table(header, rows, row_classes=classes)
+
+
+def _params_section(doc: _Doc, cal: Calibration) -> None:
+    m = cal.model
+    d = m.to_dict()
+    doc.p(f"model '{m.name}': {type(m).summary}" if type(m).summary else f"model '{m.name}'")
+    rows = [[f"p[{i}]", f"{v:.12g}"] for i, v in enumerate(d["params"])]
+    doc.table(["parameter", "value"], rows)
+    meta = d.get("meta") or {}
+    if meta:
+        doc.add("<h3>Model constants</h3>")
+        parts = ["<table><thead><tr><th>name</th><th>value</th></tr></thead><tbody>"]
+        for k, v in meta.items():
+            text = json.dumps(v, indent=None) if isinstance(v, (list, dict)) else str(v)
+            if isinstance(v, list) and v and isinstance(v[0], list):
+                text = "\n".join(json.dumps(r) for r in v)
+            parts.append(f"<tr><td>{_e(k)}</td><td><pre>{_e(text)}</pre></td></tr>")
+        parts.append("</tbody></table>")
+        doc.add("".join(parts))
+    doc.p("Parameters are in the model's normalised coordinates (see the constants); the calibration "
+          "JSON holds them bit-exact.", "muted")
+
+
+def _fit_table(doc: _Doc, cal: Calibration) -> None:
+    f = cal.fit
+    unit = "mm²" if f.objective == "huber" else "mm"
+    rows = [
+        ["model", cal.model_name],
+        ["optimizer", f.optimizer],
+        ["objective", f.objective],
+        ["fitness (training, objective value)", f"{f.fitness:.6f} {unit}"],
+        ["iterations / function evaluations", f"{f.nit} / {f.nfev}"],
+        ["solver time", f"{f.seconds:.2f} s"],
+        ["seed", "—" if f.seed is None else str(f.seed)],
+        ["solver message", f.message or "—"],
+        ["image size", f"{cal.image_size[0]} × {cal.image_size[1]} px" if cal.image_size else "not given"],
+        ["training data SHA-256", cal.data_sha256 or "—"],
+        ["created (UTC)", cal.created_utc or "—"],
+        ["eyetohand version", cal.version or "—"],
+    ]
+    for k, v in f.extra.items():
+        rows.append([k, f"{v:.6g}" if isinstance(v, float) else str(v)])
+    doc.table(None, rows)
+
+
+def _selection_section(doc: _Doc, sel: Mapping) -> None:
+    doc.p(f"auto selection chose '{sel.get('chosen')}': {sel.get('reason', '')}"
+          + (f" ({sel['method']} cross-validation)" if sel.get("method") else ""))
+    rows = []
+    for r in sel.get("candidates", []):
+        rows.append([
+            str(r.get("model")), str(r.get("unknowns", "")), mm(r.get("cv_rms_mm")), mm(r.get("cv_max_mm")),
+            "chosen" if r.get("model") == sel.get("chosen") else ("yes" if r.get("considered") else "no"),
+            r.get("why", ""),
+        ])
+    doc.table(["candidate", "unknowns", "held-out RMS [mm]", "held-out max [mm]", "considered", "why not"],
+              rows)
+
+
+def _notes(doc: _Doc, notes: list[str], warn: bool = False) -> None:
+    if not notes:
+        doc.p("none", "muted")
+        return
+    cls = ' class="warn"' if warn else ""
+    doc.add('<ul class="notes">' + "".join(f"<li{cls}>{_e(n)}</li>" for n in notes) + "</ul>")
+
+
+# ------------------------------------------------------------------ one calibration
+
+
+def build_report(calibration: Calibration, check_pairs: PointPairs | None = None,
+                 train_pairs: PointPairs | None = None, extra: Mapping | None = None,
+                 *, title: str | None = None) -> tuple[str, dict[str, bytes]]:
+    """The report of one calibration, in memory: ``(index.html text, {png name: bytes})``.
+
+    ``check_pairs``: pairs not used for fitting; the check statistics are recomputed on them (and
+    replace any stored ones). ``train_pairs``: the pairs the calibration was fitted on, for the image
+    positions of the residual-vector plot; if their SHA-256 differs from the calibration's, they
+    are shown as "given pairs" with a warning. ``extra``: more name → value rows for the header.
+    """
+    from . import plots
+
+    cal = calibration
+    if not isinstance(cal, Calibration):
+        raise InputError(f"write_report needs a Calibration, got {type(cal).__name__}")
+    notes = list(cal.notes)
+    warnings: list[str] = []
+    check = cal.check
+    if check_pairs is not None:
+        check = evaluate(cal, check_pairs)
+        notes.append(f"check statistics computed on {check_pairs.source} ({len(check_pairs)} pairs)")
+    train, train_label, train_what = cal.train, "train", "fit residuals on the training pairs"
+    train_matches = False
+    if train_pairs is not None:
+        train_matches = bool(cal.data_sha256) and train_pairs.sha256() == cal.data_sha256
+        if not train_matches:
+            train = evaluate(cal, train_pairs)
+            train_label, train_what = "given pairs", f"residuals on {train_pairs.source}"
+            warnings.append(
+                f"{train_pairs.source} is not the data this calibration was fitted on "
+                f"(SHA-256 differs{'' if cal.data_sha256 else ': the calibration records none'}): "
+                "its statistics are shown as 'given pairs', not as training residuals"
+            )
+    doc = _Doc(title or f"Calibration report — {cal.model_name} + {cal.fit.optimizer}")
+    doc.add('<nav><a href="#summary">summary</a><a href="#accuracy">accuracy</a><a href="#plots">plots</a>'
+            '<a href="#points">per point</a><a href="#fit">fit</a><a href="#params">parameters</a></nav>')
+
+    # summary
+    doc.h2("Summary", "summary")
+    cards = [("model", cal.model_name, ""), ("optimizer", cal.fit.optimizer, ""),
+             ("training fitness", f"{cal.fit.fitness:.5f}", "mm²" if cal.fit.objective == "huber" else "mm")]
+    if check is not None:
+        cards += [("check RMS", mm(check.rms_mm), "mm"), ("check max", mm(check.max_mm), "mm")]
+    elif cal.loo is not None:
+        cards += [("leave-one-out RMS", mm(cal.loo.rms_mm), "mm"),
+                  ("leave-one-out max", mm(cal.loo.max_mm), "mm")]
+    cards.append((f"{train_label} RMS", mm(train.rms_mm), "mm"))
+    _cards(doc, cards)
+    if extra:
+        doc.table(None, [[str(k), str(v)] for k, v in extra.items()])
+    if check is None:
+        doc.p("No check pairs: accuracy on unseen points is estimated by leave-one-out only. "
+              "Give check pairs (--check) to measure it.", "warn")
+    if warnings:
+        _notes(doc, warnings, warn=True)
+
+    doc.h2("Accuracy", "accuracy")
+    _stats_table(doc, [
+        (train_label, train, train_what),
+        ("leave-one-out", cal.loo, "each training pair predicted by a fit without it"),
+        ("check", check, "pairs not used for fitting"),
+    ])
+    if cal.selection:
+        doc.add("<h3>Model selection</h3>")
+        _selection_section(doc, cal.selection)
+    doc.add("<h3>Notes</h3>")
+    _notes(doc, notes)
+
+    # plots
+    doc.h2("Plots", "plots")
+    hist = cal.fit.history
+    if len(hist) > 1:
+        ax = plots.plot_convergence({f"{cal.model_name} + {cal.fit.optimizer}": hist},
+                                    ylabel=_fitness_label(cal.fit.objective),
+                                    title=f"Convergence of {cal.fit.optimizer} (cf. the paper's Fig. 4)")
+        doc.figure("convergence.png", ax, "Best fitness of the swarm per iteration, training pairs.")
+    else:
+        doc.p(f"No convergence plot: optimizer '{cal.fit.optimizer}' records no iteration history "
+              "(only hybrid-pso and pso do).", "muted")
+    if check is not None:
+        label = f"{cal.model_name} + {cal.fit.optimizer}"
+        ax = plots.plot_point_errors({label: [p.error_mm for p in check.points]},
+                                     [p.id for p in check.points],
+                                     title="Error per check point (cf. the paper's Fig. 5)")
+        doc.figure("check_errors.png", ax, "Error norm of each check point, robot space.")
+    tr = {f"{train_label} (fit residual)": [p.error_mm for p in train.points]}
+    if cal.loo is not None and train_label == "train":
+        tr["leave-one-out"] = [p.error_mm for p in cal.loo.points]
+    ax = plots.plot_point_errors(tr, [p.id for p in train.points], xlabel="training point id",
+                                 title="Error per training point")
+    doc.figure("train_errors.png", ax, "Fit residual of each training point and, when computed, its "
+               "leave-one-out error (the point predicted by a fit without it).")
+    _residual_plot(doc, cal, [(train_label, train_pairs), ("check", check_pairs)])
+
+    doc.h2("Per point residuals", "points")
+    if check is not None:
+        doc.add("<h3>Check points</h3>")
+        _points_table(doc, check, check_pairs)
+    doc.add(f"<h3>{_e('Training points' if train_label == 'train' else 'Given pairs')}</h3>")
+    _points_table(doc, train, train_pairs, cal.loo if train_label == "train" else None)
+
+    doc.h2("Fit", "fit")
+    _fit_table(doc, cal)
+    doc.h2("Parameters", "params")
+    _params_section(doc, cal)
+    return doc.render(), doc.files
+
+
+def _residual_plot(doc: _Doc, cal: Calibration, sets: list[tuple[str, PointPairs | None]],
+                   name: str = "residual_vectors.png") -> None:
+    """One quiver plot of the given pair sets (same scale); a note when no positions are known."""
+    from . import plots
+
+    sets = [(label, p) for label, p in sets if p is not None]
+    if not sets:
+        doc.p("Residual vectors: not drawn. The calibration file stores each point's error but not "
+              "its image position; give the pairs (--pairs TRAIN and/or --check CHECK) to draw them.",
+              "muted")
+        return
+    data = []
+    for label, pairs in sets:
+        res = cal.model.residuals(pairs.uv_px, pairs.xyz_mm)
+        try:
+            jac = _jacobian(cal.model, pairs.uv_px, pairs.xyz_mm[:, 2])
+            if not np.isfinite(jac).all() or (np.abs(np.linalg.det(jac)) < 1e-15).any():
+                jac = None
+        except (InputError, ValueError, FloatingPointError):
+            jac = None
+        data.append((label, pairs, res, jac))
+    all_uv = np.vstack([p.uv_px for _, p, _, _ in data])
+    all_mag = np.concatenate([np.linalg.norm(r[:, :2], axis=1) for _, _, r, _ in data])
+    extent = (max(cal.image_size) if cal.image_size else float(max(np.ptp(all_uv, axis=0).max(), 1.0)))
+    scale = 0.1 * extent / all_mag.max() if all_mag.max() > 0 else 1.0
+    ax = None
+    directions = "image direction of the error" if all(j is not None for *_, j in data) else \
+        "dx along +u, dy along +v"
+    for i, (label, pairs, res, jac) in enumerate(data):
+        ax = plots.plot_residual_vectors(
+            pairs.uv_px, res, ax, cal.image_size, scale, jacobian_mm_per_px=jac, ids=pairs.ids,
+            label=f"{label} ({len(pairs)} points)", color=plots.COLORS[i],
+            title=f"Residual vectors — {cal.model_name} + {cal.fit.optimizer}")
+    doc.figure(name, ax, f"Predicted − actual robot position (mm) drawn at each pair's image position "
+               f"(px), arrows magnified {scale:.3g} px per mm (see the key); arrows point in the "
+               f"{directions}. A systematic pattern (rotation, radial flow) means the model misses "
+               "something; random directions mean measurement noise.")
+
+
+def _write_all(out_dir: str | os.PathLike, html_text: str, files: Mapping[str, bytes]) -> Path:
+    """Write the PNGs, then index.html, each atomically; drop our stale PNGs of an earlier run."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for name, data in files.items():
+            atomic_write_bytes(out / name, data)
+        index = atomic_write_text(out / "index.html", html_text)
+        for name in PNG_NAMES:
+            if name not in files and (out / name).is_file():
+                (out / name).unlink()
+    except OSError as exc:
+        raise InputError(f"{out}: cannot write the report ({exc.strerror or exc})") from None
+    return index
+
+
+def write_report(out_dir: str | os.PathLike, calibration: Calibration, check_pairs: PointPairs | None = None,
+                 train_pairs: PointPairs | None = None, extra: Mapping | None = None) -> Path:
+    """Write the report of ``calibration`` into ``out_dir``; returns the path of ``index.html``.
+
+    See :func:`build_report` for the arguments. All plots and the HTML are built in memory before
+    anything is written, so a failure leaves an earlier report in ``out_dir`` unchanged.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a folder")
+    text, files = build_report(calibration, check_pairs, train_pairs, extra)
+    return _write_all(out, text, files)
+
+
+# ------------------------------------------------------------------ the paper demo
+
+_PAPER_LABELS = {
+    "paper+linear": "ours: paper's B, linear (Table 3 method)",
+}
+
+
+def _demo_label(key: str) -> str:
+    if key in _PAPER_LABELS:
+        return _PAPER_LABELS[key]
+    if key.startswith("paper+"):
+        return f"ours: paper's B, {key.split('+', 1)[1]} (Table 4 method)"
+    return f"ours: {key.replace('+', ' + ')}"
+
+
+def _demo_cals(cals: Mapping[str, Calibration]) -> dict[str, Calibration]:
+    """The calibrations to show, without an ``auto(x)+lm`` that repeats ``x+lm``."""
+    out = {}
+    for key, cal in cals.items():
+        if key.startswith("auto(") and f"{cal.model_name}+{cal.fit.optimizer}" in cals:
+            continue
+        out[key] = cal
+    return out
+
+
+def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tuple[str, dict[str, bytes]]:
+    """The demo report in memory: ``(index.html text, {png name: bytes})``; see :func:`write_demo_report`."""
+    from . import plots
+    from .demo import PAPER_STATED_MAX_MM, load_paper
+
+    if not isinstance(results, Mapping) or "table3" not in results:
+        raise InputError("write_demo_report: results must come from eyetohand.demo.run_demo")
+    t3, t4 = results.get("table3"), results.get("table4")
+    shown = _demo_cals(cals)
+    train, check, _ = load_paper()
+    doc = _Doc("eyetohand — the paper reproduced on its own data")
+    doc.add('<nav><a href="#summary">summary</a><a href="#fig4">Fig. 4</a><a href="#fig5">Fig. 5</a>'
+            '<a href="#vectors">residual vectors</a><a href="#tables">Tables 3 and 4</a>'
+            '<a href="#models">all models</a><a href="#details">details</a></nav>')
+
+    doc.h2("Summary", "summary")
+    doc.p("Fit on the paper's Table 1 (16 pairs, all on the plane z = "
+          f"{train.xyz_mm[0, 2]:g} mm), checked on its 9 check points. 'Published' values are the "
+          "robot positions the paper printed, compared here with the actual check positions; 'ours' "
+          "are this package's fits on the same data.")
+    cards = [("Table 3 published: RMS / max", f"{mm(t3['paper_rms_mm'])} / {mm(t3['paper_max_mm'])}", "mm"),
+             ("ours, same method: RMS / max", f"{mm(t3['ours_rms_mm'])} / {mm(t3['ours_max_mm'])}", "mm")]
+    if t4:
+        cards += [("Table 4 published: RMS / max*", f"{mm(t4['paper_rms_mm'])} / {mm(t4['paper_max_mm'])}",
+                   "mm"),
+                  ("ours, hybrid PSO: RMS / max", f"{mm(t4['ours_rms_mm'])} / {mm(t4['ours_max_mm'])}", "mm")]
+    with_check = {k: c for k, c in shown.items() if c.check is not None}
+    if with_check:
+        best_key = min(with_check, key=lambda k: with_check[k].check.rms_mm)
+        b = with_check[best_key].check
+        cards.append((f"best here: {best_key}", f"{mm(b.rms_mm)} / {mm(b.max_mm)}", "mm"))
+    _cards(doc, cards)
+    if t4:
+        doc.p(f"* Table 4's row 8 is illegible in the source (8 of 9 points); the paper states its errors "
+              f"do not exceed {PAPER_STATED_MAX_MM} mm.", "muted")
+
+    # Fig. 4
+    doc.h2("Convergence of the hybrid PSO (the paper's Fig. 4)", "fig4")
+    hist = {_demo_label(k).removeprefix("ours: "): c.fit.history
+            for k, c in cals.items() if len(c.fit.history) > 1}
+    if hist:
+        ax = plots.plot_convergence(hist, title="Hybrid PSO convergence on Table 1 (cf. the paper's Fig. 4)")
+        doc.figure("convergence.png", ax, "Best fitness (equation 16: 2-norm of the robot-space residuals of "
+                   "the 16 training pairs) per iteration. The paper's curve levels off near 0.1 mm; the "
+                   "least-squares optimum of its affine family on these pairs is about 0.1058 mm.")
+    else:
+        doc.p("No convergence plot: no calibration in this run used a particle swarm (the optimizer may be "
+              "unavailable in this installation).", "warn")
+
+    # Fig. 5
+    doc.h2("Error per check point (the paper's Fig. 5)", "fig5")
+    ids = list(check.ids)
+    methods: dict[str, list] = {"published Table 3 (unoptimised)": t3["paper_errors_mm"]}
+    if t4:
+        methods["published Table 4 (hybrid PSO)"] = t4["paper_errors_mm"]
+    for key, c in with_check.items():
+        if [p.id for p in c.check.points] == ids:
+            methods[_demo_label(key)] = [p.error_mm for p in c.check.points]
+    ax = plots.plot_point_errors(methods, ids,
+                                 reference_lines={"paper's stated max, Table 4": PAPER_STATED_MAX_MM},
+                                 title="Error per check point (cf. the paper's Fig. 5)")
+    doc.figure("point_errors.png", ax, "Error norm ‖(x, y) − actual‖ of each of the 9 check points, in mm. "
+               "n/a: the value is illegible in the paper.")
+
+    # residual vectors
+    doc.h2("Residual vectors", "vectors")
+    picks = []
+    pso_keys = [k for k, c in with_check.items() if len(c.fit.history) > 1]
+    if pso_keys:
+        picks.append(pso_keys[0])
+    if with_check:
+        best_key = min(with_check, key=lambda k: with_check[k].check.rms_mm)
+        if best_key not in picks:
+            picks.append(best_key)
+    picks = [k for k in picks if with_check[k].data_sha256 == train.sha256()]
+    if picks:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=(5.4 * len(picks), 6.0), dpi=110, layout="constrained")
+        FigureCanvasAgg(fig)
+        axes = fig.subplots(1, len(picks), squeeze=False)[0]
+        all_res = [with_check[k].model.residuals(p.uv_px, p.xyz_mm) for k in picks for p in (train, check)]
+        top = max(float(np.linalg.norm(r[:, :2], axis=1).max()) for r in all_res)
+        extent = float(np.ptp(np.vstack([train.uv_px, check.uv_px]), axis=0).max())
+        scale = 0.1 * extent / top if top > 0 else 1.0
+        for axi, key in zip(axes, picks, strict=True):
+            c = with_check[key]
+            for j, (label, p) in enumerate((("training", train), ("check", check))):
+                res = c.model.residuals(p.uv_px, p.xyz_mm)
+                jac = _jacobian(c.model, p.uv_px, p.xyz_mm[:, 2])
+                plots.plot_residual_vectors(p.uv_px, res, axi, None, scale, jacobian_mm_per_px=jac,
+                                            ids=p.ids, label=f"{label} ({len(p)})", color=plots.COLORS[j],
+                                            title=_demo_label(key).removeprefix("ours: "))
+        doc.figure("residual_vectors.png", axes[0],
+                   f"Predicted − actual robot position at each pair's image position, both panels magnified "
+                   f"{scale:.3g} px per mm (see the key); arrows point in the image direction of the error.")
+    else:
+        doc.p("Residual vectors: not drawn (no calibration fitted on the bundled paper data).", "muted")
+
+    # Tables 3 and 4
+    doc.h2("Tables 3 and 4: published against ours", "tables")
+    actual = check.xyz_mm
+    for title, s in (("Table 3 — unoptimised B (linear solve)", t3),
+                     ("Table 4 — B refined by the hybrid PSO", t4)):
+        if not s:
+            doc.p(f"{title}: not computed (optimizer unavailable).", "warn")
+            continue
+        doc.add(f"<h3>{_e(title)}</h3>")
+        rows = []
+        for i, pid in enumerate(ids):
+            rows.append([pid, f"{actual[i, 0]:.4f}", f"{actual[i, 1]:.4f}",
+                         mm(s["paper_errors_mm"][i]) if s["paper_errors_mm"][i] is not None else "illegible",
+                         mm(s["ours_errors_mm"][i])])
+        classes = [""] * len(rows)
+        rows.append(["RMS", "", "", mm(s["paper_rms_mm"]), mm(s["ours_rms_mm"])])
+        rows.append(["max", "", "", mm(s["paper_max_mm"]), mm(s["ours_max_mm"])])
+        classes += ["summary", "summary"]
+        doc.table(["check id", "actual x [mm]", "actual y [mm]", "published ‖Δ‖ [mm]", "ours ‖Δ‖ [mm]"],
+                  rows, row_classes=classes)
+    doc.p("Published RMS and max are over the legible rows.", "muted")
+
+    # all models
+    doc.h2("All calibrations of this run", "models")
+    rows = []
+    for key, c in cals.items():
+        ck = c.check
+        if ck:
+            pct = 100 * (1 - ck.max_mm / PAPER_STATED_MAX_MM)
+            vs = f"{abs(pct):.0f} % {'lower' if pct >= 0 else 'higher'}"
+        rows.append([key, f"{c.fit.fitness:.5f}", mm(c.train.rms_mm),
+                     mm(ck.rms_mm) if ck else "—", mm(ck.p95_mm) if ck else "—", mm(ck.max_mm) if ck else "—",
+                     vs if ck else "—"])
+    doc.table(["calibration (model + optimizer)", "fitness eq. (16) [mm]", "train RMS [mm]",
+               "check RMS [mm]", "check p95 [mm]", "check max [mm]",
+               "check max vs the paper's stated 0.0898 mm"], rows)
+    doc.p("Fitness (eq. 16) is the 2-norm of all 16 training residuals: √16 = 4 × the training RMS.",
+          "muted")
+
+    doc.h2("Details of each calibration", "details")
+    for key, c in cals.items():
+        doc.add(f"<details><summary>{_e(key)} — {_e(c.model_name)} + {_e(c.fit.optimizer)}</summary>")
+        _stats_table(doc, [("train", c.train, "fit residuals"), ("leave-one-out", c.loo, "held out"),
+                           ("check", c.check, "check points")])
+        if c.check is not None:
+            _points_table(doc, c.check, check)
+        doc.add("<h3>Notes</h3>")
+        _notes(doc, list(c.notes))
+        doc.add("<h3>Fit</h3>")
+        _fit_table(doc, c)
+        doc.add("<h3>Parameters</h3>")
+        _params_section(doc, c)
+        doc.add("</details>")
+    return doc.render("eyetohand demo"), doc.files
+
+
+def write_demo_report(out_dir: str | os.PathLike, results: Mapping, cals: Mapping[str, Calibration]) -> Path:
+    """Write the paper-reproduction report (``eyetohand demo --out DIR``); returns ``index.html``'s path.
+
+    ``results``, ``cals``: the second and third values of :func:`eyetohand.demo.run_demo`. The report
+    has the hybrid PSO's convergence (Fig. 4), the per-check-point errors of the published Tables 3
+    and 4 next to ours (Fig. 5), residual vectors and the tables. Atomic as :func:`write_report`.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a folder")
+    text, files = build_demo_report(results, cals)
+    return _write_all(out, text, files)
+
+
+# ------------------------------------------------------------------ CLI
+
+
+def cmd_report(args) -> int:
+    from .pairs import load_pairs
+
+    cal = Calibration.load(args.calibration)
+    check = load_pairs(args.check) if args.check else None
+    train = load_pairs(args.pairs) if args.pairs else None
+    extra = {"calibration file": str(args.calibration)}
+    if args.pairs:
+        extra["training pairs"] = str(args.pairs)
+    if args.check:
+        extra["check pairs"] = str(args.check)
+    path = write_report(args.output, cal, check, train, extra)
+    print(path)
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("report", help="write an HTML report (plots, tables) of a calibration",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("calibration", metavar="CAL.json", help="calibration file written by 'calibrate -o'")
+    p.add_argument("--check", metavar="CHECK", help="check pairs: evaluate the calibration on them")
+    p.add_argument("--pairs", metavar="TRAIN", help="the training pairs (for the residual-vector plot)")
+    p.add_argument("-o", "--output", metavar="DIR", required=True, help="report folder (index.html + PNGs)")
+    p.set_defaults(func=cmd_report)
