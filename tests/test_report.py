@@ -1,0 +1,243 @@
+"""Reports and plots: HTML + PNGs on the paper data, the report CLI, atomicity, the demo report."""
+
+import re
+
+import numpy as np
+import pytest
+
+from eyetohand import InputError, calibrate, plots, report
+from eyetohand.cli import main
+from eyetohand.report import write_report
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def assert_png(path, min_bytes=5000):
+    data = path.read_bytes()
+    assert data[:8] == PNG_SIGNATURE, path
+    assert len(data) > min_bytes, (path, len(data))
+
+
+@pytest.fixture(scope="module")
+def paper_cal():
+    from conftest import PAPER
+
+    from eyetohand import load_pairs
+
+    train = load_pairs(PAPER / "calibration_points.csv")
+    check = load_pairs(PAPER / "check_points.csv")
+    return calibrate(train, "homography", "lm", check=check), train, check
+
+
+@pytest.fixture()
+def cal_file(tmp_path, paper_cal):
+    cal, _, _ = paper_cal
+    return cal.save(tmp_path / "cal.json")
+
+
+def snapshot(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+# ------------------------------------------------------------------ write_report
+
+
+def test_write_report_on_paper_data(tmp_path, paper_cal):
+    cal, train, check = paper_cal
+    index = write_report(tmp_path / "r", cal, check_pairs=check, train_pairs=train,
+                         extra={"operator": "test"})
+    assert index == tmp_path / "r" / "index.html"
+    text = index.read_text(encoding="utf-8")
+    # the check RMS as the accuracy table prints it (4 decimals, mm)
+    assert f"{cal.check.rms_mm:.4f}" == report.mm(cal.check.rms_mm)
+    assert f"<td class=\"num\">{cal.check.rms_mm:.4f}</td>" in text
+    assert f"{cal.check.max_mm:.4f}" in text
+    for name in ("check_errors.png", "train_errors.png", "residual_vectors.png"):
+        assert_png(tmp_path / "r" / name)
+    # self-contained: images embedded, no external resources, no scripts
+    assert text.count("data:image/png;base64,") == 3
+    assert not re.search(r"(src|href)=\"(https?:|//)", text)
+    assert "<script" not in text
+    assert "operator" in text and "homography" in text
+    # per point table has every check id with its image position
+    for pid, (u, v) in zip(check.ids, check.uv_px, strict=True):
+        assert f"{u:.2f}" in text and f"{v:.2f}" in text, pid
+    assert not list((tmp_path / "r").glob(".*.tmp"))
+
+
+def test_report_without_pairs_skips_vectors_and_says_so(tmp_path, paper_cal):
+    cal, _, _ = paper_cal
+    text = write_report(tmp_path / "r", cal).read_text(encoding="utf-8")
+    assert not (tmp_path / "r" / "residual_vectors.png").exists()
+    assert "Residual vectors: not drawn" in text and "--pairs" in text
+    assert f"{cal.check.rms_mm:.4f}" in text  # the stored check stats are still reported
+
+
+def test_report_with_pso_history_has_convergence_and_selection(tmp_path, paper_cal):
+    from dataclasses import replace
+
+    # the selection record of fit.select_model (made up here: the real one costs seconds)
+    selection = {"chosen": "homography", "reason": "lowest held-out RMS (0.0308 mm)",
+                 "method": "leave-one-out",
+                 "candidates": [
+                     {"model": "affine", "unknowns": 6, "cv_rms_mm": 0.0321, "cv_max_mm": 0.07,
+                      "considered": True},
+                     {"model": "homography", "unknowns": 8, "cv_rms_mm": 0.0308, "cv_max_mm": 0.0667,
+                      "considered": True},
+                     {"model": "homography-radial", "unknowns": 10, "cv_rms_mm": None, "considered": False,
+                      "why": "needs at least 9 pairs, have 8"}]}
+    cal = replace(paper_cal[0], selection=selection)
+    text = write_report(tmp_path / "r", cal).read_text(encoding="utf-8")
+    assert "auto selection chose" in text and "held-out RMS" in text and "needs at least 9 pairs" in text
+    assert "No convergence plot" in text
+    # a swarm history on the same calibration: the convergence plot appears
+    cal2 = replace(cal, fit=replace(cal.fit, optimizer="hybrid-pso", history=(1.5, 0.4, 0.2, 0.1058)))
+    write_report(tmp_path / "r", cal2)
+    assert_png(tmp_path / "r" / "convergence.png")
+
+
+def test_mismatched_train_pairs_are_flagged(tmp_path, paper_cal):
+    cal, _, check = paper_cal
+    text = write_report(tmp_path / "r", cal, train_pairs=check).read_text(encoding="utf-8")
+    assert "not the data this calibration was fitted on" in text
+    assert "given pairs" in text
+
+
+def test_failed_run_leaves_earlier_report_intact(tmp_path, paper_cal, monkeypatch):
+    cal, train, check = paper_cal
+    out = tmp_path / "r"
+    write_report(out, cal, check_pairs=check, train_pairs=train)
+    before = snapshot(out)
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("disk on fire")
+
+    monkeypatch.setattr(plots, "plot_residual_vectors", boom)
+    with pytest.raises(RuntimeError):
+        write_report(out, cal, check_pairs=check, train_pairs=train)
+    assert snapshot(out) == before
+
+
+def test_output_path_that_is_a_file(tmp_path, paper_cal):
+    cal, _, _ = paper_cal
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(InputError, match="not a folder"):
+        write_report(f, cal)
+    assert f.read_text() == "x"
+
+
+# ------------------------------------------------------------------ plots
+
+
+def new_ax():
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure()
+    FigureCanvasAgg(fig)
+    return fig.add_subplot()
+
+
+def test_plots_draw_on_a_given_ax_and_label_units():
+    ax = new_ax()
+    assert plots.plot_convergence([3.0, 1.0, 0.5, 0.1], ax=ax) is ax
+    assert "[mm]" in ax.get_ylabel()
+    ax = new_ax()
+    assert plots.plot_convergence({"hybrid": [2, 1, 0.1], "plain": [2, 1.5, 0.3, 0.2]}, ax=ax) is ax
+    assert len(ax.get_lines()) == 2
+    ax = new_ax()
+    out = plots.plot_point_errors({"a": [0.1, 0.2, None], "b": [0.05, 0.1, 0.02]}, ["p1", "p2", "p3"], ax=ax,
+                                  reference_lines={"limit": 0.0898})
+    assert out is ax and "[mm]" in ax.get_ylabel()
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["p1", "p2", "p3"]
+    ax = new_ax()
+    uv = np.array([[100.0, 200.0], [400.0, 50.0], [250.0, 300.0]])
+    res = np.array([[0.01, -0.02, 0.0], [0.0, 0.03, 0.0], [-0.02, 0.0, 0.0]])
+    assert plots.plot_residual_vectors(uv, res, ax=ax, image_size=(640, 480)) is ax
+    assert ax.get_ylim() == (480, 0)  # v down
+    assert "[px]" in ax.get_xlabel() and "[px]" in ax.get_ylabel()
+    ax = new_ax()
+    rows = [{"model": "homography", "optimizer": "lm", "check_rms_mm": 0.027, "check_max_mm": 0.056},
+            {"model": "paper", "optimizer": "pso", "error": "unavailable"}]
+    assert plots.plot_model_comparison(rows, ax=ax) is ax
+    assert "[mm]" in ax.get_xlabel()
+
+
+def test_plots_create_their_own_figure_without_pyplot():
+    ax = plots.plot_convergence([1.0, 0.5])
+    assert ax.figure is not None
+    import io
+
+    buf = io.BytesIO()
+    ax.figure.savefig(buf, format="png")
+    assert buf.getvalue()[:8] == PNG_SIGNATURE
+
+
+def test_plots_reject_bad_input():
+    with pytest.raises(InputError):
+        plots.plot_point_errors({"a": [0.1, 0.2], "b": [0.1]})
+    with pytest.raises(InputError):
+        plots.plot_convergence([])
+    with pytest.raises(InputError):
+        plots.plot_residual_vectors(np.zeros((3, 2)), np.zeros((2, 2)))
+
+
+def test_nice_step():
+    assert plots.nice_step(0.083) == pytest.approx(0.05)
+    assert plots.nice_step(0.2) == pytest.approx(0.2)
+    assert plots.nice_step(7.0) == pytest.approx(5.0)
+
+
+# ------------------------------------------------------------------ CLI
+
+
+def test_cli_report(tmp_path, cal_file, capsys):
+    from conftest import PAPER
+
+    out = tmp_path / "out"
+    rc = main(["report", str(cal_file), "--check", str(PAPER / "check_points.csv"),
+               "--pairs", str(PAPER / "calibration_points.csv"), "-o", str(out)])
+    assert rc == 0
+    printed = capsys.readouterr().out.strip()
+    assert printed == str(out / "index.html")
+    assert (out / "index.html").is_file()
+    assert_png(out / "residual_vectors.png")
+
+
+def test_cli_report_bad_calibration_is_exit_2_and_writes_nothing(tmp_path, cal_file, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"schema": "something else"}')
+    out = tmp_path / "new"
+    assert main(["report", str(bad), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:")
+    assert not out.exists()
+    # an existing report is left as it was
+    existing = tmp_path / "existing"
+    assert main(["report", str(cal_file), "-o", str(existing)]) == 0
+    before = snapshot(existing)
+    capsys.readouterr()
+    assert main(["report", str(bad), "-o", str(existing)]) == 2
+    assert main(["report", str(cal_file), "--check", str(bad), "-o", str(existing)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(e.startswith("error:") for e in err)
+    assert snapshot(existing) == before
+
+
+def test_cli_report_needs_output(cal_file, capsys):
+    assert main(["report", str(cal_file)]) == 2
+    assert capsys.readouterr().err.startswith("error:")
+
+
+def test_demo_out_writes_report_with_convergence(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out)]) == 0
+    assert "report:" in capsys.readouterr().out
+    text = (out / "index.html").read_text(encoding="utf-8")
+    assert "Fig. 4" in text and "Fig. 5" in text and "convergence.png" in text
+    assert_png(out / "convergence.png")
+    assert_png(out / "point_errors.png")
+    assert_png(out / "residual_vectors.png")
+    assert "illegible" in text and "0.0898" in text
+    assert "Table 3 published" in text
