@@ -45,6 +45,7 @@ from .schemas import (
     MAX_PAIRS,
     MAX_PARTICLES,
     MAX_POINTS,
+    MAX_PSO_WORK,
     MAX_TEXT_CHARS,
     CalibrationBrief,
     CalibrationDetail,
@@ -222,11 +223,13 @@ def create_app(
     allowed_hosts: list[str] | None = None,
     max_body_bytes: int = MAX_BODY_BYTES,
     max_pending_jobs: int = 8,
+    max_pso_work: int = MAX_PSO_WORK,
 ) -> FastAPI:
     """The app over the database in ``data_dir``. ``token``: required on /api/ when set.
-    ``allowed_hosts``: accepted Host header names (None: any)."""
+    ``allowed_hosts``: accepted Host header names (None: any). ``max_pso_work``: the largest
+    particles × iterations a PSO fit may ask for (422 beyond)."""
     store = Store(data_dir)
-    jobs = Jobs(max_pending=max_pending_jobs)
+    jobs = Jobs(max_pending=max_pending_jobs, max_pso_work=max_pso_work)
     cache: OrderedDict[tuple[int, int], Calibration] = OrderedDict()
 
     @asynccontextmanager
@@ -382,7 +385,8 @@ def create_app(
             "objectives": list(OBJECTIVES), "presets": {"paper": PAPER_PRESET},
             "limits": {"max_body_bytes": max_body_bytes, "max_points": MAX_POINTS, "max_pairs": MAX_PAIRS,
                        "max_text_chars": MAX_TEXT_CHARS, "max_name": MAX_NAME,
-                       "max_particles": MAX_PARTICLES, "max_iterations": MAX_ITERATIONS},
+                       "max_particles": MAX_PARTICLES, "max_iterations": MAX_ITERATIONS,
+                       "max_pso_work": max_pso_work},
             "auth": token is not None,
         }
 

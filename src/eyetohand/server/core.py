@@ -241,8 +241,11 @@ class Jobs:
     solver's vectorised numpy); at most ``max_pending`` wait. Finished jobs are kept (the latest
     ``keep``) so that their results can be saved, mapped through or looked at again."""
 
-    def __init__(self, max_pending: int = 8, keep: int = 50, workers: int = 1):
-        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="eyetohand-job")
+    def __init__(self, max_pending: int = 8, keep: int = 50, workers: int = 1,
+                 max_pso_work: int = 500_000):
+        self.max_pso_work = max_pso_work
+        self._workers = workers
+        self._pool: ThreadPoolExecutor | None = None
         self._jobs: OrderedDict[str, Job] = OrderedDict()
         self._lock = threading.Lock()
         self.max_pending = max_pending
@@ -266,7 +269,10 @@ class Jobs:
             finished = [k for k, j in self._jobs.items() if j.done.is_set()]
             for k in finished[: max(0, len(finished) - self.keep)]:
                 del self._jobs[k]
-        self._pool.submit(self._run, job, work)
+        with self._lock:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=self._workers, thread_name_prefix="eyetohand-job")
+            self._pool.submit(self._run, job, work)
         return job
 
     def _run(self, job: Job, work) -> None:
@@ -294,6 +300,10 @@ class Jobs:
 
     def fit_job(self, opts: FitOptions) -> Job:
         pso = opts.optimizer in ("pso", "hybrid-pso")
+        if pso and opts.particles * opts.iterations > self.max_pso_work:
+            raise ApiError(422, f"particles × iterations = {opts.particles} × {opts.iterations} = "
+                           f"{opts.particles * opts.iterations}, more than this server's limit of "
+                           f"{self.max_pso_work}", "iterations")
 
         def work(job: Job) -> None:
             job.phase = ("choosing the model by cross-validation, then fitting" if opts.model == "auto"
@@ -332,7 +342,15 @@ class Jobs:
         return self.submit("compare", work)
 
     def shutdown(self) -> None:
+        """Cancel queued and running jobs and wait for the worker (a later submit starts a new one)."""
         with self._lock:
             for j in self._jobs.values():
                 j.cancel.set()
-        self._pool.shutdown(wait=True, cancel_futures=True)
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+        with self._lock:
+            for j in self._jobs.values():
+                if not j.done.is_set():  # never started: its future was cancelled
+                    j.status, j.phase = "cancelled", "cancelled: the server stopped"
+                    j.done.set()

@@ -21,6 +21,8 @@ MAX_TEXT_CHARS = 16 * 1024 * 1024
 MAX_NAME = 100
 MAX_PARTICLES = 1000
 MAX_ITERATIONS = 1000
+MAX_PSO_WORK = 500_000
+"""Default limit of particles × iterations for one PSO fit (the paper's 200 × 150 is 30 000)."""
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Name = Annotated[

@@ -1,0 +1,453 @@
+"""The workbench's JSON API, its SQLite store, the TCP line service and `eyetohand serve`."""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import orjson
+import pytest
+import schemathesis
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, settings
+
+from eyetohand.calibration import Calibration
+from eyetohand.cli import main as cli_main
+from eyetohand.server.app import LOOPBACK_HOSTS, MAX_POINTS, create_app
+from eyetohand.server.storage import Store
+from eyetohand.server.tcp import MAX_LINE, LineServer
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "examples" / "paper"
+
+
+def records(path: Path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return [{k: (v if k == "id" else float(v)) for k, v in row.items()} for row in csv.DictReader(fh)]
+
+
+PAIRS = records(PAPER / "calibration_points.csv")
+CHECK = records(PAPER / "check_points.csv")
+
+
+@pytest.fixture
+def client(tmp_path):
+    with TestClient(create_app(tmp_path / "data")) as c:
+        yield c
+
+
+def create(client, name="cal", **kw):
+    body = {"name": name, "pairs": PAIRS, "check": CHECK, "model": "homography", "optimizer": "lm", **kw}
+    r = client.post("/api/calibrations", json=body)
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+# ---------------------------------------------------------------------- API
+
+
+def test_create_get_list_and_summary(client):
+    d = create(client, "cell 3", model="paper", optimizer="hybrid-pso", seed=0)
+    assert d["id"] == 1 and d["version"] == 1 and d["name"] == "cell 3"
+    s = d["summary"]
+    assert s["model"] == "paper" and s["optimizer"] == "hybrid-pso"
+    assert len(s["history"]) == 150 and s["history"] == sorted(s["history"], reverse=True)
+    assert 0.09 < s["fitness_mm"] < 0.12  # the paper's Fig. 4 levels off near 0.1 mm
+    assert s["check"]["n"] == 9 and s["check"]["max_mm"] < 0.1
+    assert {v["id"] for v in s["vectors"]["check"]} == {r["id"] for r in CHECK}
+    listed = client.get("/api/calibrations").json()
+    assert [(c["id"], c["name"], c["current_version"]) for c in listed] == [(1, "cell 3", 1)]
+    full = client.get("/api/calibrations/1").json()
+    assert full["pairs"][0]["u"] == PAIRS[0]["u"] and len(full["check"]) == 9
+    assert full["calibration"]["schema"] == "eyetohand.calibration"
+
+
+def test_versions_exclude_rollback_and_delete(client):
+    create(client, "a")
+    r = client.post("/api/calibrations/1/versions",
+                    json={"pairs": PAIRS, "check": CHECK, "model": "affine", "exclude": ["3", "7"],
+                          "note": "drop 3, 7"})
+    assert r.status_code == 201, r.text
+    v2 = r.json()
+    assert v2["version"] == 2 and v2["summary"]["n_pairs"] == 14
+    assert [p["id"] for p in v2["summary"]["excluded"]["points"]] == ["3", "7"]
+    r = client.post("/api/calibrations/1/rollback", json={"version": 1})
+    assert r.status_code == 200 and r.json()["version"] == 3 and r.json()["note"] == "rollback to version 1"
+    vs = client.get("/api/calibrations/1/versions").json()
+    assert [v["model"] for v in vs["versions"]] == ["homography", "affine", "homography"]
+    one = client.get("/api/calibrations/1", params={"version": 1}).json()["calibration"]
+    three = client.get("/api/calibrations/1").json()["calibration"]
+    assert one == three
+    assert client.post("/api/calibrations/1/rollback", json={"version": 9}).status_code == 404
+    assert client.delete("/api/calibrations/1").status_code == 204
+    r = client.get("/api/calibrations/1")
+    assert r.status_code == 404 and r.json() == {"error": "no calibration with id 1", "field": "id"}
+
+
+def test_errors_name_the_field(client):
+    def post(body, path="/api/calibrations"):
+        r = client.post(path, json=body)
+        assert 400 <= r.status_code < 500, r.text
+        return r.status_code, r.json()
+
+    base = {"name": "x", "pairs": PAIRS}
+    bad = [dict(p) for p in PAIRS]
+    bad[3]["u"] = "abc"
+    assert post({**base, "pairs": bad}) == (422, {
+        "error": "pairs[3].u: Input should be a valid number, unable to parse string as a number",
+        "field": "pairs[3].u"})
+    dup = [dict(p) for p in PAIRS]
+    dup[5]["id"] = "2"
+    status, err = post({**base, "pairs": dup})
+    assert status == 422 and err["field"] == "pairs[5].id" and "duplicate id '2'" in err["error"]
+    status, err = post({**base, "model": "nope"})
+    assert status == 422 and err["field"] == "model"
+    status, err = post({**base, "pairs": PAIRS[:2]})
+    assert status == 422 and err["field"] == "pairs" and "pairs" in err["error"]
+    status, err = post({**base, "exclude": ["99"]})
+    assert (status, err["field"]) == (422, "exclude[0]")
+    status, err = post({"pairs": PAIRS})
+    assert (status, err["field"]) == (422, "name")
+    status, err = post({**base, "optimizer": "hybrid-pso", "particles": 1000, "iterations": 1000})
+    assert (status, err["field"]) == (422, "iterations")
+    create(client, "x")
+    status, err = post(base)
+    assert (status, err["field"]) == (409, "name")
+    r = client.post("/api/calibrations", content=b'{"name": ', headers={"Content-Type": "application/json"})
+    assert r.status_code == 400 and r.json()["field"] == "body"
+    r = client.post("/api/calibrations", content=json.dumps(base), headers={"Content-Type": "text/plain"})
+    assert 400 <= r.status_code < 500 and "error" in r.json()
+    status, err = post({"text": "u,v,x,y\n1,2,3\n", "source": "f.csv"}, "/api/pairs/parse")
+    assert (status, err["field"], err["line"]) == (422, "text", 2)
+    assert err["error"] == "f.csv line 2: 3 fields, the header has 4"
+    r = client.post("/api/calibrations/1/image-to-robot", json={"points": [[1, 2]], "z": [1, 2]})
+    assert r.status_code == 422 and r.json()["field"] == "z"
+    r = client.post("/api/calibrations/1/image-to-robot", json={"points": []})
+    assert r.status_code == 422 and r.json()["field"] == "points"
+    r = client.get("/api/calibrations/0")
+    assert r.status_code == 422 and r.json()["field"] == "cal_id"
+
+
+def test_openapi_schema_is_precise(client):
+    spec = client.get("/openapi.json").json()
+    paths = spec["paths"]
+    for p in ("/api/calibrations", "/api/calibrations/{cal_id}", "/api/calibrations/{cal_id}/image-to-robot",
+              "/api/calibrations/{cal_id}/versions", "/api/calibrations/{cal_id}/rollback",
+              "/api/calibrations/{cal_id}/export", "/api/jobs/{job_id}"):
+        assert p in paths, p
+    pair = spec["components"]["schemas"]["PairIn"]
+    assert set(pair["required"]) == {"u", "v", "x", "y"} and pair["additionalProperties"] is False
+    create_req = spec["components"]["schemas"]["CreateCalibration"]
+    assert create_req["properties"]["pairs"]["maxItems"] == 5000
+    assert "paper" in create_req["properties"]["model"]["enum"]
+    body = paths["/api/calibrations/{cal_id}/image-to-robot"]["post"]["requestBody"]
+    assert body["content"]["application/json"]["schema"]["properties"]["points"]["maxItems"] == MAX_POINTS
+
+
+def test_jobs_progress_save_and_cancel(client):
+    r = client.post("/api/jobs/fit", json={"pairs": PAIRS, "check": CHECK, "model": "paper",
+                                           "optimizer": "hybrid-pso", "seed": 1})
+    assert r.status_code == 202
+    jid = r.json()["id"]
+    seen, history = set(), []
+    deadline = time.monotonic() + 60
+    while True:
+        j = client.get(f"/api/jobs/{jid}", params={"since": len(history)}).json()
+        assert j["history_from"] == len(history)
+        history += j["history"]
+        seen.add(j["status"])
+        if j["status"] in ("done", "failed", "cancelled"):
+            break
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    assert j["status"] == "done", j
+    assert len(history) == 150 and history == j["result"]["history"]
+    r = client.post(f"/api/jobs/{jid}/image-to-robot", json={"points": [[600, 900]]})
+    unsaved = r.json()["points"]
+    saved = client.post(f"/api/jobs/{jid}/save", json={"name": "from job"}).json()
+    r = client.post(f"/api/calibrations/{saved['id']}/image-to-robot", json={"points": [[600, 900]]})
+    assert r.json()["points"] == unsaved
+    assert client.get(f"/api/jobs/{jid}").json()["saved"]["id"] == saved["id"]
+    # cancel: a long run stops early and leaves no result
+    r = client.post("/api/jobs/fit", json={"pairs": PAIRS, "model": "paper", "optimizer": "pso",
+                                           "iterations": 1000, "particles": 400})
+    jid = r.json()["id"]
+    time.sleep(0.3)
+    client.delete(f"/api/jobs/{jid}")
+    deadline = time.monotonic() + 30
+    while (j := client.get(f"/api/jobs/{jid}").json())["status"] in ("queued", "running"):
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    assert j["status"] == "cancelled" and j["result"] is None and len(j["history"]) < 1000
+    r = client.post(f"/api/jobs/{jid}/save", json={"name": "nope"})
+    assert r.status_code == 409 and r.json()["field"] == "id"
+    assert client.get("/api/jobs/nope").status_code == 404
+
+
+def test_compare_job(client):
+    r = client.post("/api/jobs/compare", json={"pairs": PAIRS, "check": CHECK})
+    jid = r.json()["id"]
+    deadline = time.monotonic() + 90
+    while (j := client.get(f"/api/jobs/{jid}").json())["status"] in ("queued", "running"):
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    assert j["status"] == "done"
+    combos = {(row["model"], row["optimizer"]) for row in j["compare"]}
+    assert ("paper", "hybrid-pso") in combos and ("homography", "lm") in combos
+
+
+# ---------------------------------------------------------------------- same numbers as the CLI
+
+
+def test_mappings_equal_eyetohand_apply(client, tmp_path):
+    rng = np.random.default_rng(7)
+    uv = np.c_[rng.uniform(300, 1300, 300), rng.uniform(300, 1500, 300)]
+    src = tmp_path / "points.csv"
+    src.write_text("u,v\n" + "".join(f"{float(u)!r},{float(v)!r}\n" for u, v in uv))
+    fits = (("h", "homography", "lm"), ("p", "paper", "hybrid-pso"), ("r", "homography-radial", "lm"))
+    for name, model, opt in fits:
+        d = create(client, name, model=model, optimizer=opt, seed=3)
+        cal_file = tmp_path / f"{name}.json"
+        r = client.get(f"/api/calibrations/{d['id']}/export")
+        assert r.status_code == 200 and f'filename="{name}-v1.json"' in r.headers["content-disposition"]
+        cal_file.write_bytes(r.content)
+        out = tmp_path / f"{name}.csv"
+        assert cli_main(["apply", str(cal_file), str(src), "-o", str(out)]) == 0
+        with open(out, newline="") as fh:
+            cli_xyz = np.array([[float(row[c]) for c in "xyz"] for row in csv.DictReader(fh)])
+        api = client.post(f"/api/calibrations/{d['id']}/image-to-robot", json={"points": uv.tolist()})
+        api_xyz = np.array(api.json()["points"])
+        assert api_xyz.shape == (300, 3)
+        assert np.abs(api_xyz - cli_xyz).max() <= 1e-9, name
+        # and the TCP service answers the same numbers
+        cal = Calibration.load(cal_file)
+        tcp_xyz = asyncio.run(_tcp_map(cal, uv[:50]))
+        assert np.abs(tcp_xyz - cli_xyz[:50]).max() <= 1e-9, name
+
+
+async def _tcp_map(cal, uv) -> np.ndarray:
+    srv = LineServer(cal, "127.0.0.1", 0)
+    await srv.start()
+    try:
+        reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+        writer.write("".join(f"{float(u)!r},{float(v)!r}\n" for u, v in uv).encode())
+        await writer.drain()
+        lines = [await reader.readline() for _ in uv]
+        writer.close()
+        await writer.wait_closed()
+    finally:
+        srv.close()
+    return np.array([[float(x) for x in ln.decode().split(",")] for ln in lines])
+
+
+# ---------------------------------------------------------------------- persistence
+
+
+def test_restart_keeps_every_calibration_and_its_history(tmp_path):
+    data = tmp_path / "data"
+    with TestClient(create_app(data)) as c:
+        create(c, "one")
+        create(c, "two", model="affine")
+        c.post("/api/calibrations/1/versions", json={"pairs": PAIRS, "model": "affine", "exclude": ["0"]})
+        c.post("/api/calibrations/1/rollback", json={"version": 1})
+        c.patch("/api/calibrations/2", json={"name": "two renamed"})
+        before = {i: (c.get(f"/api/calibrations/{i}/versions").json(),
+                      [c.get(f"/api/calibrations/{i}", params={"version": v}).json()["calibration"]
+                       for v in range(1, 4 if i == 1 else 2)])
+                  for i in (1, 2)}
+        mapped = c.post("/api/calibrations/1/image-to-robot", json={"points": [[500, 700]]}).json()
+        c.app.state.store.close()
+    with TestClient(create_app(data)) as c:
+        after = {i: (c.get(f"/api/calibrations/{i}/versions").json(),
+                     [c.get(f"/api/calibrations/{i}", params={"version": v}).json()["calibration"]
+                      for v in range(1, 4 if i == 1 else 2)])
+                 for i in (1, 2)}
+        assert after == before
+        assert before[1][0]["current_version"] == 3 and before[2][0]["name"] == "two renamed"
+        assert c.post("/api/calibrations/1/image-to-robot", json={"points": [[500, 700]]}).json() == mapped
+
+
+def test_store_write_is_all_or_nothing(tmp_path, monkeypatch):
+    store = Store(tmp_path)
+    store.create("a", {}, {"x": 1}, [], None)
+
+    def boom(*_a, **_k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(Store, "_insert_version", staticmethod(boom))
+    with pytest.raises(RuntimeError):
+        store.create("b", {}, {"x": 2}, [], None)
+    with pytest.raises(RuntimeError):
+        store.add_version(1, {}, {"x": 3}, [], None, "v2")
+    monkeypatch.undo()
+    assert [(r.name, r.current_version) for r, _ in store.list()] == [("a", 1)]
+    assert [v.version for v in store.versions(1)] == [1]
+    assert store._db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    store.close()
+
+
+# ---------------------------------------------------------------------- limits and safety
+
+
+def test_body_limit_gives_413(tmp_path):
+    with TestClient(create_app(tmp_path, max_body_bytes=4096)) as c:
+        r = c.post("/api/pairs/parse", json={"text": "x" * 5000})
+        assert r.status_code == 413 and r.json()["field"] == "body"
+        r = c.post("/api/pairs/parse", content=iter([b'{"text": "', b"x" * 5000, b'"}']),
+                   headers={"Content-Type": "application/json"})  # chunked: no Content-Length
+        assert r.status_code == 413
+        r = c.post("/api/pairs/parse", json={"text": "u,v,x,y\n1,2,3,4\n"})
+        assert r.status_code == 200
+
+
+def test_a_million_points_work_and_more_get_413(client):
+    create(client, "big")
+    rng = np.random.default_rng(0)
+    uv = np.round(rng.uniform(0, 2000, (MAX_POINTS, 2)), 2)
+    body = orjson.dumps({"points": uv, "z": 167.4166}, option=orjson.OPT_SERIALIZE_NUMPY)
+    t0 = time.perf_counter()
+    r = client.post("/api/calibrations/1/image-to-robot", content=body,
+                    headers={"Content-Type": "application/json"})
+    seconds = time.perf_counter() - t0
+    assert r.status_code == 200
+    xyz = np.array(orjson.loads(r.content)["points"])
+    assert xyz.shape == (MAX_POINTS, 3) and np.isfinite(xyz).all()
+    cal = Calibration.from_dict(client.get("/api/calibrations/1").json()["calibration"])
+    idx = rng.choice(MAX_POINTS, 1000, replace=False)
+    assert np.abs(xyz[idx] - cal.image_to_robot(uv[idx], 167.4166)).max() <= 1e-9
+    print(f"1e6 points: {seconds:.1f} s")
+    body = b'{"points": [' + b",".join([b"[1,2]"] * (MAX_POINTS + 1)) + b"]}"
+    r = client.post("/api/calibrations/1/image-to-robot", content=body,
+                    headers={"Content-Type": "application/json"})
+    assert r.status_code == 413 and r.json()["field"] == "points"
+    assert "1000000" in r.json()["error"]
+
+
+def test_token_and_host_guards(tmp_path):
+    app = create_app(tmp_path, token="s3cret-token", allowed_hosts=LOOPBACK_HOSTS)
+    with TestClient(app, base_url="http://127.0.0.1:8765") as c:
+        assert c.get("/api/health").status_code == 200
+        r = c.get("/api/calibrations")
+        assert r.status_code == 401 and r.json()["field"] == "Authorization"
+        assert c.get("/api/calibrations", headers={"Authorization": "Bearer wrong"}).status_code == 401
+        assert c.get("/api/calibrations", headers={"Authorization": "Bearer s3cret-token"}).status_code == 200
+        r = c.get("/", headers={"Host": "evil.example:8765"})
+        assert r.status_code == 400 and r.json()["field"] == "Host"
+
+
+def test_serve_refuses_unsafe_options(capsys):
+    assert cli_main(["serve", "--host", "0.0.0.0"]) == 2
+    assert "needs --token" in capsys.readouterr().err
+    assert cli_main(["serve", "--tcp", "127.0.0.1:7001"]) == 2
+    assert "--calibration" in capsys.readouterr().err
+    assert cli_main(["serve", "--tcp", "0.0.0.0:7001", "--calibration", "x"]) == 2
+    assert cli_main(["serve", "--tcp", "nonsense", "--calibration", "x"]) == 2
+
+
+def test_names_are_data_not_paths(client, tmp_path):
+    name = "../../etc/passwd; DROP TABLE calibrations;--"
+    d = create(client, name)
+    assert client.get(f"/api/calibrations/{d['id']}").json()["name"] == name
+    r = client.get(f"/api/calibrations/{d['id']}/export")
+    assert 'filename="etc_passwd_DROP_TABLE_calibrations_--' in r.headers["content-disposition"]
+    assert sorted(p.name for p in (tmp_path / "data").iterdir()) <= ["calibrations.db", "calibrations.db-shm",
+                                                                     "calibrations.db-wal"]
+
+
+# ---------------------------------------------------------------------- TCP line service
+
+
+def test_tcp_service_many_clients_and_errors(paper_pairs):
+    from eyetohand import calibrate
+
+    cal = calibrate(paper_pairs[0], model="homography", optimizer="lm", loo=False)
+    asyncio.run(_tcp_session(cal))
+
+
+async def _tcp_session(cal):
+    srv = LineServer(cal, "127.0.0.1", 0)
+    await srv.start()
+    try:
+        async def client(k: int) -> list[str]:
+            reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+            out = []
+            for i in range(20):
+                writer.write(f"{400 + k + i},{600 + i}\n".encode())
+                await writer.drain()
+                out.append((await reader.readline()).decode())
+            writer.close()
+            await writer.wait_closed()
+            return out
+
+        answers = await asyncio.gather(*(client(k) for k in range(64)))
+        for k, lines in enumerate(answers):
+            for i, ln in enumerate(lines):
+                got = np.array([float(x) for x in ln.strip().split(",")])
+                want = cal.image_to_robot(np.array([[400.0 + k + i, 600.0 + i]]))[0]
+                assert np.abs(got - want).max() <= 1e-9
+
+        reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+        for line, want in ((b"1,2,3,4\n", "ERR 4 fields"), (b"abc,2\n", "ERR u: 'abc' is not a number"),
+                           (b"1,nan\n", "ERR v: 'nan' is not a finite number"), (b"\n", "ERR empty line"),
+                           (b"\xff,1\n", "ERR not ASCII"), (b"600,900,167.4\n", "")):
+            writer.write(line)
+            await writer.drain()
+            got = (await reader.readline()).decode()
+            assert got.startswith(want) and got.endswith("\n"), (line, got)
+        writer.write(b"1" * (MAX_LINE + 10) + b"\n")
+        await writer.drain()
+        got = (await reader.readline()).decode()
+        assert got.startswith("ERR line longer than")
+        assert await reader.read() == b""  # closed
+        writer.close()
+    finally:
+        srv.close()
+    # with a token the first line must authenticate
+    srv = LineServer(cal, "127.0.0.1", 0, token="s3cret-token")
+    await srv.start()
+    try:
+        reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+        writer.write(b"600,900\n")
+        assert (await reader.readline()).startswith(b"ERR send 'AUTH")
+        writer.close()
+        reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+        writer.write(b"AUTH s3cret-token\n600,900\n")
+        assert await reader.readline() == b"OK\n"
+        assert len((await reader.readline()).split(b",")) == 3
+        writer.close()
+    finally:
+        srv.close()
+
+
+# ---------------------------------------------------------------------- fuzzing
+
+
+FUZZ_DIR = Path(tempfile.mkdtemp(prefix="eyetohand-fuzz-"))
+FUZZ_APP = create_app(FUZZ_DIR, max_pso_work=3000, max_pending_jobs=2)
+schema = schemathesis.openapi.from_asgi("/openapi.json", FUZZ_APP)
+
+
+@pytest.fixture(scope="module")
+def fuzz_data():
+    create(TestClient(FUZZ_APP), "seed")  # one stored calibration, so that id 1 exists
+    yield
+    FUZZ_APP.state.jobs.shutdown()
+    FUZZ_APP.state.store.close()
+    shutil.rmtree(FUZZ_DIR, ignore_errors=True)
+
+
+@schema.parametrize()
+@settings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck))
+def test_fuzz_no_server_errors(case, fuzz_data):
+    """Schemathesis: requests generated from the OpenAPI schema (valid and not) never get a 5xx."""
+    response = case.call()
+    assert response.status_code < 500, (case.method, case.path, response.status_code, response.text[:300])
+    if response.status_code >= 400:
+        body = response.json()
+        assert isinstance(body.get("error"), str) and body["error"], body
