@@ -241,3 +241,14 @@ def test_demo_out_writes_report_with_convergence(tmp_path, capsys):
     assert_png(out / "residual_vectors.png")
     assert "illegible" in text and "0.0898" in text
     assert "Table 3 published" in text
+
+
+def test_many_points_label_only_the_largest_errors():
+    rng = np.random.default_rng(0)
+    uv = rng.uniform(0, 2000, (120, 2))
+    res = rng.normal(0, 0.01, (120, 2))
+    ax = plots.plot_residual_vectors(uv, res, ids=[f"p{i}" for i in range(120)], label_largest=5)
+    worst = np.argsort(-np.linalg.norm(res, axis=1))[:5]
+    assert sorted(t.get_text() for t in ax.texts) == sorted(f"p{i}" for i in worst)
+    ax = plots.plot_point_errors({"a": np.abs(res[:, 0])})
+    assert len(ax.get_xticklabels()) <= plots.MAX_TICK_LABELS

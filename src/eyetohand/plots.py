@@ -26,6 +26,8 @@ __all__ = [
 ]
 
 # A colour-blind-safe cycle (Okabe–Ito), so methods keep their colour from plot to plot.
+MAX_TICK_LABELS = 40
+MAX_ID_LABELS = 40
 COLORS = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#000000", "#F0E442")
 
 
@@ -171,7 +173,9 @@ def plot_point_errors(
     for i, (label, value) in enumerate((reference_lines or {}).items()):
         ax.axhline(float(value), color="0.25", ls=("--", ":", "-.")[i % 3], lw=1.1,
                    label=f"{label}: {_fmt_mm(float(value))} mm")
-    ax.set_xticks(x, ids)
+    step = max(1, math.ceil(n / MAX_TICK_LABELS))  # thin the labels of long point lists
+    ax.set_xticks(x[::step], ids[::step], rotation=0 if step == 1 and n <= 20 else 90,
+                  fontsize=None if n <= 20 else 7)
     ax.set_xlim(-0.6, n - 0.4)
     ax.set_ylim(bottom=0)
     ax.set_xlabel(xlabel)
@@ -203,6 +207,7 @@ def plot_residual_vectors(
     label: str | None = None,
     color: str | None = None,
     key: bool = True,
+    label_largest: int = 8,
     title: str | None = "Residual vectors over the image",
 ):
     """Arrows of the in-plane residuals (predicted − actual, mm) at the pairs' image positions (px).
@@ -214,8 +219,10 @@ def plot_residual_vectors(
     mapped point lies this way". Without it, dx is drawn along +u and dy along +v.
     ``scale``: arrow length in image pixels per mm of error; None makes the longest arrow about a
     tenth of the image (or point spread). ``image_size``: (W, H) px, sets the limits. A scale key
-    with a round number of mm is drawn when ``key``. Returns the axes; the scale used is stored in
-    ``ax._eyetohand_scale_px_per_mm`` for drawing a second set of arrows to the same scale.
+    with a round number of mm is drawn when ``key``. ``ids``: point labels, written next to every
+    point when there are at most 40, else next to the ``label_largest`` largest errors only.
+    Returns the axes; the scale used is stored in ``ax._eyetohand_scale_px_per_mm``, so a second
+    set of arrows drawn on the same axes (another colour and label) uses the same scale.
     """
     uv = np.asarray(uv_px, dtype=float)
     res = np.asarray(residuals_mm, dtype=float)
@@ -264,7 +271,11 @@ def plot_residual_vectors(
     q = ax.quiver(uv[:, 0], uv[:, 1], vec[:, 0], vec[:, 1], angles="xy", scale_units="xy", scale=1.0,
                   color=color, width=0.004, headwidth=3.5, headlength=4.5, zorder=4)
     if ids is not None:
-        for (u, v), name in zip(uv, ids, strict=True):
+        if len(ids) != len(uv):
+            raise InputError(f"plot_residual_vectors: {len(ids)} ids for {len(uv)} points")
+        shown = (np.arange(len(uv)) if len(uv) <= MAX_ID_LABELS
+                 else np.argsort(-mag, kind="stable")[:max(0, label_largest)])
+        for (u, v), name in zip(uv[shown], np.asarray(ids, dtype=object)[shown], strict=True):
             ax.annotate(str(name), (u, v), xytext=(3, -3), textcoords="offset points", fontsize=7,
                         color=color, ha="left", va="top")
     if image_size is not None:

@@ -228,32 +228,48 @@ def _stats_table(doc: _Doc, sets: list[tuple[str, Stats | None, str]]) -> None:
               "3 robust σ (1.4826 × MAD) of the set's errors.", "muted")
 
 
-def _uv_by_id(pairs: PointPairs | None) -> dict[str, tuple[float, float]]:
+def _positions_by_id(pairs: PointPairs | None) -> dict[str, tuple[float, float, float]]:
+    """id → (u px, v px, z mm) of the pairs, empty without pairs."""
     if pairs is None:
         return {}
-    return {i: (float(u), float(v)) for i, (u, v) in zip(pairs.ids, pairs.uv_px, strict=True)}
+    return {i: (float(uv[0]), float(uv[1]), float(xyz[2]))
+            for i, uv, xyz in zip(pairs.ids, pairs.uv_px, pairs.xyz_mm, strict=True)}
+
+
+LONG_TABLE_ROWS = 50
 
 
 def _points_table(doc: _Doc, s: Stats, pairs: PointPairs | None, loo: Stats | None = None) -> None:
-    uv = _uv_by_id(pairs)
+    """Per point residuals; positions from ``pairs`` when given (z only when it varies)."""
+    pos = _positions_by_id(pairs)
+    show_z = bool(pos) and len(pairs.z_levels_mm) > 1
     loo_e = {p.id: p.error_mm for p in loo.points} if loo else {}
     show_dz = any(abs(p.dz_mm) > 0 for p in s.points)
-    header = ["id"] + (["u [px]", "v [px]"] if uv else []) + ["dx [mm]", "dy [mm]"]
-    header += (["dz [mm]"] if show_dz else []) + ["‖Δ‖ [mm]"] + (["leave-one-out ‖Δ‖ [mm]"] if loo else [])
-    header += ["flag"]
+    header = ["id"] + (["u [px]", "v [px]"] if pos else []) + (["z [mm]"] if show_z else [])
+    header += ["dx [mm]", "dy [mm]"] + (["dz [mm]"] if show_dz else []) + ["‖Δ‖ [mm]"]
+    header += (["leave-one-out ‖Δ‖ [mm]"] if loo else []) + ["flag"]
     rows, classes = [], []
     for p in s.points:
         row = [p.id]
-        if uv:
-            u, v = uv.get(p.id, (float("nan"), float("nan")))
+        if pos:
+            u, v, z = pos.get(p.id, (float("nan"),) * 3)
             row += [f"{u:.2f}" if np.isfinite(u) else "—", f"{v:.2f}" if np.isfinite(v) else "—"]
+            if show_z:
+                row.append(f"{z:g}" if np.isfinite(z) else "—")
         row += [mm(p.dx_mm), mm(p.dy_mm)] + ([mm(p.dz_mm)] if show_dz else []) + [mm(p.error_mm)]
         if loo:
             row.append(mm(loo_e.get(p.id)))
         row.append("outlier" if p.outlier else "")
         rows.append(row)
         classes.append("outlier" if p.outlier else "")
+    long = len(rows) > LONG_TABLE_ROWS
+    if long:
+        n_out = sum(1 for p in s.points if p.outlier)
+        doc.add(f"<details><summary>{len(rows)} points ({n_out} flagged as outliers): show the table"
+                "</summary>")
     doc.table(header, rows, row_classes=classes)
+    if long:
+        doc.add("</details>")
 
 
 def _params_section(doc: _Doc, cal: Calibration) -> None:
