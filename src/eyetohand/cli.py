@@ -71,11 +71,11 @@ def progress_callback(label: str, total: int):
     if not sys.stderr.isatty() or total <= 0:
         return None
 
-    def cb(iteration, best, *_):
-        done = int(30 * (iteration + 1) / total)
-        sys.stderr.write(f"\r{label} [{'#' * done}{'.' * (30 - done)}] {iteration + 1}/{total} "
+    def cb(iteration, best, *_):  # iteration counts from 1
+        done = int(30 * iteration / total)
+        sys.stderr.write(f"\r{label} [{'#' * done}{'.' * (30 - done)}] {iteration}/{total} "
                          f"best {best:.5f} mm")
-        if iteration + 1 >= total:
+        if iteration >= total:
             sys.stderr.write("\n")
         sys.stderr.flush()
         return False
