@@ -65,6 +65,7 @@ def plot_convergence(
     ax=None,
     *,
     log: bool | None = None,
+    reference_lines: Mapping[str, float] | None = None,
     title: str | None = "Optimiser convergence",
     ylabel: str = "best fitness, eq. (16) [mm]",
 ):
@@ -73,7 +74,8 @@ def plot_convergence(
     ``history_or_dict``: one sequence of best-fitness values (one per iteration, mm) or a mapping
     label → sequence (e.g. ``{"hybrid PSO": h1, "plain PSO": h2}``). ``log``: logarithmic fitness
     axis; None chooses it when the values span more than a factor of 20. Each curve's final value is
-    written at its end. Returns the axes.
+    written at its end. ``reference_lines``: label → fitness (mm) drawn dashed, e.g. a known optimum.
+    Returns the axes.
     """
     if isinstance(history_or_dict, Mapping):
         series = {str(k): v for k, v in history_or_dict.items()}
@@ -101,6 +103,9 @@ def plot_convergence(
                 drawstyle="steps-post" if h.size > 1 else "default", marker=None if h.size > 1 else "o")
         ax.annotate(f"{h[-1]:.5f}", (it[-1], h[-1]), xytext=(-4, 6), textcoords="offset points",
                     ha="right", va="bottom", fontsize=8, color=color)
+    for i, (label, value) in enumerate((reference_lines or {}).items()):
+        ax.axhline(float(value), color="0.3", ls=("--", ":", "-.")[i % 3], lw=1.0,
+                   label=f"{label}: {float(value):.5f} mm")
     if log:
         ax.set_yscale("log")
     ax.set_xlabel("iteration")
