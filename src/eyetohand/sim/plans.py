@@ -5,8 +5,9 @@ at each height by the simulator — the way an operator or OpenPnP places points
 
 - ``grid:RxC`` — R rows × C columns evenly over the view (``grid:3x3`` is the paper's 9 points);
 - ``radial:N`` — the view centre, then N − 1 points on 8 lines from the centre outwards to the edges
-  of the view (the lines share the points round-robin, each line's points evenly spaced out to its
-  end), as OpenPnP collects its camera calibration;
+  of the view: 4 to the middles of the edges, 4 to the corners (the lines share the points
+  round-robin, each line's points evenly spaced out to its end), as OpenPnP collects its camera
+  calibration;
 - ``random:N`` — N points uniformly at random over the view (seeded).
 """
 
@@ -74,10 +75,9 @@ def _radial(n: int, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     ang = 2 * np.pi * np.arange(lines) / lines
     for a, m in zip(ang, counts, strict=True):
         d = np.array([np.cos(a), np.sin(a)])
-        with np.errstate(divide="ignore"):
-            reach = np.min(np.where(np.abs(d) > 1e-12, half / np.abs(d), np.inf))  # to the view's edge
+        end = half * d / np.abs(d).max()  # on the view's edge; the diagonals end in the corners
         frac = np.arange(1, m + 1) / m
-        out.append(centre + (frac * reach)[:, None] * d)
+        out.append(centre + frac[:, None] * end)
     return np.vstack(out)
 
 

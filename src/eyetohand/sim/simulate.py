@@ -53,6 +53,8 @@ class TrueCamera:
         import cv2
 
         xyz = np.asarray(xyz_mm, float).reshape(-1, 3)
+        if len(xyz) == 0:
+            return np.zeros((0, 2))
         rvec = cv2.Rodrigues(self.R)[0]
         uv, _ = cv2.projectPoints(xyz, rvec, self.t, self.K, self.dist)
         return uv.reshape(-1, 2)
@@ -61,6 +63,8 @@ class TrueCamera:
         import cv2
 
         uv = np.asarray(uv_px, float).reshape(-1, 2)
+        if len(uv) == 0:
+            return np.zeros((0, 3))
         n = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist,
                                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-15))
         ray = np.column_stack([n.reshape(-1, 2), np.ones(len(uv))]) @ self.R  # R^T · ray
