@@ -134,6 +134,20 @@ def test_paper_preset_in_the_workbench(server, page, tmp_path):
     expect(page.locator("#save-err")).to_contain_text("exists already")
     expect(page.locator('#sec-save .field-err[data-field="name"]')).to_contain_text("exists already")
 
+    # exclude a pair, refit, keep it as version 2 and see the history
+    page.locator('#train-table tr[data-id="3"] input[type=checkbox]').uncheck()
+    expect(page.locator("#refit-hint")).to_contain_text("3")
+    page.click("#refit")
+    expect(page.locator("#stats-table tbody tr")).to_have_count(4, timeout=90_000)  # + excluded pairs
+    expect(page.locator("#job-status")).to_have_text("done")
+    expect(page.locator('#train-table tr[data-id="3"]')).to_have_class(re.compile("excluded"))
+    page.fill("#save-note", "without pair 3")
+    page.click("#save-version")
+    expect(page.locator("#save-state")).to_contain_text("version 2")
+    page.locator("#saved-table button", has_text="history").click()
+    expect(page.locator("#versions-table tbody tr")).to_have_count(2)
+    expect(page.locator("#versions-table tbody tr").first).to_contain_text("without pair 3")
+
     shot = tmp_path / "workbench.png"
     page.screenshot(path=str(shot), full_page=True)
     assert shot.stat().st_size > 20_000

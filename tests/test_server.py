@@ -451,3 +451,56 @@ def test_fuzz_no_server_errors(case, fuzz_data):
     if response.status_code >= 400:
         body = response.json()
         assert isinstance(body.get("error"), str) and body["error"], body
+
+
+# ---------------------------------------------------------------------- the real command
+
+
+def test_eyetohand_serve_http_and_tcp(tmp_path):
+    """`eyetohand serve --tcp … --calibration NAME` as a subprocess: the page, the API and TCP agree."""
+    import socket
+    import subprocess
+    import sys
+
+    import httpx
+
+    data = tmp_path / "data"
+    app = create_app(data)
+    create(TestClient(app), "cell 3")
+    app.state.store.close()
+
+    def free_port() -> int:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            return s.getsockname()[1]
+
+    port, tcp_port = free_port(), free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "eyetohand.cli", "serve", "--port", str(port), "--data", str(data),
+         "--tcp", f"127.0.0.1:{tcp_port}", "--calibration", "cell 3", "--log-level", "warning"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 30
+        while True:
+            assert proc.poll() is None, proc.stdout.read()
+            try:
+                if httpx.get(url + "/api/health", timeout=1).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert time.monotonic() < deadline, "serve did not start"
+            time.sleep(0.1)
+        assert "eyetohand workbench" in httpx.get(url + "/").text
+        api = httpx.post(url + "/api/calibrations/1/image-to-robot",
+                         json={"points": [[600.5, 900.25]]}).json()
+        with socket.create_connection(("127.0.0.1", tcp_port), timeout=10) as s:
+            s.sendall(b"600.5,900.25\n")
+            reply = s.makefile("rb").readline().decode()
+        assert [float(x) for x in reply.split(",")] == api["points"][0]
+        r = httpx.get(url + "/api/calibrations", headers={"Host": "attacker.example"})
+        assert r.status_code == 400  # loopback binding answers loopback Host names only
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+    assert "TCP: 127.0.0.1" in proc.stdout.read()

@@ -277,7 +277,7 @@ function statsRow(tbody, label, s) {
   tr.appendChild(td(label, "text"));
   tr.appendChild(td(String(s.n)));
   for (const k of ["rms_mm", "mean_mm", "p95_mm", "max_mm"]) tr.appendChild(td(fmt(s[k])));
-  tr.appendChild(td(s.outliers.length ? s.outliers.join(", ") : "none", "text"));
+  tr.appendChild(td(s.outliers.length ? "id " + s.outliers.join(", ") : "none", "text"));
   tbody.appendChild(tr);
 }
 
@@ -287,10 +287,7 @@ function showResult(sum, saved) {
   state.resultSaved = saved;
   state.excluded = new Set(sum.excluded_ids);
   $("#sec-result").hidden = false;
-  const what = saved ? `saved “${saved.name}” version ${saved.version}` : "unsaved fit";
-  $("#result-title").textContent =
-    `${what}: model ${sum.model}, ${sum.optimizer}, objective ${sum.objective}, fitness ${fmt(sum.fitness_mm, 5)} mm, ` +
-    `${sum.n_pairs} pairs, ${fmt(sum.seconds, 2)} s`;
+  setResultTitle();
   const tb = $("#stats-table tbody");
   tb.innerHTML = "";
   statsRow(tb, "calibration pairs (fit)", sum.train);
@@ -310,6 +307,14 @@ function showResult(sum, saved) {
   $("#save-state").textContent = saved ? `this is “${saved.name}” v${saved.version}` : "not saved yet";
   updateButtons();
   refreshMapSources(saved ? `cal:${saved.id}` : "job");
+}
+
+function setResultTitle() {
+  const sum = state.result, saved = state.resultSaved;
+  const what = saved ? `saved “${saved.name}” version ${saved.version}` : "unsaved fit";
+  $("#result-title").textContent =
+    `${what}: model ${sum.model}, ${sum.optimizer}, objective ${sum.objective}, fitness ${fmt(sum.fitness_mm, 5)} mm, ` +
+    `${sum.n_pairs} pairs, ${fmt(sum.seconds, 2)} s`;
 }
 
 function renderTrainTable(sum) {
@@ -448,6 +453,7 @@ async function saveResult(asVersion) {
   const d = r.data;
   $("#save-state").textContent = `saved as “${d.name}” (id ${d.id}) version ${d.version}`;
   state.resultSaved = { id: d.id, name: d.name, version: d.version };
+  setResultTitle();
   await refreshSaved();
   refreshMapSources(`cal:${d.id}`);
 }
