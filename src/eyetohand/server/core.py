@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import threading
 import time
@@ -121,6 +122,11 @@ def fit(opts: FitOptions, callback=None) -> Fitted:
         raise input_error(exc, "pairs") from None
     except np.linalg.LinAlgError as exc:
         raise ApiError(422, f"pairs: the model cannot be solved on these pairs ({exc})", "pairs") from None
+    try:  # what is stored and answered must be finite: a fit that is not is the pairs' fault
+        json.dumps(cal.to_dict(), allow_nan=False)
+    except ValueError:
+        raise ApiError(422, f"pairs: model {cal.model_name!r} gives non-finite values on these pairs "
+                       "(degenerate geometry?); try another model", "pairs") from None
     request = opts.model_dump(exclude={"pairs", "check", "name", "note"})
     return Fitted(cal, pairs, check, tuple(opts.exclude), request)
 
