@@ -31,13 +31,14 @@ def free_port() -> int:
 
 
 @pytest.fixture
-def server(tmp_path):
+def server(tmp_path, request):
     import uvicorn
 
     from eyetohand.server.app import LOOPBACK_HOSTS, create_app
 
     port = free_port()
-    app = create_app(tmp_path / "data", allowed_hosts=LOOPBACK_HOSTS)
+    token = getattr(request, "param", None)
+    app = create_app(tmp_path / "data", token=token, allowed_hosts=LOOPBACK_HOSTS)
     srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     th = threading.Thread(target=srv.run, daemon=True)
     th.start()
@@ -155,3 +156,18 @@ def test_paper_preset_in_the_workbench(server, page, tmp_path):
     if out.is_dir():  # keep a copy to look at when the folder exists
         shutil.copy(shot, out / "workbench.png")
     assert not page.problems, page.problems
+
+
+@pytest.mark.parametrize("server", ["s3cret-token"], indirect=True)
+def test_token_is_asked_for_and_used(server, page):
+    from playwright.sync_api import expect
+
+    page.problems.clear()
+    page.goto(server + "/")
+    expect(page.locator("#token-box")).to_be_visible()
+    expect(page.locator("#global-err")).to_contain_text("token")
+    page.fill("#token", "s3cret-token")
+    page.locator("#token").dispatch_event("change")
+    expect(page.locator("#server-status")).to_contain_text("server v")
+    expect(page.locator("#global-err")).to_be_hidden()
+    assert page.locator("#model option").count() >= 5

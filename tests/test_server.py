@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import atexit
 import csv
 import json
 import shutil
@@ -429,6 +430,7 @@ async def _tcp_session(cal):
 
 
 FUZZ_DIR = Path(tempfile.mkdtemp(prefix="eyetohand-fuzz-"))
+atexit.register(shutil.rmtree, FUZZ_DIR, ignore_errors=True)  # also when the fuzz test is deselected
 FUZZ_APP = create_app(FUZZ_DIR, max_pso_work=3000, max_pending_jobs=2)
 schema = schemathesis.openapi.from_asgi("/openapi.json", FUZZ_APP)
 

@@ -688,6 +688,8 @@ function updateButtons() {
   $("#compare-state").textContent = state.pairs && state.check ? "ready: takes a few seconds (16 fits)" : "needs calibration pairs and check points";
 }
 
+let wired = false;
+
 async function init() {
   const m = await api("GET", "/api/meta");
   if (!m.ok) {
@@ -696,7 +698,10 @@ async function init() {
     if (m.status === 401) $("#token-box").hidden = false;
     return;
   }
+  $("#global-err").hidden = true;
   state.meta = m.data;
+  if (wired) { await refreshSaved(); return; }
+  wired = true;
   $("#server-status").textContent = `server v${m.data.version} · body ≤ ${m.data.limits.max_body_bytes / 2 ** 20} MiB · ≤ ${m.data.limits.max_pairs} pairs`;
   if (m.data.auth) $("#token-box").hidden = false;
   fillSelect("#model", m.data.models, "auto");
@@ -725,10 +730,11 @@ async function init() {
   $("#map-go").addEventListener("click", mapPoint);
   $("#compare-go").addEventListener("click", compareMethods);
   $("#saved-compare").addEventListener("click", compareSaved);
-  $("#token").addEventListener("change", () => { $("#global-err").hidden = true; refreshSaved(); });
   drawCurve();
   updateButtons();
   await refreshSaved();
 }
 
+// The token (when the server asks for one) is kept in this page only, never stored.
+$("#token").addEventListener("change", () => { $("#global-err").hidden = true; init(); });
 init();
