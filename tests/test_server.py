@@ -120,6 +120,7 @@ def test_errors_name_the_field(client):
     create(client, "x")
     status, err = post(base)
     assert (status, err["field"]) == (409, "name")
+    create(client, "1")  # a name that looks like an id is just a name
     r = client.post("/api/calibrations", content=b'{"name": ', headers={"Content-Type": "application/json"})
     assert r.status_code == 400 and r.json()["field"] == "body"
     r = client.post("/api/calibrations", content=json.dumps(base), headers={"Content-Type": "text/plain"})

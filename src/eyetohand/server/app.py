@@ -407,11 +407,8 @@ def create_app(
     @app.post("/api/calibrations", response_model=CalibrationOut, status_code=201, tags=["calibrations"])
     def create_calibration(req: CreateCalibration):
         """Fit a calibration and store it as version 1 of a new named calibration."""
-        try:
-            store.find(req.name)
+        if store.by_name(req.name) is not None:  # before spending a fit on it
             raise ApiError(409, f"a calibration named {req.name!r} exists already", "name")
-        except NotFound:
-            pass
         return save_new(wait_fit(req), req.name, "created")
 
     @app.get("/api/calibrations", response_model=list[CalibrationBrief], tags=["calibrations"])

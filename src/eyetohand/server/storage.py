@@ -154,15 +154,19 @@ class Store:
             raise NotFound(f"no calibration with id {cal_id}")
         return Record(*row)
 
-    def find(self, name_or_id: str) -> Record:
-        """By exact name, else by numeric id."""
+    def by_name(self, name: str) -> Record | None:
         with self._lock:
             row = self._db.execute(
                 "SELECT id, name, created_utc, updated_utc, current_version FROM calibrations WHERE name = ?",
-                (name_or_id,),
+                (name,),
             ).fetchone()
-        if row is not None:
-            return Record(*row)
+        return None if row is None else Record(*row)
+
+    def find(self, name_or_id: str) -> Record:
+        """By exact name, else by numeric id."""
+        rec = self.by_name(name_or_id)
+        if rec is not None:
+            return rec
         if name_or_id.isdigit():
             return self.get(int(name_or_id))
         raise NotFound(f"no calibration named {name_or_id!r}")
