@@ -13,8 +13,8 @@ centre, and intersect it with the plane z. Parameters (class ``PinholeCamera``, 
 ``f, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` — square pixels (fx = fy = f), radial k1, k2
 and tangential p1, p2, the pose as a Rodrigues vector and a translation. Chosen by evidence on the
 simulator (docs/simulator.md): a free aspect ratio and k3 cost more in variance than they gain on a
-few dozen pairs; the tangential terms cost ~4 % on a lens without much of them and halve the error on
-a lens with p ≈ 5e-4.
+few dozen pairs; the tangential terms cost ≤ 3 % on a lens with little of them and halve the error
+on a lens with p ≈ 5e-4.
 
 Estimation: normalised DLT (the paper's equation 5) → RQ decomposition into K, R, t; then
 Levenberg–Marquardt on the image reprojection error (the maximum-likelihood fit when the pixel
