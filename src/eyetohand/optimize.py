@@ -6,6 +6,11 @@ every move, crossed over a random segment with their personal best and with the 
 then mutated by normally distributed random particles. Crossover and mutation are *elitist*: a
 new individual replaces the particle only when its fitness is strictly lower.
 
+Why a mutation around the global best with a log-uniform step: on the paper's calibration problem
+(a narrow, partly flat valley in the 12 elements of B) the swarm collapses onto a point of the
+valley floor and stalls there; mutants at all scales around the best keep making progress along
+the valley (docs/pso.md has the measurements that led to this choice).
+
 Everything is vectorised over the swarm: ``fitness`` receives an ``(n, D)`` array of candidate
 positions and returns ``(n,)`` fitness values. Random numbers are drawn in bulk from a
 :class:`numpy.random.Generator`, so the same seed gives a bit-identical result.
@@ -18,17 +23,21 @@ values are in the units of ``fitness`` (the paper's equation 16: mm).
 Iteration ``k`` (``k = 1 .. iterations``), with ``n = n_particles``:
 
 1. velocity and position update (eqs 14, 15), ``r1, r2 ~ U[0, 1)`` drawn per particle and
-   dimension; then evaluate the moved swarm (``n`` evaluations);
-2. crossover with the personal best: per particle, two positions are drawn uniformly from
-   ``0 .. D-1``; the segment between them (inclusive) is copied from the personal best into the
-   particle; the child replaces the particle if it is better (``n`` evaluations);
-3. crossover with the global best, the same way with a new random segment (``n`` evaluations);
+   dimension;
+2. crossover of each moved particle with its personal best: two positions are drawn uniformly
+   from ``0 .. D-1`` per particle and the segment between them (inclusive) is copied from the
+   personal best into a copy of the particle;
+3. separately, crossover of each moved particle with the global best, the same way with a new
+   random segment;
 4. mutation: ``max(1, round(mutation_rate * n))`` particles, drawn at random without replacement,
    each get a mutant ``g + s * z`` with ``g`` the global best, ``z ~ N(0, I)`` and a step scale
    ``s = sigma * 10 ** (-u)``, ``u ~ U(0, mutation_decades)`` drawn per mutant (log-uniform: the
    mutants probe every scale from the initial spread ``sigma`` down to
-   ``sigma * 10 ** -mutation_decades``, with no adaptation state); a mutant replaces its particle
-   if it is better than that particle;
+   ``sigma * 10 ** -mutation_decades``, with no adaptation state);
+   the moved swarm, both crossover children and the mutants are evaluated in ONE call of
+   ``fitness`` (``3 n + n_mut`` rows); then, elitist, each particle becomes the best of
+   (moved particle, child with personal best, child with global best) -- ties keep the particle
+   -- and a mutant replaces its particle only if it is strictly better;
 5. personal and global bests are updated; the global best fitness is appended to ``history``;
    ``callback`` is called; stop criteria are checked.
 
@@ -282,27 +291,36 @@ def hybrid_pso(
     status, message = STATUS_MAX_ITERATIONS, f"maximum number of iterations ({iterations}) reached"
     stall_count = 0
     for k in range(1, iterations + 1):
-        # 1. velocity and position update, eqs (14) and (15); evaluate the moved swarm
+        # 1. velocity and position update, eqs (14) and (15)
         r = rng.random((2, n, dim))
         v = w * v + c1 * r[0] * (pbest_x - x) + c2 * r[1] * (gbest_x - x)
         x = clip(x + v)
-        f = evaluate(x)
+        batch = [x]
         if crossover:
-            # 2./3. segment crossover with personal best, then with global best; elitist
-            for partner in (pbest_x, gbest_x):
-                child = _segment_children(x, partner, rng)
-                fc = evaluate(child)
-                better = fc < f
-                x[better], f[better] = child[better], fc[better]
+            # 2./3. segment crossover of the moved particle with its personal best and,
+            # separately, with the global best
+            batch += [_segment_children(x, pbest_x, rng), _segment_children(x, gbest_x, rng)]
         if mutation:
-            # 4. mutation: normally distributed particles around the global best, log-uniform
-            # step scale; a mutant replaces its (randomly chosen) particle only if better
+            # 4. mutants: normally distributed around the global best, log-uniform step scale,
+            # each aimed at one randomly chosen particle
             idx = rng.choice(n, size=n_mut, replace=False)
             scale = sigma_v * 10.0 ** (-mutation_decades * rng.random((n_mut, 1)))
-            cand = clip(gbest_x + scale * rng.standard_normal((n_mut, dim)))
-            fc = evaluate(cand)
-            better = fc < f[idx]
-            x[idx[better]], f[idx[better]] = cand[better], fc[better]
+            batch.append(clip(gbest_x + scale * rng.standard_normal((n_mut, dim))))
+        # one vectorised evaluation of the moved swarm and all candidates
+        cand = np.concatenate(batch) if len(batch) > 1 else x
+        fc = evaluate(cand)
+        f = fc[:n]
+        if crossover:
+            # elitist: keep the best of (particle, child with pbest, child with gbest)
+            fx = fc[: 3 * n].reshape(3, n)
+            pick = np.argmin(fx, axis=0)  # ties keep the particle (index 0)
+            x = cand[: 3 * n].reshape(3, n, dim)[pick, np.arange(n)]
+            f = fx[pick, np.arange(n)]
+        if mutation:
+            # elitist: a mutant replaces its particle only if better
+            fm = fc[-n_mut:]
+            better = fm < f[idx]
+            x[idx[better]], f[idx[better]] = cand[-n_mut:][better], fm[better]
         # 5. personal and global best
         improved = f < pbest_f
         pbest_x[improved], pbest_f[improved] = x[improved], f[improved]
