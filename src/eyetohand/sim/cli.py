@@ -32,7 +32,7 @@ def cmd_simulate(args) -> int:
         raise InputError(f"--check: expected a whole number >= 0, got {args.check}")
     cell = load_cell(args.config)
     heights = parse_numbers(args.heights, "--heights")
-    angles = parse_numbers(args.angles, "--angles") if args.angles else None
+    angles = parse_numbers(args.angles, "--angles", example="0,90,180") if args.angles else None
     sim = simulate(cell, parse_plan(args.plan), heights, n_check=args.check,
                    check_heights_mm=_heights(args.check_heights, "--check-heights"),
                    angles_deg=angles, seed=args.seed)
@@ -50,9 +50,10 @@ def cmd_simulate(args) -> int:
         ch = ", ".join(f"{v:g}" for v in sim.check_heights_mm)
         print(f"check: {len(sim.check)} points at z = {ch} mm")
     n_img = sum(1 for f in files if f.suffix == ".png")
-    print(f"wrote {args.out}: pairs.csv, check.csv, truth.json"
-          + (f", {n_img} images, poses.csv, check_poses.csv" if args.images else ""))
-    print(f"next: eyetohand calibrate {args.out}/pairs.csv --check {args.out}/check.csv "
+    names = [f.name for f in files if f.suffix != ".png"]
+    print(f"wrote {args.out}: {', '.join(names)}" + (f" and {n_img} images" if n_img else ""))
+    check = f" --check {args.out}/check.csv" if sim.check is not None else ""
+    print(f"next: eyetohand calibrate {args.out}/pairs.csv{check} "
           f"--image-size {cell.image_size[0]}x{cell.image_size[1]}")
     return 0
 

@@ -107,17 +107,17 @@ def parse_plan(text: str) -> Plan:
     raise InputError(f"plan {text!r} not understood; expected {VALID_FORMS}")
 
 
-def parse_numbers(text: str, what: str, *, positive: bool = False) -> list[float]:
+def parse_numbers(text: str, what: str, *, positive: bool = False, example: str = "150,200") -> list[float]:
     """A comma-separated list of numbers (``--heights 150,200``); errors name ``what``."""
     items = [t.strip() for t in str(text).split(",")]
     if not items or any(t == "" for t in items):
-        raise InputError(f"{what}: expected comma-separated numbers (e.g. 150,200), got {text!r}")
+        raise InputError(f"{what}: expected comma-separated numbers (e.g. {example}), got {text!r}")
     out = []
     for t in items:
         try:
             v = float(t)
         except ValueError:
-            raise InputError(f"{what}: {t!r} is not a number (expected e.g. 150,200)") from None
+            raise InputError(f"{what}: {t!r} is not a number (expected e.g. {example})") from None
         if not np.isfinite(v) or (positive and v <= 0):
             raise InputError(f"{what}: {t!r} must be a finite{' positive' if positive else ''} number")
         out.append(v)
