@@ -1,0 +1,269 @@
+"""Benchmark the hybrid PSO on the paper's calibration problem (Table 1).
+
+Run:  .venv/bin/python benchmarks/bench_pso.py            (20 seeds, about 2-3 minutes)
+      .venv/bin/python benchmarks/bench_pso.py --quick    (3 seeds, smoke run)
+
+Problem: the paper's 12-element matrix B, mapped image -> robot by equation (13),
+R = M^-1 (u - b14, v - b24, 1 - b34) with M = B[:, :3]; fitness (equation 16) = 2-norm of the
+stacked 3-D residuals over the 16 calibration points (mm). B starts from the planar solution
+(least-squares affine robot -> image map a, B = [[a1 a2 0 a3], [a4 a5 0 a6], [0 0 1/z0 0]]).
+The least-squares optimum over this family is the affine image -> robot fit (0.10583 mm).
+
+Methods, all at the same number of fitness evaluations as the hybrid at the paper's settings
+(200 particles x 150 iterations with crossover and mutation: 200 + 150 * 620 = 93,200):
+  hybrid PSO (ours)        200 x 150, crossover + mutation
+  plain PSO (ours)         200 x 465 (same nfev)
+  pyswarms GlobalBestPSO   200 x 466 (same nfev), init_pos drawn like ours
+  pyswarms, scaled coords  the same on z with B = B0 + sigma * z (its U[0,1) initial velocity
+                           is then in sigma units instead of raw B units)
+  SciPy LM                 least_squares(method='lm', x_scale='jac') from one random start
+                           B0 + sigma * z per seed (it converges long before 93,200 evaluations)
+
+sigma (the initial spread, per element of B): each element alone moves the mapped calibration
+points by 1/sqrt(12) mm RMS, so the whole 12-element perturbation moves them by ~1 mm RMS.
+Seconds are wall-clock per run, median over the seeds, methods interleaved per seed so that load
+from other processes hits all of them alike; the ratio is to pyswarms in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from eyetohand.optimize import hybrid_pso, pso
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "examples" / "paper"
+PAPER_MAX_CHECK_MM = 0.0898
+N_PARTICLES = 200
+ITERATIONS = 150
+OPTIONS = {"c1": 1.4801, "c2": 1.4801, "w": 0.7153}
+ABLATION_ITERATIONS = (10, 25, 50, 100, 150)
+
+
+def load() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    cal = np.loadtxt(DATA / "calibration_points.csv", delimiter=",", skiprows=1)
+    chk = np.loadtxt(DATA / "check_points.csv", delimiter=",", skiprows=1)
+    return cal[:, 1:3], cal[:, 3:6], chk[:, 1:3], chk[:, 3:6]
+
+
+def planar_start(uv: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """B (flattened, paper order b11..b34) from the least-squares affine robot -> image map."""
+    z0 = float(xyz[:, 2].mean())
+    design = np.column_stack([xyz[:, :2], np.ones(len(xyz))])
+    a, *_ = np.linalg.lstsq(design, uv, rcond=None)  # (3, 2)
+    return np.array(
+        [a[0, 0], a[1, 0], 0.0, a[2, 0], a[0, 1], a[1, 1], 0.0, a[2, 1], 0.0, 0.0, 1 / z0, 0.0]
+    )
+
+
+def own_forward(bs: np.ndarray, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Equation (13) for a batch of B: (P, 12) -> (P, N, 3) mm."""
+    b = np.asarray(bs, float).reshape(-1, 3, 4)
+    p = np.empty((len(b), len(uv), 3))
+    p[..., 0] = uv[None, :, 0] - b[:, None, 0, 3]
+    p[..., 1] = uv[None, :, 1] - b[:, None, 1, 3]
+    p[..., 2] = 1.0 - b[:, None, 2, 3]
+    with np.errstate(all="ignore"):
+        return np.einsum("pij,pnj->pni", np.linalg.inv(b[:, :, :3]), p)
+
+
+def pick_forward(b0, uv, xyz):
+    """The lead's batched ``paper`` model if present (checked against ours), else ours."""
+    try:
+        from eyetohand.models import get_model
+
+        fwd = get_model("paper")(b0, {}).batch_image_to_robot
+    except Exception:  # no models package yet, or no 'paper' model in it
+        return own_forward, "benchmark's own equation (13) (np.linalg.inv + einsum)"
+    probe = b0 * (1 + 1e-4 * np.random.default_rng(0).standard_normal((4, b0.size)))
+    if not np.allclose(fwd(probe, uv, xyz[:, 2]), own_forward(probe, uv, xyz[:, 2]),
+                       rtol=1e-9, atol=1e-9):
+        raise RuntimeError("eyetohand.models 'paper' disagrees with equation (13)")
+    return fwd, "eyetohand.models 'paper' batch_image_to_robot (checked against eq. 13)"
+
+
+def sigma_for(forward, b0, uv, z, total_mm: float = 1.0) -> np.ndarray:
+    """Per-element spread: each element alone moves the mapped points by total_mm/sqrt(D) RMS."""
+    h = 1e-6 * np.maximum(np.abs(b0), 1e-3)
+    out = forward(np.vstack([b0, b0 + np.diag(h)]), uv, z)
+    deriv = (out[1:] - out[0]) / h[:, None, None]  # (D, N, 3) mm per unit
+    rms_mm_per_unit = np.sqrt((deriv**2).sum(axis=2).mean(axis=1))
+    return total_mm / np.sqrt(b0.size) / rms_mm_per_unit
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="3 seeds: a smoke run")
+    ap.add_argument("--seeds", type=int, default=None, help="number of seeds (default 20)")
+    ap.add_argument("--study", action="store_true",
+                    help="instead: sigma choice and operator ablation of the hybrid PSO")
+    args = ap.parse_args(argv)
+    n_seeds = args.seeds or (3 if args.quick else 20)
+    seeds = list(range(1, n_seeds + 1))
+
+    import pyswarms  # noqa: F401  (fail early if missing)
+    from pyswarms.single import GlobalBestPSO
+
+    logging.getLogger("pyswarms").setLevel(logging.WARNING)
+
+    uv, xyz, uv_chk, xyz_chk = load()
+    z, z_chk = xyz[:, 2], xyz_chk[:, 2]
+    b0 = planar_start(uv, xyz)
+    forward, forward_name = pick_forward(b0, uv, xyz)
+    sigma = sigma_for(forward, b0, uv, z)
+
+    def fitness(bs: np.ndarray) -> np.ndarray:
+        with np.errstate(all="ignore"):
+            f = np.sqrt(((forward(bs, uv, z) - xyz[None]) ** 2).sum(axis=(1, 2)))
+        return np.where(np.isfinite(f), f, np.inf)
+
+    def residuals(b: np.ndarray) -> np.ndarray:
+        return (forward(b[None], uv, z)[0] - xyz).ravel()
+
+    def check_max(b: np.ndarray) -> float:
+        return float(np.linalg.norm(forward(b[None], uv_chk, z_chk)[0] - xyz_chk, axis=1).max())
+
+    g = np.column_stack([uv, np.ones(len(uv))])
+    c, *_ = np.linalg.lstsq(g, xyz[:, :2], rcond=None)
+    optimum = float(np.linalg.norm(g @ c - xyz[:, :2]))
+    tol = optimum * 1.001
+
+    if args.study:
+        return study(fitness, b0, sigma, check_max, optimum, seeds)
+
+    per_it = N_PARTICLES * 3 + max(1, round(0.1 * N_PARTICLES))
+    budget = N_PARTICLES + ITERATIONS * per_it
+    plain_iters = (budget - N_PARTICLES) // N_PARTICLES
+    ps_iters = budget // N_PARTICLES
+
+    def run_hybrid(seed):
+        r = hybrid_pso(fitness, b0, sigma, seed=seed)
+        return r.x, r.fun, r.nfev, r.history
+
+    def run_plain(seed):
+        r = pso(fitness, b0, sigma, iterations=plain_iters, seed=seed)
+        return r.x, r.fun, r.nfev, r.history
+
+    def run_pyswarms(seed, scaled: bool):
+        rng = np.random.default_rng(seed)
+        z0 = rng.standard_normal((N_PARTICLES, b0.size))
+        np.random.seed(seed)  # pyswarms draws from NumPy's global generator
+        if scaled:
+            opt = GlobalBestPSO(N_PARTICLES, b0.size, dict(OPTIONS), init_pos=z0)
+            cost, pos = opt.optimize(lambda zz: fitness(b0 + sigma * zz), ps_iters, verbose=False)
+            pos = b0 + sigma * pos
+        else:
+            opt = GlobalBestPSO(N_PARTICLES, b0.size, dict(OPTIONS), init_pos=b0 + sigma * z0)
+            cost, pos = opt.optimize(fitness, ps_iters, verbose=False)
+        return pos, float(cost), N_PARTICLES * ps_iters, np.asarray(opt.cost_history)
+
+    def run_lm(seed):
+        start = b0 + sigma * np.random.default_rng(seed).standard_normal(b0.size)
+        sol = least_squares(residuals, start, method="lm", x_scale="jac")
+        return sol.x, float(np.linalg.norm(sol.fun)), int(sol.nfev), None
+
+    methods = {
+        "hybrid PSO (ours)": (run_hybrid, f"{N_PARTICLES} x {ITERATIONS}"),
+        "plain PSO (ours)": (run_plain, f"{N_PARTICLES} x {plain_iters}"),
+        "pyswarms GlobalBestPSO": (lambda s: run_pyswarms(s, False),
+                                   f"{N_PARTICLES} x {ps_iters}"),
+        "pyswarms, scaled coords": (lambda s: run_pyswarms(s, True),
+                                    f"{N_PARTICLES} x {ps_iters}"),
+        "SciPy LM (x_scale=jac)": (run_lm, "to convergence"),
+    }
+    results: dict[str, dict[str, list]] = {
+        k: {"t": [], "f": [], "chk": [], "nfev": [], "hist": []} for k in methods
+    }
+    ablation_plain: list[np.ndarray] = []
+    print(f"fitness: {forward_name}; optimum (affine LS) {optimum:.6f} mm; "
+          f"f(B0) = {fitness(b0[None])[0]:.6f} mm; seeds {seeds[0]}-{seeds[-1]}", flush=True)
+    print("sigma (per element of B): " + np.array2string(sigma, precision=3), flush=True)
+    for seed in seeds:
+        for name, (fn, _) in methods.items():
+            t0 = time.perf_counter()
+            x, f, nfev, hist = fn(seed)
+            dt = time.perf_counter() - t0
+            rec = results[name]
+            rec["t"].append(dt)
+            rec["f"].append(f)
+            rec["chk"].append(check_max(x))
+            rec["nfev"].append(nfev)
+            rec["hist"].append(hist)
+        # ablation at equal iterations: plain PSO, 200 x 150
+        ablation_plain.append(pso(fitness, b0, sigma, seed=seed).history)
+        print(f"  seed {seed} done", file=sys.stderr, flush=True)
+
+    t_ref = float(np.median(results["pyswarms GlobalBestPSO"]["t"]))
+    print()
+    print(f"Same fitness (eq. 16, mm), {len(seeds)} seeds; nfev matched to the hybrid's "
+          f"{budget:,} ({N_PARTICLES} + {ITERATIONS} x {per_it}); "
+          f"'ok' = within 0.1 % of {optimum:.5f} mm")
+    head = (f"{'method':<25} {'swarm':>10} {'nfev':>7} {'s/run':>7} {'x pyswarms':>10} "
+            f"{'median f':>10} {'worst f':>10} {'ok':>6} {'chk max':>8} {'chk<=0.0898':>11}")
+    print(head)
+    print("-" * len(head))
+    for name, (_, swarm) in methods.items():
+        rec = results[name]
+        t = float(np.median(rec["t"]))
+        f = np.array(rec["f"])
+        chk = np.array(rec["chk"])
+        nfev = int(np.median(rec["nfev"]))
+        print(f"{name:<25} {swarm:>10} {nfev:>7} {t:>7.3f} {t / t_ref:>10.2f} "
+              f"{np.median(f):>10.6f} {f.max():>10.6f} {np.sum(f <= tol):>3}/{len(f):<2} "
+              f"{chk.max():>8.4f} {np.sum(chk <= PAPER_MAX_CHECK_MM):>8}/{len(chk):<2}")
+    print("chk max = worst over seeds of the largest 3-D error (mm) on the 9 check points.")
+
+    hyb = np.array(results["hybrid PSO (ours)"]["hist"])
+    pla = np.array(ablation_plain)
+    pla_eq = np.array(results["plain PSO (ours)"]["hist"])
+    print()
+    print(f"Ablation: best fitness (mm) after k iterations, median of {len(seeds)} seeds "
+          f"(hybrid {per_it} evaluations/iteration, plain {N_PARTICLES}; last column: plain "
+          f"PSO at the hybrid's nfev)")
+    print(f"{'k':>5} {'hybrid':>10} {'plain':>10} {'plain @ same nfev':>18}")
+    for k in ABLATION_ITERATIONS:
+        k_eq = min((N_PARTICLES + k * per_it - N_PARTICLES) // N_PARTICLES, pla_eq.shape[1])
+        print(f"{k:>5} {np.median(hyb[:, k - 1]):>10.6f} {np.median(pla[:, k - 1]):>10.6f} "
+              f"{np.median(pla_eq[:, k_eq - 1]):>18.6f}")
+    return 0
+
+
+def study(fitness, b0, sigma, check_max, optimum, seeds) -> int:
+    """Hybrid PSO at the paper's settings under other sigma choices and with operators removed."""
+    unit = sigma * np.sqrt(b0.size)  # per element: moves the mapped points by 1 mm RMS
+    rows = [
+        ("sigma: 0.1 mm/element", unit * 0.1, {}),
+        ("sigma: 1/sqrt(12) mm/element (default)", unit / np.sqrt(b0.size), {}),
+        ("sigma: 1 mm/element", unit, {}),
+        ("sigma: 2 mm/element", unit * 2, {}),
+        ("sigma: 2**0.25 scalar (paper literal)", 2**0.25, {}),
+        ("operators: crossover only", sigma, {"mutation": False}),
+        ("operators: mutation only", sigma, {"crossover": False}),
+        ("operators: neither (plain PSO)", sigma, {"crossover": False, "mutation": False}),
+    ]
+    print(f"Hybrid PSO, 200 x 150, paper's w/c1/c2, seeds {seeds[0]}-{seeds[-1]}; "
+          f"'ok' = within 0.1 % of {optimum:.5f} mm")
+    head = (f"{'variant':<40} {'nfev':>7} {'median f':>10} {'worst f':>11} {'ok':>7} "
+            f"{'chk max':>9} {'chk<=0.0898':>11}")
+    print(head)
+    print("-" * len(head))
+    for name, sig, kw in rows:
+        res = [hybrid_pso(fitness, b0, sig, seed=s, **kw) for s in seeds]
+        f = np.array([r.fun for r in res])
+        chk = np.array([check_max(r.x) for r in res])
+        n = len(seeds)
+        print(f"{name:<40} {res[0].nfev:>7} {np.median(f):>10.6f} {f.max():>11.6g} "
+              f"{np.sum(f <= optimum * 1.001):>3}/{n:<3} {chk.max():>9.4f} "
+              f"{np.sum(chk <= PAPER_MAX_CHECK_MM):>7}/{n:<3}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
