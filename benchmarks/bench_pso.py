@@ -102,11 +102,16 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="3 seeds: a smoke run")
     ap.add_argument("--seeds", type=int, default=None, help="number of seeds (default 20)")
+    ap.add_argument("--functions", action="store_true",
+                    help="instead: hybrid vs plain PSO on sphere, Rosenbrock and Rastrigin")
     ap.add_argument("--study", action="store_true",
                     help="instead: sigma choice and operator ablation of the hybrid PSO")
     args = ap.parse_args(argv)
     n_seeds = args.seeds or (3 if args.quick else 20)
     seeds = list(range(1, n_seeds + 1))
+
+    if args.functions:
+        return functions(seeds)
 
     import pyswarms  # noqa: F401  (fail early if missing)
     from pyswarms.single import GlobalBestPSO
@@ -232,6 +237,40 @@ def main(argv: list[str] | None = None) -> int:
         k_eq = min((N_PARTICLES + k * per_it - N_PARTICLES) // N_PARTICLES, pla_eq.shape[1])
         print(f"{k:>5} {np.median(hyb[:, k - 1]):>10.6f} {np.median(pla[:, k - 1]):>10.6f} "
               f"{np.median(pla_eq[:, k_eq - 1]):>18.6f}")
+    return 0
+
+
+def functions(seeds) -> int:
+    """Hybrid vs plain PSO (200 x 150, paper's w/c1/c2) on standard test functions."""
+
+    def sphere(x):
+        return (x**2).sum(axis=1)
+
+    def rosenbrock(x):
+        return (100 * (x[:, 1:] - x[:, :-1] ** 2) ** 2 + (1 - x[:, :-1]) ** 2).sum(axis=1)
+
+    def rastrigin(x):
+        return 10 * x.shape[1] + (x**2 - 10 * np.cos(2 * np.pi * x)).sum(axis=1)
+
+    cases = [
+        ("sphere 10-D, x0=3, sigma=2", sphere, np.full(10, 3.0), 2.0, 1e-10),
+        ("Rosenbrock 12-D, x0=0, sigma=1", rosenbrock, np.zeros(12), 1.0, 1e-6),
+        ("Rastrigin 2-D, x0=2.5, sigma=2", rastrigin, np.full(2, 2.5), 2.0, 1e-6),
+        ("Rastrigin 3-D, x0=2.5, sigma=2", rastrigin, np.full(3, 2.5), 2.0, 1e-6),
+        ("Rastrigin 5-D, x0=2.5, sigma=2", rastrigin, np.full(5, 2.5), 2.0, 1e-6),
+    ]
+    n = len(seeds)
+    print(f"200 x 150, seeds {seeds[0]}-{seeds[-1]}; 'ok' = f below the threshold "
+          "(global minimum 0)")
+    head = f"{'function':<32} {'method':<7} {'nfev':>6} {'median f':>10} {'worst f':>10} {'ok':>7}"
+    print(head)
+    print("-" * len(head))
+    for name, fn, x0, sig, thr in cases:
+        for label, kw in (("hybrid", {}), ("plain", {"crossover": False, "mutation": False})):
+            res = [hybrid_pso(fn, x0, sig, seed=s, **kw) for s in seeds]
+            f = np.array([r.fun for r in res])
+            print(f"{name:<32} {label:<7} {res[0].nfev:>6} {np.median(f):>10.3g} "
+                  f"{f.max():>10.3g} {np.sum(f < thr):>3}/{n:<3} (f < {thr:g})")
     return 0
 
 
