@@ -156,9 +156,21 @@ def load_pairs(path: str | os.PathLike) -> PointPairs:
     path = Path(path)
     name = str(path)
     text = _read_text(path)
-    if path.suffix.lower() == ".json" or text.lstrip().startswith(("{", "[")):
+    if path.suffix.lower() == ".json":
         return _parse_json(text, name)
-    return _parse_csv(text, name)
+    return pairs_from_text(text, name)
+
+
+def pairs_from_text(text: str, source: str = "<text>") -> PointPairs:
+    """Pairs from CSV or JSON text (a paste, an upload), with the same rules and messages as
+    :func:`load_pairs`; ``source`` names it in errors."""
+    if "\x00" in text:
+        raise InputError(f"{source}: binary data, expected CSV or JSON text")
+    if not text.strip():
+        raise InputError(f"{source}: empty, expected a header line 'u,v,x,y[,z][,id]' and rows")
+    if text.lstrip().startswith(("{", "[")):
+        return _parse_json(text, source)
+    return _parse_csv(text, source)
 
 
 def pairs_from_records(records, source: str = "<records>") -> PointPairs:

@@ -61,17 +61,11 @@ def to_pairs(records, label: str) -> PointPairs:
 
 def parse_text(text: str, source: str) -> PointPairs:
     """Pairs from CSV or JSON text, with the same rules and messages as ``eyetohand calibrate``."""
-    from .. import pairs as _pairs
+    from ..pairs import pairs_from_text
 
     name = source.strip() or "pasted"
-    if "\x00" in text:
-        raise ApiError(422, f"{name}: binary data, expected CSV or JSON text", "text")
     try:
-        if text.lstrip().startswith(("{", "[")):
-            return _pairs._parse_json(text, name)
-        if not text.strip():
-            raise InputError(f"{name}: empty, expected a header line 'u,v,x,y[,z][,id]' and rows")
-        return _pairs._parse_csv(text, name)
+        return pairs_from_text(text, name)
     except InputError as exc:
         err = input_error(exc, "text")
         err.field = "text"
