@@ -194,8 +194,11 @@ def hybrid_pso(
             mutated particles for mutation batches. NaN values are treated as ``+inf``.
         x0: centre of the initial swarm, shape ``(D,)`` (parameter units).
         sigma: standard deviation of the initial swarm around ``x0``: a positive scalar or a
-            ``(D,)`` vector in parameter units. Pick it per element so that each element's spread
-            moves the fitness by a comparable amount (see ``docs/pso.md``).
+            ``(D,)`` vector in parameter units; also the largest mutation step. For badly scaled
+            parameters use a vector: for calibration, ``sigma_j = (1 mm / sqrt(D)) / s_j`` with
+            ``s_j`` the RMS over the calibration points of the mapped-point displacement per unit
+            of parameter ``j`` (mm/unit), so the initial swarm moves the mapped points by ~1 mm
+            RMS (``docs/pso.md``).
         n_particles: swarm size, >= 2.
         iterations: maximum number of iterations, >= 1.
         w: inertia weight of equation 14.
