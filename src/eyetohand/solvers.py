@@ -99,10 +99,19 @@ def refine(
         if objective == "l2":
             sol = least_squares(fun, model.params, method="lm", x_scale="jac")
         else:
-            sol = least_squares(fun, model.params, method="trf", loss="huber", f_scale=delta,
-                                x_scale="jac")
+            # the starting fit's errors are inflated by the very pairs Huber should discount, so the
+            # threshold is re-estimated from the robust fit's own errors until it settles
+            x = model.params
+            for _ in range(HUBER_ROUNDS):
+                sol = least_squares(fun, x, method="trf", loss="huber", f_scale=delta, x_scale="jac")
+                x = sol.x
+                new = huber_delta_mm(np.linalg.norm(fun(x).reshape(-1, 3), axis=1))
+                if abs(new - delta) <= 0.01 * delta:
+                    break
+                delta = new
+            extra["huber_delta_mm"] = delta
         best = model.with_params(sol.x)
-        f = float(fitness(sol.x[None])[0])
+        f = float(objective_values(fun(sol.x).reshape(1, -1, 3), objective, delta)[0])
         return best, FitInfo(
             "lm", objective, f, (f,), int(sol.nfev), int(sol.nfev), time.perf_counter() - t0,
             None, str(sol.message), extra,
@@ -113,7 +122,8 @@ def refine(
     except ImportError:
         raise InputError(f"optimizer {optimizer!r} is not available in this version") from None
     run = optimize.hybrid_pso if optimizer == "hybrid-pso" else optimize.pso
-    sigma = model.param_scale(uv, z, step_mm=PSO_SPREAD_MM)
+    # each element alone moves the mapped points by 1/sqrt(D) mm RMS, the swarm ~1 mm (docs/pso.md)
+    sigma = model.param_scale(uv, z, step_mm=PSO_SPREAD_MM / np.sqrt(model.n_params))
     res = run(
         fitness,
         model.params,
@@ -132,3 +142,4 @@ def refine(
 
 
 PSO_SPREAD_MM = 1.0
+HUBER_ROUNDS = 5
