@@ -49,13 +49,17 @@ def test_nine_plus_two_recovers_the_offset_within_20_um(seed):
 def test_calibration_with_the_offset_removed_finds_objects():
     sim = simulate(CELL, "grid:3x3", (150.0,), n_check=30, angles_deg=(0.0, 90.0, 180.0), seed=4)
     cal, tcp = calibrate_with_tcp(sim.pairs, check=sim.check, image_size=CELL.image_size, loo=False)
-    plain = calibrate(sim.pairs, check=sim.check, image_size=CELL.image_size, loo=False)
+    # ignoring the offset: the classic 9 pairs at one tool angle
+    one_angle = sim.pairs.subset(sim.pairs.angle_deg == 0.0)
+    plain = calibrate(one_angle, check=sim.check, image_size=CELL.image_size, loo=False)
+    assert plain.tcp_offset is None
     print(f"check rms: with offset removed {cal.check.rms_mm:.4f} mm, "
           f"ignoring it {plain.check.rms_mm:.4f} mm")
     assert tcp is not None
     assert cal.check.rms_mm < 0.03
     assert plain.check.rms_mm > 0.1  # the offset biases an uncorrected calibration
     assert any("tool-centre offset" in n for n in cal.notes)
+    assert cal.tcp_offset is tcp
 
 
 def test_pairs_at_one_angle_cannot_show_an_offset():
@@ -78,3 +82,19 @@ def test_simulate_cli_writes_the_angle_column(tmp_path, capsys):
     assert pairs.angle_deg is not None and sorted(set(pairs.angle_deg)) == [0.0, 90.0, 180.0]
     est = estimate_tcp_offset(pairs, image_size=(2448, 2048))
     assert np.linalg.norm(np.array(est.offset_mm) - OFFSET) < 0.02
+
+
+def test_cli_calibrate_removes_the_offset_and_the_file_keeps_it(tmp_path, capsys):
+    import json
+
+    from eyetohand import Calibration
+    from eyetohand.cli import main
+
+    sim = simulate(CELL, "grid:3x3", (150.0,), n_check=0, angles_deg=(0.0, 90.0, 180.0), seed=4)
+    src = tmp_path / "pairs.csv"
+    src.write_text(sim.pairs.to_csv_text())
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", str(src), "--json", "-o", str(out)]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert np.linalg.norm(np.array(d["tcp_offset"]["offset_mm"]) - OFFSET) < 0.02
+    assert Calibration.load(out).tcp_offset.offset_mm == tuple(d["tcp_offset"]["offset_mm"])

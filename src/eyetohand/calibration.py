@@ -16,6 +16,7 @@ from .evaluate import Stats
 from .io import atomic_write_text
 from .models import Model, model_from_dict
 from .solvers import FitInfo
+from .tcp_offset import TcpOffset
 
 SCHEMA = "eyetohand.calibration"
 SCHEMA_VERSION = 1
@@ -34,6 +35,7 @@ class Calibration:
     image_size: tuple[int, int] | None = None
     notes: tuple[str, ...] = ()
     selection: dict | None = None
+    tcp_offset: TcpOffset | None = None
     created_utc: str = field(
         default_factory=lambda: _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     )
@@ -77,6 +79,7 @@ class Calibration:
             "data_sha256": self.data_sha256,
             "notes": list(self.notes),
             "selection": self.selection,
+            "tcp_offset": self.tcp_offset.to_dict() if self.tcp_offset else None,
         }
 
     def to_json(self) -> str:
@@ -111,6 +114,7 @@ class Calibration:
                 image_size=tuple(d["image_size"]) if d.get("image_size") else None,
                 notes=tuple(d.get("notes", ())),
                 selection=d.get("selection"),
+                tcp_offset=TcpOffset.from_dict(d["tcp_offset"]) if d.get("tcp_offset") else None,
                 created_utc=d.get("created_utc", ""),
                 version=d.get("eyetohand_version", ""),
             )

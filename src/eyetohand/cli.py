@@ -104,6 +104,7 @@ def calibration_summary(cal: Calibration) -> dict:
         "loo": cal.loo.to_dict() if cal.loo else None,
         "notes": list(cal.notes),
         "selection": cal.selection,
+        "tcp_offset": cal.tcp_offset.to_dict() if cal.tcp_offset else None,
         "params": cal.model.to_dict(),
     }
     if cal.check is not None:
@@ -119,6 +120,10 @@ def print_calibration(cal: Calibration, output: str | None) -> None:
         for r in cal.selection["candidates"]:
             score = f"{r['cv_rms_mm']:.4f} mm" if r.get("cv_rms_mm") is not None else r.get("why", "")
             print(f"  {r['model']:<18} {r['unknowns']:>2} unknowns  held-out rms {score}")
+    if cal.tcp_offset:
+        t = cal.tcp_offset
+        print(f"tool-centre offset ({t.offset_mm[0]:.4f}, {t.offset_mm[1]:.4f}) mm "
+              f"± ({t.std_mm[0]:.4f}, {t.std_mm[1]:.4f}) from {t.n_turned} turned pairs: removed")
     print(stats_line("train", cal.train))
     if cal.loo:
         print(stats_line("loo", cal.loo))
@@ -143,8 +148,8 @@ def emit_json(obj) -> None:
     print(json.dumps(obj, allow_nan=False))
 
 
-def run_calibration(args, pairs, check) -> int:
-    """Shared end of calibrate and calibrate-images: fit, save, print."""
+def run_calibration(args, pairs, check, extra: dict | None = None) -> int:
+    """Shared end of calibrate and calibrate-images: fit, save, print (``extra`` joins the JSON)."""
     cal = calibrate(
         pairs,
         model=args.model,
@@ -161,6 +166,7 @@ def run_calibration(args, pairs, check) -> int:
         print(f"note: {note}", file=sys.stderr)
     if args.json:
         out = calibration_summary(cal)
+        out.update(extra or {})
         if args.output:
             out["output"] = str(args.output)
         emit_json(out)

@@ -18,6 +18,7 @@ from .models import MODELS, Model, get_model
 from .objectives import SMOOTH_OBJECTIVES
 from .pairs import PointPairs
 from .solvers import check_optimizer, refine
+from .tcp_offset import correct_pairs, estimate_tcp_offset, has_turns
 
 AUTO_TOLERANCE = 0.02
 SPARE_EQUATIONS = 8
@@ -130,6 +131,10 @@ def calibrate(
 ) -> Calibration:
     """Fit a calibration: ``model`` (a name or "auto") refined by ``optimizer`` on ``objective``.
 
+    Pairs with an ``angle`` column whose angles differ ("9 + 2") first give the tool-centre offset
+    (:mod:`eyetohand.tcp_offset`); the pairs are moved to their tool points and the offset is kept in
+    ``Calibration.tcp_offset``.
+
     ``check``: pairs not used for fitting, to measure accuracy. ``loo``: also report leave-one-out
     errors on the training pairs (refit without each pair; for the PSO solvers the leave-one-out
     refits use ``lm`` — or ``linear`` for a non-smooth objective — to keep it fast, and say so).
@@ -142,6 +147,13 @@ def calibrate(
         if not (int(w) > 0 and int(h) > 0):
             raise InputError(f"image size must be two positive integers W x H, got {image_size!r}")
         image_size = (int(w), int(h))
+    data_sha = pairs.sha256()
+    tcp = None
+    if has_turns(pairs):  # "9 + 2": pairs at other tool angles reveal the tool-centre offset
+        tcp = estimate_tcp_offset(pairs, model, image_size=image_size, seed=0 if seed is None else seed)
+        pairs = correct_pairs(pairs, tcp.offset_mm)
+        if check is not None and check.angle_deg is not None:
+            check = correct_pairs(check, tcp.offset_mm)
     selection = None
     if model == "auto":
         model, selection = select_model(pairs, image_size=image_size, seed=0 if seed is None else seed)
@@ -176,8 +188,9 @@ def calibrate(
         train=train,
         check=check_stats,
         loo=loo_stats,
-        data_sha256=pairs.sha256(),
+        data_sha256=data_sha,
         image_size=image_size,
         notes=tuple(notes),
         selection=selection,
+        tcp_offset=tcp,
     )

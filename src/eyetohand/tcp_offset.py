@@ -17,7 +17,7 @@ adds pairs at the same position with other tool angles (an ``angle`` column); th
 
 :func:`correct_pairs` then moves every pair to its tool point, and calibrating the corrected pairs
 gives a mapping from pixels to where the target (or any object) really is — where a tool on the axis
-must go. :func:`calibrate_with_tcp` does the three steps.
+must go. :func:`eyetohand.calibrate` does the three steps when the pairs have turns.
 """
 
 from __future__ import annotations
@@ -56,6 +56,11 @@ class TcpOffset:
             "n_pairs": self.n_pairs,
             "rms_mm": self.rms_mm,
         }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TcpOffset:
+        return cls(tuple(d["offset_mm"]), tuple(d["std_mm"]), d["model"], d["reference_angle_deg"],
+                   d["n_turned"], d["n_pairs"], d["rms_mm"])
 
 
 def rotations(angle_deg: np.ndarray) -> np.ndarray:
@@ -152,19 +157,10 @@ def estimate_tcp_offset(pairs: PointPairs, model: str = "auto", *, image_size=No
     )
 
 
-def calibrate_with_tcp(pairs: PointPairs, model: str = "auto", optimizer: str = "lm", *, check=None,
-                       image_size=None, seed=None, **options):
-    """Estimate the offset, correct the pairs (and check pairs with angles), then calibrate.
-
-    Returns ``(Calibration, TcpOffset or None)``; pairs without turns are calibrated unchanged.
-    """
+def calibrate_with_tcp(pairs: PointPairs, model: str = "auto", optimizer: str = "lm", **options):
+    """``eyetohand.calibrate`` (which removes the offset when the pairs have turns), returning
+    ``(Calibration, TcpOffset or None)``."""
     from .fit import calibrate
 
-    tcp = None
-    if has_turns(pairs):
-        tcp = estimate_tcp_offset(pairs, model, image_size=image_size, seed=0 if seed is None else seed)
-        pairs = correct_pairs(pairs, tcp.offset_mm)
-        if check is not None and check.angle_deg is not None:
-            check = correct_pairs(check, tcp.offset_mm)
-    cal = calibrate(pairs, model, optimizer, check=check, image_size=image_size, seed=seed, **options)
-    return cal, tcp
+    cal = calibrate(pairs, model, optimizer, **options)
+    return cal, cal.tcp_offset
