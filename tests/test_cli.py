@@ -33,6 +33,7 @@ def test_calibrate_json_has_the_documented_fields(tmp_path, capsys):
             assert key in d[part]
         assert set(d[part]["points"][0]) >= {"id", "dx_mm", "dy_mm", "error_mm"}
     assert d["check"]["n"] == 9 and d["check"]["rms_mm"] <= 0.028
+    assert 1 <= d["condition_number"] < 100  # normalised: well conditioned
     assert out_path.exists()
 
 
