@@ -15,6 +15,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .errors import InputError
+from .models.base import batch_jacobian
 from .objectives import SMOOTH_OBJECTIVES, check_objective, huber_delta_mm, objective_values
 
 OPTIMIZERS = ("linear", "lm", "hybrid-pso", "pso")
@@ -93,17 +94,24 @@ def refine(
         return model, FitInfo("linear", objective, f, (f,), 1, 0, 0.0, None, "closed form", extra)
 
     if optimizer == "lm":
+        def fun_batch(P):
+            return (model.batch_image_to_robot(P, uv, z) - xyz[None]).reshape(len(P), -1)
+
         def fun(p):
-            return (model.batch_image_to_robot(p[None], uv, z)[0] - xyz).ravel()
+            return fun_batch(p[None])[0]
+
+        def jac(p):  # all finite-difference steps in one batched call
+            return batch_jacobian(fun_batch, p)
 
         if objective == "l2":
-            sol = least_squares(fun, model.params, method="lm", x_scale="jac")
+            sol = least_squares(fun, model.params, jac=jac, method="lm", x_scale="jac")
         else:
             # the starting fit's errors are inflated by the very pairs Huber should discount, so the
             # threshold is re-estimated from the robust fit's own errors until it settles
             x = model.params
             for _ in range(HUBER_ROUNDS):
-                sol = least_squares(fun, x, method="trf", loss="huber", f_scale=delta, x_scale="jac")
+                sol = least_squares(fun, x, jac=jac, method="trf", loss="huber", f_scale=delta,
+                                    x_scale="jac")
                 x = sol.x
                 new = huber_delta_mm(np.linalg.norm(fun(x).reshape(-1, 3), axis=1))
                 if abs(new - delta) <= 0.01 * delta:

@@ -132,7 +132,7 @@ def estimate_tcp_offset(pairs: PointPairs, model: str = "auto", *, image_size=No
         target[..., :2] += np.einsum("nij,bj->bni", R, q[:, d:])
         return (mapped - target).reshape(len(q), -1)
 
-    from .models.pinhole import batch_jacobian
+    from .models.base import batch_jacobian
 
     q0 = np.r_[m1.params, o0]
     sol = least_squares(lambda q: fun_batch(q[None])[0], q0, jac=lambda q: batch_jacobian(fun_batch, q),

@@ -86,11 +86,10 @@ class Model:
         elements range over 6 orders of magnitude) is explored on the same footing in mm.
         """
         p = self.params
-        h = 1e-6 * np.maximum(np.abs(p), 1e-3)
-        batch = np.vstack([p, p + np.diag(h)])
-        out = self.batch_image_to_robot(batch, np.asarray(uv_px, float), np.asarray(z_mm, float))
-        deriv = (out[1:] - out[0]) / h[:, None, None]  # (D, N, 3) mm per unit
-        sens = np.sqrt((deriv**2).sum(axis=2).mean(axis=1))  # RMS mm per unit
+        uv, z = np.asarray(uv_px, float), np.asarray(z_mm, float)
+        J = batch_jacobian(lambda P: self.batch_image_to_robot(P, uv, z).reshape(len(P), -1), p,
+                           step=1e-6 * np.maximum(np.abs(p), 1e-3))  # (N*3, D) mm per unit
+        sens = np.sqrt((J**2).sum(axis=0) / len(uv))  # RMS over points of the 3-D displacement
         return step_mm / np.maximum(sens, 1e-12)
 
     def _z_for(self, n: int, z_mm) -> np.ndarray:
@@ -114,6 +113,16 @@ class Model:
 
 
 # ---------------------------------------------------------------- shared checks
+
+
+def batch_jacobian(fun_batch, p: np.ndarray, step: np.ndarray | None = None) -> np.ndarray:
+    """Forward-difference Jacobian (M, D) of a residual function, all D steps in one call:
+    ``fun_batch`` maps (B, D) parameter rows to (B, M) residuals. Default step: SciPy's
+    2-point rule, 1.5e-8 · max(|p|, 1)."""
+    p = np.asarray(p, float)
+    h = 1.5e-8 * np.maximum(np.abs(p), 1.0) if step is None else np.asarray(step, float)
+    r = fun_batch(np.vstack([p, p + np.diag(h)]))
+    return ((r[1:] - r[0]) / h[:, None]).T
 
 
 def batch_inverse3(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -32,7 +32,7 @@ from scipy.linalg import rq
 from scipy.optimize import least_squares
 
 from ..errors import DegenerateError
-from .base import Model, _as_uv, check_enough
+from .base import Model, _as_uv, batch_jacobian, check_enough
 from .dlt3d import dlt_projection
 from .radial import rodrigues_batch, rotation_to_rodrigues
 
@@ -227,15 +227,6 @@ class PinholeCamera(Model):
             "t_mm": t.tolist(),
             "centre_mm": (-R.T @ t).tolist(),
         }
-
-
-def batch_jacobian(fun_batch, p: np.ndarray) -> np.ndarray:
-    """Forward-difference Jacobian of a residual function evaluated on all steps in one batch:
-    ``fun_batch`` maps (B, D) parameter rows to (B, M) residuals."""
-    h = 1.5e-8 * np.maximum(np.abs(p), 1.0)
-    batch = np.vstack([p, p + np.diag(h)])
-    r = fun_batch(batch)
-    return ((r[1:] - r[0]) / h[:, None]).T
 
 
 def _mask(terms) -> np.ndarray:
