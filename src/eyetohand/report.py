@@ -523,6 +523,8 @@ def write_report(out_dir: str | os.PathLike, calibration: Calibration, check_pai
 
 _PAPER_LABELS = {
     "paper+linear": "ours: paper's B, linear (Table 3 method)",
+    "paper+hybrid-pso": "ours: paper's B, hybrid-pso (Table 4 method)",
+    "paper+pso": "ours: paper's B, plain pso (ablation)",
 }
 
 
@@ -530,7 +532,7 @@ def _demo_label(key: str) -> str:
     if key in _PAPER_LABELS:
         return _PAPER_LABELS[key]
     if key.startswith("paper+"):
-        return f"ours: paper's B, {key.split('+', 1)[1]} (Table 4 method)"
+        return f"ours: paper's B, {key.split('+', 1)[1]}"
     return f"ours: {key.replace('+', ' + ')}"
 
 
