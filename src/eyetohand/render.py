@@ -77,12 +77,18 @@ class Camera:
 
     def project(self, xyz_mm) -> np.ndarray:
         """Image points (N, 2) px of robot points (N, 3) mm, lens distortion included."""
-        import cv2
+        return project(self, xyz_mm)
 
-        xyz = np.asarray(xyz_mm, float).reshape(-1, 3)
-        uv, _ = cv2.projectPoints(xyz, cv2.Rodrigues(np.asarray(self.R, float))[0],
-                                  np.asarray(self.t, float), self.K, self.dist)
-        return uv.reshape(-1, 2)
+
+def project(camera, xyz_mm) -> np.ndarray:
+    """Image points (N, 2) px of robot points (N, 3) mm through any camera with K, dist, R, t."""
+    import cv2
+
+    xyz = np.asarray(xyz_mm, float).reshape(-1, 3)
+    uv, _ = cv2.projectPoints(xyz, cv2.Rodrigues(np.asarray(camera.R, float))[0],
+                              np.asarray(camera.t, float).reshape(3), np.asarray(camera.K, float),
+                              np.asarray(camera.dist, float))
+    return uv.reshape(-1, 2)
 
 
 @dataclass(frozen=True)
@@ -223,7 +229,7 @@ def circle_truth(camera, centre_mm, diameter_mm: float, n: int = 4096) -> Truth:
     th = 2 * np.pi * np.arange(n) / n
     r = diameter_mm / 2
     ring = np.column_stack([c[0] + r * np.cos(th), c[1] + r * np.sin(th), np.full(n, c[2])])
-    uv = camera.project(np.vstack([c[None], ring]))
+    uv = project(camera, np.vstack([c[None], ring]))
     centre, b = uv[0], uv[1:]
     x, y = b[:, 0] - b[:, 0].mean(), b[:, 1] - b[:, 1].mean()
     x1, y1 = np.roll(x, -1), np.roll(y, -1)
@@ -280,7 +286,7 @@ def render(
     # edges of the box too, since distortion bends them
     tt = np.linspace(0, 1, 9)[:, None]
     outline = np.vstack([box[i] + tt * (box[j] - box[i]) for i, j in ((0, 1), (1, 3), (3, 2), (2, 0))])
-    uv = camera.project(np.column_stack([outline, np.full(len(outline), c[2])]))
+    uv = project(camera, np.column_stack([outline, np.full(len(outline), c[2])]))
     lo = np.floor(uv.min(axis=0)).astype(int) - 4
     hi = np.ceil(uv.max(axis=0)).astype(int) + 5
     x0, y0 = max(lo[0], 0), max(lo[1], 0)
@@ -307,4 +313,4 @@ def render(
     return out, circle_truth(camera, c, target.diameter_mm)
 
 
-__all__ = ["Camera", "Target", "Truth", "circle_truth", "render"]
+__all__ = ["Camera", "Target", "Truth", "circle_truth", "project", "render"]

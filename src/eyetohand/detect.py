@@ -1,0 +1,558 @@
+"""Find the target's solid circle in an image, with sub-pixel accuracy.
+
+Two stages:
+
+1. **Candidates** on a downscaled copy (area averaging, so a 2448×2048 image is searched at 612×512):
+   the image is cut at a dozen grey levels between its 0.5th and 99.5th percentiles; at each level the
+   connected dark (and bright) regions are kept when they are big enough, fill their bounding box like
+   an ellipse, have no hole (solid), keep off the image border, are round once their second moments are
+   whitened, and stand out from the ring around them by at least 6 noise σ. A region found at two or
+   more levels in the same place is a candidate. Uneven light only moves the levels at which a region
+   appears, not whether it does.
+2. **Refinement** at full resolution around each candidate: the image is sampled (bilinear) along one
+   radial profile per boundary pixel, from inside to outside the candidate's ellipse; each profile's
+   edge is the centroid of its gradient above a quarter of its peak (exact for a symmetrically blurred
+   edge, whatever the blur, and it averages the noise of the whole edge band). An ellipse is fitted to
+   the edge points (normalised algebraic conic, then points farther than 3.5 robust σ from it dropped),
+   and the profiles are cast again from the new centre. The centre reported is the fitted ellipse's:
+   the centre of the *imaged ellipse*, not the image of the circle's centre — they differ by the
+   perspective bias of a tilted view (see :mod:`eyetohand.render`).
+
+Everything is vectorised over profiles and samples. ``detect_target`` wants exactly one circle; it
+refuses (``ok=False`` with a ``reason``, never a guessed centre) when there is none, when two or more
+candidates are equally good, or when the circle is cut by the image border. ``detect_circles`` returns
+every circle (dot grids). Files that cannot be read as images raise :class:`~eyetohand.errors.InputError`.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+MIN_SIZE_PX = 8  # an image smaller than this in either direction is refused
+N_LEVELS = 12  # grey levels of the candidate search
+MIN_COARSE_DIAMETER = 10.0  # px at the search scale
+MIN_CONTRAST_SIGMA = 6.0  # a candidate's contrast against its ring, in noise σ
+AMBIGUOUS_RATIO = 0.8  # a runner-up scoring this fraction of the best makes the choice ambiguous
+MAX_RMS_REL = 0.03  # edge points' rms distance from the ellipse, as a fraction of its mean radius
+MIN_VALID_RAYS = 0.85  # fraction of profiles that must show the edge
+
+
+@dataclass(frozen=True)
+class Detection:
+    """The result of a search. Positions in px, OpenCV convention (pixel centres at integers).
+
+    ``ok`` False: ``u``, ``v`` and ``diameter_px`` are None and ``reason`` says why. ``ellipse`` is
+    ((cx, cy), (major, minor) full axis lengths, angle in degrees of the major axis from +u).
+    ``score`` (0..1): the fraction of profiles that showed the edge × a factor for the edge points'
+    scatter about the ellipse (1 / (1 + (rms / 0.25 px)²)) × min(1, contrast / (20 noise σ)).
+    """
+
+    ok: bool
+    u: float | None = None
+    v: float | None = None
+    diameter_px: float | None = None
+    ellipse: tuple[tuple[float, float], tuple[float, float], float] | None = None
+    score: float = 0.0
+    reason: str = ""
+    polarity: str | None = None  # "dark" (dark circle on bright) or "bright"
+    rms_px: float | None = None  # edge points' rms distance from the fitted ellipse
+    n_edge_points: int = 0
+    contrast: float | None = None  # grey levels of the input (e.g. 0..255), circle vs surround
+
+    def to_dict(self) -> dict:
+        return {"ok": self.ok, "u": self.u, "v": self.v, "diameter_px": self.diameter_px,
+                "ellipse": None if self.ellipse is None else {
+                    "centre": list(self.ellipse[0]), "axes": list(self.ellipse[1]),
+                    "angle_deg": self.ellipse[2]},
+                "score": self.score, "reason": self.reason, "polarity": self.polarity,
+                "rms_px": self.rms_px, "n_edge_points": self.n_edge_points, "contrast": self.contrast}
+
+
+# ------------------------------------------------------------------ reading
+
+
+def _check_complete(data: bytes, name: str) -> None:
+    """Refuse truncated PNG and JPEG files before the decoder prints its own complaints."""
+    if data.startswith(b"\x89PNG\r\n\x1a\n"):
+        if b"IEND" not in data[-32:]:
+            raise InputError(f"{name}: truncated PNG file (no IEND chunk at the end)")
+    elif data.startswith(b"\xff\xd8"):
+        if b"\xff\xd9" not in data[-1024:]:
+            raise InputError(f"{name}: truncated JPEG file (no end-of-image marker)")
+
+
+def load_image(image, name: str | None = None) -> tuple[np.ndarray, str, float]:
+    """``image`` (path, or array: grey (h, w) or colour (h, w, 3|4) BGR, any numeric dtype) as a grey
+    float32 array, with a name for messages and the full-scale value of the input (255, 65535 or 1)."""
+    import cv2
+
+    if isinstance(image, (str, os.PathLike)):
+        path = Path(image)
+        name = name or str(path)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise InputError(f"{name}: no such file") from None
+        except IsADirectoryError:
+            raise InputError(f"{name}: is a folder, not an image") from None
+        except OSError as exc:
+            raise InputError(f"{name}: cannot read ({exc.strerror or exc})") from None
+        if not data:
+            raise InputError(f"{name}: empty file, not an image")
+        _check_complete(data, name)
+        arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
+        if arr is None:
+            raise InputError(f"{name}: not an image (PNG, JPEG, BMP or TIFF) or a damaged one")
+    else:
+        name = name or "<array>"
+        arr = np.asarray(image)
+        if arr.dtype == bool or not np.issubdtype(arr.dtype, np.number):
+            raise InputError(f"{name}: expected a numeric image array, got dtype {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (3, 4)):
+        raise InputError(f"{name}: expected a grey or colour image, got an array of shape {arr.shape}")
+    h, w = arr.shape[:2]
+    if h < MIN_SIZE_PX or w < MIN_SIZE_PX:
+        raise InputError(f"{name}: the image is {w}x{h} px, too small to hold a target "
+                         f"(at least {MIN_SIZE_PX}x{MIN_SIZE_PX})")
+    if arr.dtype == np.uint8:
+        full = 255.0
+    elif arr.dtype == np.uint16:
+        full = 65535.0
+    else:
+        full = 1.0
+    grey = arr.astype(np.float32, copy=False)
+    if grey.ndim == 3:
+        grey = cv2.cvtColor(grey, cv2.COLOR_BGRA2GRAY if grey.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if not np.isfinite(grey).all():
+        raise InputError(f"{name}: the image holds NaN or infinite values")
+    return np.ascontiguousarray(grey), name, full
+
+
+def noise_sigma(img: np.ndarray) -> float:
+    """Robust σ of the pixel noise (grey levels): the MAD of horizontal neighbour differences / √2,
+    on every 16th row."""
+    d = np.diff(img[:: max(1, min(16, img.shape[0] // 64))], axis=1).ravel()
+    if d.size == 0:
+        return 0.0
+    mad = np.median(np.abs(d - np.median(d)))
+    if mad == 0:  # quantised flat image: fall back to the mean absolute difference
+        mad = np.mean(np.abs(d)) / 1.2533 / 1.4826
+    return float(1.4826 * mad / math.sqrt(2))
+
+
+# ------------------------------------------------------------------ stage 1: candidates
+
+
+@dataclass
+class _Cand:
+    x: float  # full-resolution px
+    y: float
+    cov: np.ndarray  # 2x2 second moments (full-resolution px²)
+    diameter: float
+    polarity: str
+    contrast: float
+    levels: int = 1
+    roundness: float = 0.0  # relative spread of the whitened boundary radius
+    cut: bool = False
+
+
+def _search_scale(shape, diameter_px) -> int:
+    h, w = shape
+    if diameter_px is not None:
+        return int(np.clip(diameter_px // 16, 1, 8))
+    return int(np.clip(min(h, w) // 480, 1, 4))
+
+
+def _regions(mask: np.ndarray, min_d: float):
+    """Labels and the cheap statistics of the regions of ``mask`` that could be an ellipse:
+    (labels, rows (k, 6): label, x0, y0, w, h, area; centroids (k, 2))."""
+    import cv2
+
+    n, lab, stats, cents = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
+    H, W = mask.shape
+    x, y, bw, bh, area = (stats[1:, i] for i in range(5))
+    fill = area / (bw * bh)
+    # an ellipse of axis ratio >= 0.4 fills 0.6–0.8 of its bounding box (a square 0.5 or 1)
+    keep = (area >= math.pi / 4 * min_d ** 2) & (fill > 0.6) & (fill < 0.9) & (bw < 0.9 * W) & (bh < 0.9 * H)
+    keep &= np.maximum(bw, bh) < 2.5 * np.minimum(bw, bh)
+    idx = np.nonzero(keep)[0]
+    rows = np.column_stack([idx + 1, x[idx], y[idx], bw[idx], bh[idx], area[idx]])
+    return lab, rows, cents[idx + 1]
+
+
+def _examine(coarse, lab, row, f: int, polarity: str) -> _Cand | None:
+    """Shape and contrast of one region (``row`` from :func:`_regions`); None when it has a hole."""
+    import cv2
+
+    H, W = coarse.shape
+    i, x0, y0, bw, bh, area = (int(v) for v in row)
+    x1, y1 = x0 + bw, y0 + bh
+    cut = x0 == 0 or y0 == 0 or x1 == W or y1 == H
+    m = (lab[y0:y1, x0:x1] == i).astype(np.uint8)
+    contours, _ = cv2.findContours(np.pad(m, 1), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    if len(contours) != 1:  # a hole: not a solid circle
+        return None
+    mo = cv2.moments(m, binaryImage=True)
+    cx, cy = mo["m10"] / mo["m00"], mo["m01"] / mo["m00"]
+    cov = np.array([[mo["mu20"], mo["mu11"]], [mo["mu11"], mo["mu02"]]]) / mo["m00"]
+    ev, evec = np.linalg.eigh(cov)
+    if ev[0] <= 0:
+        return None
+    pts = contours[0].reshape(-1, 2) - 1 - np.array([cx, cy])
+    wpts = (pts @ evec) / np.sqrt(ev)
+    r = np.hypot(wpts[:, 0], wpts[:, 1])
+    roundness = float(r.std() / r.mean())
+    rad = math.sqrt(area / math.pi)
+    # contrast: the region's mean against a ring 1.3–1.7 radii out
+    R = int(math.ceil(1.7 * rad)) + 1
+    icx, icy = int(round(x0 + cx)), int(round(y0 + cy))
+    ys, xs = slice(max(icy - R, 0), min(icy + R + 1, H)), slice(max(icx - R, 0), min(icx + R + 1, W))
+    yy, xx = np.ogrid[ys, xs]
+    dd = (xx - (x0 + cx)) ** 2 + (yy - (y0 + cy)) ** 2
+    ring = coarse[ys, xs][(dd >= (1.3 * rad) ** 2) & (dd <= (1.7 * rad) ** 2)]
+    if ring.size < 8:
+        return None
+    contrast = float(np.median(ring) - coarse[y0:y1, x0:x1][m.astype(bool)].mean())
+    if polarity == "bright":
+        contrast = -contrast
+    return _Cand((x0 + cx + 0.5) * f - 0.5, (y0 + cy + 0.5) * f - 0.5, cov * f * f, 2 * rad * f, polarity,
+                 contrast, roundness=roundness, cut=cut)
+
+
+def _candidates(img, sigma, polarity, diameter_px):
+    """Candidates (round, solid, contrasted, found at >= 2 levels) and rejected regions (cut by the
+    border or not round), at full-resolution coordinates."""
+    import cv2
+
+    f = _search_scale(img.shape, diameter_px)
+    if f > 1:
+        h, w = img.shape
+        coarse = cv2.resize(img[: h - h % f, : w - w % f], (w // f, h // f), interpolation=cv2.INTER_AREA)
+    else:
+        coarse = cv2.GaussianBlur(img, (0, 0), 0.8)
+    lo, hi = np.percentile(coarse[::2, ::2], [0.5, 99.5])
+    if hi - lo < MIN_CONTRAST_SIGMA * sigma or hi - lo <= 0:
+        return [], []
+    min_d = MIN_COARSE_DIAMETER if diameter_px is None else max(6.0, 0.5 * diameter_px / f)
+    pols = [p for p in ("dark", "bright") if polarity in ("auto", p)]
+    labels, rows, cents, keys = [], [], [], []
+    for t in lo + (hi - lo) * (np.arange(N_LEVELS) + 0.5) / N_LEVELS:
+        for pol in pols:
+            lab, r, c = _regions(coarse < t if pol == "dark" else coarse > t, min_d)
+            if len(r):
+                labels.append(lab)
+                rows.append(r)
+                cents.append(c)
+                keys.append(np.full(len(r), len(labels) - 1))
+    if not rows:
+        return [], []
+    rows, cents, keys = np.vstack(rows), np.vstack(cents), np.concatenate(keys)
+    pol_of = np.array([pols[k % len(pols)] for k in keys])
+    diam = 2 * np.sqrt(rows[:, 5] / math.pi)
+    # group the same region seen at several levels (largest first)
+    order = np.argsort(-diam)
+    gc = np.zeros((0, 2))
+    gd = np.zeros(0)
+    gp: list[str] = []
+    members: list[list[int]] = []
+    for j in order:
+        if len(gd):
+            near = (np.hypot(*(gc - cents[j]).T) < 0.25 * gd) & (diam[j] / gd > 0.6)
+            near &= np.array(gp) == pol_of[j]
+            if near.any():
+                members[int(np.argmax(near))].append(j)
+                continue
+        gc = np.vstack([gc, cents[j]])
+        gd = np.append(gd, diam[j])
+        gp.append(pol_of[j])
+        members.append([j])
+    cands, rejected = [], []
+    for mem in members:
+        if len(mem) < 2:
+            continue
+        mem = sorted(mem, key=lambda j: keys[j])
+        j = mem[len(mem) // 2]  # the middle level
+        c = _examine(coarse, labels[keys[j]], rows[j], f, pol_of[j])
+        if c is None or c.contrast < MIN_CONTRAST_SIGMA * sigma:
+            continue
+        c.levels = len(mem)
+        (rejected if c.cut or c.roundness > 0.12 else cands).append(c)
+    return cands, rejected
+
+
+# ------------------------------------------------------------------ stage 2: refinement
+
+
+def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    x0 = np.floor(x).astype(np.intp)
+    y0 = np.floor(y).astype(np.intp)
+    fx, fy = x - x0, y - y0
+    x0 = np.clip(x0, 0, img.shape[1] - 2)
+    y0 = np.clip(y0, 0, img.shape[0] - 2)
+    a = img[y0, x0]
+    b = img[y0, x0 + 1]
+    c = img[y0 + 1, x0]
+    d = img[y0 + 1, x0 + 1]
+    return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+
+
+def fit_ellipse(pts: np.ndarray):
+    """Normalised algebraic conic fit to points (N, 2) px. Returns (centre (2,), axes (full lengths,
+    major first), angle deg, conic coefficients in the normalised frame, mean, scale), or None when
+    the best conic is not an ellipse."""
+    m = pts.mean(axis=0)
+    s = math.sqrt(((pts - m) ** 2).sum(axis=1).mean())
+    if s == 0:
+        return None
+    x, y = ((pts - m) / s).T
+    D = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+    a, b, c, d, e, f0 = np.linalg.svd(D, full_matrices=False)[2][-1]
+    if 4 * a * c - b * b <= 0:
+        return None
+    cx, cy = np.linalg.solve(np.array([[2 * a, b], [b, 2 * c]]), [-d, -e])
+    k = f0 + 0.5 * (d * cx + e * cy)
+    ev, evec = np.linalg.eigh(np.array([[a, b / 2], [b / 2, c]]))
+    if np.any(-k / ev <= 0):
+        return None
+    semi = np.sqrt(-k / ev) * s  # semi-axes along evec[:, 0], evec[:, 1]
+    j = int(np.argmax(semi))
+    ang = math.degrees(math.atan2(evec[1, j], evec[0, j])) % 180.0
+    return (m + s * np.array([cx, cy]), (2 * float(semi.max()), 2 * float(semi.min())), ang,
+            np.array([a, b, c, d, e, f0]), m, s)
+
+
+def _ellipse_distance(fit, pts: np.ndarray) -> np.ndarray:
+    """Sampson approximation of each point's distance (px) from a fitted conic."""
+    a, b, c, d, e, f0 = fit[3]
+    x, y = ((pts - fit[4]) / fit[5]).T
+    F = a * x * x + b * x * y + c * y * y + d * x + e * y + f0
+    gx, gy = 2 * a * x + b * y + d, b * x + 2 * c * y + e
+    return F / np.maximum(np.hypot(gx, gy), 1e-300) * fit[5]
+
+
+def _shape_matrix(centre_axes_angle) -> np.ndarray:
+    """Q with xᵀQx = 1 on the ellipse boundary (x from the centre)."""
+    (_, _), (A, B), ang = centre_axes_angle
+    t = math.radians(ang)
+    Rm = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    return Rm @ np.diag([4 / A ** 2, 4 / B ** 2]) @ Rm.T
+
+
+def _edge_points(img, centre, Q, sign: float, half_window: float, step: float = 0.25):
+    """Sub-pixel edge points along radial profiles: (points (n, 2), valid (n,) bool, peak gradients)."""
+    h, w = img.shape
+    rho_min = 1 / math.sqrt(np.linalg.eigvalsh(Q).max())
+    n = int(np.clip(round(2 * math.pi / math.sqrt(np.linalg.eigvalsh(Q).min())), 64, 1440))
+    phi = 2 * np.pi * np.arange(n) / n
+    e = np.column_stack([np.cos(phi), np.sin(phi)])
+    rho = 1 / np.sqrt(np.einsum("ni,ij,nj->n", e, Q, e))
+    W = min(half_window, 0.7 * rho_min)
+    s = np.arange(-W, W + step / 2, step)
+    r = rho[:, None] + s[None, :]
+    X = centre[0] + r * e[:, :1]
+    Y = centre[1] + r * e[:, 1:]
+    inside = (X.min(axis=1) >= 0) & (X.max(axis=1) <= w - 1) & (Y.min(axis=1) >= 0) & (Y.max(axis=1) <= h - 1)
+    p = _bilinear(img, X, Y)
+    g = sign * np.gradient(p, step, axis=1)
+    k = np.argmax(g, axis=1)
+    gmax = g[np.arange(n), k]
+    above = g > 0.25 * gmax[:, None]
+    seg = np.cumsum(~above, axis=1)
+    mask = above & (seg == seg[np.arange(n), k][:, None])
+    wgt = np.where(mask, g - 0.25 * gmax[:, None], 0.0)
+    tot = wgt.sum(axis=1)
+    s_edge = (wgt * s[None, :]).sum(axis=1) / np.where(tot > 0, tot, 1)
+    # the edge must lie inside the window, away from its ends
+    valid = inside & (gmax > 0) & (k > 1) & (k < len(s) - 2) & (np.abs(s_edge) < W - step)
+    pts = centre + (rho + s_edge)[:, None] * e
+    return pts, valid, gmax, inside
+
+
+def _refine(img, cand: _Cand, sigma: float, full: float) -> Detection:
+    """Sub-pixel ellipse of a candidate (see the module docstring)."""
+    sign = 1.0 if cand.polarity == "dark" else -1.0
+    ev, evec = np.linalg.eigh(cand.cov)
+    axes = 4 * np.sqrt(np.maximum(ev, 1e-6))  # full axes of the moment-equivalent ellipse
+    ang = math.degrees(math.atan2(evec[1, 1], evec[0, 1]))
+    ell = ((cand.x, cand.y), (float(axes[1]), float(axes[0])), ang)
+    centre = np.array([cand.x, cand.y])
+    r0 = cand.diameter / 2
+    windows = (max(4.0, 0.25 * r0), max(3.0, min(6.0, 0.2 * r0)), max(3.0, min(6.0, 0.2 * r0)))
+    fit = None
+    why = ""
+    for W in windows:
+        pts, valid, gmax, inside = _edge_points(img, centre, _shape_matrix(ell), sign, W)
+        if inside.mean() < MIN_VALID_RAYS:
+            return Detection(False, reason=f"the circle at ({cand.x:.1f}, {cand.y:.1f}) px is cut by the "
+                             "image border", polarity=cand.polarity)
+        if valid.mean() < 0.5:
+            why = f"the edge of the candidate at ({cand.x:.1f}, {cand.y:.1f}) px was found on only " \
+                  f"{100 * valid.mean():.0f} % of its profiles"
+            fit = None
+            break
+        use = valid.copy()
+        for _ in range(3):
+            fit = fit_ellipse(pts[use])
+            if fit is None:
+                break
+            dist = np.abs(_ellipse_distance(fit, pts))
+            sd = 1.4826 * np.median(dist[use]) + 1e-6
+            new = valid & (dist < max(3.5 * sd, 0.05))
+            if (new == use).all():
+                break
+            use = new
+        if fit is None:
+            why = f"the edge points of the candidate at ({cand.x:.1f}, {cand.y:.1f}) px fit no ellipse"
+            break
+        centre = fit[0]
+        ell = (tuple(centre), fit[1], fit[2])
+    if fit is None:
+        return Detection(False, reason=why, polarity=cand.polarity)
+    frac = float(use.mean())
+    dist = _ellipse_distance(fit, pts[use])
+    rms = float(np.sqrt(np.mean(dist ** 2)))
+    (A, B), ang = fit[1], fit[2]
+    mean_r = (A + B) / 4
+    if frac < MIN_VALID_RAYS:
+        return Detection(False, reason=f"the candidate at ({centre[0]:.1f}, {centre[1]:.1f}) px is not a "
+                         f"clean ellipse: its edge fits on only {100 * frac:.0f} % of the profiles",
+                         polarity=cand.polarity)
+    if rms > MAX_RMS_REL * mean_r:
+        return Detection(False, reason=f"the candidate at ({centre[0]:.1f}, {centre[1]:.1f}) px is not a "
+                         f"circle: its edge lies {rms:.2f} px rms from the best ellipse",
+                         polarity=cand.polarity)
+    contrast = float(cand.contrast)
+    score = frac / (1 + (rms / 0.25) ** 2) * min(1.0, contrast / (20 * max(sigma, 1e-12)))
+    return Detection(True, float(centre[0]), float(centre[1]), float(math.sqrt(A * B)),
+                     ((float(centre[0]), float(centre[1])), (float(A), float(B)), float(ang)),
+                     float(np.clip(score, 0, 1)), "", cand.polarity, rms, int(use.sum()), contrast)
+
+
+# ------------------------------------------------------------------ public API
+
+
+def _check_options(polarity, diameter_px, roi, shape, name):
+    if polarity not in ("auto", "dark", "bright"):
+        raise InputError(f"polarity: expected auto, dark or bright, got {polarity!r}")
+    if diameter_px is not None and not (np.isfinite(diameter_px) and diameter_px > 0):
+        raise InputError(f"diameter_px: expected a positive number of px, got {diameter_px!r}")
+    if roi is None:
+        return 0, 0
+    try:
+        x, y, w, h = (int(v) for v in roi)
+    except (TypeError, ValueError):
+        raise InputError(f"roi: expected (x, y, w, h) in px, got {roi!r}") from None
+    H, W = shape
+    if w < MIN_SIZE_PX or h < MIN_SIZE_PX or x < 0 or y < 0 or x + w > W or y + h > H:
+        raise InputError(f"{name}: roi {roi!r} is not inside the {W}x{H} image (or smaller than "
+                         f"{MIN_SIZE_PX} px)")
+    return x, y
+
+
+def _search(image, polarity, diameter_px, roi, name=None):
+    img, name, full = load_image(image, name)
+    x0, y0 = _check_options(polarity, diameter_px, roi, img.shape, name)
+    if roi is not None:
+        img = img[y0 : y0 + int(roi[3]), x0 : x0 + int(roi[2])]
+    sigma = noise_sigma(img)
+    cands, rejected = _candidates(img, sigma, polarity, diameter_px)
+    found, failed = [], []
+    for c in cands:
+        d = _refine(img, c, sigma, full)
+        if d.ok and diameter_px is not None and not (0.7 < d.diameter_px / diameter_px < 1.4):
+            continue
+        (found if d.ok else failed).append(d)
+    if roi is not None:
+        found = [_shifted(d, x0, y0) for d in found]
+        rejected = [_Cand(c.x + x0, c.y + y0, c.cov, c.diameter, c.polarity, c.contrast, c.levels,
+                          c.roundness, c.cut) for c in rejected]
+    return img, sigma, found, failed, rejected
+
+
+def _shifted(d: Detection, dx: float, dy: float) -> Detection:
+    (cx, cy), axes, ang = d.ellipse
+    return Detection(True, d.u + dx, d.v + dy, d.diameter_px, ((cx + dx, cy + dy), axes, ang), d.score, "",
+                     d.polarity, d.rms_px, d.n_edge_points, d.contrast)
+
+
+def _why_none(img, sigma, failed, rejected) -> str:
+    if float(img.max() - img.min()) <= MIN_CONTRAST_SIGMA * max(sigma, 1e-12):
+        return "no target found: the image has no contrast above its noise (blank or noise only)"
+    cut = [c for c in rejected if c.cut]
+    if cut:
+        c = max(cut, key=lambda c: c.diameter)
+        return (f"no target found: the only circle-like region, at ({c.x:.0f}, {c.y:.0f}) px, is cut by the "
+                "image border")
+    for d in failed:
+        return f"no target found: {d.reason}"
+    if rejected:
+        c = min(rejected, key=lambda c: c.roundness)
+        return (f"no target found: the best region, at ({c.x:.0f}, {c.y:.0f}) px, is not round "
+                f"(boundary radius spread {100 * c.roundness:.0f} %)")
+    return "no target found: no solid circle stands out from the background"
+
+
+def detect_target(image, *, polarity: str = "auto", diameter_px: float | None = None, roi=None,
+                  name: str | None = None) -> Detection:
+    """The one solid circle of ``image`` (path or array): see :class:`Detection` and the module docstring.
+
+    ``polarity``: "dark" circle on bright, "bright" on dark, or "auto". ``diameter_px``: expected
+    diameter (keeps circles within 0.7–1.4× of it). ``roi``: (x, y, w, h) px to search in.
+    Raises :class:`InputError` when the file cannot be read as an image."""
+    img, sigma, found, failed, rejected = _search(image, polarity, diameter_px, roi, name)
+    if not found:
+        return Detection(False, reason=_why_none(img, sigma, failed, rejected))
+    found.sort(key=lambda d: -d.score)
+    best = found[0]
+    rivals = [d for d in found[1:] if d.score >= AMBIGUOUS_RATIO * best.score]
+    if rivals:
+        where = ", ".join(f"({d.u:.0f}, {d.v:.0f}) d {d.diameter_px:.0f}" for d in [best, *rivals[:3]])
+        hint = "" if diameter_px is not None else "; give the expected diameter to choose"
+        return Detection(False, reason=f"ambiguous: {1 + len(rivals)} equally good circles at {where} px"
+                         f"{hint}", score=best.score)
+    return best
+
+
+def detect_circles(image, *, polarity: str = "auto", diameter_px: float | None = None, roi=None,
+                   name: str | None = None) -> list[Detection]:
+    """Every solid circle of ``image`` (only those found, ``ok`` True), sorted by v then u."""
+    _, _, found, _, _ = _search(image, polarity, diameter_px, roi, name)
+    return sorted(found, key=lambda d: (round(d.v), d.u))
+
+
+def annotate(image, detection: Detection | list[Detection]) -> np.ndarray:
+    """A BGR uint8 copy of ``image`` with the fitted ellipse (green) and a cross at the centre (red);
+    a failed detection is written on the image instead."""
+    import cv2
+
+    grey, _, full = load_image(image)
+    g8 = np.clip(grey * (255.0 / full) if full != 1.0 else grey * 255.0, 0, 255).astype(np.uint8)
+    out = cv2.cvtColor(g8, cv2.COLOR_GRAY2BGR)
+    dets = detection if isinstance(detection, list) else [detection]
+    S = 16  # sub-pixel drawing: coordinates × 16
+    for d in dets:
+        if not d.ok:
+            cv2.putText(out, (d.reason or "not found")[:80], (10, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.7,
+                        (0, 0, 255), 2, cv2.LINE_AA)
+            continue
+        (cx, cy), (A, B), ang = d.ellipse
+        c = (int(round(cx * S)), int(round(cy * S)))
+        cv2.ellipse(out, c, (int(round(A / 2 * S)), int(round(B / 2 * S))), ang, 0, 360, (0, 255, 0), 1,
+                    cv2.LINE_AA, 4)
+        arm = int(max(4, 0.15 * A) * S)
+        cv2.line(out, (c[0] - arm, c[1]), (c[0] + arm, c[1]), (0, 0, 255), 1, cv2.LINE_AA, 4)
+        cv2.line(out, (c[0], c[1] - arm), (c[0], c[1] + arm), (0, 0, 255), 1, cv2.LINE_AA, 4)
+    return out
+
+
+__all__ = ["Detection", "annotate", "detect_circles", "detect_target", "fit_ellipse", "load_image",
+           "noise_sigma"]
