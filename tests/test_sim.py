@@ -306,6 +306,7 @@ def test_images_end_to_end(tmp_path, capsys):
         from eyetohand.cli import build_parser
 
         if "calibrate-images" in build_parser().format_help():
+            capsys.readouterr()  # the line printed above is not part of the command's output
             code, text, err = run(capsys, "calibrate-images", out / "poses.csv",
                                   "--check", out / "check_poses.csv", "--image-size", "640x512", "--json")
             assert code == 0, err

@@ -9,6 +9,7 @@
 __version__ = "0.1.0"
 
 from .calibration import Calibration  # noqa: E402
+from .detect import Detection, detect_circles, detect_target  # noqa: E402
 from .errors import DegenerateError, InputError  # noqa: E402
 from .evaluate import Stats, evaluate  # noqa: E402
 from .fit import calibrate, select_model  # noqa: E402
@@ -19,6 +20,7 @@ from .solvers import OPTIMIZERS  # noqa: E402
 __all__ = [
     "Calibration",
     "DegenerateError",
+    "Detection",
     "InputError",
     "MODELS",
     "MODEL_CHOICES",
@@ -27,6 +29,8 @@ __all__ = [
     "Stats",
     "__version__",
     "calibrate",
+    "detect_circles",
+    "detect_target",
     "evaluate",
     "get_model",
     "load_pairs",

@@ -28,7 +28,7 @@ from .solvers import OPTIMIZERS
 
 # Modules that add subcommands; each has register(subparsers).
 COMMAND_MODULES = ("eyetohand.cli", "eyetohand.demo", "eyetohand.report", "eyetohand.server.cli",
-                   "eyetohand.sim.cli")
+                   "eyetohand.sim.cli", "eyetohand.images")
 
 
 class CliError(InputError):
