@@ -284,3 +284,11 @@ def test_detect_circles_on_real_dot_grid_photos():
     assert n_grid == 5
     assert np.sqrt(np.mean(np.square(ours_rms))) <= np.sqrt(np.mean(np.square(ref_rms)))
     assert max(a / b for a, b in zip(ours_rms, ref_rms, strict=True)) < 1.02
+
+
+def test_a_small_circle_in_a_large_image_is_found():
+    """A 24 px circle in a 2000×1600 image is below the downscaled search's size: the full-scale search
+    finds it."""
+    img = finish(disc(canvas(1600, 2000), 1200.4, 700.6, 12, 30))
+    d = detect_target(img)
+    assert d.ok and np.hypot(d.u - 1200.4, d.v - 700.6) < 0.06, d.reason

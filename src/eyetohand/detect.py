@@ -3,7 +3,8 @@
 Two stages:
 
 1. **Candidates** on a downscaled copy (area averaging, so a 2448×2048 image is searched at 612×512):
-   the image is cut at a dozen grey levels between its 0.5th and 99.5th percentiles; at each level the
+   the image is cut at 20 grey levels (10 spread between its darkest and brightest pixel, 10 between its
+   0.5th and 99.5th percentiles); at each level the
    connected dark (and bright) regions are kept when they are big enough, fill their bounding box like
    an ellipse, have no hole (solid), keep off the image border, are round once their second moments are
    whitened, and stand out from the ring around them by at least 6 noise σ. A region found at two or
@@ -36,12 +37,13 @@ import numpy as np
 from .errors import InputError
 
 MIN_SIZE_PX = 8  # an image smaller than this in either direction is refused
-N_LEVELS = 12  # grey levels of the candidate search
+N_LEVELS = 10  # grey levels of the candidate search, twice: over the full range and the bulk
 MIN_COARSE_DIAMETER = 10.0  # px at the search scale
 MIN_CONTRAST_SIGMA = 6.0  # a candidate's contrast against its ring, in noise σ
 AMBIGUOUS_RATIO = 0.8  # a runner-up scoring this fraction of the best makes the choice ambiguous
-MAX_RMS_REL = 0.03  # edge points' rms distance from the ellipse, as a fraction of its mean radius
-MIN_VALID_RAYS = 0.85  # fraction of profiles that must show the edge
+MAX_RMS_REL = 0.02  # edge points' rms distance from the ellipse, as a fraction of its mean radius
+MIN_VALID_RAYS = 0.85
+RING_UNIFORMITY = 1.0  # contrast against the ring around a region must exceed this × the ring's IQR
 
 
 @dataclass(frozen=True)
@@ -221,31 +223,37 @@ def _examine(coarse, lab, row, f: int, polarity: str) -> _Cand | None:
     ring = coarse[ys, xs][(dd >= (1.3 * rad) ** 2) & (dd <= (1.7 * rad) ** 2)]
     if ring.size < 8:
         return None
-    contrast = float(np.median(ring) - coarse[y0:y1, x0:x1][m.astype(bool)].mean())
+    q25, q50, q75 = np.percentile(ring, [25, 50, 75])
+    contrast = float(q50 - coarse[y0:y1, x0:x1][m.astype(bool)].mean())
     if polarity == "bright":
         contrast = -contrast
+    if contrast < RING_UNIFORMITY * (q75 - q25):  # the surround is not one background (a gap between dots)
+        return None
     return _Cand((x0 + cx + 0.5) * f - 0.5, (y0 + cy + 0.5) * f - 0.5, cov * f * f, 2 * rad * f, polarity,
                  contrast, roundness=roundness, cut=cut)
 
 
-def _candidates(img, sigma, polarity, diameter_px):
+def _candidates(img, sigma, polarity, diameter_px, f: int):
     """Candidates (round, solid, contrasted, found at >= 2 levels) and rejected regions (cut by the
-    border or not round), at full-resolution coordinates."""
+    border or not round), at full-resolution coordinates; searched at 1/``f`` scale."""
     import cv2
 
-    f = _search_scale(img.shape, diameter_px)
     if f > 1:
         h, w = img.shape
         coarse = cv2.resize(img[: h - h % f, : w - w % f], (w // f, h // f), interpolation=cv2.INTER_AREA)
     else:
         coarse = cv2.GaussianBlur(img, (0, 0), 0.8)
-    lo, hi = np.percentile(coarse[::2, ::2], [0.5, 99.5])
+    lo, hi = float(coarse.min()), float(coarse.max())
     if hi - lo < MIN_CONTRAST_SIGMA * sigma or hi - lo <= 0:
         return [], []
+    # levels spread over the full range (a small target's extreme grey) and over the bulk of the pixels
+    p_lo, p_hi = np.percentile(coarse[::2, ::2], [0.5, 99.5])
+    steps = (np.arange(N_LEVELS) + 0.5) / N_LEVELS
+    levels = np.unique(np.concatenate([lo + (hi - lo) * steps, p_lo + (p_hi - p_lo) * steps]))
     min_d = MIN_COARSE_DIAMETER if diameter_px is None else max(6.0, 0.5 * diameter_px / f)
     pols = [p for p in ("dark", "bright") if polarity in ("auto", p)]
     labels, rows, cents, keys = [], [], [], []
-    for t in lo + (hi - lo) * (np.arange(N_LEVELS) + 0.5) / N_LEVELS:
+    for t in levels:
         for pol in pols:
             lab, r, c = _regions(coarse < t if pol == "dark" else coarse > t, min_d)
             if len(r):
@@ -464,7 +472,10 @@ def _search(image, polarity, diameter_px, roi, name=None):
     if roi is not None:
         img = img[y0 : y0 + int(roi[3]), x0 : x0 + int(roi[2])]
     sigma = noise_sigma(img)
-    cands, rejected = _candidates(img, sigma, polarity, diameter_px)
+    f = _search_scale(img.shape, diameter_px)
+    cands, rejected = _candidates(img, sigma, polarity, diameter_px, f)
+    if not cands and f > 1 and diameter_px is None:  # a circle too small for the downscaled search?
+        cands, rejected = _candidates(img, sigma, polarity, diameter_px, 1)
     found, failed = [], []
     for c in cands:
         d = _refine(img, c, sigma, full)
