@@ -249,39 +249,49 @@ def _candidates(img, sigma, polarity, diameter_px, f: int):
     # levels spread over the full range (a small target's extreme grey) and over the bulk of the pixels
     p_lo, p_hi = np.percentile(coarse[::2, ::2], [0.5, 99.5])
     steps = (np.arange(N_LEVELS) + 0.5) / N_LEVELS
-    levels = np.unique(np.concatenate([lo + (hi - lo) * steps, p_lo + (p_hi - p_lo) * steps]))
+    levels = np.sort(np.concatenate([lo + (hi - lo) * steps, p_lo + (p_hi - p_lo) * steps]))
+    gap = 0.5 * (hi - lo) / N_LEVELS  # levels closer than half a full-range step add nothing
+    keep = np.ones(len(levels), bool)
+    last = -np.inf
+    for i, t in enumerate(levels):
+        keep[i] = t - last >= gap
+        last = t if keep[i] else last
+    levels = levels[keep]
     min_d = MIN_COARSE_DIAMETER if diameter_px is None else max(6.0, 0.5 * diameter_px / f)
     pols = [p for p in ("dark", "bright") if polarity in ("auto", p)]
-    labels, rows, cents, keys = [], [], [], []
+    labels, label_pol, rows, cents, keys = [], [], [], [], []
     for t in levels:
         for pol in pols:
             lab, r, c = _regions(coarse < t if pol == "dark" else coarse > t, min_d)
             if len(r):
                 labels.append(lab)
+                label_pol.append(pol)
                 rows.append(r)
                 cents.append(c)
                 keys.append(np.full(len(r), len(labels) - 1))
     if not rows:
         return [], []
     rows, cents, keys = np.vstack(rows), np.vstack(cents), np.concatenate(keys)
-    pol_of = np.array([pols[k % len(pols)] for k in keys])
+    pol_of = np.array(label_pol)[keys]
     diam = 2 * np.sqrt(rows[:, 5] / math.pi)
-    # group the same region seen at several levels (largest first)
-    order = np.argsort(-diam)
+    # group the same region seen at several levels: smallest first (a region's core at its extreme
+    # level), larger ones join the nearest core they are centred on — a blob that merged two regions
+    # at a mid level is centred on neither and stays alone
+    order = np.argsort(diam, kind="stable")
     gc = np.zeros((0, 2))
     gd = np.zeros(0)
-    gp: list[str] = []
+    gp = np.zeros(0, dtype=pol_of.dtype)
     members: list[list[int]] = []
     for j in order:
         if len(gd):
-            near = (np.hypot(*(gc - cents[j]).T) < 0.25 * gd) & (diam[j] / gd > 0.6)
-            near &= np.array(gp) == pol_of[j]
+            dist = np.hypot(*(gc - cents[j]).T)
+            near = (dist < 0.25 * gd) & (diam[j] / gd < 1.6) & (gp == pol_of[j])
             if near.any():
-                members[int(np.argmax(near))].append(j)
+                members[int(np.argmin(np.where(near, dist, np.inf)))].append(j)
                 continue
         gc = np.vstack([gc, cents[j]])
         gd = np.append(gd, diam[j])
-        gp.append(pol_of[j])
+        gp = np.append(gp, pol_of[j])
         members.append([j])
     cands, rejected = [], []
     for mem in members:
@@ -482,6 +492,12 @@ def _search(image, polarity, diameter_px, roi, name=None):
         if d.ok and diameter_px is not None and not (0.7 < d.diameter_px / diameter_px < 1.4):
             continue
         (found if d.ok else failed).append(d)
+    unique: list[Detection] = []
+    for d in sorted(found, key=lambda d: -d.score):  # the same circle reached from two candidates
+        if not any(math.hypot(d.u - e.u, d.v - e.v) < 0.25 * min(d.diameter_px, e.diameter_px)
+                   and e.polarity == d.polarity for e in unique):
+            unique.append(d)
+    found = unique
     if roi is not None:
         found = [_shifted(d, x0, y0) for d in found]
         rejected = [_Cand(c.x + x0, c.y + y0, c.cov, c.diameter, c.polarity, c.contrast, c.levels,
