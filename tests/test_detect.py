@@ -249,8 +249,8 @@ def _rows(p):
 
 
 def test_detect_circles_on_real_dot_grid_photos():
-    """BoofCV's sony_circle_regular (640×480 JPEG, 10 × 8 dots, 25 mm apart): every dot found (and no
-    circle OpenCV's blob detector does not see), each within 0.5 px of OpenCV's centre, and a homography
+    """BoofCV's sony_circle_regular (640×480 JPEG, 10 × 8 dots, 25 mm apart): every dot found (and nothing
+    else), each within 0.5 px of OpenCV's centre, and a homography
     (board mm ← px) fitted on half the dots predicts the other half at least as well from our centres
     as from OpenCV's."""
     board = np.array([[25.0 * (k % 10), 25.0 * (k // 10)] for k in range(80)])
@@ -268,16 +268,14 @@ def test_detect_circles_on_real_dot_grid_photos():
         grey = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
         ours = np.array([[d.u, d.v] for d in detect_circles(f)])
         kp = np.array([k.pt for k in _blob().detect(grey)])
-        # besides the dots, a few round features of the clipboard's clip: each is a blob OpenCV finds too
-        assert 80 <= len(ours) <= 90, f.name
-        assert np.linalg.norm(ours[:, None] - kp[None], axis=2).min(axis=1).max() < 1.0, f.name
+        assert len(ours) == 80, f.name  # the dots, nothing else (no duplicates, no clip features)
+        assert np.linalg.norm(ours[:, None] - kp[None], axis=2).min(axis=1).max() < 0.5, f.name
         ref = _opencv_grid(grey)
         if ref is not None:  # OpenCV's grid order; ours matched to it
             n_grid += 1
             ours = ours[np.linalg.norm(ref[:, None] - ours[None], axis=2).argmin(axis=1)]
         else:  # findCirclesGrid fails on the steepest view: its blob detector's centres, in row order
-            size = np.array([d.diameter_px for d in detect_circles(f)])
-            ours = _rows(ours[size > 0.5 * np.median(size)])  # the dots (the clip's features are small)
+            ours = _rows(ours)
             ref = kp[np.linalg.norm(ours[:, None] - kp[None], axis=2).argmin(axis=1)]
         assert len(np.unique(ours, axis=0)) == 80
         assert np.linalg.norm(ours - ref, axis=1).max() < 0.5, f.name
