@@ -1,19 +1,30 @@
 """Synthetic images of the target with exact ground truth: the one renderer of the project.
 
-A solid circle (``Target.diameter_mm``) on a metal strip, lying on a plane z = const of the robot frame,
-seen by a pinhole camera with OpenCV lens distortion (``k1 k2 p1 p2 k3``), over a textured belt.
-Each pixel centre is cast back through the camera (lens distortion inverted) onto the plane and shaded
-by what lies there. Pixels that an edge of the circle or the strip crosses are supersampled
-(``supersample``² points per pixel, each with a linear coverage ramp over its own footprint), so the
-pixel value is the exact area coverage to better than 1e-3 of a grey step. Then Gaussian blur
-(``blur_px``, σ in px), vignetting (brightness × (1 − v·r²), r = 1 at the image corners), Gaussian
-noise (σ as a fraction of full scale, from a seeded Generator) and quantisation to 8 or 16 bits.
+A solid circle (``Target.diameter_mm``) on a metal strip (a rectangle of another grey around it),
+lying on a plane z = const of the robot frame, seen by a pinhole camera with OpenCV lens distortion
+(:class:`eyetohand.camera.Camera`, or any object with ``K``, ``dist``, ``R``, ``t``, ``image_size``),
+over a textured belt (weak sinusoids plus a fine random grain, both fixed in the robot frame).
+
+How a pixel gets its value:
+
+* Every pixel corner is cast back through the camera (lens distortion inverted) onto the plane. For
+  speed this is done exactly on a grid every 8 px and interpolated elsewhere; the corners of every
+  pixel that an edge of the circle or the strip may cross are then cast back *exactly* (the
+  interpolation error, < 1e-3 px, only decides which pixels count as such, with a wide margin).
+* Edge pixels are supersampled (``supersample``² points per pixel, each with a linear coverage ramp
+  over its own footprint), so a pixel's value is its exact area coverage to better than 1e-3 of a grey
+  step; the others are shaded by what lies under their centre.
+* Then Gaussian blur (``blur_px``, σ in px), vignetting (brightness × (1 − v·r²), r = 1 at the image
+  corners), Gaussian noise (σ as a fraction of full scale, from a seeded Generator) and quantisation
+  to 8 or 16 bits. A 2448×2048 image takes about 0.3 s (see ``tests/test_render.py``).
 
 Truth (:class:`Truth`), all in px, OpenCV convention (pixel centres at integers):
 
 * ``centre_px`` — the image of the circle's centre (perspective projection of the 3-D centre);
 * ``ellipse_centre_px`` — the centre of the imaged ellipse: a least-squares conic fitted to 4096
-  points of the circle's boundary projected through the camera (distortion included);
+  points of the circle's boundary projected through the camera (distortion included); without
+  distortion the image is an exact conic, and :func:`exact_conic` gives it in closed form (the two
+  agree to ~1e-9 px, tested);
 * ``centroid_px`` — the area centroid of the imaged disc (the projected boundary as a polygon).
 
 The ellipse's centre and the image of the circle's centre differ by the perspective bias of a tilted
@@ -23,9 +34,11 @@ view; the detector measures the former, so accuracy claims use ``ellipse_centre_
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
+
+from .camera import Camera, as_camera
 
 BELT_LEVEL = 0.35
 STRIP_LEVEL = 0.85
@@ -33,68 +46,15 @@ CIRCLE_LEVEL = 0.08
 BELT_WAVES = np.array([[0.9, 0.4], [-0.3, 1.3], [2.1, -1.7], [0.15, 0.05]])  # rad/mm
 BELT_AMPLITUDES = np.array([0.03, 0.025, 0.015, 0.04])
 BELT_PHASES = (0.3, 1.1, 2.0, 0.7)
-_UNDISTORT = (3, 50, 1e-12)  # cv2.TERM_CRITERIA_COUNT | EPS, 50 iterations, 1e-12
-
-
-@dataclass(frozen=True, eq=False)
-class Camera:
-    """A pinhole camera: ``K`` (3×3, px), ``dist`` (k1, k2, p1, p2, k3), pose ``R``, ``t`` with
-    Xc = R·X + t (mm, robot frame), ``image_size`` (w, h) px. The simulator's hidden camera has the same
-    attributes and can be passed wherever a Camera is expected."""
-
-    K: np.ndarray
-    dist: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
-    image_size: tuple[int, int]
-
-    @classmethod
-    def looking_down(
-        cls,
-        image_size=(2448, 2048),
-        *,
-        focal_px: float = 4637.7,
-        height_mm: float = 300.0,
-        tilt_deg: float = 8.0,
-        tilt_direction_deg: float = 30.0,
-        yaw_deg: float = 25.0,
-        dist=(-0.08, 0.12, 0.0002, -0.0001, 0.0),
-        pp_offset_px=(12.0, -8.0),
-    ) -> Camera:
-        """A camera ``height_mm`` above the point (0, 0, 0), its optical axis ``tilt_deg`` from vertical
-        (meeting the plane z = 0 at the origin), image u axis ``yaw_deg`` from robot +x."""
-        w, h = image_size
-        K = np.array([[focal_px, 0.0, (w - 1) / 2 + pp_offset_px[0]],
-                      [0.0, focal_px, (h - 1) / 2 + pp_offset_px[1]], [0.0, 0.0, 1.0]])
-        tilt, az, yaw = (math.radians(a) for a in (tilt_deg, tilt_direction_deg, yaw_deg))
-        z_cam = np.array([math.sin(tilt) * math.cos(az), math.sin(tilt) * math.sin(az), -math.cos(tilt)])
-        centre = -(height_mm / math.cos(tilt)) * z_cam
-        x0 = np.array([math.cos(yaw), math.sin(yaw), 0.0])
-        x_cam = x0 - (x0 @ z_cam) * z_cam
-        x_cam /= np.linalg.norm(x_cam)
-        R = np.vstack([x_cam, np.cross(z_cam, x_cam), z_cam])
-        return cls(K, np.asarray(dist, float), R, -R @ centre, (int(w), int(h)))
-
-    def project(self, xyz_mm) -> np.ndarray:
-        """Image points (N, 2) px of robot points (N, 3) mm, lens distortion included."""
-        return project(self, xyz_mm)
-
-
-def project(camera, xyz_mm) -> np.ndarray:
-    """Image points (N, 2) px of robot points (N, 3) mm through any camera with K, dist, R, t."""
-    import cv2
-
-    xyz = np.asarray(xyz_mm, float).reshape(-1, 3)
-    uv, _ = cv2.projectPoints(xyz, cv2.Rodrigues(np.asarray(camera.R, float))[0],
-                              np.asarray(camera.t, float).reshape(3), np.asarray(camera.K, float),
-                              np.asarray(camera.dist, float))
-    return uv.reshape(-1, 2)
+GRAIN_TEXEL_MM = 0.2  # the belt grain's texel; a 512-texel tile repeats every 102.4 mm
+_GRID_STEP_PX = 8  # exact back-projection every 8 px, interpolated between
 
 
 @dataclass(frozen=True)
 class Target:
     """What is rendered: a solid circle on a strip (along the tool's x axis) over a textured belt.
-    Levels are fractions of full scale; ``strip_width_mm`` 0 means no strip."""
+    Levels are fractions of full scale; ``strip_width_mm`` 0 means no strip. ``belt_grain``: σ of the
+    belt's fine random texture (fraction of full scale), a fixed pattern chosen by ``belt_seed``."""
 
     diameter_mm: float = 5.0
     strip_width_mm: float = 8.0
@@ -103,6 +63,8 @@ class Target:
     strip_level: float = STRIP_LEVEL
     belt_level: float = BELT_LEVEL
     belt_phases: tuple[float, ...] = BELT_PHASES
+    belt_grain: float = 0.02
+    belt_seed: int = 0
 
 
 @dataclass(frozen=True)
@@ -117,7 +79,13 @@ class Truth:
 
     @property
     def diameter_px(self) -> float:
+        """Equivalent diameter √(major · minor) px."""
         return float(np.sqrt(self.axes_px[0] * self.axes_px[1]))
+
+    @property
+    def perspective_bias_px(self) -> float:
+        """Distance (px) between the imaged ellipse's centre and the image of the circle's centre."""
+        return float(np.hypot(*np.subtract(self.ellipse_centre_px, self.centre_px)))
 
     def to_dict(self) -> dict:
         return {"centre_px": list(self.centre_px), "ellipse_centre_px": list(self.ellipse_centre_px),
@@ -125,51 +93,75 @@ class Truth:
                 "angle_deg": self.angle_deg}
 
 
-@dataclass
-class _Grid:
-    """Undistorted normalised rays through every pixel corner, (h+1, w+1, 2), cached per camera."""
-
-    rays: np.ndarray
-    rot: np.ndarray = field(repr=False)  # R^T
-    centre: np.ndarray = field(repr=False)
+def project(camera, xyz_mm) -> np.ndarray:
+    """Image points (N, 2) px of robot points (N, 3) mm through any camera with K, dist, R, t."""
+    return as_camera(camera).robot_to_image(np.asarray(xyz_mm, float).reshape(-1, 3))
 
 
-_GRIDS: dict[int, tuple[object, _Grid]] = {}
+# ------------------------------------------------------------------ geometry helpers
 
 
-def _grid(camera) -> _Grid:
-    key = id(camera)
-    hit = _GRIDS.get(key)
-    if hit is not None and hit[0] is camera:
-        return hit[1]
+def _plane_grid(cam: Camera, z_mm: float, step: int):
+    """Exact plane points (ny, nx, 2) mm of the image points u, v = −½ + k·step (k = 0, 1, …) covering
+    the image, and the node coordinates."""
+    w, h = cam.image_size
+    us = np.arange(math.ceil(w / step) + 1) * step - 0.5
+    vs = np.arange(math.ceil(h / step) + 1) * step - 0.5
+    uu, vv = np.meshgrid(us, vs)
+    xyz = cam.image_to_robot(np.stack([uu, vv], axis=-1).reshape(-1, 2), z_mm)
+    return xyz[:, :2].reshape(len(vs), len(us), 2)
+
+
+def _interp(grid: np.ndarray, step: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation (float64) of a node grid from :func:`_plane_grid` at the image points
+    u (nx,) × v (ny,): (ny, nx, 2)."""
+    fu, fv = (u + 0.5) / step, (v + 0.5) / step
+    iu = np.clip(np.floor(fu).astype(int), 0, grid.shape[1] - 2)
+    iv = np.clip(np.floor(fv).astype(int), 0, grid.shape[0] - 2)
+    au, av = (fu - iu)[None, :, None], (fv - iv)[:, None, None]
+    g00, g01 = grid[iv][:, iu], grid[iv][:, iu + 1]
+    g10, g11 = grid[iv + 1][:, iu], grid[iv + 1][:, iu + 1]
+    return (1 - av) * ((1 - au) * g00 + au * g01) + av * ((1 - au) * g10 + au * g11)
+
+
+def _belt_image(cam: Camera, grid: np.ndarray, step: int, target: Target) -> np.ndarray:
+    """The belt (h, w) float32: sinusoids and grain of the plane coordinates, evaluated on a grid of
+    half the image's resolution and interpolated (the texture is smooth at that scale)."""
     import cv2
 
-    w, h = camera.image_size
-    uu, vv = np.meshgrid(np.arange(w + 1, dtype=float) - 0.5, np.arange(h + 1, dtype=float) - 0.5)
-    pts = np.stack([uu.ravel(), vv.ravel()], axis=1).reshape(-1, 1, 2)
-    n = cv2.undistortPoints(pts, camera.K, camera.dist, criteria=_UNDISTORT).reshape(h + 1, w + 1, 2)
-    R = np.asarray(camera.R, float)
-    g = _Grid(n, R.T, -R.T @ np.asarray(camera.t, float))
-    if len(_GRIDS) > 4:
-        _GRIDS.clear()
-    _GRIDS[key] = (camera, g)
-    return g
+    w, h = cam.image_size
+    wh, hh = (w + 1) // 2, (h + 1) // 2
+    # half-resolution sample k is at pixel 2k + ½; node n of the grid at pixel n·step − ½
+    mx = np.ascontiguousarray(np.broadcast_to(((2 * np.arange(wh) + 1) / step).astype(np.float32), (hh, wh)))
+    my = np.ascontiguousarray(np.broadcast_to(((2 * np.arange(hh) + 1) / step).astype(np.float32)[:, None],
+                                              (hh, wh)))
+    xy = cv2.remap(grid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    img = np.full((hh, wh), target.belt_level, np.float32)
+    for (kx, ky), a, ph in zip(BELT_WAVES, BELT_AMPLITUDES, target.belt_phases, strict=False):
+        img += np.float32(a) * np.sin(np.float32(kx) * xy[..., 0] + np.float32(ky) * xy[..., 1]
+                                      + np.float32(ph))
+    if target.belt_grain > 0:
+        tile = _grain_tile(target.belt_seed)
+        img += np.float32(target.belt_grain) * cv2.remap(
+            tile, xy[..., 0] / np.float32(GRAIN_TEXEL_MM), xy[..., 1] / np.float32(GRAIN_TEXEL_MM),
+            cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    # back to full resolution: pixel j sits at half-resolution coordinate (j − ½)/2
+    full = cv2.resize(img, (2 * wh, 2 * hh), interpolation=cv2.INTER_LINEAR)
+    return np.ascontiguousarray(full[:h, :w])
 
 
-def _on_plane(g: _Grid, n: np.ndarray, z_mm: float) -> np.ndarray:
-    """Points (..., 2) mm where rays with normalised coordinates ``n`` (..., 2) meet the plane z."""
-    Rt = g.rot
-    rx = Rt[0, 0] * n[..., 0] + Rt[0, 1] * n[..., 1] + Rt[0, 2]
-    ry = Rt[1, 0] * n[..., 0] + Rt[1, 1] * n[..., 1] + Rt[1, 2]
-    rz = Rt[2, 0] * n[..., 0] + Rt[2, 1] * n[..., 1] + Rt[2, 2]
-    s = (z_mm - g.centre[2]) / rz
-    return np.stack([g.centre[0] + s * rx, g.centre[1] + s * ry], axis=-1)
+_TILES: dict[int, np.ndarray] = {}
 
 
-def _belt(xy: np.ndarray, target: Target) -> np.ndarray:
-    """Belt texture fixed in the robot frame: a few weak sinusoids of the plane coordinates."""
-    t = xy @ BELT_WAVES.T + np.asarray(target.belt_phases, float)
-    return target.belt_level + (BELT_AMPLITUDES * np.sin(t)).sum(axis=-1)
+def _grain_tile(seed: int) -> np.ndarray:
+    """A 512×512 float32 tile of unit-σ grain (white noise smoothed over ~1.5 texels), fixed by seed."""
+    import cv2
+
+    if seed not in _TILES:
+        t = np.random.default_rng(seed).standard_normal((512, 512)).astype(np.float32)
+        t = cv2.GaussianBlur(np.pad(t, 8, mode="wrap"), (0, 0), 1.5)[8:-8, 8:-8]  # periodic
+        _TILES[seed] = (t / t.std()).astype(np.float32)
+    return _TILES[seed]
 
 
 def _signed_circle(local: np.ndarray, radius: float) -> np.ndarray:
@@ -182,24 +174,34 @@ def _signed_box(local: np.ndarray, half: np.ndarray) -> np.ndarray:
     return np.where((q > 0).any(axis=-1), outside, q.max(axis=-1))
 
 
-def _coverage(corners_xy: np.ndarray, to_local, signed, S: int) -> np.ndarray:
-    """Area fraction of each pixel inside a shape. ``corners_xy`` (h+1, w+1, 2) plane points of the pixel
-    corners; pixels an edge may cross are supersampled S×S (bilinear between the corners)."""
+def _corner_stats(corners_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Plane points of the pixel centres (mean of the 4 corners) and each pixel's reach (half its
+    longer diagonal), from the corners (h+1, w+1, 2)."""
     c00, c01 = corners_xy[:-1, :-1], corners_xy[:-1, 1:]
     c10, c11 = corners_xy[1:, :-1], corners_xy[1:, 1:]
     centre = 0.25 * (c00 + c01 + c10 + c11)
-    reach = 0.5 * np.maximum(np.linalg.norm(c11 - c00, axis=-1), np.linalg.norm(c10 - c01, axis=-1))
-    d = signed(to_local(centre))
-    cov = (d < 0).astype(float)
-    band = np.abs(d) <= reach * 1.05 + 1e-9
+    d1, d2 = c11 - c00, c10 - c01
+    reach = 0.5 * np.sqrt(np.maximum(d1[..., 0] ** 2 + d1[..., 1] ** 2, d2[..., 0] ** 2 + d2[..., 1] ** 2))
+    return centre, reach
+
+
+def _coverage(corners_xy: np.ndarray, d_centre: np.ndarray, reach: np.ndarray, to_local, signed,
+              S: int) -> np.ndarray:
+    """Area fraction of each pixel inside a shape. ``corners_xy`` (h+1, w+1, 2) plane points of the pixel
+    corners, ``d_centre`` the signed distance (mm) of the pixel centres from the shape's edge, ``reach``
+    half a pixel's diagonal on the plane (mm); pixels an edge may cross are supersampled S×S
+    (bilinear between the corners)."""
+    cov = (d_centre < 0).astype(float)
+    band = np.abs(d_centre) <= reach * 1.05 + 1e-9
     if not band.any():
         return cov
+    iv, iu = np.nonzero(band)
     a = (np.arange(S) + 0.5) / S
     fu, fv = np.meshgrid(a, a)  # (S, S) fractions along u and v
-    fu, fv = fu.ravel(), fv.ravel()
-    b00, b01, b10, b11 = (c[band][:, None, :] for c in (c00, c01, c10, c11))
-    pts = ((1 - fv)[None, :, None] * ((1 - fu)[None, :, None] * b00 + fu[None, :, None] * b01)
-           + fv[None, :, None] * ((1 - fu)[None, :, None] * b10 + fu[None, :, None] * b11))
+    fu, fv = fu.ravel()[None, :, None], fv.ravel()[None, :, None]
+    b00, b01 = corners_xy[iv, iu][:, None], corners_xy[iv, iu + 1][:, None]
+    b10, b11 = corners_xy[iv + 1, iu][:, None], corners_xy[iv + 1, iu + 1][:, None]
+    pts = (1 - fv) * ((1 - fu) * b00 + fu * b01) + fv * ((1 - fu) * b10 + fu * b11)
     ds = signed(to_local(pts))
     sub = (2 * reach[band] / (S * math.sqrt(2)))[:, None]  # a sub-pixel's width (mm)
     cov[band] = np.clip(0.5 - ds / sub, 0.0, 1.0).mean(axis=1)
@@ -222,6 +224,22 @@ def _fit_conic_centre(pts: np.ndarray) -> tuple[np.ndarray, tuple[float, float],
     return m + s * np.array([cx, cy]), (float(axes[0]), float(axes[1])), ang
 
 
+def exact_conic(camera, centre_mm, diameter_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The image conic of a circle in a plane z = const through a camera *without* distortion, in
+    closed form: C' = H⁻ᵀ C H⁻¹ with H = K [r1 r2 r3·z + t]. Returns (3×3 conic matrix of pixel
+    homogeneous coordinates, its centre (2,) px). Lens distortion of ``camera`` is ignored."""
+    cam = as_camera(camera)
+    c = np.asarray(centre_mm, float).reshape(3)
+    R, t = cam.R, cam.t
+    H = cam.K @ np.column_stack([R[:, 0], R[:, 1], R[:, 2] * c[2] + t])
+    r = diameter_mm / 2
+    C = np.array([[1.0, 0.0, -c[0]], [0.0, 1.0, -c[1]], [-c[0], -c[1], c[0] ** 2 + c[1] ** 2 - r * r]])
+    Hi = np.linalg.inv(H)
+    Ci = Hi.T @ C @ Hi
+    centre = np.linalg.solve(Ci[:2, :2], -Ci[:2, 2])
+    return Ci, centre
+
+
 def circle_truth(camera, centre_mm, diameter_mm: float, n: int = 4096) -> Truth:
     """Exact image geometry of a circle of ``diameter_mm`` centred at ``centre_mm`` (x, y, z) lying in a
     plane z = const: see the module docstring."""
@@ -241,6 +259,9 @@ def circle_truth(camera, centre_mm, diameter_mm: float, n: int = 4096) -> Truth:
                  (float(centroid[0]), float(centroid[1])), axes, ang)
 
 
+# ------------------------------------------------------------------ the renderer
+
+
 def render(
     camera,
     centre_mm,
@@ -257,20 +278,26 @@ def render(
     """One image (h, w) uint8 or uint16 of ``target`` whose circle's centre is at ``centre_mm``
     (x, y, z mm, robot frame), the strip turned by ``angle_deg`` about z; and the :class:`Truth`.
 
-    ``noise`` is σ as a fraction of full scale (2/255 ≈ 2 grey levels of 8 bits); ``rng`` a Generator
-    or a seed (the noise is the only randomness)."""
+    ``camera``: a :class:`~eyetohand.camera.Camera` or any object with ``K``, ``dist``, ``R``, ``t``,
+    ``image_size``. ``blur_px``: Gaussian σ (px). ``noise``: σ as a fraction of full scale (2/255 ≈ 2
+    grey levels of 8 bits). ``vignetting``: fractional darkening at the image corners. ``rng``: a
+    Generator or a seed (the noise is the only randomness; the belt's grain is fixed by
+    ``target.belt_seed``)."""
     import cv2
 
     if bits not in (8, 16):
         raise ValueError(f"bits must be 8 or 16, got {bits!r}")
+    if blur_px < 0 or noise < 0 or not 0 <= vignetting < 1 or supersample < 1:
+        raise ValueError("blur_px and noise must be >= 0, vignetting in [0, 1), supersample >= 1")
+    cam = as_camera(camera)
     target = Target() if target is None else target
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-    c = np.asarray(centre_mm, float)
-    g = _grid(camera)
-    w, h = camera.image_size
-    corners = _on_plane(g, g.rays, float(c[2]))
-    centres = 0.25 * (corners[:-1, :-1] + corners[:-1, 1:] + corners[1:, :-1] + corners[1:, 1:])
-    img = _belt(centres, target)
+    c = np.asarray(centre_mm, float).reshape(3)
+    z = float(c[2])
+    w, h = cam.image_size
+    step = _GRID_STEP_PX
+    grid = _plane_grid(cam, z, step)
+    img = _belt_image(cam, grid, step, target)
 
     ca, sa = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
     rot = np.array([[ca, -sa], [sa, ca]])  # tool → robot
@@ -283,34 +310,67 @@ def render(
     has_strip = target.strip_width_mm > 0 and target.strip_length_mm > 0
     ext = half if has_strip else np.array([target.diameter_mm, target.diameter_mm]) / 2
     box = np.array([[sx * ext[0], sy * ext[1]] for sx in (-1, 1) for sy in (-1, 1)]) @ rot.T + c[:2]
-    # edges of the box too, since distortion bends them
-    tt = np.linspace(0, 1, 9)[:, None]
+    tt = np.linspace(0, 1, 9)[:, None]  # edges of the box too, since distortion bends them
     outline = np.vstack([box[i] + tt * (box[j] - box[i]) for i, j in ((0, 1), (1, 3), (3, 2), (2, 0))])
-    uv = project(camera, np.column_stack([outline, np.full(len(outline), c[2])]))
-    lo = np.floor(uv.min(axis=0)).astype(int) - 4
-    hi = np.ceil(uv.max(axis=0)).astype(int) + 5
-    x0, y0 = max(lo[0], 0), max(lo[1], 0)
-    x1, y1 = min(hi[0], w), min(hi[1], h)
+    uv = project(cam, np.column_stack([outline, np.full(len(outline), z)]))
+    uv = uv[np.isfinite(uv).all(axis=1)]
+    if len(uv):
+        lo = np.floor(uv.min(axis=0)).astype(int) - 4
+        hi = np.ceil(uv.max(axis=0)).astype(int) + 5
+        x0, y0 = max(lo[0], 0), max(lo[1], 0)
+        x1, y1 = min(hi[0], w), min(hi[1], h)
+    else:
+        x0 = y0 = x1 = y1 = 0
     if x1 > x0 and y1 > y0:
-        sub = corners[y0 : y1 + 1, x0 : x1 + 1]
-        roi = img[y0:y1, x0:x1]
-        if has_strip:
-            cov = _coverage(sub, to_local, lambda p: _signed_box(p, half), supersample)
-            roi += (target.strip_level - roi) * cov
+        us = np.arange(x0, x1 + 1) - 0.5
+        vs = np.arange(y0, y1 + 1) - 0.5
+        corners = _interp(grid, step, us, vs)
+        # pixels an edge may cross (wide margin for the interpolation): their corners exactly
+        centre, reach = _corner_stats(corners)
+        local = to_local(centre)
         r = target.diameter_mm / 2
-        cov = _coverage(sub, to_local, lambda p: _signed_circle(p, r), supersample)
+        d_circle = _signed_circle(local, r)
+        near = np.abs(d_circle) <= 1.3 * reach
+        if has_strip:
+            d_box = _signed_box(local, half)
+            near |= np.abs(d_box) <= 1.3 * reach
+        need = np.zeros(corners.shape[:2], bool)
+        need[:-1, :-1] |= near
+        need[:-1, 1:] |= near
+        need[1:, :-1] |= near
+        need[1:, 1:] |= near
+        iv, iu = np.nonzero(need)
+        corners[iv, iu] = cam.image_to_robot(np.column_stack([us[iu], vs[iv]]), z)[:, :2]
+        # the pixels near an edge again, from their exact corners
+        sel = np.nonzero(near)
+        c_near = corners[:-1, :-1][sel] + corners[:-1, 1:][sel] + corners[1:, :-1][sel] + corners[1:, 1:][sel]
+        local_near = to_local(0.25 * c_near)
+        d1 = corners[1:, 1:][sel] - corners[:-1, :-1][sel]
+        d2 = corners[1:, :-1][sel] - corners[:-1, 1:][sel]
+        reach[sel] = 0.5 * np.sqrt(np.maximum((d1 ** 2).sum(-1), (d2 ** 2).sum(-1)))
+        d_circle[sel] = _signed_circle(local_near, r)
+        roi = img[y0:y1, x0:x1].astype(float)
+        if has_strip:
+            d_box[sel] = _signed_box(local_near, half)
+            cov = _coverage(corners, d_box, reach, to_local, lambda p: _signed_box(p, half), supersample)
+            roi += (target.strip_level - roi) * cov
+        cov = _coverage(corners, d_circle, reach, to_local, lambda p: _signed_circle(p, r), supersample)
         roi += (target.circle_level - roi) * cov
+        img[y0:y1, x0:x1] = roi
     if blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
     if vignetting > 0:
-        yy, xx = np.ogrid[0:h, 0:w]
-        r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
-        img = img * (1 - vignetting * r2)
-    if noise > 0:
-        img = img + rng.normal(0.0, noise, img.shape)
+        rx = ((np.arange(w, dtype=np.float32) - (w - 1) / 2) ** 2)[None, :]
+        ry = ((np.arange(h, dtype=np.float32) - (h - 1) / 2) ** 2)[:, None]
+        img *= 1 - np.float32(vignetting / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)) * (rx + ry)
     top = 255 if bits == 8 else 65535
-    out = np.clip(np.rint(img * top), 0, top).astype(np.uint8 if bits == 8 else np.uint16)
-    return out, circle_truth(camera, c, target.diameter_mm)
+    img *= np.float32(top)
+    if noise > 0:
+        img += np.float32(noise * top) * rng.standard_normal((h, w), dtype=np.float32)
+    np.rint(img, out=img)
+    np.clip(img, 0, top, out=img)
+    out = img.astype(np.uint8 if bits == 8 else np.uint16)
+    return out, circle_truth(cam, c, target.diameter_mm)
 
 
-__all__ = ["Camera", "Target", "Truth", "circle_truth", "project", "render"]
+__all__ = ["Camera", "Target", "Truth", "circle_truth", "exact_conic", "project", "render"]
