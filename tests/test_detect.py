@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from eyetohand import InputError, detect_circles, detect_target
+from eyetohand.camera import Camera
 from eyetohand.detect import annotate, fit_ellipse, load_image
-from eyetohand.render import Camera, Target, render
+from eyetohand.render import Target, render
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -25,38 +26,6 @@ def err(d, truth):
 def small_cam():
     """A 640×512 camera seeing the 5 mm circle about 60 px wide, tilted, with lens distortion."""
     return Camera.looking_down((640, 512), focal_px=3600.0, tilt_deg=10.0, dist=(-0.15, 0.1, 3e-4, -2e-4, 0))
-
-
-# ---------------------------------------------------------------- the renderer's truth
-
-
-def test_render_truth_is_exact_area_coverage(small_cam):
-    """No blur, no noise, 16 bits: the darkness-weighted centroid of the pixels is the area centroid of
-    the projected disc, and its total the disc's area — so the anti-aliasing is exact coverage."""
-    for k, (x, y, a) in enumerate([(1.3, -2.1, 10), (-4.2, 3.3, 45), (5.1, 4.4, 80)]):
-        img, tr = render(small_cam, (x, y, 0.0), angle_deg=a, blur_px=0, noise=0, vignetting=0, bits=16)
-        f = img.astype(float) / 65535
-        cx, cy = np.round(tr.centroid_px).astype(int)
-        r = int(tr.diameter_px / 2) + 3
-        yy, xx = np.mgrid[cy - r : cy + r + 1, cx - r : cx + r + 1]
-        win = (Target().strip_level - f[yy, xx]) * (((xx - cx) ** 2 + (yy - cy) ** 2) <= r * r)
-        m = win.sum()
-        c = np.array([(xx * win).sum(), (yy * win).sum()]) / m
-        assert np.hypot(*(c - tr.centroid_px)) < 2e-3, k
-        area = np.pi * tr.axes_px[0] * tr.axes_px[1] / 4
-        assert m / (Target().strip_level - Target().circle_level) == pytest.approx(area, rel=2e-4)
-        # the imaged ellipse's centre is its area centroid; the image of the circle's centre is elsewhere
-        assert np.hypot(*np.subtract(tr.ellipse_centre_px, tr.centroid_px)) < 1e-5
-        assert np.hypot(*np.subtract(tr.ellipse_centre_px, tr.centre_px)) > 0.01
-
-
-def test_render_is_seeded_and_has_the_requested_depth(small_cam):
-    a, _ = render(small_cam, (0, 0, 0), rng=3)
-    b, _ = render(small_cam, (0, 0, 0), rng=3)
-    c, _ = render(small_cam, (0, 0, 0), rng=4)
-    assert a.dtype == np.uint8 and (a == b).all() and (a != c).any()
-    d, _ = render(small_cam, (0, 0, 0), rng=3, bits=16)
-    assert d.dtype == np.uint16 and d.max() > 255
 
 
 # ---------------------------------------------------------------- accuracy
@@ -228,13 +197,18 @@ def test_fit_ellipse_recovers_a_known_ellipse():
 
 
 def _blob():
+    """SimpleBlobDetector tuned for these frames: the dots are 20–40 px across (area 300–1300 px²).
+    With the default-like area range 10–10⁵ px² the clip's small features join the grid search and
+    findCirclesGrid fails on image00000; from a minimum area of 20 px² up it succeeds on all six
+    (with CALIB_CB_CLUSTERING for the two steepest views)."""
     p = cv2.SimpleBlobDetector_Params()
-    p.minArea, p.maxArea = 10, 1e5
+    p.minArea, p.maxArea = 50, 3000
     return cv2.SimpleBlobDetector_create(p)
 
 
 def _opencv_grid(grey):
-    """findCirclesGrid's ordered centres (10 × 8 symmetric grid), or None when it fails."""
+    """findCirclesGrid's ordered centres (10 columns × 8 rows, symmetric, per calibration_target.yaml),
+    or None when it fails."""
     for flags in (cv2.CALIB_CB_SYMMETRIC_GRID, cv2.CALIB_CB_SYMMETRIC_GRID | cv2.CALIB_CB_CLUSTERING):
         ok, c = cv2.findCirclesGrid(grey, (10, 8), flags=flags, blobDetector=_blob())
         if ok:
@@ -242,17 +216,11 @@ def _opencv_grid(grey):
     return None
 
 
-def _rows(p):
-    """Centres ordered row by row (rows by v, then u): the board order when rows are near horizontal."""
-    p = p[np.argsort(p[:, 1])].reshape(8, 10, 2)
-    return np.vstack([r[np.argsort(r[:, 0])] for r in p])
-
-
 def test_detect_circles_on_real_dot_grid_photos():
-    """BoofCV's sony_circle_regular (640×480 JPEG, 10 × 8 dots, 25 mm apart): every dot found (and nothing
-    else), each within 0.5 px of OpenCV's centre, and a homography
-    (board mm ← px) fitted on half the dots predicts the other half at least as well from our centres
-    as from OpenCV's."""
+    """BoofCV's sony_circle_regular (640×480 JPEG, 10 × 8 dots of 15 mm, 25 mm apart): every dot
+    found (and nothing else), each within 0.5 px of findCirclesGrid's centre, and a homography
+    (board mm ← px, findHomography method 0) fitted on half the dots predicts the other half at least
+    as well from our centres as from OpenCV's."""
     board = np.array([[25.0 * (k % 10), 25.0 * (k // 10)] for k in range(80)])
     train = np.arange(80) % 2 == 0
 
@@ -263,27 +231,24 @@ def test_detect_circles_on_real_dot_grid_photos():
 
     frames = sorted(DOTS.glob("*.jpg"))
     assert len(frames) == 6
-    ours_rms, ref_rms, n_grid = [], [], 0
+    ours_rms, ref_rms, worst = [], [], []
     for f in frames:
         grey = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
-        ours = np.array([[d.u, d.v] for d in detect_circles(f)])
-        kp = np.array([k.pt for k in _blob().detect(grey)])
-        assert len(ours) == 80, f.name  # the dots, nothing else (no duplicates, no clip features)
-        assert np.linalg.norm(ours[:, None] - kp[None], axis=2).min(axis=1).max() < 0.5, f.name
         ref = _opencv_grid(grey)
-        if ref is not None:  # OpenCV's grid order; ours matched to it
-            n_grid += 1
-            ours = ours[np.linalg.norm(ref[:, None] - ours[None], axis=2).argmin(axis=1)]
-        else:  # findCirclesGrid fails on the steepest view: its blob detector's centres, in row order
-            ours = _rows(ours)
-            ref = kp[np.linalg.norm(ours[:, None] - kp[None], axis=2).argmin(axis=1)]
-        assert len(np.unique(ours, axis=0)) == 80
-        assert np.linalg.norm(ours - ref, axis=1).max() < 0.5, f.name
+        assert ref is not None, f.name
+        ours = np.array([[d.u, d.v] for d in detect_circles(f)])
+        assert len(ours) == 80, f.name  # the dots, nothing else (no duplicates, no clip features)
+        dist = np.linalg.norm(ref[:, None] - ours[None], axis=2)
+        match = dist.argmin(axis=1)
+        assert len(np.unique(match)) == 80, f.name  # one of ours for each of OpenCV's
+        worst.append(dist.min(axis=1).max())
+        assert worst[-1] < 0.5, f.name
+        ours = ours[match]  # in OpenCV's grid order
         ours_rms.append(held_out(ours))
         ref_rms.append(held_out(ref))
     pairs = zip(ours_rms, ref_rms, strict=True)
-    print("held-out rms mm, ours vs OpenCV:", [f"{a:.4f}/{b:.4f}" for a, b in pairs])
-    assert n_grid == 5
+    print("\nmax distance to findCirclesGrid px:", [f"{w:.3f}" for w in worst])
+    print("held-out rms mm, ours/OpenCV:", [f"{a:.4f}/{b:.4f}" for a, b in pairs])
     assert np.sqrt(np.mean(np.square(ours_rms))) <= np.sqrt(np.mean(np.square(ref_rms)))
     assert max(a / b for a, b in zip(ours_rms, ref_rms, strict=True)) < 1.02
 
