@@ -13,8 +13,9 @@ fitted to 4096 projected boundary points).
 
 SimpleBlobDetector is set up for one large dark blob (thresholds 10–250 step 10, min repeatability 2,
 area 500 px² to 10⁶ px², circularity ≥ 0.8, convexity ≥ 0.9, inertia ratio ≥ 0.5); of its keypoints
-the one nearest the truth is scored (its best case). The third row is an ablation: our candidate,
-then an intensity-moment centre with a local background instead of the edge fit. Both detectors get
+the one nearest the truth is scored (its best case). Two ablations follow: ``refine="edge"`` (the
+edge points' ellipse, without the intensity-model fit), and an intensity-moment centre with a local
+background seeded by it. Both detectors get
 the same uint8 array; the time is wall-clock per call (image decoding excluded), median over the images.
 """
 
@@ -89,29 +90,35 @@ def run(n: int, seed: int = 0) -> dict:
     sbd = blob_detector()
     rows = []
     for img, truth, blur, noise in scenes(n, seed):
+        true = np.array(truth.ellipse_centre_px)
+
+        def error(uv, true=true):
+            return float(np.hypot(uv[0] - true[0], uv[1] - true[1]))
+
         t0 = time.perf_counter()
         d = detect_target(img)
         t1 = time.perf_counter()
         kps = sbd.detect(img)
         t2 = time.perf_counter()
-        true = np.array(truth.ellipse_centre_px)
-        ours = float(np.hypot(d.u - true[0], d.v - true[1])) if d.ok else None
+        e = detect_target(img, refine="edge")  # the ablations: edge points only, and moments
         t3 = time.perf_counter()
-        mom = float(np.hypot(*(np.array(moment_centre(img, d)) - true))) if d.ok else None
-        t_mom = time.perf_counter() - t3
+        mom = moment_centre(img, e) if e.ok else None
+        t4 = time.perf_counter()
         theirs = None
         if kps:
-            e = [float(np.hypot(k.pt[0] - true[0], k.pt[1] - true[1])) for k in kps]
-            theirs = min(e) if min(e) < 5 else None
-        rows.append({"blur_px": blur, "noise": noise, "ours_px": ours, "sbd_px": theirs,
-                     "moments_px": mom, "ours_s": t1 - t0, "sbd_s": t2 - t1, "moments_s": t1 - t0 + t_mom,
-                     "bias_px": float(np.hypot(*np.subtract(truth.ellipse_centre_px, truth.centre_px)))})
+            dists = [error(k.pt) for k in kps]
+            theirs = min(dists) if min(dists) < 5 else None
+        rows.append({"blur_px": blur, "noise": noise, "sbd_px": theirs, "sbd_s": t2 - t1,
+                     "ours_px": error((d.u, d.v)) if d.ok else None, "ours_s": t1 - t0,
+                     "edge_px": error((e.u, e.v)) if e.ok else None, "edge_s": t3 - t2,
+                     "moments_px": error(mom) if mom else None, "moments_s": t4 - t2,
+                     "bias_px": truth.perspective_bias_px})
     return summarise(rows)
 
 
 def summarise(rows) -> dict:
     out = {"n": len(rows), "rows": rows}
-    for k in ("ours", "sbd", "moments"):
+    for k in ("ours", "sbd", "edge", "moments"):
         e = np.array([r[f"{k}_px"] for r in rows if r[f"{k}_px"] is not None])
         t = np.array([r[f"{k}_s"] for r in rows])
         out[k] = {"found": int(len(e)), "median_px": float(np.median(e)) if len(e) else None,
@@ -143,7 +150,7 @@ def main(argv=None) -> int:
           "ellipse's centre (px)")
     print(f"{'detector':<22} {'found':>7} {'median':>8} {'p95':>8} {'max':>8} {'ms/image':>9}")
     for k, label in (("ours", "eyetohand.detect"), ("sbd", "SimpleBlobDetector"),
-                     ("moments", "moments (ablation)")):
+                     ("edge", "edge points only"), ("moments", "moments (ablation)")):
         s = res[k]
         print(f"{label:<22} {s['found']:>3}/{n:<3} {_f(s['median_px'])} {_f(s['p95_px'])} {_f(s['max_px'])} "
               f"{s['median_ms']:9.1f}")

@@ -62,6 +62,34 @@ def test_accuracy_over_blur_and_noise(small_cam, blur, noise, seed):
         assert d.ok and d.polarity == "dark" and err(d, tr) < 0.06, (d.reason, err(d, tr) if d.ok else None)
         assert d.diameter_px == pytest.approx(tr.diameter_px, abs=0.15)
         assert 0.5 < d.score <= 1
+        # the intensity model fitted, and its edge spread is the blur with the pixel's own (1/12 px²)
+        assert d.method == "intensity"
+        assert d.blur_px == pytest.approx(np.hypot(blur, np.sqrt(1 / 12)), rel=0.1)
+
+
+def test_intensity_fit_beats_the_edge_points_it_starts_from():
+    """The intensity-model fit against the edge-point ellipse it is seeded with (``refine="edge"``), on
+    the same full-size renders: the fit is the more accurate (median over 4 images); seeded with the
+    wrong polarity it refuses (then the edge fit is kept)."""
+    from bench_detect import scenes
+
+    from eyetohand.detect import _fit_intensity, noise_sigma
+
+    fit_err, edge_err = [], []
+    for img, truth, _, _ in scenes(4, seed=5):
+        d = detect_target(img)
+        e = detect_target(img, refine="edge")
+        assert d.ok and d.method == "intensity" and e.ok and e.method == "edge" and e.blur_px is None
+        fit_err.append(err(d, truth))
+        edge_err.append(err(e, truth))
+        grey = img.astype(np.float32)
+        assert _fit_intensity(grey, e.ellipse, -1.0, noise_sigma(grey)) is None
+        assert _fit_intensity(grey, e.ellipse, 1.0, noise_sigma(grey)) is not None
+    print(f"median error: intensity fit {np.median(fit_err):.4f} px, "
+          f"edge points {np.median(edge_err):.4f} px")
+    assert np.median(fit_err) < np.median(edge_err)
+    with pytest.raises(InputError, match="refine"):
+        detect_target(img, refine="moments")
 
 
 def test_uneven_light_bright_target_and_16_bit(small_cam):
