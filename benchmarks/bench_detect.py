@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_detect.py            # 24 images
     .venv/bin/python benchmarks/bench_detect.py --quick    # 6 images
+    .venv/bin/python benchmarks/bench_detect.py --stress   # harder scenes, ours only
 
 Each image is rendered by :func:`eyetohand.render.render` through its own tilted camera with lens
 distortion (the simulator's default lens: f = 4637.7 px, k1 −0.08, k2 0.12; 300 mm above the target
@@ -134,13 +135,64 @@ def _f(v) -> str:
     return f"{v:8.4f}" if v is not None else "       -"
 
 
+STRESS = {  # name: (Target keywords, render keywords, tilt max deg, share of the view)
+    "tilt 0-25 deg, k1 -0.2 lens": ({}, {}, 25, 0.8),
+    "near the corners, vignetting 0.5": ({}, {"vignetting": 0.5}, 25, 0.96),
+    "strip 6 mm (0.5 mm margin)": ({"strip_width_mm": 6.0}, {}, 25, 0.8),
+    "bright circle on dark strip": ({"circle_level": 0.9, "strip_level": 0.2, "belt_level": 0.5}, {},
+                                    25, 0.8),
+    "low contrast (0.55 on 0.75)": ({"circle_level": 0.55, "strip_level": 0.75}, {}, 25, 0.8),
+    "blur 2.5 px, noise 5": ({}, {"blur_px": 2.5, "noise": 5 / 255}, 25, 0.8),
+    "16 bits": ({}, {"bits": 16}, 25, 0.8),
+    "2 mm circle (31 px)": ({"diameter_mm": 2.0, "strip_width_mm": 4.0}, {}, 25, 0.8),
+    "15 mm circle (230 px)": ({"diameter_mm": 15.0, "strip_width_mm": 20.0}, {}, 25, 0.8),
+    "no strip: circle on the belt": ({"strip_width_mm": 0.0}, {}, 25, 0.8),
+    "belt grain 0.08": ({"belt_grain": 0.08}, {}, 25, 0.8),
+}
+
+
+def stress(n: int, seed: int = 5) -> None:
+    """Harder scenes than the benchmark's (one row per variant, ``n`` images each): our detector only.
+    Unless a variant says otherwise: blur 0.6–1.4 px, noise 1–3 grey levels, vignetting 0.25, a lens
+    with k1 −0.2, k2 0.15, tilt 0–25°."""
+    from eyetohand.camera import Camera
+    from eyetohand.detect import detect_target
+    from eyetohand.render import Target, render
+
+    rng = np.random.default_rng(seed)
+    print(f"{'scene':<36} {'found':>7} {'median':>8} {'max':>8}   (px, vs the imaged ellipse's centre)")
+    for name, (tk, rk, tilt, share) in STRESS.items():
+        errs, fails = [], []
+        for _ in range(n):
+            cam = Camera.looking_down(tilt_deg=rng.uniform(0, tilt), tilt_direction_deg=rng.uniform(0, 360),
+                                      yaw_deg=rng.uniform(0, 360), dist=(-0.2, 0.15, 5e-4, -3e-4, 0.0))
+            w, h = cam.image_size
+            lo, hi = (1 - share) / 2, (1 + share) / 2
+            xy = cam.image_to_robot(rng.uniform([lo * w, lo * h], [hi * w, hi * h]), 0.0)
+            kw = {"angle_deg": rng.uniform(0, 180), "blur_px": rng.uniform(0.6, 1.4),
+                  "noise": rng.uniform(1, 3) / 255, "vignetting": 0.25, **rk}
+            img, truth = render(cam, xy, target=Target(**tk), rng=rng, **kw)
+            d = detect_target(img)
+            if d.ok:
+                errs.append(float(np.hypot(*np.subtract((d.u, d.v), truth.ellipse_centre_px))))
+            else:
+                fails.append(d.reason)
+        e = np.array(errs)
+        med, mx = (f"{np.median(e):8.4f}", f"{e.max():8.4f}") if len(e) else ("       -", "       -")
+        print(f"{name:<36} {len(e):>3}/{n:<3} {med} {mx}" + (f"   failed: {fails[0]}" if fails else ""))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="6 images instead of 24")
     ap.add_argument("-n", type=int, default=None, help="number of images")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--stress", action="store_true", help="harder scenes, our detector only (8 images each)")
     args = ap.parse_args(argv)
+    if args.stress:
+        stress(args.n or 8)
+        return 0
     n = args.n or (6 if args.quick else 24)
     res = run(n, args.seed)
     if args.json:

@@ -487,24 +487,32 @@ def _ellipse_distance_px(p: np.ndarray, dx: np.ndarray, dy: np.ndarray, R: float
     return (rho - 1) * rho / np.maximum(np.hypot(qx, qy), 1e-300)
 
 
-def _edge_model(p: np.ndarray, dx: np.ndarray, dy: np.ndarray, R: float, jacobian: bool = False):
+N_HARMONICS = 4  # angular harmonics of the outer level in the intensity model (a textured surround)
+N_PARAMS = 10 + 2 * N_HARMONICS
+
+
+def _edge_model(p: np.ndarray, dx: np.ndarray, dy: np.ndarray, R: float, jacobian: bool = False,
+                harmonics: np.ndarray | None = None):
     """The intensity model of :func:`_fit_intensity` at points (dx, dy) from the initial centre, for the
-    parameters p = (cx, cy, q11, q12, q22, a_in, a_out, log s, gx, gy); with ``jacobian`` also
-    ∂I/∂p (N, 10) (the geometry's by central differences of the distance, the rest analytic)."""
+    parameters p = (cx, cy, q11, q12, q22, a_in, a_out, log s, gx, gy, c1, s1, …, cK, sK): the outer
+    level is a_out + Σ c_k cos kφ + s_k sin kφ around the initial centre (``harmonics`` (N, 2K) holds
+    the cos/sin columns). With ``jacobian`` also ∂I/∂p (the geometry's by central differences of the
+    distance, the rest analytic)."""
     from scipy.special import ndtr
 
     s = math.exp(p[7])
     d = _ellipse_distance_px(p, dx, dy, R)
     Phi = ndtr(d / s)
     g = 1 + (p[8] * dx + p[9] * dy) / R
-    m = p[5] + (p[6] - p[5]) * Phi
+    outer = p[6] + harmonics @ p[10:]
+    m = p[5] + (outer - p[5]) * Phi
     if not jacobian:
         return g * m
     z = d / s
-    k = g * (p[6] - p[5]) * np.exp(-0.5 * z * z) / (math.sqrt(2 * math.pi) * s)  # ∂I/∂d
-    J = np.empty((len(d), 10))
+    k = g * (outer - p[5]) * np.exp(-0.5 * z * z) / (math.sqrt(2 * math.pi) * s)  # ∂I/∂d
+    J = np.empty((len(d), len(p)))
     for i in range(5):
-        e = np.zeros(10)
+        e = np.zeros(len(p))
         e[i] = 1e-6 * (1.0 if i < 2 else max(abs(p[i]), 1.0))
         dd = _ellipse_distance_px(p + e, dx, dy, R) - _ellipse_distance_px(p - e, dx, dy, R)
         J[:, i] = k * dd / (2 * e[i])
@@ -513,6 +521,7 @@ def _edge_model(p: np.ndarray, dx: np.ndarray, dy: np.ndarray, R: float, jacobia
     J[:, 7] = -k * d  # ∂/∂ log s
     J[:, 8] = m * dx / R
     J[:, 9] = m * dy / R
+    J[:, 10:] = (g * Phi)[:, None] * harmonics
     return g * m, J
 
 
@@ -520,11 +529,15 @@ def _least_squares_edge_model(p0, dx, dy, val, R: float, scale: float):
     """Robust (soft-L1, f_scale 3 noise σ) least squares of :func:`_edge_model` to the values."""
     from scipy.optimize import least_squares
 
+    phi = np.arctan2(dy, dx)
+    kphi = phi[:, None] * np.arange(1, N_HARMONICS + 1)[None, :]
+    harmonics = np.column_stack([np.cos(kphi), np.sin(kphi)])
+
     def fun(p):
-        return (_edge_model(p, dx, dy, R) - val) / scale
+        return (_edge_model(p, dx, dy, R, harmonics=harmonics) - val) / scale
 
     def jac(p):
-        return _edge_model(p, dx, dy, R, jacobian=True)[1] / scale
+        return _edge_model(p, dx, dy, R, jacobian=True, harmonics=harmonics)[1] / scale
 
     try:
         return least_squares(fun, p0, jac=jac, method="trf", loss="soft_l1", f_scale=3.0, x_scale="jac",
@@ -566,7 +579,7 @@ def _fit_intensity(img, ellipse, sign: float, sigma: float):
             return None
         scale = max(sigma, 1e-3 * abs(a_out - a_in))
 
-        p0 = np.concatenate([p_geo, [a_in, a_out, math.log(1.0), 0.0, 0.0]])
+        p0 = np.concatenate([p_geo, [a_in, a_out, math.log(1.0), 0.0, 0.0], np.zeros(2 * N_HARMONICS)])
         r = _least_squares_edge_model(p0, dx, dy, val, R, scale)
         if r is None:
             return None
