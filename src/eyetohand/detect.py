@@ -557,7 +557,7 @@ def _fit_intensity(img, ellipse, sign: float, sigma: float):
     Q0 = _shape_matrix(ellipse)
     R = (A + B) / 4
     h, w = img.shape
-    W = float(np.clip(5.0, 2.5, 0.6 * R))
+    W = min(5.0, 0.6 * R)  # px each side of the edge; small circles keep an inner plateau
     ext = int(math.ceil(max(A, B) / 2 + 12))
     x0, x1 = max(int(cx0) - ext, 0), min(int(cx0) + ext + 1, w)
     y0, y1 = max(int(cy0) - ext, 0), min(int(cy0) + ext + 1, h)
