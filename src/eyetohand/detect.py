@@ -548,11 +548,14 @@ def _least_squares_edge_model(p0, dx, dy, val, R: float, scale: float):
 
 def _fit_intensity(img, ellipse, sign: float, sigma: float):
     """Refine an ellipse by fitting the pixels within a few px of its edge with a model of a blurred
-    solid ellipse under smooth light: ``I = (1 + gx·x + gy·y) · (a_in + (a_out − a_in) · Φ(d / s))``,
+    solid ellipse under smooth light: ``I = (1 + gx·x + gy·y) · (a_in + (a_out(φ) − a_in) · Φ(d / s))``,
     ``d`` the signed distance from the ellipse, ``Φ`` the normal CDF, ``s`` the edge spread (blur and
-    pixel). Robust (soft-L1) least squares over 10 parameters, seeded by the edge-point fit. Returns
-    ((centre, (major, minor), angle), s) or None when the fit fails or strays from the seed (the
-    caller then keeps the edge-point fit)."""
+    pixel), ``a_out(φ)`` the outer level with ``N_HARMONICS`` angular harmonics. Robust (soft-L1)
+    least squares over 18 parameters, seeded by the edge-point fit, in a band of ±5 px (widened to
+    ±(3 s + 1.5) px when the edge is wider; a narrower band helps a textured surround but costs
+    accuracy on the strip: measured, see docs/detection.md). Returns ((centre, (major, minor),
+    angle), s) or None when the fit fails or strays from the seed (the caller keeps the edge-point
+    fit)."""
     (cx0, cy0), (A, B), ang = ellipse
     Q0 = _shape_matrix(ellipse)
     R = (A + B) / 4
