@@ -16,7 +16,7 @@ How a pixel gets its value:
   step; the others are shaded by what lies under their centre.
 * Then Gaussian blur (``blur_px``, σ in px), vignetting (brightness × (1 − v·r²), r = 1 at the image
   corners), Gaussian noise (σ as a fraction of full scale, from a seeded Generator) and quantisation
-  to 8 or 16 bits. A 2448×2048 image takes about 0.3 s (see ``tests/test_render.py``).
+  to 8 or 16 bits. A 2448×2048 image takes about 0.4–0.5 s (see ``tests/test_render.py``).
 
 Truth (:class:`Truth`), all in px, OpenCV convention (pixel centres at integers):
 
