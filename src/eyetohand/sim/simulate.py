@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..camera import Camera
 from ..errors import InputError
 from ..io import atomic_write_text
 from ..pairs import PointPairs
@@ -40,43 +41,10 @@ SCHEMA = "eyetohand.sim.truth"
 COMMAND_RESOLUTION_MM = 1e-3
 
 
-class TrueCamera:
-    """The hidden camera of a cell: ``robot_to_image`` and ``image_to_robot(uv, z)`` (OpenCV model)."""
-
-    def __init__(self, cell: Cell):
-        self.K = cell.K
-        self.dist = cell.dist
-        self.R, self.t = cell.pose
-        self.image_size = cell.image_size
-
-    def robot_to_image(self, xyz_mm) -> np.ndarray:
-        import cv2
-
-        xyz = np.asarray(xyz_mm, float).reshape(-1, 3)
-        if len(xyz) == 0:
-            return np.zeros((0, 2))
-        rvec = cv2.Rodrigues(self.R)[0]
-        uv, _ = cv2.projectPoints(xyz, rvec, self.t, self.K, self.dist)
-        return uv.reshape(-1, 2)
-
-    def image_to_robot(self, uv_px, z_mm) -> np.ndarray:
-        import cv2
-
-        uv = np.asarray(uv_px, float).reshape(-1, 2)
-        if len(uv) == 0:
-            return np.zeros((0, 3))
-        n = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, self.dist,
-                                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-15))
-        ray = np.column_stack([n.reshape(-1, 2), np.ones(len(uv))]) @ self.R  # R^T · ray
-        c = -self.R.T @ self.t
-        z = np.broadcast_to(np.asarray(z_mm, float), (len(uv),))
-        s = (z - c[2]) / ray[:, 2]
-        return c + s[:, None] * ray
-
-    def to_dict(self) -> dict:
-        return {"K": self.K.tolist(), "dist_k1_k2_p1_p2_k3": self.dist.tolist(), "R": self.R.tolist(),
-                "t_mm": self.t.tolist(), "centre_mm": (-self.R.T @ self.t).tolist(),
-                "image_size": list(self.image_size)}
+def true_camera(cell: Cell) -> Camera:
+    """The hidden camera of a cell (OpenCV's model, as :class:`eyetohand.camera.Camera`)."""
+    R, t = cell.pose
+    return Camera.from_opencv(cell.K, cell.dist, R, t, cell.image_size)
 
 
 @dataclass(frozen=True)
@@ -93,7 +61,7 @@ class Simulation:
     check: PointPairs
     true_uv_px: np.ndarray  # noise-free image centres of the pairs
     target_mm: np.ndarray  # where the target's centre really was for each pair
-    camera: TrueCamera
+    camera: Camera
 
     def truth(self) -> dict:
         recs = [
@@ -141,7 +109,7 @@ def simulate(
         angles = tuple(float(a) for a in angles_deg)
         if not angles or len(set(angles)) != len(angles) or not np.isfinite(angles).all():
             raise InputError(f"angles: expected distinct finite angles in degrees, got {angles_deg!r}")
-    cam = TrueCamera(cell)
+    cam = true_camera(cell)
     _check_in_front(cell, cam, heights + check_heights)
     ss = np.random.SeedSequence(seed)
     rng_layout, rng_robot, rng_pixel, rng_check = (np.random.default_rng(s) for s in ss.spawn(4))
@@ -211,8 +179,8 @@ def _heights(values, what: str) -> tuple[float, ...]:
     return hs
 
 
-def _check_in_front(cell: Cell, cam: TrueCamera, heights) -> None:
-    top = float(cam.to_dict()["centre_mm"][2])
+def _check_in_front(cell: Cell, cam: Camera, heights) -> None:
+    top = float(cam.position_mm[2])
     belt = cell.values["belt"]["z_mm"]
     for h in heights:
         if not (belt <= h < top - 10.0):
