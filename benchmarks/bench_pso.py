@@ -28,8 +28,10 @@ from other processes hits all of them alike; the ratio is to pyswarms in the sam
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -113,8 +115,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.functions:
         return functions(seeds)
 
-    import pyswarms  # noqa: F401  (fail early if missing)
-    from pyswarms.single import GlobalBestPSO
+    # pyswarms' Reporter opens ./report.log on import and whenever an optimiser is built: keep it out of
+    # the user's folder
+    log_dir = tempfile.TemporaryDirectory(prefix="bench_pso_pyswarms_")
+    with contextlib.chdir(log_dir.name):
+        import pyswarms  # noqa: F401  (fail early if missing)
+        from pyswarms.single import GlobalBestPSO
 
     logging.getLogger("pyswarms").setLevel(logging.WARNING)
 
@@ -156,16 +162,20 @@ def main(argv: list[str] | None = None) -> int:
         r = pso(fitness, b0, sigma, iterations=plain_iters, seed=seed)
         return r.x, r.fun, r.nfev, r.history
 
+    def new_pyswarms(init_pos):
+        with contextlib.chdir(log_dir.name):
+            return GlobalBestPSO(N_PARTICLES, b0.size, dict(OPTIONS), init_pos=init_pos)
+
     def run_pyswarms(seed, scaled: bool):
         rng = np.random.default_rng(seed)
         z0 = rng.standard_normal((N_PARTICLES, b0.size))
         np.random.seed(seed)  # pyswarms draws from NumPy's global generator
         if scaled:
-            opt = GlobalBestPSO(N_PARTICLES, b0.size, dict(OPTIONS), init_pos=z0)
+            opt = new_pyswarms(z0)
             cost, pos = opt.optimize(lambda zz: fitness(b0 + sigma * zz), ps_iters, verbose=False)
             pos = b0 + sigma * pos
         else:
-            opt = GlobalBestPSO(N_PARTICLES, b0.size, dict(OPTIONS), init_pos=b0 + sigma * z0)
+            opt = new_pyswarms(b0 + sigma * z0)
             cost, pos = opt.optimize(fitness, ps_iters, verbose=False)
         return pos, float(cost), N_PARTICLES * ps_iters, np.asarray(opt.cost_history)
 
