@@ -13,7 +13,7 @@ from eyetohand.models import MODELS
 @pytest.mark.parametrize("name", list(MODELS))
 def test_save_load_bit_identical(tmp_path, name):
     cam = make_camera(tilt_deg=10, dist=[-0.1, 0, 0, 0, 0])
-    heights = (150.0, 200.0) if MODELS[name].multi_height else (150.0,)
+    heights = (150.0, 200.0) if MODELS[name].needs_heights() else (150.0,)
     pairs = grid_pairs(cam, 5, heights=heights, noise_px=0.3)
     cal = calibrate(pairs, name, "lm", check=pairs, loo=False)
     path = cal.save(tmp_path / "cal.json")

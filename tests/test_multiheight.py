@@ -65,7 +65,7 @@ def test_camera_recovers_the_hidden_lens_and_pose(two_heights):
     assert cam["K"][0][0] == pytest.approx(CELL.focal_px, rel=0.02)
     np.testing.assert_allclose(cam["centre_mm"], CELL.camera_centre_mm, atol=8.0)
     assert cam["dist"][0] == pytest.approx(CELL.dist[0], abs=0.03)
-    assert m.meta["reprojection_rms_px"] < 0.5
+    assert m.diagnostics["reprojection_rms_px"] < 0.5
 
 
 def test_image_to_robot_at_any_height_and_apply_z(two_heights, tmp_path, capsys):
@@ -106,7 +106,7 @@ def test_camera_refuses_coplanar_and_too_few_pairs():
     sim = simulate(CELL, "grid:1x3", (150.0, 200.0), n_check=0, seed=1)
     with pytest.raises(DegenerateError, match="at least 8 pairs"):
         calibrate(sim.pairs, "camera", loo=False)
-    assert get_model("camera").multi_height and get_model("camera").uses_z
+    assert get_model("camera").needs_heights()
 
 
 def test_auto_considers_only_multi_height_models_for_several_heights(two_heights):

@@ -6,15 +6,15 @@ import pytest
 
 from eyetohand import InputError, calibrate, load_pairs
 from eyetohand.cli import main
+from eyetohand.fit import tcp_offset_for as estimate_tcp_offset
 from eyetohand.sim.cell import Cell
 from eyetohand.sim.simulate import simulate
-from eyetohand.tcp_offset import (
-    calibrate_with_tcp,
-    correct_pairs,
-    estimate_tcp_offset,
-    has_turns,
-    rotations,
-)
+from eyetohand.tcp_offset import correct_pairs, has_turns, rotations
+
+
+def calibrate_with_tcp(pairs, **options):
+    cal = calibrate(pairs, **options)
+    return cal, cal.tcp_offset
 
 OFFSET = np.array([0.35, -0.2])
 CELL = Cell.default().with_values(robot={"tcp_offset_mm": OFFSET.tolist()})

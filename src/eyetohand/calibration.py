@@ -5,18 +5,16 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__
 from .errors import InputError
-from .evaluate import Stats
 from .io import atomic_write_text
 from .models import Model, model_from_dict
-from .solvers import FitInfo
-from .tcp_offset import TcpOffset
+from .records import FitInfo, Stats, TcpOffset
 
 SCHEMA = "eyetohand.calibration"
 SCHEMA_VERSION = 1
@@ -56,12 +54,8 @@ class Calibration:
         """(N, 3) robot mm → (N, 2) pixels."""
         return self.model.robot_to_image(xyz_mm)
 
-    def with_check(self, check: Stats | None) -> Calibration:
-        return replace(self, check=check)
-
     # ------------------------------------------------------------ persistence
     def to_dict(self) -> dict:
-        meta = self.model.meta
         return {
             "schema": SCHEMA,
             "schema_version": SCHEMA_VERSION,
@@ -69,8 +63,8 @@ class Calibration:
             "created_utc": self.created_utc,
             "units": {"image": "px", "robot": "mm"},
             "model": self.model.to_dict(),
-            "plane_z_mm": meta.get("plane_z_mm"),
-            "heights_mm": meta.get("heights_mm"),
+            "plane_z_mm": self.model.plane_z_mm,
+            "heights_mm": self.model.diagnostics.get("heights_mm"),
             "image_size": list(self.image_size) if self.image_size else None,
             "fit": self.fit.to_dict(),
             "train": self.train.to_dict(),

@@ -6,19 +6,19 @@ import time
 
 from .errors import InputError
 from .evaluate import stats_from_residuals
-from .fit import candidate_models, fit_model
+from .fit import fit_model
+from .models import MODELS, HeightRule
 from .solvers import OPTIMIZERS
 
 
 def compare(pairs, check, *, image_size=None, seed=0, optimizers=OPTIMIZERS) -> list[dict]:
     """One row per (model, optimizer): train fitness (eq. 16, mm), check RMS / max (mm), seconds.
 
-    Models are those that fit the pairs' geometry (single-height or multi-height), plus the paper's
-    own B on single-height pairs. A combination that cannot run gives a row with its reason.
+    Models are every one that fits the pairs' geometry (single-height or multi-height), including
+    those ``auto`` never chooses (the paper's own B), simplest first. A combination that cannot run
+    gives a row with its reason.
     """
-    models = [c.name for c in candidate_models(pairs)]
-    if len(pairs.z_levels_mm) == 1:
-        models.insert(1, "paper")
+    models = [c.name for c in compared_models(pairs)]
     rows = []
     for name in models:
         for opt in optimizers:
@@ -40,6 +40,14 @@ def compare(pairs, check, *, image_size=None, seed=0, optimizers=OPTIMIZERS) -> 
             )
             rows.append(row)
     return rows
+
+
+def compared_models(pairs):
+    """Every model for the pairs' geometry, simplest first (the paper's B with the one-height ones)."""
+    multi = len(pairs.z_levels_mm) > 1
+    cands = [c for c in MODELS.values()
+             if c.needs_heights() == multi and not (multi and c.height_rule is HeightRule.COMPUTED)]
+    return sorted(cands, key=lambda c: (c.n_unknowns(), c.name))
 
 
 def format_compare(rows: list[dict]) -> str:

@@ -7,67 +7,11 @@ an error above median + 3 × (1.4826 × MAD) of the errors.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from .records import PointError, Stats
+
 OUTLIER_SIGMAS = 3.0
-
-
-@dataclass(frozen=True)
-class PointError:
-    id: str
-    dx_mm: float
-    dy_mm: float
-    dz_mm: float
-    error_mm: float
-    outlier: bool = False
-
-
-@dataclass(frozen=True)
-class Stats:
-    """Summary of point errors (mm): ``n``, ``rms_mm``, ``mean_mm``, ``max_mm``, ``p95_mm``, points."""
-
-    n: int
-    rms_mm: float
-    mean_mm: float
-    max_mm: float
-    p95_mm: float
-    points: tuple[PointError, ...]
-
-    @property
-    def outliers(self) -> list[str]:
-        return [p.id for p in self.points if p.outlier]
-
-    def to_dict(self) -> dict:
-        return {
-            "n": self.n,
-            "rms_mm": self.rms_mm,
-            "mean_mm": self.mean_mm,
-            "max_mm": self.max_mm,
-            "p95_mm": self.p95_mm,
-            "outliers": self.outliers,
-            "points": [
-                {
-                    "id": p.id,
-                    "dx_mm": p.dx_mm,
-                    "dy_mm": p.dy_mm,
-                    "dz_mm": p.dz_mm,
-                    "error_mm": p.error_mm,
-                    "outlier": p.outlier,
-                }
-                for p in self.points
-            ],
-        }
-
-    @classmethod
-    def from_dict(cls, d: dict) -> Stats:
-        pts = tuple(
-            PointError(p["id"], p["dx_mm"], p["dy_mm"], p.get("dz_mm", 0.0), p["error_mm"],
-                       p.get("outlier", False))
-            for p in d["points"]
-        )
-        return cls(d["n"], d["rms_mm"], d["mean_mm"], d["max_mm"], d["p95_mm"], pts)
 
 
 def outlier_mask(errors_mm: np.ndarray, sigmas: float = OUTLIER_SIGMAS) -> np.ndarray:

@@ -1,24 +1,29 @@
 """calibrate(): point pairs × model × solver → Calibration, with automatic model choice.
 
 ``model="auto"`` scores every candidate the pairs can support by cross-validation (leave-one-out up
-to 40 pairs, else 10 folds) and keeps the simplest whose held-out RMS is within 2 % of the best.
-A candidate is considered only when the pairs give at least 8 more equations than it has unknowns
-(2n ≥ unknowns + 8), so that its held-out score means something; the report says why each
-candidate was or was not taken.
+to 40 pairs, else 10 folds) on the user's objective (held-out RMS for ``l2``, the largest held-out
+error for ``linf``, the Huber loss for ``huber``) and keeps the simplest whose score is within 2 % of
+the best. A candidate is considered only when the pairs give at least 8 more equations than it has
+unknowns (2n ≥ unknowns + 8), so that its held-out score means something; the report says why each
+candidate was or was not taken. The chosen model's held-out residuals are reused as the
+calibration's leave-one-out statistics (not computed twice).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from .calibration import Calibration
 from .errors import InputError
 from .evaluate import stats_from_residuals
-from .models import MODELS, Model, get_model
-from .objectives import SMOOTH_OBJECTIVES
+from .models import MODELS, HeightRule, Model, get_model
+from .objectives import huber_delta_mm, objective_values
 from .pairs import PointPairs
-from .solvers import check_optimizer, refine
-from .tcp_offset import correct_pairs, estimate_tcp_offset, has_turns
+from .records import TcpOffset
+from .solvers import check_optimizer, get_solver, refine
+from .tcp_offset import correct_pairs, estimate_tcp_offset, has_turns, reference_pairs
 
 AUTO_TOLERANCE = 0.02
 SPARE_EQUATIONS = 8
@@ -48,38 +53,67 @@ def fit_model(
     )
 
 
+def folds_for(n: int, seed=0) -> list[np.ndarray]:
+    """Held-out index sets: one per pair up to 40 pairs, else 10 seeded folds."""
+    if n <= LOO_MAX_PAIRS:
+        return [np.array([i]) for i in range(n)]
+    perm = np.random.default_rng(seed).permutation(n)
+    return np.array_split(perm, 10)
+
+
 def cross_validate(
     pairs: PointPairs, model: str, optimizer: str = "lm", objective: str = "l2", *,
     image_size=None, seed=0,
 ):
     """Held-out residuals (N, 3) mm: leave-one-out up to 40 pairs, else 10 seeded folds."""
     n = len(pairs)
-    if n <= LOO_MAX_PAIRS:
-        folds = [np.array([i]) for i in range(n)]
-    else:
-        perm = np.random.default_rng(seed).permutation(n)
-        folds = np.array_split(perm, 10)
     res = np.full((n, 3), np.nan)
-    for held in folds:
+    for held in folds_for(n, seed):
         keep = np.setdiff1d(np.arange(n), held)
-        m, _ = fit_model(pairs.subset(keep), model, optimizer, objective,
-                         image_size=image_size, seed=seed)
+        m, _ = fit_model(pairs.subset(keep), model, optimizer, objective, image_size=image_size, seed=seed)
         test = pairs.subset(held)
         res[held] = m.residuals(test.uv_px, test.xyz_mm)
     return res
 
 
 def candidate_models(pairs: PointPairs) -> list[type[Model]]:
-    """Models that fit the pairs' geometry, simplest first: single-height or multi-height."""
+    """Models ``auto`` may choose for the pairs' geometry (one height or several), simplest first."""
     multi = len(pairs.z_levels_mm) > 1
-    cands = [c for c in MODELS.values() if c.multi_height == multi and c.name != "paper"]
+    cands = [c for c in MODELS.values() if c.auto_candidate and c.needs_heights() == multi]
     return sorted(cands, key=lambda c: c.n_unknowns())
 
 
-def select_model(pairs: PointPairs, *, image_size=None, seed=0) -> tuple[str, dict]:
-    """Choose a model by cross-validated error; returns ``(name, report)``."""
+def held_out_score(residuals_mm: np.ndarray, objective: str, delta_mm: float) -> float:
+    """A held-out residual set scored on the objective, per pair: RMS (l2), max (linf), Huber loss."""
+    r = np.asarray(residuals_mm, float)
+    if objective == "l2":
+        return float(np.sqrt(np.mean((r * r).sum(axis=1))))
+    return float(objective_values(r[None], objective, delta_mm)[0] / (len(r) if objective == "huber" else 1))
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What ``auto`` chose and why: ``report`` is the JSON-able record kept in the calibration;
+    ``residuals_mm`` the chosen model's held-out residuals (reused as its leave-one-out)."""
+
+    model: str
+    report: dict
+    residuals_mm: np.ndarray | None
+    optimizer: str
+
+
+def select_model(pairs: PointPairs, *, optimizer: str = "lm", objective: str = "l2", image_size=None,
+                 seed=0) -> tuple[str, dict]:
+    """Choose a model by cross-validated score on ``objective``; returns ``(name, report)``."""
+    sel = _select(pairs, optimizer, objective, image_size=image_size, seed=seed)
+    return sel.model, sel.report
+
+
+def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=None, seed=0) -> Selection:
     n = len(pairs)
-    rows = []
+    cv_opt = get_solver(optimizer).for_cross_validation(objective)
+    rows, held = [], {}
+    delta = None
     for cls in candidate_models(pairs):
         k = cls.n_unknowns()
         row = {"model": cls.name, "unknowns": k}
@@ -88,14 +122,19 @@ def select_model(pairs: PointPairs, *, image_size=None, seed=0) -> tuple[str, di
             row.update(cv_rms_mm=None, considered=False, why=f"needs at least {need} pairs, have {n}")
         else:
             try:
-                res = cross_validate(pairs, cls.name, image_size=image_size, seed=seed)
+                res = cross_validate(pairs, cls.name, cv_opt, objective, image_size=image_size, seed=seed)
                 e = np.linalg.norm(res, axis=1)
+                if delta is None:  # one Huber threshold for every candidate, from the simplest's errors
+                    delta = huber_delta_mm(e[np.isfinite(e)]) if np.isfinite(e).any() else 1.0
+                score = held_out_score(res, objective, delta)
                 row.update(cv_rms_mm=float(np.sqrt(np.mean(e**2))), cv_max_mm=float(e.max()),
-                           considered=True)
+                           cv_score_mm=score, considered=True)
+                held[cls.name] = res
             except InputError as exc:
                 row.update(cv_rms_mm=None, considered=False, why=str(exc))
         rows.append(row)
-    scored = [r for r in rows if r.get("cv_rms_mm") is not None and np.isfinite(r["cv_rms_mm"])]
+    scored = [r for r in rows if r.get("cv_score_mm") is not None and np.isfinite(r["cv_score_mm"])]
+    method = "leave-one-out" if n <= LOO_MAX_PAIRS else "10-fold"
     if not scored:
         fallback = next((c for c in candidate_models(pairs) if n >= c.min_pairs), None)
         if fallback is None:
@@ -103,17 +142,34 @@ def select_model(pairs: PointPairs, *, image_size=None, seed=0) -> tuple[str, di
             raise InputError(f"{pairs.source}: too few pairs ({n}) for any model of pairs at {kind}")
         reason = (f"too few pairs ({n}) to cross-validate any model; took '{fallback.name}', "
                   "the one with the fewest unknowns")
-        return fallback.name, {"chosen": fallback.name, "reason": reason, "candidates": rows}
-    best = min(r["cv_rms_mm"] for r in scored)
-    chosen = next(r for r in scored if r["cv_rms_mm"] <= best * (1 + AUTO_TOLERANCE))
-    if chosen["cv_rms_mm"] == best:
-        reason = f"lowest held-out RMS ({best:.4f} mm)"
+        report = {"chosen": fallback.name, "reason": reason, "candidates": rows}
+        return Selection(fallback.name, report, None, cv_opt)
+    what = {"l2": "held-out RMS", "linf": "largest held-out error",
+            "huber": "held-out Huber loss"}[objective]
+    best = min(r["cv_score_mm"] for r in scored)
+    chosen = next(r for r in scored if r["cv_score_mm"] <= best * (1 + AUTO_TOLERANCE))
+    if chosen["cv_score_mm"] == best:
+        reason = f"lowest {what} ({best:.4f} mm)"
     else:
-        reason = (f"simplest model within {AUTO_TOLERANCE:.0%} of the lowest held-out RMS "
-                  f"({chosen['cv_rms_mm']:.4f} vs {best:.4f} mm)")
-    method = "leave-one-out" if n <= LOO_MAX_PAIRS else "10-fold"
-    return chosen["model"], {"chosen": chosen["model"], "reason": reason, "method": method,
-                             "candidates": rows}
+        reason = (f"simplest model within {AUTO_TOLERANCE:.0%} of the lowest {what} "
+                  f"({chosen['cv_score_mm']:.4f} vs {best:.4f} mm)")
+    report = {"chosen": chosen["model"], "reason": reason, "method": method, "objective": objective,
+              "scored_with": cv_opt, "candidates": rows}
+    return Selection(chosen["model"], report, held[chosen["model"]], cv_opt)
+
+
+def tcp_offset_for(pairs: PointPairs, model: str = "auto", *, image_size=None, seed=0) -> TcpOffset:
+    """The tool-centre offset of pairs with turns, estimated with ``model`` ("auto": chosen by
+    cross-validation on the pairs at the most common angle, as :func:`calibrate` does)."""
+    if model == "auto" and has_turns(pairs):
+        model, _ = select_model(reference_pairs(pairs), image_size=image_size, seed=seed)
+    elif model != "auto":
+        get_model(model)
+
+    def fit_linear(p: PointPairs) -> Model:
+        return fit_model(p, model, "linear", image_size=image_size)[0]
+
+    return estimate_tcp_offset(pairs, fit_linear)  # refuses pairs without turns, saying what they lack
 
 
 def calibrate(
@@ -139,7 +195,7 @@ def calibrate(
     errors on the training pairs (refit without each pair; for the PSO solvers the leave-one-out
     refits use ``lm`` — or ``linear`` for a non-smooth objective — to keep it fast, and say so).
     """
-    check_optimizer(optimizer, objective)
+    solver = check_optimizer(optimizer, objective, solver_options)
     if model != "auto":
         get_model(model)
     if image_size is not None:
@@ -147,33 +203,35 @@ def calibrate(
         if not (int(w) > 0 and int(h) > 0):
             raise InputError(f"image size must be two positive integers W x H, got {image_size!r}")
         image_size = (int(w), int(h))
+    cv_seed = 0 if seed is None else seed
     data_sha = pairs.sha256()
     tcp = None
     if has_turns(pairs):  # "9 + 2": pairs at other tool angles reveal the tool-centre offset
-        tcp = estimate_tcp_offset(pairs, model, image_size=image_size, seed=0 if seed is None else seed)
+        tcp = tcp_offset_for(pairs, model, image_size=image_size, seed=cv_seed)
         pairs = correct_pairs(pairs, tcp.offset_mm)
         if check is not None and check.angle_deg is not None:
             check = correct_pairs(check, tcp.offset_mm)
     selection = None
     if model == "auto":
-        model, selection = select_model(pairs, image_size=image_size, seed=0 if seed is None else seed)
+        selection = _select(pairs, optimizer, objective, image_size=image_size, seed=cv_seed)
+        model = selection.model
     fitted, info = fit_model(pairs, model, optimizer, objective, image_size=image_size, seed=seed,
                              callback=callback, **solver_options)
     notes = list(pairs.notes)
-    if "init" in fitted.meta:
-        notes.append(f"{model}: {fitted.meta['init']}")
-    if not fitted.uses_z and model != "paper":
-        notes.append(
-            f"single-height model: x, y are mapped on the plane z = {fitted.meta['plane_z_mm']:g} mm"
-        )
+    if fitted.init_note is not None:
+        notes.append(f"{model}: {fitted.init_note}")
+    if fitted.height_rule is HeightRule.PLANE:
+        notes.append(f"single-height model: x, y are mapped on the plane z = {fitted.plane_z_mm:g} mm")
     train = stats_from_residuals(fitted.residuals(pairs.uv_px, pairs.xyz_mm), pairs.ids)
     loo_stats = None
     if loo and len(pairs) > fitted.min_pairs:
-        loo_opt = optimizer if optimizer in ("linear", "lm") else (
-            "lm" if objective in SMOOTH_OBJECTIVES else "linear")
+        loo_opt = solver.for_cross_validation(objective)
         try:
-            res = cross_validate(pairs, model, loo_opt, objective, image_size=image_size,
-                                 seed=0 if seed is None else seed)
+            reuse = selection is not None and selection.optimizer == loo_opt
+            if reuse and selection.residuals_mm is not None:
+                res = selection.residuals_mm
+            else:
+                res = cross_validate(pairs, model, loo_opt, objective, image_size=image_size, seed=cv_seed)
             loo_stats = stats_from_residuals(res, pairs.ids)
             if loo_opt != optimizer:
                 notes.append(f"leave-one-out refits used optimizer '{loo_opt}'")
@@ -191,6 +249,6 @@ def calibrate(
         data_sha256=data_sha,
         image_size=image_size,
         notes=tuple(notes),
-        selection=selection,
+        selection=None if selection is None else selection.report,
         tcp_offset=tcp,
     )

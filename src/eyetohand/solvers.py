@@ -1,153 +1,199 @@
 """Solvers refine a model's flat parameter vector against a robot-space objective.
 
-``linear`` keeps the model's closed-form estimate; ``lm`` is Levenberg–Marquardt (SciPy
-``least_squares``) on the residuals of equation (16); ``hybrid-pso`` and ``pso`` are the paper's
-hybrid particle swarm (section IV) and its plain ablation, from :mod:`eyetohand.optimize`.
-Solvers know nothing about cameras: they see ``model.batch_image_to_robot``.
+A registry, name → :class:`Solver`: ``linear`` keeps the model's closed-form estimate; ``lm`` is
+Levenberg–Marquardt (SciPy ``least_squares``) on the residuals of equation (16); ``hybrid-pso`` and
+``pso`` are the paper's hybrid particle swarm (section IV) and its plain ablation, from
+:mod:`eyetohand.optimize`. Each solver declares the objectives it can minimise and its options, which
+are validated before any work starts. Solvers know nothing about cameras: they see
+``model.batch_image_to_robot``.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from .errors import InputError
-from .models.base import batch_jacobian
-from .objectives import SMOOTH_OBJECTIVES, check_objective, huber_delta_mm, objective_values
-
-OPTIMIZERS = ("linear", "lm", "hybrid-pso", "pso")
-
-
-@dataclass(frozen=True)
-class FitInfo:
-    """How a model was refined: the final objective value (mm), its history, the cost."""
-
-    optimizer: str
-    objective: str
-    fitness: float
-    history: tuple[float, ...] = ()
-    nfev: int = 0
-    nit: int = 0
-    seconds: float = 0.0
-    seed: int | None = None
-    message: str = ""
-    extra: dict = field(default_factory=dict)
-
-    def to_dict(self) -> dict:
-        return {
-            "optimizer": self.optimizer,
-            "objective": self.objective,
-            "fitness": self.fitness,
-            "history": list(self.history),
-            "nfev": self.nfev,
-            "nit": self.nit,
-            "seconds": self.seconds,
-            "seed": self.seed,
-            "message": self.message,
-            **self.extra,
-        }
-
-
-def check_optimizer(name: str, objective: str = "l2") -> str:
-    if name not in OPTIMIZERS:
-        raise InputError(f"unknown optimizer {name!r}; choose one of: {', '.join(OPTIMIZERS)}")
-    check_objective(objective)
-    if name == "lm" and objective not in SMOOTH_OBJECTIVES:
-        raise InputError(
-            f"optimizer 'lm' needs a smooth objective ({', '.join(SMOOTH_OBJECTIVES)}); "
-            f"'{objective}' works with hybrid-pso or pso"
-        )
-    return name
-
-
-def refine(
-    model,
-    uv_px: np.ndarray,
-    xyz_mm: np.ndarray,
-    *,
-    optimizer: str = "linear",
-    objective: str = "l2",
-    seed=None,
-    callback=None,
-    n_particles: int = 200,
-    iterations: int = 150,
-):
-    """Refine ``model`` on the pairs; returns ``(model, FitInfo)``."""
-    check_optimizer(optimizer, objective)
-    uv = np.asarray(uv_px, float)
-    xyz = np.asarray(xyz_mm, float)
-    z = xyz[:, 2]
-    start_res = model.batch_image_to_robot(model.params[None], uv, z)[0] - xyz
-    delta = huber_delta_mm(np.linalg.norm(start_res, axis=1))
-
-    def fitness(batch):
-        res = model.batch_image_to_robot(batch, uv, z) - xyz[None]
-        return objective_values(res, objective, delta)
-
-    t0 = time.perf_counter()
-    extra = {"huber_delta_mm": delta} if objective == "huber" else {}
-    if optimizer == "linear":
-        f = float(fitness(model.params[None])[0])
-        return model, FitInfo("linear", objective, f, (f,), 1, 0, 0.0, None, "closed form", extra)
-
-    if optimizer == "lm":
-        def fun_batch(P):
-            return (model.batch_image_to_robot(P, uv, z) - xyz[None]).reshape(len(P), -1)
-
-        def fun(p):
-            return fun_batch(p[None])[0]
-
-        def jac(p):  # all finite-difference steps in one batched call
-            return batch_jacobian(fun_batch, p)
-
-        if objective == "l2":
-            sol = least_squares(fun, model.params, jac=jac, method="lm", x_scale="jac")
-        else:
-            # the starting fit's errors are inflated by the very pairs Huber should discount, so the
-            # threshold is re-estimated from the robust fit's own errors until it settles
-            x = model.params
-            for _ in range(HUBER_ROUNDS):
-                sol = least_squares(fun, x, jac=jac, method="trf", loss="huber", f_scale=delta,
-                                    x_scale="jac")
-                x = sol.x
-                new = huber_delta_mm(np.linalg.norm(fun(x).reshape(-1, 3), axis=1))
-                if abs(new - delta) <= 0.01 * delta:
-                    break
-                delta = new
-            extra["huber_delta_mm"] = delta
-        best = model.with_params(sol.x)
-        f = float(objective_values(fun(sol.x).reshape(1, -1, 3), objective, delta)[0])
-        return best, FitInfo(
-            "lm", objective, f, (f,), int(sol.nfev), int(sol.nfev), time.perf_counter() - t0,
-            None, str(sol.message), extra,
-        )
-
-    try:
-        from . import optimize
-    except ImportError:
-        raise InputError(f"optimizer {optimizer!r} is not available in this version") from None
-    run = optimize.hybrid_pso if optimizer == "hybrid-pso" else optimize.pso
-    # each element alone moves the mapped points by 1/sqrt(D) mm RMS, the swarm ~1 mm (docs/pso.md)
-    sigma = model.param_scale(uv, z, step_mm=PSO_SPREAD_MM / np.sqrt(model.n_params))
-    res = run(
-        fitness,
-        model.params,
-        sigma,
-        n_particles=n_particles,
-        iterations=iterations,
-        seed=seed,
-        callback=callback,
-    )
-    best = model.with_params(res.x)
-    return best, FitInfo(
-        optimizer, objective, float(res.fun), tuple(float(v) for v in res.history),
-        int(res.nfev), int(res.nit), time.perf_counter() - t0,
-        seed if isinstance(seed, (int, np.integer)) else None, str(res.message), extra,
-    )
-
+from .numdiff import batch_jacobian
+from .objectives import OBJECTIVES, SMOOTH_OBJECTIVES, check_objective, huber_delta_mm, objective_values
+from .records import FitInfo
 
 PSO_SPREAD_MM = 1.0
 HUBER_ROUNDS = 5
+
+
+@dataclass(frozen=True)
+class Problem:
+    """What a solver minimises: the model, its training pairs, the objective and the Huber threshold."""
+
+    model: object
+    uv_px: np.ndarray
+    xyz_mm: np.ndarray
+    objective: str
+    delta_mm: float
+
+    def residuals(self, batch: np.ndarray) -> np.ndarray:
+        """(P, N, 3) residuals of (P, D) parameter rows."""
+        return self.model.batch_image_to_robot(batch, self.uv_px, self.xyz_mm[:, 2]) - self.xyz_mm[None]
+
+    def fitness(self, batch: np.ndarray) -> np.ndarray:
+        return objective_values(self.residuals(batch), self.objective, self.delta_mm)
+
+
+@dataclass(frozen=True)
+class Solver:
+    """A refinement method: ``run(problem, seed=, callback=, **options) -> (model, FitInfo)``."""
+
+    name: str
+    run: Callable[..., tuple[object, FitInfo]]
+    objectives: tuple[str, ...]
+    options: tuple[str, ...] = ()
+    summary: str = ""
+    cv_solver: str | None = None  # cheaper solver used for cross-validation refits (None: itself)
+
+    def for_cross_validation(self, objective: str) -> str:
+        """The solver whose refits score held-out pairs: the swarms' are too slow to repeat n times,
+        so they use ``lm`` (smooth objectives) or ``linear``."""
+        if self.cv_solver is None:
+            return self.name
+        return self.cv_solver if objective in SOLVERS[self.cv_solver].objectives else "linear"
+
+
+# ---------------------------------------------------------------- the solvers
+
+
+def _linear(problem: Problem, **_):
+    f = float(problem.fitness(problem.model.params[None])[0])
+    extra = {"huber_delta_mm": problem.delta_mm} if problem.objective == "huber" else {}
+    return problem.model, FitInfo("linear", problem.objective, f, (f,), 1, 0, 0.0, None, "closed form", extra)
+
+
+def _lm(problem: Problem, **_):
+    from scipy.optimize import least_squares
+
+    model, objective, delta = problem.model, problem.objective, problem.delta_mm
+    t0 = time.perf_counter()
+
+    def fun_batch(P):
+        return problem.residuals(P).reshape(len(P), -1)
+
+    def fun(p):
+        return fun_batch(p[None])[0]
+
+    def jac(p):  # all finite-difference steps in one batched call
+        return batch_jacobian(fun_batch, p)
+
+    extra = {}
+    if objective == "l2":
+        sol = least_squares(fun, model.params, jac=jac, method="lm", x_scale="jac")
+    else:
+        # the starting fit's errors are inflated by the very pairs Huber should discount, so the
+        # threshold is re-estimated from the robust fit's own errors until it settles
+        x = model.params
+        for _ in range(HUBER_ROUNDS):
+            sol = least_squares(fun, x, jac=jac, method="trf", loss="huber", f_scale=delta, x_scale="jac")
+            x = sol.x
+            new = huber_delta_mm(np.linalg.norm(fun(x).reshape(-1, 3), axis=1))
+            if abs(new - delta) <= 0.01 * delta:
+                break
+            delta = new
+        extra["huber_delta_mm"] = delta
+    best = model.with_params(sol.x)
+    f = float(objective_values(fun(sol.x).reshape(1, -1, 3), objective, delta)[0])
+    return best, FitInfo("lm", objective, f, (f,), int(sol.nfev), int(sol.nfev), time.perf_counter() - t0,
+                         None, str(sol.message), extra)
+
+
+def _swarm(kind: str):
+    def run(problem: Problem, *, seed=None, callback=None, n_particles: int = 200, iterations: int = 150):
+        from . import optimize
+
+        model = problem.model
+        t0 = time.perf_counter()
+        # each element alone moves the mapped points by 1/sqrt(D) mm RMS, the swarm ~1 mm (docs/pso.md)
+        sigma = param_scale(model, problem.uv_px, problem.xyz_mm[:, 2],
+                            step_mm=PSO_SPREAD_MM / np.sqrt(model.n_params))
+        fn = optimize.hybrid_pso if kind == "hybrid-pso" else optimize.pso
+        res = fn(problem.fitness, model.params, sigma, n_particles=n_particles, iterations=iterations,
+                 seed=seed, callback=callback)
+        extra = {"huber_delta_mm": problem.delta_mm} if problem.objective == "huber" else {}
+        return model.with_params(res.x), FitInfo(
+            kind, problem.objective, float(res.fun), tuple(float(v) for v in res.history),
+            int(res.nfev), int(res.nit), time.perf_counter() - t0,
+            seed if isinstance(seed, (int, np.integer)) else None, str(res.message), extra,
+        )
+
+    return run
+
+
+SOLVERS: dict[str, Solver] = {
+    s.name: s
+    for s in (
+        Solver("linear", _linear, OBJECTIVES, summary="the model's closed-form (normalised linear) estimate"),
+        Solver("lm", _lm, SMOOTH_OBJECTIVES, summary="Levenberg–Marquardt on the robot-space residuals"),
+        Solver("hybrid-pso", _swarm("hybrid-pso"), OBJECTIVES, ("n_particles", "iterations"),
+               "the paper's hybrid particle swarm (PSO + crossover + mutation)", cv_solver="lm"),
+        Solver("pso", _swarm("pso"), OBJECTIVES, ("n_particles", "iterations"),
+               "plain particle swarm (the ablation)", cv_solver="lm"),
+    )
+}
+OPTIMIZERS = tuple(SOLVERS)
+ALL_OPTIONS = tuple(sorted({o for s in SOLVERS.values() for o in s.options}))
+
+
+def get_solver(name: str) -> Solver:
+    try:
+        return SOLVERS[name]
+    except (KeyError, TypeError):
+        raise InputError(f"unknown optimizer {name!r}; choose one of: {', '.join(OPTIMIZERS)}") from None
+
+
+def check_optimizer(name: str, objective: str = "l2", options: dict | None = None) -> Solver:
+    """The solver called ``name``, checked against the objective and the options before any work."""
+    solver = get_solver(name)
+    check_objective(objective)
+    if objective not in solver.objectives:
+        able = [s.name for s in SOLVERS.values() if objective in s.objectives and s.name != "linear"]
+        raise InputError(
+            f"optimizer '{name}' needs a smooth objective ({', '.join(solver.objectives)}); "
+            f"'{objective}' works with {' or '.join(able)}"
+        )
+    for key, value in (options or {}).items():
+        if key not in ALL_OPTIONS:
+            raise InputError(f"unknown solver option {key!r}; valid options: {', '.join(ALL_OPTIONS)}")
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise InputError(f"solver option '{key}' must be a positive whole number, got {value!r}")
+    if options and options.get("n_particles", 2) < 2:
+        raise InputError("solver option 'n_particles' must be at least 2")
+    return solver
+
+
+def refine(model, uv_px: np.ndarray, xyz_mm: np.ndarray, *, optimizer: str = "linear", objective: str = "l2",
+           seed=None, callback=None, **options):
+    """Refine ``model`` on the pairs; returns ``(model, FitInfo)``. Options another solver takes
+    (``n_particles``, ``iterations`` for the swarms) are accepted and unused by ``linear``/``lm``."""
+    solver = check_optimizer(optimizer, objective, options)
+    uv = np.asarray(uv_px, float)
+    xyz = np.asarray(xyz_mm, float)
+    start = model.batch_image_to_robot(model.params[None], uv, xyz[:, 2])[0] - xyz
+    problem = Problem(model, uv, xyz, objective, huber_delta_mm(np.linalg.norm(start, axis=1)))
+    own = {k: v for k, v in options.items() if k in solver.options}
+    return solver.run(problem, seed=seed, callback=callback, **own)
+
+
+def param_scale(model, uv_px, z_mm, step_mm: float = 1.0) -> np.ndarray:
+    """Per-parameter change that moves the mapped training points by about ``step_mm`` (RMS).
+
+    Computed from a finite-difference Jacobian at the current parameters; used as the PSO's initial
+    spread so that every element of a badly scaled vector (like the paper's B, whose elements range
+    over 6 orders of magnitude) is explored on the same footing in mm.
+    """
+    p = model.params
+    uv, z = np.asarray(uv_px, float), np.asarray(z_mm, float)
+    J = batch_jacobian(lambda P: model.batch_image_to_robot(P, uv, z).reshape(len(P), -1), p,
+                       step=1e-6 * np.maximum(np.abs(p), 1e-3))  # (N*3, D) mm per unit
+    sens = np.sqrt((J**2).sum(axis=0) / len(uv))  # RMS over points of the 3-D displacement
+    return step_mm / np.maximum(sens, 1e-12)

@@ -22,45 +22,18 @@ must go. :func:`eyetohand.calibrate` does the three steps when the pairs have tu
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from .errors import InputError
+from .models import Model
+from .numdiff import batch_jacobian
 from .pairs import PointPairs
+from .records import TcpOffset
 
 ANGLE_TOL_DEG = 1e-6
-
-
-@dataclass(frozen=True)
-class TcpOffset:
-    """Estimated offset ``offset_mm`` (ox, oy) in the tool frame, its standard error (mm, from the
-    joint fit's Jacobian and residuals), the model used, and how many pairs were at other angles."""
-
-    offset_mm: tuple[float, float]
-    std_mm: tuple[float, float]
-    model: str
-    reference_angle_deg: float
-    n_turned: int
-    n_pairs: int
-    rms_mm: float
-
-    def to_dict(self) -> dict:
-        return {
-            "offset_mm": list(self.offset_mm),
-            "std_mm": list(self.std_mm),
-            "model": self.model,
-            "reference_angle_deg": self.reference_angle_deg,
-            "n_turned": self.n_turned,
-            "n_pairs": self.n_pairs,
-            "rms_mm": self.rms_mm,
-        }
-
-    @classmethod
-    def from_dict(cls, d: dict) -> TcpOffset:
-        return cls(tuple(d["offset_mm"]), tuple(d["std_mm"]), d["model"], d["reference_angle_deg"],
-                   d["n_turned"], d["n_pairs"], d["rms_mm"])
 
 
 def rotations(angle_deg: np.ndarray) -> np.ndarray:
@@ -92,15 +65,18 @@ def _reference_angle(angles: np.ndarray) -> float:
     return float(vals[np.argmax(counts)])
 
 
-def estimate_tcp_offset(pairs: PointPairs, model: str = "auto", *, image_size=None, seed=0) -> TcpOffset:
+def reference_pairs(pairs: PointPairs) -> PointPairs:
+    """The pairs at the most common tool angle (where a model is chosen before the offset is known)."""
+    theta0 = _reference_angle(pairs.angle_deg)
+    return pairs.subset(np.abs(pairs.angle_deg - theta0) <= ANGLE_TOL_DEG)
+
+
+def estimate_tcp_offset(pairs: PointPairs, fit_linear: Callable[[PointPairs], Model]) -> TcpOffset:
     """Estimate the tool-centre offset from pairs with an ``angle`` column (see the module docstring).
 
-    ``model``: the transform to estimate it with ("auto": chosen by cross-validation on the pairs at
-    the most common angle, as :func:`eyetohand.calibrate` would).
+    ``fit_linear(pairs) -> Model``: the model to estimate it with, fitted in closed form (the caller
+    chooses the model; :func:`eyetohand.calibrate` passes the one it will calibrate).
     """
-    from .fit import fit_model, select_model
-    from .models import get_model
-
     if not has_turns(pairs):
         raise InputError(
             f"{pairs.source}: a tool-centre offset needs pairs at two or more tool angles "
@@ -109,11 +85,7 @@ def estimate_tcp_offset(pairs: PointPairs, model: str = "auto", *, image_size=No
     ang = pairs.angle_deg
     theta0 = _reference_angle(ang)
     at_ref = np.abs(ang - theta0) <= ANGLE_TOL_DEG
-    base = pairs.subset(at_ref)
-    if model == "auto":
-        model, _ = select_model(base, image_size=image_size, seed=seed)
-    get_model(model)
-    m0, _ = fit_model(base, model, "linear", image_size=image_size)
+    m0 = fit_linear(pairs.subset(at_ref))
     turned = ~at_ref
     R = rotations(ang)
     D = (R - rotations(np.array([theta0]))[0])[turned]  # (T, 2, 2)
@@ -121,7 +93,7 @@ def estimate_tcp_offset(pairs: PointPairs, model: str = "auto", *, image_size=No
     o0, *_ = np.linalg.lstsq(D.reshape(-1, 2), r.reshape(-1), rcond=None)
 
     # joint least squares over (model params, o), from the model fitted on the corrected pairs
-    m1, _ = fit_model(correct_pairs(pairs, o0), model, "linear", image_size=image_size)
+    m1 = fit_linear(correct_pairs(pairs, o0))
     uv, xyz, z = pairs.uv_px, pairs.xyz_mm, pairs.xyz_mm[:, 2]
     d = m1.n_params
 
@@ -131,8 +103,6 @@ def estimate_tcp_offset(pairs: PointPairs, model: str = "auto", *, image_size=No
         target = np.broadcast_to(target, mapped.shape).copy()
         target[..., :2] += np.einsum("nij,bj->bni", R, q[:, d:])
         return (mapped - target).reshape(len(q), -1)
-
-    from .models.base import batch_jacobian
 
     q0 = np.r_[m1.params, o0]
     sol = least_squares(lambda q: fun_batch(q[None])[0], q0, jac=lambda q: batch_jacobian(fun_batch, q),
@@ -149,18 +119,9 @@ def estimate_tcp_offset(pairs: PointPairs, model: str = "auto", *, image_size=No
     return TcpOffset(
         offset_mm=(float(o[0]), float(o[1])),
         std_mm=(float(std[0]), float(std[1])),
-        model=model,
+        model=m1.name,
         reference_angle_deg=theta0,
         n_turned=int(turned.sum()),
         n_pairs=len(pairs),
         rms_mm=rms,
     )
-
-
-def calibrate_with_tcp(pairs: PointPairs, model: str = "auto", optimizer: str = "lm", **options):
-    """``eyetohand.calibrate`` (which removes the offset when the pairs have turns), returning
-    ``(Calibration, TcpOffset or None)``."""
-    from .fit import calibrate
-
-    cal = calibrate(pairs, model, optimizer, **options)
-    return cal, cal.tcp_offset

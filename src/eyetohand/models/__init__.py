@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from ..errors import InputError
 from .affine import Affine
-from .base import Model
+from .base import HeightRule, Model, RobotToImage
 from .dlt3d import DLT3D
 from .homography import Homography
 from .paper import PaperB
@@ -17,27 +17,34 @@ MODELS: dict[str, type[Model]] = {
 MODEL_CHOICES = ("auto", *MODELS)
 
 
-def register_model(cls: type[Model]) -> type[Model]:
-    """Add a model class to the registry (used by model modules outside this package)."""
-    MODELS[cls.name] = cls
-    return cls
-
-
 def get_model(name: str) -> type[Model]:
     """The model class called ``name``; an unknown name lists the valid choices."""
     try:
         return MODELS[name]
-    except KeyError:
+    except (KeyError, TypeError):
         raise InputError(
             f"unknown model {name!r}; choose one of: {', '.join(['auto', *MODELS])}"
         ) from None
 
 
 def model_from_dict(d: dict) -> Model:
-    """Rebuild a model from ``Model.to_dict()`` output."""
-    if not isinstance(d, dict) or "name" not in d or "params" not in d or "meta" not in d:
-        raise InputError("model entry must have 'name', 'params' and 'meta'")
-    return get_model(d["name"])(d["params"], d["meta"])
+    """Rebuild a model from ``Model.to_dict()`` output (or a pre-0.2 entry with one ``meta``)."""
+    if not isinstance(d, dict) or "name" not in d or "params" not in d:
+        raise InputError("model entry must have 'name' and 'params'")
+    params = d["params"]
+    if not isinstance(params, list) or not all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) for x in params
+    ):
+        raise InputError("model 'params' must be a list of numbers")
+    cls = get_model(d["name"])
+    if "constants" in d:
+        for key in ("constants", "diagnostics"):
+            if not isinstance(d.get(key), dict):
+                raise InputError(f"model '{key}' must be an object")
+        return cls(params, d["constants"], d["diagnostics"])
+    if not isinstance(d.get("meta"), dict):
+        raise InputError("model entry must have 'constants' and 'diagnostics' (or a pre-0.2 'meta')")
+    return cls(params, d["meta"])
 
 
-__all__ = ["MODELS", "MODEL_CHOICES", "Model", "get_model", "model_from_dict", "register_model"]
+__all__ = ["MODELS", "MODEL_CHOICES", "HeightRule", "Model", "RobotToImage", "get_model", "model_from_dict"]

@@ -1,62 +1,148 @@
-"""What every model shares: a flat parameter vector, a batched image→robot map, and bookkeeping.
+"""The model contract: a flat parameter vector, a batched image→robot map, and how z is treated.
 
 A model is a small transform object in the style of scikit-image's transforms:
 ``Model.from_pairs(uv_px, xyz_mm)`` estimates it (normalised linear solve), ``model.image_to_robot``
-maps (N, 2) pixels to (N, 3) millimetres, ``model.robot_to_image`` maps back, ``model.residuals``
-gives predicted − actual. The solvers only see ``params`` and ``batch_image_to_robot``, which maps
-a whole swarm of parameter vectors (P, D) at once: no loop per particle.
+maps (N, 2) pixels to (N, 3) millimetres, ``model.robot_to_image`` (or ``model.inverse``, a transform
+object) maps back, ``model.residuals`` gives predicted − actual. The solvers only see ``params`` and
+``batch_image_to_robot``, which maps a whole swarm of parameter vectors (P, D) at once: no loop per
+particle.
+
+What a model is made of is kept in two places: ``constants`` — what is needed to rebuild it with
+its parameters (normalisation frames, the plane height, a lens), each declared with its shape in
+``constant_shapes`` and validated on construction — and ``diagnostics`` — how the estimate went
+(condition number, the starting point taken), which never change a mapping. Class attributes say how
+the model treats the object's height (:class:`HeightRule`) and whether ``auto`` may choose it, so no
+code outside ``models/`` needs to know a model by name.
 """
 
 from __future__ import annotations
 
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from enum import StrEnum
+from types import MappingProxyType
 from typing import Any, ClassVar
 
 import numpy as np
 
 from ..errors import DegenerateError, InputError
 from ..normalize import spread_ratio
+from ..numdiff import batch_jacobian  # noqa: F401  (models' own estimation steps use it)
 
 COLLINEAR_RATIO = 1e-6
 
 
-class Model:
+class HeightRule(StrEnum):
+    """How a model treats the object's height z."""
+
+    PLANE = "plane"  # x, y are mapped on the one calibration plane; z is that plane's
+    GIVEN = "given"  # z must be given; x, y depend on it (pairs at two or more heights)
+    COMPUTED = "computed"  # the model computes z itself (the paper's B, equation 13)
+
+
+class Model(ABC):
     """Base class. Subclasses set the class attributes and implement ``from_pairs``,
-    ``batch_image_to_robot`` and ``robot_to_image``."""
+    ``batch_image_to_robot`` and ``robot_to_image``; ``_prepare`` precomputes from constants."""
 
     name: ClassVar[str] = ""
     n_params: ClassVar[int] = 0
     min_pairs: ClassVar[int] = 0
-    multi_height: ClassVar[bool] = False  # True: needs/uses pairs at several heights
-    uses_z: ClassVar[bool] = False  # True: image_to_robot's x, y depend on the object height z
     summary: ClassVar[str] = ""
     unknowns: ClassVar[int] = 0  # degrees of freedom of the mapping, when not just n_params
+    height_rule: ClassVar[HeightRule] = HeightRule.PLANE
+    auto_candidate: ClassVar[bool] = True  # may ``model="auto"`` choose it
+    constant_shapes: ClassVar[Mapping[str, tuple[int, ...]]] = MappingProxyType({})
 
+    # ----------------------------------------------------------- class facts
     @classmethod
     def n_unknowns(cls) -> int:
         """Degrees of freedom the pairs must determine (for model selection)."""
         return cls.unknowns or cls.n_params
 
-    def __init__(self, params, meta: dict[str, Any]):
+    @classmethod
+    def needs_heights(cls) -> bool:
+        """True for models of pairs at two or more heights (z given with every point)."""
+        return cls.height_rule is HeightRule.GIVEN
+
+    # kept as plain attributes for readers of the old contract
+    @property
+    def multi_height(self) -> bool:
+        return self.needs_heights()
+
+    @property
+    def uses_z(self) -> bool:
+        """True when image_to_robot's x, y depend on the object height z given with the point."""
+        return self.height_rule is HeightRule.GIVEN
+
+    # ----------------------------------------------------------- construction
+    def __init__(self, params, constants: Mapping[str, Any] | None = None,
+                 diagnostics: Mapping[str, Any] | None = None):
         p = np.array(params, dtype=float).reshape(-1)
         if p.size != self.n_params:
             raise InputError(f"model '{self.name}': expected {self.n_params} parameters, got {p.size}")
+        if not np.isfinite(p).all():
+            raise InputError(f"model '{self.name}': parameters must be finite numbers")
         p.flags.writeable = False
         self.params = p
-        self.meta = dict(meta)
+        given = dict(constants or {})
+        diag = dict(diagnostics or {})
+        if diagnostics is None:  # one merged mapping (the file format before 0.2): split it
+            diag = {k: v for k, v in given.items() if k not in self.constant_shapes}
+        consts = {}
+        for key, shape in self.constant_shapes.items():
+            if key not in given:
+                raise InputError(f"model '{self.name}': constant '{key}' missing")
+            consts[key] = _check_constant(self.name, key, given[key], shape)
+        self.constants: Mapping[str, Any] = MappingProxyType(consts)
+        self.diagnostics: Mapping[str, Any] = MappingProxyType(diag)
+        self._prepare()
+
+    def _prepare(self) -> None:  # noqa: B027 (a hook: most models have nothing to precompute)
+        """Precompute what the constants fix (frames, inverses); called by ``__init__``."""
+
+    @classmethod
+    @abstractmethod
+    def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> Model:
+        """Estimate the model from (N, 2) pixels and (N, 3) robot mm (normalised linear solve)."""
+
+    # ----------------------------------------------------------- typed facts
+    @property
+    def plane_z_mm(self) -> float | None:
+        """The calibration plane's height for single-height models, else None."""
+        z = self.constants.get("plane_z_mm")
+        return None if z is None else float(z)
+
+    @property
+    def condition_number(self) -> float | None:
+        c = self.diagnostics.get("condition_number")
+        return None if c is None else float(c)
+
+    @property
+    def init_note(self) -> str | None:
+        """How the estimate was started, when the model had a choice to make (for people)."""
+        note = self.diagnostics.get("init")
+        return None if note is None else str(note)
+
+    @property
+    def meta(self) -> dict[str, Any]:
+        """Constants and diagnostics in one read-only dict (the pre-0.2 view; prefer the properties)."""
+        return {**self.diagnostics, **self.constants}
 
     # ----------------------------------------------------------- mapping
-    def batch_image_to_robot(self, params: np.ndarray, uv_px: np.ndarray, z_mm: np.ndarray):
+    @abstractmethod
+    def batch_image_to_robot(self, params: np.ndarray, uv_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
         """Map (N, 2) pixels with (N,) heights through each of (P, D) parameter vectors → (P, N, 3)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def robot_to_image(self, xyz_mm) -> np.ndarray:
         """Map (N, 3) robot points (mm) to (N, 2) pixels."""
-        raise NotImplementedError
 
     def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
-        """Map (N, 2) pixels to (N, 3) robot mm. ``z_mm``: the object's height (scalar or (N,));
-        None means the calibration plane (single-height models) or is an error (``dlt3d``)."""
-        uv = _as_uv(uv_px)
+        """Map (N, 2) pixels to (N, 3) robot mm. ``z_mm``: the object's height (scalar or (N,)):
+        required by models of several heights; for single-height models None means the calibration
+        plane (x, y always come from the plane); the paper's model computes z and ignores it."""
+        uv = as_uv(uv_px)
         z = self._z_for(len(uv), z_mm)
         return self.batch_image_to_robot(self.params[None, :], uv, z)[0]
 
@@ -64,41 +150,27 @@ class Model:
         return self.image_to_robot(uv_px, z_mm)
 
     @property
-    def inverse(self):
-        """The robot→image direction as a callable: ``model.inverse(xyz_mm) -> uv_px``."""
-        return self.robot_to_image
+    def inverse(self) -> RobotToImage:
+        """The robot→image direction as a transform: ``model.inverse(xyz_mm) -> uv_px``."""
+        return RobotToImage(self)
 
     def residuals(self, uv_px, xyz_mm) -> np.ndarray:
         """Predicted minus actual robot coordinates, (N, 3) mm, each pair mapped at its own z."""
         xyz = np.asarray(xyz_mm, dtype=float)
-        return self.image_to_robot(uv_px, xyz[:, 2]) - xyz
+        z = None if self.height_rule is HeightRule.COMPUTED else xyz[:, 2]
+        return self.image_to_robot(uv_px, z) - xyz
 
     def with_params(self, params) -> Model:
-        """The same model (same normalisation and constants) with other parameters."""
-        return type(self)(params, self.meta)
-
-    # ----------------------------------------------------------- helpers for solvers
-    def param_scale(self, uv_px, z_mm, step_mm: float = 1.0) -> np.ndarray:
-        """Per-parameter change that moves the mapped training points by about ``step_mm`` (RMS).
-
-        Computed from a finite-difference Jacobian at the current parameters; used as the PSO's
-        initial spread so that every element of a badly scaled vector (like the paper's B, whose
-        elements range over 6 orders of magnitude) is explored on the same footing in mm.
-        """
-        p = self.params
-        uv, z = np.asarray(uv_px, float), np.asarray(z_mm, float)
-        J = batch_jacobian(lambda P: self.batch_image_to_robot(P, uv, z).reshape(len(P), -1), p,
-                           step=1e-6 * np.maximum(np.abs(p), 1e-3))  # (N*3, D) mm per unit
-        sens = np.sqrt((J**2).sum(axis=0) / len(uv))  # RMS over points of the 3-D displacement
-        return step_mm / np.maximum(sens, 1e-12)
+        """The same model (same constants and diagnostics) with other parameters."""
+        return type(self)(params, self.constants, self.diagnostics)
 
     def _z_for(self, n: int, z_mm) -> np.ndarray:
+        if self.height_rule is HeightRule.COMPUTED:
+            return np.zeros(n)  # not used by the map
         if z_mm is None:
-            if "plane_z_mm" in self.meta:
-                return np.full(n, float(self.meta["plane_z_mm"]))
-            raise InputError(
-                f"model '{self.name}' maps an image point at a known height: give z (mm)"
-            )
+            if self.plane_z_mm is not None:
+                return np.full(n, self.plane_z_mm)
+            raise InputError(f"model '{self.name}' maps an image point at a known height: give z (mm)")
         z = np.broadcast_to(np.asarray(z_mm, dtype=float), (n,)).astype(float)
         if not np.isfinite(z).all():
             raise InputError("z must be a finite number (mm)")
@@ -106,23 +178,36 @@ class Model:
 
     # ----------------------------------------------------------- persistence
     def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "params": [float(x) for x in self.params], "meta": _jsonable(self.meta)}
+        return {
+            "name": self.name,
+            "params": [float(x) for x in self.params],
+            "constants": _jsonable(dict(self.constants)),
+            "diagnostics": _jsonable(dict(self.diagnostics)),
+        }
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(params={np.array2string(self.params, precision=6)})"
 
 
+class RobotToImage:
+    """A model's robot → image direction as a transform of its own (``model.inverse``)."""
+
+    def __init__(self, model: Model):
+        self._model = model
+
+    def __call__(self, xyz_mm) -> np.ndarray:
+        return self._model.robot_to_image(xyz_mm)
+
+    @property
+    def inverse(self) -> Model:
+        return self._model
+
+    def residuals(self, xyz_mm, uv_px) -> np.ndarray:
+        """Predicted minus measured pixels, (N, 2)."""
+        return self(xyz_mm) - np.asarray(uv_px, float)
+
+
 # ---------------------------------------------------------------- shared checks
-
-
-def batch_jacobian(fun_batch, p: np.ndarray, step: np.ndarray | None = None) -> np.ndarray:
-    """Forward-difference Jacobian (M, D) of a residual function, all D steps in one call:
-    ``fun_batch`` maps (B, D) parameter rows to (B, M) residuals. Default step: SciPy's
-    2-point rule, 1.5e-8 · max(|p|, 1)."""
-    p = np.asarray(p, float)
-    h = 1.5e-8 * np.maximum(np.abs(p), 1.0) if step is None else np.asarray(step, float)
-    r = fun_batch(np.vstack([p, p + np.diag(h)]))
-    return ((r[1:] - r[0]) / h[:, None]).T
 
 
 def batch_inverse3(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -135,8 +220,8 @@ def batch_inverse3(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return inv, det
 
 
-
-def _as_uv(uv_px) -> np.ndarray:
+def as_uv(uv_px) -> np.ndarray:
+    """(N, 2) finite pixels from one point or many; anything else is refused."""
     uv = np.asarray(uv_px, dtype=float)
     if uv.ndim == 1 and uv.size == 2:
         uv = uv[None, :]
@@ -145,6 +230,9 @@ def _as_uv(uv_px) -> np.ndarray:
     if not np.isfinite(uv).all():
         raise InputError("image points must be finite numbers (px)")
     return uv
+
+
+_as_uv = as_uv
 
 
 def check_enough(model_name: str, min_pairs: int, n: int) -> None:
@@ -176,6 +264,28 @@ def check_single_height(model_name: str, xyz_mm: np.ndarray, tol_mm: float = 1e-
     return float(z.mean())
 
 
+def _check_constant(model_name: str, key: str, value, shape: tuple[int, ...]):
+    """A constant as float / nested float lists of ``shape``, finite; anything else is refused."""
+    what = f"model '{model_name}': constant '{key}'"
+    if isinstance(value, bool) or isinstance(value, str):
+        raise InputError(f"{what}: expected {_shape_words(shape)}, got {type(value).__name__}")
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{what}: expected {_shape_words(shape)}") from None
+    if arr.shape != tuple(shape):
+        raise InputError(f"{what}: expected {_shape_words(shape)}, got shape {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise InputError(f"{what}: must be finite numbers")
+    return float(arr) if arr.ndim == 0 else arr.tolist()
+
+
+def _shape_words(shape: tuple[int, ...]) -> str:
+    if not shape:
+        return "a number"
+    return "an array of shape " + "×".join(str(s) for s in shape)
+
+
 def _jsonable(obj):
     if isinstance(obj, dict):
         return {k: _jsonable(v) for k, v in obj.items()}
@@ -185,4 +295,6 @@ def _jsonable(obj):
         return _jsonable(obj.tolist())
     if isinstance(obj, np.generic):
         return obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
     return obj

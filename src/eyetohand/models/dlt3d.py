@@ -7,11 +7,14 @@ of 11 and no unique solution, so the model refuses them.
 
 from __future__ import annotations
 
+from types import MappingProxyType
+
 import numpy as np
 
 from ..errors import DegenerateError
 from ..normalize import apply_h, hartley, spread_ratio
-from .base import Model, check_enough
+from .base import HeightRule, Model, check_enough
+from .homography import null_space_rows
 
 COPLANAR_RATIO = 1e-4
 
@@ -39,7 +42,7 @@ def dlt_projection(uv_px: np.ndarray, xyz_mm: np.ndarray, model_name: str):
             np.hstack([zeros, Xh, -uv_n[:, 1:2] * Xh]),
         ]
     )
-    _, s, vt = np.linalg.svd(A)
+    vt, s = null_space_rows(A)
     if s[-2] < 1e-9 * s[0]:
         raise DegenerateError(f"model '{model_name}': the pairs do not determine a projection")
     P = vt[-1].reshape(3, 4)
@@ -54,8 +57,8 @@ class DLT3D(Model):
     name = "dlt3d"
     n_params = 11
     min_pairs = 7
-    multi_height = True
-    uses_z = True
+    height_rule = HeightRule.GIVEN
+    constant_shapes = MappingProxyType({"T_uv": (3, 3), "T_xyz": (4, 4)})
     summary = "11 unknowns: the paper's equation (5), pairs at 2+ heights, no lens distortion"
 
     @classmethod
@@ -64,18 +67,12 @@ class DLT3D(Model):
         xyz = np.asarray(xyz_mm, float)
         P, T_uv, T3, cond = dlt_projection(uv, xyz, cls.name)
         z = xyz[:, 2]
-        meta = {
-            "T_uv": T_uv.tolist(),
-            "T_xyz": T3.tolist(),
-            "heights_mm": sorted({round(float(v), 6) for v in z}),
-            "condition_number": cond,
-        }
-        return cls(P.reshape(-1)[:11], meta)
+        diagnostics = {"heights_mm": sorted({round(float(v), 6) for v in z}), "condition_number": cond}
+        return cls(P.reshape(-1)[:11], {"T_uv": T_uv.tolist(), "T_xyz": T3.tolist()}, diagnostics)
 
-    def __init__(self, params, meta):
-        super().__init__(params, meta)
-        self._T_uv = np.asarray(self.meta["T_uv"], float)
-        self._T3 = np.asarray(self.meta["T_xyz"], float)
+    def _prepare(self) -> None:
+        self._T_uv = np.asarray(self.constants["T_uv"], float)
+        self._T3 = np.asarray(self.constants["T_xyz"], float)
 
     def _P(self, params) -> np.ndarray:
         p = np.asarray(params, float).reshape(-1, 11)

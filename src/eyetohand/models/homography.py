@@ -5,21 +5,19 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import DegenerateError
-from ..normalize import apply_h
-from .base import Model
-from .planar import frames, planar_setup, to_robot
+from .planar import PlanarMatrixModel, planar_setup
 
 
 def dlt_homography(src_n: np.ndarray, dst_n: np.ndarray, model_name: str):
-    """Direct linear transform on normalised points: H (3×3, H[2,2] = 1) and the condition number."""
+    """Direct linear transform on normalised points: H (3×3, H[2,2] = 1) and the condition number
+    (memory and time linear in the number of points: a thin SVD, see ``null_space_rows``)."""
     n = len(src_n)
     x, y = src_n[:, 0], src_n[:, 1]
     X, Y = dst_n[:, 0], dst_n[:, 1]
     zeros, ones = np.zeros(n), np.ones(n)
     rows1 = np.column_stack([x, y, ones, zeros, zeros, zeros, -X * x, -X * y, -X])
     rows2 = np.column_stack([zeros, zeros, zeros, x, y, ones, -Y * x, -Y * y, -Y])
-    A = np.vstack([rows1, rows2])
-    _, s, vt = np.linalg.svd(A)
+    vt, s = null_space_rows(np.vstack([rows1, rows2]))
     if s[-2] < 1e-9 * s[0]:
         raise DegenerateError(
             f"model '{model_name}': the pairs do not determine a homography "
@@ -31,7 +29,14 @@ def dlt_homography(src_n: np.ndarray, dst_n: np.ndarray, model_name: str):
     return H / H[2, 2], float(s[0] / s[-2])
 
 
-class Homography(Model):
+def null_space_rows(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Right singular vectors (rows, last = null vector) and singular values of a tall A, computed
+    from the thin SVD (no 2n×2n U: memory linear in the rows)."""
+    _, s, vt = np.linalg.svd(A, full_matrices=False)
+    return vt, s
+
+
+class Homography(PlanarMatrixModel):
     """(x, y, 1) ~ H · (u, v, 1), DLT in Hartley-normalised coordinates.
 
     Parameters: the first 8 elements of H in normalised coordinates (H[2, 2] = 1).
@@ -46,31 +51,18 @@ class Homography(Model):
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> Homography:
         uv, xyz, z0, T_uv, T_xy, uv_n, xy_n = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
         H, cond = dlt_homography(uv_n, xy_n, cls.name)
-        meta = {"T_uv": T_uv.tolist(), "T_xy": T_xy.tolist(), "plane_z_mm": z0, "condition_number": cond}
-        return cls(H.reshape(-1)[:8], meta)
+        constants = {"T_uv": T_uv.tolist(), "T_xy": T_xy.tolist(), "plane_z_mm": z0}
+        return cls(H.reshape(-1)[:8], constants, {"condition_number": cond})
 
-    def __init__(self, params, meta):
-        super().__init__(params, meta)
-        self._T_uv, self._Tinv_xy = frames(self.meta)
-
-    def batch_image_to_robot(self, params, uv_px, z_mm):
-        return to_robot(batch_homography(params, apply_h(self._T_uv, uv_px)), self._Tinv_xy, z_mm)
-
-    @property
-    def matrix_image_to_robot(self) -> np.ndarray:
-        """3×3 matrix mapping (u, v, 1) px to (x, y, 1) mm (up to scale; [2, 2] = 1)."""
-        H = self._Tinv_xy @ np.append(self.params, 1.0).reshape(3, 3) @ self._T_uv
-        return H / H[2, 2]
-
-    def robot_to_image(self, xyz_mm) -> np.ndarray:
-        xyz = np.atleast_2d(np.asarray(xyz_mm, dtype=float))
-        return apply_h(np.linalg.inv(self.matrix_image_to_robot), xyz[:, :2])
+    @staticmethod
+    def batch_matrices(params) -> np.ndarray:
+        p = np.asarray(params, float).reshape(-1, 8)
+        return np.concatenate([p, np.ones((len(p), 1))], axis=1).reshape(-1, 3, 3)
 
 
 def batch_homography(params, pts_n: np.ndarray) -> np.ndarray:
     """Apply (P, 8) homographies (H[2,2] = 1) to (N, 2) or (P, N, 2) points → (P, N, 2)."""
-    p = np.asarray(params, float).reshape(-1, 8)
-    H = np.concatenate([p, np.ones((len(p), 1))], axis=1).reshape(-1, 3, 3)
-    pts = np.broadcast_to(pts_n, (len(p),) + pts_n.shape[-2:])
+    H = Homography.batch_matrices(params)
+    pts = np.broadcast_to(pts_n, (len(H),) + pts_n.shape[-2:])
     num = np.einsum("pij,pnj->pni", H[:, :, :2], pts) + H[:, None, :, 2]
     return num[..., :2] / num[..., 2:3]

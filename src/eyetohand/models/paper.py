@@ -11,7 +11,7 @@ Estimation:
   is the degenerate Zc ≈ 0, so B is initialised from the planar solution instead — the least-squares
   affine robot→image map (u, v) = A₂ₓ₃ (x, y, 1) on the plane z = z0, placed in B as
   [[a11 a12 0 a13], [a21 a22 0 a23], [0 0 1/z0 0]], which makes equation (13) reproduce that affine
-  map and return z = z0. ``meta["init"]`` records which path was taken and the rank found.
+  map and return z = z0. ``init_note`` records which path was taken, ``equation5_rank`` the rank found.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import DegenerateError
 from ..normalize import hartley, spread_ratio
-from .base import Model, batch_inverse3, check_enough, check_not_collinear
+from .base import HeightRule, Model, batch_inverse3, check_enough, check_not_collinear
 from .dlt3d import COPLANAR_RATIO, dlt_projection
 
 
@@ -49,6 +49,8 @@ class PaperB(Model):
     n_params = 12
     min_pairs = 4
     summary = "12 unknowns: the paper's matrix B, equation (13) (affine on one plane)"
+    height_rule = HeightRule.COMPUTED  # equation (13) gives z itself
+    auto_candidate = False  # the paper's reference model, compared but never chosen by `auto`
 
     @classmethod
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> PaperB:
@@ -93,8 +95,7 @@ class PaperB(Model):
                 f"coplanar pairs (z = {z0:g} mm): equation (5) has rank {rank} of 11, so B was "
                 "initialised from the planar least-squares solution, not the degenerate Zc ≈ 0"
             )
-        meta = {"init": init, "equation5_rank": rank, "condition_number": cond}
-        return cls(B.reshape(-1), meta)
+        return cls(B.reshape(-1), {}, {"init": init, "equation5_rank": rank, "condition_number": cond})
 
     def batch_image_to_robot(self, params, uv_px, z_mm):
         B = np.asarray(params, float).reshape(-1, 3, 4)
@@ -106,12 +107,11 @@ class PaperB(Model):
         P[..., 2] = 1.0 - B[:, None, 2, 3]
         return np.einsum("pij,pnj->pni", Minv, P)
 
-    def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
-        """Equation (13). ``z_mm`` is ignored: the paper's model computes z itself."""
-        return super().image_to_robot(uv_px, 0.0)
-
-    def residuals(self, uv_px, xyz_mm) -> np.ndarray:
-        return self.image_to_robot(uv_px) - np.asarray(xyz_mm, float)
+    @property
+    def equation5_rank(self) -> int | None:
+        """Numerical rank of equation (5) on the training pairs (9 of 11 on coplanar pairs)."""
+        r = self.diagnostics.get("equation5_rank")
+        return None if r is None else int(r)
 
     @property
     def matrix_B(self) -> np.ndarray:

@@ -25,6 +25,7 @@ then refine all parameters on the robot-space residuals (the paper's equation 16
 
 from __future__ import annotations
 
+from types import MappingProxyType
 from typing import ClassVar
 
 import numpy as np
@@ -32,7 +33,7 @@ from scipy.linalg import rq
 from scipy.optimize import least_squares
 
 from ..errors import DegenerateError
-from .base import Model, _as_uv, batch_jacobian, check_enough
+from .base import HeightRule, Model, _as_uv, batch_jacobian, check_enough
 from .dlt3d import dlt_projection
 from .radial import rodrigues_batch, rotation_to_rodrigues
 
@@ -123,8 +124,8 @@ class PinholeCamera(Model):
     terms: ClassVar[tuple[str, ...]] = ("fx", "cx", "cy", "k1", "k2", "p1", "p2")
     n_params = 13
     min_pairs = 8
-    multi_height = True
-    uses_z = True
+    height_rule = HeightRule.GIVEN
+    constant_shapes = MappingProxyType({"origin_mm": (3,)})
     summary = ("13 unknowns: pinhole camera f cx cy, lens k1 k2 p1 p2 and pose; pairs at 2+ heights, "
                "lens distortion")
 
@@ -189,8 +190,7 @@ class PinholeCamera(Model):
         }
         return cls(params, meta)
 
-    def __init__(self, params, meta):
-        super().__init__(params, meta)
+    def _prepare(self) -> None:
         self._x0 = np.asarray(self.meta["origin_mm"], float)
         self._mask = _mask(self.terms)
 

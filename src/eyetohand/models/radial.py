@@ -25,6 +25,8 @@ f and the camera's distance cannot be told apart; the lens fit then settles on o
 
 from __future__ import annotations
 
+from types import MappingProxyType
+
 import numpy as np
 from scipy.optimize import least_squares
 
@@ -139,6 +141,8 @@ class HomographyRadial(Model):
     unknowns = 10  # 8 + k1, k2 (f only sets k's units)
     min_pairs = 6
     summary = "10 unknowns: homography plus radial lens distortion k1, k2"
+    constant_shapes = MappingProxyType({"T_uv": (3, 3), "T_xy": (3, 3), "plane_z_mm": (), "centre_px": (2,),
+                                        "focal_px": (), "k1": (), "k2": ()})
 
     @classmethod
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> HomographyRadial:
@@ -172,8 +176,7 @@ class HomographyRadial(Model):
         }
         return cls(H.reshape(-1)[:8], meta)
 
-    def __init__(self, params, meta):
-        super().__init__(params, meta)
+    def _prepare(self) -> None:
         self._T_uv = np.asarray(self.meta["T_uv"], float)
         self._Tinv_xy = np.linalg.inv(np.asarray(self.meta["T_xy"], float))
         self._c = np.asarray(self.meta["centre_px"], float)
