@@ -1066,9 +1066,11 @@ def build_report(prep, fit, conv, stated_counts_per_mm, stated_direction_deg) ->
 def format_report(rep: dict) -> str:
     b = rep["belt"]
     lines = [
-        f"touches {rep['n_touches']} ({rep['n_sighted_parts']} sighted parts, {rep['n_unseen_parts']} touched "
-        f"only), residual rms {rep['rms_mm']:.4f} mm, travel {rep['travel_mm'][0]:.0f}..{rep['travel_mm'][1]:.0f} mm",
-        f"belt: {b['mm_per_count']:.8f} mm/count (± {b['sigma_scale_rel']:.1e} rel), {b['counts_per_mm']:.5f} "
+        f"touches {rep['n_touches']} ({rep['n_sighted_parts']} sighted parts, {rep['n_unseen_parts']} "
+        f"touched only), residual rms {rep['rms_mm']:.4f} mm, "
+        f"travel {rep['travel_mm'][0]:.0f}..{rep['travel_mm'][1]:.0f} mm",
+        f"belt: {b['mm_per_count']:.8f} mm/count (± {b['sigma_scale_rel']:.1e} rel), "
+        f"{b['counts_per_mm']:.5f} "
         f"counts/mm; yaw {b['yaw_deg']:.4f} ± {b['sigma_yaw_deg']:.4f} deg, pitch {b['pitch_deg']:.4f} ± "
         f"{b['sigma_pitch_deg']:.4f} deg",
     ]
