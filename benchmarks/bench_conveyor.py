@@ -84,7 +84,7 @@ def main() -> None:
         rows.append(r)
         print(
             f"{seed:>4}  {r[0]:+.2e}  {r[1]:+.5f}     {r[2]:+.5f}      {r[3]:.4f}   {r[4]:.4f}       "
-            f"{r[5]:.4f}     {r[6]:.4f}         {r[7]:.2f}  {r[8]:.2f}      {conv.report['present'] or 'none'}"
+            f"{r[5]:.4f}     {r[6]:.4f}         {r[7]:.2f}  {r[8]:.2f}  {conv.report['present'] or 'none'}"
         )
     a = np.array(rows)
     print(
