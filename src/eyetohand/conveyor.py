@@ -810,7 +810,7 @@ def calibrate_conveyor(
     src = session.source
     prep = _prepare(session, encoder, noise_counts)
     cls = get_model(model)
-    if cls.multi_height:
+    if cls.needs_heights():
         raise InputError(
             f"model {model!r} needs parts at several heights; parts on a belt are at one: "
             "use affine, homography or homography-radial"

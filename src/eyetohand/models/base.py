@@ -65,15 +65,13 @@ class Model(ABC):
         """True for models of pairs at two or more heights (z given with every point)."""
         return cls.height_rule is HeightRule.GIVEN
 
-    # kept as plain attributes for readers of the old contract
-    @property
-    def multi_height(self) -> bool:
-        return self.needs_heights()
+    # derived from height_rule, as class attributes (readable on the class and on instances)
+    multi_height: ClassVar[bool] = False  # pairs at two or more heights
+    uses_z: ClassVar[bool] = False  # image_to_robot's x, y depend on the z given with the point
 
-    @property
-    def uses_z(self) -> bool:
-        """True when image_to_robot's x, y depend on the object height z given with the point."""
-        return self.height_rule is HeightRule.GIVEN
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.multi_height = cls.uses_z = cls.height_rule is HeightRule.GIVEN
 
     # ----------------------------------------------------------- construction
     def __init__(self, params, constants: Mapping[str, Any] | None = None,
