@@ -1,15 +1,16 @@
 """Find the target's solid circle in an image, with sub-pixel accuracy.
 
-Two stages:
+Three stages:
 
 1. **Candidates** on a downscaled copy (area averaging, so a 2448×2048 image is searched at 612×512):
-   the image is cut at 20 grey levels (10 spread between its darkest and brightest pixel, 10 between its
-   0.5th and 99.5th percentiles); at each level the
-   connected dark (and bright) regions are kept when they are big enough, fill their bounding box like
-   an ellipse, have no hole (solid), keep off the image border, are round once their second moments are
-   whitened, and stand out from the ring around them by at least 6 noise σ. A region found at two or
-   more levels in the same place is a candidate. Uneven light only moves the levels at which a region
-   appears, not whether it does.
+   the image is cut at up to 20 grey levels (10 spread between its darkest and brightest pixel, 10
+   between its 0.5th and 99.5th percentiles); at each level the connected dark (and bright) regions
+   are kept when they are big enough, fill their bounding box like an ellipse, have no hole (solid),
+   keep off the image border, are round once their second moments are whitened, and stand out from
+   the ring around them by at least 6 noise σ. A region found at two or more levels in the same place
+   is a candidate. Uneven light only moves the levels at which a region appears, not whether it
+   does. Only windows around what the same search with looser bounds finds on a copy downscaled 2×
+   more are labelled (the whole image when that finds nothing, or when the windows give no circle).
 2. **Edge points** at full resolution around each candidate: the image is sampled (bilinear) along
    one radial profile per boundary pixel, from inside to outside the candidate's ellipse; each
    profile's edge is the centroid of its gradient above a quarter of its peak (exact for a
@@ -19,14 +20,16 @@ Two stages:
    profiles, rms distance of the edge points).
 3. **Intensity model** (``refine="intensity"``, the default): the pixels within a few px of that
    ellipse's edge are fitted with a blurred solid ellipse under smooth light,
-   ``I = (1 + gx·x + gy·y) · (a_in + (a_out − a_in) · Φ(d / s))`` — ``d`` the signed distance from the
-   ellipse, ``Φ`` the normal CDF, ``s`` the edge spread (blur and pixel) — by robust (soft-L1)
-   least squares over the 10 parameters. It uses every pixel of the edge band at its own noise
-   (the edge points average differentiated, interpolated samples), which halves the error on the
-   benchmark's renders; a fit that fails or moves more than 0.5 px from the edge points' ellipse is
-   dropped and that ellipse kept (``Detection.method`` says which). The centre reported is the
-   fitted ellipse's: the centre of the *imaged ellipse*, not the image of the circle's centre — they
-   differ by the perspective bias of a tilted view (see :mod:`eyetohand.render`).
+   ``I = (1 + gx·x + gy·y) · (a_in + (a_out(φ) − a_in) · Φ(d / s))`` — ``d`` the signed distance from
+   the ellipse, ``Φ`` the normal CDF, ``s`` the edge spread (blur and pixel), ``a_out(φ)`` the outer
+   level with 4 angular harmonics — by robust (soft-L1) least squares over the 18 parameters
+   (Levenberg–Marquardt on the 18 × 18 normal equations, analytic Jacobian). It uses every pixel of
+   the edge band at its own noise (the edge points average differentiated, interpolated samples),
+   which halves the error on the benchmark's renders; a fit that fails or moves more than 0.5 px from
+   the edge points' ellipse is dropped and that ellipse kept (``Detection.method`` says which). The
+   centre reported is the fitted ellipse's: the centre of the *imaged ellipse*, not the image of the
+   circle's centre — they differ by the perspective bias of a tilted view (see
+   :mod:`eyetohand.render`).
 
 Everything is vectorised over profiles and samples. ``detect_target`` wants exactly one circle; it
 refuses (``ok=False`` with a ``reason``, never a guessed centre) when there is none, when two or more
