@@ -287,3 +287,24 @@ def test_a_small_circle_in_a_large_image_is_found():
     img = finish(disc(canvas(1600, 2000), 1200.4, 700.6, 12, 30))
     d = detect_target(img)
     assert d.ok and np.hypot(d.u - 1200.4, d.v - 700.6) < 0.06, d.reason
+
+
+def test_the_windowed_candidate_search_finds_what_the_whole_image_search_finds():
+    """The search labels only windows around what a looser search at half the scale finds: on the
+    benchmark's full-size renders and on two circles of a large image (the ambiguous case) it gives the
+    same candidates as labelling the whole image at every level, without covering the whole image."""
+    from bench_detect import scenes
+
+    from eyetohand.detect import _candidates, _search_scale, noise_sigma
+
+    two = finish(disc(disc(canvas(1600, 2000), 500.3, 600.7, 40, 30), 1450.2, 960.4, 40, 30))
+    images = [img for img, _, _, _ in scenes(3, seed=21)] + [two]
+    for img in images:
+        grey = load_image(img)[0]
+        sigma, f = noise_sigma(grey), _search_scale(grey.shape, None)
+        fast, fast_rej, everywhere = _candidates(grey, sigma, "auto", None, f)
+        full, full_rej, _ = _candidates(grey, sigma, "auto", None, f, everywhere=True)
+        assert not everywhere and len(fast) >= 1
+        assert [(c.x, c.y, c.diameter, c.polarity, c.levels) for c in fast] == \
+            [(c.x, c.y, c.diameter, c.polarity, c.levels) for c in full]
+    assert len(fast) == 2 and "ambiguous" in detect_target(two).reason
