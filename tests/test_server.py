@@ -18,6 +18,7 @@ import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, settings
 
+from eyetohand import load_pairs
 from eyetohand.calibration import Calibration
 from eyetohand.cli import main as cli_main
 from eyetohand.server.app import LOOPBACK_HOSTS, MAX_POINTS, create_app
@@ -209,7 +210,9 @@ def test_compare_job(client):
 
 def test_mappings_equal_eyetohand_apply(client, tmp_path):
     rng = np.random.default_rng(7)
-    uv = np.c_[rng.uniform(300, 1300, 300), rng.uniform(300, 1500, 300)]
+    train = load_pairs(PAPER / "calibration_points.csv").uv_px  # points inside its calibrated region
+    w = rng.dirichlet(np.ones(3), 300)
+    uv = np.einsum("nk,nkj->nj", w, train[rng.integers(0, len(train), (300, 3))])
     src = tmp_path / "points.csv"
     src.write_text("u,v\n" + "".join(f"{float(u)!r},{float(v)!r}\n" for u, v in uv))
     fits = (("h", "homography", "lm"), ("p", "paper", "hybrid-pso"), ("r", "homography-radial", "lm"))

@@ -22,8 +22,10 @@ from .models import MODELS, HeightRule, Model, get_model
 from .objectives import huber_delta_mm, objective_values
 from .pairs import PointPairs
 from .records import TcpOffset
+from .region import CalibratedRegion
 from .solvers import check_optimizer, get_solver, refine
 from .tcp_offset import correct_pairs, estimate_tcp_offset, has_turns, reference_pairs
+from .uncertainty import Uncertainty
 
 AUTO_TOLERANCE = 0.02
 SPARE_EQUATIONS = 8
@@ -205,6 +207,7 @@ def calibrate(
         image_size = (int(w), int(h))
     cv_seed = 0 if seed is None else seed
     data_sha = pairs.sha256()
+    original, original_check = pairs, check
     tcp = None
     if has_turns(pairs):  # "9 + 2": pairs at other tool angles reveal the tool-centre offset
         tcp = tcp_offset_for(pairs, model, image_size=image_size, seed=cv_seed)
@@ -240,6 +243,10 @@ def calibrate(
     check_stats = None
     if check is not None:
         check_stats = stats_from_residuals(fitted.residuals(check.uv_px, check.xyz_mm), check.ids)
+    plane = None if fitted.height_rule is HeightRule.GIVEN else float(np.mean(pairs.xyz_mm[:, 2]))
+    region = CalibratedRegion.from_pairs(pairs.uv_px, pairs.xyz_mm, plane_z_mm=plane)
+    uncertainty = Uncertainty.of_fit(fitted, pairs.uv_px, pairs.xyz_mm)
+    warnings = sanity_warnings(fitted, region, original, original_check)
     return Calibration(
         model=fitted,
         fit=info,
@@ -251,4 +258,43 @@ def calibrate(
         notes=tuple(notes),
         selection=None if selection is None else selection.report,
         tcp_offset=tcp,
+        region=region,
+        uncertainty=uncertainty,
+        pairs=original,
+        check_pairs=original_check,
+        warnings=tuple(warnings),
     )
+
+
+SCALE_RANGE_MM_PER_PX = (0.001, 10.0)
+
+
+def sanity_warnings(model: Model, region: CalibratedRegion, pairs: PointPairs,
+                    check: PointPairs | None) -> list[str]:
+    """What no real cell produces: a scale outside 0.001..10 mm per pixel (suspect units), and a
+    check set that repeats training pairs (it then measures nothing)."""
+    out = []
+    from .orientation import LocalFrame, local_jacobian
+
+    z = region.plane_z_mm if region.plane_z_mm is not None else float(np.mean(region.z_range_mm))
+    zq = None if model.height_rule is HeightRule.COMPUTED else z
+    J = local_jacobian(lambda uv: model.image_to_robot(uv, zq)[:, :2], region.hull_px.mean(axis=0, keepdims=True))
+    scale = LocalFrame.from_jacobian(J[0]).scale_mm_per_px
+    lo, hi = SCALE_RANGE_MM_PER_PX
+    if not lo <= scale <= hi:
+        guess = "metres (use --robot-units m)" if scale < lo else "micrometres or the wrong columns"
+        out.append(f"{pairs.source}: the scale is {scale:.3g} mm per pixel, outside the {lo:g}..{hi:g} mm/px "
+                   f"of any real cell: are the robot coordinates in {guess}? They are read as millimetres")
+    if check is not None:
+        train_uv = {tuple(r) for r in np.round(pairs.uv_px, 6)}
+        train_xyz = {tuple(r) for r in np.round(pairs.xyz_mm, 6)}
+        same = [cid for cid, uv, xyz in zip(check.ids, np.round(check.uv_px, 6), np.round(check.xyz_mm, 6),
+                                           strict=True)
+                if tuple(uv) in train_uv or tuple(xyz) in train_xyz]
+        if len(same) == len(check):
+            out.append(f"{check.source}: the check pairs are the training pairs: the check measures nothing")
+        elif same:
+            shown = ", ".join(same[:8]) + (" …" if len(same) > 8 else "")
+            out.append(f"{check.source}: {len(same)} check pair(s) repeat training pairs (ids {shown}): "
+                       "those say nothing about accuracy")
+    return out

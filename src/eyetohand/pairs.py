@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .io import read_bounded_bytes
 
 REQUIRED = ("u", "v", "x", "y")
 OPTIONAL = ("z", "id", "angle")
@@ -185,20 +186,7 @@ def pairs_from_records(records, source: str | None = "<records>", *, label: str 
 
 
 def _read_text(path: Path) -> str:
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder, expected a CSV or JSON file of point pairs")
-    if size > MAX_FILE_BYTES:
-        raise InputError(f"{path}: file is {size} bytes, more than the {MAX_FILE_BYTES} limit")
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror})") from None
+    data = read_bounded_bytes(path, what="a CSV or JSON file of point pairs", limit=MAX_FILE_BYTES)
     if not data.strip():
         raise InputError(f"{path}: empty file, expected a header line 'u,v,x,y[,z][,id]' and rows")
     if b"\x00" in data:
@@ -207,7 +195,10 @@ def _read_text(path: Path) -> str:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         line = data[: exc.start].count(b"\n") + 1
-        raise InputError(f"not UTF-8 text (byte {exc.start})", source=str(path), line=line) from None
+        raise InputError(
+            f"not UTF-8 text (byte {exc.start}); save the file as UTF-8 (in Excel: 'CSV UTF-8')",
+            source=str(path), line=line,
+        ) from None
 
 
 def _csv_rows(text: str, name: str) -> tuple[list[list[str]], int]:

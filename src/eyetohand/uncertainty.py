@@ -1,0 +1,98 @@
+"""How far a mapped point may be from where the robot would measure it: ``sigma_mm``.
+
+At the fit, the residual Jacobian J (the coordinates a model maps — x, y; and z for a model that
+computes it — of every training pair, by parameter) gives the parameters' covariance
+``C = s² (JᵀJ)⁺`` with ``s² = SSR / (c·N − rank J)`` the point-level noise per coordinate. For a new
+pixel with parameter Jacobian ``J_p`` (c × D), the expected squared distance between the mapped
+position and a fresh robot measurement of that point is ``tr(J_p C J_pᵀ) + c·s²`` — the fit's own
+error at that pixel plus the noise any single measurement carries — and ``sigma_mm`` is its root.
+It grows where the training points are sparse or far away, which is what the report's map shows.
+Checked for calibration on simulated cells with known noise (tests/test_guarded.py, and
+``benchmarks/bench_uncertainty.py`` over many cells).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+from .models import HeightRule, Model
+
+_CHUNK = 1 << 15
+
+
+def _coords(model: Model) -> int:
+    return 3 if model.height_rule is HeightRule.COMPUTED else 2
+
+
+def _steps(p: np.ndarray) -> np.ndarray:
+    return 1e-6 * np.maximum(np.abs(p), 1e-3)
+
+
+def param_jacobian(model: Model, uv_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
+    """(N, c, D) derivative of the mapped coordinates at each pixel by each parameter (central
+    differences, all 2D + 1 parameter rows in one batched call)."""
+    p = model.params
+    h = _steps(p)
+    rows = np.vstack([p + np.diag(h), p - np.diag(h)])
+    out = model.batch_image_to_robot(rows, uv_px, z_mm)[..., : _coords(model)]  # (2D, N, c)
+    D = len(p)
+    J = (out[:D] - out[D:]) / (2 * h)[:, None, None]
+    return np.moveaxis(J, 0, -1)
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """The fit's parameter covariance (D, D) and the point-level noise per coordinate (mm)."""
+
+    covariance: np.ndarray
+    noise_mm: float
+    n_coords: int
+    dof: int
+
+    @classmethod
+    def of_fit(cls, model: Model, uv_px, xyz_mm) -> Uncertainty:
+        uv = np.asarray(uv_px, float)
+        xyz = np.asarray(xyz_mm, float)
+        c = _coords(model)
+        r = model.residuals(uv, xyz)[:, :c]
+        J = param_jacobian(model, uv, xyz[:, 2]).reshape(-1, model.n_params)  # (N c, D)
+        # scale columns before the pseudo-inverse: the paper's B spans six orders of magnitude
+        norms = np.linalg.norm(J, axis=0)
+        norms = np.where(norms > 0, norms, 1.0)
+        Js = J / norms
+        U, s, Vt = np.linalg.svd(Js, full_matrices=False)
+        keep = s > 1e-10 * s[0]
+        rank = int(keep.sum())
+        dof = max(r.size - rank, 1)
+        s2 = float((r * r).sum()) / dof
+        inv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
+        cov = s2 * inv / np.outer(norms, norms)
+        return cls(cov, float(np.sqrt(s2)), c, dof)
+
+    def sigma_mm(self, model: Model, uv_px, z_mm) -> np.ndarray:
+        """(N,) predicted RMS distance (mm) between the mapped point and a robot measurement of it."""
+        uv = np.asarray(uv_px, float).reshape(-1, 2)
+        z = np.broadcast_to(np.asarray(z_mm, float), (len(uv),))
+        out = np.empty(len(uv))
+        for s in range(0, len(uv), _CHUNK):
+            J = param_jacobian(model, uv[s : s + _CHUNK], z[s : s + _CHUNK])  # (n, c, D)
+            fit_var = np.einsum("ncd,de,nce->n", J, self.covariance, J)
+            out[s : s + _CHUNK] = np.sqrt(np.maximum(fit_var, 0.0) + self.n_coords * self.noise_mm**2)
+        return out
+
+    def to_dict(self) -> dict:
+        return {"covariance": self.covariance.tolist(), "noise_mm": self.noise_mm, "n_coords": self.n_coords,
+                "dof": self.dof}
+
+    @classmethod
+    def from_dict(cls, d: dict, n_params: int) -> Uncertainty:
+        cov = np.asarray(d["covariance"], float)
+        if cov.shape != (n_params, n_params) or not np.isfinite(cov).all():
+            raise InputError(f"uncertainty 'covariance' must be a finite {n_params}×{n_params} matrix")
+        noise = float(d["noise_mm"])
+        if not (np.isfinite(noise) and noise >= 0):
+            raise InputError("uncertainty 'noise_mm' must be a finite number ≥ 0")
+        return cls(cov, noise, int(d["n_coords"]), int(d["dof"]))
