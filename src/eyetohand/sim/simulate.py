@@ -20,8 +20,6 @@ detector, the check points and the images, so e.g. asking for more check points 
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import os
 from dataclasses import dataclass
@@ -201,18 +199,6 @@ def _check_visible(cell: Cell, uv: np.ndarray, what: str) -> None:
 
 
 # ---------------------------------------------------------------- files
-
-
-def poses_csv(names, xyz_mm, angle_deg=None) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["image", "x", "y", "z"] + (["angle"] if angle_deg is not None else []))
-    for i, name in enumerate(names):
-        row = [name] + [repr(float(v)) for v in xyz_mm[i]]
-        if angle_deg is not None:
-            row.append(repr(float(angle_deg[i])))
-        w.writerow(row)
-    return buf.getvalue()
 
 
 def write_simulation(sim: Simulation, out_dir: str | os.PathLike, *, images: bool = False) -> list[Path]:
