@@ -22,6 +22,7 @@ import numpy as np
 
 from .calibration import Calibration
 from .errors import InputError
+from .evaluate import Stats
 from .fit import calibrate
 from .pairs import load_pairs
 from .report import (
@@ -89,6 +90,13 @@ def _table(title, check, ours_xyz, paper_xy) -> tuple[list[str], dict]:
     return lines, summary
 
 
+def _check_of(cal: Calibration) -> Stats:
+    """The check statistics of a calibration that was fitted with check pairs."""
+    if cal.check is None:
+        raise ValueError(f"{cal.model_name} + {cal.fit.optimizer}: fitted without check pairs")
+    return cal.check
+
+
 def run_demo(seed: int = 1, optimizer: str = "hybrid-pso"):
     """Run the reproduction; returns ``(text, results, calibrations)``."""
     train, check, published = load_paper()
@@ -118,7 +126,7 @@ def run_demo(seed: int = 1, optimizer: str = "hybrid-pso"):
         plain = calibrate(train, "paper", "pso", check=check, seed=seed, loo=False)
         cals["paper+pso"] = plain
         lines.append(f"    plain PSO (no crossover/mutation), same seed: fitness {plain.fit.fitness:.5f} mm, "
-                     f"check max {plain.check.max_mm:.4f} mm")
+                     f"check max {_check_of(plain).max_mm:.4f} mm")
     except InputError as exc:  # the optimiser may be unavailable in a partial install
         lines.append(f"Table 4 style: optimizer {optimizer!r} unavailable ({exc})")
         s4 = None
@@ -129,11 +137,12 @@ def run_demo(seed: int = 1, optimizer: str = "hybrid-pso"):
         cal = calibrate(train, model, "lm", check=check, loo=False)
         key = f"{model}+lm" if model != "auto" else f"auto({cal.model_name})+lm"
         cals[key] = cal
-        others[key] = {"check_rms_mm": cal.check.rms_mm, "check_max_mm": cal.check.max_mm}
-        pct = 100 * (1 - cal.check.max_mm / PAPER_STATED_MAX_MM)
-        lines.append(f"{key:<28} {cal.check.rms_mm:>10.4f} {cal.check.max_mm:>10.4f} "
+        ck = _check_of(cal)
+        others[key] = {"check_rms_mm": ck.rms_mm, "check_max_mm": ck.max_mm}
+        pct = 100 * (1 - ck.max_mm / PAPER_STATED_MAX_MM)
+        lines.append(f"{key:<28} {ck.rms_mm:>10.4f} {ck.max_mm:>10.4f} "
                      f"{pct:>9.0f}% lower" if pct >= 0 else
-                     f"{key:<28} {cal.check.rms_mm:>10.4f} {cal.check.max_mm:>10.4f} "
+                     f"{key:<28} {ck.rms_mm:>10.4f} {ck.max_mm:>10.4f} "
                      f"{-pct:>9.0f}% higher")
     results = {"table3": s3, "table4": s4, "others": others}
     return "\n".join(lines), results, cals
@@ -172,7 +181,7 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
 
     if not isinstance(results, Mapping) or "table3" not in results:
         raise InputError("write_demo_report: results must come from eyetohand.demo.run_demo")
-    t3, t4 = results.get("table3"), results.get("table4")
+    t3, t4 = results["table3"], results.get("table4")
     shown = _demo_cals(cals)
     train, check, _ = load_paper()
     doc = _Doc("eyetohand — the paper reproduced on its own data")
@@ -192,9 +201,10 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
                    "mm"),
                   ("ours, hybrid PSO: RMS / max", f"{mm(t4['ours_rms_mm'])} / {mm(t4['ours_max_mm'])}", "mm")]
     with_check = {k: c for k, c in shown.items() if c.check is not None}
+    checks = {k: _check_of(c) for k, c in with_check.items()}
     if with_check:
-        best_key = min(with_check, key=lambda k: with_check[k].check.rms_mm)
-        b = with_check[best_key].check
+        best_key = min(checks, key=lambda k: checks[k].rms_mm)
+        b = checks[best_key]
         cards.append((f"best here: {best_key}", f"{mm(b.rms_mm)} / {mm(b.max_mm)}", "mm"))
     _cards(doc, cards)
     if t4:
@@ -224,9 +234,9 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
     methods: dict[str, list] = {"published Table 3 (unoptimised)": t3["paper_errors_mm"]}
     if t4:
         methods["published Table 4 (hybrid PSO)"] = t4["paper_errors_mm"]
-    for key, c in with_check.items():
-        if [p.id for p in c.check.points] == ids:
-            methods[_demo_label(key)] = [p.error_mm for p in c.check.points]
+    for key, ck in checks.items():
+        if [p.id for p in ck.points] == ids:
+            methods[_demo_label(key)] = [p.error_mm for p in ck.points]
     ax = plots.plot_point_errors(methods, ids,
                                  reference_lines={"paper's stated max, Table 4": PAPER_STATED_MAX_MM},
                                  title="Error per check point (cf. the paper's Fig. 5)")
@@ -240,7 +250,7 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
     if pso_keys:
         picks.append(pso_keys[0])
     if with_check:
-        best_key = min(with_check, key=lambda k: with_check[k].check.rms_mm)
+        best_key = min(checks, key=lambda k: checks[k].rms_mm)
         if best_key not in picks:
             picks.append(best_key)
     picks = [k for k in picks if with_check[k].data_sha256 == train.sha256()]
@@ -295,13 +305,13 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
     doc.h2("All calibrations of this run", "models")
     rows = []
     for key, c in cals.items():
-        ck = c.check
-        if ck:
-            pct = 100 * (1 - ck.max_mm / PAPER_STATED_MAX_MM)
+        cs = c.check
+        if cs:
+            pct = 100 * (1 - cs.max_mm / PAPER_STATED_MAX_MM)
             vs = f"{abs(pct):.0f} % {'lower' if pct >= 0 else 'higher'}"
         rows.append([key, f"{c.fit.fitness:.5f}", mm(c.train.rms_mm),
-                     mm(ck.rms_mm) if ck else "—", mm(ck.p95_mm) if ck else "—", mm(ck.max_mm) if ck else "—",
-                     vs if ck else "—"])
+                     mm(cs.rms_mm) if cs else "—", mm(cs.p95_mm) if cs else "—", mm(cs.max_mm) if cs else "—",
+                     vs if cs else "—"])
     doc.table(["calibration (model + optimizer)", "fitness eq. (16) [mm]", "train RMS [mm]",
                "check RMS [mm]", "check p95 [mm]", "check max [mm]",
                "check max vs the paper's stated 0.0898 mm"], rows)

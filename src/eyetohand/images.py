@@ -13,11 +13,15 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import InputError
 from .pairs import PointPairs, _csv_rows, _number, _read_text
+
+if TYPE_CHECKING:  # detect (and OpenCV) load only when an image is read
+    from .detect import Detection
 
 
 @dataclass(frozen=True)
@@ -56,7 +60,8 @@ def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = N
                          "expected image,x,y[,z]")
     col = {c: header.index(c) for c in ("image", "x", "y", "z", "angle") if c in header}
     base = Path(images_dir) if images_dir is not None else path.parent
-    poses, seen = [], {}
+    poses: list[Pose] = []
+    seen: dict[str, str] = {}
     for k, row in enumerate(rows[first + 1:], start=first + 2):
         if not row or all(not c.strip() for c in row):
             continue
@@ -69,9 +74,9 @@ def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = N
         if image in seen:
             raise InputError(f"{where}, field 'image': {image!r} is listed twice (first at {seen[image]})")
         seen[image] = where
-        xyz = tuple(_number(row[col[c]], where, c) if c in col else 0.0 for c in ("x", "y", "z"))
+        x, y, z = (_number(row[col[c]], where, c) if c in col else 0.0 for c in ("x", "y", "z"))
         angle = _number(row[col["angle"]], where, "angle") if "angle" in col else None
-        poses.append(Pose(image, base / image, xyz, where, angle))
+        poses.append(Pose(image, base / image, (x, y, z), where, angle))
     if not poses:
         raise InputError(f"{name}: header only, no poses")
     return poses
@@ -97,7 +102,7 @@ def detect_poses(poses: list[Pose], *, progress: Progress | None = None,
     return results
 
 
-def _detect_one(path, name, detect_target, detect_options) -> tuple[ImageResult, object]:
+def _detect_one(path, name, detect_target, detect_options) -> tuple[ImageResult, Detection | None]:
     """(result, the detection or None when the image could not be read)."""
     try:
         det = detect_target(path, name=name, **detect_options)
@@ -120,7 +125,7 @@ def detect_images(paths: Sequence[str | os.PathLike], annotate_dir: str | os.Pat
     for p in paths:
         res, det = _detect_one(p, str(p), detect_target, detect_options)
         out.append(res)
-        if annotate_dir and res.ok:
+        if annotate_dir and det is not None and res.ok:
             import cv2
 
             from .io import atomic_write_bytes

@@ -242,7 +242,7 @@ LONG_TABLE_ROWS = 50
 def _points_table(doc: _Doc, s: Stats, pairs: PointPairs | None, loo: Stats | None = None) -> None:
     """Per point residuals; positions from ``pairs`` when given (z only when it varies)."""
     pos = _positions_by_id(pairs)
-    show_z = bool(pos) and len(pairs.z_levels_mm) > 1
+    show_z = pairs is not None and bool(pos) and len(pairs.z_levels_mm) > 1
     loo_e = {p.id: p.error_mm for p in loo.points} if loo else {}
     show_dz = any(abs(p.dz_mm) > 0 for p in s.points)
     header = ["id"] + (["u [px]", "v [px]"] if pos else []) + (["z [mm]"] if show_z else [])
@@ -453,15 +453,16 @@ def _residual_plot(doc: _Doc, cal: Calibration, sets: list[tuple[str, PointPairs
     """One quiver plot of the given pair sets (same scale); a note when no positions are known."""
     from . import plots
 
-    sets = [(label, p) for label, p in sets if p is not None]
-    if not sets:
+    given = [(label, p) for label, p in sets if p is not None]
+    if not given:
         doc.p("Residual vectors: not drawn. The calibration file stores each point's error but not "
               "its image position; give the pairs (--pairs TRAIN and/or --check CHECK) to draw them.",
               "muted")
         return
-    data = []
-    for label, pairs in sets:
+    data: list[tuple[str, PointPairs, np.ndarray, np.ndarray | None]] = []
+    for label, pairs in given:
         res = cal.model.residuals(pairs.uv_px, pairs.xyz_mm)
+        jac: np.ndarray | None
         try:
             jac = _jacobian(cal.model, pairs.uv_px, pairs.xyz_mm[:, 2])
             if not np.isfinite(jac).all() or (np.abs(np.linalg.det(jac)) < 1e-15).any():
