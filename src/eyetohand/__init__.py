@@ -6,16 +6,15 @@
     >>> xyz_mm = cal.image_to_robot([[600.0, 900.0]])
 """
 
-__version__ = "0.1.0"
-
-from .calibration import Calibration  # noqa: E402
-from .detect import Detection, detect_circles, detect_target  # noqa: E402
-from .errors import DegenerateError, InputError  # noqa: E402
-from .evaluate import Stats, evaluate  # noqa: E402
-from .fit import calibrate, select_model  # noqa: E402
-from .models import MODEL_CHOICES, MODELS, get_model  # noqa: E402
-from .pairs import PointPairs, load_pairs  # noqa: E402
-from .solvers import OPTIMIZERS  # noqa: E402
+from ._version import __version__
+from .calibration import Calibration
+from .detect import Detection, detect_circles, detect_target
+from .errors import DegenerateError, InputError
+from .evaluate import Stats, evaluate
+from .fit import calibrate, select_model
+from .models import MODEL_CHOICES, MODELS, get_model
+from .pairs import PointPairs, load_pairs
+from .solvers import OPTIMIZERS
 
 __all__ = [
     "Calibration",

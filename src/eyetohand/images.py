@@ -9,17 +9,19 @@ pair is never formed from a doubtful centre.
 
 from __future__ import annotations
 
-import csv
-import io
 import os
-import sys
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import InputError
 from .pairs import PointPairs, _csv_rows, _number, _read_text
+
+if TYPE_CHECKING:  # detect (and OpenCV) load only when an image is read
+    from .detect import Detection
 
 
 @dataclass(frozen=True)
@@ -58,7 +60,8 @@ def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = N
                          "expected image,x,y[,z]")
     col = {c: header.index(c) for c in ("image", "x", "y", "z", "angle") if c in header}
     base = Path(images_dir) if images_dir is not None else path.parent
-    poses, seen = [], {}
+    poses: list[Pose] = []
+    seen: dict[str, str] = {}
     for k, row in enumerate(rows[first + 1:], start=first + 2):
         if not row or all(not c.strip() for c in row):
             continue
@@ -71,81 +74,58 @@ def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = N
         if image in seen:
             raise InputError(f"{where}, field 'image': {image!r} is listed twice (first at {seen[image]})")
         seen[image] = where
-        xyz = tuple(_number(row[col[c]], where, c) if c in col else 0.0 for c in ("x", "y", "z"))
+        x, y, z = (_number(row[col[c]], where, c) if c in col else 0.0 for c in ("x", "y", "z"))
         angle = _number(row[col["angle"]], where, "angle") if "angle" in col else None
-        poses.append(Pose(image, base / image, xyz, where, angle))
+        poses.append(Pose(image, base / image, (x, y, z), where, angle))
     if not poses:
         raise InputError(f"{name}: header only, no poses")
     return poses
 
 
-def detect_poses(poses: list[Pose], *, progress: bool = False, **detect_options) -> list[ImageResult]:
+# progress(done, total, image): called before each image (done = images finished so far) and once
+# more at the end with done == total and image ""
+Progress = Callable[[int, int, str], None]
+
+
+def detect_poses(poses: list[Pose], *, progress: Progress | None = None,
+                 **detect_options) -> list[ImageResult]:
     """Detect the target in each pose's image; failures carry their reason."""
     from .detect import detect_target
 
     results = []
     for i, pose in enumerate(poses):
-        if progress:
-            done = int(30 * i / len(poses))
-            sys.stderr.write(f"\rdetecting [{'#' * done}{'.' * (30 - done)}] {i}/{len(poses)} "
-                             f"{pose.image[-30:]:<30}")
-            sys.stderr.flush()
-        try:
-            det = detect_target(pose.path, name=pose.image, **detect_options)
-        except InputError as exc:
-            results.append(ImageResult(pose.image, False, reason=str(exc)))
-            continue
-        if det.ok:
-            results.append(ImageResult(pose.image, True, float(det.u), float(det.v),
-                                       float(det.diameter_px), float(det.score)))
-        else:
-            results.append(ImageResult(pose.image, False, reason=det.reason or "no target found"))
-    if progress:
-        sys.stderr.write(f"\rdetecting [{'#' * 30}] {len(poses)}/{len(poses)} {'':<30}\n")
+        if progress is not None:
+            progress(i, len(poses), pose.image)
+        results.append(_detect_one(pose.path, pose.image, detect_target, detect_options)[0])
+    if progress is not None:
+        progress(len(poses), len(poses), "")
     return results
 
 
-def pairs_from_detections(poses: list[Pose], results: list[ImageResult], source: str) -> PointPairs:
-    """Pairs of the images whose target was found (ids are the image names)."""
-    good = [(p, r) for p, r in zip(poses, results, strict=True) if r.ok]
-    if not good:
-        raise InputError(f"{source}: the target was found in none of the {len(poses)} images")
-    uv = np.array([[r.u, r.v] for _, r in good])
-    xyz = np.array([p.xyz_mm for p, _ in good])
-    angles = [p.angle_deg for p, _ in good]
-    angle_deg = None if any(a is None for a in angles) else np.array(angles, float)
-    return PointPairs.from_arrays(uv, xyz, [p.image for p, _ in good], source=source, angle_deg=angle_deg)
+def _detect_one(path, name, detect_target, detect_options) -> tuple[ImageResult, Detection | None]:
+    """(result, the detection or None when the image could not be read)."""
+    try:
+        det = detect_target(path, name=name, **detect_options)
+    except InputError as exc:
+        return ImageResult(name, False, reason=str(exc)), None
+    if det.ok:
+        return ImageResult(name, True, float(det.u), float(det.v), float(det.diameter_px),
+                           float(det.score)), det
+    return ImageResult(name, False, reason=det.reason or "no target found"), det
 
 
-def write_pairs_csv(pairs: PointPairs) -> str:
-    """The detected pairs as the CSV ``calibrate`` reads (id = image name)."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["id", "u", "v", "x", "y", "z"])
-    for rec in pairs.to_records():
-        w.writerow([rec["id"], *(repr(rec[c]) for c in ("u", "v", "x", "y", "z"))])
-    return buf.getvalue()
-
-
-# ------------------------------------------------------------------ CLI
-
-
-def _detect_many(paths, annotate_dir, detect_options):
+def detect_images(paths: Sequence[str | os.PathLike], annotate_dir: str | os.PathLike | None = None,
+                  **detect_options) -> list[ImageResult]:
+    """Detect the target in each image (results named by the path as given); with ``annotate_dir``,
+    each image where it was found is written there as ``<stem>.annotated.png`` with the fit drawn."""
     from .detect import annotate, detect_target
 
     out = []
     used: set[str] = set()
     for p in paths:
-        try:
-            det = detect_target(p, **detect_options)
-        except InputError as exc:
-            out.append(ImageResult(str(p), False, reason=str(exc)))
-            continue
-        res = (ImageResult(str(p), True, float(det.u), float(det.v), float(det.diameter_px),
-                           float(det.score)) if det.ok else
-               ImageResult(str(p), False, reason=det.reason or "no target found"))
+        res, det = _detect_one(p, str(p), detect_target, detect_options)
         out.append(res)
-        if annotate_dir and det.ok:
+        if annotate_dir and det is not None and res.ok:
             import cv2
 
             from .io import atomic_write_bytes
@@ -163,84 +143,13 @@ def _detect_many(paths, annotate_dir, detect_options):
     return out
 
 
-def _detect_options(args) -> dict:
-    if args.diameter is not None and not args.diameter > 0:
-        raise InputError(f"--diameter: expected a positive number of px, got {args.diameter:g}")
-    opts = {"polarity": args.polarity}
-    if args.diameter is not None:
-        opts["diameter_px"] = args.diameter
-    return opts
-
-
-def cmd_detect(args) -> int:
-    import json
-
-    if args.annotate and Path(args.annotate).exists() and not Path(args.annotate).is_dir():
-        raise InputError(f"--annotate: {args.annotate} exists and is not a folder")
-    opts = _detect_options(args)
-    results = _detect_many(args.images, args.annotate, opts)
-    failed = [r for r in results if not r.ok]
-    if len(results) == 1 and failed:
-        r = failed[0]
-        raise InputError(r.reason if r.reason.startswith(r.image) else f"{r.image}: {r.reason}")
-    if args.json:
-        print(json.dumps({"results": [r.to_dict() for r in results], "failed": len(failed)}))
-    else:
-        for r in results:
-            if r.ok:
-                print(f"{r.image}: u {r.u:.3f} v {r.v:.3f} px  diameter {r.diameter_px:.2f} px  "
-                      f"score {r.score:.3f}")
-            else:
-                print(f"{r.image}: FAILED — {r.reason}")
-    if failed:
-        print(f"error: the target was not found in {len(failed)} of {len(results)} images",
-              file=sys.stderr)
-        return 2
-    return 0
-
-
-def cmd_calibrate_images(args) -> int:
-    from .cli import run_calibration
-
-    poses = load_poses(args.poses, args.images)
-    progress = sys.stderr.isatty()
-    opts = _detect_options(args)
-    results = detect_poses(poses, progress=progress, **opts)
-    pairs = pairs_from_detections(poses, results, str(args.poses))
-    check = None
-    check_results = []
-    if args.check:
-        check_poses = load_poses(args.check, args.check_images)
-        check_results = detect_poses(check_poses, progress=progress, **opts)
-        check = pairs_from_detections(check_poses, check_results, str(args.check))
-    for r in results + check_results:
-        if not r.ok:
-            print(f"note: left out {r.image}: {r.reason}", file=sys.stderr)
-    extra = {"detections": [r.to_dict() for r in results],
-             "left_out": [r.image for r in results if not r.ok]}
-    if args.check:
-        extra["check_detections"] = [r.to_dict() for r in check_results]
-        extra["check_left_out"] = [r.image for r in check_results if not r.ok]
-    return run_calibration(args, pairs, check, extra=extra)
-
-
-def register(sub) -> None:
-    from .cli import add_fit_options
-
-    p = sub.add_parser("detect", help="find the solid-circle target in images (exit 2 if any fails)")
-    p.add_argument("images", nargs="+", metavar="IMAGE")
-    p.add_argument("--polarity", default="auto", choices=("auto", "dark", "bright"))
-    p.add_argument("--diameter", type=float, default=None, help="expected diameter in px")
-    p.add_argument("--annotate", metavar="DIR", help="write pictures with the fitted ellipse drawn")
-    p.add_argument("--json", action="store_true")
-    p.set_defaults(func=cmd_detect)
-
-    p = sub.add_parser("calibrate-images", help="detect the target in images of robot poses, then calibrate")
-    p.add_argument("poses", help="CSV with image,x,y[,z][,angle]")
-    p.add_argument("--images", help="folder of the images (default: the folder of POSES.csv)")
-    p.add_argument("--check", help="check poses CSV (image,x,y[,z]), not used for fitting")
-    p.add_argument("--check-images", help="folder of the check images (default: the folder of CHECK)")
-    p.add_argument("--polarity", default="auto", choices=("auto", "dark", "bright"))
-    p.add_argument("--diameter", type=float, default=None, help="expected target diameter in px")
-    add_fit_options(p)
-    p.set_defaults(func=cmd_calibrate_images)
+def pairs_from_detections(poses: list[Pose], results: list[ImageResult], source: str) -> PointPairs:
+    """Pairs of the images whose target was found (ids are the image names)."""
+    good = [(p, r) for p, r in zip(poses, results, strict=True) if r.ok]
+    if not good:
+        raise InputError(f"{source}: the target was found in none of the {len(poses)} images")
+    uv = np.array([[r.u, r.v] for _, r in good])
+    xyz = np.array([p.xyz_mm for p, _ in good])
+    angles = [p.angle_deg for p, _ in good]
+    angle_deg = None if any(a is None for a in angles) else np.array(angles, float)
+    return PointPairs.from_arrays(uv, xyz, [p.image for p, _ in good], source=source, angle_deg=angle_deg)

@@ -1,4 +1,5 @@
-"""HTML reports of a calibration (``eyetohand report``) and of the paper reproduction (``demo --out``).
+"""The HTML report of a calibration (``eyetohand report``); its building blocks also make the paper
+reproduction's page (:func:`eyetohand.demo.write_demo_report`).
 
 A report is a folder with ``index.html`` and the PNG plots. ``index.html`` is self-contained: inline
 CSS, the plots embedded as base64, so the one file can be mailed or archived alone; the PNGs are
@@ -10,7 +11,6 @@ Units everywhere: robot errors, fitness and statistics in mm, image positions in
 
 from __future__ import annotations
 
-import argparse
 import base64
 import datetime as _dt
 import html
@@ -22,14 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
+from ._version import __version__
 from .calibration import Calibration
 from .errors import InputError
 from .evaluate import Stats, evaluate
 from .io import atomic_write_bytes, atomic_write_text
 from .pairs import PointPairs
 
-__all__ = ["build_report", "build_demo_report", "write_report", "write_demo_report", "register"]
+__all__ = ["build_report", "write_report"]
 
 PNG_NAMES = ("convergence.png", "check_errors.png", "train_errors.png", "residual_vectors.png",
              "point_errors.png")
@@ -242,7 +242,7 @@ LONG_TABLE_ROWS = 50
 def _points_table(doc: _Doc, s: Stats, pairs: PointPairs | None, loo: Stats | None = None) -> None:
     """Per point residuals; positions from ``pairs`` when given (z only when it varies)."""
     pos = _positions_by_id(pairs)
-    show_z = bool(pos) and len(pairs.z_levels_mm) > 1
+    show_z = pairs is not None and bool(pos) and len(pairs.z_levels_mm) > 1
     loo_e = {p.id: p.error_mm for p in loo.points} if loo else {}
     show_dz = any(abs(p.dz_mm) > 0 for p in s.points)
     header = ["id"] + (["u [px]", "v [px]"] if pos else []) + (["z [mm]"] if show_z else [])
@@ -453,15 +453,16 @@ def _residual_plot(doc: _Doc, cal: Calibration, sets: list[tuple[str, PointPairs
     """One quiver plot of the given pair sets (same scale); a note when no positions are known."""
     from . import plots
 
-    sets = [(label, p) for label, p in sets if p is not None]
-    if not sets:
+    given = [(label, p) for label, p in sets if p is not None]
+    if not given:
         doc.p("Residual vectors: not drawn. The calibration file stores each point's error but not "
               "its image position; give the pairs (--pairs TRAIN and/or --check CHECK) to draw them.",
               "muted")
         return
-    data = []
-    for label, pairs in sets:
+    data: list[tuple[str, PointPairs, np.ndarray, np.ndarray | None]] = []
+    for label, pairs in given:
         res = cal.model.residuals(pairs.uv_px, pairs.xyz_mm)
+        jac: np.ndarray | None
         try:
             jac = _jacobian(cal.model, pairs.uv_px, pairs.xyz_mm[:, 2])
             if not np.isfinite(jac).all() or (np.abs(np.linalg.det(jac)) < 1e-15).any():
@@ -517,233 +518,3 @@ def write_report(out_dir: str | os.PathLike, calibration: Calibration, check_pai
         raise InputError(f"{out}: exists and is not a folder")
     text, files = build_report(calibration, check_pairs, train_pairs, extra)
     return _write_all(out, text, files)
-
-
-# ------------------------------------------------------------------ the paper demo
-
-_PAPER_LABELS = {
-    "paper+linear": "ours: paper's B, linear (Table 3 method)",
-    "paper+hybrid-pso": "ours: paper's B, hybrid-pso (Table 4 method)",
-    "paper+pso": "ours: paper's B, plain pso (ablation)",
-}
-
-
-def _demo_label(key: str) -> str:
-    if key in _PAPER_LABELS:
-        return _PAPER_LABELS[key]
-    if key.startswith("paper+"):
-        return f"ours: paper's B, {key.split('+', 1)[1]}"
-    return f"ours: {key.replace('+', ' + ')}"
-
-
-def _demo_cals(cals: Mapping[str, Calibration]) -> dict[str, Calibration]:
-    """The calibrations to show, without an ``auto(x)+lm`` that repeats ``x+lm``."""
-    out = {}
-    for key, cal in cals.items():
-        if key.startswith("auto(") and f"{cal.model_name}+{cal.fit.optimizer}" in cals:
-            continue
-        out[key] = cal
-    return out
-
-
-def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tuple[str, dict[str, bytes]]:
-    """The demo report in memory: ``(index.html text, {png name: bytes})``; see :func:`write_demo_report`."""
-    from . import plots
-    from .demo import PAPER_STATED_MAX_MM, load_paper
-
-    if not isinstance(results, Mapping) or "table3" not in results:
-        raise InputError("write_demo_report: results must come from eyetohand.demo.run_demo")
-    t3, t4 = results.get("table3"), results.get("table4")
-    shown = _demo_cals(cals)
-    train, check, _ = load_paper()
-    doc = _Doc("eyetohand — the paper reproduced on its own data")
-    doc.add('<nav><a href="#summary">summary</a><a href="#fig4">Fig. 4</a><a href="#fig5">Fig. 5</a>'
-            '<a href="#vectors">residual vectors</a><a href="#tables">Tables 3 and 4</a>'
-            '<a href="#models">all models</a><a href="#details">details</a></nav>')
-
-    doc.h2("Summary", "summary")
-    doc.p("Fit on the paper's Table 1 (16 pairs, all on the plane z = "
-          f"{train.xyz_mm[0, 2]:g} mm), checked on its 9 check points. 'Published' values are the "
-          "robot positions the paper printed, compared here with the actual check positions; 'ours' "
-          "are this package's fits on the same data.")
-    cards = [("Table 3 published: RMS / max", f"{mm(t3['paper_rms_mm'])} / {mm(t3['paper_max_mm'])}", "mm"),
-             ("ours, same method: RMS / max", f"{mm(t3['ours_rms_mm'])} / {mm(t3['ours_max_mm'])}", "mm")]
-    if t4:
-        cards += [("Table 4 published: RMS / max*", f"{mm(t4['paper_rms_mm'])} / {mm(t4['paper_max_mm'])}",
-                   "mm"),
-                  ("ours, hybrid PSO: RMS / max", f"{mm(t4['ours_rms_mm'])} / {mm(t4['ours_max_mm'])}", "mm")]
-    with_check = {k: c for k, c in shown.items() if c.check is not None}
-    if with_check:
-        best_key = min(with_check, key=lambda k: with_check[k].check.rms_mm)
-        b = with_check[best_key].check
-        cards.append((f"best here: {best_key}", f"{mm(b.rms_mm)} / {mm(b.max_mm)}", "mm"))
-    _cards(doc, cards)
-    if t4:
-        doc.p(f"* Table 4's row 8 is illegible in the source (8 of 9 points); the paper states its errors "
-              f"do not exceed {PAPER_STATED_MAX_MM} mm.", "muted")
-
-    # Fig. 4
-    doc.h2("Convergence of the hybrid PSO (the paper's Fig. 4)", "fig4")
-    hist = {_demo_label(k).removeprefix("ours: "): c.fit.history
-            for k, c in cals.items() if len(c.fit.history) > 1}
-    if hist:
-        ref = {}
-        if "paper+linear" in cals:  # the least-squares optimum of the paper's affine family
-            ref["least-squares optimum (linear solve)"] = cals["paper+linear"].fit.fitness
-        ax = plots.plot_convergence(hist, reference_lines=ref,
-                                    title="Hybrid PSO convergence on Table 1 (cf. the paper's Fig. 4)")
-        doc.figure("convergence.png", ax, "Best fitness (equation 16: 2-norm of the robot-space residuals of "
-                   "the 16 training pairs) per iteration. The paper's curve levels off near 0.1 mm; the "
-                   "least-squares optimum of its affine family on these pairs is about 0.1058 mm.")
-    else:
-        doc.p("No convergence plot: no calibration in this run used a particle swarm (the optimizer may be "
-              "unavailable in this installation).", "warn")
-
-    # Fig. 5
-    doc.h2("Error per check point (the paper's Fig. 5)", "fig5")
-    ids = list(check.ids)
-    methods: dict[str, list] = {"published Table 3 (unoptimised)": t3["paper_errors_mm"]}
-    if t4:
-        methods["published Table 4 (hybrid PSO)"] = t4["paper_errors_mm"]
-    for key, c in with_check.items():
-        if [p.id for p in c.check.points] == ids:
-            methods[_demo_label(key)] = [p.error_mm for p in c.check.points]
-    ax = plots.plot_point_errors(methods, ids,
-                                 reference_lines={"paper's stated max, Table 4": PAPER_STATED_MAX_MM},
-                                 title="Error per check point (cf. the paper's Fig. 5)")
-    doc.figure("point_errors.png", ax, "Error norm ‖(x, y) − actual‖ of each of the 9 check points, in mm. "
-               "n/a: the value is illegible in the paper.")
-
-    # residual vectors
-    doc.h2("Residual vectors", "vectors")
-    picks = []
-    pso_keys = [k for k, c in with_check.items() if len(c.fit.history) > 1]
-    if pso_keys:
-        picks.append(pso_keys[0])
-    if with_check:
-        best_key = min(with_check, key=lambda k: with_check[k].check.rms_mm)
-        if best_key not in picks:
-            picks.append(best_key)
-    picks = [k for k in picks if with_check[k].data_sha256 == train.sha256()]
-    if picks:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=(5.4 * len(picks), 6.0), dpi=110, layout="constrained")
-        FigureCanvasAgg(fig)
-        axes = fig.subplots(1, len(picks), squeeze=False)[0]
-        all_res = [with_check[k].model.residuals(p.uv_px, p.xyz_mm) for k in picks for p in (train, check)]
-        top = max(float(np.linalg.norm(r[:, :2], axis=1).max()) for r in all_res)
-        extent = float(np.ptp(np.vstack([train.uv_px, check.uv_px]), axis=0).max())
-        scale = 0.1 * extent / top if top > 0 else 1.0
-        for axi, key in zip(axes, picks, strict=True):
-            c = with_check[key]
-            for j, (label, p) in enumerate((("training", train), ("check", check))):
-                res = c.model.residuals(p.uv_px, p.xyz_mm)
-                jac = _jacobian(c.model, p.uv_px, p.xyz_mm[:, 2])
-                plots.plot_residual_vectors(p.uv_px, res, axi, None, scale, jacobian_mm_per_px=jac,
-                                            ids=p.ids, label=f"{label} ({len(p)})", color=plots.COLORS[j],
-                                            title=_demo_label(key).removeprefix("ours: "))
-        doc.figure("residual_vectors.png", axes[0],
-                   f"Predicted − actual robot position at each pair's image position, both panels magnified "
-                   f"{scale:.3g} px per mm (see the key); arrows point in the image direction of the error.")
-    else:
-        doc.p("Residual vectors: not drawn (no calibration fitted on the bundled paper data).", "muted")
-
-    # Tables 3 and 4
-    doc.h2("Tables 3 and 4: published against ours", "tables")
-    actual = check.xyz_mm
-    for title, s in (("Table 3 — unoptimised B (linear solve)", t3),
-                     ("Table 4 — B refined by the hybrid PSO", t4)):
-        if not s:
-            doc.p(f"{title}: not computed (optimizer unavailable).", "warn")
-            continue
-        doc.add(f"<h3>{_e(title)}</h3>")
-        rows = []
-        for i, pid in enumerate(ids):
-            rows.append([pid, f"{actual[i, 0]:.4f}", f"{actual[i, 1]:.4f}",
-                         mm(s["paper_errors_mm"][i]) if s["paper_errors_mm"][i] is not None else "illegible",
-                         mm(s["ours_errors_mm"][i])])
-        classes = [""] * len(rows)
-        rows.append(["RMS", "", "", mm(s["paper_rms_mm"]), mm(s["ours_rms_mm"])])
-        rows.append(["max", "", "", mm(s["paper_max_mm"]), mm(s["ours_max_mm"])])
-        classes += ["summary", "summary"]
-        doc.table(["check id", "actual x [mm]", "actual y [mm]", "published ‖Δ‖ [mm]", "ours ‖Δ‖ [mm]"],
-                  rows, row_classes=classes)
-    doc.p("Published RMS and max are over the legible rows.", "muted")
-
-    # all models
-    doc.h2("All calibrations of this run", "models")
-    rows = []
-    for key, c in cals.items():
-        ck = c.check
-        if ck:
-            pct = 100 * (1 - ck.max_mm / PAPER_STATED_MAX_MM)
-            vs = f"{abs(pct):.0f} % {'lower' if pct >= 0 else 'higher'}"
-        rows.append([key, f"{c.fit.fitness:.5f}", mm(c.train.rms_mm),
-                     mm(ck.rms_mm) if ck else "—", mm(ck.p95_mm) if ck else "—", mm(ck.max_mm) if ck else "—",
-                     vs if ck else "—"])
-    doc.table(["calibration (model + optimizer)", "fitness eq. (16) [mm]", "train RMS [mm]",
-               "check RMS [mm]", "check p95 [mm]", "check max [mm]",
-               "check max vs the paper's stated 0.0898 mm"], rows)
-    doc.p("Fitness (eq. 16) is the 2-norm of all 16 training residuals: √16 = 4 × the training RMS.",
-          "muted")
-
-    doc.h2("Details of each calibration", "details")
-    for key, c in cals.items():
-        doc.add(f"<details><summary>{_e(key)} — {_e(c.model_name)} + {_e(c.fit.optimizer)}</summary>")
-        _stats_table(doc, [("train", c.train, "fit residuals"), ("leave-one-out", c.loo, "held out"),
-                           ("check", c.check, "check points")])
-        if c.check is not None:
-            _points_table(doc, c.check, check)
-        doc.add("<h3>Notes</h3>")
-        _notes(doc, list(c.notes))
-        doc.add("<h3>Fit</h3>")
-        _fit_table(doc, c)
-        doc.add("<h3>Parameters</h3>")
-        _params_section(doc, c)
-        doc.add("</details>")
-    return doc.render("eyetohand demo"), doc.files
-
-
-def write_demo_report(out_dir: str | os.PathLike, results: Mapping, cals: Mapping[str, Calibration]) -> Path:
-    """Write the paper-reproduction report (``eyetohand demo --out DIR``); returns ``index.html``'s path.
-
-    ``results``, ``cals``: the second and third values of :func:`eyetohand.demo.run_demo`. The report
-    has the hybrid PSO's convergence (Fig. 4), the per-check-point errors of the published Tables 3
-    and 4 next to ours (Fig. 5), residual vectors and the tables. Atomic as :func:`write_report`.
-    """
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is not a folder")
-    text, files = build_demo_report(results, cals)
-    return _write_all(out, text, files)
-
-
-# ------------------------------------------------------------------ CLI
-
-
-def cmd_report(args) -> int:
-    from .pairs import load_pairs
-
-    cal = Calibration.load(args.calibration)
-    check = load_pairs(args.check) if args.check else None
-    train = load_pairs(args.pairs) if args.pairs else None
-    extra = {"calibration file": str(args.calibration)}
-    if args.pairs:
-        extra["training pairs"] = str(args.pairs)
-    if args.check:
-        extra["check pairs"] = str(args.check)
-    path = write_report(args.output, cal, check, train, extra)
-    print(path)
-    return 0
-
-
-def register(sub) -> None:
-    p = sub.add_parser("report", help="write an HTML report (plots, tables) of a calibration",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("calibration", metavar="CAL.json", help="calibration file written by 'calibrate -o'")
-    p.add_argument("--check", metavar="CHECK", help="check pairs: evaluate the calibration on them")
-    p.add_argument("--pairs", metavar="TRAIN", help="the training pairs (for the residual-vector plot)")
-    p.add_argument("-o", "--output", metavar="DIR", required=True, help="report folder (index.html + PNGs)")
-    p.set_defaults(func=cmd_report)

@@ -1,11 +1,10 @@
-"""``eyetohand serve``: the workbench page and JSON API (uvicorn), and optionally the TCP line service."""
+"""What ``eyetohand serve`` runs: the workbench page and JSON API (uvicorn), and optionally the TCP line
+service. The command itself (its options) is :mod:`eyetohand.cli.serve`."""
 
 from __future__ import annotations
 
 import asyncio
 import ipaddress
-import os
-import sys
 
 from ..errors import InputError
 
@@ -88,37 +87,8 @@ async def _serve(args, data_dir) -> None:
             line_server.close()
 
 
-def cmd_serve(args) -> int:
-    from .storage import default_data_dir
-
-    args.token = args.token or os.environ.get("EYETOHAND_TOKEN") or None
-    check_options(args)
-    data_dir = args.data or default_data_dir()
-    try:
-        asyncio.run(_serve(args, data_dir))
-    except OSError as exc:
-        print(f"error: cannot serve: {exc}", file=sys.stderr)
-        return 2
-    return 0
-
-
-def register(sub) -> None:
-    p = sub.add_parser(
-        "serve",
-        help="the calibration workbench (web page + JSON API) and the TCP positioning service",
-    )
-    p.add_argument("--host", default="127.0.0.1",
-                   help="address to bind (default 127.0.0.1; a non-loopback one needs --token)")
-    p.add_argument("--port", type=int, default=8765, help="HTTP port (default 8765)")
-    p.add_argument("--data", metavar="DIR", default=None,
-                   help="folder of the calibration database (default: $XDG_DATA_HOME/eyetohand "
-                        "or ~/.local/share/eyetohand)")
-    p.add_argument("--token", default=None,
-                   help="require 'Authorization: Bearer T' on the API (and 'AUTH T' on TCP); "
-                        "default $EYETOHAND_TOKEN")
-    p.add_argument("--tcp", metavar="HOST:PORT", default=None,
-                   help="also answer 'u,v[,z]' lines with 'x,y,z' on this TCP address")
-    p.add_argument("--calibration", metavar="NAME", default=None,
-                   help="stored calibration (name or id) the TCP service uses (its current version)")
-    p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
-    p.set_defaults(func=cmd_serve)
+def serve(args, data_dir) -> None:
+    """Run the workbench (and the TCP service with ``args.tcp``) until stopped; ``args`` as parsed by
+    ``eyetohand serve`` (:mod:`eyetohand.cli.serve`), already checked by :func:`check_options`.
+    Raises ``OSError`` when an address cannot be bound."""
+    asyncio.run(_serve(args, data_dir))

@@ -15,12 +15,27 @@ hundredths of a pixel with the default cell.
 
 from __future__ import annotations
 
+import csv
+import io
 from pathlib import Path
 
 import numpy as np
 
 from ..io import atomic_write_bytes, atomic_write_text
 from ..render import Target, render
+
+
+def poses_csv(names, xyz_mm, angle_deg=None) -> str:
+    """``image,x,y,z[,angle]`` rows, the POSES.csv that ``calibrate-images`` reads."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["image", "x", "y", "z"] + (["angle"] if angle_deg is not None else []))
+    for i, name in enumerate(names):
+        row = [name] + [repr(float(v)) for v in xyz_mm[i]]
+        if angle_deg is not None:
+            row.append(repr(float(angle_deg[i])))
+        w.writerow(row)
+    return buf.getvalue()
 
 
 def render_target(camera, cell, centre_mm, angle_deg: float, rng: np.random.Generator) -> np.ndarray:
@@ -37,8 +52,6 @@ def write_images(sim, out: Path) -> list[Path]:
     """Render every pair and check point of ``sim`` into ``out/images``, with ``poses.csv`` (the pairs'
     robot coordinates) and ``check_poses.csv`` (the check points' true coordinates)."""
     import cv2
-
-    from .simulate import poses_csv
 
     rng = np.random.default_rng(np.random.SeedSequence(sim.seed).spawn(5)[4])
     written: list[Path] = []

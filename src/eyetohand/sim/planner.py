@@ -39,9 +39,13 @@ def predict_plan(
     """Predicted check RMS and max (mm) of ``plan`` at ``heights_mm`` over ``runs`` simulated sessions."""
     if not isinstance(runs, (int, np.integer)) or runs < 1:
         raise InputError(f"runs: expected a whole number >= 1, got {runs!r}")
+    if not isinstance(n_check, (int, np.integer)) or n_check < 1:
+        raise InputError(f"n_check: expected a whole number >= 1 (the prediction is the check error), "
+                         f"got {n_check!r}")
     p = parse_plan(plan)
     seeds = np.random.SeedSequence(seed).generate_state(runs)
-    rms, mx = [], []
+    rms_runs: list[float] = []
+    max_runs: list[float] = []
     chosen = model
     n_pairs = None
     for i, s in enumerate(seeds):
@@ -56,9 +60,10 @@ def predict_plan(
                     "predicted_max_mm": None}
         if i == 0:
             chosen = cal.model_name
-        rms.append(cal.check.rms_mm)
-        mx.append(cal.check.max_mm)
-    rms, mx = np.array(rms), np.array(mx)
+        assert cal.check is not None  # n_check >= 1
+        rms_runs.append(cal.check.rms_mm)
+        max_runs.append(cal.check.max_mm)
+    rms, mx = np.array(rms_runs), np.array(max_runs)
     return {
         "plan": p.label,
         "heights": [float(h) for h in np.atleast_1d(heights_mm)],

@@ -20,8 +20,6 @@ detector, the check points and the images, so e.g. asking for more check points 
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import os
 from dataclasses import dataclass
@@ -58,7 +56,7 @@ class Simulation:
     angles_deg: tuple[float, ...] | None
     seed: int | None
     pairs: PointPairs
-    check: PointPairs
+    check: PointPairs | None  # None without check points
     true_uv_px: np.ndarray  # noise-free image centres of the pairs
     target_mm: np.ndarray  # where the target's centre really was for each pair
     camera: Camera
@@ -119,22 +117,23 @@ def simulate(
     margin = cell.margin_px()
     theta0 = angles[0] if angles else 0.0
 
-    cmd, ang = [], []
+    cmd_parts: list[np.ndarray] = []
+    ang_parts: list[np.ndarray] = []
     for k, h in enumerate(heights):
         q = plan.layout_px(cell.image_size, margin, rng_layout)
         p = cam.image_to_robot(q, h)
         c_xy = (p[:, :2] - rotations(np.array([theta0]))[0] @ o) @ A_inv.T
         c = np.column_stack([c_xy, np.full(len(q), h)])
         c = np.round(c / COMMAND_RESOLUTION_MM) * COMMAND_RESOLUTION_MM
-        cmd.append(c)
-        ang.append(np.full(len(c), theta0))
+        cmd_parts.append(c)
+        ang_parts.append(np.full(len(c), theta0))
         if angles and len(angles) > 1 and k == 0:
             centre = 0.5 * (np.array(cell.image_size, float) - 1)
             j = int(np.argmin(np.linalg.norm(q - centre, axis=1)))
-            cmd.append(np.repeat(c[j : j + 1], len(angles) - 1, axis=0))
-            ang.append(np.array(angles[1:]))
-    cmd = np.vstack(cmd)
-    ang = np.concatenate(ang)
+            cmd_parts.append(np.repeat(c[j : j + 1], len(angles) - 1, axis=0))
+            ang_parts.append(np.array(angles[1:]))
+    cmd = np.vstack(cmd_parts)
+    ang = np.concatenate(ang_parts)
     n = len(cmd)
     sigma_r = cell.values["robot"]["repeatability_mm"]
     actual = cmd.copy()
@@ -149,7 +148,8 @@ def simulate(
     pairs = PointPairs.from_arrays(uv, cmd, ids, source="simulated pairs",
                                    angle_deg=ang if angles else None)
 
-    chk_cmd, chk_uv = [], []
+    chk_cmd: list[np.ndarray] = []
+    chk_uv: list[np.ndarray] = []
     lo = np.array([margin, margin])
     hi = np.array(cell.image_size, float) - 1 - margin
     for h in check_heights:
@@ -158,9 +158,11 @@ def simulate(
         c = np.column_stack([p[:, :2] @ A_inv.T, np.full(n_check, h)])
         chk_cmd.append(c)
         chk_uv.append(cam.robot_to_image(p))
+    check: PointPairs | None
     if n_check:
-        chk_cmd, chk_uv = np.vstack(chk_cmd), np.vstack(chk_uv)
-        check = PointPairs.from_arrays(chk_uv, chk_cmd, [f"c{i + 1}" for i in range(len(chk_uv))],
+        check_uv = np.vstack(chk_uv)
+        check = PointPairs.from_arrays(check_uv, np.vstack(chk_cmd),
+                                       [f"c{i + 1}" for i in range(len(check_uv))],
                                        source="simulated check points")
     else:
         check = None
@@ -201,18 +203,6 @@ def _check_visible(cell: Cell, uv: np.ndarray, what: str) -> None:
 
 
 # ---------------------------------------------------------------- files
-
-
-def poses_csv(names, xyz_mm, angle_deg=None) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["image", "x", "y", "z"] + (["angle"] if angle_deg is not None else []))
-    for i, name in enumerate(names):
-        row = [name] + [repr(float(v)) for v in xyz_mm[i]]
-        if angle_deg is not None:
-            row.append(repr(float(angle_deg[i])))
-        w.writerow(row)
-    return buf.getvalue()
 
 
 def write_simulation(sim: Simulation, out_dir: str | os.PathLike, *, images: bool = False) -> list[Path]:

@@ -7,10 +7,10 @@ import sys
 
 from ..errors import InputError
 from ..io import atomic_write_text
-from .cell import Cell, load_cell
-from .planner import DEFAULT_PLANS, METRICS, plan_study, plot_study
-from .plans import VALID_FORMS, parse_numbers, parse_plan
-from .simulate import simulate, write_simulation
+from ..sim.cell import Cell, load_cell
+from ..sim.planner import DEFAULT_PLANS, METRICS, plan_study, plot_study
+from ..sim.plans import VALID_FORMS, parse_numbers, parse_plan
+from ..sim.simulate import simulate, write_simulation
 
 CONFIG_HELP = "cell config (TOML or YAML); default: the built-in cell"
 

@@ -1,0 +1,63 @@
+"""The ``eyetohand`` command: parse, call the library, print, set the exit code.
+
+Exit codes: 0 ok; 2 bad input (one ``error:`` line on stderr); 1 internal failure.
+The commands live in this package only, one module per group, each with ``register(subparsers)``
+(listed in ``COMMAND_MODULES``, in the order of ``eyetohand --help``). Library modules print nothing
+and never import this package.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from .._version import __version__
+from ..errors import InputError
+from .common import CliError
+
+# Modules that add subcommands; each has register(subparsers).
+COMMAND_MODULES = ("eyetohand.cli.calibrate", "eyetohand.cli.demo", "eyetohand.cli.report",
+                   "eyetohand.cli.serve", "eyetohand.cli.sim", "eyetohand.cli.images")
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse's own errors: one line, exit 2
+        raise CliError(f"{self.prog}: {message}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="eyetohand", description="Eye-to-hand camera-to-robot calibration.")
+    parser.add_argument("--version", action="version", version=f"eyetohand {__version__}")
+    sub = parser.add_subparsers(dest="command", parser_class=_Parser, metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return 2
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+    except Exception as exc:  # internal failure: one line unless debugging
+        if os.environ.get("EYETOHAND_DEBUG"):
+            raise
+        print(f"internal error: {type(exc).__name__}: {exc} (set EYETOHAND_DEBUG=1 for details)",
+              file=sys.stderr)
+        return 1
+
+
+__all__ = ["CliError", "COMMAND_MODULES", "build_parser", "main"]

@@ -1,0 +1,154 @@
+"""What the commands share: the usage error, the fit options, progress bars and the printed summaries."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from ..calibration import Calibration
+from ..errors import InputError
+from ..fit import calibrate
+from ..models import MODEL_CHOICES
+from ..objectives import OBJECTIVES
+from ..solvers import OPTIMIZERS
+
+
+class CliError(InputError):
+    """Bad command-line usage (exit 2)."""
+
+
+def parse_image_size(text: str | None):
+    if text is None:
+        return None
+    try:
+        w, h = (int(p) for p in text.lower().split("x"))
+        if w <= 0 or h <= 0:
+            raise ValueError
+    except ValueError:
+        raise CliError(f"--image-size: expected WxH in pixels (e.g. 2448x2048), got {text!r}") from None
+    return (w, h)
+
+
+def add_fit_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by calibrate, calibrate-images and compare."""
+    p.add_argument("--model", default="auto", help=f"one of: {', '.join(MODEL_CHOICES)} (default auto)")
+    p.add_argument("--optimizer", default="lm", help=f"one of: {', '.join(OPTIMIZERS)} (default lm)")
+    p.add_argument("--objective", default="l2", help=f"one of: {', '.join(OBJECTIVES)} (default l2)")
+    p.add_argument("--image-size", metavar="WxH", help="image size in px (sets the distortion centre)")
+    p.add_argument("--seed", type=int, default=None, help="seed for the stochastic solvers")
+    p.add_argument("-o", "--output", metavar="CAL.json", help="write the calibration here")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+
+
+def progress_callback(label: str, total: int):
+    """A progress bar on stderr when it is a terminal, else None."""
+    if not sys.stderr.isatty() or total <= 0:
+        return None
+
+    def cb(iteration, best, *_):  # iteration counts from 1
+        done = int(30 * iteration / total)
+        sys.stderr.write(f"\r{label} [{'#' * done}{'.' * (30 - done)}] {iteration}/{total} "
+                         f"best {best:.5f} mm")
+        if iteration >= total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+        return False
+
+    return cb
+
+
+def stats_line(label: str, s) -> str:
+    return (f"{label:<6} n={s.n:<3} rms {s.rms_mm:.4f}  mean {s.mean_mm:.4f}  "
+            f"p95 {s.p95_mm:.4f}  max {s.max_mm:.4f} mm")
+
+
+def calibration_summary(cal: Calibration) -> dict:
+    """The JSON object of ``calibrate``: model, optimizer, statistics and the solver's record."""
+    fit = cal.fit.to_dict()
+    out = {
+        "model": cal.model_name,
+        "optimizer": cal.fit.optimizer,
+        "objective": cal.fit.objective,
+        "fitness": fit["fitness"],
+        "history": fit["history"],
+        "nfev": fit["nfev"],
+        "seconds": fit["seconds"],
+        "seed": fit["seed"],
+        "train": cal.train.to_dict(),
+        "loo": cal.loo.to_dict() if cal.loo else None,
+        "notes": list(cal.notes),
+        "selection": cal.selection,
+        "tcp_offset": cal.tcp_offset.to_dict() if cal.tcp_offset else None,
+        "condition_number": cal.model.meta.get("condition_number"),
+        "params": cal.model.to_dict(),
+    }
+    if cal.check is not None:
+        out["check"] = cal.check.to_dict()
+    return out
+
+
+def print_calibration(cal: Calibration, output: str | None) -> None:
+    print(f"model {cal.model_name}  optimizer {cal.fit.optimizer}  objective {cal.fit.objective}  "
+          f"fitness {cal.fit.fitness:.5f} mm")
+    cond = cal.model.meta.get("condition_number")
+    if cond is not None:
+        print(f"linear solve (Hartley-normalised): condition number {cond:.3g}")
+    if cal.selection:
+        print(f"auto: chose {cal.selection['chosen']} — {cal.selection['reason']}")
+        for r in cal.selection["candidates"]:
+            score = f"{r['cv_rms_mm']:.4f} mm" if r.get("cv_rms_mm") is not None else r.get("why", "")
+            print(f"  {r['model']:<18} {r['unknowns']:>2} unknowns  held-out rms {score}")
+    if cal.tcp_offset:
+        t = cal.tcp_offset
+        print(f"tool-centre offset ({t.offset_mm[0]:.4f}, {t.offset_mm[1]:.4f}) mm "
+              f"± ({t.std_mm[0]:.4f}, {t.std_mm[1]:.4f}) from {t.n_turned} turned pairs: removed")
+    print(stats_line("train", cal.train))
+    if cal.loo:
+        print(stats_line("loo", cal.loo))
+    if cal.check:
+        print(stats_line("check", cal.check))
+        print_points(cal.check)
+    for s in (cal.train, cal.check):
+        if s is not None and s.outliers:
+            print(f"outliers (> 3 robust sigma): {', '.join(s.outliers)}")
+    if output:
+        print(f"wrote {output}")
+
+
+def print_points(s) -> None:
+    print(f"  {'id':>6} {'dx_mm':>9} {'dy_mm':>9} {'error_mm':>9}")
+    for p in s.points:
+        flag = "  outlier" if p.outlier else ""
+        print(f"  {p.id:>6} {p.dx_mm:>9.4f} {p.dy_mm:>9.4f} {p.error_mm:>9.4f}{flag}")
+
+
+def emit_json(obj) -> None:
+    print(json.dumps(obj, allow_nan=False))
+
+
+def run_calibration(args, pairs, check, extra: dict | None = None) -> int:
+    """Shared end of calibrate and calibrate-images: fit, save, print (``extra`` joins the JSON)."""
+    cal = calibrate(
+        pairs,
+        model=args.model,
+        optimizer=args.optimizer,
+        objective=args.objective,
+        check=check,
+        image_size=parse_image_size(args.image_size),
+        seed=args.seed,
+        callback=progress_callback(args.optimizer, 150) if "pso" in args.optimizer else None,
+    )
+    if args.output:
+        cal.save(args.output)
+    for note in cal.notes:
+        print(f"note: {note}", file=sys.stderr)
+    if args.json:
+        out = calibration_summary(cal)
+        out.update(extra or {})
+        if args.output:
+            out["output"] = str(args.output)
+        emit_json(out)
+    else:
+        print_calibration(cal, args.output)
+    return 0

@@ -1,0 +1,33 @@
+"""``eyetohand report``: the HTML report of a calibration file."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..calibration import Calibration
+from ..pairs import load_pairs
+from ..report import write_report
+
+
+def cmd_report(args) -> int:
+    cal = Calibration.load(args.calibration)
+    check = load_pairs(args.check) if args.check else None
+    train = load_pairs(args.pairs) if args.pairs else None
+    extra = {"calibration file": str(args.calibration)}
+    if args.pairs:
+        extra["training pairs"] = str(args.pairs)
+    if args.check:
+        extra["check pairs"] = str(args.check)
+    path = write_report(args.output, cal, check, train, extra)
+    print(path)
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("report", help="write an HTML report (plots, tables) of a calibration",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("calibration", metavar="CAL.json", help="calibration file written by 'calibrate -o'")
+    p.add_argument("--check", metavar="CHECK", help="check pairs: evaluate the calibration on them")
+    p.add_argument("--pairs", metavar="TRAIN", help="the training pairs (for the residual-vector plot)")
+    p.add_argument("-o", "--output", metavar="DIR", required=True, help="report folder (index.html + PNGs)")
+    p.set_defaults(func=cmd_report)

@@ -1,0 +1,46 @@
+"""``eyetohand serve``: the calibration workbench (web page + JSON API) and the TCP positioning service.
+
+Parses the options and calls :func:`eyetohand.server.cli.serve`; the server is imported only when
+the command runs (its dependencies are the heaviest of the package)."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+
+def cmd_serve(args) -> int:
+    from ..server.cli import check_options, serve
+    from ..server.storage import default_data_dir
+
+    args.token = args.token or os.environ.get("EYETOHAND_TOKEN") or None
+    check_options(args)
+    data_dir = args.data or default_data_dir()
+    try:
+        serve(args, data_dir)
+    except OSError as exc:
+        print(f"error: cannot serve: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="the calibration workbench (web page + JSON API) and the TCP positioning service",
+    )
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1; a non-loopback one needs --token)")
+    p.add_argument("--port", type=int, default=8765, help="HTTP port (default 8765)")
+    p.add_argument("--data", metavar="DIR", default=None,
+                   help="folder of the calibration database (default: $XDG_DATA_HOME/eyetohand "
+                        "or ~/.local/share/eyetohand)")
+    p.add_argument("--token", default=None,
+                   help="require 'Authorization: Bearer T' on the API (and 'AUTH T' on TCP); "
+                        "default $EYETOHAND_TOKEN")
+    p.add_argument("--tcp", metavar="HOST:PORT", default=None,
+                   help="also answer 'u,v[,z]' lines with 'x,y,z' on this TCP address")
+    p.add_argument("--calibration", metavar="NAME", default=None,
+                   help="stored calibration (name or id) the TCP service uses (its current version)")
+    p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    p.set_defaults(func=cmd_serve)
