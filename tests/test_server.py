@@ -21,6 +21,7 @@ from hypothesis import HealthCheck, settings
 from eyetohand.calibration import Calibration
 from eyetohand.cli import main as cli_main
 from eyetohand.server.app import LOOPBACK_HOSTS, MAX_POINTS, create_app
+from eyetohand.server.schemas import MAX_PAIRS
 from eyetohand.server.storage import Store
 from eyetohand.server.tcp import MAX_LINE, LineServer
 
@@ -101,7 +102,7 @@ def test_errors_name_the_field(client):
     bad = [dict(p) for p in PAIRS]
     bad[3]["u"] = "abc"
     assert post({**base, "pairs": bad}) == (422, {
-        "error": "pairs[3].u: Input should be a valid number, unable to parse string as a number",
+        "error": "pairs[3].u: Input should be a valid number, not a string",
         "field": "pairs[3].u"})
     dup = [dict(p) for p in PAIRS]
     dup[5]["id"] = "2"
@@ -120,7 +121,9 @@ def test_errors_name_the_field(client):
     create(client, "x")
     status, err = post(base)
     assert (status, err["field"]) == (409, "name")
-    create(client, "1")  # a name that looks like an id is just a name
+    status, err = post({**base, "name": "1"})  # only digits would read as an id
+    assert (status, err["field"]) == (422, "name") and "id" in err["error"]
+    create(client, "1a")
     r = client.post("/api/calibrations", content=b'{"name": ', headers={"Content-Type": "application/json"})
     assert r.status_code == 400 and r.json()["field"] == "body"
     r = client.post("/api/calibrations", content=json.dumps(base), headers={"Content-Type": "text/plain"})
@@ -146,7 +149,7 @@ def test_openapi_schema_is_precise(client):
     pair = spec["components"]["schemas"]["PairIn"]
     assert set(pair["required"]) == {"u", "v", "x", "y"} and pair["additionalProperties"] is False
     create_req = spec["components"]["schemas"]["CreateCalibration"]
-    assert create_req["properties"]["pairs"]["maxItems"] == 5000
+    assert create_req["properties"]["pairs"]["maxItems"] == MAX_PAIRS
     assert "paper" in create_req["properties"]["model"]["enum"]
     body = paths["/api/calibrations/{cal_id}/image-to-robot"]["post"]["requestBody"]
     assert body["content"]["application/json"]["schema"]["properties"]["points"]["maxItems"] == MAX_POINTS
