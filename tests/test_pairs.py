@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from eyetohand import InputError, PointPairs, load_pairs
-from eyetohand.pairs import load_image_points
+from eyetohand.pairs import load_image_points, pairs_from_records
 
 
 def write(tmp_path, name, content):
@@ -60,7 +60,7 @@ BAD = [
     ("ragged.csv", "u,v,x,y\n1,2,3,4\n5,6,7\n", r"line 3: 3 fields, the header has 4"),
     ("semi.csv", "u;v;x;y\n1;2;3;4\n", r"separated by ';', expected commas"),
     ("trunc.json", '{"pairs": [{"u": 1, "v": 2,', r"trunc\.json line 1: invalid JSON"),
-    ("field.json", '{"pairs": [{"u": 1, "v": 2, "x": 3}]}', r"pairs\[0\]: field 'y' missing"),
+    ("field.json", '{"pairs": [{"u": 1, "v": 2, "x": 3}]}', r"pairs\[0\], field 'y': missing"),
     ("bin.csv", b"\x00\x01\x02\x03u,v", r"binary file"),
     ("latin.csv", "u,v,x,y\n1,2,3,4 \xe9\n".encode("latin-1"), r"line 2: not UTF-8"),
     ("bool.json", '{"pairs": [{"u": true, "v": 2, "x": 3, "y": 4}]}', r"field 'u': True is not a number"),
@@ -116,3 +116,26 @@ def test_garbage_raises_only_input_error(tmp_path, content):
         assert "\n" not in str(exc)
     else:  # whatever loads is finite and consistent
         assert np.isfinite(pairs.uv_px).all() and len(pairs.ids) == len(pairs.uv_px)
+
+
+def test_input_error_carries_its_location_as_attributes(tmp_path):
+    """Every interface builds its own form of an error from the same facts, not by parsing text."""
+    p = tmp_path / "p.csv"
+    p.write_text("u,v,x,y\n1,2,3,4\n5,abc,7,8\n")
+    with pytest.raises(InputError) as info:
+        load_pairs(p)
+    e = info.value
+    assert (e.source, e.line, e.field, e.index) == (str(p), 3, "v", None)
+    assert e.reason == "'abc' is not a number"
+    assert str(e) == f"{p} line 3, field 'v': 'abc' is not a number"
+    recs = [{"u": 1, "v": 2, "x": 3, "y": 4}, {"u": True, "v": 2, "x": 3, "y": 5}]
+    with pytest.raises(InputError) as info:
+        pairs_from_records(recs, source=None, label="check")
+    assert info.value.field_path == "check[1].u"
+    assert str(info.value) == "check[1], field 'u': True is not a number"
+
+
+@pytest.mark.parametrize("text", ["6_00", "1_0.5"])
+def test_underscore_literals_are_not_numbers(text):
+    with pytest.raises(InputError, match="is not a number"):
+        pairs_from_records([{"u": text, "v": 2, "x": 3, "y": 4}])

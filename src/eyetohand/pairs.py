@@ -83,7 +83,7 @@ class PointPairs:
         if ids is None:
             ids = [str(i) for i in range(len(uv))]
         pairs = cls(uv, xyz, tuple(ids), source, angle_deg, tuple(notes))
-        _check_values(pairs, [f"row {i}" for i in range(len(uv))])
+        _check_values(pairs, [_Where(source, index=i) for i in range(len(uv))])
         return pairs
 
     def __len__(self) -> int:
@@ -173,9 +173,12 @@ def pairs_from_text(text: str, source: str = "<text>") -> PointPairs:
     return _parse_csv(text, source)
 
 
-def pairs_from_records(records, source: str = "<records>") -> PointPairs:
-    """Pairs from a list of dicts with keys u, v, x, y (z, id, angle optional), as in JSON input."""
-    return _from_records(records, source, entry_label="pairs[{i}]")
+def pairs_from_records(records, source: str | None = "<records>", *, label: str = "pairs") -> PointPairs:
+    """Pairs from a list of dicts with keys u, v, x, y (z, id, angle optional), as in JSON input.
+
+    Errors name the entry as ``label[i]`` (``InputError.index``, ``.field``); ``source`` None leaves
+    the source out of the message (a request body whose part is already named by ``label``)."""
+    return _from_records(records, source, label=label)
 
 
 # ---------------------------------------------------------------- internals
@@ -204,7 +207,7 @@ def _read_text(path: Path) -> str:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         line = data[: exc.start].count(b"\n") + 1
-        raise InputError(f"{path} line {line}: not UTF-8 text (byte {exc.start})") from None
+        raise InputError(f"not UTF-8 text (byte {exc.start})", source=str(path), line=line) from None
 
 
 def _csv_rows(text: str, name: str) -> tuple[list[list[str]], int]:
@@ -226,43 +229,43 @@ def _parse_csv(text: str, name: str) -> PointPairs:
         for delim, label in ((";", "';'"), ("\t", "tab"), ("|", "'|'")):
             if delim in rows[first][0]:
                 raise InputError(
-                    f"{name} line {first + 1}: columns separated by {label}, expected commas "
-                    "(header 'u,v,x,y[,z][,id]')"
+                    f"columns separated by {label}, expected commas (header 'u,v,x,y[,z][,id]'); "
+                    "save the file as 'CSV UTF-8 (comma delimited)'",
+                    source=name, line=first + 1,
                 )
     header = [h.strip().lower() for h in rows[first]]
     header_lineno = first + 1
     seen: dict[str, int] = {}
     for j, h in enumerate(header):
         if h in REQUIRED + OPTIONAL and h in seen:
-            raise InputError(f"{name} line {header_lineno}: column '{h}' appears twice")
+            raise InputError(f"column '{h}' appears twice", source=str(name), line=header_lineno)
         seen.setdefault(h, j)
     missing = [c for c in REQUIRED if c not in seen]
     if missing:
         raise InputError(
-            f"{name} line {header_lineno}: missing column(s) {', '.join(missing)}; "
-            f"the header has {', '.join(repr(h) for h in header)}, expected u,v,x,y[,z][,id]"
+            f"missing column(s) {', '.join(missing)}; "
+            f"the header has {', '.join(repr(h) for h in header)}, expected u,v,x,y[,z][,id]",
+            source=name, line=header_lineno,
         )
     records = []
     for k, row in enumerate(rows[first + 1 :], start=first + 2):
         if not row or all(not c.strip() for c in row):
             continue
         if len(row) != len(header):
-            raise InputError(
-                f"{name} line {k}: {len(row)} fields, the header has {len(header)}"
-            )
+            raise InputError(f"{len(row)} fields, the header has {len(header)}", source=name, line=k)
         rec = {c: row[seen[c]].strip() for c in REQUIRED + OPTIONAL if c in seen}
-        rec["_where"] = f"{name} line {k}"
+        rec["_where"] = _Where(name, line=k)
         records.append(rec)
     if not records:
         raise InputError(f"{name}: header only, no data rows")
-    return _from_records(records, name, entry_label=None, z_given="z" in seen)
+    return _from_records(records, name, label=None, z_given="z" in seen)
 
 
 def _parse_json(text: str, name: str) -> PointPairs:
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise InputError(f"{name} line {exc.lineno}: invalid JSON ({exc.msg})") from None
+        raise InputError(f"invalid JSON ({exc.msg})", source=str(name), line=exc.lineno) from None
     if isinstance(doc, dict) and "pairs" in doc:
         records = doc["pairs"]
     elif isinstance(doc, list):
@@ -273,30 +276,32 @@ def _parse_json(text: str, name: str) -> PointPairs:
         raise InputError(f"{name}: 'pairs' must be a list of objects")
     if not records:
         raise InputError(f"{name}: 'pairs' is empty")
-    return _from_records(records, name, entry_label="pairs[{i}]")
+    return _from_records(records, name, label="pairs")
 
 
-def _from_records(records, name: str, entry_label: str | None, z_given: bool | None = None):
+def _from_records(records, name: str | None, label: str | None, z_given: bool | None = None):
+    """Validated pairs from dicts; ``label`` names JSON-style entries (``pairs[i]``), None means CSV
+    rows that carry their own ``_where`` (file and line)."""
     n = len(records)
     uv = np.empty((n, 2))
     xyz = np.zeros((n, 3))
     ids: list[str] = []
-    wheres: list[str] = []
+    wheres: list[_Where] = []
     angles = None
     has_angle = False
     if z_given is None:
         z_given = all(isinstance(r, dict) and "z" in r for r in records)
         if not z_given and any(isinstance(r, dict) and "z" in r for r in records):
             i = next(i for i, r in enumerate(records) if not (isinstance(r, dict) and "z" in r))
-            raise InputError(f"{name} {entry_label.format(i=i)}: field 'z' missing (others have it)")
+            raise _Where(name, index=i, label=label or "pairs").error("missing (others have it)", "z")
     for i, rec in enumerate(records):
-        if entry_label is not None:
-            where = f"{name} {entry_label.format(i=i)}"
+        if label is not None:
+            where = _Where(name, index=i, label=label)
             if not isinstance(rec, dict):
-                raise InputError(f"{where}: expected an object with u, v, x, y")
+                raise where.error("expected an object with u, v, x, y")
             for c in REQUIRED:
                 if c not in rec:
-                    raise InputError(f"{where}: field '{c}' missing")
+                    raise where.error("missing", c)
         else:
             where = rec["_where"]
         wheres.append(where)
@@ -314,42 +319,63 @@ def _from_records(records, name: str, entry_label: str | None, z_given: bool | N
         ids.append(str(i) if pid in (None, "") else str(pid).strip())
     if has_angle and np.isnan(angles).any():
         i = int(np.flatnonzero(np.isnan(angles))[0])
-        raise InputError(f"{wheres[i]}, field 'angle': empty while other rows have an angle")
-    notes = () if z_given else (f"{name}: no z column: pairs taken on the plane z = 0 mm",)
-    pairs = PointPairs(uv, xyz, tuple(ids), name, angles, notes)
+        raise wheres[i].error("empty while other rows have an angle", "angle")
+    source = name if name is not None else (label or "<records>")
+    notes = () if z_given else (f"{source}: no z column: pairs taken on the plane z = 0 mm",)
+    pairs = PointPairs(uv, xyz, tuple(ids), source, angles, notes)
     _check_values(pairs, wheres)
     return pairs
 
 
-def _number(value, where: str, field_name: str) -> float:
+@dataclass(frozen=True)
+class _Where:
+    """Where a record came from: a file's line (CSV) or a list entry ``label[index]`` (JSON, API)."""
+
+    source: str | None
+    line: int | None = None
+    index: int | None = None
+    label: str = "pairs"
+
+    def error(self, reason: str, field: str | None = None) -> InputError:
+        return InputError(reason, source=self.source, line=self.line, index=self.index, field=field,
+                          label=self.label)
+
+    def __str__(self) -> str:
+        return self.error("").where
+
+
+def _number(value, where: _Where, field_name: str) -> float:
+    """A finite float from a JSON number or a CSV string; booleans and '6_00'-style literals refused."""
     if isinstance(value, bool):
-        raise InputError(f"{where}, field '{field_name}': {value!r} is not a number")
+        raise where.error(f"{value!r} is not a number", field_name)
     if isinstance(value, (int, float)):
         x = float(value)
     else:
         s = str(value).strip()
         if s == "":
-            raise InputError(f"{where}, field '{field_name}': empty, expected a number")
+            raise where.error("empty, expected a number", field_name)
         try:
+            if "_" in s:
+                raise ValueError(s)
             x = float(s)
         except ValueError:
             shown = s if len(s) <= 30 else s[:27] + "..."
-            raise InputError(f"{where}, field '{field_name}': {shown!r} is not a number") from None
+            raise where.error(f"{shown!r} is not a number", field_name) from None
     if not math.isfinite(x):
-        raise InputError(f"{where}, field '{field_name}': {value!r} is not a finite number")
+        raise where.error(f"{value!r} is not a finite number", field_name)
     return x
 
 
-def _check_values(pairs: PointPairs, wheres: list[str]) -> None:
+def _check_values(pairs: PointPairs, wheres: list[_Where]) -> None:
     name = pairs.source
     if not np.isfinite(pairs.uv_px).all() or not np.isfinite(pairs.xyz_mm).all():
         bad = int(np.flatnonzero(~np.isfinite(np.c_[pairs.uv_px, pairs.xyz_mm]).all(1))[0])
-        raise InputError(f"{wheres[bad]}: values must be finite numbers")
+        raise wheres[bad].error("values must be finite numbers")
     first_seen: dict[str, int] = {}
     for i, pid in enumerate(pairs.ids):
         if pid in first_seen:
             first = wheres[first_seen[pid]]
-            raise InputError(f"{wheres[i]}, field 'id': duplicate id {pid!r} (first at {first})")
+            raise wheres[i].error(f"duplicate id {pid!r} (first at {first})", "id")
         first_seen[pid] = i
     _check_repeats(pairs.uv_px, "(u, v)", wheres)
     if pairs.angle_deg is None:
@@ -360,7 +386,7 @@ def _check_values(pairs: PointPairs, wheres: list[str]) -> None:
         raise InputError(f"{name}: no pairs")
 
 
-def _check_repeats(values: np.ndarray, label: str, wheres: list[str]) -> None:
+def _check_repeats(values: np.ndarray, label: str, wheres: list[_Where]) -> None:
     if len(values) < 2:
         return
     _, first, inverse = np.unique(values, axis=0, return_index=True, return_inverse=True)
@@ -369,7 +395,7 @@ def _check_repeats(values: np.ndarray, label: str, wheres: list[str]) -> None:
     if len(dup):
         i = int(dup[0])
         j = int(first[inverse[i]])
-        raise InputError(f"{wheres[i]}: repeats the {label} of {wheres[j]}; each pair must be distinct")
+        raise wheres[i].error(f"repeats the {label} of {wheres[j]}; each pair must be distinct")
 
 
 @dataclass(frozen=True, eq=False)
@@ -402,9 +428,8 @@ def load_image_points(path: str | os.PathLike) -> ImagePoints:
     lower = [h.lower() for h in header]
     missing = [c for c in ("u", "v") if c not in lower]
     if missing:
-        raise InputError(
-            f"{name} line {first + 1}: missing column(s) {', '.join(missing)}; expected u,v[,z]"
-        )
+        raise InputError(f"missing column(s) {', '.join(missing)}; expected u,v[,z]", source=name,
+                         line=first + 1)
     ju, jv = lower.index("u"), lower.index("v")
     jz = lower.index("z") if "z" in lower else None
     uv, z, body = [], [], []
@@ -412,8 +437,8 @@ def load_image_points(path: str | os.PathLike) -> ImagePoints:
         if not row or all(not c.strip() for c in row):
             continue
         if len(row) != len(header):
-            raise InputError(f"{name} line {k}: {len(row)} fields, the header has {len(header)}")
-        where = f"{name} line {k}"
+            raise InputError(f"{len(row)} fields, the header has {len(header)}", source=str(name), line=k)
+        where = _Where(name, line=k)
         uv.append((_number(row[ju], where, "u"), _number(row[jv], where, "v")))
         if jz is not None:
             z.append(_number(row[jz], where, "z"))
