@@ -24,7 +24,7 @@ from ..errors import InputError
 
 MAX_LINE = 256
 MAX_CLIENTS = 256
-MAX_PER_PEER = 16
+MAX_PER_PEER = 64
 IDLE_S = 300.0
 AUTH_S = 10.0
 
