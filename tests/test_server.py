@@ -22,6 +22,7 @@ from eyetohand import load_pairs
 from eyetohand.calibration import Calibration
 from eyetohand.cli import main as cli_main
 from eyetohand.server.app import LOOPBACK_HOSTS, MAX_POINTS, create_app
+from eyetohand.server.schemas import MAX_PAIRS
 from eyetohand.server.storage import Store
 from eyetohand.server.tcp import MAX_LINE, LineServer
 
@@ -102,7 +103,7 @@ def test_errors_name_the_field(client):
     bad = [dict(p) for p in PAIRS]
     bad[3]["u"] = "abc"
     assert post({**base, "pairs": bad}) == (422, {
-        "error": "pairs[3].u: Input should be a valid number, unable to parse string as a number",
+        "error": "pairs[3].u: Input should be a valid number, not a string",
         "field": "pairs[3].u"})
     dup = [dict(p) for p in PAIRS]
     dup[5]["id"] = "2"
@@ -121,7 +122,9 @@ def test_errors_name_the_field(client):
     create(client, "x")
     status, err = post(base)
     assert (status, err["field"]) == (409, "name")
-    create(client, "1")  # a name that looks like an id is just a name
+    status, err = post({**base, "name": "1"})  # only digits would read as an id
+    assert (status, err["field"]) == (422, "name") and "id" in err["error"]
+    create(client, "1a")
     r = client.post("/api/calibrations", content=b'{"name": ', headers={"Content-Type": "application/json"})
     assert r.status_code == 400 and r.json()["field"] == "body"
     r = client.post("/api/calibrations", content=json.dumps(base), headers={"Content-Type": "text/plain"})
@@ -147,7 +150,7 @@ def test_openapi_schema_is_precise(client):
     pair = spec["components"]["schemas"]["PairIn"]
     assert set(pair["required"]) == {"u", "v", "x", "y"} and pair["additionalProperties"] is False
     create_req = spec["components"]["schemas"]["CreateCalibration"]
-    assert create_req["properties"]["pairs"]["maxItems"] == 5000
+    assert create_req["properties"]["pairs"]["maxItems"] == MAX_PAIRS
     assert "paper" in create_req["properties"]["model"]["enum"]
     body = paths["/api/calibrations/{cal_id}/image-to-robot"]["post"]["requestBody"]
     assert body["content"]["application/json"]["schema"]["properties"]["points"]["maxItems"] == MAX_POINTS
@@ -510,3 +513,178 @@ def test_eyetohand_serve_http_and_tcp(tmp_path):
         proc.terminate()
         proc.wait(timeout=20)
     assert "TCP: 127.0.0.1" in proc.stdout.read()
+
+
+# ---------------------------------------------------------------------- hostile input, races, small items
+
+
+def test_numbers_are_strict_and_names_clean(client):
+    for bad, why in ((True, "boolean"), ("6_00", "string"), ("600", "string"), (None, "null")):
+        pairs = [dict(p) for p in PAIRS]
+        pairs[3]["u"] = bad
+        r = client.post("/api/calibrations", json={"name": "x", "pairs": pairs})
+        assert r.status_code == 422 and r.json()["field"] == "pairs[3].u", (bad, r.text)
+        assert why in r.json()["error"] or bad is None
+    r = client.post("/api/calibrations", json={"name": "x", "pairs": PAIRS, "seed": True})
+    assert (r.status_code, r.json()["field"]) == (422, "seed")
+    for ch in ("\x00", "\x1b", "\x07", "\x7f", "\u200b", "\u202e", "\u2028"):
+        r = client.post("/api/calibrations", json={"name": f"cell{ch}3", "pairs": PAIRS})
+        assert (r.status_code, r.json()["field"]) == (422, "name"), repr(ch)
+        assert f"U+{ord(ch):04X}" in r.json()["error"]
+    for name in (" cell", "cell ", "42"):
+        r = client.post("/api/calibrations", json={"name": name, "pairs": PAIRS})
+        assert (r.status_code, r.json()["field"]) == (422, "name"), name
+    d = create(client, "cafe\u0301")  # decomposed é: stored in NFC
+    assert d["name"] == "caf\u00e9"
+    r = client.post("/api/calibrations", json={"name": "caf\u00e9", "pairs": PAIRS, "model": "homography"})
+    assert (r.status_code, r.json()["field"]) == (409, "name")
+    pairs = [dict(p) for p in PAIRS]
+    pairs[2]["id"] = "a\u200bb"
+    r = client.post("/api/calibrations", json={"name": "y", "pairs": pairs})
+    assert (r.status_code, r.json()["field"]) == (422, "pairs[2].id")
+
+
+def test_store_find_refuses_ambiguous_references(tmp_path):
+    from eyetohand.server.storage import Ambiguous
+
+    store = Store(tmp_path)
+    store.create("a", {}, {"x": 1}, [], None)
+    store.create("1", {}, {"x": 2}, [], None)  # a digit-only name stored before they were refused
+    with pytest.raises(Ambiguous, match="id:1"):
+        store.find("1")
+    assert store.find("id:1").name == "a" and store.find("2").name == "1"
+    store.close()
+
+
+def test_bodies_refused_before_parsing(tmp_path):
+    with TestClient(create_app(tmp_path)) as c:
+        big = b'{"name": "x", "pairs": [' + b",".join([b'{"u":1,"v":2,"x":3,"y":4}'] * 200_000) + b"]}"
+        r = c.post("/api/calibrations", content=big, headers={"Content-Type": "application/json"})
+        assert r.status_code == 413 and r.json()["field"] == "body"  # 5 MiB: over the fit limit
+        r = c.post("/api/calibrations", content=iter([big[:1000], big[1000:]]),
+                   headers={"Content-Type": "application/json"})  # streamed, no Content-Length
+        assert r.status_code == 413
+        r = c.post("/api/calibrations", content=b"{}", headers={"Content-Type": "text/plain"})
+        assert (r.status_code, r.json()["field"]) == (415, "Content-Type")
+        r = c.post("/api/calibrations/1/image-to-robot", content=b"{}", headers={"Content-Type": "text/csv"})
+        assert r.status_code == 415
+        r = c.head("/api/calibrations/1/image-to-robot")
+        assert r.status_code == 405 and r.headers["Allow"] == "POST"
+
+
+def test_docs_work_offline(client):
+    html = client.get("/docs").text
+    assert "swagger-ui" in html and "cdn" not in html.lower() and "https://" not in html
+    for asset in ("/docs-assets/swagger-ui-bundle.js", "/docs-assets/swagger-ui.css"):
+        r = client.get(asset)
+        assert r.status_code == 200 and len(r.content) > 10_000, asset
+    spec = client.get("/openapi.json").json()
+    responses = spec["paths"]["/api/calibrations"]["post"]["responses"]
+    assert "415" in responses and "503" in responses
+
+
+def test_mapping_uses_the_cache_and_sees_new_versions(client, monkeypatch):
+    create(client, "m")
+    body = {"points": [[600, 900]]}
+    first = client.post("/api/calibrations/1/image-to-robot", json=body).json()
+    store = client.app.state.service.store
+    calls = []
+    real = store.version
+    monkeypatch.setattr(store, "version", lambda *a, **k: calls.append(a) or real(*a, **k))
+    for _ in range(5):
+        assert client.post("/api/calibrations/1/image-to-robot", json=body).json() == first
+    assert calls == []  # no database read per mapping request
+    client.post("/api/calibrations/1/versions", json={"pairs": PAIRS, "model": "affine"})
+    second = client.post("/api/calibrations/1/image-to-robot", json=body).json()
+    assert second["version"] == 2 and second["points"] != first["points"]
+    client.post("/api/calibrations/1/rollback", json={"version": 1})
+    third = client.post("/api/calibrations/1/image-to-robot", json=body).json()
+    assert third["version"] == 3 and third["points"] == first["points"]
+    assert client.delete("/api/calibrations/1").status_code == 204
+    assert client.post("/api/calibrations/1/image-to-robot", json=body).status_code == 404
+
+
+def test_delete_while_workers_fill_the_cache(tmp_path):
+    import sys
+    import threading
+
+    app = create_app(tmp_path / "data")
+    svc = app.state.service
+    cal = create(TestClient(app), "base")
+    calib = svc.store.version(cal["id"]).calibration
+    ids = [svc.store.create(f"c{k}", {}, calib, [], None).id for k in range(60)]
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    errors: list[BaseException] = []
+    stop = threading.Event()
+
+    def filler(k: int) -> None:
+        while not stop.is_set():
+            for v in (1, None):
+                try:
+                    svc.calibration(cal["id"], v)
+                except BaseException as exc:  # noqa: BLE001
+                    errors.append(exc)
+
+    threads = [threading.Thread(target=filler, args=(k,)) for k in range(3)]
+    try:
+        for t in threads:
+            t.start()
+        with TestClient(app) as c:
+            for i in ids:
+                c.get(f"/api/calibrations/{i}")  # puts i in the cache
+                assert c.delete(f"/api/calibrations/{i}").status_code == 204
+    finally:
+        stop.set()
+        for t in threads:
+            t.join()
+        sys.setswitchinterval(old)
+        app.state.store.close()
+    assert errors == []
+
+
+def test_tcp_cut_last_line_and_auth_timeout(paper_pairs):
+    from eyetohand import calibrate
+
+    cal = calibrate(paper_pairs[0], model="homography", optimizer="lm", loo=False)
+
+    async def run() -> None:
+        srv = LineServer(cal, "127.0.0.1", 0)
+        await srv.start()
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+            writer.write(b"600,900\n600,9")  # the second line is cut off
+            writer.write_eof()
+            assert (await reader.readline()).count(b",") == 2
+            assert await reader.read() == b""  # no answer to "600,9"
+            writer.close()
+        finally:
+            srv.close()
+        srv = LineServer(cal, "127.0.0.1", 0, token="s3cret-token", auth_s=0.3)
+        await srv.start()
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+            t0 = time.monotonic()
+            reply = await asyncio.wait_for(reader.readline(), 5)
+            assert reply.startswith(b"ERR send 'AUTH") and time.monotonic() - t0 < 2
+            writer.close()
+        finally:
+            srv.close()
+
+    asyncio.run(run())
+
+
+def test_serve_port_errors_are_one_line(capsys, tmp_path):
+    import socket
+    import subprocess
+    import sys
+
+    assert cli_main(["serve", "--port", "99999", "--data", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --port") and err.count("\n") == 1
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        r = subprocess.run([sys.executable, "-m", "eyetohand.cli", "serve", "--port", str(s.getsockname()[1]),
+                            "--data", str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.startswith("error: --port") and r.stderr.count("\n") == 1, r.stderr

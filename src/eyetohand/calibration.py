@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
+from ._version import __version__
 from .errors import InputError
 from .io import atomic_write_text
 from .models import HeightRule, Model, model_from_dict

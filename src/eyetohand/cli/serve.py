@@ -42,5 +42,8 @@ def register(sub) -> None:
                    help="also answer 'u,v[,z]' lines with 'x,y,z' on this TCP address")
     p.add_argument("--calibration", metavar="NAME", default=None,
                    help="stored calibration (name or id) the TCP service uses (its current version)")
+    p.add_argument("--db-wait", type=float, default=2.0, metavar="S",
+                   help="how long a write waits for another writer's database lock before answering "
+                        "503 with Retry-After (default 2 s)")
     p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     p.set_defaults(func=cmd_serve)

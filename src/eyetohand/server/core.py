@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
-import re
 import threading
 import time
 import uuid
@@ -32,31 +32,22 @@ class ApiError(Exception):
         self.line = line
 
 
-_ENTRY = re.compile(r"\b(pairs|check)\[(\d+)\](?:, field '(\w+)')?")
-_LINE = re.compile(r" line (\d+)(?:, field '(\w+)')?")
-
-
 def input_error(exc: InputError, default_field: str | None = None, status: int = 422) -> ApiError:
-    """An InputError from the library as an ApiError naming the field (``pairs[3].u``) when it can."""
-    msg = str(exc)
-    m = _ENTRY.search(msg)
-    if m:
-        fld = f"{m.group(1)}[{m.group(2)}]" + (f".{m.group(3)}" if m.group(3) else "")
-        return ApiError(status, msg, fld)
-    m = _LINE.search(msg)
-    if m:
-        return ApiError(status, msg, default_field, int(m.group(1)))
-    return ApiError(status, msg, default_field)
+    """An InputError from the library as an ApiError: its one-line message, the request field it
+    names (``pairs[3].u``, from the error's ``index``/``field``), else ``default_field``, and the
+    line of a text it names."""
+    return ApiError(status, str(exc), exc.field_path or default_field, exc.line)
 
 
 def to_pairs(records, label: str) -> PointPairs:
     """Validated PointPairs from request records; errors name ``label[i].field``."""
     recs = [{k: v for k, v in r.model_dump().items() if v is not None} for r in records]
     try:
-        return pairs_from_records(recs, source=label)
+        pairs = pairs_from_records(recs, source=None, label=label)  # messages name label[i] only
     except InputError as exc:
-        # the loader says "<label> pairs[i]"; the request field is "<label>[i]"
-        raise input_error(InputError(str(exc).replace(f"{label} pairs[", f"{label}[")), label) from None
+        raise input_error(exc, label) from None
+    notes = tuple(n.replace("None: ", f"{label}: ", 1) if n.startswith("None: ") else n for n in pairs.notes)
+    return dataclasses.replace(pairs, source=label, notes=notes)
 
 
 def parse_text(text: str, source: str) -> PointPairs:
@@ -67,13 +58,9 @@ def parse_text(text: str, source: str) -> PointPairs:
     try:
         return pairs_from_text(text, name)
     except InputError as exc:
-        err = input_error(exc, "text")
-        err.field = "text"
-        if err.line is None:
-            m = re.search(r"pairs\[(\d+)\]", str(exc))
-            if m:
-                err.field = f"text: pairs[{m.group(1)}]"
-        raise err from None
+        # the request field is the text; an entry of a JSON text is named inside it
+        fld = "text" if exc.index is None else f"text: {exc.field_path}"
+        raise ApiError(422, str(exc), fld, exc.line) from None
 
 
 @dataclass
@@ -190,8 +177,8 @@ def map_points(cal: Calibration, points: np.ndarray, z) -> np.ndarray:
     try:
         with np.errstate(all="ignore"):
             out = cal.image_to_robot(points, z)
-    except InputError as exc:
-        raise ApiError(422, str(exc), "z" if "z" in str(exc) else "points") from None
+    except InputError as exc:  # the points are checked by the schema: what is left is about z
+        raise ApiError(422, str(exc), exc.field_path or "z") from None
     if not np.isfinite(out).all():
         i = int(np.flatnonzero(~np.isfinite(out).all(axis=1))[0])
         raise ApiError(422, f"points[{i}]: maps to no finite robot point (on the model's horizon)",

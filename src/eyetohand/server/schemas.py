@@ -4,33 +4,69 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import Strict as StrictType
 
 from ..models import MODEL_CHOICES
 from ..objectives import OBJECTIVES
 from ..solvers import OPTIMIZERS
+from .storage import clean_text, is_id_like
 
 MAX_BODY_BYTES = 64 * 1024 * 1024
 """Largest request body (bytes); a larger one gets 413."""
 MAX_POINTS = 1_000_000
 """Most image points in one image-to-robot request; more gets 413."""
-MAX_PAIRS = 5_000
-"""Most point pairs (or check pairs) in one fit request."""
+MAX_PAIRS = 2_000
+"""Most point pairs (or check pairs) in one fit request. Measured on a 2-core machine: ``auto``
+on 2 000 pairs holds the fit worker ~21 s at ~440 MiB; 5 000 took ~3 min at 1.9 GiB."""
+MAX_FIT_BODY_BYTES = 4 * 1024 * 1024
+"""Largest body of a fit (and every other non-mapping) request: 2 × 2 000 pairs with 64-character
+ids, indented, fit in 2 MiB; larger is refused (413) from Content-Length, before parsing."""
 MAX_TEXT_CHARS = 16 * 1024 * 1024
 """Longest CSV/JSON text sent to /api/pairs/parse."""
+MAX_PARSE_BODY_BYTES = MAX_TEXT_CHARS + 64 * 1024
+"""Largest body of /api/pairs/parse."""
 MAX_NAME = 100
 MAX_PARTICLES = 1000
 MAX_ITERATIONS = 1000
 MAX_PSO_WORK = 500_000
 """Default limit of particles × iterations for one PSO fit (the paper's 200 × 150 is 30 000)."""
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
+# strict: a boolean or a string is not a number (an int is a float, as in JSON)
+Finite = Annotated[float, StrictType(), Field(allow_inf_nan=False)]
+Int = Annotated[int, StrictType()]
+
+
+def _name(text: str) -> str:
+    text = clean_text(text, "name")
+    if not text.strip():
+        raise ValueError("a name needs a visible character")
+    if text != text.strip():
+        raise ValueError("a name may not begin or end with white space")
+    if is_id_like(text):
+        raise ValueError(f"{text!r} is only digits and would read as an id; add a letter")
+    return text
+
+
+def _pair_id(text: str) -> str:
+    return clean_text(text, "id")
+
+
+def _label(text: str) -> str:
+    return clean_text(text, "text label")
+
+
 Name = Annotated[
     str,
-    Field(min_length=1, max_length=MAX_NAME, pattern=r"^[^\x00-\x1f\x7f]*\S[^\x00-\x1f\x7f]*$",
-          description="display name: 1–100 printable characters, stored as data only"),
+    Field(min_length=1, max_length=MAX_NAME,
+          description="display name: 1–100 characters in NFC, no control or format (zero-width, bidi) "
+                      "characters, not only digits (that reads as an id), no leading/trailing space; "
+                      "stored as data only"),
+    AfterValidator(_name),
 ]
-Px = Annotated[int, Field(ge=1, le=100_000)]
+PairId = Annotated[str, Field(min_length=1, max_length=64), AfterValidator(_pair_id)]
+Note = Annotated[str, Field(max_length=200), AfterValidator(_label)]
+Px = Annotated[int, StrictType(), Field(ge=1, le=100_000)]
 ModelName = Literal[MODEL_CHOICES]  # type: ignore[valid-type]
 OptimizerName = Literal[OPTIMIZERS]  # type: ignore[valid-type]
 ObjectiveName = Literal[OBJECTIVES]  # type: ignore[valid-type]
@@ -43,7 +79,7 @@ class Strict(BaseModel):
 class PairIn(Strict):
     """One point pair: the image centre (u, v) in px and the robot position (x, y, z) in mm."""
 
-    id: str | None = Field(None, min_length=1, max_length=64, description="pair id (default: its index)")
+    id: PairId | None = Field(None, description="pair id (default: its index)")
     u: Finite = Field(description="image column, px")
     v: Finite = Field(description="image row, px")
     x: Finite = Field(description="robot x, mm")
@@ -58,12 +94,12 @@ class FitOptions(Strict):
     model: ModelName = Field("auto", description="transform model; 'auto' picks by cross-validation")
     optimizer: OptimizerName = Field("lm", description="solver refining the model")
     objective: ObjectiveName = Field("l2", description="robot-space objective (mm)")
-    seed: int | None = Field(None, ge=0, le=2**32 - 1, description="seed of the stochastic solvers")
-    exclude: list[Annotated[str, Field(max_length=64)]] = Field(
+    seed: Int | None = Field(None, ge=0, le=2**32 - 1, description="seed of the stochastic solvers")
+    exclude: list[Annotated[str, Field(max_length=64), AfterValidator(_pair_id)]] = Field(
         default_factory=list, max_length=MAX_PAIRS,
         description="ids of pairs left out of the fit (their errors are still reported)")
-    particles: int = Field(200, ge=2, le=MAX_PARTICLES, description="swarm size (pso, hybrid-pso)")
-    iterations: int = Field(150, ge=1, le=MAX_ITERATIONS, description="iterations (pso, hybrid-pso)")
+    particles: Int = Field(200, ge=2, le=MAX_PARTICLES, description="swarm size (pso, hybrid-pso)")
+    iterations: Int = Field(150, ge=1, le=MAX_ITERATIONS, description="iterations (pso, hybrid-pso)")
     image_size: tuple[Px, Px] | None = Field(
         None, description="image width and height, px (sets the distortion centre)")
 
@@ -73,14 +109,14 @@ class CreateCalibration(FitOptions):
 
 
 class NewVersion(FitOptions):
-    note: str = Field("refit", max_length=200, description="what changed")
+    note: Note = Field("refit", description="what changed")
 
 
 class SaveJob(Strict):
     name: Name | None = Field(None, description="save as a new calibration with this name")
-    calibration_id: int | None = Field(
+    calibration_id: Int | None = Field(
         None, ge=1, le=2**62, description="or: add the result as a new version of this calibration")
-    note: str = Field("", max_length=200)
+    note: Note = ""
 
 
 class Rename(Strict):
@@ -88,7 +124,7 @@ class Rename(Strict):
 
 
 class Rollback(Strict):
-    version: int = Field(ge=1, le=2**62, description="the version to make current again")
+    version: Int = Field(ge=1, le=2**62, description="the version to make current again")
 
 
 class MapRequest(Strict):
@@ -109,8 +145,9 @@ class MapResponse(BaseModel):
 class ParseRequest(Strict):
     text: str = Field(min_length=1, max_length=MAX_TEXT_CHARS,
                       description="CSV with header u,v,x,y[,z][,id], or JSON {\"pairs\": [...]}")
-    source: str = Field("pasted", max_length=200, pattern=r"^[^\x00-\x1f\x7f]*$",
-                        description="label used in error messages (e.g. the file's name); data only")
+    source: Annotated[str, AfterValidator(_label)] = Field(
+        "pasted", max_length=200,
+        description="label used in error messages (e.g. the file's name); data only")
 
 
 class PairOut(BaseModel):
@@ -236,7 +273,7 @@ class EvaluateRequest(Strict):
 class CompareRequest(Strict):
     pairs: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
     check: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
-    seed: int = Field(0, ge=0, le=2**32 - 1)
+    seed: Int = Field(0, ge=0, le=2**32 - 1)
 
 
 class JobCreated(BaseModel):

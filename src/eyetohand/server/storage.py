@@ -16,12 +16,15 @@ import json
 import os
 import sqlite3
 import threading
+import unicodedata
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 DB_NAME = "calibrations.db"
+WAIT_S = 2.0
+"""How long a write waits for another connection's write lock before giving up (:class:`Busy`)."""
 
 SCHEMA_SQL = """
 CREATE TABLE IF NOT EXISTS calibrations (
@@ -63,6 +66,72 @@ class NameTaken(ValueError):
     """Another calibration already has that name."""
 
 
+class Ambiguous(LookupError):
+    """A reference that is the name of one calibration and the id of another."""
+
+
+class StorageError(RuntimeError):
+    """The database cannot do what was asked now (the request was not applied). ``status`` is the
+    HTTP status to answer (503: try again later; 507: no space), ``retry_after_s`` a hint or None."""
+
+    status = 503
+    retry_after_s: int | None = None
+
+
+class Busy(StorageError):
+    """Another connection held the write lock for longer than the store waits."""
+
+    retry_after_s = 1
+
+
+class NoSpace(StorageError):
+    """The disk (or the process's file-size limit) is full: the change was rolled back."""
+
+    status = 507
+
+
+def _storage_error(exc: sqlite3.OperationalError, path: Path) -> StorageError:
+    msg = str(exc)
+    low = msg.lower()
+    if "locked" in low or "busy" in low:
+        return Busy(f"the database {path.name} is busy (another writer holds its lock); try again shortly")
+    if "full" in low:
+        return NoSpace(f"no space to write the database {path.name} ({msg}); nothing was changed")
+    if "readonly" in low or "read-only" in low:
+        return StorageError(f"the database {path.name} is read-only ({msg}); nothing was changed")
+    return StorageError(f"the database {path.name} failed: {msg}; nothing was changed")
+
+
+@contextmanager
+def _translated(path: Path) -> Iterator[None]:
+    try:
+        yield
+    except sqlite3.OperationalError as exc:
+        raise _storage_error(exc, path) from None
+    except OSError as exc:  # e.g. EFBIG from a file-size limit surfacing as an OS error
+        raise NoSpace(f"cannot write the database {path.name} ({exc}); nothing was changed") from None
+
+
+def is_id_like(text: str) -> bool:
+    """A reference made only of ASCII digits reads as an id (so a name may not be one)."""
+    return text.isascii() and text.isdigit()
+
+
+BAD_CATEGORIES = {"Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"}
+
+
+def clean_text(text: str, what: str) -> str:
+    """``text`` in NFC; ValueError naming ``what`` for control, format (zero-width, bidi),
+    unassigned or private-use characters, which make invisible or look-alike names."""
+    text = unicodedata.normalize("NFC", text)
+    for i, ch in enumerate(text):
+        cat = unicodedata.category(ch)
+        if cat in BAD_CATEGORIES:
+            raise ValueError(f"{what}: character {i} is U+{ord(ch):04X} "
+                             f"({unicodedata.name(ch, cat)}), not allowed in {what}s")
+    return text
+
+
 @dataclass(frozen=True)
 class Version:
     calibration_id: int
@@ -98,100 +167,146 @@ class Record:
 
 
 class Store:
-    """Thread-safe access to the database: one connection, serialised by a lock (SQLite writes are
-    serial anyway, and every operation here takes well under a millisecond)."""
+    """Thread-safe access to the database: one SQLite connection per thread, no Python lock.
 
-    def __init__(self, data_dir: str | os.PathLike):
+    Reads never wait for a writer (WAL); a write waits at most ``wait_s`` for another connection's
+    write lock, then raises :class:`Busy`; any other SQLite failure raises :class:`StorageError`
+    (the transaction is rolled back). Nothing here holds a lock while SQLite waits."""
+
+    def __init__(self, data_dir: str | os.PathLike, wait_s: float = WAIT_S):
         self.data_dir = Path(data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.path = self.data_dir / DB_NAME
-        self._lock = threading.RLock()
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.execute("PRAGMA foreign_keys=ON")
-        self._db.execute("PRAGMA busy_timeout=5000")
+        self.wait_s = float(wait_s)
+        self._local = threading.local()
+        self._all: list[sqlite3.Connection] = []
+        self._all_lock = threading.Lock()  # guards the list only, never held around SQLite
+        self._closed = False
+        with _translated(self.path):
+            db = self._db
+            db.execute("PRAGMA journal_mode=WAL")
         with self._tx() as db:
             for stmt in SCHEMA_SQL.split(";"):
                 if stmt.strip():
                     db.execute(stmt)
 
+    @property
+    def _db(self) -> sqlite3.Connection:
+        """This thread's connection (opened on first use)."""
+        db = getattr(self._local, "db", None)
+        if db is None:
+            if self._closed:
+                raise StorageError(f"the store of {self.path} is closed")
+            db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None,
+                                 timeout=self.wait_s)
+            db.execute("PRAGMA synchronous=FULL")
+            db.execute("PRAGMA foreign_keys=ON")
+            db.execute(f"PRAGMA busy_timeout={int(self.wait_s * 1000)}")
+            self._local.db = db
+            with self._all_lock:
+                self._all.append(db)
+        return db
+
     def close(self) -> None:
-        with self._lock:
-            self._db.close()
+        self._closed = True
+        with self._all_lock:
+            conns, self._all = self._all, []
+        for db in conns:
+            try:
+                db.close()
+            except sqlite3.Error:
+                pass
+        self._local = threading.local()
+
+    def integrity_check(self) -> str:
+        with _translated(self.path):
+            return str(self._db.execute("PRAGMA integrity_check").fetchone()[0])
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
         """One IMMEDIATE transaction: committed as a whole or rolled back as a whole."""
-        with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
-                yield self._db
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
+        db = self._db
+        with _translated(self.path):
+            db.execute("BEGIN IMMEDIATE")
+        try:
+            yield db
+            with _translated(self.path):
+                db.execute("COMMIT")
+        except BaseException:
+            if db.in_transaction:
+                try:
+                    db.execute("ROLLBACK")
+                except sqlite3.Error:
+                    pass
+            raise
+
+    def _read(self, sql: str, args: tuple = ()) -> list:
+        with _translated(self.path):
+            return self._db.execute(sql, args).fetchall()
 
     # ------------------------------------------------------------------ reads
     def list(self) -> list[tuple[Record, Version]]:
-        with self._lock:
-            rows = self._db.execute(
-                "SELECT c.id, c.name, c.created_utc, c.updated_utc, c.current_version, "
-                "v.calibration_id, v.version, v.created_utc, v.note, v.request_json, "
-                "v.calibration_json, v.pairs_json, v.check_json "
-                "FROM calibrations c JOIN versions v "
-                "ON v.calibration_id = c.id AND v.version = c.current_version ORDER BY c.id"
-            ).fetchall()
+        rows = self._read(
+            "SELECT c.id, c.name, c.created_utc, c.updated_utc, c.current_version, "
+            "v.calibration_id, v.version, v.created_utc, v.note, v.request_json, "
+            "v.calibration_json, v.pairs_json, v.check_json "
+            "FROM calibrations c JOIN versions v "
+            "ON v.calibration_id = c.id AND v.version = c.current_version ORDER BY c.id")
         return [(Record(*r[:5]), _version(r[5:])) for r in rows]
 
     def get(self, cal_id: int) -> Record:
-        with self._lock:
-            row = self._db.execute(
-                "SELECT id, name, created_utc, updated_utc, current_version FROM calibrations WHERE id = ?",
-                (cal_id,),
-            ).fetchone()
+        rows = self._read(
+            "SELECT id, name, created_utc, updated_utc, current_version FROM calibrations WHERE id = ?",
+            (cal_id,))
+        row = rows[0] if rows else None
         if row is None:
             raise NotFound(f"no calibration with id {cal_id}")
         return Record(*row)
 
     def by_name(self, name: str) -> Record | None:
-        with self._lock:
-            row = self._db.execute(
-                "SELECT id, name, created_utc, updated_utc, current_version FROM calibrations WHERE name = ?",
-                (name,),
-            ).fetchone()
+        rows = self._read(
+            "SELECT id, name, created_utc, updated_utc, current_version FROM calibrations WHERE name = ?",
+            (unicodedata.normalize("NFC", name),))
+        row = rows[0] if rows else None
         return None if row is None else Record(*row)
 
     def find(self, name_or_id: str) -> Record:
-        """By exact name, else by numeric id."""
+        """By exact name (NFC), or by id: digits, or ``id:N``. A reference that is the name of one
+        calibration and the id of another (a name stored before digit-only names were refused) is
+        refused as :class:`Ambiguous`, never resolved by guessing."""
+        ref = name_or_id.strip()
+        if ref.lower().startswith("id:") and is_id_like(ref[3:].strip()):
+            return self.get(int(ref[3:].strip()))
         rec = self.by_name(name_or_id)
+        if is_id_like(ref):
+            try:
+                by_id = self.get(int(ref))
+            except NotFound:
+                by_id = None
+            if rec is not None and by_id is not None and rec.id != by_id.id:
+                raise Ambiguous(f"{ref!r} is the name of calibration {rec.id} and the id of calibration "
+                                f"{by_id.id}; say 'id:{by_id.id}', or rename calibration {rec.id}")
+            rec = rec or by_id
         if rec is not None:
             return rec
-        if name_or_id.isdigit():
-            return self.get(int(name_or_id))
         raise NotFound(f"no calibration named {name_or_id!r}")
 
     def version(self, cal_id: int, version: int | None = None) -> Version:
         rec = self.get(cal_id)
         v = rec.current_version if version is None else version
-        with self._lock:
-            row = self._db.execute(
-                "SELECT calibration_id, version, created_utc, note, request_json, calibration_json, "
-                "pairs_json, check_json FROM versions WHERE calibration_id = ? AND version = ?",
-                (cal_id, v),
-            ).fetchone()
+        rows = self._read(
+            "SELECT calibration_id, version, created_utc, note, request_json, calibration_json, "
+            "pairs_json, check_json FROM versions WHERE calibration_id = ? AND version = ?", (cal_id, v))
+        row = rows[0] if rows else None
         if row is None:
             raise NotFound(f"calibration {cal_id} has no version {v} (versions 1..{rec.current_version})")
         return _version(row)
 
     def versions(self, cal_id: int) -> list[Version]:
         self.get(cal_id)
-        with self._lock:
-            rows = self._db.execute(
-                "SELECT calibration_id, version, created_utc, note, request_json, calibration_json, "
-                "pairs_json, check_json FROM versions WHERE calibration_id = ? ORDER BY version",
-                (cal_id,),
-            ).fetchall()
+        rows = self._read(
+            "SELECT calibration_id, version, created_utc, note, request_json, calibration_json, "
+            "pairs_json, check_json FROM versions WHERE calibration_id = ? ORDER BY version", (cal_id,))
         return [_version(r) for r in rows]
 
     # ------------------------------------------------------------------ writes
@@ -199,7 +314,7 @@ class Store:
                note: str = "created") -> Record:
         now = _now()
         try:
-            with self._tx() as db:
+            with self._tx() as db, _translated(self.path):
                 cur = db.execute(
                     "INSERT INTO calibrations (name, created_utc, updated_utc, current_version) "
                     "VALUES (?, ?, ?, 1)",
@@ -214,7 +329,7 @@ class Store:
     def add_version(self, cal_id: int, request: dict, calibration: dict, pairs: list,
                     check: list | None, note: str) -> Record:
         now = _now()
-        with self._tx() as db:
+        with self._tx() as db, _translated(self.path):
             row = db.execute("SELECT current_version FROM calibrations WHERE id = ?", (cal_id,)).fetchone()
             if row is None:
                 raise NotFound(f"no calibration with id {cal_id}")
@@ -235,7 +350,7 @@ class Store:
 
     def rename(self, cal_id: int, name: str) -> Record:
         try:
-            with self._tx() as db:
+            with self._tx() as db, _translated(self.path):
                 cur = db.execute("UPDATE calibrations SET name = ?, updated_utc = ? WHERE id = ?",
                                  (name, _now(), cal_id))
                 if cur.rowcount == 0:
@@ -245,7 +360,7 @@ class Store:
         return self.get(cal_id)
 
     def delete(self, cal_id: int) -> None:
-        with self._tx() as db:
+        with self._tx() as db, _translated(self.path):
             db.execute("DELETE FROM versions WHERE calibration_id = ?", (cal_id,))
             cur = db.execute("DELETE FROM calibrations WHERE id = ?", (cal_id,))
             if cur.rowcount == 0:

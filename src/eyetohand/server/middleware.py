@@ -1,0 +1,109 @@
+"""ASGI guards in front of the routes: body size and type, token, Host. Each answers with the API's
+JSON error body without reading more of the request than it needs."""
+
+from __future__ import annotations
+
+import hmac
+from collections.abc import Callable
+
+from .responses import error_response, send_response
+
+JSON_TYPES = (b"application/json",)
+
+
+class BodyTooLarge(Exception):
+    """Raised from ``receive`` when a streamed body passes its limit (turned into a 413 here)."""
+
+
+class BodyLimit:
+    """Refuse a request body larger than ``limit_for(path)`` bytes with 413, from ``Content-Length``
+    when given, else while it streams in, before any route parses it. The body is not buffered
+    here (the route reads it once). A body that is not ``application/json`` gets 415."""
+
+    def __init__(self, app, limit_for: Callable[[str], int]):
+        self.app = app
+        self.limit_for = limit_for
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS"):
+            return await self.app(scope, receive, send)
+        limit = self.limit_for(scope["path"])
+        length = ctype = None
+        chunked = False
+        for k, v in scope.get("headers") or ():
+            if k == b"content-length":
+                length = v
+            elif k == b"content-type":
+                ctype = v
+            elif k == b"transfer-encoding":
+                chunked = b"chunked" in v.lower()
+        too_big = f"request body larger than the limit of {limit} bytes for {scope['path']}"
+        if length is not None:
+            if not length.strip().isdigit():
+                return await send_response(send, error_response(
+                    400, "Content-Length is not a number", "Content-Length"))
+            if int(length) > limit:
+                return await send_response(send, error_response(413, too_big, "body"))
+        if (chunked or (length is not None and int(length) > 0)) \
+                and (ctype or b"").split(b";")[0].strip().lower() not in JSON_TYPES:
+            return await send_response(send, error_response(
+                415, "Content-Type must be application/json", "Content-Type"))
+        received = 0
+        exceeded = False
+
+        async def limited():
+            nonlocal received, exceeded
+            msg = await receive()
+            if msg["type"] == "http.request":
+                received += len(msg.get("body", b""))
+                if received > limit:
+                    exceeded = True
+                    raise BodyTooLarge
+            return msg
+
+        async def guarded_send(msg):
+            if not exceeded:  # the app's own answer to a cut body (e.g. 400) is replaced below
+                await send(msg)
+
+        try:
+            await self.app(scope, limited, guarded_send)
+        except BodyTooLarge:
+            pass
+        if exceeded:
+            await send_response(send, error_response(413, too_big, "body"))
+
+
+class TokenGuard:
+    """With a token set, every /api/ request needs ``Authorization: Bearer <token>``."""
+
+    def __init__(self, app, token: str | None):
+        self.app = app
+        self.token = token.encode() if token else None
+
+    async def __call__(self, scope, receive, send):
+        if self.token and scope["type"] == "http" and scope["path"].startswith("/api/") \
+                and scope["path"] != "/api/health":
+            auth = dict(scope.get("headers") or []).get(b"authorization", b"")
+            given = auth[7:].strip() if auth[:7].lower() == b"bearer " else b""
+            if not hmac.compare_digest(given, self.token):
+                return await send_response(send, error_response(
+                    401, "missing or wrong token: send the header 'Authorization: Bearer <token>'",
+                    "Authorization"))
+        return await self.app(scope, receive, send)
+
+
+class HostGuard:
+    """Answer only requests whose Host is one of ``hosts`` (stops DNS-rebinding pages)."""
+
+    def __init__(self, app, hosts: list[str]):
+        self.app = app
+        self.hosts = {h.lower() for h in hosts}
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] == "http":
+            host = dict(scope.get("headers") or []).get(b"host", b"").decode("latin-1").lower()
+            name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
+            if name not in self.hosts and host not in self.hosts:
+                return await send_response(send, error_response(
+                    400, f"Host {host!r} is not served here", "Host"))
+        return await self.app(scope, receive, send)

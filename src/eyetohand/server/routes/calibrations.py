@@ -1,0 +1,91 @@
+"""Stored calibrations and their versions (every route here runs on the thread pool: it reads or
+writes the database)."""
+
+from __future__ import annotations
+
+import re
+
+from fastapi import APIRouter, Response
+
+from ...evaluate import evaluate
+from .. import core
+from ..schemas import (
+    CalibrationBrief,
+    CalibrationDetail,
+    CalibrationOut,
+    CreateCalibration,
+    EvaluateRequest,
+    NewVersion,
+    Rename,
+    Rollback,
+    StatsOut,
+    VersionList,
+)
+from . import CalId, Svc, VersionQ
+
+router = APIRouter(tags=["calibrations"])
+
+
+@router.post("/api/calibrations", response_model=CalibrationOut, status_code=201)
+def create_calibration(req: CreateCalibration, svc: Svc):
+    """Fit a calibration and store it as version 1 of a new named calibration."""
+    return svc.create(req, req.name)
+
+
+@router.get("/api/calibrations", response_model=list[CalibrationBrief])
+def list_calibrations(svc: Svc):
+    return svc.brief_list()
+
+
+@router.get("/api/calibrations/{cal_id}", response_model=CalibrationDetail)
+def get_calibration(cal_id: CalId, svc: Svc, version: VersionQ = None):
+    return svc.out(cal_id, version, detail=True)
+
+
+@router.patch("/api/calibrations/{cal_id}", response_model=CalibrationOut)
+def rename_calibration(cal_id: CalId, req: Rename, svc: Svc):
+    return svc.rename(cal_id, req.name)
+
+
+@router.delete("/api/calibrations/{cal_id}", status_code=204)
+def delete_calibration(cal_id: CalId, svc: Svc):
+    svc.delete(cal_id)
+    return Response(status_code=204)
+
+
+@router.get("/api/calibrations/{cal_id}/versions", response_model=VersionList)
+def list_versions(cal_id: CalId, svc: Svc):
+    rec = svc.store.get(cal_id)
+    return {"id": rec.id, "name": rec.name, "current_version": rec.current_version,
+            "versions": [v.brief() for v in svc.store.versions(cal_id)]}
+
+
+@router.post("/api/calibrations/{cal_id}/versions", response_model=CalibrationOut, status_code=201)
+def new_version(cal_id: CalId, req: NewVersion, svc: Svc):
+    """Refit (e.g. with pairs excluded) and store the result as the new current version."""
+    svc.store.get(cal_id)
+    return svc.save_version(cal_id, svc.wait_fit(req), req.note)
+
+
+@router.post("/api/calibrations/{cal_id}/rollback", response_model=CalibrationOut)
+def rollback(cal_id: CalId, req: Rollback, svc: Svc):
+    """Make an earlier version current again (as a new version that copies it)."""
+    return svc.rollback(cal_id, req.version)
+
+
+@router.get("/api/calibrations/{cal_id}/export",
+            responses={200: {"description": "the calibration file (JSON), as `eyetohand apply` reads it",
+                             "content": {"application/json": {}}}})
+def export(cal_id: CalId, svc: Svc, version: VersionQ = None):
+    rec = svc.store.get(cal_id)
+    ver, cal = svc.calibration(cal_id, version)
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", rec.name).strip("._")[:60] or "calibration"
+    return Response(cal.to_json(), media_type="application/json", headers={
+        "Content-Disposition": f'attachment; filename="{safe}-v{ver.version}.json"'})
+
+
+@router.post("/api/calibrations/{cal_id}/evaluate", response_model=StatsOut)
+def evaluate_calibration(cal_id: CalId, req: EvaluateRequest, svc: Svc, version: VersionQ = None):
+    """Errors (mm) of a stored calibration on other pairs (e.g. new check points)."""
+    _, cal = svc.calibration(cal_id, version)
+    return evaluate(cal, core.to_pairs(req.pairs, "pairs")).to_dict()

@@ -1,0 +1,18 @@
+"""Reading pasted or uploaded pair files with the CLI's rules."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from .. import core
+from ..schemas import ParseRequest, ParseResponse
+
+router = APIRouter(tags=["pairs"])
+
+
+@router.post("/api/pairs/parse", response_model=ParseResponse)
+def parse_pairs(req: ParseRequest):
+    """Read CSV or JSON text of point pairs with the rules of `eyetohand calibrate`."""
+    p = core.parse_text(req.text, req.source)
+    return {"source": p.source, "n": len(p), "pairs": p.to_records(), "notes": list(p.notes),
+            "z_levels_mm": [float(z) for z in p.z_levels_mm]}

@@ -1,0 +1,190 @@
+"""The one service object behind the routes (``app.state.service``): the store, the cache of decoded
+calibrations, the job queue and the server's limits.
+
+Threads: routes that touch the store run on the thread pool; the mapping routes run on the event
+loop and read only :meth:`Service.cached` (a dict look-up under a lock, never the database). The
+cache is filled from the pool, and every write that changes which version is current (new version,
+rollback, delete) drops that calibration's entries, with a generation counter so that a read that
+raced the write cannot put the old version back."""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+
+from ..calibration import Calibration
+from ..pairs import PointPairs
+from . import core
+from .core import ApiError, Fitted, Jobs
+from .schemas import FitOptions
+from .storage import Record, Store, Version
+
+
+@dataclass(frozen=True)
+class Limits:
+    max_body_bytes: int
+    max_fit_body_bytes: int
+    max_parse_body_bytes: int
+    max_pso_work: int
+
+
+class Service:
+    """Store + calibration cache (thread-safe) + jobs; what the routers call."""
+
+    CACHE_SIZE = 64
+
+    def __init__(self, store: Store, jobs: Jobs, limits: Limits, token: str | None):
+        self.store = store
+        self.jobs = jobs
+        self.limits = limits
+        self.auth = token is not None
+        self._lock = threading.Lock()
+        self._by_version: OrderedDict[tuple[int, int], Calibration] = OrderedDict()
+        self._current: dict[int, tuple[int, Calibration]] = {}
+        self._generation: dict[int, int] = {}
+
+    # ------------------------------------------------------------ cache
+    def cached(self, cal_id: int, version: int | None = None) -> tuple[int, Calibration] | None:
+        """(version, calibration) from memory, or None (then call :meth:`calibration` off the loop)."""
+        with self._lock:
+            if version is None:
+                return self._current.get(cal_id)
+            cal = self._by_version.get((cal_id, version))
+            return None if cal is None else (version, cal)
+
+    def calibration(self, cal_id: int, version: int | None = None) -> tuple[Version, Calibration]:
+        """The stored version and its decoded calibration (decoded once, then cached). Blocking."""
+        with self._lock:
+            gen = self._generation.get(cal_id, 0)
+        ver = self.store.version(cal_id, version)
+        key = (cal_id, ver.version)
+        with self._lock:
+            cal = self._by_version.get(key)
+        if cal is None:
+            cal = Calibration.from_dict(ver.calibration, f"calibration {cal_id} version {ver.version}")
+        with self._lock:
+            if self._generation.get(cal_id, 0) == gen:  # no write since the read: safe to keep
+                self._by_version[key] = cal
+                self._by_version.move_to_end(key)
+                while len(self._by_version) > self.CACHE_SIZE:
+                    self._by_version.popitem(last=False)
+                if version is None:
+                    self._current[cal_id] = (ver.version, cal)
+        return ver, cal
+
+    def invalidate(self, cal_id: int, versions_too: bool = False) -> None:
+        with self._lock:
+            self._generation[cal_id] = self._generation.get(cal_id, 0) + 1
+            self._current.pop(cal_id, None)
+            if versions_too:
+                for key in [k for k in self._by_version if k[0] == cal_id]:
+                    del self._by_version[key]
+
+    # ------------------------------------------------------------ views
+    def out(self, cal_id: int, version: int | None = None, detail: bool = False) -> dict:
+        rec = self.store.get(cal_id)
+        ver, cal = self.calibration(cal_id, version)
+        pairs = _pairs_of(ver.pairs, "pairs")
+        check = _pairs_of(ver.check, "check")
+        excluded = ver.request.get("exclude") or []
+        d = {
+            "id": rec.id, "name": rec.name, "version": ver.version, "current_version": rec.current_version,
+            "created_utc": rec.created_utc, "updated_utc": rec.updated_utc, "note": ver.note,
+            "request": ver.request, "summary": core.summarize(cal, pairs, check, excluded),
+        }
+        if detail:
+            d.update(pairs=ver.pairs, check=ver.check, calibration=ver.calibration)
+        return d
+
+    def brief_list(self) -> list[dict]:
+        rows = []
+        for rec, ver in self.store.list():
+            b = ver.brief()
+            rows.append({"id": rec.id, "name": rec.name, "current_version": rec.current_version,
+                         "updated_utc": rec.updated_utc, **{k: b[k] for k in (
+                             "model", "optimizer", "fitness_mm", "train_rms_mm", "check_rms_mm")}})
+        return rows
+
+    # ------------------------------------------------------------ writes
+    def save_new(self, fitted: Fitted, name: str, note: str) -> dict:
+        rec = self.store.create(name, fitted.request, fitted.calibration.to_dict(), _records(fitted.pairs),
+                                _records(fitted.check), note=note or "created")
+        return self.out(rec.id)
+
+    def save_version(self, cal_id: int, fitted: Fitted, note: str) -> dict:
+        try:
+            rec = self.store.add_version(cal_id, fitted.request, fitted.calibration.to_dict(),
+                                         _records(fitted.pairs), _records(fitted.check),
+                                         note=note or "refit")
+        finally:
+            self.invalidate(cal_id)
+        return self.out(rec.id)
+
+    def rollback(self, cal_id: int, version: int) -> dict:
+        try:
+            self.store.rollback(cal_id, version)
+        finally:
+            self.invalidate(cal_id)
+        return self.out(cal_id)
+
+    def rename(self, cal_id: int, name: str) -> dict:
+        self.store.rename(cal_id, name)
+        return self.out(cal_id)
+
+    def delete(self, cal_id: int) -> None:
+        try:
+            self.store.delete(cal_id)
+        finally:
+            self.invalidate(cal_id, versions_too=True)
+
+    def create(self, opts, name: str) -> dict:
+        if self.store.by_name(name) is not None:  # before spending a fit on it
+            raise ApiError(409, f"a calibration named {name!r} exists already", "name")
+        return self.save_new(self.wait_fit(opts), name, "created")
+
+    # ------------------------------------------------------------ jobs
+    def wait_fit(self, opts: FitOptions) -> Fitted:
+        job = self.jobs.fit_job(opts)
+        job.done.wait()
+        if job.error:
+            e = job.error
+            raise ApiError(e["status"], e["error"], e.get("field"), e.get("line"))
+        if job.fitted is None:
+            raise ApiError(409, "the fit was cancelled")
+        return job.fitted
+
+    def finished_fit(self, job_id: str) -> Fitted:
+        job = self.jobs.get(job_id)
+        if job.kind != "fit":
+            raise ApiError(409, f"job {job_id} is a {job.kind} job, not a fit", "id")
+        if job.status != "done" or job.fitted is None:
+            raise ApiError(409, f"job {job_id} is {job.status}, it has no calibration to use", "id")
+        return job.fitted
+
+    def save_job(self, job_id: str, name: str | None, calibration_id: int | None, note: str) -> dict:
+        fitted = self.finished_fit(job_id)
+        if (name is None) == (calibration_id is None):
+            raise ApiError(422, "give either name (a new calibration) or calibration_id (a new version)",
+                           "name")
+        if name is not None:
+            d = self.save_new(fitted, name, note)
+        else:
+            d = self.save_version(calibration_id, fitted, note)
+        self.jobs.get(job_id).saved = {"id": d["id"], "version": d["version"], "name": d["name"]}
+        return d
+
+    def close(self) -> None:
+        self.jobs.shutdown()
+        self.store.close()
+
+
+def _pairs_of(records: list[dict] | None, label: str) -> PointPairs | None:
+    return None if records is None else core.pairs_from_records(records, source=label)
+
+
+def _records(p: PointPairs | None) -> list[dict] | None:
+    return None if p is None else p.to_records()
+
+
+__all__ = ["Service", "Limits", "Record"]
