@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from eyetohand.cli.conveyor import main
 from eyetohand.conveyor import (
     ConveyorCalibration,
     Encoder,
@@ -15,7 +16,6 @@ from eyetohand.conveyor import (
     format_report,
     session_from_text,
 )
-from eyetohand.conveyor_cli import main
 from eyetohand.errors import InputError
 from eyetohand.fit import calibrate
 from eyetohand.pairs import PointPairs

@@ -57,8 +57,13 @@ class Mapped:
         """One dict per point, full precision: u, v, x, y, z, [rz], sigma_mm, inside."""
         out = []
         for i in range(len(self.uv_px)):
-            rec = {"u": float(self.uv_px[i, 0]), "v": float(self.uv_px[i, 1]),
-                   "x": float(self.xyz_mm[i, 0]), "y": float(self.xyz_mm[i, 1]), "z": float(self.xyz_mm[i, 2])}
+            rec = {
+                "u": float(self.uv_px[i, 0]),
+                "v": float(self.uv_px[i, 1]),
+                "x": float(self.xyz_mm[i, 0]),
+                "y": float(self.xyz_mm[i, 1]),
+                "z": float(self.xyz_mm[i, 2]),
+            }
             if self.rz_deg is not None:
                 rec["rz"] = float(self.rz_deg[i])
             rec["sigma_mm"] = None if self.sigma_mm is None else float(self.sigma_mm[i])
@@ -81,9 +86,7 @@ class Calibration:
     notes: tuple[str, ...] = ()
     selection: dict | None = None
     tcp_offset: TcpOffset | None = None
-    created_utc: str = field(
-        default_factory=lambda: _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-    )
+    created_utc: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"))
     version: str = __version__
     region: CalibratedRegion | None = None
     uncertainty: Uncertainty | None = None
@@ -134,8 +137,17 @@ class Calibration:
         """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
         return self.map(uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm
 
-    def map(self, uv_px, z=None, *, angle_deg=None, allow_outside: bool = False, symmetry: int = 1,
-            tool_rz_offset_deg: float | None = None, with_sigma: bool = True) -> Mapped:
+    def map(
+        self,
+        uv_px,
+        z=None,
+        *,
+        angle_deg=None,
+        allow_outside: bool = False,
+        symmetry: int = 1,
+        tool_rz_offset_deg: float | None = None,
+        with_sigma: bool = True,
+    ) -> Mapped:
         """Map pixels (and image angles) to robot points (and rz), guarded.
 
         ``z``: the object's height (mm), scalar or (N,): required by models of several heights; a
@@ -171,7 +183,9 @@ class Calibration:
             i = int(np.flatnonzero(bad)[0])
             raise InputError(
                 f"(u, v) = ({uv[i, 0]:g}, {uv[i, 1]:g}) px maps to no finite robot point "
-                "(on or beyond the model's horizon)", index=i, label="points",
+                "(on or beyond the model's horizon)",
+                index=i,
+                label="points",
             )
         rz = None
         if angle_deg is not None:
@@ -262,15 +276,22 @@ class Calibration:
             newer = isinstance(ver, int) and not isinstance(ver, bool) and ver > SCHEMA_VERSION
             raise InputError(
                 f"{source}: calibration schema_version {ver!r}"
-                + (f" is newer than this eyetohand {__version__} reads ({SCHEMA_VERSION}): upgrade eyetohand"
-                   if newer else f", this eyetohand reads {', '.join(map(str, READS_VERSIONS))}")
+                + (
+                    f" is newer than this eyetohand {__version__} reads ({SCHEMA_VERSION}): upgrade eyetohand"
+                    if newer
+                    else f", this eyetohand reads {', '.join(map(str, READS_VERSIONS))}"
+                )
             )
         try:
             cal = _from_dict(cls, d, ver)
         except InputError as exc:
             raise InputError(f"{source}: {exc}") from None
         except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
-            what = f"field {exc.args[0]!r} missing" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
+            what = (
+                f"field {exc.args[0]!r} missing"
+                if isinstance(exc, KeyError)
+                else f"{type(exc).__name__}: {exc}"
+            )
             raise InputError(f"{source}: malformed calibration file ({what})") from None
         if ver >= 2:
             try:
@@ -285,9 +306,13 @@ class Calibration:
         if self.pairs is None:
             raise InputError("the file carries no training pairs, so it cannot prove it is intact")
         if self.pairs.sha256() != self.data_sha256:
-            raise InputError("the training pairs do not match data_sha256: the file was changed after it was written")
-        for label, pairs, stats in (("training", self.fitted_pairs, self.train),
-                                    ("check", _corrected_check(self.check_pairs, self.tcp_offset), self.check)):
+            raise InputError(
+                "the training pairs do not match data_sha256: the file was changed after it was written"
+            )
+        for label, pairs, stats in (
+            ("training", self.fitted_pairs, self.train),
+            ("check", _corrected_check(self.check_pairs, self.tcp_offset), self.check),
+        ):
             if pairs is None and stats is None:
                 continue
             if pairs is None or stats is None:
@@ -295,9 +320,13 @@ class Calibration:
             res = self.model.residuals(pairs.uv_px, pairs.xyz_mm)
             e = np.linalg.norm(res, axis=1)
             rec = np.array([p.error_mm for p in stats.points], float)
-            if stats.n != len(pairs) or len(rec) != len(e) or not np.isfinite(e).all() \
-                    or np.abs(e - rec).max() > REPRODUCE_TOL_MM \
-                    or abs(float(np.sqrt(np.mean(e**2))) - stats.rms_mm) > REPRODUCE_TOL_MM:
+            if (
+                stats.n != len(pairs)
+                or len(rec) != len(e)
+                or not np.isfinite(e).all()
+                or np.abs(e - rec).max() > REPRODUCE_TOL_MM
+                or abs(float(np.sqrt(np.mean(e**2))) - stats.rms_mm) > REPRODUCE_TOL_MM
+            ):
                 raise InputError(
                     f"the model does not reproduce its recorded {label} errors (to {REPRODUCE_TOL_MM:g} mm): "
                     "the file was changed or damaged after it was written"
@@ -357,8 +386,11 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
     known["history"] = tuple(float(v) for v in known.get("history", ()))
     fit = FitInfo(**known, extra=f)
     size = d.get("image_size")
-    if size is not None and (not isinstance(size, list) or len(size) != 2
-                             or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)):
+    if size is not None and (
+        not isinstance(size, list)
+        or len(size) != 2
+        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)
+    ):
         raise InputError("'image_size' must be [width, height] in whole pixels")
     for key in ("notes", "warnings"):
         if not isinstance(d.get(key, []), list) or not all(isinstance(s, str) for s in d.get(key, [])):
@@ -370,12 +402,19 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
     if ver >= 2:
         extra = {
             "region": CalibratedRegion.from_dict(d["region"]) if d.get("region") is not None else None,
-            "uncertainty": (Uncertainty.from_dict(d["uncertainty"], model.n_params)
-                            if d.get("uncertainty") is not None else None),
-            "pairs": (pairs_from_records(d["pairs"], "pairs", label="pairs")
-                      if d.get("pairs") is not None else None),
-            "check_pairs": (pairs_from_records(d["check_pairs"], "check_pairs", label="check_pairs")
-                            if d.get("check_pairs") is not None else None),
+            "uncertainty": (
+                Uncertainty.from_dict(d["uncertainty"], model.n_params)
+                if d.get("uncertainty") is not None
+                else None
+            ),
+            "pairs": (
+                pairs_from_records(d["pairs"], "pairs", label="pairs") if d.get("pairs") is not None else None
+            ),
+            "check_pairs": (
+                pairs_from_records(d["check_pairs"], "check_pairs", label="check_pairs")
+                if d.get("check_pairs") is not None
+                else None
+            ),
             "warnings": tuple(d.get("warnings", ())),
         }
         if extra["region"] is None:

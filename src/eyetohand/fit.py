@@ -50,8 +50,14 @@ def fit_model(
     except InputError as exc:
         raise type(exc)(f"{pairs.source}: {exc}") from None
     return refine(
-        base, pairs.uv_px, pairs.xyz_mm, optimizer=optimizer, objective=objective, seed=seed,
-        callback=callback, **solver_options,
+        base,
+        pairs.uv_px,
+        pairs.xyz_mm,
+        optimizer=optimizer,
+        objective=objective,
+        seed=seed,
+        callback=callback,
+        **solver_options,
     )
 
 
@@ -64,8 +70,13 @@ def folds_for(n: int, seed=0) -> list[np.ndarray]:
 
 
 def cross_validate(
-    pairs: PointPairs, model: str, optimizer: str = "lm", objective: str = "l2", *,
-    image_size=None, seed=0,
+    pairs: PointPairs,
+    model: str,
+    optimizer: str = "lm",
+    objective: str = "l2",
+    *,
+    image_size=None,
+    seed=0,
 ):
     """Held-out residuals (N, 3) mm: leave-one-out up to 40 pairs, else 10 seeded folds."""
     n = len(pairs)
@@ -104,8 +115,9 @@ class Selection:
     optimizer: str
 
 
-def select_model(pairs: PointPairs, *, optimizer: str = "lm", objective: str = "l2", image_size=None,
-                 seed=0) -> tuple[str, dict]:
+def select_model(
+    pairs: PointPairs, *, optimizer: str = "lm", objective: str = "l2", image_size=None, seed=0
+) -> tuple[str, dict]:
     """Choose a model by cross-validated score on ``objective``; returns ``(name, report)``."""
     sel = _select(pairs, optimizer, objective, image_size=image_size, seed=seed)
     return sel.model, sel.report
@@ -129,8 +141,12 @@ def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=Non
                 if delta is None:  # one Huber threshold for every candidate, from the simplest's errors
                     delta = huber_delta_mm(e[np.isfinite(e)]) if np.isfinite(e).any() else 1.0
                 score = held_out_score(res, objective, delta)
-                row.update(cv_rms_mm=float(np.sqrt(np.mean(e**2))), cv_max_mm=float(e.max()),
-                           cv_score_mm=score, considered=True)
+                row.update(
+                    cv_rms_mm=float(np.sqrt(np.mean(e**2))),
+                    cv_max_mm=float(e.max()),
+                    cv_score_mm=score,
+                    considered=True,
+                )
                 held[cls.name] = res
             except InputError as exc:
                 row.update(cv_rms_mm=None, considered=False, why=str(exc))
@@ -142,21 +158,30 @@ def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=Non
         if fallback is None:
             kind = "several heights" if len(pairs.z_levels_mm) > 1 else "one height"
             raise InputError(f"{pairs.source}: too few pairs ({n}) for any model of pairs at {kind}")
-        reason = (f"too few pairs ({n}) to cross-validate any model; took '{fallback.name}', "
-                  "the one with the fewest unknowns")
+        reason = (
+            f"too few pairs ({n}) to cross-validate any model; took '{fallback.name}', "
+            "the one with the fewest unknowns"
+        )
         report = {"chosen": fallback.name, "reason": reason, "candidates": rows}
         return Selection(fallback.name, report, None, cv_opt)
-    what = {"l2": "held-out RMS", "linf": "largest held-out error",
-            "huber": "held-out Huber loss"}[objective]
+    what = {"l2": "held-out RMS", "linf": "largest held-out error", "huber": "held-out Huber loss"}[objective]
     best = min(r["cv_score_mm"] for r in scored)
     chosen = next(r for r in scored if r["cv_score_mm"] <= best * (1 + AUTO_TOLERANCE))
     if chosen["cv_score_mm"] == best:
         reason = f"lowest {what} ({best:.4f} mm)"
     else:
-        reason = (f"simplest model within {AUTO_TOLERANCE:.0%} of the lowest {what} "
-                  f"({chosen['cv_score_mm']:.4f} vs {best:.4f} mm)")
-    report = {"chosen": chosen["model"], "reason": reason, "method": method, "objective": objective,
-              "scored_with": cv_opt, "candidates": rows}
+        reason = (
+            f"simplest model within {AUTO_TOLERANCE:.0%} of the lowest {what} "
+            f"({chosen['cv_score_mm']:.4f} vs {best:.4f} mm)"
+        )
+    report = {
+        "chosen": chosen["model"],
+        "reason": reason,
+        "method": method,
+        "objective": objective,
+        "scored_with": cv_opt,
+        "candidates": rows,
+    }
     return Selection(chosen["model"], report, held[chosen["model"]], cv_opt)
 
 
@@ -218,8 +243,16 @@ def calibrate(
     if model == "auto":
         selection = _select(pairs, optimizer, objective, image_size=image_size, seed=cv_seed)
         model = selection.model
-    fitted, info = fit_model(pairs, model, optimizer, objective, image_size=image_size, seed=seed,
-                             callback=callback, **solver_options)
+    fitted, info = fit_model(
+        pairs,
+        model,
+        optimizer,
+        objective,
+        image_size=image_size,
+        seed=seed,
+        callback=callback,
+        **solver_options,
+    )
     notes = list(pairs.notes)
     if fitted.init_note is not None:
         notes.append(f"{model}: {fitted.init_note}")
@@ -269,8 +302,9 @@ def calibrate(
 SCALE_RANGE_MM_PER_PX = (0.001, 10.0)
 
 
-def sanity_warnings(model: Model, region: CalibratedRegion, pairs: PointPairs,
-                    check: PointPairs | None) -> list[str]:
+def sanity_warnings(
+    model: Model, region: CalibratedRegion, pairs: PointPairs, check: PointPairs | None
+) -> list[str]:
     """What no real cell produces: a scale outside 0.001..10 mm per pixel (suspect units), and a
     check set that repeats training pairs (it then measures nothing)."""
     out = []
@@ -278,23 +312,33 @@ def sanity_warnings(model: Model, region: CalibratedRegion, pairs: PointPairs,
 
     z = region.plane_z_mm if region.plane_z_mm is not None else float(np.mean(region.z_range_mm))
     zq = None if model.height_rule is HeightRule.COMPUTED else z
-    J = local_jacobian(lambda uv: model.image_to_robot(uv, zq)[:, :2], region.hull_px.mean(axis=0, keepdims=True))
+    J = local_jacobian(
+        lambda uv: model.image_to_robot(uv, zq)[:, :2], region.hull_px.mean(axis=0, keepdims=True)
+    )
     scale = LocalFrame.from_jacobian(J[0]).scale_mm_per_px
     lo, hi = SCALE_RANGE_MM_PER_PX
     if not lo <= scale <= hi:
         guess = "metres (use --robot-units m)" if scale < lo else "micrometres or the wrong columns"
-        out.append(f"{pairs.source}: the scale is {scale:.3g} mm per pixel, outside the {lo:g}..{hi:g} mm/px "
-                   f"of any real cell: are the robot coordinates in {guess}? They are read as millimetres")
+        out.append(
+            f"{pairs.source}: the scale is {scale:.3g} mm per pixel, outside the {lo:g}..{hi:g} mm/px "
+            f"of any real cell: are the robot coordinates in {guess}? They are read as millimetres"
+        )
     if check is not None:
         train_uv = {tuple(r) for r in np.round(pairs.uv_px, 6)}
         train_xyz = {tuple(r) for r in np.round(pairs.xyz_mm, 6)}
-        same = [cid for cid, uv, xyz in zip(check.ids, np.round(check.uv_px, 6), np.round(check.xyz_mm, 6),
-                                           strict=True)
-                if tuple(uv) in train_uv or tuple(xyz) in train_xyz]
+        same = [
+            cid
+            for cid, uv, xyz in zip(
+                check.ids, np.round(check.uv_px, 6), np.round(check.xyz_mm, 6), strict=True
+            )
+            if tuple(uv) in train_uv or tuple(xyz) in train_xyz
+        ]
         if len(same) == len(check):
             out.append(f"{check.source}: the check pairs are the training pairs: the check measures nothing")
         elif same:
             shown = ", ".join(same[:8]) + (" …" if len(same) > 8 else "")
-            out.append(f"{check.source}: {len(same)} check pair(s) repeat training pairs (ids {shown}): "
-                       "those say nothing about accuracy")
+            out.append(
+                f"{check.source}: {len(same)} check pair(s) repeat training pairs (ids {shown}): "
+                "those say nothing about accuracy"
+            )
     return out

@@ -33,10 +33,13 @@ def check_output_path(path: str | os.PathLike) -> Path:
         if stat.S_ISDIR(st.st_mode):
             raise InputError(f"{path}: is a folder, expected a file name to write")
         if stat.S_ISLNK(st.st_mode):
-            raise InputError(f"{path}: is a symbolic link; give the real file's path (only regular files "
-                             "are replaced)")
+            raise InputError(
+                f"{path}: is a symbolic link; give the real file's path (only regular files are replaced)"
+            )
         if not stat.S_ISREG(st.st_mode):
-            raise InputError(f"{path}: is not a regular file (a FIFO, device or socket); refusing to replace it")
+            raise InputError(
+                f"{path}: is not a regular file (a FIFO, device or socket); refusing to replace it"
+            )
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise InputError(f"{path}: the folder {parent} does not exist")
@@ -79,7 +82,9 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def read_bounded_bytes(path: str | os.PathLike, *, what: str = "a file", limit: int = MAX_INPUT_BYTES) -> bytes:
+def read_bounded_bytes(
+    path: str | os.PathLike, *, what: str = "a file", limit: int = MAX_INPUT_BYTES
+) -> bytes:
     """The bytes of a regular file, at most ``limit`` (read with that bound, whatever ``st_size``
     says); a folder, FIFO or device is refused without being opened for a blocking read."""
     path = Path(path)
@@ -114,5 +119,6 @@ def read_bounded_text(path: str | os.PathLike, *, what: str = "a file", limit: i
         line = data[: exc.start].count(b"\n") + 1
         raise InputError(
             f"not UTF-8 text (byte {exc.start}); save the file as UTF-8 (in Excel: 'CSV UTF-8')",
-            source=str(path), line=line,
+            source=str(path),
+            line=line,
         ) from None

@@ -49,8 +49,9 @@ def wrap_deg(a, symmetry: int = 1) -> np.ndarray:
 
 def check_symmetry(symmetry) -> int:
     if isinstance(symmetry, bool) or not isinstance(symmetry, (int, np.integer)) or not 1 <= symmetry <= 360:
-        raise InputError(f"symmetry must be a whole number from 1 to 360 (1: no fold, 2: 180° symmetric), "
-                         f"got {symmetry!r}")
+        raise InputError(
+            f"symmetry must be a whole number from 1 to 360 (1: no fold, 2: 180° symmetric), got {symmetry!r}"
+        )
     return int(symmetry)
 
 
@@ -87,5 +88,9 @@ class LocalFrame:
         )
 
     def to_dict(self) -> dict:
-        return {"scale_mm_per_px": self.scale_mm_per_px, "u_axis_rz_deg": self.u_axis_rz_deg,
-                "skew_deg": self.skew_deg, "handedness": self.handedness}
+        return {
+            "scale_mm_per_px": self.scale_mm_per_px,
+            "u_axis_rz_deg": self.u_axis_rz_deg,
+            "skew_deg": self.skew_deg,
+            "handedness": self.handedness,
+        }

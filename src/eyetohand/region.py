@@ -51,7 +51,9 @@ class CalibratedRegion:
             return cls(hull, margin, plane_z_mm=float(plane_z_mm))
         z = np.asarray(xyz_mm, float)[:, 2]
         lo, hi = float(z.min()), float(z.max())
-        return cls(hull, margin, z_range_mm=(lo, hi), z_margin_mm=max(MIN_Z_MARGIN_MM, Z_MARGIN_FRACTION * (hi - lo)))
+        return cls(
+            hull, margin, z_range_mm=(lo, hi), z_margin_mm=max(MIN_Z_MARGIN_MM, Z_MARGIN_FRACTION * (hi - lo))
+        )
 
     # ------------------------------------------------------------ geometry
     def outside_px(self, uv_px) -> np.ndarray:
@@ -88,7 +90,9 @@ class CalibratedRegion:
                     f"z = {z[i]:g} mm is {abs(z[i] - self.plane_z_mm):.3g} mm off the calibration plane "
                     f"z = {self.plane_z_mm:g} mm (tolerance {PLANE_TOLERANCE_MM:g} mm): this single-height "
                     "calibration maps only that plane; calibrate at two or more heights to map others",
-                    index=i, field="z", label="points",
+                    index=i,
+                    field="z",
+                    label="points",
                 )
             inside &= dz <= 0
             if not allow_outside and (dz > 0).any():
@@ -97,7 +101,9 @@ class CalibratedRegion:
                 raise OutsideError(
                     f"outside the calibrated heights: z = {z[i]:g} mm, calibrated {lo:g}..{hi:g} mm "
                     f"(margin {self.z_margin_mm:g} mm); allow_outside maps it anyway",
-                    index=i, field="z", label="points",
+                    index=i,
+                    field="z",
+                    label="points",
                 )
         if not allow_outside and not inside.all():
             i = int(np.flatnonzero(~inside)[0])
@@ -105,7 +111,8 @@ class CalibratedRegion:
                 f"outside the calibrated region: (u, v) = ({uv[i, 0]:g}, {uv[i, 1]:g}) px is "
                 f"{d[i]:.1f} px outside the training points' hull (margin {self.margin_px:.1f} px); "
                 "allow_outside maps it anyway",
-                index=i, label="points",
+                index=i,
+                label="points",
             )
         return inside, d
 
@@ -126,8 +133,13 @@ class CalibratedRegion:
         if hull.ndim != 2 or hull.shape[1] != 2 or len(hull) < 3 or not np.isfinite(hull).all():
             raise InputError("region 'hull_px' must be three or more finite (u, v) points")
         zr = d.get("z_range_mm")
-        return cls(hull, float(d["margin_px"]), None if d.get("plane_z_mm") is None else float(d["plane_z_mm"]),
-                   None if zr is None else (float(zr[0]), float(zr[1])), float(d.get("z_margin_mm", 0.0)))
+        return cls(
+            hull,
+            float(d["margin_px"]),
+            None if d.get("plane_z_mm") is None else float(d["plane_z_mm"]),
+            None if zr is None else (float(zr[0]), float(zr[1])),
+            float(d.get("z_margin_mm", 0.0)),
+        )
 
 
 def convex_hull(points: np.ndarray) -> np.ndarray:

@@ -84,8 +84,12 @@ class Uncertainty:
         return out
 
     def to_dict(self) -> dict:
-        return {"covariance": self.covariance.tolist(), "noise_mm": self.noise_mm, "n_coords": self.n_coords,
-                "dof": self.dof}
+        return {
+            "covariance": self.covariance.tolist(),
+            "noise_mm": self.noise_mm,
+            "n_coords": self.n_coords,
+            "dof": self.dof,
+        }
 
     @classmethod
     def from_dict(cls, d: dict, n_params: int) -> Uncertainty:

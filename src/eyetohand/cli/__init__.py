@@ -19,7 +19,7 @@ from .common import CliError
 
 # Modules that add subcommands; each has register(subparsers).
 COMMAND_MODULES = ("eyetohand.cli.calibrate", "eyetohand.cli.demo", "eyetohand.cli.report",
-                   "eyetohand.cli.serve", "eyetohand.cli.sim", "eyetohand.cli.images")
+                   "eyetohand.cli.serve", "eyetohand.cli.sim", "eyetohand.cli.images", "eyetohand.cli.conveyor")
 
 
 class _Parser(argparse.ArgumentParser):

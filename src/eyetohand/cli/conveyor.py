@@ -12,8 +12,8 @@ import sys
 
 import numpy as np
 
-from .conveyor import ConveyorCalibration, Encoder, calibrate_conveyor, format_report, load_session
-from .errors import InputError
+from ..conveyor import ConveyorCalibration, Encoder, calibrate_conveyor, format_report, load_session
+from ..errors import InputError
 
 
 class _Parser(argparse.ArgumentParser):
@@ -79,7 +79,7 @@ def cmd_apply(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from .sim.conveyor import ConveyorSetup, simulate_conveyor, write_conveyor_simulation
+    from ..sim.conveyor import ConveyorSetup, simulate_conveyor, write_conveyor_simulation
 
     setup = ConveyorSetup(
         yaw_deg=args.yaw_deg,
