@@ -4,17 +4,25 @@ The mapping, robot → image (OpenCV's conventions)::
 
     Xc = R·(X − X0) + t                          camera frame; X0 = the training points' centroid
     n  = Xc[:2] / Xc[2]                          ideal normalised point
-    d  = n·(1 + k1 r² + k2 r⁴ [+ k3 r⁶]) [+ tangential p1, p2]     r² = |n|²
+    d  = distort(n; k1, k2, p1, p2)              OpenCV's lens (eyetohand.lens), r² = |n|²
     uv = (fx·d_x + cx, fy·d_y + cy)
 
-and image → robot at a known height z: undistort (Newton on the 2×2 Jacobian, a fixed number of
-steps so that a whole swarm of parameter vectors is mapped at once), cast the ray from the camera
-centre, and intersect it with the plane z. Parameters (class ``PinholeCamera``, name ``camera``, 13):
-``f, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` — square pixels (fx = fy = f), radial k1, k2
-and tangential p1, p2, the pose as a Rodrigues vector and a translation. Chosen by evidence on the
-simulator (docs/simulator.md): a free aspect ratio and k3 cost more in variance than they gain on a
-few dozen pairs; the tangential terms cost ≤ 3 % on a lens with little of them and halve the error
-on a lens with p ≈ 5e-4.
+and image → robot at a known height z: undistort (:func:`eyetohand.lens.undistort`: fixed-point
+start, Newton on the 2×2 Jacobian, each point to its tolerance, NaN where the lens cannot be
+inverted; a whole swarm of parameter vectors at once), cast the ray from the camera centre, and
+intersect it with the plane z. Parameters (class ``PinholeCamera``, name ``camera``):
+``fx, fy, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` (14), or with square pixels
+``f, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` (13, fx = fy = f; ``meta["aspect"]`` says
+which) — radial k1, k2 and tangential p1, p2, the pose as a Rodrigues vector and a translation.
+
+The aspect ratio: real sensors' fy/fx differ from 1 by parts in 10⁴..10³, which square pixels turn
+into millimetre-level errors at other heights; a free fy costs 5–15 % in variance on a camera whose
+pixels are square. So :meth:`PinholeCamera.from_pairs` (``aspect="auto"``) fits both and keeps fy
+free only when the free fit's fy/fx differs from 1 by more than ``ASPECT_Z`` = 3 standard errors
+(a Wald test on the reprojection fit's covariance; ``meta["aspect_z"]``). Measured on simulated
+two-height cells in docs/simulator.md (``benchmarks/study_sim.py --only aspect``). k3 is left out:
+it over-fits a few dozen pairs (2.5× worse on 18, measured before; docs/simulator.md); the tangential
+terms cost ≤ 3 % on a lens with little of them and halve the error on a lens with p ≈ 5e-4.
 
 Estimation: normalised DLT (the paper's equation 5) → RQ decomposition into K, R, t; then
 Levenberg–Marquardt on the image reprojection error (the maximum-likelihood fit when the pixel
