@@ -110,7 +110,7 @@ def test_rodrigues_both_ways_match_opencv_batched():
     R = rodrigues_to_matrix(r)
     ref = np.array([cv2.Rodrigues(v)[0] for v in r])
     assert R.shape == (500, 3, 3) and np.abs(R - ref).max() < 1e-14
-    assert np.array_equal(rodrigues_to_matrix(r[7]), R[7])
+    np.testing.assert_allclose(rodrigues_to_matrix(r[7]), R[7], rtol=0, atol=1e-15)  # the float path
     back = matrix_to_rodrigues(R)
     assert back.shape == (500, 3)
     ref_back = np.array([cv2.Rodrigues(m)[0].ravel() for m in R])

@@ -234,6 +234,21 @@ def rodrigues_to_matrix(rvec) -> np.ndarray:
     if r.shape[-1:] != (3,) or r.ndim > 2:
         raise InputError(f"rvec: expected Rodrigues vectors of shape (3,) or (P, 3), got {r.shape}")
     r = r.reshape(-1, 3)
+    if len(r) == 1:  # one rotation: plain floats (NumPy's per-call cost dominates), same formula
+        x, y, z = r[0].tolist()
+        t2 = x * x + y * y + z * z
+        if t2 < 1e-8:
+            a1, b1 = 1 - t2 / 6 + t2 * t2 / 120, 0.5 - t2 / 24 + t2 * t2 / 720
+            c1 = 1 - b1 * t2
+        else:
+            t = math.sqrt(t2)
+            c1 = math.cos(t)  # = 1 - b θ², exactly -1 at θ = π
+            a1, b1 = math.sin(t) / t, (1 - c1) / t2
+        # I + a K + b K² with K² = r rᵀ - θ² I
+        M1 = np.array([[c1 + b1 * x * x, b1 * x * y - a1 * z, b1 * x * z + a1 * y],
+                       [b1 * x * y + a1 * z, c1 + b1 * y * y, b1 * y * z - a1 * x],
+                       [b1 * x * z - a1 * y, b1 * y * z + a1 * x, c1 + b1 * z * z]])
+        return M1 if single else M1[None]
     th2 = np.einsum("pi,pi->p", r, r)
     th = np.sqrt(th2)
     small = th < 1e-4

@@ -66,7 +66,8 @@ def backproject_full(full: np.ndarray, uv_px: np.ndarray, z_rel: np.ndarray) -> 
     NaN where the lens cannot be inverted (:func:`eyetohand.lens.undistort`)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         d = (uv_px[None] - full[:, None, 2:4]) / full[:, None, 0:2]
-    n, _ = undistort(d, full[:, 4:8])
+    # one parameter row: a single lens (plain-float path for a few points)
+    n = undistort(d[0], full[0, 4:8])[0][None] if len(full) == 1 else undistort(d, full[:, 4:8])[0]
     R = rodrigues_to_matrix(full[:, 8:11])  # camera ← robot
     # ray directions in the robot frame: Rᵀ (x, y, 1)
     w = np.einsum("pji,pnj->pni", R[:, :2], n) + R[:, None, 2]
