@@ -16,10 +16,9 @@ Conventions (the same as OpenCV's, so ``cv2.projectPoints`` / ``cv2.undistortPoi
 * Pixels: ``u = fx_px · x_d + cx_px``, ``v = fy_px · y_d + cy_px``; pixel centres at integer
   coordinates (pixel (row i, column j) covers u ∈ [j − ½, j + ½], v ∈ [i − ½, i + ½]).
 
-Inverting the distortion is done for all points at once: a few fixed-point steps (OpenCV's scheme)
-then Newton's method with the analytic 2×2 Jacobian, to 1e-14 in normalised units. Points where the
-iteration does not converge (beyond the fold of a strongly distorting lens) come back as NaN rather
-than as a wrong ray.
+The lens maths (distortion, its inversion with a convergence test, Rodrigues) is
+:mod:`eyetohand.lens`, shared with the models: points where the inversion does not converge (beyond
+the fold of a strongly distorting lens) come back as NaN rather than as a wrong ray.
 
 Build a camera with :meth:`Camera.looking_down` (height and tilt over the belt), :meth:`Camera.look_at`
 (eye and target points) or :meth:`Camera.from_opencv` (``K``, ``dist``, ``R``/``rvec``, ``t``);
@@ -34,29 +33,7 @@ from dataclasses import asdict, dataclass, fields, replace
 import numpy as np
 
 from .errors import InputError
-
-_FP_STEPS = 5  # fixed-point steps before Newton (robust start for strong distortion)
-_NEWTON_STEPS = 30
-_TOL = 1e-14  # normalised units; 1e-14 × 5000 px focal length ≈ 5e-11 px
-
-
-def _rodrigues_to_matrix(rvec) -> np.ndarray:
-    r = np.asarray(rvec, float).reshape(3)
-    th = float(np.linalg.norm(r))
-    if th < 1e-300:
-        return np.eye(3)
-    k = r / th
-    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(th) * Kx + (1 - math.cos(th)) * (Kx @ Kx)
-
-
-def _matrix_to_rodrigues(R) -> np.ndarray:
-    import cv2
-
-    R = np.asarray(R, float)
-    if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise InputError(f"rotation: expected a 3x3 rotation matrix, got {R.tolist()!r}")
-    return cv2.Rodrigues(R)[0].reshape(3)
+from .lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
 
 
 def _as_points(a, dim: int, what: str) -> tuple[np.ndarray, tuple[int, ...]]:
@@ -107,7 +84,11 @@ class Camera:
             if v.shape != (3,) or not np.isfinite(v).all():
                 raise InputError(f"camera.{name}: expected 3 finite numbers, got {getattr(self, name)!r}")
             object.__setattr__(self, name, tuple(float(x) for x in v))
-        object.__setattr__(self, "_R", _rodrigues_to_matrix(self.rvec))
+        object.__setattr__(self, "_R", rodrigues_to_matrix(np.array(self.rvec)))
+        object.__setattr__(self, "_dist", np.array([self.k1, self.k2, self.p1, self.p2, self.k3]))
+        object.__setattr__(self, "_f", np.array([self.fx_px, self.fy_px]))
+        object.__setattr__(self, "_c", np.array([self.cx_px, self.cy_px]))
+        object.__setattr__(self, "_centre", -self._R.T @ np.array(self.tvec_mm))
 
     # ------------------------------------------------------------------ views
 
@@ -166,7 +147,7 @@ class Camera:
             raise InputError(f"dist: expected 4 or 5 coefficients (k1 k2 p1 p2 [k3]), got {d.size}")
         d = np.concatenate([d, np.zeros(5 - d.size)])
         rot = np.asarray(rotation, float)
-        rvec = _matrix_to_rodrigues(rot) if rot.shape == (3, 3) else rot.reshape(3)
+        rvec = matrix_to_rodrigues(rot) if rot.shape == (3, 3) else rot.reshape(3)
         w, h = image_size
         return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, k1=d[0], k2=d[1], k3=d[4], p1=d[2],
                    p2=d[3], rvec=tuple(rvec), tvec_mm=tuple(np.asarray(t_mm, float).reshape(3)))
@@ -255,64 +236,21 @@ class Camera:
     def with_pose(self, rotation, t_mm) -> Camera:
         """The same intrinsics with another pose (``rotation`` Rodrigues (3,) or matrix (3, 3))."""
         rot = np.asarray(rotation, float)
-        rvec = _matrix_to_rodrigues(rot) if rot.shape == (3, 3) else rot.reshape(3)
+        rvec = matrix_to_rodrigues(rot) if rot.shape == (3, 3) else rot.reshape(3)
         return replace(self, rvec=tuple(rvec), tvec_mm=tuple(np.asarray(t_mm, float).reshape(3)))
 
     # ------------------------------------------------------------------ the lens
 
     def distort(self, xy) -> np.ndarray:
-        """Distorted normalised coordinates of ideal ones, (N, 2) → (N, 2)."""
+        """Distorted normalised coordinates of ideal ones, (N, 2) → (N, 2) (:func:`.lens.distort`)."""
         p, lead = _as_points(xy, 2, "xy")
-        x, y = p[:, 0], p[:, 1]
-        r2 = x * x + y * y
-        g = 1 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
-        xd = x * g + 2 * self.p1 * x * y + self.p2 * (r2 + 2 * x * x)
-        yd = y * g + self.p1 * (r2 + 2 * y * y) + 2 * self.p2 * x * y
-        return np.column_stack([xd, yd]).reshape(*lead, 2)
+        return distort(p, self._dist).reshape(*lead, 2)
 
     def undistort(self, xy_d) -> np.ndarray:
-        """Ideal normalised coordinates of distorted ones (N, 2), by vectorised fixed-point steps and
-        Newton's method; NaN where the iteration does not converge."""
+        """Ideal normalised coordinates of distorted ones (N, 2) (:func:`eyetohand.lens.undistort`:
+        fixed-point start, Newton to 1e-14); NaN where the iteration does not converge."""
         p, lead = _as_points(xy_d, 2, "xy_d")
-        xd, yd = p[:, 0], p[:, 1]
-        k1, k2, k3, p1, p2 = self.k1, self.k2, self.k3, self.p1, self.p2
-        if k1 == k2 == k3 == p1 == p2 == 0.0:
-            return p.copy().reshape(*lead, 2)
-        x, y = xd.copy(), yd.copy()
-        for _ in range(_FP_STEPS):  # OpenCV's fixed-point scheme: a good start
-            r2 = x * x + y * y
-            g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-            with np.errstate(divide="ignore", invalid="ignore"):
-                x, y = (xd - dx) / g, (yd - dy) / g
-        done = np.zeros(len(x), bool)
-        for _ in range(_NEWTON_STEPS):
-            r2 = x * x + y * y
-            g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dg = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # dg / d(r²)
-            fx = x * g + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
-            fy = y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
-            a = g + 2 * x * x * dg + 2 * p1 * y + 6 * p2 * x
-            b = 2 * x * y * dg + 2 * p1 * x + 2 * p2 * y
-            d = g + 2 * y * y * dg + 6 * p1 * y + 2 * p2 * x
-            det = a * d - b * b
-            with np.errstate(divide="ignore", invalid="ignore"):
-                sx = (d * fx - b * fy) / det
-                sy = (a * fy - b * fx) / det
-            x, y = x - sx, y - sy
-            done = np.abs(sx) + np.abs(sy) <= _TOL * (1 + np.abs(x) + np.abs(y))
-            if done.all():
-                break
-        # accept only true roots where the lens map is locally invertible (det > 0)
-        r2 = x * x + y * y
-        g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        res = np.hypot(x * g + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd,
-                       y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd)
-        bad = ~(np.isfinite(res) & (res <= 1e-10 * (1 + np.hypot(xd, yd))) & (det > 0))
-        x[bad] = np.nan
-        y[bad] = np.nan
-        return np.column_stack([x, y]).reshape(*lead, 2)
+        return undistort(p, self._dist)[0].reshape(*lead, 2)
 
     # ------------------------------------------------------------------ projections
 
@@ -323,42 +261,48 @@ class Camera:
 
     def normalized_to_image(self, xy) -> np.ndarray:
         """Pixels of ideal normalised coordinates (distortion applied), (N, 2) → (N, 2)."""
-        d = self.distort(xy)
-        return np.stack([self.fx_px * d[..., 0] + self.cx_px, self.fy_px * d[..., 1] + self.cy_px],
-                        axis=-1)
+        return self.distort(xy) * self._f + self._c
 
     def image_to_normalized(self, uv_px) -> np.ndarray:
         """Ideal normalised coordinates of pixels (distortion removed), (N, 2) → (N, 2)."""
         p, lead = _as_points(uv_px, 2, "uv_px")
-        xd = np.column_stack([(p[:, 0] - self.cx_px) / self.fx_px, (p[:, 1] - self.cy_px) / self.fy_px])
-        return self.undistort(xd).reshape(*lead, 2)
+        return undistort((p - self._c) / self._f, self._dist)[0].reshape(*lead, 2)
 
     def robot_to_image(self, xyz_mm) -> np.ndarray:
         """Pixels (N, 2) of robot points (N, 3) mm, lens distortion included; NaN for points not in
         front of the camera."""
-        pc = self.robot_to_camera(xyz_mm)
-        z = pc[..., 2]
+        p, lead = _as_points(xyz_mm, 3, "xyz_mm")
+        pc = p @ self._R.T + np.array(self.tvec_mm)
+        z = pc[:, 2:]
         with np.errstate(divide="ignore", invalid="ignore"):
-            xy = pc[..., :2] / np.where(z > 0, z, np.nan)[..., None]
-        return self.normalized_to_image(xy)
+            xy = pc[:, :2] / np.where(z > 0, z, np.nan)
+        return (distort(xy, self._dist) * self._f + self._c).reshape(*lead, 2)
+
+    def _directions(self, uv_px) -> tuple[np.ndarray, tuple[int, ...]]:
+        """Unnormalised robot-frame ray directions Rᵀ·(x, y, 1) of pixels, (N, 3), and the lead shape."""
+        p, lead = _as_points(uv_px, 2, "uv_px")
+        n = undistort((p - self._c) / self._f, self._dist)[0]
+        return n @ self._R[:2] + self._R[2], lead
 
     def image_to_ray(self, uv_px) -> tuple[np.ndarray, np.ndarray]:
         """The viewing rays of pixels: (origin (3,) mm = the camera centre, unit directions (N, 3)
         in the robot frame)."""
-        n = self.image_to_normalized(uv_px)
-        d = np.concatenate([n, np.ones(n.shape[:-1] + (1,))], axis=-1) @ self._R  # Rᵀ · (x, y, 1)
+        d, lead = self._directions(uv_px)
         d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-        return self.position_mm, d
+        return self.position_mm, d.reshape(*lead, 3)
 
     def image_to_robot(self, uv_px, z_mm) -> np.ndarray:
         """Robot points (N, 3) mm seen at pixels ``uv_px`` (N, 2) on the plane z = ``z_mm`` (scalar or
         (N,)). NaN where the ray does not meet the plane in front of the camera."""
-        c, d = self.image_to_ray(uv_px)
-        z = np.asarray(z_mm, float)
+        d, lead = self._directions(uv_px)
+        c = self._centre
+        z = np.asarray(z_mm, float).reshape(-1)
         with np.errstate(divide="ignore", invalid="ignore"):
-            s = (z - c[2]) / d[..., 2]
-        s = np.where(s > 0, s, np.nan)
-        return c + s[..., None] * d
+            s = (z - c[2]) / d[:, 2]
+        s[~(s > 0)] = np.nan
+        out = c + s[:, None] * d
+        out[:, 2] = np.where(np.isnan(s), np.nan, z)  # exactly the plane's height
+        return out.reshape(*lead, 3)
 
     def in_image(self, uv_px, margin_px: float = 0.0) -> np.ndarray:
         """Whether pixels lie inside the image (pixel area, −½ … w − ½), ``margin_px`` inside it."""

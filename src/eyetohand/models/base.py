@@ -41,6 +41,13 @@ class HeightRule(StrEnum):
     COMPUTED = "computed"  # the model computes z itself (the paper's B, equation 13)
 
 
+class Choice(tuple):
+    """A constant that is one of a few words (e.g. a camera's ``aspect``: "free" or "square")."""
+
+    def __new__(cls, *words: str):
+        return super().__new__(cls, words)
+
+
 class Model(ABC):
     """Base class. Subclasses set the class attributes and implement ``from_pairs``,
     ``batch_image_to_robot`` and ``robot_to_image``; ``_prepare`` precomputes from constants."""
@@ -52,7 +59,7 @@ class Model(ABC):
     unknowns: ClassVar[int] = 0  # degrees of freedom of the mapping, when not just n_params
     height_rule: ClassVar[HeightRule] = HeightRule.PLANE
     auto_candidate: ClassVar[bool] = True  # may ``model="auto"`` choose it
-    constant_shapes: ClassVar[Mapping[str, tuple[int, ...]]] = MappingProxyType({})
+    constant_shapes: ClassVar[Mapping[str, tuple]] = MappingProxyType({})  # shape, or a Choice of words
 
     # ----------------------------------------------------------- class facts
     @classmethod
@@ -262,9 +269,14 @@ def check_single_height(model_name: str, xyz_mm: np.ndarray, tol_mm: float = 1e-
     return float(z.mean())
 
 
-def _check_constant(model_name: str, key: str, value, shape: tuple[int, ...]):
-    """A constant as float / nested float lists of ``shape``, finite; anything else is refused."""
+def _check_constant(model_name: str, key: str, value, shape: tuple):
+    """A constant as float / nested float lists of ``shape``, finite (or one word of a ``Choice``);
+    anything else is refused."""
     what = f"model '{model_name}': constant '{key}'"
+    if isinstance(shape, Choice):
+        if value not in shape:
+            raise InputError(f"{what}: expected one of {', '.join(map(repr, shape))}, got {value!r}")
+        return value
     if isinstance(value, bool) or isinstance(value, str):
         raise InputError(f"{what}: expected {_shape_words(shape)}, got {type(value).__name__}")
     try:

@@ -4,17 +4,25 @@ The mapping, robot → image (OpenCV's conventions)::
 
     Xc = R·(X − X0) + t                          camera frame; X0 = the training points' centroid
     n  = Xc[:2] / Xc[2]                          ideal normalised point
-    d  = n·(1 + k1 r² + k2 r⁴ [+ k3 r⁶]) [+ tangential p1, p2]     r² = |n|²
+    d  = distort(n; k1, k2, p1, p2)              OpenCV's lens (eyetohand.lens), r² = |n|²
     uv = (fx·d_x + cx, fy·d_y + cy)
 
-and image → robot at a known height z: undistort (Newton on the 2×2 Jacobian, a fixed number of
-steps so that a whole swarm of parameter vectors is mapped at once), cast the ray from the camera
-centre, and intersect it with the plane z. Parameters (class ``PinholeCamera``, name ``camera``, 13):
-``f, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` — square pixels (fx = fy = f), radial k1, k2
-and tangential p1, p2, the pose as a Rodrigues vector and a translation. Chosen by evidence on the
-simulator (docs/simulator.md): a free aspect ratio and k3 cost more in variance than they gain on a
-few dozen pairs; the tangential terms cost ≤ 3 % on a lens with little of them and halve the error
-on a lens with p ≈ 5e-4.
+and image → robot at a known height z: undistort (:func:`eyetohand.lens.undistort`: fixed-point
+start, Newton on the 2×2 Jacobian, each point to its tolerance, NaN where the lens cannot be
+inverted; a whole swarm of parameter vectors at once), cast the ray from the camera centre, and
+intersect it with the plane z. Parameters (class ``PinholeCamera``, name ``camera``):
+``fx, fy, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` (14), or with square pixels
+``f, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` (13, fx = fy = f; ``meta["aspect"]`` says
+which) — radial k1, k2 and tangential p1, p2, the pose as a Rodrigues vector and a translation.
+
+The aspect ratio: real sensors' fy/fx differ from 1 by parts in 10⁴..10³, which square pixels turn
+into millimetre-level errors at other heights; a free fy costs 5–15 % in variance on a camera whose
+pixels are square. So :meth:`PinholeCamera.from_pairs` (``aspect="auto"``) fits both and keeps fy
+free only when the free fit's fy/fx differs from 1 by more than ``ASPECT_Z`` = 3 standard errors
+(a Wald test on the reprojection fit's covariance; ``meta["aspect_z"]``). Measured on simulated
+two-height cells in docs/simulator.md (``benchmarks/study_sim.py --only aspect``). k3 is left out:
+it over-fits a few dozen pairs (2.5× worse on 18, measured before; docs/simulator.md); the tangential
+terms cost ≤ 3 % on a lens with little of them and halve the error on a lens with p ≈ 5e-4.
 
 Estimation: normalised DLT (the paper's equation 5) → RQ decomposition into K, R, t; then
 Levenberg–Marquardt on the image reprojection error (the maximum-likelihood fit when the pixel
@@ -26,79 +34,55 @@ then refine all parameters on the robot-space residuals (the paper's equation 16
 from __future__ import annotations
 
 from types import MappingProxyType
-from typing import ClassVar
 
 import numpy as np
 from scipy.linalg import rq
 from scipy.optimize import least_squares
 
-from ..errors import DegenerateError
-from .base import HeightRule, Model, _as_uv, batch_jacobian, check_enough
+from ..errors import DegenerateError, InputError
+from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
+from .base import Choice, HeightRule, Model, _as_uv, batch_jacobian, check_enough
 from .dlt3d import dlt_projection
-from .radial import rodrigues_batch, rotation_to_rodrigues
 
-NEWTON_STEPS = 10
-FULL = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "p1", "p2", "rx", "ry", "rz", "tx", "ty", "tz")
-_IDX = {name: i for i, name in enumerate(FULL)}
-
-
-# ---------------------------------------------------------------- vectorised lens and pose
+# The full parameter row, free aspect: fx fy cx cy | k1 k2 p1 p2 (OpenCV's order) | rx ry rz | tx ty tz.
+# Square pixels drop fy (fy = fx): 13 parameters.
+FREE_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "rx", "ry", "rz", "tx", "ty", "tz")
+SQUARE_NAMES = ("f", "cx", "cy", "k1", "k2", "p1", "p2", "rx", "ry", "rz", "tx", "ty", "tz")
+ASPECTS = ("auto", "free", "square")
 
 
-def distort(n: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Distorted normalised points (P, N, 2) from ideal ones, ``k`` (P, 5) = (k1, k2, k3, p1, p2)."""
-    x, y = n[..., 0], n[..., 1]
-    k1, k2, k3, p1, p2 = (k[:, i : i + 1] for i in range(5))
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.stack([xd, yd], axis=-1)
-
-
-def undistort(d: np.ndarray, k: np.ndarray, steps: int = NEWTON_STEPS) -> np.ndarray:
-    """Ideal normalised points (P, N, 2) from distorted ones by Newton's method on the 2×2 Jacobian,
-    for per-row lens coefficients ``k`` (P, 5); ``steps`` iterations for every point at once."""
-    k1, k2, k3, p1, p2 = (k[:, i : i + 1] for i in range(5))
-    n = np.array(d, dtype=float, copy=True)
-    for _ in range(steps):
-        x, y = n[..., 0], n[..., 1]
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dr = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
-        fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - d[..., 0]
-        fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - d[..., 1]
-        jxx = radial + 2 * x * x * dr + 2 * p1 * y + 6 * p2 * x
-        jyy = radial + 2 * y * y * dr + 6 * p1 * y + 2 * p2 * x
-        jxy = 2 * x * y * dr + 2 * p1 * x + 2 * p2 * y
-        det = jxx * jyy - jxy * jxy
-        with np.errstate(divide="ignore", invalid="ignore"):
-            n = n - np.stack([(jyy * fx - jxy * fy) / det, (jxx * fy - jxy * fx) / det], axis=-1)
-    return n
+# ---------------------------------------------------------------- vectorised camera over parameter rows
 
 
 def project_full(full: np.ndarray, xyz_rel: np.ndarray) -> np.ndarray:
-    """Pixels (P, N, 2) of points (N, 3) (relative to X0) for full parameter rows (P, 15)."""
-    R = rodrigues_batch(full[:, 9:12])
-    Xc = np.einsum("pij,nj->pni", R, xyz_rel) + full[:, None, 12:15]
+    """Pixels (P, N, 2) of points (N, 3) (relative to X0) for full parameter rows (P, 14)."""
+    R = rodrigues_to_matrix(full[:, 8:11])
+    Xc = np.einsum("pij,nj->pni", R, xyz_rel) + full[:, None, 11:14]
     with np.errstate(divide="ignore", invalid="ignore"):
         n = Xc[..., :2] / Xc[..., 2:3]
-    d = distort(n, full[:, 4:9])
-    return d * full[:, None, 0:2] + full[:, None, 2:4]
+    return distort(n, full[:, 4:8]) * full[:, None, 0:2] + full[:, None, 2:4]
 
 
 def backproject_full(full: np.ndarray, uv_px: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
-    """Points (P, N, 3) (relative to X0) on the planes z = ``z_rel`` (N,) seen at pixels (N, 2)."""
+    """Points (P, N, 3) (relative to X0) on the planes z = ``z_rel`` (N,) seen at pixels (N, 2);
+    NaN where the lens cannot be inverted (:func:`eyetohand.lens.undistort`)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         d = (uv_px[None] - full[:, None, 2:4]) / full[:, None, 0:2]
-    n = undistort(d, full[:, 4:9])
-    R = rodrigues_batch(full[:, 9:12])  # camera ← robot
-    ray = np.concatenate([n, np.ones(n.shape[:-1] + (1,))], axis=-1)
-    w = np.einsum("pji,pnj->pni", R, ray)  # ray directions in the robot frame
-    C = -np.einsum("pji,pj->pi", R, full[:, 12:15])  # camera centres
+    # one parameter row: a single lens (plain-float path for a few points)
+    n = undistort(d[0], full[0, 4:8])[0][None] if len(full) == 1 else undistort(d, full[:, 4:8])[0]
+    R = rodrigues_to_matrix(full[:, 8:11])  # camera ← robot
+    # ray directions in the robot frame: Rᵀ (x, y, 1)
+    w = np.einsum("pji,pnj->pni", R[:, :2], n) + R[:, None, 2]
+    C = -np.einsum("pji,pj->pi", R, full[:, 11:14])  # camera centres
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (z_rel[None, :] - C[:, None, 2]) / w[..., 2]
     return C[:, None, :] + s[..., None] * w
+
+
+def expand(params: np.ndarray, square: bool) -> np.ndarray:
+    """Full rows (P, 14) from model parameter rows (P, 13) (square pixels: fy = fx) or (P, 14)."""
+    p = np.asarray(params, float)
+    return np.concatenate([p[:, :1], p], axis=1) if square else p
 
 
 # ---------------------------------------------------------------- initial estimate
@@ -117,21 +101,25 @@ def decompose_projection(P: np.ndarray):
 
 
 class PinholeCamera(Model):
-    """Pinhole camera (square pixels) with distortion k1, k2, p1, p2 and a free pose: see the module
-    docstring. ``terms`` names the camera parameters estimated (``fx`` without ``fy``: fy = fx)."""
+    """Pinhole camera with distortion k1, k2, p1, p2 and a free pose, fx and fy free or square pixels
+    (chosen in :meth:`from_pairs`): see the module docstring. ``meta["aspect"]`` says which."""
 
     name = "camera"
-    terms: ClassVar[tuple[str, ...]] = ("fx", "cx", "cy", "k1", "k2", "p1", "p2")
-    n_params = 13
+    n_params = 14  # free aspect; an instance with square pixels has 13 (``self.n_params``)
     min_pairs = 8
     height_rule = HeightRule.GIVEN
-    constant_shapes = MappingProxyType({"origin_mm": (3,)})
-    summary = ("13 unknowns: pinhole camera f cx cy, lens k1 k2 p1 p2 and pose; pairs at 2+ heights, "
+    constant_shapes = MappingProxyType({"origin_mm": (3,), "aspect": Choice("free", "square")})
+    summary = ("14 unknowns: pinhole camera fx fy cx cy, lens k1 k2 p1 p2 and pose; pairs at 2+ heights, "
                "lens distortion")
 
     # -------------------------------------------------------------- estimation
     @classmethod
-    def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> PinholeCamera:
+    def from_pairs(cls, uv_px, xyz_mm, *, image_size=None, aspect: str = "auto") -> PinholeCamera:
+        """Fit on the image reprojection error (see the module docstring). ``aspect``: "free" (fx, fy),
+        "square" (fx = fy) or "auto": free when the fitted fy/fx differs from 1 by more than
+        ``ASPECT_Z`` standard errors, square otherwise."""
+        if aspect not in ASPECTS:
+            raise InputError(f"aspect: expected one of {', '.join(ASPECTS)}, got {aspect!r}")
         uv = np.asarray(uv_px, float)
         xyz = np.asarray(xyz_mm, float)
         check_enough(cls.name, cls.min_pairs, len(uv))
@@ -150,8 +138,8 @@ class PinholeCamera(Model):
         K, R, t = decompose_projection(P)
         f_dlt = float(np.sqrt(abs(K[0, 0] * K[1, 1])))
         if np.isfinite(K).all() and 0.05 * size < f_dlt < 100 * size:
-            starts.append(("DLT", np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.zeros(5),
-                                        rotation_to_rodrigues(R), t]))
+            starts.append(("DLT", np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.zeros(4),
+                                        matrix_to_rodrigues(R), t]))
         else:
             f_dlt = 2.0 * size
         pnp = _pnp_start(uv, rel, centre, f_dlt)
@@ -159,26 +147,20 @@ class PinholeCamera(Model):
             starts.append(("image centre + PnP", pnp))
         if not starts:
             raise DegenerateError(f"model '{cls.name}': could not find a starting camera for these pairs")
-        mask = _mask(cls.terms)
-        best = None
-        for label, full0 in starts:
-            if "fy" not in cls.terms:
-                full0[0] = full0[1] = np.sqrt(abs(full0[0] * full0[1]))
-
-            def fun_batch(p):
-                return (project_full(_expand(p, mask, cls.terms), rel) - uv).reshape(len(p), -1)
-
-            try:
-                sol = least_squares(lambda p: fun_batch(p[None])[0], full0[mask], method="lm",
-                                    jac=lambda p: batch_jacobian(fun_batch, p), x_scale="jac")
-            except ValueError:
-                continue
-            cost = float(np.mean(sol.fun**2)) if np.isfinite(sol.fun).all() else np.inf
-            if best is None or cost < best[0]:
-                best = (cost, label, sol.x)
-        if best is None or not np.isfinite(best[0]):
+        fits = {}
+        for square in ((False, True) if aspect == "auto" else (aspect == "square",)):
+            best = _fit_reprojection(uv, rel, starts, square)
+            if best is not None:
+                fits[square] = best
+        if not fits:
             raise DegenerateError(f"model '{cls.name}': the camera fit did not converge on these pairs")
-        cost, label, params = best
+        aspect_z = None
+        if aspect == "auto" and False in fits:
+            aspect_z = _aspect_z(uv, rel, fits[False][2])
+            square = not (np.isfinite(aspect_z) and aspect_z > ASPECT_Z) and True in fits
+        else:
+            square = next(iter(fits))
+        cost, label, params = fits[square]
         rms_px = float(np.sqrt(2 * cost))
         meta = {
             "origin_mm": x0.tolist(),
@@ -186,24 +168,42 @@ class PinholeCamera(Model):
             "image_size": list(image_size) if image_size is not None else None,
             "reprojection_rms_px": rms_px,
             "init": f"camera fitted on image reprojection from the {label} start: rms {rms_px:.3f} px",
-            "terms": list(cls.terms),
+            "terms": [n for n in (SQUARE_NAMES if square else FREE_NAMES) if n[0] not in "rt"],
+            "aspect": "square" if square else "free",
         }
+        if aspect_z is not None:
+            meta["aspect_z"] = aspect_z
         return cls(params, meta)
 
+    def __init__(self, params, constants=None, diagnostics=None):
+        consts = dict(constants or {})
+        if diagnostics is None and "aspect" not in consts:  # files written before fy was estimated
+            consts["aspect"] = "free" if "fy" in consts.get("terms", ()) else "square"
+        if consts.get("aspect") not in ("free", "square"):
+            raise InputError(f"model 'camera': constant 'aspect': expected 'free' or 'square', got "
+                             f"{consts.get('aspect')!r}")
+        self._square = consts["aspect"] == "square"
+        self.n_params = 13 if self._square else 14  # type: ignore[misc]  (per instance: the aspect decides)
+        super().__init__(params, consts, diagnostics)
+
     def _prepare(self) -> None:
-        self._x0 = np.asarray(self.meta["origin_mm"], float)
-        self._mask = _mask(self.terms)
+        self._x0 = np.asarray(self.constants["origin_mm"], float)
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """Names of ``params`` (13 with square pixels, 14 with fx and fy)."""
+        return SQUARE_NAMES if self._square else FREE_NAMES
 
     # -------------------------------------------------------------- mapping
     def full_params(self, params) -> np.ndarray:
-        """Rows (P, 15) of fx fy cx cy k1 k2 k3 p1 p2 rx ry rz tx ty tz (absent terms are 0)."""
-        return _expand(np.asarray(params, float).reshape(-1, self.n_params), self._mask, self.terms)
+        """Rows (P, 14) of fx fy cx cy k1 k2 p1 p2 rx ry rz tx ty tz."""
+        return expand(np.asarray(params, float).reshape(-1, self.n_params), self._square)
 
     def batch_image_to_robot(self, params, uv_px, z_mm):
         uv = np.asarray(uv_px, float)
         z = np.asarray(z_mm, float)
         out = backproject_full(self.full_params(params), uv, z - self._x0[2]) + self._x0
-        out[..., 2] = z  # exact, not x0 + (z - x0)
+        out[..., 2] = np.where(np.isnan(out[..., 2]), np.nan, z)  # exact, not x0 + (z - x0)
         return out
 
     def robot_to_image(self, xyz_mm) -> np.ndarray:
@@ -218,28 +218,59 @@ class PinholeCamera(Model):
     def camera(self) -> dict:
         """Intrinsics, distortion (OpenCV order k1 k2 p1 p2 k3) and pose in the robot frame."""
         f = self.full_params(self.params)[0]
-        R = rodrigues_batch(f[None, 9:12])[0]
-        t = f[12:15] - R @ self._x0  # Xc = R X + t in robot coordinates
+        R = rodrigues_to_matrix(f[8:11])
+        t = f[11:14] - R @ self._x0  # Xc = R X + t in robot coordinates
         return {
             "K": [[f[0], 0.0, f[2]], [0.0, f[1], f[3]], [0.0, 0.0, 1.0]],
-            "dist": [f[4], f[5], f[7], f[8], f[6]],
+            "dist": [f[4], f[5], f[6], f[7], 0.0],
             "R": R.tolist(),
             "t_mm": t.tolist(),
             "centre_mm": (-R.T @ t).tolist(),
         }
 
 
-def _mask(terms) -> np.ndarray:
-    return np.array([n in terms or n[0] in "rt" for n in FULL])
+ASPECT_Z = 3.0  # "auto": fy/fx − 1 must exceed this many standard errors for a free aspect ratio
 
 
-def _expand(p: np.ndarray, mask: np.ndarray, terms) -> np.ndarray:
-    """Full rows (P, 15) from model parameter rows; without ``fy`` the pixels are square."""
-    full = np.zeros((len(p), len(FULL)))
-    full[:, mask] = p
-    if "fy" not in terms:
-        full[:, 1] = full[:, 0]
-    return full
+def _fit_reprojection(uv, rel, starts, square: bool):
+    """Levenberg–Marquardt on the image reprojection error from each start; the best as
+    (mean squared residual, start label, parameters) or None."""
+    best = None
+    for label, full0 in starts:
+        full0 = np.array(full0, float)
+        p0 = np.r_[np.sqrt(abs(full0[0] * full0[1])), full0[2:]] if square else full0
+
+        def fun_batch(p):
+            return (project_full(expand(p, square), rel) - uv).reshape(len(p), -1)
+
+        try:
+            sol = least_squares(lambda p: fun_batch(p[None])[0], p0, method="lm",
+                                jac=lambda p: batch_jacobian(fun_batch, p), x_scale="jac")
+        except ValueError:
+            continue
+        cost = float(np.mean(sol.fun**2)) if np.isfinite(sol.fun).all() else np.inf
+        if np.isfinite(cost) and (best is None or cost < best[0]):
+            best = (cost, label, sol.x)
+    return best
+
+
+def _aspect_z(uv, rel, full) -> float:
+    """|fy/fx − 1| in standard errors at the free-aspect reprojection fit ``full`` (14,)."""
+    def fun_batch(p):
+        return (project_full(p, rel) - uv).reshape(len(p), -1)
+
+    r = fun_batch(full[None])[0]
+    J = batch_jacobian(fun_batch, full)
+    dof = max(r.size - full.size, 1)
+    s2 = float(r @ r) / dof
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return float("nan")
+    g = np.zeros(full.size)  # gradient of fy/fx
+    g[0], g[1] = -full[1] / full[0] ** 2, 1.0 / full[0]
+    se = float(np.sqrt(max(g @ cov @ g, 0.0)))
+    return abs(full[1] / full[0] - 1.0) / se if se > 0 else float("inf")
 
 
 def _pnp_start(uv, rel, centre, f):
@@ -254,4 +285,4 @@ def _pnp_start(uv, rel, centre, f):
         return None
     if not ok:
         return None
-    return np.r_[f, f, centre, np.zeros(5), rvec.ravel(), tvec.ravel()]
+    return np.r_[f, f, centre, np.zeros(4), rvec.ravel(), tvec.ravel()]

@@ -30,49 +30,10 @@ from types import MappingProxyType
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..normalize import apply_h, hartley
-from .base import Model
-from .homography import batch_homography, dlt_homography
-from .planar import planar_setup, to_robot
-
-NEWTON_STEPS = 12
-
-
-def rodrigues_batch(rvec: np.ndarray) -> np.ndarray:
-    """Rotation matrices (P, 3, 3) from Rodrigues vectors (P, 3)."""
-    rvec = np.asarray(rvec, float).reshape(-1, 3)
-    theta = np.linalg.norm(rvec, axis=1)
-    small = theta < 1e-12
-    k = rvec / np.where(small, 1.0, theta)[:, None]
-    K = np.zeros((len(rvec), 3, 3))
-    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
-    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
-    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
-    s = np.sin(theta)[:, None, None]
-    c = (1 - np.cos(theta))[:, None, None]
-    R = np.eye(3)[None] + s * K + c * (K @ K)
-    R[small] = np.eye(3)
-    return R
-
-
-def rotation_to_rodrigues(R: np.ndarray) -> np.ndarray:
-    """Rodrigues vector of one rotation matrix."""
-    import cv2
-
-    return cv2.Rodrigues(np.asarray(R, float))[0].ravel()
-
-
-def undistort_radial(d: np.ndarray, k1: np.ndarray, k2: np.ndarray) -> np.ndarray:
-    """Ideal normalised points from distorted ones, (P, N, 2), for per-particle k1, k2 (P, 1)."""
-    rd = np.linalg.norm(d, axis=-1)
-    r = rd.copy()
-    for _ in range(NEWTON_STEPS):
-        r2 = r * r
-        f = r * (1 + k1 * r2 + k2 * r2 * r2) - rd
-        fp = 1 + 3 * k1 * r2 + 5 * k2 * r2 * r2
-        r = r - f / np.where(np.abs(fp) > 1e-12, fp, 1e-12)
-    ratio = np.where(rd > 0, r / np.where(rd > 0, rd, 1.0), 1.0)
-    return d * ratio[..., None]
+from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
+from ..normalize import hartley
+from .homography import Homography, dlt_homography
+from .planar import PLANAR_CONSTANTS, planar_setup
 
 
 def focal_from_homography(H_plane_to_image: np.ndarray, centre: np.ndarray) -> float | None:
@@ -105,16 +66,15 @@ def pose_from_homography(H_plane_to_image: np.ndarray, centre: np.ndarray, f: fl
     R = U @ Vt
     if np.linalg.det(R) < 0:
         R = U @ np.diag([1, 1, -1]) @ Vt
-    return rotation_to_rodrigues(R), t
+    return matrix_to_rodrigues(R), t
 
 
 def project_plane(p: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """Pixels of plane points (x, y, 0) for camera parameters p = (f, k1, k2, r(3), t(3))."""
-    R = rodrigues_batch(p[None, 3:6])[0]
+    R = rodrigues_to_matrix(p[3:6])
     Xc = np.column_stack([xy_mm, np.zeros(len(xy_mm))]) @ R.T + p[6:9]
     n = Xc[:, :2] / Xc[:, 2:3]
-    r2 = (n * n).sum(axis=1, keepdims=True)
-    return centre + p[0] * n * (1 + p[1] * r2 + p[2] * r2 * r2)
+    return centre + p[0] * distort(n, np.array([p[1], p[2], 0.0, 0.0]))
 
 
 def fit_lens(uv_px, xy_mm, centre, f_default):
@@ -135,14 +95,19 @@ def fit_lens(uv_px, xy_mm, centre, f_default):
     return sol.x, rms
 
 
-class HomographyRadial(Model):
+class HomographyRadial(Homography):
+    """The homography, seen through a radial lens: pixels are undistorted (f, k1, k2 about the
+    distortion centre, fixed by the lens fit) before the same planar matrix map; the solvers refine
+    the homography's 8 elements."""
+
     name = "homography-radial"
     n_params = 8  # the homography; f, k1, k2 are fixed by the lens fit
     unknowns = 10  # 8 + k1, k2 (f only sets k's units)
     min_pairs = 6
     summary = "10 unknowns: homography plus radial lens distortion k1, k2"
-    constant_shapes = MappingProxyType({"T_uv": (3, 3), "T_xy": (3, 3), "plane_z_mm": (), "centre_px": (2,),
-                                        "focal_px": (), "k1": (), "k2": ()})
+    constant_shapes = MappingProxyType(
+        {**PLANAR_CONSTANTS, "centre_px": (2,), "focal_px": (), "k1": (), "k2": ()}
+    )
 
     @classmethod
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> HomographyRadial:
@@ -162,48 +127,32 @@ class HomographyRadial(Model):
         T_uv, ideal_n = hartley(ideal)
         T_xy, xy_n = hartley(xyz[:, :2])
         H, cond = dlt_homography(ideal_n, xy_n, cls.name)
-        meta = {
-            "T_uv": T_uv.tolist(),
-            "T_xy": T_xy.tolist(),
-            "plane_z_mm": z0,
-            "centre_px": centre.tolist(),
-            "centre_source": source,
-            "focal_px": f,
-            "k1": k1,
-            "k2": k2,
-            "lens_fit_rms_px": rms_px,
-            "condition_number": cond,
-        }
-        return cls(H.reshape(-1)[:8], meta)
+        constants = {"T_uv": T_uv.tolist(), "T_xy": T_xy.tolist(), "plane_z_mm": z0,
+                     "centre_px": centre.tolist(), "focal_px": f, "k1": k1, "k2": k2}
+        diagnostics = {"centre_source": source, "lens_fit_rms_px": rms_px, "condition_number": cond}
+        return cls(H.reshape(-1)[:8], constants, diagnostics)
 
     def _prepare(self) -> None:
-        self._T_uv = np.asarray(self.meta["T_uv"], float)
-        self._Tinv_xy = np.linalg.inv(np.asarray(self.meta["T_xy"], float))
-        self._c = np.asarray(self.meta["centre_px"], float)
-        self._lens = (float(self.meta["focal_px"]), float(self.meta["k1"]), float(self.meta["k2"]))
+        super()._prepare()
+        self._c = np.asarray(self.constants["centre_px"], float)
+        c = self.constants
+        self._lens = (float(c["focal_px"]), float(c["k1"]), float(c["k2"]))
 
     @property
     def distortion(self) -> tuple[float, float]:
-        """(k1, k2) in OpenCV's f-normalised convention, with f = ``meta["focal_px"]``."""
+        """(k1, k2) in OpenCV's f-normalised convention, with f = ``constants["focal_px"]``."""
         return self._lens[1], self._lens[2]
 
-    def batch_image_to_robot(self, params, uv_px, z_mm):
-        ideal = undistort_px(np.asarray(uv_px, float), self._c, *self._lens)
-        xy_n = batch_homography(params, apply_h(self._T_uv, ideal))
-        return to_robot(xy_n, self._Tinv_xy, z_mm)
+    def _ideal_px(self, uv_px: np.ndarray) -> np.ndarray:
+        return undistort_px(uv_px, self._c, *self._lens)
 
-    def robot_to_image(self, xyz_mm) -> np.ndarray:
-        xyz = np.atleast_2d(np.asarray(xyz_mm, dtype=float))
-        H = self._Tinv_xy @ np.append(self.params, 1.0).reshape(3, 3) @ self._T_uv
-        ideal = apply_h(np.linalg.inv(H), xyz[:, :2])
+    def _distorted_px(self, uv_px: np.ndarray) -> np.ndarray:
         f, k1, k2 = self._lens
-        n = (ideal - self._c) / f
-        r2 = (n * n).sum(axis=1, keepdims=True)
-        return self._c + f * n * (1 + k1 * r2 + k2 * r2 * r2)
+        return self._c + f * distort((uv_px - self._c) / f, np.array([k1, k2, 0.0, 0.0]))
 
 
 def undistort_px(uv_px: np.ndarray, centre, f: float, k1: float, k2: float) -> np.ndarray:
-    """Ideal pixels from distorted ones for one lens (N, 2)."""
+    """Ideal pixels from distorted ones for one lens (N, 2) (:func:`eyetohand.lens.undistort`); NaN
+    where the lens cannot be inverted (beyond its fold)."""
     d = (np.asarray(uv_px, float) - centre) / f
-    n = undistort_radial(d[None], np.array([[k1]]), np.array([[k2]]))[0]
-    return centre + f * n
+    return centre + f * undistort(d, np.array([k1, k2, 0.0, 0.0]))[0]

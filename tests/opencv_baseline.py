@@ -1,4 +1,5 @@
-"""The white-box reference: OpenCV's camera calibration on the same pairs, used to judge the models.
+"""Test oracle — the white-box reference: OpenCV's camera calibration on the same pairs, used to judge
+the models (tests/test_multiheight.py, benchmarks/study_sim.py; not part of the package).
 
 ``cv2.calibrateCamera`` with the pairs' robot points as one view's object points. They span two or
 more heights, so the object is not planar and OpenCV needs a starting camera matrix
@@ -11,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
+from eyetohand.errors import InputError
 
 
 class OpenCVCalibration:
