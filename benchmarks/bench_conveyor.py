@@ -68,8 +68,8 @@ def main() -> None:
             PointPairs.from_arrays(uv, xyz), model="homography-radial", image_size=SIZE, loo=False
         )
         uv_c_det = uv_c + rng.normal(0.0, setup.pixel_sigma_px, uv_c.shape)
-        static = rms(cal.image_to_robot(uv_c)[:, :2] - xyz_c[:, :2])
-        static_det = rms(cal.image_to_robot(uv_c_det)[:, :2] - xyz_c[:, :2])
+        static = rms(cal.image_to_robot(uv_c, allow_outside=True)[:, :2] - xyz_c[:, :2])
+        static_det = rms(cal.image_to_robot(uv_c_det, allow_outside=True)[:, :2] - xyz_c[:, :2])
         r = (
             b.mm_per_count / setup.mm_per_count - 1,
             b.yaw_deg - 3.0,

@@ -93,11 +93,12 @@ def test_belt_recovered_to_1e4_scale_and_0p01_deg(must_show):
 def test_pick_at_far_end_of_window_within_2x_static_calibration_at_camera(must_show):
     setup, sim, conv = must_show
     pc = pick_check(sim, 400, seed=11)  # true pixels, latched counts with jitter + slip + quantisation
-    p = conv.image_to_robot_at(pc["uv_px"], pc["e_image"], pc["e_now"])
+    # production parts are seen anywhere in the image, beyond the sightings' hull: accuracy measured there too
+    p = conv.image_to_robot_at(pc["uv_px"], pc["e_image"], pc["e_now"], allow_outside=True)
     pick = rms(p - pc["xyz_mm"])
     (uv, xyz), (uv_c, xyz_c) = static_session(sim, seed=12)
     static = calibrate(PointPairs.from_arrays(uv, xyz), model="homography-radial", image_size=SIZE, loo=False)
-    at_camera = rms(static.image_to_robot(uv_c)[:, :2] - xyz_c[:, :2])
+    at_camera = rms(static.image_to_robot(uv_c, allow_outside=True)[:, :2] - xyz_c[:, :2])
     assert pick < 2.0 * at_camera, (pick, at_camera)
     assert pick < 0.02
 
@@ -112,8 +113,8 @@ def test_counts_that_wrap_give_the_same_answers_as_counts_that_do_not():
     uv = np.array([[1200.0, 1000.0], [300.0, 250.0]])
     de = 125_000  # 1.25 m of travel: inside the window
     e_w = sim_w.encoder.wrap(np.array([(1 << 24) - 50_000]))[0]
-    a = conv_w.image_to_robot_at(uv, e_w, sim_w.encoder.wrap(np.array([e_w + de]))[0])
-    b = conv_n.image_to_robot_at(uv, 5000, 5000 + de)
+    a = conv_w.image_to_robot_at(uv, e_w, sim_w.encoder.wrap(np.array([e_w + de]))[0], allow_outside=True)
+    b = conv_n.image_to_robot_at(uv, 5000, 5000 + de, allow_outside=True)
     np.testing.assert_allclose(a, b, atol=1e-9)
     assert conv_w.report["present"] == conv_n.report["present"]
 

@@ -18,13 +18,14 @@ import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, settings
 
-from eyetohand import load_pairs
+from eyetohand import InputError, load_pairs
 from eyetohand.calibration import Calibration
 from eyetohand.cli import main as cli_main
 from eyetohand.server.app import LOOPBACK_HOSTS, MAX_POINTS, create_app
 from eyetohand.server.schemas import MAX_PAIRS
 from eyetohand.server.storage import Store
 from eyetohand.server.tcp import MAX_LINE, LineServer
+from eyetohand.server.tcp import answer as tcp_answer
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "examples" / "paper"
@@ -318,7 +319,8 @@ def test_a_million_points_work_and_more_get_413(client):
     create(client, "big")
     rng = np.random.default_rng(0)
     uv = np.round(rng.uniform(0, 2000, (MAX_POINTS, 2)), 2)
-    body = orjson.dumps({"points": uv, "z": 167.4166}, option=orjson.OPT_SERIALIZE_NUMPY)
+    body = orjson.dumps({"points": uv, "z": 167.4166, "allow_outside": True, "sigma": False},
+                        option=orjson.OPT_SERIALIZE_NUMPY)
     t0 = time.perf_counter()
     r = client.post("/api/calibrations/1/image-to-robot", content=body,
                     headers={"Content-Type": "application/json"})
@@ -328,7 +330,9 @@ def test_a_million_points_work_and_more_get_413(client):
     assert xyz.shape == (MAX_POINTS, 3) and np.isfinite(xyz).all()
     cal = Calibration.from_dict(client.get("/api/calibrations/1").json()["calibration"])
     idx = rng.choice(MAX_POINTS, 1000, replace=False)
-    assert np.abs(xyz[idx] - cal.image_to_robot(uv[idx], 167.4166)).max() <= 1e-9
+    assert np.abs(xyz[idx] - cal.image_to_robot(uv[idx], 167.4166, allow_outside=True)).max() <= 1e-9
+    inside = np.array(orjson.loads(r.content)["inside"])
+    assert inside.dtype == bool and 0 < inside.sum() < MAX_POINTS
     print(f"1e6 points: {seconds:.1f} s")
     body = b'{"points": [' + b",".join([b"[1,2]"] * (MAX_POINTS + 1)) + b"]}"
     r = client.post("/api/calibrations/1/image-to-robot", content=body,
@@ -401,7 +405,7 @@ async def _tcp_session(cal):
                 assert np.abs(got - want).max() <= 1e-9
 
         reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
-        for line, want in ((b"1,2,3,4\n", "ERR 4 fields"), (b"abc,2\n", "ERR u: 'abc' is not a number"),
+        for line, want in ((b"1,2,3,4\n", "ERR 4 numbers"), (b"abc,2\n", "ERR u: 'abc' is not a number"),
                            (b"1,nan\n", "ERR v: 'nan' is not a finite number"), (b"\n", "ERR empty line"),
                            (b"\xff,1\n", "ERR not ASCII"), (b"600,900,167.4\n", "")):
             writer.write(line)
@@ -688,3 +692,32 @@ def test_serve_port_errors_are_one_line(capsys, tmp_path):
         r = subprocess.run([sys.executable, "-m", "eyetohand.cli", "serve", "--port", str(s.getsockname()[1]),
                             "--data", str(tmp_path)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.startswith("error: --port") and r.stderr.count("\n") == 1, r.stderr
+
+
+def test_guarded_mapping_over_http_and_tcp_says_the_same(client):
+    """Outside the region, off the plane, and allowed-with-flag: one rule, the same words."""
+    create(client, "g", model="homography", optimizer="lm")
+    cal = Calibration.from_dict(client.get("/api/calibrations/1").json()["calibration"])
+    url = "/api/calibrations/1/image-to-robot"
+    r = client.post(url, json={"points": [[600, 900], [99999, -5000]]})
+    assert r.status_code == 422 and r.json()["field"] == "points[1]"
+    assert "px outside the training points' hull" in r.json()["error"]
+    r = client.post(url, json={"points": [[600, 900]], "z": 100})
+    assert r.status_code == 422 and r.json()["field"] == "points[0].z" and "off the calibration plane" in r.json()["error"]
+    r = client.post(url, json={"points": [[600, 900], [99999, -5000]], "allow_outside": True, "angles": [30, 0]})
+    body = r.json()
+    assert r.status_code == 200 and body["inside"] == [True, False] and len(body["rz_deg"]) == 2
+    m = cal.map([[600, 900], [99999, -5000]], angle_deg=[30, 0], allow_outside=True)
+    assert np.abs(np.array(body["points"]) - m.xyz_mm).max() <= 1e-9
+    assert np.abs(np.array(body["sigma_mm"]) - m.sigma_mm).max() <= 1e-12
+    lib_words = None
+    try:
+        cal.map([[99999, -5000]])
+    except InputError as exc:
+        lib_words = exc.reason
+    assert tcp_answer(cal, b"99999,-5000") == f"ERR {lib_words}\n".encode()
+    assert tcp_answer(cal, b"600,900,100").startswith(b"ERR z = 100 mm is 67.4 mm off the calibration plane")
+    out = tcp_answer(cal, b"99999,-5000,allow").decode().strip().split(",")
+    assert out[-1] == "OUTSIDE" and abs(float(out[0]) - m.xyz_mm[1, 0]) <= 1e-9
+    rz = float(tcp_answer(cal, b"600,900,a=30").decode().split(",")[3])
+    assert rz == pytest.approx(m.rz_deg[0], abs=1e-12)

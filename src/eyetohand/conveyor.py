@@ -399,9 +399,11 @@ class ConveyorCalibration:
     notes: tuple[str, ...] = field(default=())
 
     # ---------------------------------------------------------------- mapping
-    def image_to_robot_at_image(self, uv_px) -> np.ndarray:
-        """(N, 2) px → (N, 3) mm: where the part was at its exposure (the camera map and surface)."""
-        xy = self.calibration.image_to_robot(np.atleast_2d(np.asarray(uv_px, float)))[:, :2]
+    def image_to_robot_at_image(self, uv_px, *, allow_outside: bool = False) -> np.ndarray:
+        """(N, 2) px → (N, 3) mm: where the part was at its exposure (the camera map and surface);
+        a pixel outside the image region the sightings covered is refused unless ``allow_outside``."""
+        uv = np.atleast_2d(np.asarray(uv_px, float))
+        xy = self.calibration.image_to_robot(uv, allow_outside=allow_outside)[:, :2]
         c0, c1, c2, x0, y0 = self.surface
         z = c0 + c1 * (xy[:, 0] - x0) + c2 * (xy[:, 1] - y0)
         return np.column_stack([xy, z])
@@ -417,12 +419,13 @@ class ConveyorCalibration:
 
     def image_to_robot_at(self, uv_px, e_image, e_now, *, allow_outside: bool = False) -> np.ndarray:
         """(N, 2) px seen at latched counts ``e_image`` → (N, 3) mm when the encoder reads ``e_now``
-        (scalars or (N,)). A part outside the robot's window is refused with the distance (mm)."""
+        (scalars or (N,)). A part outside the robot's window is refused with the distance (mm), and
+        one seen outside the calibrated image region likewise, unless ``allow_outside``."""
         uv = np.atleast_2d(np.asarray(uv_px, float))
         n = len(uv)
         de = np.broadcast_to(self.encoder.delta(e_image, e_now), (n,)).astype(float)
         b = self.belt.vector_mm_per_count
-        p = self.image_to_robot_at_image(uv) + b * (de + self.latch_counts)[:, None]
+        p = self.image_to_robot_at_image(uv, allow_outside=allow_outside) + b * (de + self.latch_counts)[:, None]
         if not allow_outside:
             self.check_window(p)
         return p

@@ -389,53 +389,76 @@ def _check_repeats(values: np.ndarray, label: str, wheres: list[_Where]) -> None
         raise wheres[i].error(f"repeats the {label} of {wheres[j]}; each pair must be distinct")
 
 
+OUTPUT_COLUMNS = ("x", "y", "z", "rz", "sigma_mm", "inside")
+
+
 @dataclass(frozen=True, eq=False)
 class ImagePoints:
-    """Image points to map in production: ``uv_px`` (N, 2), optional heights ``z_mm`` (N,), and the
-    source table (header and rows) so that the output keeps every input column."""
+    """Image points to map in production: ``uv_px`` (N, 2), optional heights ``z_mm`` (N,) and image
+    angles ``angle_deg`` (N,), and the source table (header and rows) so that the output keeps every
+    input column."""
 
     uv_px: np.ndarray
     z_mm: np.ndarray | None
     header: tuple[str, ...]
     rows: tuple[tuple[str, ...], ...]
+    angle_deg: np.ndarray | None = None
 
-    def with_columns(self, columns: dict[str, np.ndarray]) -> str:
-        """CSV text: the input table with ``columns`` added (replacing same-named ones)."""
-        keep = [j for j, h in enumerate(self.header) if h.strip().lower() not in columns]
+    def with_columns(self, columns: dict[str, list]) -> str:
+        """CSV text: the input table with ``columns`` appended (names never already in the input)."""
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
-        w.writerow([self.header[j] for j in keep] + list(columns))
+        w.writerow(list(self.header) + list(columns))
         for i, row in enumerate(self.rows):
-            w.writerow([row[j] for j in keep] + [repr(float(columns[c][i])) for c in columns])
+            w.writerow(list(row) + [_cell(columns[c][i]) for c in columns])
         return buf.getvalue()
 
 
+def _cell(v) -> str:
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    return repr(float(v))
+
+
 def load_image_points(path: str | os.PathLike) -> ImagePoints:
-    """Read a CSV with columns ``u,v`` (and optionally ``z``, mm) to map with a calibration."""
+    """Read a CSV with columns ``u,v`` (and optionally ``z``, mm, and ``angle``, deg) to map."""
     path = Path(path)
-    name = str(path)
-    rows, first = _csv_rows(_read_text(path), name)
+    return image_points_from_text(_read_text(path), str(path))
+
+
+def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
+    """Image points from CSV text (see :func:`load_image_points`). A column the mapping would add
+    (x, y, z when the input has no z, rz, sigma_mm, inside) is refused rather than overwritten."""
+    rows, first = _csv_rows(text, name)
     header = [h.strip() for h in rows[first]]
     lower = [h.lower() for h in header]
     missing = [c for c in ("u", "v") if c not in lower]
     if missing:
-        raise InputError(f"missing column(s) {', '.join(missing)}; expected u,v[,z]", source=name,
+        raise InputError(f"missing column(s) {', '.join(missing)}; expected u,v[,z][,angle]", source=name,
                          line=first + 1)
+    clash = [h for h in header if h.lower() in OUTPUT_COLUMNS and h.lower() != "z"]
+    if clash:
+        raise InputError(f"column '{clash[0]}' would be replaced by the mapping's own; rename it in the input",
+                         source=name, line=first + 1)
     ju, jv = lower.index("u"), lower.index("v")
     jz = lower.index("z") if "z" in lower else None
-    uv, z, body = [], [], []
+    ja = lower.index("angle") if "angle" in lower else None
+    uv, z, ang, body = [], [], [], []
     for k, row in enumerate(rows[first + 1 :], start=first + 2):
         if not row or all(not c.strip() for c in row):
             continue
         if len(row) != len(header):
-            raise InputError(f"{len(row)} fields, the header has {len(header)}", source=str(name), line=k)
+            raise InputError(f"{len(row)} fields, the header has {len(header)}", source=name, line=k)
         where = _Where(name, line=k)
         uv.append((_number(row[ju], where, "u"), _number(row[jv], where, "v")))
         if jz is not None:
             z.append(_number(row[jz], where, "z"))
+        if ja is not None:
+            ang.append(_number(row[ja], where, "angle"))
         body.append(tuple(row))
     if not uv:
         raise InputError(f"{name}: header only, no data rows")
     return ImagePoints(
-        np.array(uv, float), np.array(z, float) if jz is not None else None, tuple(header), tuple(body)
+        np.array(uv, float), np.array(z, float) if jz is not None else None, tuple(header), tuple(body),
+        np.array(ang, float) if ja is not None else None,
     )

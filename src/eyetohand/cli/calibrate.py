@@ -38,25 +38,69 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_apply(args) -> int:
+    import json
+    import sys
+
+    from ..io import atomic_write_text, check_output_path
+    from ..pairs import image_points_from_text
+
+    if args.output:
+        check_output_path(args.output)
     cal = Calibration.load(args.calibration)
+    opts = {"allow_outside": args.allow_outside, "symmetry": args.symmetry,
+            "tool_rz_offset_deg": args.tool_rz_offset}
     if args.uv is not None:
         if args.input:
             raise CliError("apply: give either --uv U V or an input CSV, not both")
-        xyz = cal.image_to_robot(np.array([args.uv], float), args.z)
-        print(" ".join(f"{v:.6f}" for v in xyz[0]))
+        m = cal.map(np.array([args.uv], float), args.z, angle_deg=args.angle, **opts)
+        if args.json:
+            print(json.dumps({"points": m.records()}, allow_nan=False))
+        else:
+            vals = list(m.xyz_mm[0]) + ([] if m.rz_deg is None else [m.rz_deg[0]])
+            print(" ".join(repr(float(v)) for v in vals))
+        _warn_outside(m)
         return 0
     if not args.input:
-        raise CliError("apply: give --uv U V or an input CSV with u,v columns")
-    if not args.output:
-        raise CliError("apply: an input CSV needs -o OUT.csv")
-    table = load_image_points(args.input)
+        raise CliError("apply: give --uv U V or an input CSV with u,v columns ('-' reads standard input)")
+    if args.input == "-":
+        table = image_points_from_text(sys.stdin.read(), "<stdin>")
+    else:
+        table = load_image_points(args.input)
+    if table.z_mm is not None and args.z is not None:
+        raise CliError("apply: the input has a z column; --z would contradict it")
+    if table.angle_deg is not None and args.angle is not None:
+        raise CliError("apply: the input has an angle column; --angle would contradict it")
     z = table.z_mm if table.z_mm is not None else args.z
-    xyz = cal.image_to_robot(table.uv_px, z)
-    from ..io import atomic_write_text
-
-    atomic_write_text(args.output, table.with_columns({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}))
-    print(f"wrote {args.output} ({len(xyz)} points)")
+    ang = table.angle_deg if table.angle_deg is not None else args.angle
+    m = cal.map(table.uv_px, z, angle_deg=ang, **opts)
+    if args.json:
+        text = json.dumps({"points": m.records()}, allow_nan=False) + "\n"
+    else:
+        cols = {"x": m.xyz_mm[:, 0], "y": m.xyz_mm[:, 1]}
+        if table.z_mm is None:
+            cols["z"] = m.xyz_mm[:, 2]
+        if m.rz_deg is not None:
+            cols["rz"] = m.rz_deg
+        if m.sigma_mm is not None:
+            cols["sigma_mm"] = m.sigma_mm
+        cols["inside"] = m.inside
+        text = table.with_columns(cols)
+    if args.output:
+        atomic_write_text(args.output, text)
+        print(f"wrote {args.output} ({len(m.xyz_mm)} points)", file=sys.stderr)
+    else:
+        sys.stdout.write(text)
+    _warn_outside(m)
     return 0
+
+
+def _warn_outside(m) -> None:
+    import sys
+
+    n = int((~m.inside).sum())
+    if n:
+        print(f"warning: {n} point(s) outside the calibrated region, mapped because --allow-outside was "
+              "given (inside = false)", file=sys.stderr)
 
 
 def cmd_compare(args) -> int:
@@ -87,10 +131,21 @@ def register(sub) -> None:
 
     p = sub.add_parser("apply", help="map image points to robot points")
     p.add_argument("calibration")
-    p.add_argument("input", nargs="?", help="CSV with u,v (and z for multi-height models)")
+    p.add_argument("input", nargs="?",
+                   help="CSV with u,v [,z] [,angle] ('-': standard input); output: its columns plus "
+                        "x,y[,z][,rz],sigma_mm,inside")
     p.add_argument("--uv", nargs=2, type=float, metavar=("U", "V"))
     p.add_argument("--z", type=float, default=None, help="object height in mm")
-    p.add_argument("-o", "--output", help="output CSV (input columns plus x,y,z)")
+    p.add_argument("--angle", type=float, default=None, metavar="DEG",
+                   help="the object's image angle (deg from +u towards +v): adds its robot rz (deg)")
+    p.add_argument("--symmetry", type=int, default=1, metavar="N",
+                   help="fold rz into (-180/N, 180/N] for a part symmetric under 360/N turns")
+    p.add_argument("--tool-rz-offset", type=float, default=None, metavar="DEG",
+                   help="the gripper's rz when aligned with the image's +u: rz becomes its command")
+    p.add_argument("--allow-outside", action="store_true",
+                   help="map points outside the calibrated region too (flagged inside = false)")
+    p.add_argument("--json", action="store_true", help="JSON with every point's u v x y z [rz] sigma_mm inside")
+    p.add_argument("-o", "--output", help="output file (default: standard output)")
     p.set_defaults(func=cmd_apply)
 
     p = sub.add_parser("compare", help="every model x solver side by side on check pairs")

@@ -167,23 +167,24 @@ def summarize(cal: Calibration, pairs: PointPairs, check: PointPairs | None, exc
     }
 
 
-def map_points(cal: Calibration, points: np.ndarray, z) -> np.ndarray:
-    """(N, 2) px → (N, 3) mm, with the request's ``z`` (None, a number, or one per point)."""
+def map_points(cal: Calibration, points: np.ndarray, z, *, angles=None, symmetry: int = 1,
+               tool_rz_offset_deg=None, allow_outside: bool = False, sigma: bool = True):
+    """(N, 2) px → the calibration's guarded :class:`~eyetohand.calibration.Mapped`, with the
+    request's ``z`` (None, a number, or one per point) and ``angles`` (one per point)."""
     if isinstance(z, list):
         if len(z) != len(points):
             raise ApiError(422, f"z: {len(z)} heights for {len(points)} points; give one, or one per point",
                            "z")
         z = np.asarray(z, float)
+    if angles is not None and len(angles) != len(points):
+        raise ApiError(422, f"angles: {len(angles)} angles for {len(points)} points; give one per point",
+                       "angles")
     try:
         with np.errstate(all="ignore"):
-            out = cal.image_to_robot(points, z)
-    except InputError as exc:  # the points are checked by the schema: what is left is about z
+            return cal.map(points, z, angle_deg=angles, symmetry=symmetry, tool_rz_offset_deg=tool_rz_offset_deg,
+                           allow_outside=allow_outside, with_sigma=sigma)
+    except InputError as exc:
         raise ApiError(422, str(exc), exc.field_path or "z") from None
-    if not np.isfinite(out).all():
-        i = int(np.flatnonzero(~np.isfinite(out).all(axis=1))[0])
-        raise ApiError(422, f"points[{i}]: maps to no finite robot point (on the model's horizon)",
-                       f"points[{i}]")
-    return out
 
 
 # ---------------------------------------------------------------------- background jobs

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool
 from pydantic import Strict as StrictType
 
 from ..models import MODEL_CHOICES
@@ -133,6 +133,14 @@ class MapRequest(Strict):
         description=f"image points [u, v] in px; at most {MAX_POINTS} (more gets 413)")
     z: Finite | list[Finite] | None = Field(
         None, description="object height, mm: one value, one per point, or none (calibration plane)")
+    angles: list[Finite] | None = Field(
+        None, description="image angles, deg from +u towards +v, one per point: answered as rz (deg)")
+    symmetry: int = Field(1, ge=1, le=360, description="fold rz into (-180/s, 180/s] (2: 180° symmetric)")
+    tool_rz_offset_deg: Finite | None = Field(
+        None, description="the gripper's rz when aligned with the image's +u: rz becomes its command")
+    allow_outside: StrictBool = Field(
+        False, description="map points outside the calibrated region too (flagged inside=false)")
+    sigma: StrictBool = Field(True, description="compute each point's predicted error sigma_mm")
 
 
 class MapResponse(BaseModel):
@@ -140,6 +148,9 @@ class MapResponse(BaseModel):
     version: int | None = None
     units: Literal["mm"] = "mm"
     points: list[tuple[float, float, float]] = Field(description="robot points [x, y, z] in mm")
+    rz_deg: list[float] | None = Field(None, description="robot angles (deg), when angles were given")
+    sigma_mm: list[float] | None = Field(None, description="predicted error of each point (mm)")
+    inside: list[bool] = Field(description="whether each point lies in the calibrated region")
 
 
 class ParseRequest(Strict):

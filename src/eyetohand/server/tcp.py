@@ -29,19 +29,30 @@ IDLE_S = 300.0
 AUTH_S = 10.0
 
 
+USAGE = "send u,v[,z][,a=ANGLE][,allow][,sigma]"
+
+
 def answer(cal: Calibration, line: bytes) -> bytes:
-    """The reply to one request line (without its newline)."""
+    """The reply to one request line (without its newline).
+
+    ``u,v[,z]`` → ``x,y,z`` (mm). Optional words after the numbers: ``a=ANGLE`` (the image angle, deg
+    from +u towards +v) adds ``,rz``; ``sigma`` adds ``,sigma_mm``; ``allow`` maps a point outside
+    the calibrated region too, and such an answer ends with ``,OUTSIDE``. Refusals: ``ERR <reason>``
+    (``ERR outside the calibrated region: ...`` for a point beyond the margin).
+    """
     try:
         text = line.decode("ascii").strip()
     except UnicodeDecodeError:
-        return b"ERR not ASCII text; send u,v[,z]\n"
+        return f"ERR not ASCII text; {USAGE}\n".encode()
     if not text:
-        return b"ERR empty line; send u,v[,z]\n"
+        return f"ERR empty line; {USAGE}\n".encode()
     parts = [p.strip() for p in text.split(",")]
-    if len(parts) not in (2, 3):
-        return f"ERR {len(parts)} fields; send u,v[,z]\n".encode()
+    nums = [p for p in parts if "=" not in p and p.lower() not in ("allow", "sigma")]
+    words = [p.lower() for p in parts[len(nums):]]
+    if parts[: len(nums)] != nums or len(nums) not in (2, 3):
+        return f"ERR {len(nums)} numbers; {USAGE}\n".encode()
     vals = []
-    for name, p in zip("uvz", parts, strict=False):
+    for name, p in zip("uvz", nums, strict=False):
         try:
             x = float(p)
         except ValueError:
@@ -49,15 +60,37 @@ def answer(cal: Calibration, line: bytes) -> bytes:
         if not math.isfinite(x):
             return f"ERR {name}: {p[:20]!r} is not a finite number\n".encode()
         vals.append(x)
+    angle, allow, want_sigma = None, False, False
+    for w in words:
+        if w == "allow":
+            allow = True
+        elif w == "sigma":
+            want_sigma = True
+        elif w.startswith("a="):
+            try:
+                angle = float(w[2:])
+            except ValueError:
+                return f"ERR a: {w[2:22]!r} is not a number\n".encode()
+            if not math.isfinite(angle):
+                return f"ERR a: {w[2:22]!r} is not a finite number\n".encode()
+        else:
+            return f"ERR unknown word {w[:20]!r}; {USAGE}\n".encode()
     z = vals[2] if len(vals) == 3 else None
     try:
         with np.errstate(all="ignore"):
-            xyz = cal.image_to_robot(np.array([vals[:2]]), z)[0]
+            m = cal.map(np.array([vals[:2]]), z, angle_deg=angle, allow_outside=allow, with_sigma=want_sigma)
     except InputError as exc:
-        return f"ERR {str(exc).splitlines()[0][:200]}\n".encode()
-    if not np.isfinite(xyz).all():
-        return b"ERR the point maps to no finite robot point\n"
-    return f"{float(xyz[0])!r},{float(xyz[1])!r},{float(xyz[2])!r}\n".encode()
+        reason = exc.reason if exc.index is not None else str(exc)
+        return f"ERR {reason.splitlines()[0][:200]}\n".encode()
+    x, y, zz = (float(v) for v in m.xyz_mm[0])
+    out = f"{x!r},{y!r},{zz!r}"
+    if m.rz_deg is not None:
+        out += f",{float(m.rz_deg[0])!r}"
+    if want_sigma and m.sigma_mm is not None:
+        out += f",{float(m.sigma_mm[0])!r}"
+    if not m.inside[0]:
+        out += ",OUTSIDE"
+    return (out + "\n").encode()
 
 
 class LineServer:

@@ -42,8 +42,11 @@ async def map_body(request: Request) -> MapRequest:
 
 def _work(cal: Calibration, req: MapRequest, cal_id, version) -> bytes:
     pts = np.asarray(req.points, float).reshape(-1, 2)
-    xyz = core.map_points(cal, pts, req.z)
-    return orjson.dumps({"id": cal_id, "version": version, "units": "mm", "points": xyz},
+    m = core.map_points(cal, pts, req.z, angles=req.angles, symmetry=req.symmetry,
+                        tool_rz_offset_deg=req.tool_rz_offset_deg, allow_outside=req.allow_outside,
+                        sigma=req.sigma)
+    return orjson.dumps({"id": cal_id, "version": version, "units": "mm", "points": m.xyz_mm,
+                         "rz_deg": m.rz_deg, "sigma_mm": m.sigma_mm, "inside": m.inside},
                         option=orjson.OPT_SERIALIZE_NUMPY)
 
 
