@@ -70,6 +70,9 @@ STATUS_MAX_ITERATIONS = 0
 STATUS_STALLED = 1
 STATUS_CALLBACK = 2
 
+# crossover segment masks come from a (D*D, D) lookup table up to this dimension
+_MASK_TABLE_MAX_DIM = 64
+
 
 @dataclass(frozen=True)
 class OptimizeResult:
@@ -268,24 +271,67 @@ def hybrid_pso(
 
     nfev = 0
 
-    def evaluate(pos: np.ndarray) -> np.ndarray:
+    # ---- buffers, allocated once ----------------------------------------------------------
+    # One candidate array holds, per iteration, the moved swarm (rows 0..n-1, which is also the
+    # swarm itself: ``x`` is a view), both crossover children and the mutants; ``fitness`` gets a
+    # read-only view of it, so one call evaluates everything and nothing is concatenated.
+    n_rows = n + (2 * n if crossover else 0) + n_mut
+    cand = np.empty((n_rows, dim))
+    cand_ro = cand.view()
+    cand_ro.flags.writeable = False
+    x = cand[:n]
+    fc = np.empty(n_rows)
+    v = np.zeros((n, dim))
+    r = np.empty((2, n, dim))
+    diff = np.empty((n, dim))
+    if crossover:
+        child_p, child_g = cand[n : 2 * n], cand[2 * n : 3 * n]
+        fx = fc[: 3 * n].reshape(3, n)
+        # segment masks by lookup: row lo*D + hi (either order) marks columns min..max inclusive
+        if dim <= _MASK_TABLE_MAX_DIM:
+            cols = np.arange(dim)
+            ends = np.arange(dim * dim)
+            lo_t = np.minimum(ends // dim, ends % dim)[:, None]
+            hi_t = np.maximum(ends // dim, ends % dim)[:, None]
+            mask_table = (cols >= lo_t) & (cols <= hi_t)
+        else:
+            mask_table = None
+    if mutation:
+        mutants = cand[n_rows - n_mut :]
+        f_mut = fc[n_rows - n_mut :]
+    f = np.empty(n)
+
+    def evaluate(rows: int) -> np.ndarray:
         nonlocal nfev
+        pos = cand_ro if rows == n_rows else cand_ro[:rows]
         values = np.asarray(fitness(pos), dtype=float)
-        if values.shape != (pos.shape[0],):
+        if values.shape != (rows,):
             raise ValueError(
-                f"fitness must return shape ({pos.shape[0]},) for an input of shape "
+                f"fitness must return shape ({rows},) for an input of shape "
                 f"{pos.shape}, got shape {values.shape}"
             )
-        nfev += pos.shape[0]
-        return np.where(np.isnan(values), np.inf, values)
+        nfev += rows
+        out = fc[:rows]
+        np.fmin(values, np.inf, out=out)  # copies into our buffer; NaN -> +inf
+        return out
 
-    def clip(pos: np.ndarray) -> np.ndarray:
-        return pos if lower is None else np.clip(pos, lower, upper)
+    def segment_masks(m: int) -> np.ndarray:
+        """(m, D) masks of random inclusive segments, both ends uniform in 0 .. D-1 per row."""
+        ends = rng.integers(0, dim, size=(m, 2))
+        if mask_table is not None:
+            return mask_table[ends[:, 0] * dim + ends[:, 1]]
+        lo = ends.min(axis=1, keepdims=True)
+        hi = ends.max(axis=1, keepdims=True)
+        cols = np.arange(dim)
+        return (cols >= lo) & (cols <= hi)
 
     # ---- initial swarm ----------------------------------------------------------------------
-    x = clip(x0 + sigma_v * rng.standard_normal((n, dim)))
-    v = np.zeros((n, dim))
-    f = evaluate(x)
+    rng.standard_normal((n, dim), out=x)
+    x *= sigma_v
+    x += x0
+    if lower is not None:
+        np.clip(x, lower, upper, out=x)
+    f[:] = evaluate(n)
     pbest_x, pbest_f = x.copy(), f.copy()
     g = int(np.argmin(pbest_f))
     gbest_x, gbest_f = pbest_x[g].copy(), float(pbest_f[g])
@@ -294,39 +340,58 @@ def hybrid_pso(
     status, message = STATUS_MAX_ITERATIONS, f"maximum number of iterations ({iterations}) reached"
     stall_count = 0
     for k in range(1, iterations + 1):
-        # 1. velocity and position update, eqs (14) and (15)
-        r = rng.random((2, n, dim))
-        v = w * v + c1 * r[0] * (pbest_x - x) + c2 * r[1] * (gbest_x - x)
-        x = clip(x + v)
-        batch = [x]
+        # 1. velocity and position update, eqs (14) and (15), in place:
+        #    v = w v + (c1 r1) (pbest - x) + (c2 r2) (gbest - x);  x = x + v
+        rng.random((2, n, dim), out=r)
+        r0, r1 = r[0], r[1]
+        r0 *= c1
+        np.subtract(pbest_x, x, out=diff)
+        r0 *= diff
+        r1 *= c2
+        np.subtract(gbest_x, x, out=diff)
+        r1 *= diff
+        v *= w
+        v += r0
+        v += r1
+        x += v
+        if lower is not None:
+            np.clip(x, lower, upper, out=x)
         if crossover:
             # 2./3. segment crossover of the moved particle with its personal best and,
             # separately, with the global best
-            batch += [_segment_children(x, pbest_x, rng), _segment_children(x, gbest_x, rng)]
+            child_p[...] = x
+            np.copyto(child_p, pbest_x, where=segment_masks(n))
+            child_g[...] = x
+            np.copyto(child_g, gbest_x, where=segment_masks(n))
         if mutation:
             # 4. mutants: normally distributed around the global best, log-uniform step scale,
             # each aimed at one randomly chosen particle
             idx = rng.choice(n, size=n_mut, replace=False)
             scale = sigma_v * 10.0 ** (-mutation_decades * rng.random((n_mut, 1)))
-            batch.append(clip(gbest_x + scale * rng.standard_normal((n_mut, dim))))
+            rng.standard_normal((n_mut, dim), out=mutants)
+            mutants *= scale
+            mutants += gbest_x
+            if lower is not None:
+                np.clip(mutants, lower, upper, out=mutants)
         # one vectorised evaluation of the moved swarm and all candidates
-        cand = np.concatenate(batch) if len(batch) > 1 else x
-        fc = evaluate(cand)
-        f = fc[:n]
+        evaluate(n_rows)
         if crossover:
-            # elitist: keep the best of (particle, child with pbest, child with gbest)
-            fx = fc[: 3 * n].reshape(3, n)
-            pick = np.argmin(fx, axis=0)  # ties keep the particle (index 0)
-            x = cand[: 3 * n].reshape(3, n, dim)[pick, np.arange(n)]
-            f = fx[pick, np.arange(n)]
+            # elitist: keep the best of (particle, child with pbest, child with gbest);
+            # ties keep the particle (argmin takes the first)
+            pick = np.argmin(fx, axis=0)
+            np.copyto(x, child_p, where=(pick == 1)[:, None])
+            np.copyto(x, child_g, where=(pick == 2)[:, None])
+            np.min(fx, axis=0, out=f)
+        else:
+            f[:] = fc[:n]
         if mutation:
             # elitist: a mutant replaces its particle only if better
-            fm = fc[-n_mut:]
-            better = fm < f[idx]
-            x[idx[better]], f[idx[better]] = cand[-n_mut:][better], fm[better]
+            better = f_mut < f[idx]
+            x[idx[better]], f[idx[better]] = mutants[better], f_mut[better]
         # 5. personal and global best
         improved = f < pbest_f
-        pbest_x[improved], pbest_f[improved] = x[improved], f[improved]
+        np.copyto(pbest_x, x, where=improved[:, None])
+        np.copyto(pbest_f, f, where=improved)
         g = int(np.argmin(pbest_f))
         previous = gbest_f
         if pbest_f[g] < gbest_f:
