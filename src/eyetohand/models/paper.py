@@ -100,11 +100,27 @@ class PaperB(Model):
         B = np.asarray(params, float).reshape(-1, 3, 4)
         Minv, _ = batch_inverse3(B[:, :, :3])
         uv = np.asarray(uv_px, float)
-        P = np.empty((len(B), len(uv), 3))
-        P[..., 0] = uv[None, :, 0] - B[:, None, 0, 3]
-        P[..., 1] = uv[None, :, 1] - B[:, None, 1, 3]
-        P[..., 2] = 1.0 - B[:, None, 2, 3]
-        return np.einsum("pij,pnj->pni", Minv, P)
+        # R = M⁻¹ P, P = (u − b14, v − b24, 1 − b34), written out elementwise on planes of
+        # (points × parameter sets) with the longer axis innermost: no BLAS, no einsum. The result is
+        # a (P, N, 3) view of the (3, ·, ·) planes.
+        G = Minv.transpose(2, 1, 0)  # G[j, i]: contiguous (P,) row of M⁻¹[i, j]
+        t = B[:, :, 3].T  # (3, P): b14, b24, b34
+        wide = len(B) >= len(uv)
+        if wide:  # planes (N, P)
+            G, t, u, v = G[:, :, None, :], t[:, None, :], uv[:, 0, None], uv[:, 1, None]
+            out = np.empty((3, len(uv), len(B)))
+        else:  # planes (P, N)
+            G, t, u, v = G[..., None], t[..., None], uv[:, 0], uv[:, 1]
+            out = np.empty((3, len(B), len(uv)))
+        du, dv, dw = u - t[0], v - t[1], 1.0 - t[2]
+        tmp = np.empty(out.shape[1:])
+        for i in range(3):
+            o = out[i]
+            np.multiply(G[0, i], du, out=o)
+            np.multiply(G[1, i], dv, out=tmp)
+            o += tmp
+            o += G[2, i] * dw
+        return out.transpose(2, 1, 0) if wide else out.transpose(1, 2, 0)
 
     def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
         """Equation (13). ``z_mm`` is ignored: the paper's model computes z itself."""
