@@ -281,25 +281,32 @@ def hybrid_pso(
     cand_ro.flags.writeable = False
     x = cand[:n]
     fc = np.empty(n_rows)
+    f = np.empty(n)
     v = np.zeros((n, dim))
+    # the two attractors stacked: partner[0] IS the personal bests, partner[1] the global best in
+    # every row, so the velocity update and both crossovers each take one operation for both
+    partner = np.empty((2, n, dim))
+    pbest_x = partner[0]
+    coef = np.array([c1, c2]).reshape(2, 1, 1)
     r = np.empty((2, n, dim))
-    diff = np.empty((n, dim))
+    scratch = cand[n : 3 * n].reshape(2, n, dim) if crossover else np.empty((2, n, dim))
     if crossover:
-        child_p, child_g = cand[n : 2 * n], cand[2 * n : 3 * n]
+        children = cand[n : 3 * n].reshape(2, n, dim)  # with the personal, the global best
+        child_p, child_g = children
         fx = fc[: 3 * n].reshape(3, n)
-        # segment masks by lookup: row lo*D + hi (either order) marks columns min..max inclusive
         if dim <= _MASK_TABLE_MAX_DIM:
+            # segment masks by lookup: row lo*D + hi (either order) marks columns min..max
             cols = np.arange(dim)
             ends = np.arange(dim * dim)
             lo_t = np.minimum(ends // dim, ends % dim)[:, None]
             hi_t = np.maximum(ends // dim, ends % dim)[:, None]
             mask_table = (cols >= lo_t) & (cols <= hi_t)
+            end_weights = np.array([dim, 1])
         else:
             mask_table = None
     if mutation:
         mutants = cand[n_rows - n_mut :]
         f_mut = fc[n_rows - n_mut :]
-    f = np.empty(n)
 
     def evaluate(rows: int) -> np.ndarray:
         nonlocal nfev
@@ -315,13 +322,14 @@ def hybrid_pso(
         np.fmin(values, np.inf, out=out)  # copies into our buffer; NaN -> +inf
         return out
 
-    def segment_masks(m: int) -> np.ndarray:
-        """(m, D) masks of random inclusive segments, both ends uniform in 0 .. D-1 per row."""
-        ends = rng.integers(0, dim, size=(m, 2))
+    def segment_masks() -> np.ndarray:
+        """(2, n, D) masks of random inclusive segments, both ends uniform in 0 .. D-1 per row
+        (the same draws, in the same order, as one (n, 2) draw per crossover)."""
+        ends = rng.integers(0, dim, size=(2, n, 2))
         if mask_table is not None:
-            return mask_table[ends[:, 0] * dim + ends[:, 1]]
-        lo = ends.min(axis=1, keepdims=True)
-        hi = ends.max(axis=1, keepdims=True)
+            return mask_table.take(ends @ end_weights, axis=0)
+        lo = ends.min(axis=2, keepdims=True)
+        hi = ends.max(axis=2, keepdims=True)
         cols = np.arange(dim)
         return (cols >= lo) & (cols <= hi)
 
@@ -332,9 +340,11 @@ def hybrid_pso(
     if lower is not None:
         np.clip(x, lower, upper, out=x)
     f[:] = evaluate(n)
-    pbest_x, pbest_f = x.copy(), f.copy()
-    g = int(np.argmin(pbest_f))
+    pbest_x[...] = x
+    pbest_f = f.copy()
+    g = int(pbest_f.argmin())
     gbest_x, gbest_f = pbest_x[g].copy(), float(pbest_f[g])
+    partner[1] = gbest_x
 
     history: list[float] = []
     status, message = STATUS_MAX_ITERATIONS, f"maximum number of iterations ({iterations}) reached"
@@ -343,26 +353,19 @@ def hybrid_pso(
         # 1. velocity and position update, eqs (14) and (15), in place:
         #    v = w v + (c1 r1) (pbest - x) + (c2 r2) (gbest - x);  x = x + v
         rng.random((2, n, dim), out=r)
-        r0, r1 = r[0], r[1]
-        r0 *= c1
-        np.subtract(pbest_x, x, out=diff)
-        r0 *= diff
-        r1 *= c2
-        np.subtract(gbest_x, x, out=diff)
-        r1 *= diff
+        r *= coef
+        r *= np.subtract(partner, x, out=scratch)  # (children are written after this)
         v *= w
-        v += r0
-        v += r1
+        v += r[0]
+        v += r[1]
         x += v
         if lower is not None:
             np.clip(x, lower, upper, out=x)
         if crossover:
             # 2./3. segment crossover of the moved particle with its personal best and,
             # separately, with the global best
-            child_p[...] = x
-            np.copyto(child_p, pbest_x, where=segment_masks(n))
-            child_g[...] = x
-            np.copyto(child_g, gbest_x, where=segment_masks(n))
+            children[...] = x
+            np.copyto(children, partner, where=segment_masks())
         if mutation:
             # 4. mutants: normally distributed around the global best, log-uniform step scale,
             # each aimed at one randomly chosen particle
@@ -378,24 +381,27 @@ def hybrid_pso(
         if crossover:
             # elitist: keep the best of (particle, child with pbest, child with gbest);
             # ties keep the particle (argmin takes the first)
-            pick = np.argmin(fx, axis=0)
+            pick = fx.argmin(axis=0)
             np.copyto(x, child_p, where=(pick == 1)[:, None])
             np.copyto(x, child_g, where=(pick == 2)[:, None])
-            np.min(fx, axis=0, out=f)
+            fx.min(axis=0, out=f)
         else:
             f[:] = fc[:n]
         if mutation:
             # elitist: a mutant replaces its particle only if better
             better = f_mut < f[idx]
-            x[idx[better]], f[idx[better]] = mutants[better], f_mut[better]
+            if better.any():
+                won = idx[better]
+                x[won], f[won] = mutants[better], f_mut[better]
         # 5. personal and global best
         improved = f < pbest_f
         np.copyto(pbest_x, x, where=improved[:, None])
         np.copyto(pbest_f, f, where=improved)
-        g = int(np.argmin(pbest_f))
+        g = int(pbest_f.argmin())
         previous = gbest_f
         if pbest_f[g] < gbest_f:
             gbest_x, gbest_f = pbest_x[g].copy(), float(pbest_f[g])
+            partner[1] = gbest_x
         history.append(gbest_f)
 
         if callback is not None and callback(k, gbest_f, gbest_x.copy()):
