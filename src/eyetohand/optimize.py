@@ -13,7 +13,10 @@ the valley (docs/pso.md has the measurements that led to this choice).
 
 Everything is vectorised over the swarm: ``fitness`` receives an ``(n, D)`` array of candidate
 positions and returns ``(n,)`` fitness values. Random numbers are drawn in bulk from a
-:class:`numpy.random.Generator`, so the same seed gives a bit-identical result.
+:class:`numpy.random.Generator`, so the same seed gives a bit-identical result. The swarm, its
+candidates and the random numbers live in buffers allocated once per run and updated in place
+(no per-iteration allocation of swarm-sized arrays); the operations and their order are those of
+the straightforward formulas, so results are the same, bit for bit.
 
 Units: positions, ``x0``, ``sigma``, ``bounds`` and velocities are in the units of the
 optimisation parameters (for the paper's calibration matrix ``B``: pixels/mm for ``b11``..``b23``,
@@ -193,8 +196,10 @@ def hybrid_pso(
 
     Args:
         fitness: vectorised objective: ``(m, D)`` positions -> ``(m,)`` values (lower is better).
-            ``m`` is ``n_particles`` for the swarm and crossover batches and the number of
-            mutated particles for mutation batches. NaN values are treated as ``+inf``.
+            ``m`` is ``n_particles`` for the initial swarm, then ``nfev_per_iteration`` (the
+            moved swarm, both crossover children and the mutants, in that order) once per
+            iteration. The positions are a read-only view of a buffer the optimiser reuses:
+            copy them to keep them past the call. NaN values are treated as ``+inf``.
         x0: centre of the initial swarm, shape ``(D,)`` (parameter units).
         sigma: standard deviation of the initial swarm around ``x0``: a positive scalar or a
             ``(D,)`` vector in parameter units; also the largest mutation step. For badly scaled
@@ -292,7 +297,8 @@ def hybrid_pso(
     scratch = cand[n : 3 * n].reshape(2, n, dim) if crossover else np.empty((2, n, dim))
     if crossover:
         children = cand[n : 3 * n].reshape(2, n, dim)  # with the personal, the global best
-        child_p, child_g = children
+        moved_and_children = cand[: 3 * n].reshape(3, n, dim)
+        rows = np.arange(n)
         fx = fc[: 3 * n].reshape(3, n)
         if dim <= _MASK_TABLE_MAX_DIM:
             # segment masks by lookup: row lo*D + hi (either order) marks columns min..max
@@ -382,8 +388,7 @@ def hybrid_pso(
             # elitist: keep the best of (particle, child with pbest, child with gbest);
             # ties keep the particle (argmin takes the first)
             pick = fx.argmin(axis=0)
-            np.copyto(x, child_p, where=(pick == 1)[:, None])
-            np.copyto(x, child_g, where=(pick == 2)[:, None])
+            x[...] = moved_and_children[pick, rows]  # the gather copies before x is written
             fx.min(axis=0, out=f)
         else:
             f[:] = fc[:n]
