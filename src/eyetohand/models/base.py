@@ -132,7 +132,7 @@ def batch_inverse3(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     inverse is a (P, 3, 3) view of a (3, 3, P) array: ``inv.transpose(2, 1, 0)[j, i]`` is the
     contiguous (P,) row of element (i, j)."""
     M = np.asarray(M, dtype=float)
-    m = M.reshape(len(M), 9).T  # (9, P): m[3 a + b] = M[:, a, b]
+    m = np.ascontiguousarray(M.transpose(1, 2, 0)).reshape(9, len(M))  # m[3 a + b] = M[:, a, b]
     # cofactor C[a, b] = M[a+1, b+1] M[a+2, b+2] - M[a+1, b+2] M[a+2, b+1] (indices mod 3): the
     # four factors of all nine, as rows of m
     cof = m.take((4, 5, 3, 7, 8, 6, 1, 2, 0), axis=0)

@@ -100,26 +100,20 @@ class PaperB(Model):
         B = np.asarray(params, float).reshape(-1, 3, 4)
         Minv, _ = batch_inverse3(B[:, :, :3])
         uv = np.asarray(uv_px, float)
-        # R = M⁻¹ P, P = (u − b14, v − b24, 1 − b34), written out elementwise on planes of
-        # (points × parameter sets) with the longer axis innermost: no BLAS, no einsum. The result is
-        # a (P, N, 3) view of the (3, ·, ·) planes.
-        G = Minv.transpose(2, 1, 0)  # G[j, i]: contiguous (P,) row of M⁻¹[i, j]
-        t = B[:, :, 3].T  # (3, P): b14, b24, b34
+        # R = M⁻¹ P, P = (u − b14, v − b24, 1 − b34), elementwise on (3, points, parameter sets)
+        # with the longer axis innermost: no BLAS, no einsum, four passes for all three
+        # coordinates. The result is a (P, N, 3) view of those planes.
+        G = Minv.transpose(2, 1, 0)  # G[j]: (3, P), row i contiguous, = M⁻¹[:, i, j]
+        t = np.ascontiguousarray(B[:, :, 3].T)  # (3, P): b14, b24, b34
         wide = len(B) >= len(uv)
-        if wide:  # planes (N, P)
+        if wide:  # (3, N, P)
             G, t, u, v = G[:, :, None, :], t[:, None, :], uv[:, 0, None], uv[:, 1, None]
-            out = np.empty((3, len(uv), len(B)))
-        else:  # planes (P, N)
+        else:  # (3, P, N)
             G, t, u, v = G[..., None], t[..., None], uv[:, 0], uv[:, 1]
-            out = np.empty((3, len(B), len(uv)))
         du, dv, dw = u - t[0], v - t[1], 1.0 - t[2]
-        tmp = np.empty(out.shape[1:])
-        for i in range(3):
-            o = out[i]
-            np.multiply(G[0, i], du, out=o)
-            np.multiply(G[1, i], dv, out=tmp)
-            o += tmp
-            o += G[2, i] * dw
+        out = np.multiply(G[0], du)
+        out += np.multiply(G[1], dv)
+        out += G[2] * dw
         return out.transpose(2, 1, 0) if wide else out.transpose(1, 2, 0)
 
     def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
