@@ -420,6 +420,7 @@ w_, c_ = 0.7153, 1.4801
         (sphere, np.full(4, 3.0), 1.0, {"mutation": False}),
         (sphere, np.full(4, 3.0), 1.0, {"crossover": False, "mutation": False}),
         (sphere, np.full(3, 3.0), 1.0, {"bounds": (2.0, 5.0)}),
+        (rosenbrock, np.zeros(70), 0.5, {}),  # above the crossover mask table's dimension
     ],
 )
 def test_same_result_as_a_straightforward_implementation(fn, x0, sigma, kw):

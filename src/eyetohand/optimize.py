@@ -153,22 +153,6 @@ def _make_rng(seed: object) -> np.random.Generator:
     )
 
 
-def _segment_children(
-    x: np.ndarray, partner: np.ndarray, rng: np.random.Generator
-) -> np.ndarray:
-    """Copy a random inclusive segment ``[lo, hi]`` of ``partner`` into each row of ``x``.
-
-    ``partner`` is ``(n, D)`` or ``(D,)``. Both ends are drawn uniformly from ``0 .. D-1`` per row.
-    """
-    n, dim = x.shape
-    ends = rng.integers(0, dim, size=(n, 2))
-    lo = ends.min(axis=1, keepdims=True)
-    hi = ends.max(axis=1, keepdims=True)
-    cols = np.arange(dim)
-    mask = (cols >= lo) & (cols <= hi)
-    return np.where(mask, partner, x)
-
-
 def hybrid_pso(
     fitness: Fitness,
     x0: np.ndarray,
