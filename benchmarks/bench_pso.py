@@ -1,6 +1,6 @@
 """Benchmark the hybrid PSO on the paper's calibration problem (Table 1).
 
-Run:  .venv/bin/python benchmarks/bench_pso.py            (20 seeds, about 1 minute)
+Run:  .venv/bin/python benchmarks/bench_pso.py            (20 seeds, about 10 s)
       .venv/bin/python benchmarks/bench_pso.py --quick    (3 seeds, smoke run)
 
 Problem: the paper's 12-element matrix B, mapped image -> robot by equation (13),
