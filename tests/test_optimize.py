@@ -344,3 +344,122 @@ def test_fitness_not_callable():
 def test_pso_rejects_operator_switches():
     with pytest.raises(ValueError, match=r"do not pass 'crossover'"):
         pso(sphere, np.zeros(3), 1.0, crossover=True)
+
+
+# ------------------------------------------------------------------ in-place implementation
+
+
+def _reference_hybrid(fitness, x0, sigma, n, iterations, seed, crossover=True, mutation=True,
+                      bounds=None):
+    """The algorithm written plainly (fresh arrays everywhere), as it was before the in-place
+    rewrite: the optimised hybrid_pso must give exactly these numbers."""
+    rng = np.random.default_rng(seed)
+    dim = x0.size
+    sigma = np.broadcast_to(np.asarray(sigma, float), (dim,))
+    n_mut = max(1, round(0.1 * n)) if mutation else 0
+
+    def clip(p):
+        return p if bounds is None else np.clip(p, *bounds)
+
+    def ev(p):
+        val = np.asarray(fitness(p), float)
+        return np.where(np.isnan(val), np.inf, val)
+
+    def children(x, partner):
+        ends = rng.integers(0, dim, size=(n, 2))
+        cols = np.arange(dim)
+        mask = (cols >= ends.min(axis=1, keepdims=True)) & (cols <= ends.max(axis=1, keepdims=True))
+        return np.where(mask, partner, x)
+
+    x = clip(x0 + sigma * rng.standard_normal((n, dim)))
+    v = np.zeros((n, dim))
+    f = ev(x)
+    px, pf = x.copy(), f.copy()
+    gx, gf = px[np.argmin(pf)].copy(), float(pf.min())
+    hist = []
+    for _ in range(iterations):
+        r = rng.random((2, n, dim))
+        v = w_ * v + c_ * r[0] * (px - x) + c_ * r[1] * (gx - x)
+        x = clip(x + v)
+        batch = [x]
+        if crossover:
+            batch += [children(x, px), children(x, gx)]
+        if mutation:
+            idx = rng.choice(n, size=n_mut, replace=False)
+            scale = sigma * 10.0 ** (-6.0 * rng.random((n_mut, 1)))
+            batch.append(clip(gx + scale * rng.standard_normal((n_mut, dim))))
+        cand = np.concatenate(batch)
+        fc = ev(cand)
+        f = fc[:n]
+        if crossover:
+            fx = fc[: 3 * n].reshape(3, n)
+            pick = np.argmin(fx, axis=0)
+            x = cand[: 3 * n].reshape(3, n, dim)[pick, np.arange(n)]
+            f = fx[pick, np.arange(n)]
+        if mutation:
+            better = fc[-n_mut:] < f[idx]
+            x[idx[better]], f[idx[better]] = cand[-n_mut:][better], fc[-n_mut:][better]
+        imp = f < pf
+        px[imp], pf[imp] = x[imp], f[imp]
+        g = int(np.argmin(pf))
+        if pf[g] < gf:
+            gx, gf = px[g].copy(), float(pf[g])
+        hist.append(gf)
+    return gx, gf, np.array(hist)
+
+
+w_, c_ = 0.7153, 1.4801
+
+
+@pytest.mark.parametrize(
+    "fn, x0, sigma, kw",
+    [
+        (rosenbrock, np.zeros(6), 1.0, {}),
+        (rastrigin, np.full(3, 2.5), 2.0, {}),
+        (sphere, np.full(12, 3.0), np.linspace(0.5, 2.0, 12), {"crossover": False}),
+        (sphere, np.full(4, 3.0), 1.0, {"mutation": False}),
+        (sphere, np.full(4, 3.0), 1.0, {"crossover": False, "mutation": False}),
+        (sphere, np.full(3, 3.0), 1.0, {"bounds": (2.0, 5.0)}),
+        (rosenbrock, np.zeros(70), 0.5, {}),  # above the crossover mask table's dimension
+    ],
+)
+def test_same_result_as_a_straightforward_implementation(fn, x0, sigma, kw):
+    res = hybrid_pso(fn, x0, sigma, n_particles=40, iterations=60, seed=11, **kw)
+    x, fun, hist = _reference_hybrid(fn, x0, sigma, 40, 60, 11, **kw)
+    assert res.x.tobytes() == x.tobytes() and res.fun == fun
+    assert np.array_equal(res.history, hist)
+
+
+def test_fitness_gets_a_read_only_view_and_results_do_not_depend_on_keeping_it():
+    seen = []
+
+    def f(pos):
+        with pytest.raises(ValueError):
+            pos[0, 0] = 1.0  # the optimiser's own buffer: not writable
+        seen.append(pos.copy())
+        return sphere(pos)
+
+    res = hybrid_pso(f, np.ones(3), 1.0, n_particles=10, iterations=4, seed=0)
+    assert [s.shape[0] for s in seen] == [10] + [31] * 4
+    # each batch's moved swarm is what the next batch started from: they are distinct arrays
+    assert not np.array_equal(seen[1][:10], seen[2][:10])
+    assert res.fun == sphere(res.x[None])[0]
+
+
+def test_paper_model_forward_matches_equation_13():
+    """The library's batched 'paper' map (cofactor inverse, elementwise eq. 13) against the
+    np.linalg.inv + einsum form above, for swarms wider and narrower than the point set."""
+    from eyetohand.models import get_model
+
+    _, mapped, b0, sigma, *_ = _paper_problem()
+    model = get_model("paper")(b0, {})
+    rng = np.random.default_rng(5)
+    for n_b, n_pts in ((620, 16), (3, 50), (1, 1)):
+        bs = b0 + sigma * rng.standard_normal((n_b, 12))
+        pix = rng.uniform(0, 3000, (n_pts, 2))
+        got = model.batch_image_to_robot(bs, pix, np.zeros(n_pts))
+        assert got.shape == (n_b, n_pts, 3)
+        np.testing.assert_allclose(got, mapped(bs, pix), rtol=1e-10, atol=1e-9)
+    singular = b0.copy()
+    singular[8:11] = 0.0  # third row of M zero: no inverse, no exception
+    assert not np.isfinite(model.batch_image_to_robot(singular[None], pix, np.zeros(1))).all()

@@ -28,11 +28,32 @@ def hartley(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def apply_h(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a homogeneous (d+1)×(d+1) matrix to (..., d) points (with the perspective divide)."""
+    # Elementwise, never BLAS: a matrix product this thin is all call overhead in BLAS, and with
+    # several BLAS threads their start-up and busy-waiting cost more than the arithmetic.
     points = np.asarray(points, dtype=float)
+    T = np.asarray(T, dtype=float)
     d = points.shape[-1]
-    out = points @ T[:d, :d].T + T[:d, d]
-    w = points @ T[d, :d] + T[d, d]
-    return out / w[..., None]
+    if points.size <= 32 * d:  # up to 32 points: one broadcast product, the fewest calls
+        q = (points[..., None, :] * T[:, :d]).sum(axis=-1)
+        q += T[:, d]
+        return q[..., :d] / q[..., d:]
+    cols = [points[..., j] for j in range(d)]
+    affine = T[d, d] == 1.0 and not T[d, :d].any()  # e.g. a Hartley similarity: no divide
+    if not affine:
+        w = cols[0] * T[d, 0]
+        for j in range(1, d):
+            w += cols[j] * T[d, j]
+        w += T[d, d]
+    out = np.empty(points.shape)
+    for i in range(d):
+        o = out[..., i]
+        np.multiply(cols[0], T[i, 0], out=o)
+        for j in range(1, d):
+            o += cols[j] * T[i, j]
+        o += T[i, d]
+        if not affine:
+            o /= w
+    return out
 
 
 def spread_ratio(points: np.ndarray) -> float:

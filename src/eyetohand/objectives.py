@@ -30,10 +30,12 @@ def huber_delta_mm(point_errors_mm: np.ndarray) -> float:
 def objective_values(residuals: np.ndarray, objective: str, delta_mm: float = 1.0) -> np.ndarray:
     """Objective for (P, N, 3) residuals → (P,). Non-finite residuals give +inf."""
     r = np.asarray(residuals, float)
-    point = np.sqrt((r * r).sum(axis=-1))  # (P, N)
     if objective == "l2":
-        out = np.sqrt((point * point).sum(axis=-1))
-    elif objective == "linf":
+        # the sum of squares in one pass (einsum's sum of products, no BLAS), whatever r's strides
+        out = np.sqrt(np.einsum("...nk,...nk->...", r, r))
+        return np.where(np.isfinite(out), out, np.inf)
+    point = np.sqrt(np.einsum("...k,...k->...", r, r))  # (P, N)
+    if objective == "linf":
         out = point.max(axis=-1)
     elif objective == "huber":
         quad = 0.5 * point * point

@@ -13,7 +13,10 @@ the valley (docs/pso.md has the measurements that led to this choice).
 
 Everything is vectorised over the swarm: ``fitness`` receives an ``(n, D)`` array of candidate
 positions and returns ``(n,)`` fitness values. Random numbers are drawn in bulk from a
-:class:`numpy.random.Generator`, so the same seed gives a bit-identical result.
+:class:`numpy.random.Generator`, so the same seed gives a bit-identical result. The swarm, its
+candidates and the random numbers live in buffers allocated once per run and updated in place
+(no per-iteration allocation of swarm-sized arrays); the operations and their order are those of
+the straightforward formulas, so results are the same, bit for bit.
 
 Units: positions, ``x0``, ``sigma``, ``bounds`` and velocities are in the units of the
 optimisation parameters (for the paper's calibration matrix ``B``: pixels/mm for ``b11``..``b23``,
@@ -69,6 +72,9 @@ Callback = Callable[[int, float, np.ndarray], object]
 STATUS_MAX_ITERATIONS = 0
 STATUS_STALLED = 1
 STATUS_CALLBACK = 2
+
+# crossover segment masks come from a (D*D, D) lookup table up to this dimension
+_MASK_TABLE_MAX_DIM = 64
 
 
 @dataclass(frozen=True)
@@ -147,22 +153,6 @@ def _make_rng(seed: object) -> np.random.Generator:
     )
 
 
-def _segment_children(
-    x: np.ndarray, partner: np.ndarray, rng: np.random.Generator
-) -> np.ndarray:
-    """Copy a random inclusive segment ``[lo, hi]`` of ``partner`` into each row of ``x``.
-
-    ``partner`` is ``(n, D)`` or ``(D,)``. Both ends are drawn uniformly from ``0 .. D-1`` per row.
-    """
-    n, dim = x.shape
-    ends = rng.integers(0, dim, size=(n, 2))
-    lo = ends.min(axis=1, keepdims=True)
-    hi = ends.max(axis=1, keepdims=True)
-    cols = np.arange(dim)
-    mask = (cols >= lo) & (cols <= hi)
-    return np.where(mask, partner, x)
-
-
 def hybrid_pso(
     fitness: Fitness,
     x0: np.ndarray,
@@ -190,8 +180,10 @@ def hybrid_pso(
 
     Args:
         fitness: vectorised objective: ``(m, D)`` positions -> ``(m,)`` values (lower is better).
-            ``m`` is ``n_particles`` for the swarm and crossover batches and the number of
-            mutated particles for mutation batches. NaN values are treated as ``+inf``.
+            ``m`` is ``n_particles`` for the initial swarm, then ``nfev_per_iteration`` (the
+            moved swarm, both crossover children and the mutants, in that order) once per
+            iteration. The positions are a read-only view of a buffer the optimiser reuses:
+            copy them to keep them past the call. NaN values are treated as ``+inf``.
         x0: centre of the initial swarm, shape ``(D,)`` (parameter units).
         sigma: standard deviation of the initial swarm around ``x0``: a positive scalar or a
             ``(D,)`` vector in parameter units; also the largest mutation step. For badly scaled
@@ -268,69 +260,137 @@ def hybrid_pso(
 
     nfev = 0
 
-    def evaluate(pos: np.ndarray) -> np.ndarray:
+    # ---- buffers, allocated once ----------------------------------------------------------
+    # One candidate array holds, per iteration, the moved swarm (rows 0..n-1, which is also the
+    # swarm itself: ``x`` is a view), both crossover children and the mutants; ``fitness`` gets a
+    # read-only view of it, so one call evaluates everything and nothing is concatenated.
+    n_rows = n + (2 * n if crossover else 0) + n_mut
+    cand = np.empty((n_rows, dim))
+    cand_ro = cand.view()
+    cand_ro.flags.writeable = False
+    x = cand[:n]
+    fc = np.empty(n_rows)
+    f = np.empty(n)
+    v = np.zeros((n, dim))
+    # the two attractors stacked: partner[0] IS the personal bests, partner[1] the global best in
+    # every row, so the velocity update and both crossovers each take one operation for both
+    partner = np.empty((2, n, dim))
+    pbest_x = partner[0]
+    coef = np.array([c1, c2]).reshape(2, 1, 1)
+    r = np.empty((2, n, dim))
+    scratch = cand[n : 3 * n].reshape(2, n, dim) if crossover else np.empty((2, n, dim))
+    if crossover:
+        children = cand[n : 3 * n].reshape(2, n, dim)  # with the personal, the global best
+        moved_and_children = cand[: 3 * n].reshape(3, n, dim)
+        rows = np.arange(n)
+        fx = fc[: 3 * n].reshape(3, n)
+        if dim <= _MASK_TABLE_MAX_DIM:
+            # segment masks by lookup: row lo*D + hi (either order) marks columns min..max
+            cols = np.arange(dim)
+            ends = np.arange(dim * dim)
+            lo_t = np.minimum(ends // dim, ends % dim)[:, None]
+            hi_t = np.maximum(ends // dim, ends % dim)[:, None]
+            mask_table = (cols >= lo_t) & (cols <= hi_t)
+            end_weights = np.array([dim, 1])
+        else:
+            mask_table = None
+    if mutation:
+        mutants = cand[n_rows - n_mut :]
+        f_mut = fc[n_rows - n_mut :]
+
+    def evaluate(rows: int) -> np.ndarray:
         nonlocal nfev
+        pos = cand_ro if rows == n_rows else cand_ro[:rows]
         values = np.asarray(fitness(pos), dtype=float)
-        if values.shape != (pos.shape[0],):
+        if values.shape != (rows,):
             raise ValueError(
-                f"fitness must return shape ({pos.shape[0]},) for an input of shape "
+                f"fitness must return shape ({rows},) for an input of shape "
                 f"{pos.shape}, got shape {values.shape}"
             )
-        nfev += pos.shape[0]
-        return np.where(np.isnan(values), np.inf, values)
+        nfev += rows
+        out = fc[:rows]
+        np.fmin(values, np.inf, out=out)  # copies into our buffer; NaN -> +inf
+        return out
 
-    def clip(pos: np.ndarray) -> np.ndarray:
-        return pos if lower is None else np.clip(pos, lower, upper)
+    def segment_masks() -> np.ndarray:
+        """(2, n, D) masks of random inclusive segments, both ends uniform in 0 .. D-1 per row
+        (the same draws, in the same order, as one (n, 2) draw per crossover)."""
+        ends = rng.integers(0, dim, size=(2, n, 2))
+        if mask_table is not None:
+            return mask_table.take(ends @ end_weights, axis=0)
+        lo = ends.min(axis=2, keepdims=True)
+        hi = ends.max(axis=2, keepdims=True)
+        cols = np.arange(dim)
+        return (cols >= lo) & (cols <= hi)
 
     # ---- initial swarm ----------------------------------------------------------------------
-    x = clip(x0 + sigma_v * rng.standard_normal((n, dim)))
-    v = np.zeros((n, dim))
-    f = evaluate(x)
-    pbest_x, pbest_f = x.copy(), f.copy()
-    g = int(np.argmin(pbest_f))
+    rng.standard_normal((n, dim), out=x)
+    x *= sigma_v
+    x += x0
+    if lower is not None:
+        np.clip(x, lower, upper, out=x)
+    f[:] = evaluate(n)
+    pbest_x[...] = x
+    pbest_f = f.copy()
+    g = int(pbest_f.argmin())
     gbest_x, gbest_f = pbest_x[g].copy(), float(pbest_f[g])
+    partner[1] = gbest_x
 
     history: list[float] = []
     status, message = STATUS_MAX_ITERATIONS, f"maximum number of iterations ({iterations}) reached"
     stall_count = 0
     for k in range(1, iterations + 1):
-        # 1. velocity and position update, eqs (14) and (15)
-        r = rng.random((2, n, dim))
-        v = w * v + c1 * r[0] * (pbest_x - x) + c2 * r[1] * (gbest_x - x)
-        x = clip(x + v)
-        batch = [x]
+        # 1. velocity and position update, eqs (14) and (15), in place:
+        #    v = w v + (c1 r1) (pbest - x) + (c2 r2) (gbest - x);  x = x + v
+        rng.random((2, n, dim), out=r)
+        r *= coef
+        r *= np.subtract(partner, x, out=scratch)  # (children are written after this)
+        v *= w
+        v += r[0]
+        v += r[1]
+        x += v
+        if lower is not None:
+            np.clip(x, lower, upper, out=x)
         if crossover:
             # 2./3. segment crossover of the moved particle with its personal best and,
             # separately, with the global best
-            batch += [_segment_children(x, pbest_x, rng), _segment_children(x, gbest_x, rng)]
+            children[...] = x
+            np.copyto(children, partner, where=segment_masks())
         if mutation:
             # 4. mutants: normally distributed around the global best, log-uniform step scale,
             # each aimed at one randomly chosen particle
             idx = rng.choice(n, size=n_mut, replace=False)
             scale = sigma_v * 10.0 ** (-mutation_decades * rng.random((n_mut, 1)))
-            batch.append(clip(gbest_x + scale * rng.standard_normal((n_mut, dim))))
+            rng.standard_normal((n_mut, dim), out=mutants)
+            mutants *= scale
+            mutants += gbest_x
+            if lower is not None:
+                np.clip(mutants, lower, upper, out=mutants)
         # one vectorised evaluation of the moved swarm and all candidates
-        cand = np.concatenate(batch) if len(batch) > 1 else x
-        fc = evaluate(cand)
-        f = fc[:n]
+        evaluate(n_rows)
         if crossover:
-            # elitist: keep the best of (particle, child with pbest, child with gbest)
-            fx = fc[: 3 * n].reshape(3, n)
-            pick = np.argmin(fx, axis=0)  # ties keep the particle (index 0)
-            x = cand[: 3 * n].reshape(3, n, dim)[pick, np.arange(n)]
-            f = fx[pick, np.arange(n)]
+            # elitist: keep the best of (particle, child with pbest, child with gbest);
+            # ties keep the particle (argmin takes the first)
+            pick = fx.argmin(axis=0)
+            x[...] = moved_and_children[pick, rows]  # the gather copies before x is written
+            fx.min(axis=0, out=f)
+        else:
+            f[:] = fc[:n]
         if mutation:
             # elitist: a mutant replaces its particle only if better
-            fm = fc[-n_mut:]
-            better = fm < f[idx]
-            x[idx[better]], f[idx[better]] = cand[-n_mut:][better], fm[better]
+            better = f_mut < f[idx]
+            if better.any():
+                won = idx[better]
+                x[won], f[won] = mutants[better], f_mut[better]
         # 5. personal and global best
         improved = f < pbest_f
-        pbest_x[improved], pbest_f[improved] = x[improved], f[improved]
-        g = int(np.argmin(pbest_f))
+        np.copyto(pbest_x, x, where=improved[:, None])
+        np.copyto(pbest_f, f, where=improved)
+        g = int(pbest_f.argmin())
         previous = gbest_f
         if pbest_f[g] < gbest_f:
             gbest_x, gbest_f = pbest_x[g].copy(), float(pbest_f[g])
+            partner[1] = gbest_x
         history.append(gbest_f)
 
         if callback is not None and callback(k, gbest_f, gbest_x.copy()):

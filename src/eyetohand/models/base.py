@@ -216,13 +216,26 @@ class RobotToImage:
 
 
 def batch_inverse3(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverses of (P, 3, 3) matrices by the adjugate (no exception on singular ones: inf/nan)."""
-    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
-    c0, c1, c2 = np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)
-    det = np.einsum("pi,pi->p", r0, c0)
+    """Inverses of (P, 3, 3) matrices by the adjugate (no exception on singular ones: inf/nan).
+
+    Elementwise over P from the cofactors (no BLAS, no einsum, so no dependence on BLAS threads). The
+    inverse is a (P, 3, 3) view of a (3, 3, P) array: ``inv.transpose(2, 1, 0)[j, i]`` is the
+    contiguous (P,) row of element (i, j)."""
+    M = np.asarray(M, dtype=float)
+    m = np.ascontiguousarray(M.transpose(1, 2, 0)).reshape(9, len(M))  # m[3 a + b] = M[:, a, b]
+    # cofactor C[a, b] = M[a+1, b+1] M[a+2, b+2] - M[a+1, b+2] M[a+2, b+1] (indices mod 3): the
+    # four factors of all nine, as rows of m
+    cof = m.take((4, 5, 3, 7, 8, 6, 1, 2, 0), axis=0)
+    cof *= m.take((8, 6, 7, 2, 0, 1, 5, 3, 4), axis=0)
+    cof -= m.take((5, 3, 4, 8, 6, 7, 2, 0, 1), axis=0) * m.take((7, 8, 6, 1, 2, 0, 4, 5, 3), axis=0)
+    # now cof[3 a + b] = C[a, b], (9, P)
+    det = m[0] * cof[0]
+    det += m[1] * cof[1]
+    det += m[2] * cof[2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.stack([c0, c1, c2], axis=2) / det[:, None, None]
-    return inv, det
+        cof /= det
+    # inv[p, i, j] = C[j, i] / det
+    return cof.reshape(3, 3, len(M)).transpose(2, 1, 0), det
 
 
 def as_uv(uv_px) -> np.ndarray:

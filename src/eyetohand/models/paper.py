@@ -101,11 +101,21 @@ class PaperB(Model):
         B = np.asarray(params, float).reshape(-1, 3, 4)
         Minv, _ = batch_inverse3(B[:, :, :3])
         uv = np.asarray(uv_px, float)
-        P = np.empty((len(B), len(uv), 3))
-        P[..., 0] = uv[None, :, 0] - B[:, None, 0, 3]
-        P[..., 1] = uv[None, :, 1] - B[:, None, 1, 3]
-        P[..., 2] = 1.0 - B[:, None, 2, 3]
-        return np.einsum("pij,pnj->pni", Minv, P)
+        # R = M⁻¹ P, P = (u − b14, v − b24, 1 − b34), elementwise on (3, points, parameter sets)
+        # with the longer axis innermost: no BLAS, no einsum, four passes for all three
+        # coordinates. The result is a (P, N, 3) view of those planes.
+        G = Minv.transpose(2, 1, 0)  # G[j]: (3, P), row i contiguous, = M⁻¹[:, i, j]
+        t = np.ascontiguousarray(B[:, :, 3].T)  # (3, P): b14, b24, b34
+        wide = len(B) >= len(uv)
+        if wide:  # (3, N, P)
+            G, t, u, v = G[:, :, None, :], t[:, None, :], uv[:, 0, None], uv[:, 1, None]
+        else:  # (3, P, N)
+            G, t, u, v = G[..., None], t[..., None], uv[:, 0], uv[:, 1]
+        du, dv, dw = u - t[0], v - t[1], 1.0 - t[2]
+        out = np.multiply(G[0], du)
+        out += np.multiply(G[1], dv)
+        out += G[2] * dw
+        return out.transpose(2, 1, 0) if wide else out.transpose(1, 2, 0)
 
     @property
     def equation5_rank(self) -> int | None:
