@@ -66,7 +66,7 @@ class Mapped:
             }
             if self.rz_deg is not None:
                 rec["rz"] = float(self.rz_deg[i])
-            rec["sigma_mm"] = None if self.sigma_mm is None else float(self.sigma_mm[i])
+            rec["sigma_mm"] = None if self.sigma_mm is None else float(self.sigma_mm[i])  # type: ignore[assignment]
             rec["inside"] = bool(self.inside[i])
             out.append(rec)
         return out
@@ -214,9 +214,7 @@ class Calibration:
             return self._map_xy(None)
 
         def f(uv):
-            zq = np.tile(z, len(uv) // len(z))
-            if self.model.height_rule is HeightRule.COMPUTED:
-                zq = None
+            zq = None if self.model.height_rule is HeightRule.COMPUTED else np.tile(z, len(uv) // len(z))
             return self.model.image_to_robot(uv, zq)[:, :2]
 
         return f

@@ -12,6 +12,7 @@ calibration's leave-one-out statistics (not computed twice).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -126,11 +127,12 @@ def select_model(
 def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=None, seed=0) -> Selection:
     n = len(pairs)
     cv_opt = get_solver(optimizer).for_cross_validation(objective)
-    rows, held = [], {}
+    rows: list[dict[str, Any]] = []
+    held: dict[str, np.ndarray] = {}
     delta = None
     for cls in candidate_models(pairs):
         k = cls.n_unknowns()
-        row = {"model": cls.name, "unknowns": k}
+        row: dict[str, Any] = {"model": cls.name, "unknowns": k}
         if 2 * n < k + SPARE_EQUATIONS:
             need = -(-(k + SPARE_EQUATIONS) // 2)
             row.update(cv_rms_mm=None, considered=False, why=f"needs at least {need} pairs, have {n}")
@@ -162,7 +164,7 @@ def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=Non
             f"too few pairs ({n}) to cross-validate any model; took '{fallback.name}', "
             "the one with the fewest unknowns"
         )
-        report = {"chosen": fallback.name, "reason": reason, "candidates": rows}
+        report: dict[str, Any] = {"chosen": fallback.name, "reason": reason, "candidates": rows}
         return Selection(fallback.name, report, None, cv_opt)
     what = {"l2": "held-out RMS", "linf": "largest held-out error", "huber": "held-out Huber loss"}[objective]
     best = min(r["cv_score_mm"] for r in scored)
@@ -263,9 +265,9 @@ def calibrate(
     if loo and len(pairs) > fitted.min_pairs:
         loo_opt = solver.for_cross_validation(objective)
         try:
-            reuse = selection is not None and selection.optimizer == loo_opt
-            if reuse and selection.residuals_mm is not None:
-                res = selection.residuals_mm
+            reused = selection.residuals_mm if selection is not None and selection.optimizer == loo_opt else None
+            if reused is not None:
+                res = reused
             else:
                 res = cross_validate(pairs, model, loo_opt, objective, image_size=image_size, seed=cv_seed)
             loo_stats = stats_from_residuals(res, pairs.ids)
@@ -310,7 +312,7 @@ def sanity_warnings(
     out = []
     from .orientation import LocalFrame, local_jacobian
 
-    z = region.plane_z_mm if region.plane_z_mm is not None else float(np.mean(region.z_range_mm))
+    z = region.plane_z_mm if region.plane_z_mm is not None else float(np.mean(region.z_range_mm or (0.0, 0.0)))
     zq = None if model.height_rule is HeightRule.COMPUTED else z
     J = local_jacobian(
         lambda uv: model.image_to_robot(uv, zq)[:, :2], region.hull_px.mean(axis=0, keepdims=True)

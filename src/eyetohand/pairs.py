@@ -308,7 +308,7 @@ def _from_records(records, name: str | None, label: str | None, z_given: bool | 
             angles[i] = _number(rec["angle"], where, "angle")
         pid = rec.get("id")
         ids.append(str(i) if pid in (None, "") else str(pid).strip())
-    if has_angle and np.isnan(angles).any():
+    if angles is not None and np.isnan(angles).any():
         i = int(np.flatnonzero(np.isnan(angles))[0])
         raise wheres[i].error("empty while other rows have an angle", "angle")
     source = name if name is not None else (label or "<records>")

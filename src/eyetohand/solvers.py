@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
+from .models import Model
 from .numdiff import batch_jacobian
 from .objectives import OBJECTIVES, SMOOTH_OBJECTIVES, check_objective, huber_delta_mm, objective_values
 from .records import FitInfo
@@ -29,7 +30,7 @@ HUBER_ROUNDS = 5
 class Problem:
     """What a solver minimises: the model, its training pairs, the objective and the Huber threshold."""
 
-    model: object
+    model: Model
     uv_px: np.ndarray
     xyz_mm: np.ndarray
     objective: str
@@ -48,7 +49,7 @@ class Solver:
     """A refinement method: ``run(problem, seed=, callback=, **options) -> (model, FitInfo)``."""
 
     name: str
-    run: Callable[..., tuple[object, FitInfo]]
+    run: Callable[..., tuple[Model, FitInfo]]
     objectives: tuple[str, ...]
     options: tuple[str, ...] = ()
     summary: str = ""
@@ -86,7 +87,7 @@ def _lm(problem: Problem, **_):
     def jac(p):  # all finite-difference steps in one batched call
         return batch_jacobian(fun_batch, p)
 
-    extra = {}
+    extra: dict = {}
     if objective == "l2":
         sol = least_squares(fun, model.params, jac=jac, method="lm", x_scale="jac")
     else:
@@ -123,7 +124,7 @@ def _swarm(kind: str):
         return model.with_params(res.x), FitInfo(
             kind, problem.objective, float(res.fun), tuple(float(v) for v in res.history),
             int(res.nfev), int(res.nit), time.perf_counter() - t0,
-            seed if isinstance(seed, (int, np.integer)) else None, str(res.message), extra,
+            int(seed) if isinstance(seed, (int, np.integer)) else None, str(res.message), extra,
         )
 
     return run

@@ -183,7 +183,8 @@ class PinholeCamera(Model):
             raise InputError(f"model 'camera': constant 'aspect': expected 'free' or 'square', got "
                              f"{consts.get('aspect')!r}")
         self._square = consts["aspect"] == "square"
-        self.n_params = 13 if self._square else 14  # type: ignore[misc]  (per instance: the aspect decides)
+        # per instance: the aspect decides (13 with square pixels, 14 with fx and fy)
+        self.n_params = 13 if self._square else 14  # type: ignore[misc]
         super().__init__(params, consts, diagnostics)
 
     def _prepare(self) -> None:
