@@ -21,9 +21,11 @@ a CR LF line is ignored). Every reply is one line, ``OK …`` or ``ERR <reason>`
     The robot stands at (x, y, z) mm, tool angle ``angle`` deg (0 when left out): two grabs, the
     target detected in both; they must agree within ``still_tol_px`` (default
     :data:`STILL_TOL_PX` = 0.2 px, the distance between the two centres) — else ``ERR moving``. The
-    point recorded is the mean of the two centres. → ``OK <n>,<u>,<v>`` (n: points recorded so far),
-    or ``ERR <reason>`` with nothing recorded, the reason starting with one of ``target not found``,
-    ``ambiguous``, ``moving``, ``outside the image``, ``timeout``. A pose matching a planned one
+    point recorded is the first grab's detection (full search and intensity-model refinement); the
+    second grab is searched only near it (edge refinement: cheaper, precise enough for 0.2 px).
+    → ``OK <n>,<u>,<v>`` (n: points recorded so far), or ``ERR <reason>`` with nothing recorded,
+    the reason starting with one of ``target not found``, ``ambiguous``, ``moving``, ``outside the
+    image``, ``timeout``. A pose matching a planned one
     (within 0.01 mm) marks it done — or failed on ERR, so ``CAL NEXT`` moves on; a POINT at a pose
     already recorded (1 µm, same angle) records nothing and answers that point's reply again (a
     robot retrying after a lost reply).
@@ -454,7 +456,7 @@ class Collector:
         x = int(max(0, math.floor(d1.u - r)))
         y = int(max(0, math.floor(d1.v - r)))
         roi = (x, y, int(min(w, math.ceil(d1.u + r)) - x), int(min(h, math.ceil(d1.v + r)) - y))
-        opts = {**self.detect_options, "diameter_px": d1.diameter_px}
+        opts = {**self.detect_options, "diameter_px": d1.diameter_px, "refine": "edge"}
         try:
             d2 = detect_target(img2, name="grab 2", roi=roi, **opts)
         except InputError:
@@ -466,8 +468,7 @@ class Collector:
             raise CommandError(f"moving: the target moved {shift:.2f} px between two grabs "
                                f"(tolerance {self.still_tol_px:g} px)")
         self.image_size = (int(w), int(h))
-        uv = (0.5 * (d1.u + d2.u), 0.5 * (d1.v + d2.v))
-        return uv, d1, img1, shift
+        return (float(d1.u), float(d1.v)), d1, img1, shift
 
     # -- POINT
     def _point(self, args: list[str]) -> list:

@@ -9,9 +9,9 @@ What :class:`CellCamera` does with a command ``c = (x, y, z)`` at tool angle θ 
 3. the cell's hidden camera sees it: rendered by :func:`eyetohand.sim.images.render_target` with the
    cell's blur, vignetting and image noise, then shifted by ``bump_px`` (a knocked camera).
 
-Randomness is a function of the seed and the pose only (robot error: seed + pose; image noise: seed +
-pose + the grab's index since the pose was set), so a restarted process renders bit-identical images
-for the same poses — what the collection's crash tests rely on.
+Randomness is a function of the seeds and the pose only (robot error: ``seed`` + pose; image noise:
+``noise_seed`` (default ``seed``) + pose + the grab's index since the pose was set), so a restarted
+process renders bit-identical images for the same poses — what the collection's crash tests rely on.
 """
 
 from __future__ import annotations
@@ -38,13 +38,17 @@ def _pose_seed(seed: int, xyz_mm, angle_deg: float, salt: int) -> np.random.Gene
 
 
 class CellCamera:
-    """A cell's hidden camera pointed at the robot's target. ``set_robot_pose`` then ``render``."""
+    """A cell's hidden camera pointed at the robot's target. ``set_robot_pose`` then ``render``.
+    Two cameras with the same ``seed`` see the robot at the same places; ``noise_seed`` apart, they
+    photograph them with different image noise."""
 
-    def __init__(self, cell: Cell, seed: int = 0):
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-            raise InputError(f"sim camera: seed must be a whole number, got {seed!r}")
+    def __init__(self, cell: Cell, seed: int = 0, noise_seed: int | None = None):
+        for what, v in (("seed", seed), ("noise_seed", 0 if noise_seed is None else noise_seed)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise InputError(f"sim camera: {what} must be a whole number, got {v!r}")
         self.cell = cell
         self.seed = int(seed)
+        self.noise_seed = self.seed if noise_seed is None else int(noise_seed)
         self.camera = true_camera(cell)
         self.bump_px = (0.0, 0.0)  # image shift (du, dv) px: a camera knocked after calibration
         self.hide_target = False  # True: the next images show the belt only (target hidden)
@@ -82,7 +86,7 @@ class CellCamera:
         """One 8-bit grey image of the target at the current pose (h, w) uint8."""
         if self._target is None:
             raise InputError("sim camera: no robot pose yet; call set_robot_pose(x, y, z[, angle]) first")
-        rng = _pose_seed(self.seed, self._command, self._angle, 2 + self._grabs)
+        rng = _pose_seed(self.noise_seed, self._command, self._angle, 2 + self._grabs)
         where = self._target.copy()
         where[:2] += self._grabs * np.asarray(self.drift_mm_per_grab, float)
         if self.hide_target:
