@@ -66,24 +66,25 @@ class FolderCamera:
         self.count = 0
 
     def expose_later(self, x, y, z, angle=0.0, shots: int = 2) -> threading.Thread:
-        """Render ``shots`` images of the target at the pose now, write them after the delays."""
+        """In a thread: wait ``delay_s``, then take ``shots`` exposures of the target at the pose
+        ``gap_s`` apart, each written (atomically) into the folder as soon as it is taken."""
         import cv2
 
         from eyetohand.io import atomic_write_bytes
 
         self.camera.set_robot_pose(x, y, z, angle)
-        images = [cv2.imencode(".png", self.camera.render())[1].tobytes() for _ in range(shots)]
         names = []
         for _ in range(shots):
             self.count += 1
             names.append(self.folder / f"shot_{self.count:05d}.png")
 
         def write():
-            time.sleep(self.delay_s)
-            for k, (name, data) in enumerate(zip(names, images, strict=True)):
-                if k:
-                    time.sleep(self.gap_s)
+            t_next = time.monotonic() + self.delay_s
+            for name in names:
+                data = cv2.imencode(".png", self.camera.render())[1].tobytes()
+                time.sleep(max(0.0, t_next - time.monotonic()))
                 atomic_write_bytes(name, data)
+                t_next = time.monotonic() + self.gap_s
 
         t = threading.Thread(target=write, daemon=True)
         t.start()

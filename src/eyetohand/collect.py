@@ -345,7 +345,9 @@ class Collector:
 
     # ---------------------------------------------------------------- protocol
     def handle(self, line: str) -> str:
-        """The reply (one line, no line end) to one command line."""
+        """The reply (one line, no line end) to one command line. Never raises: a failure of the
+        camera or of the fit is answered ``ERR internal error: …`` (journal records are written
+        whole or not at all, so the state stays consistent)."""
         if isinstance(line, bytes):
             try:
                 line = line.decode("ascii")
@@ -359,6 +361,8 @@ class Collector:
                 return self._format_err(str(exc))
             except InputError as exc:
                 return self._format_err(str(exc).splitlines()[0])
+            except Exception as exc:  # a camera or a fit that breaks: still one ERR line, state intact
+                return self._format_err(f"internal error: {type(exc).__name__}: {exc}")
         return self._format_ok(text, fields)
 
     def _dispatch(self, text: str) -> list:
