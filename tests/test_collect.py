@@ -221,6 +221,30 @@ def test_errors_one_each_and_session_continues(tmp_path, cell_file, rect):
     assert col2.handle("CAL NEXT") == "OK {:.4f},{:.4f},{:.4f}".format(*poses[5])
     assert col2.handle("CAL ABORT") == "OK" and col2.handle("CAL STATUS") == "OK c2,0,aborted"
     col2.close()
+    # a kill in the middle of a journal write leaves a torn last line: cut off on the next start
+    journal = tmp_path / "collect.jsonl"
+    whole = journal.read_bytes()
+    journal.write_bytes(whole + b'{"op":"point","n":4,"xy')
+    col3 = Collector(tmp_path, source)
+    assert journal.read_bytes() == whole and col3.handle("CAL STATUS") == "OK c2,0,aborted"
+    assert col3.handle("CAL BEGIN c4") == "OK"
+    assert json.loads(journal.read_text().splitlines()[-1])["name"] == "c4"
+    col3.close()
+
+
+def test_sqlite_store_resumes(tmp_path, cell_file, rect):
+    source = open_source(f"sim:{cell_file}?seed={SEED}")
+    x, y, z = plan_poses("grid:3x3", *rect, Z)[4]
+    with Collector(tmp_path / "cal.db", source) as col:
+        assert col.handle("CAL BEGIN s1,grid:3x3,{:.4f},{:.4f},{:.4f},{:.4f},{:.1f}".format(*rect, Z)) == "OK"
+        first = col.handle(f"CAL POINT {x:.4f},{y:.4f},{z:.4f}")
+        assert first.startswith("OK 1,")
+    with Collector(tmp_path / "cal.db", source) as col:
+        assert col.handle("CAL STATUS") == "OK s1,1,collecting"
+        assert col.handle(f"CAL POINT {x:.4f},{y:.4f},{z:.4f}") == first  # already recorded
+        first_pose = plan_poses("grid:3x3", *rect, Z)[0]
+        assert col.handle("CAL NEXT") == "OK {:.4f},{:.4f},{:.4f}".format(*first_pose)
+    assert not (tmp_path / "collect.jsonl").exists()
 
 
 def test_ur_reply_format(tmp_path, cell_file, rect):
