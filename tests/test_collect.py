@@ -126,7 +126,8 @@ def test_sim_collection_end_to_end(run_sim, rect, check_pairs, tmp_path, cell_fi
     offline = Calibration.load(tmp_path / "offline.json")
     rms_loop, rms_off = check_rms_mm(cal, check_pairs), check_rms_mm(offline, check_pairs)
     print(f"check RMS: collection {rms_loop:.4f} mm ({cal.model_name}), calibrate-images "
-          f"{rms_off:.4f} mm ({offline.model_name}), ratio {rms_loop / rms_off:.3f}")
+          f"{rms_off:.4f} mm ({offline.model_name}), ratio {rms_loop / rms_off:.3f}, "
+          f"{len(check_pairs)} check points")
     assert rms_loop <= 1.2 * rms_off
 
 
@@ -394,6 +395,16 @@ def test_folder_source_waits_for_a_new_complete_file(tmp_path):
     t.join()
     assert np.array_equal(got, img) and src.last_path.name == "new.png"
     assert abs(ts - (tmp_path / "new.png").stat().st_mtime) < 1e-6
+
+
+def test_point_times_out_when_no_image_comes(tmp_path):
+    (tmp_path / "shots").mkdir()
+    col = Collector(tmp_path / "store", open_source(f"folder:{tmp_path / 'shots'}?timeout=0.2"))
+    assert col.handle("CAL BEGIN t1") == "OK"
+    reply = col.handle("CAL POINT 1,2,150")
+    assert reply.startswith("ERR timeout: no new image within 0.2 s (folder:")
+    assert col.handle("CAL STATUS") == "OK t1,0,collecting"
+    col.close()
 
 
 def test_opencv_source_reads_a_video_file(tmp_path):

@@ -108,7 +108,7 @@ class OpenCVSource(Source):
             if ok and frame is not None:
                 return frame, time.time()
             if time.monotonic() >= t_end:
-                raise GrabTimeout(f"{self.uri}: no frame within {self.timeout_s:g} s")
+                raise GrabTimeout(f"no frame within {self.timeout_s:g} s ({self.uri})")
             time.sleep(0.01)
 
     def close(self) -> None:
@@ -184,7 +184,7 @@ class FolderSource(Source):
                 self.last_path = path
                 return img, now[name].st_mtime_ns * 1e-9
             if time.monotonic() >= t_end:
-                raise GrabTimeout(f"{self.uri}: no new image in {self.folder} within {self.timeout_s:g} s")
+                raise GrabTimeout(f"no new image within {self.timeout_s:g} s ({self.uri})")
             time.sleep(FOLDER_POLL_S)
 
 
@@ -242,7 +242,7 @@ class GenICamSource(Source):
                 comp = buf.payload.components[0]
                 img = comp.data.reshape(comp.height, comp.width).copy()
         except Exception as exc:  # harvesters raises its own timeout types
-            raise GrabTimeout(f"{self.uri}: no frame within {self.timeout_s:g} s ({exc})") from None
+            raise GrabTimeout(f"no frame within {self.timeout_s:g} s ({self.uri}: {exc})") from None
         return img, time.time()
 
     def close(self) -> None:
@@ -275,7 +275,7 @@ class PylonSource(Source):
         res = self._cam.GrabOne(int(self.timeout_s * 1000))
         try:
             if not res.GrabSucceeded():
-                raise GrabTimeout(f"{self.uri}: grab failed ({res.ErrorDescription})")
+                raise GrabTimeout(f"grab failed ({self.uri}: {res.ErrorDescription})")
             return res.Array.copy(), time.time()
         finally:
             res.Release()
