@@ -1,0 +1,329 @@
+"""Camera sources: one interface, ``grab() -> (image, timestamp_s)``, chosen by a URI.
+
+=========================  =====================================================================
+URI                        source
+=========================  =====================================================================
+``opencv:0``               OpenCV ``VideoCapture`` on device 0 (USB/UVC, GigE exposed as such)
+``opencv:rtsp://host/..``  OpenCV ``VideoCapture`` on a stream URL (RTSP, HTTP MJPEG, a file)
+``folder:DIR``             the first image file that appears in DIR *after* the grab was requested
+``sim:CELL.toml``          the virtual cell's hidden camera looking at the robot's target
+``genicam:CTI[#N]``        a GenICam camera through a GenTL producer (extra: ``harvesters``)
+``pylon:[SERIAL]``         a Basler camera (extra: ``pypylon``)
+=========================  =====================================================================
+
+Options follow a ``?``: ``folder:DIR?timeout=5``, ``sim:cell.toml?seed=3``, ``opencv:0?timeout=2``.
+
+Every source is a context manager with ``close()``. ``grab()`` returns a numpy image (grey (h, w)
+or BGR (h, w, 3), as the camera gives it) and the time it was taken (seconds since the epoch: for
+files their modification time, else the time the frame was read). A grab that gets no image in
+time raises :class:`GrabTimeout`; a source that cannot be opened raises
+:class:`~eyetohand.errors.InputError` naming the URI.
+
+**The sim hook.** A simulated camera has to know where the robot is: ``SimSource.set_robot_pose(x,
+y, z, angle=0)`` (or ``grab(pose=(x, y, z[, angle]))``) places the target; the image shows it where
+the robot *really* went (the cell's hidden axis errors, repeatability and tool offset), through the
+cell's hidden camera. Any source has ``set_robot_pose`` (a no-op for real cameras), so the
+collection calls it before every grab without knowing which source it has. ``SimSource.cell_camera``
+exposes test hooks (``bump_px``, ``hide_target``, ``drift_mm_per_grab``): see
+:mod:`eyetohand.sim.camera_sim`.
+
+Only ``folder:`` and ``sim:`` are tested here; ``opencv:`` is exercised on a video file; the
+GenICam and Basler sources need their extras and a camera and are untested on this machine.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from urllib.parse import parse_qsl
+
+import numpy as np
+
+from .errors import InputError
+
+SCHEMES = ("opencv", "folder", "sim", "genicam", "pylon")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+DEFAULT_TIMEOUT_S = 10.0
+FOLDER_POLL_S = 0.01
+
+
+class GrabTimeout(TimeoutError):
+    """No image arrived within the source's timeout."""
+
+
+class Source:
+    """The interface. Subclasses implement :meth:`_grab`."""
+
+    uri = ""
+    timeout_s = DEFAULT_TIMEOUT_S
+
+    def grab(self, pose=None) -> tuple[np.ndarray, float]:
+        """One image and its timestamp (s). ``pose`` (x, y, z[, angle]): see :meth:`set_robot_pose`."""
+        if pose is not None:
+            self.set_robot_pose(*pose)
+        return self._grab()
+
+    def set_robot_pose(self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float = 0.0) -> None:
+        """Where the robot is now. Real cameras see that for themselves: a no-op except for ``sim:``."""
+
+    def _grab(self) -> tuple[np.ndarray, float]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.uri!r})"
+
+
+# ------------------------------------------------------------------ opencv
+
+
+class OpenCVSource(Source):
+    """``cv2.VideoCapture`` on a device number or a URL; reads fail after ``timeout_s``."""
+
+    def __init__(self, target: str, uri: str, timeout_s: float = DEFAULT_TIMEOUT_S):
+        import cv2
+
+        self.uri, self.timeout_s = uri, timeout_s
+        arg = int(target) if target.isdigit() else target
+        if target == "":
+            raise InputError(f"{uri}: expected opencv:<device number> or opencv:<url>")
+        self._cap = cv2.VideoCapture(arg)
+        if not self._cap.isOpened():
+            self._cap.release()
+            raise InputError(f"{uri}: OpenCV cannot open {target!r} (no such camera, stream or file)")
+
+    def _grab(self):
+        t_end = time.monotonic() + self.timeout_s
+        while True:
+            ok, frame = self._cap.read()
+            if ok and frame is not None:
+                return frame, time.time()
+            if time.monotonic() >= t_end:
+                raise GrabTimeout(f"no frame within {self.timeout_s:g} s ({self.uri})")
+            time.sleep(0.01)
+
+    def close(self) -> None:
+        self._cap.release()
+
+
+# ------------------------------------------------------------------ folder
+
+
+class FolderSource(Source):
+    """The first image file that appears in ``folder`` after the grab was requested.
+
+    Files present when :meth:`grab` is called are never returned (stale frames from before the
+    robot arrived). A new file is taken once it is complete: its size is unchanged over one poll
+    and it decodes (truncated PNG/JPEG files are waited for). Hidden files (``.name``) and
+    ``*.tmp``/``*.part`` are ignored, so writers that rename into place (as
+    :func:`eyetohand.io.atomic_write_bytes` does) are picked up only when whole. Several new files:
+    the oldest by modification time (then name)."""
+
+    def __init__(self, folder: str, uri: str, timeout_s: float = DEFAULT_TIMEOUT_S):
+        self.uri, self.timeout_s = uri, timeout_s
+        self.folder = Path(folder)
+        if not folder:
+            raise InputError(f"{uri}: expected folder:<directory>")
+        if not self.folder.is_dir():
+            raise InputError(f"{uri}: {self.folder} is not a folder")
+        self.last_path: Path | None = None
+
+    def _scan(self) -> dict[str, os.stat_result]:
+        out = {}
+        try:
+            entries = list(os.scandir(self.folder))
+        except OSError as exc:
+            raise InputError(f"{self.uri}: cannot list {self.folder} ({exc.strerror or exc})") from None
+        for e in entries:
+            name = e.name
+            if name.startswith(".") or not name.lower().endswith(IMAGE_SUFFIXES):
+                continue
+            try:
+                st = e.stat()
+            except FileNotFoundError:
+                continue
+            if e.is_file():
+                out[name] = st
+        return out
+
+    def _grab(self):
+        import cv2
+
+        from .detect import _check_complete
+
+        before = {n: (st.st_mtime_ns, st.st_size) for n, st in self._scan().items()}
+        sizes: dict[str, int] = {}
+        t_end = time.monotonic() + self.timeout_s
+        while True:
+            now = self._scan()
+            fresh = sorted((st.st_mtime_ns, n) for n, st in now.items()
+                           if before.get(n) != (st.st_mtime_ns, st.st_size))
+            for _, name in fresh:
+                size = now[name].st_size
+                if size == 0 or sizes.get(name) != size:  # still being written: look again next poll
+                    sizes[name] = size
+                    continue
+                path = self.folder / name
+                try:
+                    data = path.read_bytes()
+                    _check_complete(data, name)  # refuses truncated PNG / JPEG files
+                except (InputError, OSError):
+                    continue
+                img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+                if img is None:
+                    continue
+                self.last_path = path
+                return img, now[name].st_mtime_ns * 1e-9
+            if time.monotonic() >= t_end:
+                raise GrabTimeout(f"no new image within {self.timeout_s:g} s ({self.uri})")
+            time.sleep(FOLDER_POLL_S)
+
+
+# ------------------------------------------------------------------ sim
+
+
+class SimSource(Source):
+    """The virtual cell (``sim:CELL.toml``, or ``sim:`` for the built-in cell) as a camera."""
+
+    def __init__(self, path: str, uri: str, seed: int = 0):
+        from .sim.camera_sim import CellCamera
+        from .sim.cell import load_cell
+
+        self.uri = uri
+        self.cell = load_cell(path or None)
+        self.cell_camera = CellCamera(self.cell, seed)
+
+    def set_robot_pose(self, x_mm, y_mm, z_mm, angle_deg=0.0) -> None:
+        self.cell_camera.set_robot_pose(float(x_mm), float(y_mm), float(z_mm), float(angle_deg))
+
+    def _grab(self):
+        return self.cell_camera.render(), time.time()
+
+
+# ------------------------------------------------------------------ optional extras
+
+
+class GenICamSource(Source):
+    """A GenICam camera through a GenTL producer file (``genicam:/opt/.../producer.cti[#index]``)."""
+
+    def __init__(self, target: str, uri: str, timeout_s: float = DEFAULT_TIMEOUT_S):
+        self.uri, self.timeout_s = uri, timeout_s
+        try:
+            from harvesters.core import Harvester
+        except ImportError:
+            raise InputError(f"{uri}: the genicam: source needs the 'harvesters' extra "
+                             "(pip install eyetohand[genicam])") from None
+        cti, _, index = target.partition("#")
+        if not cti or not Path(cti).is_file():
+            raise InputError(f"{uri}: expected genicam:<GenTL producer .cti file>[#camera index]")
+        self._h = Harvester()
+        self._h.add_file(cti)
+        self._h.update()
+        k = int(index) if index.isdigit() else 0
+        if k >= len(self._h.device_info_list):
+            n = len(self._h.device_info_list)
+            self._h.reset()
+            raise InputError(f"{uri}: camera #{k} not found ({n} camera(s) through {cti})")
+        self._ia = self._h.create(k)
+        self._ia.start()
+
+    def _grab(self):
+        try:
+            with self._ia.fetch(timeout=self.timeout_s) as buf:
+                comp = buf.payload.components[0]
+                img = comp.data.reshape(comp.height, comp.width).copy()
+        except Exception as exc:  # harvesters raises its own timeout types
+            raise GrabTimeout(f"no frame within {self.timeout_s:g} s ({self.uri}: {exc})") from None
+        return img, time.time()
+
+    def close(self) -> None:
+        self._ia.stop()
+        self._ia.destroy()
+        self._h.reset()
+
+
+class PylonSource(Source):
+    """A Basler camera through pypylon (``pylon:`` the first camera, ``pylon:SERIAL`` a given one)."""
+
+    def __init__(self, serial: str, uri: str, timeout_s: float = DEFAULT_TIMEOUT_S):
+        self.uri, self.timeout_s = uri, timeout_s
+        try:
+            from pypylon import pylon
+        except ImportError:
+            raise InputError(f"{uri}: the pylon: source needs the 'pypylon' extra "
+                             "(pip install eyetohand[pylon])") from None
+        self._pylon = pylon
+        factory = pylon.TlFactory.GetInstance()
+        devices = factory.EnumerateDevices()
+        chosen = [d for d in devices if not serial or d.GetSerialNumber() == serial]
+        if not chosen:
+            raise InputError(f"{uri}: no Basler camera" + (f" with serial {serial}" if serial else "")
+                             + f" ({len(devices)} found)")
+        self._cam = pylon.InstantCamera(factory.CreateDevice(chosen[0]))
+        self._cam.Open()
+
+    def _grab(self):
+        res = self._cam.GrabOne(int(self.timeout_s * 1000))
+        try:
+            if not res.GrabSucceeded():
+                raise GrabTimeout(f"grab failed ({self.uri}: {res.ErrorDescription})")
+            return res.Array.copy(), time.time()
+        finally:
+            res.Release()
+
+    def close(self) -> None:
+        self._cam.Close()
+
+
+# ------------------------------------------------------------------ open_source
+
+
+def _options(uri: str, query: str, allowed: dict) -> dict:
+    out = {}
+    for key, value in parse_qsl(query, keep_blank_values=True):
+        if key not in allowed:
+            raise InputError(f"{uri}: unknown option {key!r}; valid options: {', '.join(allowed) or 'none'}")
+        try:
+            out[key] = allowed[key](value)
+        except ValueError:
+            raise InputError(f"{uri}: option {key}={value!r} is not a number") from None
+        if key == "timeout" and not out[key] > 0:
+            raise InputError(f"{uri}: option timeout must be positive seconds, got {value!r}")
+    return out
+
+
+def open_source(uri: str, **overrides) -> Source:
+    """The camera source named by ``uri`` (see the module docstring). ``overrides`` (``timeout_s``,
+    ``seed``) take precedence over the URI's options."""
+    text = str(uri).strip()
+    scheme, sep, rest = text.partition(":")
+    scheme = scheme.lower()
+    if not sep or scheme not in SCHEMES:
+        raise InputError(f"camera {text!r}: unknown source; valid: opencv:<device|url>, folder:<dir>, "
+                         "sim:<cell.toml>, genicam:<producer.cti>, pylon:[serial]")
+    if scheme == "opencv" and "://" in rest:  # a URL keeps its own query string
+        target, query = rest, ""
+    else:
+        target, _, query = rest.partition("?")
+    if scheme == "sim":
+        opts = _options(text, query, {"seed": int})
+        seed = overrides.get("seed", opts.get("seed", 0))
+        return SimSource(target, text, seed=seed)
+    opts = _options(text, query, {"timeout": float})
+    timeout = float(overrides.get("timeout_s", opts.get("timeout", DEFAULT_TIMEOUT_S)))
+    cls = {"opencv": OpenCVSource, "folder": FolderSource, "genicam": GenICamSource,
+           "pylon": PylonSource}[scheme]
+    return cls(target, text, timeout_s=timeout)
+
+
+__all__ = ["FolderSource", "GenICamSource", "GrabTimeout", "OpenCVSource", "PylonSource", "SCHEMES",
+           "SimSource", "Source", "open_source"]
