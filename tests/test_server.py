@@ -74,9 +74,10 @@ def test_create_get_list_and_summary(client):
 
 def test_versions_exclude_rollback_and_delete(client):
     create(client, "a")
-    r = client.post("/api/calibrations/1/versions",
-                    json={"pairs": PAIRS, "check": CHECK, "model": "affine", "exclude": ["3", "7"],
-                          "note": "drop 3, 7"})
+    r = client.post(
+        "/api/calibrations/1/versions",
+        json={"pairs": PAIRS, "check": CHECK, "model": "affine", "exclude": ["3", "7"], "note": "drop 3, 7"},
+    )
     assert r.status_code == 201, r.text
     v2 = r.json()
     assert v2["version"] == 2 and v2["summary"]["n_pairs"] == 14
@@ -103,9 +104,10 @@ def test_errors_name_the_field(client):
     base = {"name": "x", "pairs": PAIRS}
     bad = [dict(p) for p in PAIRS]
     bad[3]["u"] = "abc"
-    assert post({**base, "pairs": bad}) == (422, {
-        "error": "pairs[3].u: Input should be a valid number, not a string",
-        "field": "pairs[3].u"})
+    assert post({**base, "pairs": bad}) == (
+        422,
+        {"error": "pairs[3].u: Input should be a valid number, not a string", "field": "pairs[3].u"},
+    )
     dup = [dict(p) for p in PAIRS]
     dup[5]["id"] = "2"
     status, err = post({**base, "pairs": dup})
@@ -144,9 +146,15 @@ def test_errors_name_the_field(client):
 def test_openapi_schema_is_precise(client):
     spec = client.get("/openapi.json").json()
     paths = spec["paths"]
-    for p in ("/api/calibrations", "/api/calibrations/{cal_id}", "/api/calibrations/{cal_id}/image-to-robot",
-              "/api/calibrations/{cal_id}/versions", "/api/calibrations/{cal_id}/rollback",
-              "/api/calibrations/{cal_id}/export", "/api/jobs/{job_id}"):
+    for p in (
+        "/api/calibrations",
+        "/api/calibrations/{cal_id}",
+        "/api/calibrations/{cal_id}/image-to-robot",
+        "/api/calibrations/{cal_id}/versions",
+        "/api/calibrations/{cal_id}/rollback",
+        "/api/calibrations/{cal_id}/export",
+        "/api/jobs/{job_id}",
+    ):
         assert p in paths, p
     pair = spec["components"]["schemas"]["PairIn"]
     assert set(pair["required"]) == {"u", "v", "x", "y"} and pair["additionalProperties"] is False
@@ -158,8 +166,10 @@ def test_openapi_schema_is_precise(client):
 
 
 def test_jobs_progress_save_and_cancel(client):
-    r = client.post("/api/jobs/fit", json={"pairs": PAIRS, "check": CHECK, "model": "paper",
-                                           "optimizer": "hybrid-pso", "seed": 1})
+    r = client.post(
+        "/api/jobs/fit",
+        json={"pairs": PAIRS, "check": CHECK, "model": "paper", "optimizer": "hybrid-pso", "seed": 1},
+    )
     assert r.status_code == 202
     jid = r.json()["id"]
     seen, history = set(), []
@@ -182,8 +192,10 @@ def test_jobs_progress_save_and_cancel(client):
     assert r.json()["points"] == unsaved
     assert client.get(f"/api/jobs/{jid}").json()["saved"]["id"] == saved["id"]
     # cancel: a long run stops early and leaves no result
-    r = client.post("/api/jobs/fit", json={"pairs": PAIRS, "model": "paper", "optimizer": "pso",
-                                           "iterations": 1000, "particles": 400})
+    r = client.post(
+        "/api/jobs/fit",
+        json={"pairs": PAIRS, "model": "paper", "optimizer": "pso", "iterations": 1000, "particles": 400},
+    )
     jid = r.json()["id"]
     time.sleep(0.3)
     client.delete(f"/api/jobs/{jid}")
@@ -266,17 +278,29 @@ def test_restart_keeps_every_calibration_and_its_history(tmp_path):
         c.post("/api/calibrations/1/versions", json={"pairs": PAIRS, "model": "affine", "exclude": ["0"]})
         c.post("/api/calibrations/1/rollback", json={"version": 1})
         c.patch("/api/calibrations/2", json={"name": "two renamed"})
-        before = {i: (c.get(f"/api/calibrations/{i}/versions").json(),
-                      [c.get(f"/api/calibrations/{i}", params={"version": v}).json()["calibration"]
-                       for v in range(1, 4 if i == 1 else 2)])
-                  for i in (1, 2)}
+        before = {
+            i: (
+                c.get(f"/api/calibrations/{i}/versions").json(),
+                [
+                    c.get(f"/api/calibrations/{i}", params={"version": v}).json()["calibration"]
+                    for v in range(1, 4 if i == 1 else 2)
+                ],
+            )
+            for i in (1, 2)
+        }
         mapped = c.post("/api/calibrations/1/image-to-robot", json={"points": [[500, 700]]}).json()
         c.app.state.store.close()
     with TestClient(create_app(data)) as c:
-        after = {i: (c.get(f"/api/calibrations/{i}/versions").json(),
-                     [c.get(f"/api/calibrations/{i}", params={"version": v}).json()["calibration"]
-                      for v in range(1, 4 if i == 1 else 2)])
-                 for i in (1, 2)}
+        after = {
+            i: (
+                c.get(f"/api/calibrations/{i}/versions").json(),
+                [
+                    c.get(f"/api/calibrations/{i}", params={"version": v}).json()["calibration"]
+                    for v in range(1, 4 if i == 1 else 2)
+                ],
+            )
+            for i in (1, 2)
+        }
         assert after == before
         assert before[1][0]["current_version"] == 3 and before[2][0]["name"] == "two renamed"
         assert c.post("/api/calibrations/1/image-to-robot", json={"points": [[500, 700]]}).json() == mapped
@@ -308,8 +332,11 @@ def test_body_limit_gives_413(tmp_path):
     with TestClient(create_app(tmp_path, max_body_bytes=4096)) as c:
         r = c.post("/api/pairs/parse", json={"text": "x" * 5000})
         assert r.status_code == 413 and r.json()["field"] == "body"
-        r = c.post("/api/pairs/parse", content=iter([b'{"text": "', b"x" * 5000, b'"}']),
-                   headers={"Content-Type": "application/json"})  # chunked: no Content-Length
+        r = c.post(
+            "/api/pairs/parse",
+            content=iter([b'{"text": "', b"x" * 5000, b'"}']),
+            headers={"Content-Type": "application/json"},
+        )  # chunked: no Content-Length
         assert r.status_code == 413
         r = c.post("/api/pairs/parse", json={"text": "u,v,x,y\n1,2,3,4\n"})
         assert r.status_code == 200
@@ -319,11 +346,14 @@ def test_a_million_points_work_and_more_get_413(client):
     create(client, "big")
     rng = np.random.default_rng(0)
     uv = np.round(rng.uniform(0, 2000, (MAX_POINTS, 2)), 2)
-    body = orjson.dumps({"points": uv, "z": 167.4166, "allow_outside": True, "sigma": False},
-                        option=orjson.OPT_SERIALIZE_NUMPY)
+    body = orjson.dumps(
+        {"points": uv, "z": 167.4166, "allow_outside": True, "sigma": False},
+        option=orjson.OPT_SERIALIZE_NUMPY,
+    )
     t0 = time.perf_counter()
-    r = client.post("/api/calibrations/1/image-to-robot", content=body,
-                    headers={"Content-Type": "application/json"})
+    r = client.post(
+        "/api/calibrations/1/image-to-robot", content=body, headers={"Content-Type": "application/json"}
+    )
     seconds = time.perf_counter() - t0
     assert r.status_code == 200
     xyz = np.array(orjson.loads(r.content)["points"])
@@ -335,8 +365,9 @@ def test_a_million_points_work_and_more_get_413(client):
     assert inside.dtype == bool and 0 < inside.sum() < MAX_POINTS
     print(f"1e6 points: {seconds:.1f} s")
     body = b'{"points": [' + b",".join([b"[1,2]"] * (MAX_POINTS + 1)) + b"]}"
-    r = client.post("/api/calibrations/1/image-to-robot", content=body,
-                    headers={"Content-Type": "application/json"})
+    r = client.post(
+        "/api/calibrations/1/image-to-robot", content=body, headers={"Content-Type": "application/json"}
+    )
     assert r.status_code == 413 and r.json()["field"] == "points"
     assert "1000000" in r.json()["error"]
 
@@ -368,8 +399,11 @@ def test_names_are_data_not_paths(client, tmp_path):
     assert client.get(f"/api/calibrations/{d['id']}").json()["name"] == name
     r = client.get(f"/api/calibrations/{d['id']}/export")
     assert 'filename="etc_passwd_DROP_TABLE_calibrations_--' in r.headers["content-disposition"]
-    assert sorted(p.name for p in (tmp_path / "data").iterdir()) <= ["calibrations.db", "calibrations.db-shm",
-                                                                     "calibrations.db-wal"]
+    assert sorted(p.name for p in (tmp_path / "data").iterdir()) <= [
+        "calibrations.db",
+        "calibrations.db-shm",
+        "calibrations.db-wal",
+    ]
 
 
 # ---------------------------------------------------------------------- TCP line service
@@ -386,6 +420,7 @@ async def _tcp_session(cal):
     srv = LineServer(cal, "127.0.0.1", 0)
     await srv.start()
     try:
+
         async def client(k: int) -> list[str]:
             reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
             out = []
@@ -405,9 +440,14 @@ async def _tcp_session(cal):
                 assert np.abs(got - want).max() <= 1e-9
 
         reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
-        for line, want in ((b"1,2,3,4\n", "ERR 4 numbers"), (b"abc,2\n", "ERR u: 'abc' is not a number"),
-                           (b"1,nan\n", "ERR v: 'nan' is not a finite number"), (b"\n", "ERR empty line"),
-                           (b"\xff,1\n", "ERR not ASCII"), (b"600,900,167.4\n", "")):
+        for line, want in (
+            (b"1,2,3,4\n", "ERR 4 numbers"),
+            (b"abc,2\n", "ERR u: 'abc' is not a number"),
+            (b"1,nan\n", "ERR v: 'nan' is not a finite number"),
+            (b"\n", "ERR empty line"),
+            (b"\xff,1\n", "ERR not ASCII"),
+            (b"600,900,167.4\n", ""),
+        ):
             writer.write(line)
             await writer.drain()
             got = (await reader.readline()).decode()
@@ -489,9 +529,26 @@ def test_eyetohand_serve_http_and_tcp(tmp_path):
 
     port, tcp_port = free_port(), free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "eyetohand.cli", "serve", "--port", str(port), "--data", str(data),
-         "--tcp", f"127.0.0.1:{tcp_port}", "--calibration", "cell 3", "--log-level", "warning"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        [
+            sys.executable,
+            "-m",
+            "eyetohand.cli",
+            "serve",
+            "--port",
+            str(port),
+            "--data",
+            str(data),
+            "--tcp",
+            f"127.0.0.1:{tcp_port}",
+            "--calibration",
+            "cell 3",
+            "--log-level",
+            "warning",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         url = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + 30
@@ -505,8 +562,9 @@ def test_eyetohand_serve_http_and_tcp(tmp_path):
             assert time.monotonic() < deadline, "serve did not start"
             time.sleep(0.1)
         assert "eyetohand workbench" in httpx.get(url + "/").text
-        api = httpx.post(url + "/api/calibrations/1/image-to-robot",
-                         json={"points": [[600.5, 900.25]]}).json()
+        api = httpx.post(
+            url + "/api/calibrations/1/image-to-robot", json={"points": [[600.5, 900.25]]}
+        ).json()
         with socket.create_connection(("127.0.0.1", tcp_port), timeout=10) as s:
             s.sendall(b"600.5,900.25\n")
             reply = s.makefile("rb").readline().decode()
@@ -565,8 +623,11 @@ def test_bodies_refused_before_parsing(tmp_path):
         big = b'{"name": "x", "pairs": [' + b",".join([b'{"u":1,"v":2,"x":3,"y":4}'] * 200_000) + b"]}"
         r = c.post("/api/calibrations", content=big, headers={"Content-Type": "application/json"})
         assert r.status_code == 413 and r.json()["field"] == "body"  # 5 MiB: over the fit limit
-        r = c.post("/api/calibrations", content=iter([big[:1000], big[1000:]]),
-                   headers={"Content-Type": "application/json"})  # streamed, no Content-Length
+        r = c.post(
+            "/api/calibrations",
+            content=iter([big[:1000], big[1000:]]),
+            headers={"Content-Type": "application/json"},
+        )  # streamed, no Content-Length
         assert r.status_code == 413
         r = c.post("/api/calibrations", content=b"{}", headers={"Content-Type": "text/plain"})
         assert (r.status_code, r.json()["field"]) == (415, "Content-Type")
@@ -689,8 +750,21 @@ def test_serve_port_errors_are_one_line(capsys, tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen()
-        r = subprocess.run([sys.executable, "-m", "eyetohand.cli", "serve", "--port", str(s.getsockname()[1]),
-                            "--data", str(tmp_path)], capture_output=True, text=True, timeout=60)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "eyetohand.cli",
+                "serve",
+                "--port",
+                str(s.getsockname()[1]),
+                "--data",
+                str(tmp_path),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
     assert r.returncode == 2 and r.stderr.startswith("error: --port") and r.stderr.count("\n") == 1, r.stderr
 
 
@@ -703,8 +777,14 @@ def test_guarded_mapping_over_http_and_tcp_says_the_same(client):
     assert r.status_code == 422 and r.json()["field"] == "points[1]"
     assert "px outside the training points' hull" in r.json()["error"]
     r = client.post(url, json={"points": [[600, 900]], "z": 100})
-    assert r.status_code == 422 and r.json()["field"] == "points[0].z" and "off the calibration plane" in r.json()["error"]
-    r = client.post(url, json={"points": [[600, 900], [99999, -5000]], "allow_outside": True, "angles": [30, 0]})
+    assert (
+        r.status_code == 422
+        and r.json()["field"] == "points[0].z"
+        and "off the calibration plane" in r.json()["error"]
+    )
+    r = client.post(
+        url, json={"points": [[600, 900], [99999, -5000]], "allow_outside": True, "angles": [30, 0]}
+    )
     body = r.json()
     assert r.status_code == 200 and body["inside"] == [True, False] and len(body["rz_deg"]) == 2
     m = cal.map([[600, 900], [99999, -5000]], angle_deg=[30, 0], allow_outside=True)

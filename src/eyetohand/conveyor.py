@@ -425,7 +425,10 @@ class ConveyorCalibration:
         n = len(uv)
         de = np.broadcast_to(self.encoder.delta(e_image, e_now), (n,)).astype(float)
         b = self.belt.vector_mm_per_count
-        p = self.image_to_robot_at_image(uv, allow_outside=allow_outside) + b * (de + self.latch_counts)[:, None]
+        p = (
+            self.image_to_robot_at_image(uv, allow_outside=allow_outside)
+            + b * (de + self.latch_counts)[:, None]
+        )
         if not allow_outside:
             self.check_window(p)
         return p

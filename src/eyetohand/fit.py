@@ -265,7 +265,9 @@ def calibrate(
     if loo and len(pairs) > fitted.min_pairs:
         loo_opt = solver.for_cross_validation(objective)
         try:
-            reused = selection.residuals_mm if selection is not None and selection.optimizer == loo_opt else None
+            reused = (
+                selection.residuals_mm if selection is not None and selection.optimizer == loo_opt else None
+            )
             if reused is not None:
                 res = reused
             else:
@@ -312,7 +314,11 @@ def sanity_warnings(
     out = []
     from .orientation import LocalFrame, local_jacobian
 
-    z = region.plane_z_mm if region.plane_z_mm is not None else float(np.mean(region.z_range_mm or (0.0, 0.0)))
+    z = (
+        region.plane_z_mm
+        if region.plane_z_mm is not None
+        else float(np.mean(region.z_range_mm or (0.0, 0.0)))
+    )
     zq = None if model.height_rule is HeightRule.COMPUTED else z
     J = local_jacobian(
         lambda uv: model.image_to_robot(uv, zq)[:, :2], region.hull_px.mean(axis=0, keepdims=True)

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import InputError
-from .pairs import PointPairs, _csv_rows, _number, _read_text
+from .pairs import PointPairs, _csv_rows, _number, _read_text, _Where
 
 if TYPE_CHECKING:  # detect (and OpenCV) load only when an image is read
     from .detect import Detection
@@ -65,17 +65,18 @@ def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = N
     for k, row in enumerate(rows[first + 1:], start=first + 2):
         if not row or all(not c.strip() for c in row):
             continue
-        where = f"{name} line {k}"
+        loc = _Where(name, line=k)
+        where = str(loc)
         if len(row) != len(header):
-            raise InputError(f"{where}: {len(row)} fields, the header has {len(header)}")
+            raise loc.error(f"{len(row)} fields, the header has {len(header)}")
         image = row[col["image"]].strip()
         if not image:
-            raise InputError(f"{where}, field 'image': empty, expected an image file name")
+            raise loc.error("empty, expected an image file name", "image")
         if image in seen:
-            raise InputError(f"{where}, field 'image': {image!r} is listed twice (first at {seen[image]})")
+            raise loc.error(f"{image!r} is listed twice (first at {seen[image]})", "image")
         seen[image] = where
-        x, y, z = (_number(row[col[c]], where, c) if c in col else 0.0 for c in ("x", "y", "z"))
-        angle = _number(row[col["angle"]], where, "angle") if "angle" in col else None
+        x, y, z = (_number(row[col[c]], loc, c) if c in col else 0.0 for c in ("x", "y", "z"))
+        angle = _number(row[col["angle"]], loc, "angle") if "angle" in col else None
         poses.append(Pose(image, base / image, (x, y, z), where, angle))
     if not poses:
         raise InputError(f"{name}: header only, no poses")

@@ -197,7 +197,8 @@ def _read_text(path: Path) -> str:
         line = data[: exc.start].count(b"\n") + 1
         raise InputError(
             f"not UTF-8 text (byte {exc.start}); save the file as UTF-8 (in Excel: 'CSV UTF-8')",
-            source=str(path), line=line,
+            source=str(path),
+            line=line,
         ) from None
 
 
@@ -222,7 +223,8 @@ def _parse_csv(text: str, name: str) -> PointPairs:
                 raise InputError(
                     f"columns separated by {label}, expected commas (header 'u,v,x,y[,z][,id]'); "
                     "save the file as 'CSV UTF-8 (comma delimited)'",
-                    source=name, line=first + 1,
+                    source=name,
+                    line=first + 1,
                 )
     header = [h.strip().lower() for h in rows[first]]
     header_lineno = first + 1
@@ -236,7 +238,8 @@ def _parse_csv(text: str, name: str) -> PointPairs:
         raise InputError(
             f"missing column(s) {', '.join(missing)}; "
             f"the header has {', '.join(repr(h) for h in header)}, expected u,v,x,y[,z][,id]",
-            source=name, line=header_lineno,
+            source=name,
+            line=header_lineno,
         )
     records = []
     for k, row in enumerate(rows[first + 1 :], start=first + 2):
@@ -244,7 +247,7 @@ def _parse_csv(text: str, name: str) -> PointPairs:
             continue
         if len(row) != len(header):
             raise InputError(f"{len(row)} fields, the header has {len(header)}", source=name, line=k)
-        rec = {c: row[seen[c]].strip() for c in REQUIRED + OPTIONAL if c in seen}
+        rec: dict[str, object] = {c: row[seen[c]].strip() for c in REQUIRED + OPTIONAL if c in seen}
         rec["_where"] = _Where(name, line=k)
         records.append(rec)
     if not records:
@@ -279,7 +282,6 @@ def _from_records(records, name: str | None, label: str | None, z_given: bool | 
     ids: list[str] = []
     wheres: list[_Where] = []
     angles = None
-    has_angle = False
     if z_given is None:
         z_given = all(isinstance(r, dict) and "z" in r for r in records)
         if not z_given and any(isinstance(r, dict) and "z" in r for r in records):
@@ -302,7 +304,6 @@ def _from_records(records, name: str | None, label: str | None, z_given: bool | 
             if c in rec:
                 xyz[i, j] = _number(rec[c], where, c)
         if "angle" in rec and rec["angle"] not in ("", None):
-            has_angle = True
             if angles is None:
                 angles = np.full(n, np.nan)
             angles[i] = _number(rec["angle"], where, "angle")
@@ -328,8 +329,9 @@ class _Where:
     label: str = "pairs"
 
     def error(self, reason: str, field: str | None = None) -> InputError:
-        return InputError(reason, source=self.source, line=self.line, index=self.index, field=field,
-                          label=self.label)
+        return InputError(
+            reason, source=self.source, line=self.line, index=self.index, field=field, label=self.label
+        )
 
     def __str__(self) -> str:
         return self.error("").where
@@ -404,7 +406,7 @@ class ImagePoints:
     rows: tuple[tuple[str, ...], ...]
     angle_deg: np.ndarray | None = None
 
-    def with_columns(self, columns: dict[str, list]) -> str:
+    def with_columns(self, columns: dict[str, np.ndarray]) -> str:
         """CSV text: the input table with ``columns`` appended (names never already in the input)."""
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
@@ -434,12 +436,16 @@ def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
     lower = [h.lower() for h in header]
     missing = [c for c in ("u", "v") if c not in lower]
     if missing:
-        raise InputError(f"missing column(s) {', '.join(missing)}; expected u,v[,z][,angle]", source=name,
-                         line=first + 1)
+        raise InputError(
+            f"missing column(s) {', '.join(missing)}; expected u,v[,z][,angle]", source=name, line=first + 1
+        )
     clash = [h for h in header if h.lower() in OUTPUT_COLUMNS and h.lower() != "z"]
     if clash:
-        raise InputError(f"column '{clash[0]}' would be replaced by the mapping's own; rename it in the input",
-                         source=name, line=first + 1)
+        raise InputError(
+            f"column '{clash[0]}' would be replaced by the mapping's own; rename it in the input",
+            source=name,
+            line=first + 1,
+        )
     ju, jv = lower.index("u"), lower.index("v")
     jz = lower.index("z") if "z" in lower else None
     ja = lower.index("angle") if "angle" in lower else None
@@ -459,6 +465,9 @@ def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
     if not uv:
         raise InputError(f"{name}: header only, no data rows")
     return ImagePoints(
-        np.array(uv, float), np.array(z, float) if jz is not None else None, tuple(header), tuple(body),
+        np.array(uv, float),
+        np.array(z, float) if jz is not None else None,
+        tuple(header),
+        tuple(body),
         np.array(ang, float) if ja is not None else None,
     )

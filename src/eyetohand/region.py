@@ -69,8 +69,13 @@ class CalibratedRegion:
         z = np.asarray(z_mm, float)
         if self.plane_z_mm is not None:
             return np.maximum(np.abs(z - self.plane_z_mm) - PLANE_TOLERANCE_MM, 0.0)
-        lo, hi = self.z_range_mm
+        lo, hi = self._z_range()
         return np.maximum(np.maximum(lo - self.z_margin_mm - z, z - hi - self.z_margin_mm), 0.0)
+
+    def _z_range(self) -> tuple[float, float]:
+        if self.z_range_mm is None:
+            raise InputError("the calibrated region records neither a plane nor a z range")
+        return self.z_range_mm
 
     # ------------------------------------------------------------ the rule
     def check(self, uv_px, z_mm=None, *, allow_outside: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -97,7 +102,7 @@ class CalibratedRegion:
             inside &= dz <= 0
             if not allow_outside and (dz > 0).any():
                 i = int(np.flatnonzero(dz > 0)[0])
-                lo, hi = self.z_range_mm
+                lo, hi = self._z_range()
                 raise OutsideError(
                     f"outside the calibrated heights: z = {z[i]:g} mm, calibrated {lo:g}..{hi:g} mm "
                     f"(margin {self.z_margin_mm:g} mm); allow_outside maps it anyway",

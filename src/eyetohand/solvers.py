@@ -87,14 +87,14 @@ def _lm(problem: Problem, **_):
     def jac(p):  # all finite-difference steps in one batched call
         return batch_jacobian(fun_batch, p)
 
-    extra: dict = {}
+    extra: dict[str, float] = {}
     if objective == "l2":
         sol = least_squares(fun, model.params, jac=jac, method="lm", x_scale="jac")
     else:
         # the starting fit's errors are inflated by the very pairs Huber should discount, so the
         # threshold is re-estimated from the robust fit's own errors until it settles
         x = model.params
-        for _ in range(HUBER_ROUNDS):
+        for _round in range(HUBER_ROUNDS):
             sol = least_squares(fun, x, jac=jac, method="trf", loss="huber", f_scale=delta, x_scale="jac")
             x = sol.x
             new = huber_delta_mm(np.linalg.norm(fun(x).reshape(-1, 3), axis=1))

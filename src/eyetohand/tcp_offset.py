@@ -67,8 +67,14 @@ def _reference_angle(angles: np.ndarray) -> float:
 
 def reference_pairs(pairs: PointPairs) -> PointPairs:
     """The pairs at the most common tool angle (where a model is chosen before the offset is known)."""
-    theta0 = _reference_angle(pairs.angle_deg)
-    return pairs.subset(np.abs(pairs.angle_deg - theta0) <= ANGLE_TOL_DEG)
+    ang = _angles(pairs)
+    return pairs.subset(np.abs(ang - _reference_angle(ang)) <= ANGLE_TOL_DEG)
+
+
+def _angles(pairs: PointPairs) -> np.ndarray:
+    if pairs.angle_deg is None:
+        raise InputError(f"{pairs.source}: no 'angle' column: a tool-centre offset needs tool angles")
+    return pairs.angle_deg
 
 
 def estimate_tcp_offset(pairs: PointPairs, fit_linear: Callable[[PointPairs], Model]) -> TcpOffset:
@@ -82,7 +88,7 @@ def estimate_tcp_offset(pairs: PointPairs, fit_linear: Callable[[PointPairs], Mo
             f"{pairs.source}: a tool-centre offset needs pairs at two or more tool angles "
             "(an 'angle' column, e.g. the same position at 0, 90 and 180 degrees)"
         )
-    ang = pairs.angle_deg
+    ang = _angles(pairs)
     theta0 = _reference_angle(ang)
     at_ref = np.abs(ang - theta0) <= ANGLE_TOL_DEG
     m0 = fit_linear(pairs.subset(at_ref))

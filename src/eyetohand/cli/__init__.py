@@ -18,8 +18,15 @@ from ..errors import InputError
 from .common import CliError
 
 # Modules that add subcommands; each has register(subparsers).
-COMMAND_MODULES = ("eyetohand.cli.calibrate", "eyetohand.cli.demo", "eyetohand.cli.report",
-                   "eyetohand.cli.serve", "eyetohand.cli.sim", "eyetohand.cli.images", "eyetohand.cli.conveyor")
+COMMAND_MODULES = (
+    "eyetohand.cli.calibrate",
+    "eyetohand.cli.demo",
+    "eyetohand.cli.report",
+    "eyetohand.cli.serve",
+    "eyetohand.cli.sim",
+    "eyetohand.cli.images",
+    "eyetohand.cli.conveyor",
+)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -55,8 +62,10 @@ def main(argv=None) -> int:
     except Exception as exc:  # internal failure: one line unless debugging
         if os.environ.get("EYETOHAND_DEBUG"):
             raise
-        print(f"internal error: {type(exc).__name__}: {exc} (set EYETOHAND_DEBUG=1 for details)",
-              file=sys.stderr)
+        print(
+            f"internal error: {type(exc).__name__}: {exc} (set EYETOHAND_DEBUG=1 for details)",
+            file=sys.stderr,
+        )
         return 1
 
 

@@ -47,8 +47,11 @@ def cmd_apply(args) -> int:
     if args.output:
         check_output_path(args.output)
     cal = Calibration.load(args.calibration)
-    opts = {"allow_outside": args.allow_outside, "symmetry": args.symmetry,
-            "tool_rz_offset_deg": args.tool_rz_offset}
+    opts = {
+        "allow_outside": args.allow_outside,
+        "symmetry": args.symmetry,
+        "tool_rz_offset_deg": args.tool_rz_offset,
+    }
     if args.uv is not None:
         if args.input:
             raise CliError("apply: give either --uv U V or an input CSV, not both")
@@ -99,8 +102,11 @@ def _warn_outside(m) -> None:
 
     n = int((~m.inside).sum())
     if n:
-        print(f"warning: {n} point(s) outside the calibrated region, mapped because --allow-outside was "
-              "given (inside = false)", file=sys.stderr)
+        print(
+            f"warning: {n} point(s) outside the calibrated region, mapped because --allow-outside was "
+            "given (inside = false)",
+            file=sys.stderr,
+        )
 
 
 def cmd_compare(args) -> int:
@@ -131,20 +137,43 @@ def register(sub) -> None:
 
     p = sub.add_parser("apply", help="map image points to robot points")
     p.add_argument("calibration")
-    p.add_argument("input", nargs="?",
-                   help="CSV with u,v [,z] [,angle] ('-': standard input); output: its columns plus "
-                        "x,y[,z][,rz],sigma_mm,inside")
+    p.add_argument(
+        "input",
+        nargs="?",
+        help="CSV with u,v [,z] [,angle] ('-': standard input); output: its columns plus "
+        "x,y[,z][,rz],sigma_mm,inside",
+    )
     p.add_argument("--uv", nargs=2, type=float, metavar=("U", "V"))
     p.add_argument("--z", type=float, default=None, help="object height in mm")
-    p.add_argument("--angle", type=float, default=None, metavar="DEG",
-                   help="the object's image angle (deg from +u towards +v): adds its robot rz (deg)")
-    p.add_argument("--symmetry", type=int, default=1, metavar="N",
-                   help="fold rz into (-180/N, 180/N] for a part symmetric under 360/N turns")
-    p.add_argument("--tool-rz-offset", type=float, default=None, metavar="DEG",
-                   help="the gripper's rz when aligned with the image's +u: rz becomes its command")
-    p.add_argument("--allow-outside", action="store_true",
-                   help="map points outside the calibrated region too (flagged inside = false)")
-    p.add_argument("--json", action="store_true", help="JSON with every point's u v x y z [rz] sigma_mm inside")
+    p.add_argument(
+        "--angle",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="the object's image angle (deg from +u towards +v): adds its robot rz (deg)",
+    )
+    p.add_argument(
+        "--symmetry",
+        type=int,
+        default=1,
+        metavar="N",
+        help="fold rz into (-180/N, 180/N] for a part symmetric under 360/N turns",
+    )
+    p.add_argument(
+        "--tool-rz-offset",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="the gripper's rz when aligned with the image's +u: rz becomes its command",
+    )
+    p.add_argument(
+        "--allow-outside",
+        action="store_true",
+        help="map points outside the calibrated region too (flagged inside = false)",
+    )
+    p.add_argument(
+        "--json", action="store_true", help="JSON with every point's u v x y z [rz] sigma_mm inside"
+    )
     p.add_argument("-o", "--output", help="output file (default: standard output)")
     p.set_defaults(func=cmd_apply)
 

@@ -57,7 +57,7 @@ def cmd_calibrate(args) -> int:
     if args.json:
         print(json.dumps({"report": conv.report, "output": args.output}, allow_nan=False, default=float))
     else:
-        print(format_report(conv.report))
+        print(format_report(conv.report or {}))
         if args.output:
             print(f"wrote {args.output}")
     return 0

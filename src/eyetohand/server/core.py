@@ -95,9 +95,16 @@ def fit(opts: FitOptions, callback=None) -> Fitted:
     kept, _ = split_excluded(pairs, opts.exclude)
     try:
         cal = calibrate(
-            kept, model=opts.model, optimizer=opts.optimizer, objective=opts.objective, check=check,
-            image_size=opts.image_size, seed=opts.seed, callback=callback,
-            n_particles=opts.particles, iterations=opts.iterations,
+            kept,
+            model=opts.model,
+            optimizer=opts.optimizer,
+            objective=opts.objective,
+            check=check,
+            image_size=opts.image_size,
+            seed=opts.seed,
+            callback=callback,
+            n_particles=opts.particles,
+            iterations=opts.iterations,
         )
     except InputError as exc:
         raise input_error(exc, "pairs") from None
@@ -106,8 +113,12 @@ def fit(opts: FitOptions, callback=None) -> Fitted:
     try:  # what is stored and answered must be finite: a fit that is not is the pairs' fault
         json.dumps(cal.to_dict(), allow_nan=False)
     except ValueError:
-        raise ApiError(422, f"pairs: model {cal.model_name!r} gives non-finite values on these pairs "
-                       "(degenerate geometry?); try another model", "pairs") from None
+        raise ApiError(
+            422,
+            f"pairs: model {cal.model_name!r} gives non-finite values on these pairs "
+            "(degenerate geometry?); try another model",
+            "pairs",
+        ) from None
     request = opts.model_dump(exclude={"pairs", "check", "name", "note"})
     return Fitted(cal, pairs, check, tuple(opts.exclude), request)
 
@@ -162,27 +173,48 @@ def summarize(cal: Calibration, pairs: PointPairs, check: PointPairs | None, exc
         "loo": _stats(cal.loo),
         "check": _stats(cal.check),
         "excluded": _stats(ex_stats),
-        "vectors": {"train": _vectors(cal, kept), "check": _vectors(cal, check),
-                    "excluded": _vectors(cal, out)},
+        "vectors": {
+            "train": _vectors(cal, kept),
+            "check": _vectors(cal, check),
+            "excluded": _vectors(cal, out),
+        },
     }
 
 
-def map_points(cal: Calibration, points: np.ndarray, z, *, angles=None, symmetry: int = 1,
-               tool_rz_offset_deg=None, allow_outside: bool = False, sigma: bool = True):
+def map_points(
+    cal: Calibration,
+    points: np.ndarray,
+    z,
+    *,
+    angles=None,
+    symmetry: int = 1,
+    tool_rz_offset_deg=None,
+    allow_outside: bool = False,
+    sigma: bool = True,
+):
     """(N, 2) px → the calibration's guarded :class:`~eyetohand.calibration.Mapped`, with the
     request's ``z`` (None, a number, or one per point) and ``angles`` (one per point)."""
     if isinstance(z, list):
         if len(z) != len(points):
-            raise ApiError(422, f"z: {len(z)} heights for {len(points)} points; give one, or one per point",
-                           "z")
+            raise ApiError(
+                422, f"z: {len(z)} heights for {len(points)} points; give one, or one per point", "z"
+            )
         z = np.asarray(z, float)
     if angles is not None and len(angles) != len(points):
-        raise ApiError(422, f"angles: {len(angles)} angles for {len(points)} points; give one per point",
-                       "angles")
+        raise ApiError(
+            422, f"angles: {len(angles)} angles for {len(points)} points; give one per point", "angles"
+        )
     try:
         with np.errstate(all="ignore"):
-            return cal.map(points, z, angle_deg=angles, symmetry=symmetry, tool_rz_offset_deg=tool_rz_offset_deg,
-                           allow_outside=allow_outside, with_sigma=sigma)
+            return cal.map(
+                points,
+                z,
+                angle_deg=angles,
+                symmetry=symmetry,
+                tool_rz_offset_deg=tool_rz_offset_deg,
+                allow_outside=allow_outside,
+                with_sigma=sigma,
+            )
     except InputError as exc:
         raise ApiError(422, str(exc), exc.field_path or "z") from None
 
@@ -216,11 +248,18 @@ class Job:
     def view(self, since: int = 0) -> dict:
         since = max(0, min(since, len(self.history)))
         return {
-            "id": self.id, "kind": self.kind, "status": self.status, "phase": self.phase,
-            "iterations": self.iterations, "history_from": since, "history": self.history[since:],
+            "id": self.id,
+            "kind": self.kind,
+            "status": self.status,
+            "phase": self.phase,
+            "iterations": self.iterations,
+            "history_from": since,
+            "history": self.history[since:],
             "elapsed_s": round(self.elapsed(), 3),
             "result": self.fitted.summary() if (self.fitted and self.status == "done") else None,
-            "compare": self.compare, "error": self.error, "saved": self.saved,
+            "compare": self.compare,
+            "error": self.error,
+            "saved": self.saved,
         }
 
 
@@ -229,8 +268,7 @@ class Jobs:
     solver's vectorised numpy); at most ``max_pending`` wait. Finished jobs are kept (the latest
     ``keep``) so that their results can be saved, mapped through or looked at again."""
 
-    def __init__(self, max_pending: int = 8, keep: int = 50, workers: int = 1,
-                 max_pso_work: int = 500_000):
+    def __init__(self, max_pending: int = 8, keep: int = 50, workers: int = 1, max_pso_work: int = 500_000):
         self.max_pso_work = max_pso_work
         self._workers = workers
         self._pool: ThreadPoolExecutor | None = None
@@ -243,8 +281,9 @@ class Jobs:
         with self._lock:
             job = self._jobs.get(job_id)
         if job is None:
-            raise ApiError(404, f"no job {job_id!r} (finished jobs are kept until {self.keep} newer ones)",
-                           "id")
+            raise ApiError(
+                404, f"no job {job_id!r} (finished jobs are kept until {self.keep} newer ones)", "id"
+            )
         return job
 
     def submit(self, kind: str, work, iterations: int = 0) -> Job:
@@ -280,8 +319,11 @@ class Jobs:
             job.error = {"status": exc.status, "error": exc.message, "field": exc.field, "line": exc.line}
         except Exception as exc:  # noqa: BLE001 - a job must report, not vanish
             job.status, job.phase = "failed", "failed"
-            job.error = {"status": 500, "error": f"internal error: {type(exc).__name__}: {exc}",
-                         "field": None}
+            job.error = {
+                "status": 500,
+                "error": f"internal error: {type(exc).__name__}: {exc}",
+                "field": None,
+            }
         finally:
             job.finished = time.monotonic()
             job.done.set()
@@ -289,13 +331,20 @@ class Jobs:
     def fit_job(self, opts: FitOptions) -> Job:
         pso = opts.optimizer in ("pso", "hybrid-pso")
         if pso and opts.particles * opts.iterations > self.max_pso_work:
-            raise ApiError(422, f"particles × iterations = {opts.particles} × {opts.iterations} = "
-                           f"{opts.particles * opts.iterations}, more than this server's limit of "
-                           f"{self.max_pso_work}", "iterations")
+            raise ApiError(
+                422,
+                f"particles × iterations = {opts.particles} × {opts.iterations} = "
+                f"{opts.particles * opts.iterations}, more than this server's limit of "
+                f"{self.max_pso_work}",
+                "iterations",
+            )
 
         def work(job: Job) -> None:
-            job.phase = ("choosing the model by cross-validation, then fitting" if opts.model == "auto"
-                         else f"fitting {opts.model} with {opts.optimizer}")
+            job.phase = (
+                "choosing the model by cross-validation, then fitting"
+                if opts.model == "auto"
+                else f"fitting {opts.model} with {opts.optimizer}"
+            )
 
             def progress(_iteration, best, *_):
                 job.history.append(_finite(best))
@@ -321,8 +370,9 @@ class Jobs:
                 rows = compare(pairs, check, seed=seed)
             except InputError as exc:
                 raise input_error(exc, "pairs") from None
-            job.compare = [{k: (_finite(v) if isinstance(v, float) else v) for k, v in r.items()}
-                           for r in rows]
+            job.compare = [
+                {k: (_finite(v) if isinstance(v, float) else v) for k, v in r.items()} for r in rows
+            ]
             for r in job.compare:
                 if "check_errors_mm" in r:
                     r["check_errors_mm"] = [_finite(e) for e in r["check_errors_mm"]]
