@@ -50,8 +50,29 @@ def test_apply_single_point_and_csv(tmp_path, capsys):
     dst = tmp_path / "out.csv"
     assert run(capsys, "apply", str(cal_path), str(src), "-o", str(dst))[0] == 0
     lines = dst.read_text().splitlines()
-    assert lines[0] == "name,u,v,x,y,z"
-    np.testing.assert_allclose([float(v) for v in lines[1].split(",")[3:]], xyz, atol=1e-9)
+    assert lines[0] == "name,u,v,x,y,z,sigma_mm,inside"
+    np.testing.assert_allclose([float(v) for v in lines[1].split(",")[3:6]], xyz, atol=1e-9)
+    assert lines[1].endswith(",true") and float(lines[1].split(",")[6]) > 0
+
+
+def test_apply_refuses_outside_off_plane_and_clashing_columns_and_flags_allowed(tmp_path, capsys):
+    cal_path = tmp_path / "cal.json"
+    assert run(capsys, "calibrate", TRAIN, "--model", "homography", "-o", str(cal_path))[0] == 0
+    for args, words in ((["--uv", "99999", "-5000"], "px outside the training points' hull"),
+                        (["--uv", "600", "900", "--z", "100"], "off the calibration plane z = 167.417 mm")):
+        code, out, err = run(capsys, "apply", str(cal_path), *args)
+        assert code == 2 and out == "" and err.count("\n") == 1 and words in err
+    code, out, err = run(capsys, "apply", str(cal_path), "--uv", "99999", "-5000", "--allow-outside", "--json")
+    rec = json.loads(out)["points"][0]
+    assert code == 0 and rec["inside"] is False and "warning: 1 point(s) outside" in err
+    src = tmp_path / "in.csv"
+    src.write_text("u,v,x\n600,900,1\n")
+    code, _, err = run(capsys, "apply", str(cal_path), str(src))
+    assert code == 2 and "column 'x' would be replaced" in err
+    d = tmp_path / "adir"
+    d.mkdir()
+    code, _, err = run(capsys, "apply", str(cal_path), "--uv", "600", "900", "-o", str(d))
+    assert code == 2 and "is a folder" in err
 
 
 def test_evaluate_json_equals_calibrate_check(tmp_path, capsys):

@@ -122,7 +122,7 @@ def test_camera_estimates_a_non_square_pixel_aspect_ratio(aspect):
     cell = Cell.default().with_values(camera={"aspect": aspect})
     sim = simulate(cell, "grid:5x5", (150.0, 200.0), n_check=30, check_heights_mm=(175.0, 220.0), seed=5)
     cal = calibrate(sim.pairs, "auto", image_size=cell.image_size, loo=False)
-    assert cal.model_name == "camera" and cal.model.meta["aspect"] == "free"
+    assert cal.model_name == "camera" and cal.model.constants["aspect"] == "free"
     K = np.array(cal.model.camera["K"])
     assert K[1, 1] / K[0, 0] == pytest.approx(aspect, abs=3e-4)
     square = PinholeCamera.from_pairs(sim.pairs.uv_px, sim.pairs.xyz_mm, image_size=cell.image_size,
@@ -140,9 +140,9 @@ def test_camera_estimates_a_non_square_pixel_aspect_ratio(aspect):
 def test_square_pixels_are_kept_on_a_square_pixel_camera(two_heights):
     m = PinholeCamera.from_pairs(two_heights.pairs.uv_px, two_heights.pairs.xyz_mm,
                                  image_size=CELL.image_size)
-    assert m.meta["aspect"] == "square" and m.n_params == 13 and m.meta["aspect_z"] < 3.0
+    assert m.constants["aspect"] == "square" and m.n_params == 13 and m.diagnostics["aspect_z"] < 3.0
     free = PinholeCamera.from_pairs(two_heights.pairs.uv_px, two_heights.pairs.xyz_mm,
                                     image_size=CELL.image_size, aspect="free")
-    assert free.n_params == 14 and free.meta["aspect"] == "free"
+    assert free.n_params == 14 and free.constants["aspect"] == "free"
     with pytest.raises(eyetohand.InputError, match="aspect"):
         PinholeCamera.from_pairs(two_heights.pairs.uv_px, two_heights.pairs.xyz_mm, aspect="wide")

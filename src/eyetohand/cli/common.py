@@ -80,7 +80,7 @@ def calibration_summary(cal: Calibration) -> dict:
         "notes": list(cal.notes),
         "selection": cal.selection,
         "tcp_offset": cal.tcp_offset.to_dict() if cal.tcp_offset else None,
-        "condition_number": cal.model.meta.get("condition_number"),
+        "condition_number": cal.model.condition_number,
         "params": cal.model.to_dict(),
     }
     if cal.check is not None:
@@ -91,7 +91,7 @@ def calibration_summary(cal: Calibration) -> dict:
 def print_calibration(cal: Calibration, output: str | None) -> None:
     print(f"model {cal.model_name}  optimizer {cal.fit.optimizer}  objective {cal.fit.objective}  "
           f"fitness {cal.fit.fitness:.5f} mm")
-    cond = cal.model.meta.get("condition_number")
+    cond = cal.model.condition_number
     if cond is not None:
         print(f"linear solve (Hartley-normalised): condition number {cond:.3g}")
     if cal.selection:

@@ -129,11 +129,6 @@ class Model(ABC):
         note = self.diagnostics.get("init")
         return None if note is None else str(note)
 
-    @property
-    def meta(self) -> dict[str, Any]:
-        """Constants and diagnostics in one read-only dict (the pre-0.2 view; prefer the properties)."""
-        return {**self.diagnostics, **self.constants}
-
     # ----------------------------------------------------------- mapping
     @abstractmethod
     def batch_image_to_robot(self, params: np.ndarray, uv_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray:

@@ -12,14 +12,14 @@ start, Newton on the 2×2 Jacobian, each point to its tolerance, NaN where the l
 inverted; a whole swarm of parameter vectors at once), cast the ray from the camera centre, and
 intersect it with the plane z. Parameters (class ``PinholeCamera``, name ``camera``):
 ``fx, fy, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` (14), or with square pixels
-``f, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` (13, fx = fy = f; ``meta["aspect"]`` says
+``f, cx, cy, k1, k2, p1, p2, rx, ry, rz, tx, ty, tz`` (13, fx = fy = f; ``constants["aspect"]`` says
 which) — radial k1, k2 and tangential p1, p2, the pose as a Rodrigues vector and a translation.
 
 The aspect ratio: real sensors' fy/fx differ from 1 by parts in 10⁴..10³, which square pixels turn
 into millimetre-level errors at other heights; a free fy costs 5–15 % in variance on a camera whose
 pixels are square. So :meth:`PinholeCamera.from_pairs` (``aspect="auto"``) fits both and keeps fy
 free only when the free fit's fy/fx differs from 1 by more than ``ASPECT_Z`` = 3 standard errors
-(a Wald test on the reprojection fit's covariance; ``meta["aspect_z"]``). Measured on simulated
+(a Wald test on the reprojection fit's covariance; ``diagnostics["aspect_z"]``). Measured on simulated
 two-height cells in docs/simulator.md (``benchmarks/study_sim.py --only aspect``). k3 is left out:
 it over-fits a few dozen pairs (2.5× worse on 18, measured before; docs/simulator.md); the tangential
 terms cost ≤ 3 % on a lens with little of them and halve the error on a lens with p ≈ 5e-4.
@@ -102,7 +102,7 @@ def decompose_projection(P: np.ndarray):
 
 class PinholeCamera(Model):
     """Pinhole camera with distortion k1, k2, p1, p2 and a free pose, fx and fy free or square pixels
-    (chosen in :meth:`from_pairs`): see the module docstring. ``meta["aspect"]`` says which."""
+    (chosen in :meth:`from_pairs`): see the module docstring. ``constants["aspect"]`` says which."""
 
     name = "camera"
     n_params = 14  # free aspect; an instance with square pixels has 13 (``self.n_params``)

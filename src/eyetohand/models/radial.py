@@ -18,7 +18,7 @@ with few points a physically constrained fit of the lens generalises better than
    f, k1, k2 stay as estimated in step 1 (``meta``).
 
 Distortion centre c: the image centre ((W−1)/2, (H−1)/2) when the image size is known, otherwise the
-centre of the training points' bounding box (``meta["centre_source"]`` says which). Seen straight on,
+centre of the training points' bounding box (``diagnostics["centre_source"]`` says which). Seen straight on,
 f and the camera's distance cannot be told apart; the lens fit then settles on one of the equivalent
 (f, k1, k2) and the mapping is the same.
 """

@@ -164,7 +164,7 @@ def summarize(cal: Calibration, pairs: PointPairs, check: PointPairs | None, exc
         "seconds": float(fit.seconds),
         "seed": fit.seed,
         "uses_z": bool(cal.model.uses_z),
-        "plane_z_mm": cal.model.meta.get("plane_z_mm"),
+        "plane_z_mm": cal.model.plane_z_mm,
         "n_pairs": len(kept),
         "excluded_ids": list(excluded),
         "notes": list(cal.notes),
