@@ -62,7 +62,8 @@ def test_apply_refuses_outside_off_plane_and_clashing_columns_and_flags_allowed(
                         (["--uv", "600", "900", "--z", "100"], "off the calibration plane z = 167.417 mm")):
         code, out, err = run(capsys, "apply", str(cal_path), *args)
         assert code == 2 and out == "" and err.count("\n") == 1 and words in err
-    code, out, err = run(capsys, "apply", str(cal_path), "--uv", "99999", "-5000", "--allow-outside", "--json")
+    code, out, err = run(capsys, "apply", str(cal_path), "--uv", "99999", "-5000", "--allow-outside",
+                         "--json")
     rec = json.loads(out)["points"][0]
     assert code == 0 and rec["inside"] is False and "warning: 1 point(s) outside" in err
     src = tmp_path / "in.csv"

@@ -177,7 +177,7 @@ class Calibration:
             inside, outside = np.zeros(n, bool), np.full(n, np.nan)
         else:
             inside, outside = self.region.check(uv, z, allow_outside=allow_outside)
-        xyz = self.model.image_to_robot(uv, z)
+        xyz = np.ascontiguousarray(self.model.image_to_robot(uv, z))
         bad = ~np.isfinite(xyz).all(axis=1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
