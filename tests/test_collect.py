@@ -25,7 +25,8 @@ from eyetohand.collect import Collector, plan_poses
 from eyetohand.errors import InputError
 from eyetohand.sim.camera_sim import CellCamera
 from eyetohand.sim.cell import load_cell
-from eyetohand.sim.simulate import poses_csv, simulate
+from eyetohand.sim.images import poses_csv
+from eyetohand.sim.simulate import simulate
 from eyetohand.sources import FolderSource, GrabTimeout, open_source
 
 ROOT = Path(__file__).resolve().parents[1]
