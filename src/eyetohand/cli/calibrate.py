@@ -19,6 +19,10 @@ from .common import (
 
 
 def cmd_calibrate(args) -> int:
+    if args.output:  # before any work: a fit must not be lost to an output that cannot be written
+        from ..io import check_output_path
+
+        check_output_path(args.output)
     pairs = load_pairs(args.pairs)
     check = load_pairs(args.check) if args.check else None
     return run_calibration(args, pairs, check)

@@ -57,6 +57,10 @@ def cmd_detect(args) -> int:
 
 
 def cmd_calibrate_images(args) -> int:
+    if args.output:  # before detecting: the work must not be lost to an output that cannot be written
+        from ..io import check_output_path
+
+        check_output_path(args.output)
     poses = load_poses(args.poses, args.images)
     progress = _progress_bar if sys.stderr.isatty() else None
     opts = _detect_options(args)
