@@ -83,7 +83,8 @@ CURVE_PIXELS_JS = """() => {
   const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
   let n = 0;
   for (let i = 0; i < d.length; i += 4)
-    if (d[i + 3] > 100 && Math.abs(d[i] - 31) < 40 && Math.abs(d[i + 1] - 95) < 40 && Math.abs(d[i + 2] - 174) < 40) n++;
+    if (d[i + 3] > 100 && Math.abs(d[i] - 31) < 40 && Math.abs(d[i + 1] - 95) < 40
+        && Math.abs(d[i + 2] - 174) < 40) n++;
   return n;
 }"""
 
@@ -213,7 +214,8 @@ def test_token_is_asked_for_and_used(server, page):
 def fit_done(page, timeout=90_000):
     from playwright.sync_api import expect
 
-    page.evaluate("() => { document.querySelector('#job-status').textContent = 'clicked'; }")  # not the last fit's
+    # the status must become "done" for this fit, not stay the last fit's
+    page.evaluate("() => { document.querySelector('#job-status').textContent = 'clicked'; }")
     page.click("#run")
     expect(page.locator("#job-status")).to_have_text("done", timeout=timeout)
 
@@ -252,8 +254,10 @@ def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     page.fill("#map-v", "900")
     page.fill("#map-angle", "30")
     page.click("#map-go")
-    expect(page.locator("#map-out")).to_have_text(re.compile(r"x \d+\.\d{4} mm, y \d+\.\d{4} mm, z 167\.4166 mm, rz -?\d+\.\d{3} deg"))
-    expect(page.locator("#map-extra")).to_have_text(re.compile(r"predicted error σ 0\.\d{4} mm · inside the calibrated region"))
+    expect(page.locator("#map-out")).to_have_text(
+        re.compile(r"x \d+\.\d{4} mm, y \d+\.\d{4} mm, z 167\.4166 mm, rz -?\d+\.\d{3} deg"))
+    expect(page.locator("#map-extra")).to_have_text(
+        re.compile(r"predicted error σ 0\.\d{4} mm · inside the calibrated region"))
     expect(page.locator("#map-err")).to_be_hidden()
     page.fill("#map-u", "99999")
     page.fill("#map-v", "-5000")
@@ -280,7 +284,8 @@ def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     page.fill("#map-z", "")
     page.fill("#map-angle", "")
     page.click("#map-go")
-    expect(page.locator("#map-out")).to_have_text(re.compile(r"^x \d+\.\d{4} mm, y \d+\.\d{4} mm, z 167\.4166 mm$"))
+    expect(page.locator("#map-out")).to_have_text(
+        re.compile(r"^x \d+\.\d{4} mm, y \d+\.\d{4} mm, z 167\.4166 mm$"))
 
     # PSO: 40 iterations drawn
     page.select_option("#optimizer", "hybrid-pso")
@@ -312,7 +317,8 @@ def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     # 800 px wide: nothing scrolls sideways
     page.set_viewport_size({"width": 800, "height": 1000})
     page.wait_for_timeout(200)
-    widths = page.evaluate("() => [document.documentElement.scrollWidth, document.documentElement.clientWidth]")
+    widths = page.evaluate(
+        "() => [document.documentElement.scrollWidth, document.documentElement.clientWidth]")
     assert widths[0] <= widths[1], widths
     shot = tmp_path / "workbench_800px.png"
     page.screenshot(path=str(shot), full_page=True)
@@ -341,7 +347,8 @@ def test_two_heights_and_refused_files(server, page, tmp_path, capsys):
     expect(page.locator('#vectors g.pt-train [data-shape="square"]')).to_have_count(n200)
     expect(page.locator('#vectors g.pt-train [data-shape="circle"]')).to_have_count(len(pairs) - n200)
     expect(page.locator("#vectors-caption")).to_contain_text("● z = 150 mm, ■ z = 200 mm")
-    boxes = page.evaluate("() => [...document.querySelectorAll('#vectors g.pt text')].map((t) => { const b = t.getBBox(); return [b.x, b.y, b.width, b.height]; })")
+    boxes = page.evaluate("""() => [...document.querySelectorAll('#vectors g.pt text')].map(
+        (t) => { const b = t.getBBox(); return [b.x, b.y, b.width, b.height]; })""")
     assert boxes, "no labels at all"
     for i, a in enumerate(boxes):
         for b in boxes[i + 1:]:
@@ -357,7 +364,8 @@ def test_two_heights_and_refused_files(server, page, tmp_path, capsys):
     with pytest.raises(InputError) as cli_err:
         load_pairs(latin)
     page.set_input_files("#pairs-file", str(latin))
-    expect(page.locator("#pairs-err")).to_have_text(f"latin1.csv line {cli_err.value.line}: {cli_err.value.reason}")
+    expect(page.locator("#pairs-err")).to_have_text(
+        f"latin1.csv line {cli_err.value.line}: {cli_err.value.reason}")
     expect(page.locator("#pairs-count")).to_have_text("not loaded")
     # German Excel: semicolons and decimal commas; the line named once, the fix said
     excel = tmp_path / "excel.csv"
