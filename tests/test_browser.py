@@ -17,6 +17,9 @@ from pathlib import Path
 
 import pytest
 
+from eyetohand import InputError, calibrate, load_pairs
+from eyetohand.cli import build_parser, main
+
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "examples" / "paper"
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -74,6 +77,34 @@ def page():
         browser.close()
 
 
+# pixels of the curve's colour (#1f5fae) on the convergence canvas: the curve is drawn, not only its axes
+CURVE_PIXELS_JS = """() => {
+  const c = document.querySelector('#curve');
+  const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  let n = 0;
+  for (let i = 0; i < d.length; i += 4)
+    if (d[i + 3] > 100 && Math.abs(d[i] - 31) < 40 && Math.abs(d[i + 1] - 95) < 40
+        && Math.abs(d[i + 2] - 174) < 40) n++;
+  return n;
+}"""
+
+
+def curve_pixels(page) -> int:
+    return page.evaluate(CURVE_PIXELS_JS)
+
+
+def section_numbers(page) -> list[str]:
+    return page.evaluate("""() => [...document.querySelectorAll('main > section')]
+        .filter((s) => !s.hidden).map((s) => s.querySelector('h2 .num').textContent)""")
+
+
+def keep(shot: Path) -> None:
+    """A copy of a screenshot in out/ to look at, when that folder exists."""
+    out = ROOT / "out"
+    if out.is_dir():
+        shutil.copy(shot, out / shot.name)
+
+
 def test_paper_preset_in_the_workbench(server, page, tmp_path):
     from playwright.sync_api import expect
 
@@ -107,14 +138,21 @@ def test_paper_preset_in_the_workbench(server, page, tmp_path):
     # residual tables (mm) and the vectors over the image
     expect(page.locator("#check-table tbody tr")).to_have_count(9)
     expect(page.locator("#train-table tbody tr")).to_have_count(16)
-    expect(page.locator("#vectors g.pt-train circle")).to_have_count(16)
-    expect(page.locator("#vectors g.pt-check circle")).to_have_count(9)
+    expect(page.locator("#vectors g.pt-train circle.mark")).to_have_count(16)
+    expect(page.locator("#vectors g.pt-check circle.mark")).to_have_count(9)
     expect(page.locator("#vectors line")).to_have_count(25)
     rows = page.locator("#stats-table tbody tr")
     expect(rows).to_have_count(3)  # fit, leave-one-out, check
     check_row = rows.filter(has_text="check points").inner_text()
     rms = float(check_row.split("\t")[2])
     assert 0.01 < rms < 0.06, check_row  # the paper's Table 4 level (hybrid PSO), mm
+    # the preset is `eyetohand demo`'s run (its default seed): the same figure in both
+    demo_seed = build_parser().parse_args(["demo"]).seed
+    assert page.input_value("#seed") == str(demo_seed)
+    ref = calibrate(load_pairs(PAPER / "calibration_points.csv"), "paper", "hybrid-pso",
+                    check=load_pairs(PAPER / "check_points.csv"), seed=demo_seed, loo=False)
+    assert f"{ref.check.rms_mm:.4f}" == check_row.split("\t")[2], (ref.check.rms_mm, check_row)
+    assert curve_pixels(page) > 300  # the 150 iterations are drawn
     head = page.locator("#check-table thead").inner_text()
     assert "|e| mm" in head and "u px" in head
 
@@ -171,3 +209,172 @@ def test_token_is_asked_for_and_used(server, page):
     expect(page.locator("#server-status")).to_contain_text("server v")
     expect(page.locator("#global-err")).to_be_hidden()
     assert page.locator("#model option").count() >= 5
+
+
+def fit_done(page, timeout=90_000):
+    from playwright.sync_api import expect
+
+    # the status must become "done" for this fit, not stay the last fit's
+    page.evaluate("() => { document.querySelector('#job-status').textContent = 'clicked'; }")
+    page.click("#run")
+    expect(page.locator("#job-status")).to_have_text("done", timeout=timeout)
+
+
+def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
+    """LM and PSO curves drawn, the map box's guarded answers and refusals, no sideways scroll at 800 px."""
+    from playwright.sync_api import expect
+
+    page.goto(server + "/")
+    expect(page.locator("#server-status")).to_contain_text("server v")
+    before = section_numbers(page)
+    assert before == [str(k) for k in range(1, 8)], before  # no gap where the hidden result goes
+
+    page.set_input_files("#pairs-file", str(PAPER / "calibration_points.csv"))
+    expect(page.locator("#pairs-count")).to_contain_text("16 pairs")
+    # the height as the file gives it (167.4166), not a level rounded to 3 decimals printed with 4
+    expect(page.locator("#pairs-count")).to_contain_text("z = 167.4166 mm")
+    page.set_input_files("#check-file", str(PAPER / "check_points.csv"))
+    expect(page.locator("#check-count")).to_contain_text("9 pairs")
+
+    # LM: one value, drawn as a point and its level
+    assert page.input_value("#optimizer") == "lm"
+    fit_done(page)
+    assert page.get_attribute("#curve", "data-drawn") == "1"
+    assert curve_pixels(page) > 200
+    assert section_numbers(page) == [str(k) for k in range(1, 9)]
+    shot = tmp_path / "curve_lm.png"
+    page.locator("#curve").screenshot(path=str(shot))
+    assert shot.stat().st_size > 5_000
+    keep(shot)
+
+    # the map box: sigma and inside; refusals replace the previous answer
+    page.select_option("#map-source", "job")
+    assert page.get_attribute("#map-z", "placeholder") == "plane 167.4166"
+    page.fill("#map-u", "600")
+    page.fill("#map-v", "900")
+    page.fill("#map-angle", "30")
+    page.click("#map-go")
+    expect(page.locator("#map-out")).to_have_text(
+        re.compile(r"x \d+\.\d{4} mm, y \d+\.\d{4} mm, z 167\.4166 mm, rz -?\d+\.\d{3} deg"))
+    expect(page.locator("#map-extra")).to_have_text(
+        re.compile(r"predicted error σ 0\.\d{4} mm · inside the calibrated region"))
+    expect(page.locator("#map-err")).to_be_hidden()
+    page.fill("#map-u", "99999")
+    page.fill("#map-v", "-5000")
+    page.click("#map-go")
+    expect(page.locator("#map-err")).to_contain_text("points[0]: outside the calibrated region")
+    expect(page.locator("#map-out")).to_have_text("x – mm, y – mm, z – mm")  # the old answer is gone
+    expect(page.locator("#map-extra")).to_have_text("")
+    expect(page.locator("#map-u")).to_have_class(re.compile("bad"))
+    shot = tmp_path / "map_refused.png"
+    page.locator("#sec-map").screenshot(path=str(shot))
+    keep(shot)
+    page.check("#map-allow")
+    page.click("#map-go")
+    expect(page.locator("#map-err")).to_be_hidden()
+    expect(page.locator("#map-extra")).to_contain_text("OUTSIDE the calibrated region")
+    page.uncheck("#map-allow")
+    page.fill("#map-u", "600")
+    page.fill("#map-v", "900")
+    page.fill("#map-z", "100")  # a z off the single-height calibration's plane is refused, not ignored
+    page.click("#map-go")
+    expect(page.locator("#map-err")).to_contain_text("off the calibration plane z = 167.417 mm")
+    expect(page.locator("#map-out")).to_have_text("x – mm, y – mm, z – mm")
+    expect(page.locator("#map-z")).to_have_class(re.compile("bad"))
+    page.fill("#map-z", "")
+    page.fill("#map-angle", "")
+    page.click("#map-go")
+    expect(page.locator("#map-out")).to_have_text(
+        re.compile(r"^x \d+\.\d{4} mm, y \d+\.\d{4} mm, z 167\.4166 mm$"))
+
+    # PSO: 40 iterations drawn
+    page.select_option("#optimizer", "hybrid-pso")
+    page.fill("#particles", "30")
+    page.fill("#iterations", "40")
+    fit_done(page)
+    assert page.get_attribute("#curve", "data-drawn") == "40"
+    assert curve_pixels(page) > 300
+    shot = tmp_path / "curve_pso.png"
+    page.locator("#curve").screenshot(path=str(shot))
+    assert shot.stat().st_size > 5_000
+    keep(shot)
+
+    # compare: text headers over text, an explained highlight, an honest status
+    page.locator('#train-table tr[data-id="3"] input[type=checkbox]').uncheck()
+    page.click("#compare-go")
+    expect(page.locator("#compare-table")).to_be_visible(timeout=120_000)
+    expect(page.locator("#compare-state")).to_have_text(re.compile(r"^done \(\d+\.\d s\)$"))
+    expect(page.locator("#compare-caption")).to_contain_text("lowest check RMS")
+    expect(page.locator("#compare-caption")).to_contain_text("auto")
+    expect(page.locator("#compare-note")).to_contain_text("on 15 pairs")
+    expect(page.locator("#compare-table tbody tr.best")).to_have_count(1)
+    aligns = page.evaluate("""() => [...document.querySelectorAll('#compare-table thead th')].map(
+        (th) => getComputedStyle(th).textAlign)""")
+    cells = page.evaluate("""() => [...document.querySelector('#compare-table tbody tr').children].map(
+        (td) => getComputedStyle(td).textAlign)""")
+    assert aligns == cells, (aligns, cells)
+
+    # 800 px wide: nothing scrolls sideways
+    page.set_viewport_size({"width": 800, "height": 1000})
+    page.wait_for_timeout(200)
+    widths = page.evaluate(
+        "() => [document.documentElement.scrollWidth, document.documentElement.clientWidth]")
+    assert widths[0] <= widths[1], widths
+    shot = tmp_path / "workbench_800px.png"
+    page.screenshot(path=str(shot), full_page=True)
+    assert shot.stat().st_size > 20_000
+    keep(shot)
+    assert not page.problems, page.problems
+
+
+def test_two_heights_and_refused_files(server, page, tmp_path, capsys):
+    """Heights told apart in the vector plot, labels that do not overlap; a Latin-1 and a German-Excel
+    file refused with the CLI's words, each location said once."""
+    from playwright.sync_api import expect
+
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--plan", "grid:4x4", "--heights", "150,200", "--check", "6",
+                 "--out", str(sim), "--seed", "2"]) == 0
+    capsys.readouterr()
+    pairs = load_pairs(sim / "pairs.csv")
+    page.goto(server + "/")
+    expect(page.locator("#server-status")).to_contain_text("server v")
+    page.set_input_files("#pairs-file", str(sim / "pairs.csv"))
+    expect(page.locator("#pairs-count")).to_contain_text("2 heights (z = 150, 200 mm)")
+    page.set_input_files("#check-file", str(sim / "check.csv"))
+    fit_done(page)
+    n200 = int((pairs.xyz_mm[:, 2] == 200).sum())
+    expect(page.locator('#vectors g.pt-train [data-shape="square"]')).to_have_count(n200)
+    expect(page.locator('#vectors g.pt-train [data-shape="circle"]')).to_have_count(len(pairs) - n200)
+    expect(page.locator("#vectors-caption")).to_contain_text("● z = 150 mm, ■ z = 200 mm")
+    boxes = page.evaluate("""() => [...document.querySelectorAll('#vectors g.pt text')].map(
+        (t) => { const b = t.getBBox(); return [b.x, b.y, b.width, b.height]; })""")
+    assert boxes, "no labels at all"
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1:]:
+            overlap = a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
+            assert not overlap, (a, b)
+    shot = tmp_path / "vectors_two_heights.png"
+    page.locator("#vectors").screenshot(path=str(shot))
+    keep(shot)
+
+    # Latin-1 (a German id): refused as the CLI refuses it
+    latin = tmp_path / "latin1.csv"
+    latin.write_bytes("id,u,v,x,y,z\n1,10,20,30,40,0\nMaß 2,11,21,31,41,0\n".encode("latin-1"))
+    with pytest.raises(InputError) as cli_err:
+        load_pairs(latin)
+    page.set_input_files("#pairs-file", str(latin))
+    expect(page.locator("#pairs-err")).to_have_text(
+        f"latin1.csv line {cli_err.value.line}: {cli_err.value.reason}")
+    expect(page.locator("#pairs-count")).to_have_text("not loaded")
+    # German Excel: semicolons and decimal commas; the line named once, the fix said
+    excel = tmp_path / "excel.csv"
+    excel.write_text("id;u;v;x;y;z\n1;10,5;20;30;40;0\n", encoding="utf-8")
+    page.set_input_files("#pairs-file", str(excel))
+    expect(page.locator("#pairs-err")).to_contain_text("excel.csv line 1: columns separated by ';'")
+    text = page.locator("#pairs-err").inner_text()
+    assert "save the file as 'CSV UTF-8" in text and text.count("line 1") == 1, text
+    shot = tmp_path / "refused_file.png"
+    page.locator("#sec-data").screenshot(path=str(shot))
+    keep(shot)
+    assert not page.problems, page.problems

@@ -199,4 +199,63 @@ def test_calibrate_images_input_errors(tmp_path, capsys):
     assert code == 2 and "listed twice" in one_error_line(err)
     (tmp_path / "r.csv").write_text("image,x,y\na.png,1,2\n")
     code, _, err = run(capsys, "calibrate-images", tmp_path / "r.csv")
-    assert code == 2 and "found in none" in one_error_line(err)
+    progress = [ln for ln in err.splitlines() if ln.startswith("detect")]  # not a terminal: a line per image
+    assert progress == ["detecting 1/1: a.png", "detected 1 images"], err
+    rest = "\n".join(ln for ln in err.splitlines() if not ln.startswith(("detect", "note: left out")))
+    assert code == 2 and "found in none" in one_error_line(rest)
+
+
+def test_calibrate_images_reports_progress_saves_pairs_and_annotated_images(session, tmp_path, capsys):
+    rows = list(csv.DictReader((session / "poses.csv").open()))[:9]
+    with (tmp_path / "poses.csv").open("w") as fh:
+        fh.write("image,x,y,z\n")
+        for r in rows:
+            fh.write(f"{session / r['image']},{r['x']},{r['y']},{r['z']}\n")
+    pairs_out, ann = tmp_path / "pairs.csv", tmp_path / "ann"
+    code, out, err = run(capsys, "calibrate-images", tmp_path / "poses.csv", "--model", "homography",
+                         "--pairs-out", pairs_out, "--annotate", ann, "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    lines = err.splitlines()
+    # capsys' stderr is no terminal: one line per image, in order, then the end
+    assert [ln for ln in lines if ln.startswith("detecting ")] == [
+        f"detecting {i}/9: {session / r['image']}" for i, r in enumerate(rows, 1)]
+    assert "detected 9 images" in lines and f"wrote {pairs_out}: 9 detected pairs" in lines
+    # the CSV calibrates to the same figures with `eyetohand calibrate`
+    code, out2, err2 = run(capsys, "calibrate", pairs_out, "--model", "homography", "--json")
+    assert code == 0, err2
+    d2 = json.loads(out2)
+    assert abs(d2["train"]["rms_mm"] - d["train"]["rms_mm"]) < 1e-9
+    assert [p["id"] for p in d2["train"]["points"]] == [str(session / r["image"]) for r in rows]
+    # one annotated picture per image, the ellipse drawn (green) and the centre written (yellow)
+    pics = sorted(ann.glob("*.annotated.png"))
+    assert len(pics) == 9
+    img = cv2.imread(str(pics[0]))
+    green = (img[:, :, 1] > 200) & (img[:, :, 2] < 100) & (img[:, :, 0] < 100)
+    yellow = (img[:, :, 1] > 200) & (img[:, :, 2] > 200) & (img[:, :, 0] < 100)
+    assert green.sum() > 30 and yellow.sum() > 50, (green.sum(), yellow.sum())
+
+
+def test_calibrate_images_refuses_a_file_as_annotate_folder(tmp_path, capsys):
+    (tmp_path / "p.csv").write_text("image,x,y\na.png,1,2\n")
+    (tmp_path / "f").write_text("x")
+    code, _, err = run(capsys, "calibrate-images", tmp_path / "p.csv", "--annotate", tmp_path / "f")
+    assert code == 2 and "is not a folder" in one_error_line(err)
+
+
+def test_per_point_table_aligns_long_ids(tmp_path, capsys):
+    long_ids = [f"images/session-2024-05-17/pose_{i:03d}.png" for i in range(9)]
+    src = (Path(__file__).resolve().parents[1] / "examples" / "paper" / "check_points.csv").read_text()
+    rows = list(csv.DictReader(src.splitlines()))
+    with (tmp_path / "c.csv").open("w") as fh:
+        fh.write("id,u,v,x,y,z\n")
+        for i, r in zip(long_ids, rows, strict=True):
+            fh.write(f"{i},{r['u']},{r['v']},{r['x']},{r['y']},{r['z']}\n")
+    train = Path(__file__).resolve().parents[1] / "examples" / "paper" / "calibration_points.csv"
+    code, out, err = run(capsys, "calibrate", train, "--check", tmp_path / "c.csv", "--model", "homography")
+    assert code == 0, err
+    lines = out.splitlines()
+    head = next(k for k, ln in enumerate(lines) if ln.split()[:2] == ["id", "dx_mm"])
+    table = lines[head:head + 10]
+    assert all(len(ln.removesuffix("  outlier")) == len(table[0]) for ln in table), "\n".join(table)
+    assert all(ln.split()[0] in long_ids for ln in table[1:])

@@ -252,3 +252,63 @@ def test_many_points_label_only_the_largest_errors():
     assert sorted(t.get_text() for t in ax.texts) == sorted(f"p{i}" for i in worst)
     ax = plots.plot_point_errors({"a": np.abs(res[:, 0])})
     assert len(ax.get_xticklabels()) <= plots.MAX_TICK_LABELS
+
+
+# ------------------------------------------------------------------ issue 16: plots a user reads
+
+
+def _drawn(ax):
+    ax.figure.canvas.draw()
+    return ax.figure.canvas.get_renderer()
+
+
+@pytest.mark.parametrize("n_methods", [1, 2, 3])
+def test_legend_never_covers_a_bar(n_methods):
+    rng = np.random.default_rng(n_methods)
+    errs = {f"method {k}": rng.uniform(0.001, 0.05, 12) for k in range(n_methods)}
+    errs["method 0"][-1] = 0.2  # the tallest bar under the upper-right legend
+    ax = plots.plot_point_errors(errs, title="Error per training point")
+    r = _drawn(ax)
+    legend = ax.get_legend().get_window_extent(r)
+    bars = [p.get_window_extent(r) for p in ax.patches]
+    assert bars and not any(legend.overlaps(b) for b in bars)
+
+
+def test_long_image_ids_do_not_overlap_on_the_axis():
+    ids = [f"session-2024-05-17/images/pose_{i:03d}.png" for i in range(14)]
+    ax = plots.plot_point_errors({"homography + lm": np.linspace(0.01, 0.05, 14)}, ids)
+    r = _drawn(ax)
+    boxes = [t.get_window_extent(r) for t in ax.get_xticklabels() if t.get_text()]
+    assert [t.get_text() for t in ax.get_xticklabels()] == [f"pose_{i:03d}" for i in range(14)]
+    assert all(not a.overlaps(b) for k, a in enumerate(boxes) for b in boxes[k + 1:])
+
+
+def test_a_users_report_does_not_cite_the_paper(tmp_path, paper_cal, monkeypatch):
+    cal, train, check = paper_cal
+    titles = []
+    real = plots.plot_point_errors
+
+    def spy(*a, **kw):
+        ax = real(*a, **kw)
+        titles.append(ax.get_title())
+        return ax
+
+    monkeypatch.setattr(plots, "plot_point_errors", spy)
+    text = write_report(tmp_path / "r", cal, check_pairs=check, train_pairs=train).read_text(encoding="utf-8")
+    assert "Error per check point" in titles and not any("paper" in t for t in titles), titles
+    assert "paper's Fig" not in text
+
+
+def test_demo_says_what_its_ranking_is_on(tmp_path, capsys):
+    from eyetohand.demo import run_demo, write_demo_report
+
+    _, results, cals = run_demo(seed=1)
+    text = write_demo_report(tmp_path / "d", results, cals).read_text(encoding="utf-8")
+    assert "best here" not in text
+    others = results["others"]
+    by_rms = min(others, key=lambda k: others[k]["check_rms_mm"])
+    assert f"lowest check RMS: {by_rms}" in text or "lowest check RMS: paper+" in text
+    assert "ranks the fits on one figure, the RMS over the 9 check points" in text
+    by_max = min(others, key=lambda k: others[k]["check_max_mm"])
+    if by_max != by_rms:
+        assert "Ranked on the check max instead" in text

@@ -279,9 +279,14 @@ def test_images_end_to_end(tmp_path, capsys):
     cfg = tmp_path / "small.toml"
     cfg.write_text(SMALL_CELL)
     out = tmp_path / "sim"
-    code, _, err = run(capsys, "simulate", "--config", cfg, "--plan", "grid:3x3", "--heights", "150,200",
-                       "--check", "4", "--check-heights", "175,220", "--out", out, "--seed", "7", "--images")
+    code, sim_out, err = run(capsys, "simulate", "--config", cfg, "--plan", "grid:3x3",
+                             "--heights", "150,200", "--check", "4", "--check-heights", "175,220",
+                             "--out", out, "--seed", "7", "--images")
     assert code == 0, err
+    # the hint names the images' command, with the poses files just written
+    hint = next(ln for ln in sim_out.splitlines() if ln.startswith("next: "))
+    assert hint == (f"next: eyetohand calibrate-images {out}/poses.csv --check {out}/check_poses.csv "
+                    "--image-size 640x512"), sim_out
     poses = (out / "poses.csv").read_text().splitlines()
     assert poses[0] == "image,x,y,z" and len(poses) == 19
     assert (out / "check_poses.csv").read_text().splitlines()[0] == "image,x,y,z"
@@ -307,8 +312,7 @@ def test_images_end_to_end(tmp_path, capsys):
 
         if "calibrate-images" in build_parser().format_help():
             capsys.readouterr()  # the line printed above is not part of the command's output
-            code, text, err = run(capsys, "calibrate-images", out / "poses.csv",
-                                  "--check", out / "check_poses.csv", "--image-size", "640x512", "--json")
+            code, text, err = run(capsys, *hint.split()[2:], "--json")  # the hint, as typed
             assert code == 0, err
             d = json.loads(text)
             print(f"calibrate-images: model {d['model']}, check rms {d['check']['rms_mm']:.4f} mm")

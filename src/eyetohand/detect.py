@@ -861,8 +861,9 @@ def detect_circles(image, *, polarity: str = "auto", diameter_px: float | None =
 
 
 def annotate(image, detection: Detection | list[Detection]) -> np.ndarray:
-    """A BGR uint8 copy of ``image`` with the fitted ellipse (green) and a cross at the centre (red);
-    a failed detection is written on the image instead."""
+    """A BGR uint8 copy of ``image`` with the fitted ellipse (green), a cross at the centre (red) and
+    its centre (px) and score written beside it (yellow); a failed detection is written on the image
+    instead."""
     import cv2
 
     grey, _, full = load_image(image)
@@ -882,6 +883,15 @@ def annotate(image, detection: Detection | list[Detection]) -> np.ndarray:
         arm = int(max(4, 0.15 * A) * S)
         cv2.line(out, (c[0] - arm, c[1]), (c[0] + arm, c[1]), (0, 0, 255), 1, cv2.LINE_AA, 4)
         cv2.line(out, (c[0], c[1] - arm), (c[0], c[1] + arm), (0, 0, 255), 1, cv2.LINE_AA, 4)
+        # the numbers beside the target, kept inside the picture: centre (px) and score
+        h, w = out.shape[:2]
+        label = f"u {d.u:.2f} v {d.v:.2f} px  score {d.score:.3f}"
+        scale = 0.45 if w < 900 else 0.7
+        (tw, th), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+        x = int(min(max(cx + 0.6 * A, 2), max(w - tw - 2, 2)))
+        y = int(min(max(cy - 0.6 * B, th + 4), h - 4))
+        cv2.putText(out, label, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(out, label, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 255, 255), 1, cv2.LINE_AA)
     return out
 
 

@@ -89,15 +89,20 @@ Progress = Callable[[int, int, str], None]
 
 
 def detect_poses(poses: list[Pose], *, progress: Progress | None = None,
-                 **detect_options) -> list[ImageResult]:
-    """Detect the target in each pose's image; failures carry their reason."""
+                 annotate_dir: str | os.PathLike | None = None, **detect_options) -> list[ImageResult]:
+    """Detect the target in each pose's image; failures carry their reason. With ``annotate_dir``,
+    each image where it was found is written there as ``<stem>.annotated.png`` (see :func:`detect_images`)."""
     from .detect import detect_target
 
     results = []
+    used: set[str] = set()
     for i, pose in enumerate(poses):
         if progress is not None:
             progress(i, len(poses), pose.image)
-        results.append(_detect_one(pose.path, pose.image, detect_target, detect_options)[0])
+        res, det = _detect_one(pose.path, pose.image, detect_target, detect_options)
+        results.append(res)
+        if annotate_dir and det is not None and res.ok:
+            _write_annotated(pose.path, det, annotate_dir, used)
     if progress is not None:
         progress(len(poses), len(poses), "")
     return results
@@ -115,11 +120,30 @@ def _detect_one(path, name, detect_target, detect_options) -> tuple[ImageResult,
     return ImageResult(name, False, reason=det.reason or "no target found"), det
 
 
+def _write_annotated(path, det: Detection, annotate_dir: str | os.PathLike, used: set[str]) -> None:
+    """``<stem>.annotated.png`` in ``annotate_dir`` (a new name when two images share a stem)."""
+    import cv2
+
+    from .detect import annotate
+    from .io import atomic_write_bytes
+
+    img = annotate(path, det)
+    stem = Path(path).stem
+    name, k = f"{stem}.annotated.png", 1
+    while name in used:  # same file name from different folders
+        k += 1
+        name = f"{stem}.{k}.annotated.png"
+    used.add(name)
+    ok, buf = cv2.imencode(".png", img)
+    if ok:
+        atomic_write_bytes(Path(annotate_dir) / name, buf.tobytes())
+
+
 def detect_images(paths: Sequence[str | os.PathLike], annotate_dir: str | os.PathLike | None = None,
                   **detect_options) -> list[ImageResult]:
     """Detect the target in each image (results named by the path as given); with ``annotate_dir``,
     each image where it was found is written there as ``<stem>.annotated.png`` with the fit drawn."""
-    from .detect import annotate, detect_target
+    from .detect import detect_target
 
     out = []
     used: set[str] = set()
@@ -127,20 +151,7 @@ def detect_images(paths: Sequence[str | os.PathLike], annotate_dir: str | os.Pat
         res, det = _detect_one(p, str(p), detect_target, detect_options)
         out.append(res)
         if annotate_dir and det is not None and res.ok:
-            import cv2
-
-            from .io import atomic_write_bytes
-
-            img = annotate(p, det)
-            stem = Path(p).stem
-            name, k = f"{stem}.annotated.png", 1
-            while name in used:  # same file name from different folders
-                k += 1
-                name = f"{stem}.{k}.annotated.png"
-            used.add(name)
-            ok, buf = cv2.imencode(".png", img)
-            if ok:
-                atomic_write_bytes(Path(annotate_dir) / name, buf.tobytes())
+            _write_annotated(p, det, annotate_dir, used)
     return out
 
 

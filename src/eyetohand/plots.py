@@ -179,15 +179,21 @@ def plot_point_errors(
         ax.axhline(float(value), color="0.25", ls=("--", ":", "-.")[i % 3], lw=1.1,
                    label=f"{label}: {_fmt_mm(float(value))} mm")
     step = max(1, math.ceil(n / MAX_TICK_LABELS))  # thin the labels of long point lists
-    ax.set_xticks(x[::step], ids[::step], rotation=0 if step == 1 and n <= 20 else 90,
-                  fontsize=None if n <= 20 else 7)
+    shown = [_short_id(i) for i in ids[::step]]
+    longest = max(len(i) for i in shown)
+    upright = step == 1 and n <= 20 and longest * n <= 60  # short ids side by side, others turned
+    ax.set_xticks(x[::step], shown, rotation=0 if upright else 90,
+                  fontsize=None if n <= 20 and longest <= 8 else 7)
     ax.set_xlim(-0.6, n - 0.4)
-    ax.set_ylim(bottom=0)
+    n_entries = len(arrays) + len(reference_lines or {})
+    refs = [float(v) for v in (reference_lines or {}).values()]
+    high = max([top, *refs]) or 1.0
+    # headroom above the tallest bar for a legend inside the axes (a row of ~7 % of the height each)
+    ax.set_ylim(0, high * (1.12 + 0.1 * n_entries) if n_entries <= 3 else high * 1.08)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.grid(True, axis="y", alpha=0.35)
     ax.set_axisbelow(True)
-    n_entries = len(arrays) + len(reference_lines or {})
     if n_entries <= 3:
         ax.legend(fontsize=8, loc="upper right", frameon=True)
     else:  # many methods: the legend goes under the axes, so it never hides a bar
@@ -195,6 +201,15 @@ def plot_point_errors(
     if title:
         ax.set_title(title)
     return ax
+
+
+def _short_id(pid: str, limit: int = 16) -> str:
+    """A point id short enough for an axis: an image path by its file's stem, then its last characters."""
+    if len(pid) <= limit:
+        return pid
+    if "/" in pid or "\\" in pid or "." in pid:
+        pid = pid.replace("\\", "/").rsplit("/", 1)[-1].rsplit(".", 1)[0] or pid
+    return pid if len(pid) <= limit else "…" + pid[-(limit - 1):]
 
 
 # ------------------------------------------------------------------ residual vectors

@@ -414,7 +414,7 @@ def build_report(calibration: Calibration, check_pairs: PointPairs | None = None
     if len(hist) > 1:
         ax = plots.plot_convergence({f"{cal.model_name} + {cal.fit.optimizer}": hist},
                                     ylabel=_fitness_label(cal.fit.objective),
-                                    title=f"Convergence of {cal.fit.optimizer} (cf. the paper's Fig. 4)")
+                                    title=f"Convergence of {cal.fit.optimizer}")
         doc.figure("convergence.png", ax, "Best fitness of the swarm per iteration, training pairs.")
     else:
         doc.p(f"No convergence plot: optimizer '{cal.fit.optimizer}' records no iteration history "
@@ -423,7 +423,7 @@ def build_report(calibration: Calibration, check_pairs: PointPairs | None = None
         label = f"{cal.model_name} + {cal.fit.optimizer}"
         ax = plots.plot_point_errors({label: [p.error_mm for p in check.points]},
                                      [p.id for p in check.points],
-                                     title="Error per check point (cf. the paper's Fig. 5)")
+                                     title="Error per check point")
         doc.figure("check_errors.png", ax, "Error norm of each check point, robot space.")
     tr = {f"{train_label} (fit residual)": [p.error_mm for p in train.points]}
     if cal.loo is not None and train_label == "train":

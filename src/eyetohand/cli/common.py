@@ -117,10 +117,11 @@ def print_calibration(cal: Calibration, output: str | None) -> None:
 
 
 def print_points(s) -> None:
-    print(f"  {'id':>6} {'dx_mm':>9} {'dy_mm':>9} {'error_mm':>9}")
+    w = max([6, *(len(str(p.id)) for p in s.points)])  # the widest id sets the column (image paths)
+    print(f"  {'id':>{w}} {'dx_mm':>9} {'dy_mm':>9} {'error_mm':>9}")
     for p in s.points:
         flag = "  outlier" if p.outlier else ""
-        print(f"  {p.id:>6} {p.dx_mm:>9.4f} {p.dy_mm:>9.4f} {p.error_mm:>9.4f}{flag}")
+        print(f"  {str(p.id):>{w}} {p.dx_mm:>9.4f} {p.dy_mm:>9.4f} {p.error_mm:>9.4f}{flag}")
 
 
 def emit_json(obj) -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..images import detect_images, detect_poses, load_poses, pairs_from_detections
+from ..io import atomic_write_text, check_output_path
 from .common import add_fit_options, run_calibration
 
 
@@ -31,9 +32,22 @@ def _progress_bar(done: int, total: int, image: str) -> None:
         sys.stderr.write(f"\rdetecting [{'#' * 30}] {total}/{total} {'':<30}\n")
 
 
+def _progress_lines(done: int, total: int, image: str) -> None:
+    """Detection progress when stderr is not a terminal (a log, a pipe): one line per image."""
+    if done < total:
+        sys.stderr.write(f"detecting {done + 1}/{total}: {image}\n")
+    else:
+        sys.stderr.write(f"detected {total} images\n")
+    sys.stderr.flush()
+
+
+def _check_annotate_dir(path) -> None:
+    if path and Path(path).exists() and not Path(path).is_dir():
+        raise InputError(f"--annotate: {path} exists and is not a folder")
+
+
 def cmd_detect(args) -> int:
-    if args.annotate and Path(args.annotate).exists() and not Path(args.annotate).is_dir():
-        raise InputError(f"--annotate: {args.annotate} exists and is not a folder")
+    _check_annotate_dir(args.annotate)
     opts = _detect_options(args)
     results = detect_images(args.images, args.annotate, **opts)
     failed = [r for r in results if not r.ok]
@@ -57,21 +71,25 @@ def cmd_detect(args) -> int:
 
 
 def cmd_calibrate_images(args) -> int:
-    if args.output:  # before detecting: the work must not be lost to an output that cannot be written
-        from ..io import check_output_path
-
-        check_output_path(args.output)
+    # before detecting: the work must not be lost to an output that cannot be written
+    _check_annotate_dir(args.annotate)
+    for out in (args.output, args.pairs_out):
+        if out:
+            check_output_path(out)
     poses = load_poses(args.poses, args.images)
-    progress = _progress_bar if sys.stderr.isatty() else None
+    progress = _progress_bar if sys.stderr.isatty() else _progress_lines
     opts = _detect_options(args)
-    results = detect_poses(poses, progress=progress, **opts)
+    results = detect_poses(poses, progress=progress, annotate_dir=args.annotate, **opts)
     pairs = pairs_from_detections(poses, results, str(args.poses))
     check = None
     check_results = []
     if args.check:
         check_poses = load_poses(args.check, args.check_images)
-        check_results = detect_poses(check_poses, progress=progress, **opts)
+        check_results = detect_poses(check_poses, progress=progress, annotate_dir=args.annotate, **opts)
         check = pairs_from_detections(check_poses, check_results, str(args.check))
+    if args.pairs_out:  # the detected pairs, to calibrate again without detecting (eyetohand calibrate)
+        atomic_write_text(args.pairs_out, pairs.to_csv_text())
+        print(f"wrote {args.pairs_out}: {len(pairs)} detected pairs", file=sys.stderr)
     for r in results + check_results:
         if not r.ok:
             print(f"note: left out {r.image}: {r.reason}", file=sys.stderr)
@@ -99,5 +117,8 @@ def register(sub) -> None:
     p.add_argument("--check-images", help="folder of the check images (default: the folder of CHECK)")
     p.add_argument("--polarity", default="auto", choices=("auto", "dark", "bright"))
     p.add_argument("--diameter", type=float, default=None, help="expected target diameter in px")
+    p.add_argument("--pairs-out", metavar="PAIRS.csv",
+                   help="also write the detected pairs (id = image) as CSV, for eyetohand calibrate")
+    p.add_argument("--annotate", metavar="DIR", help="write each image with the fitted ellipse drawn")
     add_fit_options(p)
     p.set_defaults(func=cmd_calibrate_images)

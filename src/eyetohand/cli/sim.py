@@ -52,9 +52,14 @@ def cmd_simulate(args) -> int:
     n_img = sum(1 for f in files if f.suffix == ".png")
     names = [f.name for f in files if f.suffix != ".png"]
     print(f"wrote {args.out}: {', '.join(names)}" + (f" and {n_img} images" if n_img else ""))
-    check = f" --check {args.out}/check.csv" if sim.check is not None else ""
-    print(f"next: eyetohand calibrate {args.out}/pairs.csv{check} "
-          f"--image-size {cell.image_size[0]}x{cell.image_size[1]}")
+    size = f"--image-size {cell.image_size[0]}x{cell.image_size[1]}"
+    if n_img:  # the images are the point of --images: calibrate from them, as on a real cell
+        check = f" --check {args.out}/check_poses.csv" if sim.check is not None else ""
+        print(f"next: eyetohand calibrate-images {args.out}/poses.csv{check} {size}")
+        print(f"  (or, without detection: eyetohand calibrate {args.out}/pairs.csv {size})")
+    else:
+        check = f" --check {args.out}/check.csv" if sim.check is not None else ""
+        print(f"next: eyetohand calibrate {args.out}/pairs.csv{check} {size}")
     return 0
 
 

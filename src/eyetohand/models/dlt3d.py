@@ -19,16 +19,20 @@ from .homography import null_space_rows
 COPLANAR_RATIO = 1e-4
 
 
-def dlt_projection(uv_px: np.ndarray, xyz_mm: np.ndarray, model_name: str):
-    """Normalised DLT: returns (P_n (3×4, P_n[2,3] = 1), T_uv, T_xyz, condition number)."""
+def dlt_projection(uv_px: np.ndarray, xyz_mm: np.ndarray, model_name: str, *,
+                   what: str = "the paper's equation 5", z_offset_mm: float = 0.0):
+    """Normalised DLT: returns (P_n (3×4, P_n[2,3] = 1), T_uv, T_xyz, condition number).
+
+    ``what`` names the model in the coplanar refusal (a caller's own label), ``z_offset_mm`` is added
+    back to the z it reports when the caller passes centred points."""
     check_enough(model_name, 7, len(uv_px))
     ratio = spread_ratio(xyz_mm)
     if ratio < COPLANAR_RATIO:
-        z = xyz_mm[:, 2]
-        where = f"all z = {z[0]:g} mm" if np.ptp(z) < 1e-6 else "they lie on one plane"
+        z = xyz_mm[:, 2] + z_offset_mm
+        where = f"all z = {z[0]:.3f} mm" if np.ptp(z) < 1e-6 else "they lie on one plane"
         raise DegenerateError(
-            f"model '{model_name}' (the paper's equation 5) needs pairs at two or more heights; "
-            f"these {len(uv_px)} pairs are coplanar ({where}), so equation (5) is rank-deficient: "
+            f"model '{model_name}' ({what}) needs pairs at two or more heights; "
+            f"these {len(uv_px)} pairs are coplanar ({where}), so its projection matrix is rank-deficient: "
             "use affine, homography or homography-radial"
         )
     T_uv, uv_n = hartley(uv_px)

@@ -125,7 +125,8 @@ class PinholeCamera(Model):
         check_enough(cls.name, cls.min_pairs, len(uv))
         x0 = xyz.mean(axis=0)
         rel = xyz - x0
-        P_n, T_uv, T3, _ = dlt_projection(uv, rel, cls.name)
+        P_n, T_uv, T3, _ = dlt_projection(uv, rel, cls.name, what="a pinhole camera with lens",
+                                          z_offset_mm=float(x0[2]))
         P = np.linalg.inv(T_uv) @ P_n @ T3
         if image_size is not None:
             w, h = image_size

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import socket
+from pathlib import Path
 
 from ..errors import InputError
 
@@ -57,13 +58,17 @@ async def _serve(args, data_dir) -> None:
     import uvicorn
 
     from .app import LOOPBACK_HOSTS, create_app
-    from .storage import Ambiguous, NotFound, StorageError, Store
+    from .storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
     from .tcp import LineServer
 
     http_sock = bind_http(args.host, args.port)
     line_server = None
     if args.tcp:
         host, port = parse_hostport(args.tcp)
+        if not (Path(data_dir) / DB_NAME).is_file():  # a look-up must not create an empty database
+            http_sock.close()
+            raise ServeError(f"--calibration: {args.calibration!r} not found: no calibrations are stored in "
+                             f"{data_dir} yet (no {DB_NAME}); save one in the workbench first")
         store = Store(data_dir, wait_s=args.db_wait)
         try:
             rec = store.find(args.calibration)

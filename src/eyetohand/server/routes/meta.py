@@ -12,7 +12,7 @@ from ..schemas import MAX_ITERATIONS, MAX_NAME, MAX_PAIRS, MAX_PARTICLES, MAX_PO
 from . import Svc
 
 PAPER_PRESET = {"model": "paper", "optimizer": "hybrid-pso", "objective": "l2", "particles": 200,
-                "iterations": 150, "seed": 0}
+                "iterations": 150, "seed": 1}  # eyetohand demo's default seed: the same figure
 
 router = APIRouter(tags=["service"])
 

@@ -31,6 +31,28 @@ function el(tag, attrs = {}, text = null) {
   if (text !== null) e.textContent = text;
   return e;
 }
+// a height as typed: up to 4 decimals, no trailing zeros (167.4166, 150)
+function fmtZ(z) { return z === null || z === undefined ? "–" : String(Number(Number(z).toFixed(4))); }
+// the offset of the first byte that is not valid UTF-8 (as Python's decoder reports it)
+function firstBadUtf8(b) {
+  let i = b.length >= 3 && b[0] === 0xef && b[1] === 0xbb && b[2] === 0xbf ? 3 : 0;
+  while (i < b.length) {
+    const c = b[i];
+    const n = c < 0x80 ? 0 : c >= 0xc2 && c < 0xe0 ? 1 : c >= 0xe0 && c < 0xf0 ? 2 : c >= 0xf0 && c < 0xf5 ? 3 : -1;
+    if (n < 0) return i;
+    for (let k = 1; k <= n; k++) if (i + k >= b.length || (b[i + k] & 0xc0) !== 0x80) return i;
+    i += n + 1;
+  }
+  return i;
+}
+// number the visible sections 1, 2, 3, … (a hidden one takes no number)
+function renumber() {
+  let k = 0;
+  document.querySelectorAll("main > section").forEach((sec) => {
+    const n = sec.querySelector("h2 .num");
+    if (n && !sec.hidden) n.textContent = String(++k);
+  });
+}
 function td(text, cls) { const c = el("td", cls ? { class: cls } : {}, text); return c; }
 
 async function api(method, path, body) {
@@ -55,7 +77,8 @@ async function api(method, path, body) {
 // Show an API error next to where it happened: the box `boxId`, plus the field's own marker.
 function showError(boxId, err, scope) {
   const box = $(boxId);
-  const where = err.line ? ` (line ${err.line})` : "";
+  // the server's messages name their line already ("x.csv line 1: ..."): add it only when they do not
+  const where = err.line && !new RegExp(`\\bline ${err.line}\\b`).test(err.error || "") ? ` (line ${err.line})` : "";
   box.textContent = (err.error || "error") + where;
   box.hidden = false;
   const field = err.field || "";
@@ -95,7 +118,9 @@ async function loadPairs(set, text, source) {
   const d = r.data;
   state[set] = d.pairs.map((p) => ({ id: p.id, u: p.u, v: p.v, x: p.x, y: p.y, z: p.z }));
   if (set === "pairs") state.excluded = new Set();
-  const z = d.z_levels_mm.length === 1 ? `z = ${fmt(d.z_levels_mm[0], 4)} mm` : `${d.z_levels_mm.length} heights`;
+  const zs = [...new Set(state[set].map((p) => p.z))];
+  const z = zs.length === 1 ? `z = ${fmtZ(zs[0])} mm`  // the height as the file gives it, not a rounded level
+    : `${d.z_levels_mm.length} heights (z = ${d.z_levels_mm.map((h) => fmtZ(h)).join(", ")} mm)`;
   $(`#${set}-count`).textContent = `${d.n} pairs from ${d.source}, ${z}`;
   $(`#${set}-count`).classList.add("ok");
   for (const n of d.notes) $(`#${set}-notes`).appendChild(el("li", {}, n));
@@ -111,7 +136,23 @@ function wireLoader(set) {
       showError(`#${set}-err`, { error: `${f.name}: ${f.size} bytes, more than the ${limit} byte limit`, field: "text" });
       return;
     }
-    const text = await f.text();
+    // decode as the CLI does (strict UTF-8, a BOM allowed): a Latin-1 file is refused with its words,
+    // not read with replacement characters
+    const bytes = new Uint8Array(await f.arrayBuffer());
+    let text;
+    try { text = new TextDecoder("utf-8", { fatal: true }).decode(bytes); }
+    catch {
+      const bad = firstBadUtf8(bytes);
+      const line = bytes.subarray(0, bad).reduce((n, b) => n + (b === 10), 1);
+      clearError(`#${set}-err`, `#loader-${set}`);
+      showError(`#${set}-err`, { error: `${f.name} line ${line}: not UTF-8 text (byte ${bad}); save the file as UTF-8 (in Excel: 'CSV UTF-8')`, field: "text", line });
+      $(`#${set}-text`).value = "";
+      state[set] = null;
+      $(`#${set}-count`).textContent = "not loaded";
+      $(`#${set}-count`).classList.remove("ok");
+      updateButtons();
+      return;
+    }
     $(`#${set}-text`).value = text;
     await loadPairs(set, text, f.name);
   });
@@ -226,46 +267,86 @@ function setJobState(j) {
   $("#job-elapsed").textContent = `${fmt(j.elapsed_s, 1)} s`;
 }
 
+// Tick values at 1-2-5 steps covering [lo, hi] (at least 2, about `n`).
+function niceTicks(lo, hi, n) {
+  const raw = (hi - lo) / Math.max(n, 1);
+  const p = 10 ** Math.floor(Math.log10(raw));
+  const step = [1, 2, 5, 10].map((m) => m * p).find((st) => st >= raw) || 10 * p;
+  const out = [];
+  for (let v = Math.ceil(lo / step - 1e-9) * step; v <= hi + step * 1e-9; v += step) out.push(Number(v.toPrecision(12)));
+  return { ticks: out, step };
+}
+function tickLabel(v, step) {
+  const d = Math.max(0, -Math.floor(Math.log10(step) + 1e-9));
+  return v.toFixed(Math.min(d, 8));
+}
+
 // The convergence curve: best fitness (mm) against iteration, log scale when it spans a decade.
+// A solver that reports one value (linear, LM) is drawn as that value: a marked point and a level.
 function drawCurve() {
   const c = $("#curve");
   const ctx = c.getContext("2d");
-  const W = c.width, H = c.height, L = 76, R = 14, T = 12, B = 36;
+  const W = c.width, H = c.height, L = 76, R = 22, T = 12, B = 36;
+  const pw = W - L - R, ph = H - T - B;
   ctx.clearRect(0, 0, W, H);
   ctx.font = "12px system-ui, sans-serif";
   ctx.fillStyle = "#5f6b7a";
   ctx.strokeStyle = "#d5dae1";
-  ctx.strokeRect(L, T, W - L - R, H - T - B);
-  ctx.fillText("iteration", L + (W - L - R) / 2 - 24, H - 6);
-  ctx.save(); ctx.translate(12, T + (H - T - B) / 2 + 50); ctx.rotate(-Math.PI / 2);
+  ctx.strokeRect(L, T, pw, ph);
+  ctx.textAlign = "center";
+  ctx.fillText("iteration", L + pw / 2, H - 4);
+  ctx.save(); ctx.translate(14, T + ph / 2); ctx.rotate(-Math.PI / 2);
   ctx.fillText("best fitness (mm)", 0, 0); ctx.restore();
-  const ys = state.history.filter((v) => v !== null && v > 0);
+  ctx.textAlign = "left";
+  const pts = state.history.map((v, i) => [i, v]).filter(([, v]) => v !== null && v > 0);
   c.dataset.points = String(state.history.length);
-  if (!ys.length) { ctx.fillText("no iterations yet", L + 10, T + 20); return; }
-  const nmax = Math.max(state.iterations || 0, state.history.length, 2);
+  c.dataset.drawn = "0";
+  if (!pts.length) { ctx.fillText("no iterations yet", L + 10, T + 20); return; }
+  const ys = pts.map(([, v]) => v);
+  const nmax = Math.max(state.iterations || 0, state.history.length);
   let lo = Math.min(...ys), hi = Math.max(...ys);
   const log = hi / lo > 10;
-  if (hi === lo) { hi = lo * 1.05; lo = lo * 0.95; }
+  if (hi - lo < 1e-9 * hi) { const pad = Math.max(Math.abs(hi) * 0.05, 1e-6); lo -= pad; hi += pad; }
+  else if (!log) { const pad = (hi - lo) * 0.06; lo = Math.max(0, lo - pad); hi += pad; }
   const fy = log ? (v) => Math.log10(v) : (v) => v;
   const y0 = fy(lo), y1 = fy(hi);
-  const X = (i) => L + (W - L - R) * (i / (nmax - 1 || 1));
-  const Y = (v) => T + (H - T - B) * (1 - (fy(v) - y0) / (y1 - y0 || 1));
-  // ticks
-  ctx.fillStyle = "#5f6b7a";
-  for (let k = 0; k <= 4; k++) {
-    const v = log ? 10 ** (y0 + (y1 - y0) * k / 4) : lo + (hi - lo) * k / 4;
+  const X = (i) => L + pw * (nmax > 1 ? i / (nmax - 1) : 0.5);
+  const Y = (v) => T + ph * (1 - (fy(v) - y0) / (y1 - y0 || 1));
+  // y ticks: 1-2-5 steps (decades on a log scale)
+  const yt = log ? { ticks: [], step: 1 } : niceTicks(lo, hi, 4);
+  if (log) for (let e = Math.ceil(y0); e <= Math.floor(y1); e++) for (const m of [1, 2, 5]) { const v = m * 10 ** e; if (v >= lo && v <= hi) yt.ticks.push(v); }
+  for (const v of yt.ticks) {
     const y = Y(v);
-    ctx.textAlign = "right"; ctx.fillText(v.toPrecision(4), L - 4, y + 4); ctx.textAlign = "left";
     ctx.beginPath(); ctx.moveTo(L, y); ctx.lineTo(W - R, y); ctx.strokeStyle = "#eef0f3"; ctx.stroke();
+    ctx.textAlign = "right";
+    ctx.fillText(log ? String(Number(v.toPrecision(3))) : tickLabel(v, yt.step), L - 4, y + 4);
   }
-  for (let k = 0; k <= 5; k++) {
-    const i = Math.round((nmax - 1) * k / 5);
-    ctx.fillText(String(i + 1), X(i) - 6, H - B + 16);
+  // x ticks: whole iterations 1..nmax, the last label kept inside the canvas
+  if (nmax > 1) {
+    const xt = niceTicks(1, nmax, 5);
+    const ticks = [1, ...xt.ticks.filter((i) => i > 1 && Number.isInteger(i))];
+    for (const i of ticks) {
+      const x = X(i - 1);
+      ctx.textAlign = x > W - R - 12 ? "right" : x < L + 12 ? "left" : "center";
+      ctx.fillText(String(i), Math.min(x, W - 2), H - B + 16);
+    }
   }
-  ctx.beginPath();
-  ctx.strokeStyle = "#1f5fae"; ctx.lineWidth = 2;
-  state.history.forEach((v, i) => { if (v === null) return; const x = X(i), y = Y(v); if (i === 0) ctx.moveTo(x, y); else ctx.lineTo(x, y); });
-  ctx.stroke(); ctx.lineWidth = 1;
+  ctx.textAlign = "left";
+  ctx.strokeStyle = "#1f5fae"; ctx.fillStyle = "#1f5fae"; ctx.lineWidth = 2;
+  if (pts.length === 1) {  // one value: the level across the plot and the point on it
+    const y = Y(pts[0][1]);
+    ctx.setLineDash([6, 4]); ctx.beginPath(); ctx.moveTo(L, y); ctx.lineTo(W - R, y); ctx.stroke(); ctx.setLineDash([]);
+    ctx.beginPath(); ctx.arc(X(pts[0][0]), y, 5, 0, 2 * Math.PI); ctx.fill();
+    ctx.fillStyle = "#5f6b7a";
+    ctx.fillText(`${fmt(pts[0][1], 5)} mm: the solver's final value (it reports no iterations)`, L + 8, y - 10);
+  } else {
+    ctx.beginPath();
+    pts.forEach(([i, v], k) => { const x = X(i), y = Y(v); if (k === 0) ctx.moveTo(x, y); else ctx.lineTo(x, y); });
+    ctx.stroke();
+    ctx.fillStyle = "#5f6b7a";
+  }
+  ctx.lineWidth = 1;
+  c.dataset.drawn = String(pts.length);
   if (log) ctx.fillText("log scale", W - R - 60, T + 14);
 }
 
@@ -304,6 +385,9 @@ function showResult(sum, saved) {
   state.history = sum.history.slice();
   state.iterations = sum.optimizer.includes("pso") ? sum.history.length : 0;
   drawCurve();
+  $("#map-z").placeholder = sum.plane_z_mm !== null && sum.plane_z_mm !== undefined ? `plane ${fmtZ(sum.plane_z_mm)}` : sum.uses_z ? "height" : "plane";
+  clearMapResult();  // the answer on screen was another calibration's
+  renumber();
   $("#save-state").textContent = saved ? `this is “${saved.name}” v${saved.version}` : "not saved yet";
   updateButtons();
   refreshMapSources(saved ? `cal:${saved.id}` : "job");
@@ -401,6 +485,20 @@ function drawVectors(sum) {
   }
   svg.appendChild(defs);
   svg.appendChild(mk("rect", { x: 0, y: 0, width: Wv, height: Hv, fill: "none", stroke: "#d5dae1" }));
+  // heights told apart by the marker's shape (data at one height: circles only)
+  const zOf = new Map([...(state.pairs || []), ...(state.check || [])].map((p) => [p.id, p.z]));
+  const levels = [...new Set(all.map((p) => zOf.get(p.id)).filter((z) => z !== undefined))].sort((a, b) => a - b);
+  const SHAPES = ["circle", "square", "triangle", "diamond"];
+  const shapeOf = (id) => (levels.length > 1 ? SHAPES[Math.max(0, levels.indexOf(zOf.get(id))) % SHAPES.length] : "circle");
+  const marker = (shape, x, y, color) => {
+    if (shape === "circle") return mk("circle", { cx: x, cy: y, r: 4, fill: color });
+    if (shape === "square") return mk("rect", { x: x - 4, y: y - 4, width: 8, height: 8, fill: color });
+    const d = shape === "triangle" ? `M${x},${y - 5} L${x + 5},${y + 4} L${x - 5},${y + 4} z`
+      : `M${x},${y - 5} L${x + 5},${y} L${x},${y + 5} L${x - 5},${y} z`;
+    return mk("path", { d, fill: color });
+  };
+  const placed = [];  // label boxes already drawn: a label that would overlap one is left to the tooltip
+  const free = (x, y, w) => placed.every((b) => x + w < b.x || b.x + b.w < x || y < b.y - 12 || b.y < y - 12);
   for (const [name, vecs, stats, color] of groups) {
     if (!stats) continue;
     const err = new Map(stats.points.map((p) => [p.id, p]));
@@ -408,17 +506,26 @@ function drawVectors(sum) {
       const g = mk("g", { class: `pt pt-${name}`, "data-id": p.id });
       const e = err.get(p.id);
       const title = mk("title", {});
-      title.textContent = `${name} ${p.id}: u ${fmt(p.u, 1)} px, v ${fmt(p.v, 1)} px; error ${fmt(e.error_mm)} mm ` +
+      const zs = zOf.has(p.id) ? `, z ${fmtZ(zOf.get(p.id))} mm` : "";
+      title.textContent = `${name} ${p.id}: u ${fmt(p.u, 1)} px, v ${fmt(p.v, 1)} px${zs}; error ${fmt(e.error_mm)} mm ` +
         `(dx ${fmt(e.dx_mm)}, dy ${fmt(e.dy_mm)} mm)`;
       g.appendChild(title);
-      g.appendChild(mk("circle", { cx: X(p.u), cy: Y(p.v), r: 4, fill: color }));
+      const shape = shapeOf(p.id);
+      const m = marker(shape, X(p.u), Y(p.v), color);
+      m.setAttribute("class", "mark");
+      m.dataset.shape = shape;
+      g.appendChild(m);
       if (p.du_px !== null && p.dv_px !== null) {
         g.appendChild(mk("line", { x1: X(p.u), y1: Y(p.v), x2: X(p.u) + p.du_px * gain * s, y2: Y(p.v) + p.dv_px * gain * s,
           stroke: color, "stroke-width": 1.6, "marker-end": `url(#arrow-${name})` }));
       }
-      const t = mk("text", { x: X(p.u) + 6, y: Y(p.v) - 6, "font-size": 11, fill: "#5f6b7a" });
-      t.textContent = p.id;
-      g.appendChild(t);
+      const w = 6.5 * String(p.id).length, tx = X(p.u) + 6, ty = Y(p.v) - 6;
+      if (free(tx, ty, w)) {
+        const t = mk("text", { x: tx, y: ty, "font-size": 11, fill: "#5f6b7a" });
+        t.textContent = p.id;
+        g.appendChild(t);
+        placed.push({ x: tx, y: ty, w });
+      }
       svg.appendChild(g);
     }
   }
@@ -429,11 +536,16 @@ function drawVectors(sum) {
   lab(4, 14, `v ${fmt(v0, 0)} px`, "start");
   lab(4, Hv - 4, `v ${fmt(v1, 0)} px`, "start");
   svg.dataset.gain = String(gain);
+  svg.dataset.levels = String(levels.length);
+  const GLYPH = { circle: "●", square: "■", triangle: "▲", diamond: "◆" };
+  const heights = levels.length > 1
+    ? " Heights: " + levels.map((z, k) => `${GLYPH[SHAPES[k % SHAPES.length]]} z = ${fmtZ(z)} mm`).join(", ") + "."
+    : "";
   $("#vectors-caption").innerHTML =
     `Residual vectors over the image (u right, v down). <b style="color:var(--train)">●</b> calibration pairs, ` +
     `<b style="color:var(--check)">●</b> check points, <b style="color:var(--excl)">●</b> excluded. ` +
     `Each arrow is the image displacement equivalent to the pair's robot-space error, magnified ×${gain.toPrecision(3)}; ` +
-    `the tables give the errors in mm. Hover a point for its values.`;
+    `the tables give the errors in mm.${esc(heights)} Labels that would overlap are left out: hover a point for its values.`;
 }
 
 // ------------------------------------------------------------------ 5. save
@@ -469,20 +581,50 @@ function refreshMapSources(select) {
   if ([...s.options].some((o) => o.value === prev)) s.value = prev;
 }
 
+const MAP_EMPTY = "x – mm, y – mm, z – mm";
+
+// The map box shows one answer at a time: a new error replaces the previous result, never sits beside it.
+function clearMapResult() {
+  $("#map-out").textContent = MAP_EMPTY;
+  $("#map-out").classList.add("empty");
+  $("#map-extra").textContent = "";
+  $("#map-extra").className = "hint";
+}
+
+function mapError(err) {
+  clearMapResult();
+  showError("#map-err", err);
+  const f = err.field || "";  // points[0] (outside), points[0].z / z (height), angles, points[0][k]
+  const mark = (id) => $(id).classList.add("bad");
+  if (/^points\[0\]$/.test(f)) { mark("#map-u"); mark("#map-v"); }
+  else if (/(^|\.)z$/.test(f)) mark("#map-z");
+  else if (f.startsWith("angles")) mark("#map-angle");
+  else if (f === "points[0][0]") mark("#map-u");
+  else if (f === "points[0][1]") mark("#map-v");
+}
+
 async function mapPoint() {
   clearError("#map-err", "#sec-map");
   const src = $("#map-source").value;
-  if (!src) { showError("#map-err", { error: "no calibration: run a fit or save one first" }); return; }
-  const u = $("#map-u").value, v = $("#map-v").value, z = $("#map-z").value;
+  if (!src) { mapError({ error: "no calibration: run a fit or save one first" }); return; }
+  const u = $("#map-u").value, v = $("#map-v").value, z = $("#map-z").value, a = $("#map-angle").value;
   const missing = [["points[0][0]", u, "u"], ["points[0][1]", v, "v"]].filter((x) => x[1] === "");
-  if (missing.length) { showError("#map-err", { error: `${missing[0][2]}: type a number of pixels`, field: missing[0][0] }, "#sec-map"); return; }
-  const body = { points: [[Number(u), Number(v)]] };
-  if (z !== "") body.z = Number(z);
+  if (missing.length) { mapError({ error: `${missing[0][2]}: type a number of pixels`, field: missing[0][0] }); return; }
+  const body = { points: [[Number(u), Number(v)]], allow_outside: $("#map-allow").checked };
+  if (z !== "") body.z = Number(z);  // the server refuses a z off a single-height calibration's plane
+  if (a !== "") body.angles = [Number(a)];
   const path = src === "job" ? `/api/jobs/${state.job}/image-to-robot` : `/api/calibrations/${src.slice(4)}/image-to-robot`;
   const r = await api("POST", path, body);
-  if (!r.ok) { showError("#map-err", r.data, "#sec-map"); $("#map-out").textContent = "x – mm, y – mm, z – mm"; return; }
-  const p = r.data.points[0];
-  $("#map-out").textContent = `x ${fmt(p[0])} mm, y ${fmt(p[1])} mm, z ${fmt(p[2])} mm`;
+  if (!r.ok) { mapError(r.data); return; }
+  const d = r.data, p = d.points[0];
+  const rz = d.rz_deg ? `, rz ${fmt(d.rz_deg[0], 3)} deg` : "";
+  $("#map-out").textContent = `x ${fmt(p[0])} mm, y ${fmt(p[1])} mm, z ${fmt(p[2])} mm${rz}`;
+  $("#map-out").classList.remove("empty");
+  const sigma = d.sigma_mm ? `predicted error σ ${fmt(d.sigma_mm[0])} mm` : "no σ";
+  const inside = d.inside[0];
+  $("#map-extra").textContent = `${sigma} · ` + (inside ? "inside the calibrated region"
+    : "OUTSIDE the calibrated region (mapped because “allow outside” is ticked): do not trust it");
+  $("#map-extra").className = inside ? "hint inside" : "warn outside";
 }
 
 // ------------------------------------------------------------------ 7. compare methods
@@ -490,15 +632,19 @@ async function mapPoint() {
 async function compareMethods() {
   clearError("#compare-err");
   if (!state.pairs || !state.check) { showError("#compare-err", { error: "load calibration pairs and check points first (section 1)" }); return; }
+  const used = state.pairs.filter((p) => !state.excluded.has(p.id));  // the pairs a fit would use
+  if (used.length < state.pairs.length) $("#compare-note").textContent = `on ${used.length} pairs: the ${state.pairs.length - used.length} unticked in section “Result” are left out, as in the fit`;
+  else $("#compare-note").textContent = "";
   $("#compare-go").disabled = true;
-  const r = await api("POST", "/api/jobs/compare", { pairs: state.pairs, check: state.check, seed: 0 });
+  const r = await api("POST", "/api/jobs/compare", { pairs: used, check: state.check, seed: 0 });
   if (!r.ok) { showError("#compare-err", r.data); $("#compare-go").disabled = false; return; }
   const id = r.data.id;
   const tick = async () => {
     const q = await api("GET", `/api/jobs/${id}`);
     if (!q.ok) { showError("#compare-err", q.data); $("#compare-go").disabled = false; return; }
     const j = q.data;
-    $("#compare-state").textContent = `${j.status}: ${j.phase} (${fmt(j.elapsed_s, 1)} s)`;
+    const phase = j.phase && j.phase !== j.status ? `: ${j.phase}` : "";
+    $("#compare-state").textContent = `${j.status}${phase} (${fmt(j.elapsed_s, 1)} s)`;
     if (j.status === "queued" || j.status === "running") { setTimeout(tick, 300); return; }
     $("#compare-go").disabled = false;
     if (j.status !== "done") { showError("#compare-err", j.error || { error: j.status }); return; }
@@ -512,6 +658,12 @@ function renderCompare(rows) {
   tb.innerHTML = "";
   const ok = rows.filter((r) => !r.error && r.check_rms_mm !== null);
   const best = ok.length ? Math.min(...ok.map((r) => r.check_rms_mm)) : null;
+  const top = ok.find((r) => r.check_rms_mm === best);
+  $("#compare-caption").textContent = top
+    ? `Highlighted: ${top.model} + ${top.optimizer}, the lowest check RMS — ranked on the check points alone. ` +
+      "Model “auto” chooses by cross-validation on the calibration pairs and never sees the check points, " +
+      "so it may choose another model; compare the check max too."
+    : "";
   for (const r of rows) {
     const tr = el("tr");
     tr.appendChild(td(r.model, "text"));
@@ -730,6 +882,7 @@ async function init() {
   $("#map-go").addEventListener("click", mapPoint);
   $("#compare-go").addEventListener("click", compareMethods);
   $("#saved-compare").addEventListener("click", compareSaved);
+  renumber();
   drawCurve();
   updateButtons();
   await refreshSaved();
