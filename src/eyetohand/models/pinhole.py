@@ -36,8 +36,6 @@ from __future__ import annotations
 from types import MappingProxyType
 
 import numpy as np
-from scipy.linalg import rq
-from scipy.optimize import least_squares
 
 from ..errors import DegenerateError, InputError
 from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
@@ -90,6 +88,8 @@ def expand(params: np.ndarray, square: bool) -> np.ndarray:
 
 def decompose_projection(P: np.ndarray):
     """K (K[2,2] = 1), R (det +1) and t of a 3×4 projection matrix P ~ K [R | t]."""
+    from scipy.linalg import rq  # lazily: SciPy costs ~0.4 s of start-up
+
     P = np.asarray(P, float)
     if np.linalg.det(P[:, :3]) < 0:
         P = -P
@@ -236,6 +236,8 @@ ASPECT_Z = 3.0  # "auto": fy/fx − 1 must exceed this many standard errors for 
 def _fit_reprojection(uv, rel, starts, square: bool):
     """Levenberg–Marquardt on the image reprojection error from each start; the best as
     (mean squared residual, start label, parameters) or None."""
+    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
+
     best = None
     for label, full0 in starts:
         full0 = np.array(full0, float)

@@ -28,7 +28,6 @@ from __future__ import annotations
 from types import MappingProxyType
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
 from ..normalize import hartley
@@ -88,6 +87,8 @@ def fit_lens(uv_px, xy_mm, centre, f_default):
         f = f_default
     rvec, tvec = pose_from_homography(H, centre, f)
     p0 = np.r_[f, 0.0, 0.0, rvec, tvec]
+    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
+
     sol = least_squares(
         lambda p: (project_plane(p, xy_mm, centre) - uv_px).ravel(), p0, method="lm", x_scale="jac"
     )
