@@ -26,3 +26,53 @@ def test_import_does_not_pull_heavy_packages(module):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout) == []
+
+
+# ---------------------------------------------------------------- one-parameter-set fast paths
+
+import numpy as np  # noqa: E402
+
+from eyetohand.fit import fit_model  # noqa: E402
+from eyetohand.pairs import load_pairs  # noqa: E402
+
+PAPER = SRC / "eyetohand" / "data" / "paper" / "calibration_points.csv"
+
+
+def _compare(model, uv, z):
+    """Fast paths (many points, each point alone) against the batch map: equal to 1e-12 mm."""
+    batch = model.batch_image_to_robot(model.params[None], uv, z)[0]
+    zq = None if model.height_rule.value == "computed" else z
+    many = model.image_to_robot(uv, zq)
+    np.testing.assert_allclose(many, batch, rtol=0, atol=1e-12)
+    for i in range(0, len(uv), max(1, len(uv) // 40)):
+        zi = None if zq is None else float(z[i])
+        for form in (uv[i], uv[i : i + 1], tuple(uv[i].tolist()), [uv[i].tolist()]):
+            np.testing.assert_allclose(model.image_to_robot(form, zi), batch[i : i + 1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["affine", "homography", "homography-radial", "paper"])
+def test_planar_fast_paths_equal_the_batch_map(name):
+    pairs = load_pairs(PAPER)
+    model, _ = fit_model(pairs, name, "lm")
+    rng = np.random.default_rng(3)
+    n = 20_000  # several chunks
+    uv = rng.uniform(pairs.uv_px.min(0) - 200, pairs.uv_px.max(0) + 200, size=(n, 2))
+    _compare(model, uv, np.full(n, float(pairs.xyz_mm[0, 2])))
+    # no z: the plane's (and the one-point path refuses a non-finite pixel like the general one)
+    assert model.image_to_robot(uv[0])[0, 2] == pytest.approx(model.image_to_robot(uv[:2])[0, 2], abs=0)
+    with pytest.raises(Exception, match="finite"):
+        model.image_to_robot((float("nan"), 1.0))
+
+
+@pytest.mark.parametrize("name", ["camera", "dlt3d"])
+def test_camera_fast_paths_equal_the_batch_map(name):
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synth import grid_pairs, make_camera
+
+    cam = make_camera(dist=[-0.08, 0.02, 1e-3, -5e-4, 0])
+    pairs = grid_pairs(cam, heights=(0.0, 40.0), noise_px=0.05)
+    model, _ = fit_model(pairs, name, "lm", image_size=(2448, 2048))
+    rng = np.random.default_rng(4)
+    n = 20_000
+    uv = rng.uniform(pairs.uv_px.min(0) - 200, pairs.uv_px.max(0) + 200, size=(n, 2))
+    _compare(model, uv, rng.uniform(-10, 50, n))

@@ -138,6 +138,14 @@ class HomographyRadial(Homography):
         self._c = np.asarray(self.constants["centre_px"], float)
         c = self.constants
         self._lens = (float(c["focal_px"]), float(c["k1"]), float(c["k2"]))
+        self._k = np.array([self._lens[1], self._lens[2], 0.0, 0.0])
+        self._cu, self._cv = (float(x) for x in self._c)
+
+    def _ideal_one(self, u: float, v: float) -> tuple[float, float]:
+        f = self._lens[0]
+        n, _ = undistort(np.array([(u - self._cu) / f, (v - self._cv) / f]), self._k)
+        x, y = n.tolist()
+        return self._cu + f * x, self._cv + f * y
 
     @property
     def distortion(self) -> tuple[float, float]:
