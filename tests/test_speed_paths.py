@@ -76,3 +76,23 @@ def test_camera_fast_paths_equal_the_batch_map(name):
     n = 20_000
     uv = rng.uniform(pairs.uv_px.min(0) - 200, pairs.uv_px.max(0) + 200, size=(n, 2))
     _compare(model, uv, rng.uniform(-10, 50, n))
+
+
+@pytest.mark.parametrize("name", ["affine", "homography", "homography-radial"])
+def test_closed_form_params_jacobian_matches_differences(name):
+    from eyetohand.uncertainty import _steps
+
+    pairs = load_pairs(PAPER)
+    model, _ = fit_model(pairs, name, "lm")
+    uv = pairs.uv_px[:7] + 3.0
+    z = np.full(len(uv), model.plane_z_mm)
+    p, h = model.params, _steps(model.params)
+    rows = np.vstack([p + np.diag(h), p - np.diag(h)])
+    out = model.batch_image_to_robot(rows, uv, z)[..., :2]
+    D = len(p)
+    numeric = np.moveaxis((out[:D] - out[D:]) / (2 * h)[:, None, None], 0, -1)
+    closed = model.params_jacobian(uv, z)
+    scale = np.abs(numeric).max()
+    np.testing.assert_allclose(closed, numeric, rtol=0, atol=1e-6 * scale)
+    one = np.concatenate([model.params_jacobian(uv[i : i + 1], z[i : i + 1]) for i in range(len(uv))])
+    np.testing.assert_allclose(one, closed, rtol=1e-12, atol=1e-15 * scale)

@@ -147,6 +147,11 @@ class Model(ABC):
         z = self._z_for(len(uv), z_mm)
         return self.batch_image_to_robot(self.params[None, :], uv, z)[0]
 
+    def params_jacobian(self, uv_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray | None:
+        """(N, c, D) derivative of the mapped coordinates by the parameters, in closed form, for the
+        models that have one; None otherwise (:mod:`eyetohand.uncertainty` then differentiates)."""
+        return None
+
     def __call__(self, uv_px, z_mm=None) -> np.ndarray:
         return self.image_to_robot(uv_px, z_mm)
 

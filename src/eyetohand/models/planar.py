@@ -62,6 +62,7 @@ class PlanarMatrixModel(Model):
         H = self._Tinv_xy @ self.batch_matrices(self.params[None])[0] @ self._T_uv
         self._H_px = H / H[2, 2]
         self._h = tuple(self._H_px.ravel().tolist())
+        self._M = tuple(self.batch_matrices(self.params[None])[0].ravel().tolist())
         self._affine = self._h[6] == 0.0 and self._h[7] == 0.0
         self._z0 = float(self.constants["plane_z_mm"])
 
@@ -115,6 +116,46 @@ class PlanarMatrixModel(Model):
             self._map_chunk(self._ideal_px(uv[s : s + MAP_CHUNK]), out[s : s + MAP_CHUNK, :2])
         out[:, 2] = z
         return out
+
+    def params_jacobian(self, uv_px, z_mm) -> np.ndarray:
+        """(N, 2, D) d(x, y)/d(params) in closed form: the parameters are the first D elements of the
+        normalised matrix M (row-major, M[2, 2] = 1), (x_n, y_n) = (M p)[:2] / (M p)[2] with p the
+        normalised ideal pixel, and (x, y) = s (x_n, y_n) + c."""
+        uv = np.asarray(uv_px, float).reshape(-1, 2)
+        if len(uv) == 1:
+            return self._params_jacobian_one(*self._ideal_one(float(uv[0, 0]), float(uv[0, 1])))
+        pts = apply_h(self._T_uv, self._ideal_px(uv))
+        M = self.batch_matrices(self.params[None])[0]
+        num = pts @ M[:, :2].T + M[:, 2]
+        w = num[:, 2]
+        s = self._Tinv_xy[0, 0]
+        D = self.n_params
+        J = np.zeros((len(uv), 2, D))
+        g = s / w
+        for j, pj in enumerate((pts[:, 0], pts[:, 1], 1.0)):
+            J[:, 0, j] = g * pj
+            J[:, 1, 3 + j] = g * pj
+        if D == 8:
+            for j in range(2):
+                J[:, 0, 6 + j] = -g * num[:, 0] / w * pts[:, j]
+                J[:, 1, 6 + j] = -g * num[:, 1] / w * pts[:, j]
+        return J
+
+    def _params_jacobian_one(self, u: float, v: float) -> np.ndarray:
+        """``params_jacobian`` of one ideal pixel, on plain floats."""
+        T = self._T_uv
+        p0 = T[0, 0] * u + T[0, 1] * v + T[0, 2]
+        p1 = T[1, 0] * u + T[1, 1] * v + T[1, 2]
+        m = self._M
+        w = m[6] * p0 + m[7] * p1 + m[8]
+        g = self._Tinv_xy[0, 0] / w
+        gx, gy = g * p0, g * p1
+        if self.n_params == 6:
+            return np.array([[[gx, gy, g, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, gx, gy, g]]])
+        xn = (m[0] * p0 + m[1] * p1 + m[2]) / w
+        yn = (m[3] * p0 + m[4] * p1 + m[5]) / w
+        return np.array([[[gx, gy, g, 0.0, 0.0, 0.0, -gx * xn, -gy * xn],
+                          [0.0, 0.0, 0.0, gx, gy, g, -gx * yn, -gy * yn]]])
 
     def _map_chunk(self, uv: np.ndarray, xy: np.ndarray) -> None:
         """(n, 2) ideal px → ``xy`` (n, 2) mm in place, elementwise."""
