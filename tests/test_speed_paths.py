@@ -96,3 +96,42 @@ def test_closed_form_params_jacobian_matches_differences(name):
     np.testing.assert_allclose(closed, numeric, rtol=0, atol=1e-6 * scale)
     one = np.concatenate([model.params_jacobian(uv[i : i + 1], z[i : i + 1]) for i in range(len(uv))])
     np.testing.assert_allclose(one, closed, rtol=1e-12, atol=1e-15 * scale)
+
+
+# ---------------------------------------------------------------- leave-one-out without refits
+
+
+def _loo_cases():
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synth import grid_pairs, make_camera
+
+    paper = load_pairs(PAPER)
+    cam = make_camera(dist=[-0.05, 0.01, 0, 0, 0], seed=3)
+    cell = grid_pairs(cam, n_side=5, noise_px=0.15, seed=5)  # 25 pairs, one height
+    cell3 = grid_pairs(cam, n_side=4, heights=(0.0, 40.0), noise_px=0.15, seed=6)
+    return [("paper data", paper, "affine", "linear"), ("paper data", paper, "affine", "lm"),
+            ("paper data", paper, "homography", "lm"), ("simulated cell", cell, "homography", "lm"),
+            ("simulated cell", cell, "affine", "lm"), ("simulated cell, two heights", cell3, "dlt3d", "lm")]
+
+
+@pytest.mark.parametrize("case", range(6))
+def test_gauss_newton_leave_one_out_matches_refits(case):
+    from eyetohand.fit import cross_validate, loo_gauss_newton
+
+    what, pairs, name, opt = _loo_cases()[case]
+    full, _ = fit_model(pairs, name, opt)
+    fast = loo_gauss_newton(full, pairs.uv_px, pairs.xyz_mm)
+    assert fast is not None, f"{what}, {name}: the Gauss–Newton leave-one-out fell back"
+    refits = cross_validate(pairs, name, opt, refit=True)
+    np.testing.assert_allclose(fast, refits, rtol=0, atol=1e-6)
+    assert np.abs(fast).max() > 1e-3  # real held-out errors, not zeros
+    np.testing.assert_array_equal(cross_validate(pairs, name, opt), fast)
+
+
+def test_leave_one_out_falls_back_where_the_lens_is_refitted():
+    from eyetohand.fit import _loo_warm
+
+    assert not _loo_warm("homography-radial", "lm", "l2")
+    assert not _loo_warm("homography", "lm", "huber")
+    assert not _loo_warm("homography", "linear", "l2")
+    assert _loo_warm("affine", "linear", "l2") and _loo_warm("homography", "lm", "l2")

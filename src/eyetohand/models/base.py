@@ -61,6 +61,10 @@ class Model(ABC):
     height_rule: ClassVar[HeightRule] = HeightRule.PLANE
     auto_candidate: ClassVar[bool] = True  # may ``model="auto"`` choose it
     constant_shapes: ClassVar[Mapping[str, tuple]] = MappingProxyType({})  # shape, or a Choice of words
+    # the refit on a subset of pairs is the refinement of the same parameter family (the constants
+    # depend on the pairs only through normalisation), so leave-one-out may start from the full fit
+    loo_warm_start: ClassVar[bool] = True
+    linear_in_params: ClassVar[bool] = False  # the map is linear in params: least squares in one step
 
     # ----------------------------------------------------------- class facts
     @classmethod
