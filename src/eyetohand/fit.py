@@ -105,9 +105,9 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
             R = out[:n] - xyz  # (n, N, 3)
             F = out[n:].reshape(n, 2 * D, n, 3)
             J = (F[:, :D] - F[:, D:]) / (2 * h)[:, :, None, None]  # (n, D, N, 3)
-            Jk = J * keep[:, None, :, None]
-            A = np.einsum("idnc,ienc->ide", Jk, Jk)
-            g = np.einsum("idnc,inc->id", Jk, R)
+            Jk = (J * keep[:, None, :, None]).reshape(n, D, -1)
+            A = Jk @ Jk.transpose(0, 2, 1)  # (n, D, D)
+            g = (Jk @ R.reshape(n, -1, 1))[..., 0]
             s = np.sqrt(np.einsum("idd->id", A))
             if not (np.isfinite(A).all() and np.isfinite(g).all() and (s > 0).all()):
                 return None
