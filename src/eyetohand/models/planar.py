@@ -110,11 +110,11 @@ class PlanarMatrixModel(Model):
             with np.errstate(divide="ignore", invalid="ignore"):
                 return np.array([[(h0 * u + h1 * v + h2) / w, (h3 * u + h4 * v + h5) / w, z]])
         uv = as_uv(uv_px)
-        z = self._z_for(len(uv), z_mm)
+        zs = self._z_for(len(uv), z_mm)
         out = np.empty((len(uv), 3))
         for s in range(0, len(uv), MAP_CHUNK):
             self._map_chunk(self._ideal_px(uv[s : s + MAP_CHUNK]), out[s : s + MAP_CHUNK, :2])
-        out[:, 2] = z
+        out[:, 2] = zs
         return out
 
     def params_jacobian(self, uv_px, z_mm) -> np.ndarray:
