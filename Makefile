@@ -29,10 +29,15 @@ lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/mypy
 
+# every benchmark, each printing its ratios against the peer measured in the same run (~5 minutes)
 bench: $(STAMP)
-	$(BIN)/python benchmarks/bench_pso.py
-	$(BIN)/python benchmarks/bench_detect.py
+	$(BIN)/python benchmarks/bench_pso.py --quick
+	$(BIN)/python benchmarks/bench_detect.py --quick
 	$(BIN)/python benchmarks/bench_server.py
+	$(BIN)/python benchmarks/bench_map.py --quick
+	$(BIN)/python benchmarks/bench_scale.py --sizes 1000 10000 100000 --models homography
+	$(BIN)/python benchmarks/bench_lens.py
+	$(BIN)/python benchmarks/bench_conveyor.py
 
 clean:
 	rm -rf $(VENV) build dist demo-out src/*.egg-info

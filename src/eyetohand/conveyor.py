@@ -39,8 +39,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from scipy import stats as _st
-from scipy.optimize import least_squares
 
 from .calibration import Calibration
 from .errors import DegenerateError, InputError
@@ -694,6 +692,8 @@ def _joint_fit(prep: _Prepared, model, x0, lay, xy0, z_plane, fixed_b=None) -> _
         r = batch(expand(Z)).reshape(len(Z), -1)
         return ((r[1:] - r[0]) / h[:, None]).T
 
+    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
+
     sol = least_squares(
         fun,
         x_full[idx],
@@ -939,6 +939,8 @@ def _slope(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     """Least-squares slope of y on x (with intercept) and its standard error."""
     if len(x) < 3 or np.ptp(x) == 0:
         return float("nan"), float("nan")
+    from scipy import stats as _st  # lazily
+
     res = _st.linregress(x, y)
     return float(res.slope), float(res.stderr)
 
@@ -1051,6 +1053,8 @@ def build_report(prep, fit, conv, stated_counts_per_mm, stated_direction_deg) ->
             ssr1 = float(np.sum((y - X @ beta) ** 2))
             ssr0 = float(np.sum((y - y.mean()) ** 2))
             F = ((ssr0 - ssr1) / (k - 1)) / (ssr1 / (n - k)) if ssr1 > 0 else float("inf")
+            from scipy import stats as _st  # lazily
+
             pvals.append(float(_st.f.sf(F, k - 1, n - k)))
         if pvals:
             p = min(1.0, min(pvals) * len(pvals))

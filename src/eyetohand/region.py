@@ -10,6 +10,7 @@ serve the library, the CLI, HTTP, TCP and the page (they all call :meth:`Calibra
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -56,9 +57,29 @@ class CalibratedRegion:
         )
 
     # ------------------------------------------------------------ geometry
+    @cached_property
+    def _edges(self) -> tuple[np.ndarray, ...]:
+        """The hull's edges as columns: start (a_u, a_v), direction (e_u, e_v), squared length."""
+        a = self.hull_px
+        e = np.roll(a, -1, axis=0) - a
+        return (a[:, 0].copy(), a[:, 1].copy(), e[:, 0].copy(), e[:, 1].copy(),
+                np.maximum((e * e).sum(-1), 1e-300))
+
+    def _outside_one(self, u: float, v: float) -> float:
+        """``outside_px`` of one point on (K,) edge columns: no (N, K, 2) temporaries."""
+        au, av, eu, ev, ee = self._edges
+        ru, rv = u - au, v - av
+        if ((eu * rv - ev * ru) >= 0).all():
+            return 0.0
+        t = np.clip((ru * eu + rv * ev) / ee, 0.0, 1.0)
+        du, dv = u - (au + t * eu), v - (av + t * ev)
+        return float(np.sqrt((du * du + dv * dv).min()))
+
     def outside_px(self, uv_px) -> np.ndarray:
         """(N,) distance (px) of each point outside the hull; 0 inside or on it."""
         uv = np.asarray(uv_px, float).reshape(-1, 2)
+        if len(uv) == 1:
+            return np.array([self._outside_one(float(uv[0, 0]), float(uv[0, 1]))])
         out = np.empty(len(uv))
         for s in range(0, len(uv), _CHUNK):
             out[s : s + _CHUNK] = _outside_distance(self.hull_px, uv[s : s + _CHUNK])
@@ -86,6 +107,9 @@ class CalibratedRegion:
         uv = np.asarray(uv_px, float).reshape(-1, 2)
         d = self.outside_px(uv)
         inside = d <= self.margin_px
+        if z_mm is not None and len(uv) == 1:
+            if float(self.z_outside_mm(np.asarray(z_mm, float).reshape(-1)[0])) <= 0:
+                z_mm = None  # one point at an allowed height: nothing more to check
         if z_mm is not None:
             z = np.broadcast_to(np.asarray(z_mm, float), (len(uv),))
             dz = self.z_outside_mm(z)

@@ -25,7 +25,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from .errors import InputError
 from .models import Model
@@ -111,6 +110,8 @@ def estimate_tcp_offset(pairs: PointPairs, fit_linear: Callable[[PointPairs], Mo
         return (mapped - target).reshape(len(q), -1)
 
     q0 = np.r_[m1.params, o0]
+    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
+
     sol = least_squares(lambda q: fun_batch(q[None])[0], q0, jac=lambda q: batch_jacobian(fun_batch, q),
                         method="lm", x_scale="jac")
     o = sol.x[d:]

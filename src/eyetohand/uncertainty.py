@@ -14,6 +14,7 @@ Checked for calibration on simulated cells with known noise (tests/test_guarded.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -32,8 +33,12 @@ def _steps(p: np.ndarray) -> np.ndarray:
 
 
 def param_jacobian(model: Model, uv_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
-    """(N, c, D) derivative of the mapped coordinates at each pixel by each parameter (central
-    differences, all 2D + 1 parameter rows in one batched call)."""
+    """(N, c, D) derivative of the mapped coordinates at each pixel by each parameter: the model's
+    closed form when it has one, else central differences (all 2D parameter rows in one batched
+    call)."""
+    closed = model.params_jacobian(uv_px, z_mm)
+    if closed is not None:
+        return closed
     p = model.params
     h = _steps(p)
     rows = np.vstack([p + np.diag(h), p - np.diag(h)])
@@ -72,15 +77,27 @@ class Uncertainty:
         cov = s2 * inv / np.outer(norms, norms)
         return cls(cov, float(np.sqrt(s2)), c, dof)
 
+    @cached_property
+    def _factor(self) -> np.ndarray:
+        """L (D, D) with L Lᵀ = covariance (from its symmetric eigen-decomposition: a covariance of a
+        rank-deficient fit is only positive semi-definite, where Cholesky would refuse it)."""
+        w, V = np.linalg.eigh(0.5 * (self.covariance + self.covariance.T))
+        return V * np.sqrt(np.maximum(w, 0.0))
+
     def sigma_mm(self, model: Model, uv_px, z_mm) -> np.ndarray:
-        """(N,) predicted RMS distance (mm) between the mapped point and a robot measurement of it."""
+        """(N,) predicted RMS distance (mm) between the mapped point and a robot measurement of it:
+        ``tr(J C Jᵀ) = |J L|²`` with the precomputed factor L of the covariance."""
         uv = np.asarray(uv_px, float).reshape(-1, 2)
         z = np.broadcast_to(np.asarray(z_mm, float), (len(uv),))
+        noise = self.n_coords * self.noise_mm**2
+        L = self._factor
+        if len(uv) == 1:
+            JL = param_jacobian(model, uv, z)[0] @ L  # (c, D)
+            return np.array([np.sqrt(max(float((JL * JL).sum()), 0.0) + noise)])
         out = np.empty(len(uv))
         for s in range(0, len(uv), _CHUNK):
-            J = param_jacobian(model, uv[s : s + _CHUNK], z[s : s + _CHUNK])  # (n, c, D)
-            fit_var = np.einsum("ncd,de,nce->n", J, self.covariance, J)
-            out[s : s + _CHUNK] = np.sqrt(np.maximum(fit_var, 0.0) + self.n_coords * self.noise_mm**2)
+            JL = param_jacobian(model, uv[s : s + _CHUNK], z[s : s + _CHUNK]) @ L  # (n, c, D)
+            out[s : s + _CHUNK] = np.sqrt(np.einsum("ncd,ncd->n", JL, JL) + noise)
         return out
 
     def to_dict(self) -> dict:

@@ -15,6 +15,7 @@ class Affine(PlanarMatrixModel):
     n_params = 6
     min_pairs = 4
     summary = "6 unknowns: scale, rotation, shear, offset (camera looking straight down)"
+    linear_in_params = True  # its linear solve is the least-squares fit: leave-one-out in closed form
 
     @classmethod
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> Affine:

@@ -31,6 +31,7 @@ from ..normalize import spread_ratio
 from ..numdiff import batch_jacobian  # noqa: F401  (models' own estimation steps use it)
 
 COLLINEAR_RATIO = 1e-6
+MAP_CHUNK = 1 << 13  # points per elementwise pass of the models' one-parameter-set maps (stays in cache)
 
 
 class HeightRule(StrEnum):
@@ -60,6 +61,10 @@ class Model(ABC):
     height_rule: ClassVar[HeightRule] = HeightRule.PLANE
     auto_candidate: ClassVar[bool] = True  # may ``model="auto"`` choose it
     constant_shapes: ClassVar[Mapping[str, tuple]] = MappingProxyType({})  # shape, or a Choice of words
+    # the refit on a subset of pairs is the refinement of the same parameter family (the constants
+    # depend on the pairs only through normalisation), so leave-one-out may start from the full fit
+    loo_warm_start: ClassVar[bool] = True
+    linear_in_params: ClassVar[bool] = False  # the map is linear in params: least squares in one step
 
     # ----------------------------------------------------------- class facts
     @classmethod
@@ -145,6 +150,11 @@ class Model(ABC):
         uv = as_uv(uv_px)
         z = self._z_for(len(uv), z_mm)
         return self.batch_image_to_robot(self.params[None, :], uv, z)[0]
+
+    def params_jacobian(self, uv_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray | None:
+        """(N, c, D) derivative of the mapped coordinates by the parameters, in closed form, for the
+        models that have one; None otherwise (:mod:`eyetohand.uncertainty` then differentiates)."""
+        return None
 
     def __call__(self, uv_px, z_mm=None) -> np.ndarray:
         return self.image_to_robot(uv_px, z_mm)
@@ -246,6 +256,34 @@ def as_uv(uv_px) -> np.ndarray:
 
 
 _as_uv = as_uv
+
+
+def one_point(uv_px) -> tuple[float, float] | None:
+    """(u, v) as finite floats when ``uv_px`` is one point — shape (2,) or (1, 2), an array, tuple or
+    list — else None (the caller takes its general path, which validates). A non-finite one point is
+    refused as :func:`as_uv` refuses it."""
+    if isinstance(uv_px, np.ndarray):
+        if uv_px.shape != (2,) and uv_px.shape != (1, 2):
+            return None
+        if uv_px.dtype.kind not in "fiu":
+            return None
+        u, v = uv_px.reshape(2).tolist()
+    elif isinstance(uv_px, (tuple, list)) and len(uv_px) in (1, 2):
+        if len(uv_px) == 1:
+            uv_px = uv_px[0]
+            if not isinstance(uv_px, (tuple, list, np.ndarray)) or len(uv_px) != 2:
+                return None
+        u, v = uv_px
+        if type(u) is not float and type(u) is not int:
+            return None
+        if type(v) is not float and type(v) is not int:
+            return None
+    else:
+        return None
+    u, v = float(u), float(v)
+    if not (math.isfinite(u) and math.isfinite(v)):
+        raise InputError("image points must be finite numbers (px)")
+    return u, v
 
 
 def check_enough(model_name: str, min_pairs: int, n: int) -> None:

@@ -20,7 +20,16 @@ import numpy as np
 
 from ..errors import DegenerateError
 from ..normalize import hartley, spread_ratio
-from .base import HeightRule, Model, batch_inverse3, check_enough, check_not_collinear
+from .base import (
+    MAP_CHUNK,
+    HeightRule,
+    Model,
+    as_uv,
+    batch_inverse3,
+    check_enough,
+    check_not_collinear,
+    one_point,
+)
 from .dlt3d import COPLANAR_RATIO, dlt_projection
 
 
@@ -116,6 +125,39 @@ class PaperB(Model):
         out += np.multiply(G[1], dv)
         out += G[2] * dw
         return out.transpose(2, 1, 0) if wide else out.transpose(1, 2, 0)
+
+    def _prepare(self) -> None:
+        # what the parameters fix: M⁻¹ (same cofactors as the batch map) and (b14, b24, b34)
+        B = self.params.reshape(1, 3, 4)
+        Minv, _ = batch_inverse3(B[:, :, :3])
+        self._Minv = tuple(tuple(row) for row in Minv[0].tolist())
+        self._t = tuple(B[0, :, 3].tolist())
+
+    def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
+        """Equation (13) with the precomputed M⁻¹: one point on plain floats, many elementwise in
+        cache-sized chunks; the same arithmetic as ``batch_image_to_robot`` (z is computed, ``z_mm``
+        ignored)."""
+        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = self._Minv
+        t0, t1, t2 = self._t
+        dw = 1.0 - t2
+        pt = one_point(uv_px)
+        if pt is not None:
+            du, dv = pt[0] - t0, pt[1] - t1
+            return np.array([[a0 * du + a1 * dv + a2 * dw, b0 * du + b1 * dv + b2 * dw,
+                              c0 * du + c1 * dv + c2 * dw]])
+        uv = as_uv(uv_px)
+        out = np.empty((len(uv), 3))
+        for s in range(0, len(uv), MAP_CHUNK):
+            chunk = uv[s : s + MAP_CHUNK]
+            du = chunk[:, 0] - t0
+            dv = chunk[:, 1] - t1
+            t = np.empty(len(chunk))
+            for i, (g0, g1, g2) in enumerate(self._Minv):
+                o = out[s : s + MAP_CHUNK, i]
+                np.multiply(du, g0, out=o)
+                o += np.multiply(dv, g1, out=t)
+                o += g2 * dw
+        return out
 
     @property
     def equation5_rank(self) -> int | None:

@@ -36,12 +36,10 @@ from __future__ import annotations
 from types import MappingProxyType
 
 import numpy as np
-from scipy.linalg import rq
-from scipy.optimize import least_squares
 
 from ..errors import DegenerateError, InputError
 from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
-from .base import Choice, HeightRule, Model, _as_uv, batch_jacobian, check_enough
+from .base import MAP_CHUNK, Choice, HeightRule, Model, _as_uv, batch_jacobian, check_enough, one_point
 from .dlt3d import dlt_projection
 
 # The full parameter row, free aspect: fx fy cx cy | k1 k2 p1 p2 (OpenCV's order) | rx ry rz | tx ty tz.
@@ -90,6 +88,8 @@ def expand(params: np.ndarray, square: bool) -> np.ndarray:
 
 def decompose_projection(P: np.ndarray):
     """K (K[2,2] = 1), R (det +1) and t of a 3×4 projection matrix P ~ K [R | t]."""
+    from scipy.linalg import rq  # lazily: SciPy costs ~0.4 s of start-up
+
     P = np.asarray(P, float)
     if np.linalg.det(P[:, :3]) < 0:
         P = -P
@@ -190,6 +190,15 @@ class PinholeCamera(Model):
 
     def _prepare(self) -> None:
         self._x0 = np.asarray(self.constants["origin_mm"], float)
+        # what the parameters fix, computed as the batch map computes it (one parameter row)
+        full = self.full_params(self.params)
+        R = rodrigues_to_matrix(full[:, 8:11])
+        C = -np.einsum("pji,pj->pi", R, full[:, 11:14])[0]
+        self._lens_k = full[0, 4:8].copy()
+        self._intr = tuple(full[0, :4].tolist())  # fx fy cx cy
+        self._Rt = tuple(tuple(row) for row in R[0].tolist())  # R[j][i]: ray w_i = Σ_j R[j][i] n_j
+        self._C = tuple(C.tolist())
+        self._x0f = tuple(self._x0.tolist())
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -213,7 +222,45 @@ class PinholeCamera(Model):
         return project_full(self.full_params(self.params), xyz - self._x0)[0]
 
     def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
-        return super().image_to_robot(_as_uv(uv_px), z_mm)
+        """Back-projection with the precomputed rotation, centre and lens: one point on plain floats,
+        many in cache-sized chunks; the same arithmetic as ``batch_image_to_robot``."""
+        pt = one_point(uv_px)
+        if pt is not None:
+            z = self._z_for(1, z_mm)
+            xyz = self._backproject(np.array([[(pt[0] - self._intr[2]) / self._intr[0],
+                                               (pt[1] - self._intr[3]) / self._intr[1]]]), z)
+            return xyz
+        uv = _as_uv(uv_px)
+        z = self._z_for(len(uv), z_mm)
+        out = np.empty((len(uv), 3))
+        fx, fy, cx, cy = self._intr
+        for s in range(0, len(uv), MAP_CHUNK):
+            chunk = uv[s : s + MAP_CHUNK]
+            d = np.empty(chunk.shape)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                np.divide(chunk[:, 0] - cx, fx, out=d[:, 0])
+                np.divide(chunk[:, 1] - cy, fy, out=d[:, 1])
+            out[s : s + MAP_CHUNK] = self._backproject(d, z[s : s + MAP_CHUNK])
+        return out
+
+    def _backproject(self, d: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Robot points (n, 3) on the planes ``z`` (n,) of distorted normalised points ``d`` (n, 2)."""
+        n, _ = undistort(d, self._lens_k)
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._Rt
+        C0, C1, C2 = self._C
+        x, y = n[:, 0], n[:, 1]
+        w0 = r00 * x + r10 * y + r20
+        w1 = r01 * x + r11 * y + r21
+        w2 = r02 * x + r12 * y + r22
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = ((z - self._x0f[2]) - C2) / w2
+        out = np.empty((len(d), 3))
+        out[:, 0] = C0 + s * w0
+        out[:, 0] += self._x0f[0]
+        out[:, 1] = C1 + s * w1
+        out[:, 1] += self._x0f[1]
+        out[:, 2] = np.where(np.isnan(C2 + s * w2), np.nan, z)
+        return out
 
     # -------------------------------------------------------------- the camera, for people
     @property
@@ -237,6 +284,8 @@ ASPECT_Z = 3.0  # "auto": fy/fx − 1 must exceed this many standard errors for 
 def _fit_reprojection(uv, rel, starts, square: bool):
     """Levenberg–Marquardt on the image reprojection error from each start; the best as
     (mean squared residual, start label, parameters) or None."""
+    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
+
     best = None
     for label, full0 in starts:
         full0 = np.array(full0, float)

@@ -16,7 +16,16 @@ from typing import ClassVar
 import numpy as np
 
 from ..normalize import apply_h, hartley
-from .base import HeightRule, Model, check_enough, check_not_collinear, check_single_height
+from .base import (
+    MAP_CHUNK,
+    HeightRule,
+    Model,
+    as_uv,
+    check_enough,
+    check_not_collinear,
+    check_single_height,
+    one_point,
+)
 
 PLANAR_CONSTANTS = MappingProxyType({"T_uv": (3, 3), "T_xy": (3, 3), "plane_z_mm": ()})
 
@@ -49,6 +58,13 @@ class PlanarMatrixModel(Model):
     def _prepare(self) -> None:
         self._T_uv = np.asarray(self.constants["T_uv"], float)
         self._Tinv_xy = np.linalg.inv(np.asarray(self.constants["T_xy"], float))
+        # what the parameters fix: the px → mm matrix, as floats for one point and for columns
+        H = self._Tinv_xy @ self.batch_matrices(self.params[None])[0] @ self._T_uv
+        self._H_px = H / H[2, 2]
+        self._h = tuple(self._H_px.ravel().tolist())
+        self._M = tuple(self.batch_matrices(self.params[None])[0].ravel().tolist())
+        self._affine = self._h[6] == 0.0 and self._h[7] == 0.0
+        self._z0 = float(self.constants["plane_z_mm"])
 
     @staticmethod
     @abstractmethod
@@ -72,9 +88,97 @@ class PlanarMatrixModel(Model):
     @property
     def matrix_image_to_robot(self) -> np.ndarray:
         """3×3 matrix mapping (u', v', 1) px to (x, y, 1) mm (up to scale; [2, 2] = 1)."""
-        H = self._Tinv_xy @ self.batch_matrices(self.params[None])[0] @ self._T_uv
-        return H / H[2, 2]
+        return self._H_px.copy()
+
+    def _ideal_one(self, u: float, v: float) -> tuple[float, float]:
+        """``_ideal_px`` of one point, on plain floats (NaN where the lens cannot be inverted)."""
+        return u, v
+
+    def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
+        """As :meth:`Model.image_to_robot`, through the precomputed px → mm matrix: one point on plain
+        floats, many elementwise in cache-sized chunks (no BLAS, no (P, N, ·) temporaries). Equal to
+        ``batch_image_to_robot`` to rounding (tests/test_speed_paths.py)."""
+        pt = one_point(uv_px)
+        if pt is not None:
+            if z_mm is None:
+                z = self._z0
+            else:
+                z = self._z_for(1, z_mm)[0]
+            u, v = self._ideal_one(*pt)
+            h0, h1, h2, h3, h4, h5, h6, h7, h8 = self._h
+            w = h6 * u + h7 * v + h8
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return np.array([[(h0 * u + h1 * v + h2) / w, (h3 * u + h4 * v + h5) / w, z]])
+        uv = as_uv(uv_px)
+        zs = self._z_for(len(uv), z_mm)
+        out = np.empty((len(uv), 3))
+        for s in range(0, len(uv), MAP_CHUNK):
+            self._map_chunk(self._ideal_px(uv[s : s + MAP_CHUNK]), out[s : s + MAP_CHUNK, :2])
+        out[:, 2] = zs
+        return out
+
+    def params_jacobian(self, uv_px, z_mm) -> np.ndarray:
+        """(N, 2, D) d(x, y)/d(params) in closed form: the parameters are the first D elements of the
+        normalised matrix M (row-major, M[2, 2] = 1), (x_n, y_n) = (M p)[:2] / (M p)[2] with p the
+        normalised ideal pixel, and (x, y) = s (x_n, y_n) + c."""
+        uv = np.asarray(uv_px, float).reshape(-1, 2)
+        if len(uv) == 1:
+            return self._params_jacobian_one(*self._ideal_one(float(uv[0, 0]), float(uv[0, 1])))
+        pts = apply_h(self._T_uv, self._ideal_px(uv))
+        M = self.batch_matrices(self.params[None])[0]
+        num = pts @ M[:, :2].T + M[:, 2]
+        w = num[:, 2]
+        s = self._Tinv_xy[0, 0]
+        D = self.n_params
+        J = np.zeros((len(uv), 2, D))
+        g = s / w
+        for j, pj in enumerate((pts[:, 0], pts[:, 1], 1.0)):
+            J[:, 0, j] = g * pj
+            J[:, 1, 3 + j] = g * pj
+        if D == 8:
+            for j in range(2):
+                J[:, 0, 6 + j] = -g * num[:, 0] / w * pts[:, j]
+                J[:, 1, 6 + j] = -g * num[:, 1] / w * pts[:, j]
+        return J
+
+    def _params_jacobian_one(self, u: float, v: float) -> np.ndarray:
+        """``params_jacobian`` of one ideal pixel, on plain floats."""
+        T = self._T_uv
+        p0 = T[0, 0] * u + T[0, 1] * v + T[0, 2]
+        p1 = T[1, 0] * u + T[1, 1] * v + T[1, 2]
+        m = self._M
+        w = m[6] * p0 + m[7] * p1 + m[8]
+        g = self._Tinv_xy[0, 0] / w
+        gx, gy = g * p0, g * p1
+        if self.n_params == 6:
+            return np.array([[[gx, gy, g, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, gx, gy, g]]])
+        xn = (m[0] * p0 + m[1] * p1 + m[2]) / w
+        yn = (m[3] * p0 + m[4] * p1 + m[5]) / w
+        return np.array([[[gx, gy, g, 0.0, 0.0, 0.0, -gx * xn, -gy * xn],
+                          [0.0, 0.0, 0.0, gx, gy, g, -gx * yn, -gy * yn]]])
+
+    def _map_chunk(self, uv: np.ndarray, xy: np.ndarray) -> None:
+        """(n, 2) ideal px → ``xy`` (n, 2) mm in place, elementwise."""
+        h0, h1, h2, h3, h4, h5, h6, h7, h8 = self._h
+        u, v = uv[:, 0], uv[:, 1]
+        x, y = xy[:, 0], xy[:, 1]
+        t = np.multiply(v, h1)
+        np.multiply(u, h0, out=x)
+        x += t
+        x += h2
+        np.multiply(v, h4, out=t)
+        np.multiply(u, h3, out=y)
+        y += t
+        y += h5
+        if not self._affine:
+            w = np.multiply(u, h6)
+            np.multiply(v, h7, out=t)
+            w += t
+            w += h8
+            with np.errstate(divide="ignore", invalid="ignore"):
+                x /= w
+                y /= w
 
     def robot_to_image(self, xyz_mm) -> np.ndarray:
         xyz = np.atleast_2d(np.asarray(xyz_mm, dtype=float))
-        return self._distorted_px(apply_h(np.linalg.inv(self.matrix_image_to_robot), xyz[:, :2]))
+        return self._distorted_px(apply_h(np.linalg.inv(self._H_px), xyz[:, :2]))

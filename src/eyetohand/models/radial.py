@@ -28,7 +28,6 @@ from __future__ import annotations
 from types import MappingProxyType
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
 from ..normalize import hartley
@@ -88,6 +87,8 @@ def fit_lens(uv_px, xy_mm, centre, f_default):
         f = f_default
     rvec, tvec = pose_from_homography(H, centre, f)
     p0 = np.r_[f, 0.0, 0.0, rvec, tvec]
+    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
+
     sol = least_squares(
         lambda p: (project_plane(p, xy_mm, centre) - uv_px).ravel(), p0, method="lm", x_scale="jac"
     )
@@ -105,6 +106,7 @@ class HomographyRadial(Homography):
     unknowns = 10  # 8 + k1, k2 (f only sets k's units)
     min_pairs = 6
     summary = "10 unknowns: homography plus radial lens distortion k1, k2"
+    loo_warm_start = False  # the lens (f, k1, k2) is re-fitted on each subset of pairs
     constant_shapes = MappingProxyType(
         {**PLANAR_CONSTANTS, "centre_px": (2,), "focal_px": (), "k1": (), "k2": ()}
     )
@@ -137,6 +139,14 @@ class HomographyRadial(Homography):
         self._c = np.asarray(self.constants["centre_px"], float)
         c = self.constants
         self._lens = (float(c["focal_px"]), float(c["k1"]), float(c["k2"]))
+        self._k = np.array([self._lens[1], self._lens[2], 0.0, 0.0])
+        self._cu, self._cv = (float(x) for x in self._c)
+
+    def _ideal_one(self, u: float, v: float) -> tuple[float, float]:
+        f = self._lens[0]
+        n, _ = undistort(np.array([(u - self._cu) / f, (v - self._cv) / f]), self._k)
+        x, y = n.tolist()
+        return self._cu + f * x, self._cv + f * y
 
     @property
     def distortion(self) -> tuple[float, float]:

@@ -1,0 +1,137 @@
+"""The fast paths give what the general ones give: one-point maps vs the batch map, closed-form and
+warm-started leave-one-out vs full refits; and start-up stays light (no SciPy, OpenCV, matplotlib or
+FastAPI imported by the CLI or the calibration module)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+HEAVY = ("scipy", "cv2", "matplotlib", "fastapi")
+
+
+@pytest.mark.parametrize("module", ["eyetohand.cli", "eyetohand.calibration", "eyetohand"])
+def test_import_does_not_pull_heavy_packages(module):
+    code = (
+        f"import json, sys; import {module}; "
+        f"print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))"
+    )
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout) == []
+
+
+# ---------------------------------------------------------------- one-parameter-set fast paths
+
+import numpy as np  # noqa: E402
+
+from eyetohand.fit import fit_model  # noqa: E402
+from eyetohand.pairs import load_pairs  # noqa: E402
+
+PAPER = SRC / "eyetohand" / "data" / "paper" / "calibration_points.csv"
+
+
+def _compare(model, uv, z):
+    """Fast paths (many points, each point alone) against the batch map: equal to 1e-12 mm."""
+    batch = model.batch_image_to_robot(model.params[None], uv, z)[0]
+    zq = None if model.height_rule.value == "computed" else z
+    many = model.image_to_robot(uv, zq)
+    np.testing.assert_allclose(many, batch, rtol=0, atol=1e-12)
+    for i in range(0, len(uv), max(1, len(uv) // 40)):
+        zi = None if zq is None else float(z[i])
+        for form in (uv[i], uv[i : i + 1], tuple(uv[i].tolist()), [uv[i].tolist()]):
+            np.testing.assert_allclose(model.image_to_robot(form, zi), batch[i : i + 1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["affine", "homography", "homography-radial", "paper"])
+def test_planar_fast_paths_equal_the_batch_map(name):
+    pairs = load_pairs(PAPER)
+    model, _ = fit_model(pairs, name, "lm")
+    rng = np.random.default_rng(3)
+    n = 20_000  # several chunks
+    uv = rng.uniform(pairs.uv_px.min(0) - 200, pairs.uv_px.max(0) + 200, size=(n, 2))
+    _compare(model, uv, np.full(n, float(pairs.xyz_mm[0, 2])))
+    # no z: the plane's (and the one-point path refuses a non-finite pixel like the general one)
+    assert model.image_to_robot(uv[0])[0, 2] == pytest.approx(model.image_to_robot(uv[:2])[0, 2], abs=0)
+    with pytest.raises(Exception, match="finite"):
+        model.image_to_robot((float("nan"), 1.0))
+
+
+@pytest.mark.parametrize("name", ["camera", "dlt3d"])
+def test_camera_fast_paths_equal_the_batch_map(name):
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synth import grid_pairs, make_camera
+
+    cam = make_camera(dist=[-0.08, 0.02, 1e-3, -5e-4, 0])
+    pairs = grid_pairs(cam, heights=(0.0, 40.0), noise_px=0.05)
+    model, _ = fit_model(pairs, name, "lm", image_size=(2448, 2048))
+    rng = np.random.default_rng(4)
+    n = 20_000
+    uv = rng.uniform(pairs.uv_px.min(0) - 200, pairs.uv_px.max(0) + 200, size=(n, 2))
+    _compare(model, uv, rng.uniform(-10, 50, n))
+
+
+@pytest.mark.parametrize("name", ["affine", "homography", "homography-radial"])
+def test_closed_form_params_jacobian_matches_differences(name):
+    from eyetohand.uncertainty import _steps
+
+    pairs = load_pairs(PAPER)
+    model, _ = fit_model(pairs, name, "lm")
+    uv = pairs.uv_px[:7] + 3.0
+    z = np.full(len(uv), model.plane_z_mm)
+    p, h = model.params, _steps(model.params)
+    rows = np.vstack([p + np.diag(h), p - np.diag(h)])
+    out = model.batch_image_to_robot(rows, uv, z)[..., :2]
+    D = len(p)
+    numeric = np.moveaxis((out[:D] - out[D:]) / (2 * h)[:, None, None], 0, -1)
+    closed = model.params_jacobian(uv, z)
+    scale = np.abs(numeric).max()
+    np.testing.assert_allclose(closed, numeric, rtol=0, atol=1e-6 * scale)
+    one = np.concatenate([model.params_jacobian(uv[i : i + 1], z[i : i + 1]) for i in range(len(uv))])
+    np.testing.assert_allclose(one, closed, rtol=1e-12, atol=1e-15 * scale)
+
+
+# ---------------------------------------------------------------- leave-one-out without refits
+
+
+def _loo_cases():
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synth import grid_pairs, make_camera
+
+    paper = load_pairs(PAPER)
+    cam = make_camera(dist=[-0.05, 0.01, 0, 0, 0], seed=3)
+    cell = grid_pairs(cam, n_side=5, noise_px=0.15, seed=5)  # 25 pairs, one height
+    cell3 = grid_pairs(cam, n_side=4, heights=(0.0, 40.0), noise_px=0.15, seed=6)
+    return [("paper data", paper, "affine", "linear"), ("paper data", paper, "affine", "lm"),
+            ("paper data", paper, "homography", "lm"), ("simulated cell", cell, "homography", "lm"),
+            ("simulated cell", cell, "affine", "lm"), ("simulated cell, two heights", cell3, "dlt3d", "lm")]
+
+
+@pytest.mark.parametrize("case", range(6))
+def test_gauss_newton_leave_one_out_matches_refits(case):
+    from eyetohand.fit import cross_validate, loo_gauss_newton
+
+    what, pairs, name, opt = _loo_cases()[case]
+    full, _ = fit_model(pairs, name, opt)
+    fast = loo_gauss_newton(full, pairs.uv_px, pairs.xyz_mm)
+    assert fast is not None, f"{what}, {name}: the Gauss–Newton leave-one-out fell back"
+    refits = cross_validate(pairs, name, opt, refit=True)
+    np.testing.assert_allclose(fast, refits, rtol=0, atol=1e-6)
+    assert np.abs(fast).max() > 1e-3  # real held-out errors, not zeros
+    np.testing.assert_array_equal(cross_validate(pairs, name, opt), fast)
+
+
+def test_leave_one_out_falls_back_where_the_lens_is_refitted():
+    from eyetohand.fit import _loo_warm
+
+    assert not _loo_warm("homography-radial", "lm", "l2")
+    assert not _loo_warm("homography", "lm", "huber")
+    assert not _loo_warm("homography", "linear", "l2")
+    assert _loo_warm("affine", "linear", "l2") and _loo_warm("homography", "lm", "l2")
