@@ -276,7 +276,7 @@ class BeltProtocol:
             raise CommandError("BELT SIGHT: no count given and the camera latches none; send <id>,<e>")
         self._check_count(s, e, "BELT SIGHT")
         d = detect_target(img, name=f"sighting {pid}", **self.detect_options)
-        if not d.ok:
+        if not d.ok or d.u is None or d.v is None:
             raise CommandError(f"target not found: {d.reason}")
         h, w = img.shape[:2]
         self._record({"op": "sight", "id": pid, "u": float(d.u), "v": float(d.v), "e": e,
@@ -329,7 +329,7 @@ class BeltProtocol:
         self.conveyor = conv
         return [str(rep.get("n_sighted_parts", 0)), str(rep.get("n_touches", 0)),
                 f"{belt.mm_per_count:.8f}", f"{belt.yaw_deg:.6f}", f"{belt.pitch_deg:.6f}",
-                _mm(rep.get("rms_mm", math.nan))]
+                _mm(float(rep.get("rms_mm", math.nan)))]
 
     def _abort(self, args) -> list[str]:
         s = self._open()

@@ -175,7 +175,7 @@ def _reason(text: str) -> str:
     return s if len(s) <= MAX_REASON else s[: MAX_REASON - 3] + "..."
 
 
-def _numbers(fields: list[str], names: str, what: str) -> list[float]:
+def _numbers(fields: list[str], names: str | tuple[str, ...], what: str) -> list[float]:
     out = []
     for name, text in zip(names, fields, strict=False):
         try:

@@ -6,7 +6,9 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import socket
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from ..errors import InputError
 
@@ -126,7 +128,8 @@ async def _serve(args, data_dir) -> None:
     if args.tcp:
         host, port = parse_hostport(args.tcp)
         store = Store(data_dir, wait_s=args.db_wait)
-        cal, rec, ver = _NoCalibration(args.calibration), None, None
+        cal: Any = _NoCalibration(args.calibration)
+        rec = ver = None
         try:
             if args.calibration:
                 try:
@@ -141,9 +144,9 @@ async def _serve(args, data_dir) -> None:
             raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
         from ..calibration import Calibration
 
-        if ver is not None:
+        if ver is not None and rec is not None:
             cal = Calibration.from_dict(ver.calibration, f"calibration {rec.name!r}")
-        commands = {}
+        commands: dict[str, Callable[[str], str]] = {}
         try:
             if camera:
                 from ..collect import Collector
@@ -179,7 +182,7 @@ async def _serve(args, data_dir) -> None:
         except OSError as exc:
             http_sock.close()
             raise ServeError(f"--tcp {args.tcp}: cannot listen there ({exc.strerror or exc})") from None
-        if ver is not None:
+        if ver is not None and rec is not None:
             print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with calibration {rec.name!r} "
                   f"(id {rec.id}, version {ver.version}, model {cal.model_name})", flush=True)
         else:

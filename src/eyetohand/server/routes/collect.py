@@ -46,12 +46,11 @@ class CameraView:
 
         col = self.collector
         if self.live and col._lock.acquire(blocking=False):
+            err: str | None = None
             try:
                 img, _ = self.source.grab()
             except Exception as exc:  # no pose yet (sim:), a camera that fails: say so on the image
                 img, err = None, f"{type(exc).__name__}: {exc}"
-            else:
-                err = None
             finally:
                 col._lock.release()
             if img is not None:
