@@ -98,7 +98,25 @@ def run_sim(tmp_path_factory, cell_file, rect):
     col.close()
 
 
-def test_sim_collection_end_to_end(run_sim, rect, check_pairs, tmp_path, cell_file):
+@pytest.fixture(scope="module")
+def offline(tmp_path_factory, rect, cell_file):
+    """`eyetohand calibrate-images` on the plan's poses (the robot at the same places: same robot
+    seed), photographed again (other image noise)."""
+    tmp_path = tmp_path_factory.mktemp("offline")
+    sent = np.array([[float(f"{v:.4f}") for v in p] for p in plan_poses("grid:5x5", *rect, Z)])
+    cam = CellCamera(load_cell(cell_file), seed=SEED, noise_seed=99)
+    names = []
+    for k, (x, y, z) in enumerate(sent):
+        cam.set_robot_pose(x, y, z)
+        names.append(f"img_{k:02d}.png")
+        cv2.imwrite(str(tmp_path / names[-1]), cam.render())
+    (tmp_path / "poses.csv").write_text(poses_csv(names, sent))
+    assert main(["calibrate-images", str(tmp_path / "poses.csv"), "--image-size", "640x512",
+                 "-o", str(tmp_path / "offline.json")]) == 0
+    return Calibration.load(tmp_path / "offline.json")
+
+
+def test_sim_collection_end_to_end(run_sim, rect, check_pairs, offline):
     out = run_sim["out"]
     assert len(out["points"]) == 25 and out["errors"] == []
     assert [int(p[3:].split(",")[0]) for p in out["points"]] == list(range(1, 26))
@@ -113,18 +131,6 @@ def test_sim_collection_end_to_end(run_sim, rect, check_pairs, tmp_path, cell_fi
             for line, _ in run_sim["robot"].transcript if line.startswith("CAL POINT")]
     np.testing.assert_allclose(sent, plan_poses("grid:5x5", *rect, Z), atol=1e-4)
 
-    # offline: the same poses (the robot at the same places: same robot seed), photographed again
-    # (other image noise), then `eyetohand calibrate-images`
-    cam = CellCamera(load_cell(cell_file), seed=SEED, noise_seed=99)
-    names = []
-    for k, (x, y, z) in enumerate(sent):
-        cam.set_robot_pose(x, y, z)
-        names.append(f"img_{k:02d}.png")
-        cv2.imwrite(str(tmp_path / names[-1]), cam.render())
-    (tmp_path / "poses.csv").write_text(poses_csv(names, np.array(sent)))
-    assert main(["calibrate-images", str(tmp_path / "poses.csv"), "--image-size", "640x512",
-                 "-o", str(tmp_path / "offline.json")]) == 0
-    offline = Calibration.load(tmp_path / "offline.json")
     rms_loop, rms_off = check_rms_mm(cal, check_pairs), check_rms_mm(offline, check_pairs)
     print(f"check RMS: collection {rms_loop:.4f} mm ({cal.model_name}), calibrate-images "
           f"{rms_off:.4f} mm ({offline.model_name}), ratio {rms_loop / rms_off:.3f}, "
@@ -419,3 +425,132 @@ def test_opencv_source_reads_a_video_file(tmp_path):
         with pytest.raises(GrabTimeout):
             src.grab()  # end of the file: no more frames
     assert np.allclose(levels, [40, 80, 120], atol=3)
+
+
+# ---------------------------------------------------------------- through the real server process
+
+
+class Serve:
+    """`eyetohand serve --tcp 127.0.0.1:0 --camera sim:… --calibration cell1` as a child process; the
+    ports it bound are read from what it prints."""
+
+    def __init__(self, data, cell_file, *extra):
+        import queue
+
+        env = {**os.environ,
+               "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "eyetohand.cli", "serve", "--port", "0", "--data", str(data),
+             "--tcp", "127.0.0.1:0", "--camera", f"sim:{cell_file}?seed={SEED}", "--calibration", "cell1",
+             "--log-level", "warning", *extra],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        self.lines: queue.Queue = queue.Queue()
+        self.out: list[str] = []
+        threading.Thread(target=self._pump, daemon=True).start()
+        deadline = time.monotonic() + 30
+        self.tcp_port = self.http_port = None
+        while self.http_port is None:
+            try:
+                line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
+            except queue.Empty:
+                raise AssertionError("serve did not start: " + "".join(self.out)) from None
+            if line is None:
+                raise AssertionError("serve exited: " + "".join(self.out))
+            if line.startswith("TCP: 127.0.0.1:") and self.tcp_port is None:
+                self.tcp_port = int(line.split(":")[2].split()[0])
+            if line.startswith("workbench: http://"):
+                self.http_port = int(line.split("http://127.0.0.1:")[1].split("/")[0])
+
+    def _pump(self):
+        for line in self.proc.stdout:
+            self.out.append(line)
+            self.lines.put(line)
+        self.lines.put(None)
+
+    def link(self) -> TcpLink:
+        return TcpLink("127.0.0.1", self.tcp_port, timeout_s=60)
+
+    def stop(self, sig=signal.SIGTERM):
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        self.proc.wait(20)
+
+
+def stored(data, name="cell1"):
+    from eyetohand.server.storage import Store
+
+    st = Store(data)
+    try:
+        rec = st.find(name)
+        vers = st.versions(rec.id)
+        return vers, Calibration.from_dict(vers[-1].calibration, "stored")
+    finally:
+        st.close()
+
+
+def test_serve_collects_over_tcp_with_the_robot_client(tmp_path, cell_file, rect, run_sim, check_pairs,
+                                                       offline):
+    """No human: the real server process with the sim: camera, the virtual robot program
+    (examples/robots/robot_client.py, its own process) runs a 5x5 plan; the calibration is stored as
+    a version in the server's database, then served to mapping lines and checked by CAL CHECK."""
+    srv = Serve(tmp_path / "data", cell_file)
+    try:
+        link = srv.link()
+        assert link.send("600,400").startswith("ERR no calibration to map with: 'cell1' has none yet")
+        client = subprocess.run(
+            [sys.executable, str(ROOT / "examples" / "robots" / "robot_client.py"), "--tcp",
+             f"127.0.0.1:{srv.tcp_port}", "--name", "cell1", "--plan", "grid:5x5",
+             "--rect=" + ",".join(f"{v:.4f}" for v in rect), "--z", str(Z)],
+            capture_output=True, text=True, timeout=120,
+            env={**os.environ, "PYTHONPATH": str(ROOT / "src")})
+        assert client.returncode == 0, client.stdout + client.stderr
+        replies = [ln[2:] for ln in client.stdout.splitlines() if ln.startswith("< ")]
+        assert replies[-1] == run_sim["out"]["end"]  # the same images, the same fit as in-process
+        vers, cal = stored(tmp_path / "data")
+        assert len(vers) == 1 and vers[0].note == "collected (25 points)"
+        assert cal.data_sha256 == Calibration.load(run_sim["store"] / "cell1.json").data_sha256
+        rms_loop, rms_off = check_rms_mm(cal, check_pairs), check_rms_mm(offline, check_pairs)
+        print(f"server process: check RMS {rms_loop:.4f} mm vs calibrate-images {rms_off:.4f} mm, "
+              f"ratio {rms_loop / rms_off:.3f}")
+        assert rms_loop <= 1.2 * rms_off
+        # the mapping lines now use the collected calibration; CAL CHECK records into the history
+        uv = cal.model.robot_to_image(np.array([[0.5 * (rect[0] + rect[2]), 0.5 * (rect[1] + rect[3]), Z]]))
+        xyz = [float(v) for v in link.send(f"{float(uv[0, 0])!r},{float(uv[0, 1])!r}").split(",")]
+        np.testing.assert_allclose(xyz[:2], [0.5 * (rect[0] + rect[2]), 0.5 * (rect[1] + rect[3])], atol=1e-6)
+        x, y = 0.5 * (rect[0] + rect[2]) + 3.0, 0.5 * (rect[1] + rect[3]) - 2.0
+        check = link.send(f"CAL CHECK {x:.4f},{y:.4f},{Z}")
+        assert check.startswith("OK ") and float(check[3:].split(",")[2]) < 0.05, check
+        hist = (tmp_path / "data" / "collect" / "cell1.checks.jsonl").read_text().splitlines()
+        assert len(hist) == 1 and json.loads(hist[0])["data_sha256"] == cal.data_sha256
+        link.close()
+    finally:
+        srv.stop()
+
+
+def test_serve_killed_after_12_points_resumes(tmp_path, cell_file, rect, run_sim):
+    """kill -9 of the server process after 12 of 25 points, restart on the same data, the robot runs
+    its program again: 25 points and the same calibration as an uninterrupted run."""
+    data = tmp_path / "data"
+    srv = Serve(data, cell_file)
+    try:
+        link = srv.link()
+        out = VirtualRobot(link.send).run_plan("cell1", "grid:5x5", rect, Z, stop_after=12, end=False)
+        assert len(out["points"]) == 12
+    finally:
+        srv.stop(signal.SIGKILL)
+    assert srv.proc.returncode == -signal.SIGKILL
+    link.close()
+    srv = Serve(data, cell_file)
+    try:
+        link = srv.link()
+        assert link.send("CAL STATUS") == "OK cell1,12,collecting"
+        out = VirtualRobot(link.send).run_plan("cell1", "grid:5x5", rect, Z)  # BEGIN again: resumes
+        link.close()
+    finally:
+        srv.stop()
+    assert len(out["points"]) == 13 and out["points"] == run_sim["out"]["points"][12:]
+    assert out["end"] == run_sim["out"]["end"]
+    vers, cal = stored(data)
+    assert len(vers) == 1
+    ref = Calibration.load(run_sim["store"] / "cell1.json").to_dict()
+    assert cal.to_dict()["model"] == ref["model"] and cal.data_sha256 == ref["data_sha256"]

@@ -175,7 +175,7 @@ def _reason(text: str) -> str:
     return s if len(s) <= MAX_REASON else s[: MAX_REASON - 3] + "..."
 
 
-def _numbers(fields: list[str], names: str, what: str) -> list[float]:
+def _numbers(fields: list[str], names: str | tuple[str, ...], what: str) -> list[float]:
     out = []
     for name, text in zip(names, fields, strict=False):
         try:
@@ -275,6 +275,7 @@ class Collector:
         self.keep_images = keep_images
         self.calibration_name = calibration
         self.image_size: tuple[int, int] | None = None
+        self.last_grab: tuple | None = None  # (image, Detection, utc) of the last POINT/CHECK grab
         self._lock = threading.Lock()
         self.session: _Session | None = None
         for rec in self.journal.records():
@@ -333,6 +334,12 @@ class Collector:
             s.state, s.result = "calibrated", rec
         elif op == "abort" and s is not None:
             s.state, s.points = "aborted", []
+        elif op in ("drop", "keep") and s is not None:
+            for p in s.points:
+                if p["n"] == rec["n"]:
+                    p["dropped"] = op == "drop"
+                    if p.get("pose_index") is not None:
+                        s.done[p["pose_index"]] = op == "keep"
 
     @property
     def state(self) -> str:
@@ -340,8 +347,45 @@ class Collector:
 
     @property
     def points(self) -> list[dict]:
-        """The recorded points of the current collection (journal records)."""
+        """The recorded points of the current collection (journal records; a dropped one has
+        ``"dropped": True`` and is left out of the fit)."""
         return [] if self.session is None else list(self.session.points)
+
+    def _active(self, s: _Session) -> list[dict]:
+        return [p for p in s.points if not p.get("dropped")]
+
+    def drop(self, n: int, keep: bool = False) -> dict:
+        """Leave point ``n`` out of the fit (``keep``: take it back in), journaled like a command.
+        A dropped planned pose is offered again by ``CAL NEXT``. Raises :class:`CommandError`."""
+        with self._lock:
+            s = self._open()
+            match = [p for p in s.points if p["n"] == n]
+            if not match:
+                raise CommandError(f"no point {n} in collection '{s.name}' (points 1..{len(s.points)})")
+            if bool(match[0].get("dropped")) != (not keep):
+                self._record({"op": "keep" if keep else "drop", "name": s.name, "n": n})
+            return dict(match[0])
+
+    def status(self) -> dict:
+        """The collection as JSON-ready data (what the workbench's collection view shows): plan poses
+        with done/failed flags, the points with their detections, the fit result of the last END."""
+        with self._lock:
+            s = self.session
+            if s is None:
+                return {"name": None, "state": "none", "poses": [], "points": [], "result": None,
+                        "calibration": self.calibration_name}
+            poses = [{"index": i, "xyz_mm": [float(v) for v in p], "done": bool(s.done[i]),
+                      "failed": bool(s.failed[i])} for i, p in enumerate(s.poses)]
+            points = [{"n": p["n"], "xyz_mm": p["xyz_mm"], "angle_deg": p["angle_deg"], "u": p["u"],
+                       "v": p["v"], "pose_index": p.get("pose_index"), "still_shift_px": p["still_shift_px"],
+                       "dropped": bool(p.get("dropped")), "utc": p.get("utc"),
+                       "detection": {k: p["detection"].get(k) for k in
+                                     ("diameter_px", "score", "rms_px", "contrast", "blur_px", "method")
+                                     if k in p["detection"]}}
+                      for p in s.points]
+            return {"name": s.name, "state": s.state, "model": s.model, "plan": s.begin.get("plan"),
+                    "poses": poses, "points": points, "result": s.result,
+                    "calibration": self.calibration_name}
 
     # ---------------------------------------------------------------- protocol
     def handle(self, line: str) -> str:
@@ -453,6 +497,7 @@ class Collector:
         except GrabTimeout as exc:
             raise CommandError(f"timeout: {exc}") from None
         d1 = detect_target(img1, name="grab 1", **self.detect_options)
+        self.last_grab = (img1, d1, _now())
         if not d1.ok:
             raise CommandError(_classify(d1.reason))
         r = 2.0 * d1.diameter_px + 8
@@ -472,6 +517,7 @@ class Collector:
             raise CommandError(f"moving: the target moved {shift:.2f} px between two grabs "
                                f"(tolerance {self.still_tol_px:g} px)")
         self.image_size = (int(w), int(h))
+        self.last_grab = (img1, d1, _now())
         return (float(d1.u), float(d1.v)), d1, img1, shift
 
     # -- POINT
@@ -482,6 +528,8 @@ class Collector:
         s = self._open()
         xyz, angle = vals[:3], (vals[3] if len(vals) == 4 else 0.0)
         for k, p in enumerate(s.points):
+            if p.get("dropped"):
+                continue
             if (max(abs(a - b) for a, b in zip(p["xyz_mm"], xyz, strict=True)) <= REPEAT_MATCH_MM
                     and abs(p["angle_deg"] - angle) <= REPEAT_MATCH_MM):
                 return [str(k + 1), _f(p["u"]), _f(p["v"])]
@@ -520,14 +568,15 @@ class Collector:
         from .pairs import PointPairs
 
         s = self._open()
-        if not s.points:
+        pts = self._active(s)
+        if not pts:
             raise CommandError("fit failed: no points recorded")
-        uv = np.array([[p["u"], p["v"]] for p in s.points])
-        xyz = np.array([p["xyz_mm"] for p in s.points])
+        uv = np.array([[p["u"], p["v"]] for p in pts])
+        xyz = np.array([p["xyz_mm"] for p in pts])
         angles = None
-        if any(p["angle_given"] for p in s.points):
-            angles = np.array([p["angle_deg"] for p in s.points])
-        return PointPairs.from_arrays(uv, xyz, [str(p["n"]) for p in s.points],
+        if any(p["angle_given"] for p in pts):
+            angles = np.array([p["angle_deg"] for p in pts])
+        return PointPairs.from_arrays(uv, xyz, [str(p["n"]) for p in pts],
                                       source=f"collection {s.name}", angle_deg=angles)
 
     def _end(self, args) -> list:
@@ -555,7 +604,7 @@ class Collector:
         s = self.session
         if s is None:
             return ["-", "0", "none"]
-        n = s.result["n"] if s.state == "calibrated" else len(s.points)
+        n = s.result["n"] if s.state == "calibrated" else len(self._active(s))
         return [s.name, str(n), s.state]
 
     # -- CHECK

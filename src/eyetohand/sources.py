@@ -57,6 +57,9 @@ class Source:
 
     uri = ""
     timeout_s = DEFAULT_TIMEOUT_S
+    #: the encoder count latched with the last frame, where the source provides one (a conveyor's
+    #: camera wired to the belt's encoder); None for every built-in source: send the count with BELT SIGHT
+    encoder_count: int | None = None
 
     def grab(self, pose=None) -> tuple[np.ndarray, float]:
         """One image and its timestamp (s). ``pose`` (x, y, z[, angle]): see :meth:`set_robot_pose`."""

@@ -41,7 +41,21 @@ def register(sub) -> None:
     p.add_argument("--tcp", metavar="HOST:PORT", default=None,
                    help="also answer 'u,v[,z]' lines with 'x,y,z' on this TCP address")
     p.add_argument("--calibration", metavar="NAME", default=None,
-                   help="stored calibration (name or id) the TCP service uses (its current version)")
+                   help="stored calibration (name or id) the TCP service uses (its current version); "
+                        "with --camera it may be new: CAL BEGIN … CAL END creates it")
+    p.add_argument("--camera", metavar="URI", default=None,
+                   help="camera source for the collection protocol on --tcp ('CAL …' lines): opencv:0, "
+                        "folder:DIR, sim:CELL.toml, genicam:PRODUCER.cti, pylon:[SERIAL] "
+                        "(docs/collection.md)")
+    p.add_argument("--reply-format", choices=["plain", "ur"], default="plain",
+                   help="form of the CAL replies: plain 'OK …'/'ERR …' lines, or ur: '(status,a,b,c)' "
+                        "for URScript's socket_read_ascii_float(4) (default plain)")
+    p.add_argument("--collect-dir", metavar="DIR", default=None,
+                   help="folder of the collection journal, verification histories and belt sessions "
+                        "(default DATA/collect)")
+    p.add_argument("--conveyor", metavar="FILE", default=None,
+                   help="conveyor calibration (eyetohand conveyor calibrate -o FILE) served by 'BELT …' "
+                        "lines on --tcp (docs/conveyor.md)")
     p.add_argument("--db-wait", type=float, default=2.0, metavar="S",
                    help="how long a write waits for another writer's database lock before answering "
                         "503 with Retry-After (default 2 s)")

@@ -22,7 +22,7 @@ from .. import __version__
 from .core import Jobs
 from .middleware import BodyLimit, HostGuard, TokenGuard
 from .responses import install_handlers
-from .routes import calibrations, jobs, mapping, meta, page, pairs
+from .routes import calibrations, collect, jobs, mapping, meta, page, pairs
 from .routes.meta import PAPER_PRESET
 from .schemas import (
     MAX_BODY_BYTES,
@@ -93,7 +93,7 @@ def create_app(
     app.state.store = service.store  # kept for callers that close the store themselves
     app.state.jobs = service.jobs
     install_handlers(app)
-    for r in (page, meta, pairs, calibrations, mapping, jobs):
+    for r in (page, meta, pairs, calibrations, mapping, jobs, collect):
         app.include_router(r.router)
     page.mount_static(app)
 

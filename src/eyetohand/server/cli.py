@@ -6,7 +6,9 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import socket
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from ..errors import InputError
 
@@ -44,14 +46,70 @@ def check_options(args) -> None:
             f"--host {args.host}: serving beyond this machine needs --token T "
             "(or EYETOHAND_TOKEN); refusing to start without one"
         )
+    camera = getattr(args, "camera", None)
+    conveyor = getattr(args, "conveyor", None)
     if args.tcp:
         host, _ = parse_hostport(args.tcp)
         if not is_loopback(host) and not args.token:
             raise ServeError(f"--tcp {args.tcp}: a non-loopback address needs --token T; refusing to start")
-        if not args.calibration:
-            raise ServeError("--tcp needs --calibration NAME (the stored calibration to serve)")
-    elif args.calibration:
-        raise ServeError("--calibration is for the TCP service: give --tcp HOST:PORT too")
+        if not (args.calibration or camera or conveyor):
+            raise ServeError("--tcp needs --calibration NAME (the stored calibration to serve), "
+                             "--camera URI (collect one) or --conveyor FILE")
+    else:
+        for flag, given in (("--calibration", args.calibration), ("--camera", camera),
+                            ("--conveyor", conveyor),
+                            ("--collect-dir", getattr(args, "collect_dir", None))):
+            if given:
+                raise ServeError(f"{flag} is for the TCP service: give --tcp HOST:PORT too")
+    if getattr(args, "reply_format", "plain") != "plain" and not camera:
+        raise ServeError("--reply-format is for the collection's CAL replies: give --camera URI too")
+
+
+class _NoCalibration:
+    """Stands in for the served calibration before one exists: every mapping line is one ERR."""
+
+    def __init__(self, name: str | None):
+        self.name = name
+
+    def map(self, *a, **k):
+        what = f"'{self.name}' has none yet" if self.name else "none is served"
+        raise InputError(f"no calibration to map with: {what}; collect one (CAL BEGIN ... CAL END) "
+                         "or start serve with --calibration NAME")
+
+
+def store_save_fn(store, on_saved=None):
+    """``save_fn(name, cal)`` for the Collector: a new version of calibration ``name`` in the
+    server's database (a new calibration when the name is new); ``on_saved(record, cal)`` after."""
+
+    def save(name: str, cal) -> None:
+        request = {"source": "collection", "collection": name, "model": cal.model_name, "seed": 0}
+        pairs = cal.pairs.to_records() if cal.pairs is not None else []
+        check = cal.check_pairs.to_records() if cal.check_pairs is not None else None
+        rec = store.by_name(name)
+        if rec is None:
+            rec = store.create(name, request, cal.to_dict(), pairs, check,
+                               note=f"collected ({len(pairs)} points)")
+        else:
+            rec = store.add_version(rec.id, request, cal.to_dict(), pairs, check,
+                                    note=f"collected ({len(pairs)} points)")
+        if on_saved is not None:
+            on_saved(rec, cal)
+
+    return save
+
+
+def store_load_fn(store):
+    """``load_fn(name) -> Calibration | None`` for the Collector: the current stored version."""
+    from ..calibration import Calibration
+
+    def load(name: str):
+        rec = store.by_name(name)
+        if rec is None:
+            return None
+        ver = store.version(rec.id)
+        return Calibration.from_dict(ver.calibration, f"calibration {rec.name!r} version {ver.version}")
+
+    return load
 
 
 async def _serve(args, data_dir) -> None:
@@ -63,35 +121,89 @@ async def _serve(args, data_dir) -> None:
 
     http_sock = bind_http(args.host, args.port)
     line_server = None
+    collector = source = belt = app = None
+    data_dir = Path(data_dir)
+    camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
+    store = None
     if args.tcp:
         host, port = parse_hostport(args.tcp)
-        if not (Path(data_dir) / DB_NAME).is_file():  # a look-up must not create an empty database
+        # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
+        if args.calibration and not camera and not (Path(data_dir) / DB_NAME).is_file():
             http_sock.close()
             raise ServeError(f"--calibration: {args.calibration!r} not found: no calibrations are stored in "
                              f"{data_dir} yet (no {DB_NAME}); save one in the workbench first")
         store = Store(data_dir, wait_s=args.db_wait)
+        cal: Any = _NoCalibration(args.calibration)
+        rec = ver = None
         try:
-            rec = store.find(args.calibration)
-            ver = store.version(rec.id)
+            if args.calibration:
+                try:
+                    rec = store.find(args.calibration)
+                    ver = store.version(rec.id)
+                except NotFound:
+                    if not camera:  # with a camera, CAL BEGIN <name> … CAL END creates it
+                        raise
         except (NotFound, Ambiguous, StorageError) as exc:
             http_sock.close()
-            raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
-        finally:
             store.close()
+            raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
         from ..calibration import Calibration
 
-        cal = Calibration.from_dict(ver.calibration, f"calibration {rec.name!r}")
-        line_server = LineServer(cal, host, port, token=args.token)
+        if ver is not None and rec is not None:
+            cal = Calibration.from_dict(ver.calibration, f"calibration {rec.name!r}")
+        commands: dict[str, Callable[[str], str]] = {}
+        try:
+            if camera:
+                from ..collect import Collector
+                from ..sources import open_source
+
+                source = open_source(camera)
+
+                def on_saved(saved_rec, new_cal) -> None:
+                    # the collected calibration is what the mapping lines use from now on
+                    if line_server is not None and saved_rec.name == (args.calibration or saved_rec.name):
+                        line_server.cal = new_cal
+                    if app is not None:  # the workbench's cache of current versions
+                        app.state.service.invalidate(saved_rec.id)
+
+                collect_dir = args.collect_dir or (data_dir / "collect")
+                collector = Collector(collect_dir, source, save_fn=store_save_fn(store, on_saved),
+                                      load_fn=store_load_fn(store), calibration=args.calibration,
+                                      reply_format=args.reply_format)
+                commands["CAL"] = collector.handle
+            if conveyor:
+                from ..belt_protocol import BeltProtocol
+
+                belt = BeltProtocol(conveyor, source=source,
+                                    store_dir=args.collect_dir or (data_dir / "collect"))
+                commands["BELT"] = belt.handle
+        except InputError as exc:
+            http_sock.close()
+            store.close()
+            raise ServeError(str(exc).splitlines()[0]) from None
+        line_server = LineServer(cal, host, port, token=args.token, commands=commands)
         try:
             await line_server.start()
         except OSError as exc:
             http_sock.close()
             raise ServeError(f"--tcp {args.tcp}: cannot listen there ({exc.strerror or exc})") from None
-        print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with calibration {rec.name!r} "
-              f"(id {rec.id}, version {ver.version}, model {cal.model_name})", flush=True)
+        if ver is not None and rec is not None:
+            print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with calibration {rec.name!r} "
+                  f"(id {rec.id}, version {ver.version}, model {cal.model_name})", flush=True)
+        else:
+            print(f"TCP: {host}:{line_server.port} (no calibration to map with yet)", flush=True)
+        if collector is not None:
+            print(f"TCP: 'CAL …' lines collect with camera {camera} (journal {collector.journal.path}, "
+                  f"replies {args.reply_format})", flush=True)
+        if belt is not None:
+            print(f"TCP: 'BELT …' lines map with conveyor {conveyor}", flush=True)
 
     app = create_app(data_dir, token=args.token, db_wait_s=args.db_wait,
                      allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None)
+    if collector is not None:
+        from .routes.collect import CameraView
+
+        app.state.collect = CameraView(collector, source)
     port = http_sock.getsockname()[1]
     print(f"workbench: http://{args.host}:{port}/  (API docs: /docs; data: {data_dir})", flush=True)
     config = uvicorn.Config(app, log_level=args.log_level, timeout_graceful_shutdown=5)
@@ -101,6 +213,12 @@ async def _serve(args, data_dir) -> None:
     finally:
         if line_server is not None:
             line_server.close()
+        if collector is not None:
+            collector.close()
+        if source is not None:
+            source.close()
+        if store is not None:
+            store.close()
 
 
 def bind_http(host: str, port: int) -> socket.socket:

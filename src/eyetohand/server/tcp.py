@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import hmac
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -98,8 +99,11 @@ class LineServer:
 
     def __init__(self, cal: Calibration, host: str, port: int, *, max_clients: int = MAX_CLIENTS,
                  idle_s: float = IDLE_S, token: str | None = None, max_per_peer: int = MAX_PER_PEER,
-                 auth_s: float = AUTH_S):
+                 auth_s: float = AUTH_S, commands: dict[str, Callable[[str], str]] | None = None):
         self.cal = cal
+        # first word (upper case) -> handler(line) -> reply without line end, run off the event loop
+        # (a command may grab and detect for a second); e.g. {"CAL": collector.handle}
+        self.commands = {k.upper(): f for k, f in (commands or {}).items()}
         self.max_per_peer = max_per_peer
         self.auth_s = auth_s
         self.per_peer: dict[str, int] = {}
@@ -151,7 +155,12 @@ class LineServer:
                 except TimeoutError:
                     writer.write(f"ERR idle for {self.idle_s:g} s; closing\n".encode())
                     break
-                writer.write(answer(self.cal, line[:-1]))
+                word = line.split(None, 1)[0].upper().decode("ascii", "replace") if line.strip() else ""
+                if word in self.commands:
+                    reply = await asyncio.to_thread(self.commands[word], line[:-1].decode("ascii", "replace"))
+                    writer.write(reply.encode("ascii", "replace") + b"\n")
+                else:
+                    writer.write(answer(self.cal, line[:-1]))
                 await writer.drain()
         except (ConnectionError, asyncio.CancelledError):
             pass

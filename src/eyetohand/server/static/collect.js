@@ -1,0 +1,118 @@
+// The collection view: polls /api/collect/status and reloads /api/camera/frame.png every second.
+"use strict";
+const $ = (s) => document.querySelector(s);
+const f4 = (x) => (x === null || x === undefined ? "" : Number(x).toFixed(4));
+let frameUrl = null;
+
+function headers() {
+  const h = {};
+  const tok = $("#token").value;
+  if (tok) h["Authorization"] = "Bearer " + tok;
+  return h;
+}
+
+async function api(path, opts = {}) {
+  const resp = await fetch(path, { ...opts, headers: headers() });
+  if (resp.status === 401) $("#token-box").hidden = false;
+  return resp;
+}
+
+function showError(msg) {
+  const e = $("#global-err");
+  e.textContent = msg || "";
+  e.hidden = !msg;
+}
+
+async function refreshFrame() {
+  try {
+    const resp = await api("/api/camera/frame.png");
+    if (!resp.ok) { showError((await resp.json()).error); return; }
+    const blob = await resp.blob();
+    const url = URL.createObjectURL(blob);
+    const img = $("#frame");
+    img.onload = () => { if (frameUrl) URL.revokeObjectURL(frameUrl); frameUrl = url; };
+    img.src = url;
+    img.dataset.frame = resp.headers.get("X-Frame") || "";
+    $("#frame-count").textContent = "frame " + img.dataset.frame + " · " + (resp.headers.get("X-Frame-Source") || "");
+  } catch (err) { $("#server-status").textContent = "server unreachable"; }
+}
+
+function renderStatus(st) {
+  $("#server-status").textContent = "connected";
+  $("#c-name").textContent = st.name || "–";
+  $("#c-state").textContent = st.state;
+  $("#camera").textContent = st.camera || "";
+  const done = st.poses.filter((p) => p.done).length;
+  $("#plan-count").textContent = st.poses.length ? `${done} of ${st.poses.length} poses done` : "no plan";
+  const poses = $("#poses");
+  poses.replaceChildren(...st.poses.map((p) => {
+    const s = document.createElement("span");
+    s.className = "pose" + (p.done ? " done" : p.failed ? " failed" : "");
+    s.title = `pose ${p.index + 1}: ${p.xyz_mm.map(f4).join(", ")} mm` + (p.done ? " (done)" : p.failed ? " (failed)" : "");
+    return s;
+  }));
+  const active = st.points.filter((p) => !p.dropped).length;
+  $("#points-count").textContent = `${active} in the fit` + (active < st.points.length ? `, ${st.points.length - active} dropped` : "");
+  const body = $("#points tbody");
+  body.replaceChildren(...st.points.map((p) => {
+    const tr = document.createElement("tr");
+    tr.className = p.dropped ? "dropped" : "";
+    tr.dataset.n = p.n;
+    const d = p.detection || {};
+    for (const v of [p.n, f4(p.xyz_mm[0]), f4(p.xyz_mm[1]), f4(p.xyz_mm[2]), f4(p.u), f4(p.v),
+      d.diameter_px === undefined ? "" : Number(d.diameter_px).toFixed(2),
+      d.score === undefined ? "" : Number(d.score).toFixed(2),
+      d.rms_px === undefined || d.rms_px === null ? "" : Number(d.rms_px).toFixed(3),
+      Number(p.still_shift_px).toFixed(3)]) {
+      const td = document.createElement("td");
+      td.textContent = v;
+      tr.appendChild(td);
+    }
+    const td = document.createElement("td");
+    td.className = "act";
+    const b = document.createElement("button");
+    b.type = "button";
+    b.textContent = p.dropped ? "Keep" : "Drop";
+    b.className = p.dropped ? "keep" : "drop";
+    b.disabled = st.state !== "collecting";
+    b.addEventListener("click", () => setDropped(p.n, !p.dropped));
+    td.appendChild(b);
+    tr.appendChild(td);
+    return tr;
+  }));
+  const r = st.result;
+  $("#fit").textContent = r ? `${r.model}: ${r.n} points, leave-one-out rms ${f4(r.loo_rms_mm)} mm, max ${f4(r.loo_max_mm)} mm (${r.utc})`
+    : "no fit yet (CAL END)";
+  $("#fit").className = r ? "" : "muted";
+  $("#check-count").textContent = st.checks.length ? String(st.checks.length) : "";
+  $("#checks").textContent = st.checks.length
+    ? st.checks.slice(-5).map((c) => `${c.utc}: error ${f4(c.error_mm)} mm (dx ${f4(c.dx_mm)}, dy ${f4(c.dy_mm)})`).join(" · ")
+    : "none";
+}
+
+async function refreshStatus() {
+  try {
+    const resp = await api("/api/collect/status");
+    const data = await resp.json();
+    if (!resp.ok) { showError(data.error); return; }
+    showError("");
+    renderStatus(data);
+  } catch (err) { $("#server-status").textContent = "server unreachable"; }
+}
+
+async function setDropped(n, drop) {
+  const resp = await api(`/api/collect/points/${n}/${drop ? "drop" : "keep"}`, { method: "POST" });
+  if (!resp.ok) showError((await resp.json()).error);
+  refreshStatus();
+}
+
+// The token (when the server asks for one) is kept in this page only, never stored.
+$("#token").addEventListener("change", () => { refreshStatus(); refreshFrame(); });
+let busy = false;
+async function tick() {
+  if (busy) return;
+  busy = true;
+  try { await Promise.all([refreshFrame(), refreshStatus()]); } finally { busy = false; }
+}
+tick();
+setInterval(tick, 1000);

@@ -1,0 +1,224 @@
+"""The conveyor's line protocol (BELT …): a belt collected through the camera and the robot's touches,
+then parts mapped to where they are at another count, with the window and image-region guards.
+
+The camera is the virtual cell's (quarter resolution, 640×512, no robot errors: the "robot target" it
+renders is the part on the belt); the belt runs 3° off robot x, 0.3° uphill, 0.01 mm per count, and
+its 24-bit counter rolls over during the session. Parts are sighted under the camera and touched twice
+about 1 m downstream, as a robot in its window would.
+"""
+
+import math
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eyetohand.belt_protocol import BeltProtocol
+from eyetohand.conveyor import ConveyorCalibration, Encoder
+from eyetohand.detect import detect_target
+from eyetohand.sources import open_source
+
+ROOT = Path(__file__).resolve().parents[1]
+CELL = """[camera]
+width_px = 640
+height_px = 512
+pixel_size_um = 13.8
+
+[robot]
+repeatability_mm = 0.0
+"""
+Z = 150.0
+YAW, PITCH, MM_PER_COUNT = 3.0, 0.3, 0.01
+B = MM_PER_COUNT * np.array([math.cos(math.radians(PITCH)) * math.cos(math.radians(YAW)),
+                             math.cos(math.radians(PITCH)) * math.sin(math.radians(YAW)),
+                             math.sin(math.radians(PITCH))])
+ENC = Encoder(width_bits=24)
+E0 = 2**24 - 60_000  # rolls over ~600 mm into the session
+TRAVEL = (100_000, 108_000)  # counts between a sighting and its two touches (1.00 m, 1.08 m)
+
+
+def wrap(e: int) -> int:
+    return int(e) % 2**24
+
+
+@pytest.fixture(scope="module")
+def cell_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("belt_cell") / "cell.toml"
+    path.write_text(CELL)
+    return path
+
+
+@pytest.fixture(scope="module")
+def source(cell_file):
+    return open_source(f"sim:{cell_file}?seed=2")
+
+
+@pytest.fixture(scope="module")
+def view(source):
+    """(centre x, y, half size) mm of a square well inside the camera's view at Z."""
+    cam = source.cell_camera.camera
+    w, h = cam.image_size
+    c = cam.image_to_robot(np.array([[(w - 1) / 2, (h - 1) / 2]]), Z)[0]
+    best = 0.0
+    for s in np.arange(5.0, 100.0, 1.0):
+        corners = np.array([[c[0] + a * s, c[1] + b * s, Z] for a in (-1, 1) for b in (-1, 1)])
+        uv = cam.robot_to_image(corners)
+        if ((uv >= 40) & (uv <= [w - 41, h - 41])).all():
+            best = s
+    return c[0], c[1], best
+
+
+def events(parts: np.ndarray):
+    """Sightings at 20 mm spacing, two touches of each part downstream; in count order."""
+    ev = []
+    for k, p in enumerate(parts):
+        e = E0 + 2000 * k
+        ev.append((e, "sight", k, p))
+        for d in TRAVEL:
+            ev.append((e + d + 37 * k, "touch", k, p + B * (d + 37 * k)))
+    return sorted(ev, key=lambda t: t[0])
+
+
+@pytest.fixture(scope="module")
+def collected(tmp_path_factory, source, view):
+    store = tmp_path_factory.mktemp("belt_store")
+    rng = np.random.default_rng(4)
+    cx, cy, s = view
+    parts = np.column_stack([cx + rng.uniform(-s, s, 18), cy + rng.uniform(-s, s, 18), np.full(18, Z)])
+    belt = BeltProtocol(None, source=source, store_dir=store)
+    assert belt.handle("BELT BEGIN line1") == "OK"
+    replies = []
+    for e, kind, k, p in events(parts):
+        if kind == "sight":
+            source.set_robot_pose(*p)  # the part passes under the camera
+            replies.append(belt.handle(f"BELT SIGHT p{k},{wrap(e)}"))
+        else:
+            replies.append(belt.handle("BELT TOUCH p{},{:.4f},{:.4f},{:.4f},{}".format(k, *p, wrap(e))))
+    assert all(r.startswith("OK") for r in replies), [r for r in replies if not r.startswith("OK")]
+    status = belt.handle("BELT STATUS")
+    end = belt.handle("BELT END")
+    yield {"belt": belt, "store": store, "end": end, "status": status, "parts": parts}
+    belt.close()
+
+
+def test_collected_belt_recovers_the_belt(collected):
+    assert collected["status"] == "OK line1,18,36,collecting"
+    end = collected["end"]
+    assert end.startswith("OK 18,36,"), end
+    n_parts, n_touch, mmpc, yaw, pitch, rms = end[3:].split(",")
+    print(f"belt fitted: {float(mmpc):.8f} mm/count (truth {MM_PER_COUNT}), yaw {float(yaw):.5f} deg "
+          f"(truth {YAW}), pitch {float(pitch):.5f} deg (truth {PITCH}), rms {float(rms):.4f} mm")
+    assert abs(float(mmpc) / MM_PER_COUNT - 1) < 1e-4
+    assert abs(float(yaw) - YAW) < 0.01 and abs(float(pitch) - PITCH) < 0.01
+    assert float(rms) < 0.05
+    saved = ConveyorCalibration.load(collected["store"] / "line1.conveyor.json")
+    np.testing.assert_allclose(saved.belt.vector_mm_per_count, B, rtol=1e-4, atol=1e-8)
+    assert collected["belt"].handle("BELT STATUS") == "OK line1,18,36,calibrated"
+
+
+def test_belt_maps_a_new_part_downstream_and_refuses_outside(collected, source, view):
+    belt = collected["belt"]  # serves the conveyor it fitted
+    cx, cy, s = view
+    p = np.array([cx + 0.3 * s, cy - 0.2 * s, Z])
+    source.set_robot_pose(*p)
+    d = detect_target(source.grab()[0])
+    e_img = 2**24 - 5_000  # the pick happens after the counter rolled over
+    e_now = wrap(e_img + 104_000)
+    reply = belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now}")
+    assert reply.startswith("OK "), reply
+    got = np.array([float(v) for v in reply[3:].split(",")])
+    err = np.linalg.norm(got - (p + B * 104_000))
+    print(f"pick 1.04 m downstream: error {err:.4f} mm")
+    assert err < 0.05
+    # with the part's image angle: rz as well (the belt does not turn it)
+    with_a = belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30")
+    assert with_a.startswith(reply + ",") and len(with_a[3:].split(",")) == 4
+    # the tracking form: position at the image's count and the belt vector
+    track = belt.handle(f"BELT TRACK {d.u!r},{d.v!r},{e_img}")
+    vals = np.array([float(v) for v in track[3:].split(",")])
+    assert np.linalg.norm(vals[:3] - p) < 0.05
+    np.testing.assert_allclose(vals[3:], B, rtol=1e-3, atol=1e-7)
+    # guards: beyond the window's far end, before it, outside the calibrated image region
+    far = belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{wrap(e_img + 150_000)}")
+    assert far.startswith("ERR the part is ") and "downstream of the robot window's far end" in far, far
+    gone = float(far.split("the part is ")[1].split(" mm")[0])
+    assert 300 < gone < 500  # 1.5 m travel vs a window ending near 1.1 m
+    near = belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{wrap(e_img + 20_000)}")
+    assert near.startswith("ERR the part is ") and "upstream of the robot window" in near, near
+    outside = belt.handle(f"BELT 2,2,{e_img},{e_now}")
+    assert outside.startswith("ERR ") and "outside" in outside, outside
+    assert belt.handle("BELT TRACK 2,2,5").startswith("ERR ")
+
+
+def test_belt_refusals_one_err_each(tmp_path, source, collected):
+    belt = collected["belt"]
+    for bad, why in (("BELT", "no fields"), ("BELT 1,2,3", "3 numbers"), ("BELT 1,2,3.5,4", "whole number"),
+                     (f"BELT 1,2,{2**24},4", "e_image"), ("BELT 1,2,3,4,b=3", "unknown word"),
+                     ("BELT 1,x,3,4", "not a number"), ("BELT TRACK 1,2", "2 fields"),
+                     ("BELT END 3", "takes no fields"), ("BELTS", "unknown command")):
+        reply = belt.handle(bad)
+        assert reply.startswith("ERR ") and why in reply, (bad, reply)
+    nothing = BeltProtocol(None, source=source, store_dir=tmp_path)
+    assert nothing.handle("BELT 1,2,3,4").startswith("ERR no conveyor calibration")
+    assert nothing.handle("BELT SIGHT p1,10").startswith("ERR no belt session open")
+    assert nothing.handle("BELT BEGIN b1") == "OK"
+    assert nothing.handle("BELT BEGIN b2").startswith("ERR busy: belt session 'b1'")
+    assert nothing.handle("BELT BEGIN b1") == "OK"  # the same BEGIN resumes
+    source.set_robot_pose(*collected["parts"][0])
+    assert nothing.handle("BELT SIGHT p1,1000").startswith("OK ")
+    assert nothing.handle("BELT SIGHT p1,1100").startswith("ERR BELT SIGHT: part 'p1' was sighted already")
+    assert nothing.handle("BELT SIGHT p2").startswith("ERR BELT SIGHT: no count given")
+    assert nothing.handle("BELT TOUCH p1,1,2,3,900").startswith("ERR BELT TOUCH: count 900 is 100 counts")
+    assert nothing.handle("BELT TOUCH p1,1,2,3,998") == "OK 1"  # back by 2: within the noise allowance
+    assert nothing.handle("BELT END").startswith("ERR fit failed: ")
+    assert nothing.handle("BELT STATUS") == "OK b1,1,1,collecting"  # the session stays open
+    nothing.close()
+    again = BeltProtocol(None, source=source, store_dir=tmp_path)  # a restart replays the journal
+    assert again.handle("BELT STATUS") == "OK b1,1,1,collecting"
+    assert again.handle("BELT ABORT") == "OK" and again.handle("BELT STATUS") == "OK b1,1,1,aborted"
+    again.close()
+
+
+def test_serve_conveyor_answers_belt_lines(tmp_path, collected):
+    """`eyetohand serve --tcp … --conveyor belt.json`: BELT lines through the real server process give
+    what the protocol gives in-process."""
+    conv = collected["store"] / "line1.conveyor.json"
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        tcp_port = s.getsockname()[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "eyetohand.cli", "serve", "--port", "0", "--data", str(tmp_path / "data"),
+         "--tcp", f"127.0.0.1:{tcp_port}", "--conveyor", str(conv), "--log-level", "warning"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        lines = [f"BELT 320.5,250.25,{2**24 - 100},{100_000}", "BELT TRACK 320.5,250.25,7",
+                 f"BELT 320.5,250.25,0,{200_000}", "600,400"]
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                sock = socket.create_connection(("127.0.0.1", tcp_port), timeout=10)
+                break
+            except OSError:
+                assert proc.poll() is None, proc.stdout.read()
+                assert time.monotonic() < deadline, "serve did not start"
+                time.sleep(0.1)
+        with sock:
+            f = sock.makefile("rwb")
+            got = []
+            for line in lines:
+                f.write((line + "\r\n").encode())
+                f.flush()
+                got.append(f.readline().decode().rstrip("\n"))
+    finally:
+        proc.terminate()
+        proc.wait(20)
+    local = BeltProtocol(conv)
+    assert got[:3] == [local.handle(x) for x in lines[:3]]
+    assert got[0].startswith("OK ") and got[1].startswith("OK ") and got[2].startswith("ERR the part is ")
+    assert got[3].startswith("ERR no calibration to map with")

@@ -1,0 +1,165 @@
+"""The workbench's collection view in a real browser (Playwright + Debian's Chromium, headless).
+
+The real server process runs with the virtual cell as its camera (`serve --tcp … --camera sim:…`); the
+virtual robot (examples/robots/robot_client.py) runs a 3×3 plan over TCP while the page is open. The
+page must show the live image refreshing, the plan's poses turning done, the recorded points with
+their detections, a point dropped from the page (and re-collected: CAL NEXT offers its pose again),
+and the fit after CAL END. It fails — never skips — when Chromium is missing.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import re
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "examples" / "robots"))
+from robot_client import TcpLink, VirtualRobot  # noqa: E402
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+CELL = """[camera]
+width_px = 640
+height_px = 512
+pixel_size_um = 13.8
+"""
+Z = 150.0
+
+
+@pytest.fixture
+def serve(tmp_path):
+    cell = tmp_path / "cell.toml"
+    cell.write_text(CELL)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "eyetohand.cli", "serve", "--port", "0", "--data", str(tmp_path / "data"),
+         "--tcp", "127.0.0.1:0", "--camera", f"sim:{cell}?seed=1", "--calibration", "bench",
+         "--log-level", "warning"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    lines: queue.Queue = queue.Queue()
+    out: list[str] = []
+
+    def pump():
+        for line in proc.stdout:
+            out.append(line)
+            lines.put(line)
+        lines.put(None)
+
+    threading.Thread(target=pump, daemon=True).start()
+    tcp = http = None
+    deadline = time.monotonic() + 30
+    while http is None:
+        line = lines.get(timeout=max(0.01, deadline - time.monotonic()))
+        assert line is not None, "serve exited: " + "".join(out)
+        if line.startswith("TCP: 127.0.0.1:") and tcp is None:
+            tcp = int(line.split(":")[2].split()[0])
+        if line.startswith("workbench: http://"):
+            http = int(line.split("http://127.0.0.1:")[1].split("/")[0])
+    from eyetohand.sim.cell import load_cell
+    from eyetohand.sim.simulate import true_camera
+
+    cam = true_camera(load_cell(cell))
+    w, h = cam.image_size
+    c = cam.image_to_robot(np.array([[(w - 1) / 2, (h - 1) / 2]]), Z)[0]
+    rect = (c[0] - 25, c[1] - 25, c[0] + 25, c[1] + 25)
+    yield {"url": f"http://127.0.0.1:{http}", "tcp": tcp, "rect": rect}
+    proc.terminate()
+    proc.wait(20)
+
+
+@pytest.fixture
+def page():
+    if not Path(CHROMIUM).exists():
+        pytest.fail("Chromium is not installed: run `apt-get install -y chromium` (make test does)")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+        pg = browser.new_page(viewport={"width": 1300, "height": 1000})
+        problems: list[str] = []
+        pg.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+        pg.on("console", lambda m: problems.append(f"console: {m.text}") if m.type == "error" else None)
+        pg.problems = problems
+        yield pg
+        browser.close()
+
+
+def frame_number(page) -> int:
+    v = page.locator("#frame").get_attribute("data-frame") or "0"
+    return int(v or 0)
+
+
+def test_collection_view_follows_the_robot(serve, page, tmp_path):
+    from playwright.sync_api import expect
+
+    url, rect = serve["url"], serve["rect"]
+    page.goto(url + "/")
+    page.click("a[href='/collect']")  # the one link from the workbench
+    expect(page).to_have_url(re.compile(r"/collect$"))
+    expect(page.locator("#c-state")).to_have_text("none")
+    # the live image refreshes at least every second (before any robot pose: a message image)
+    expect(page.locator("#frame")).to_have_attribute("data-frame", re.compile(r"\d+"), timeout=10_000)
+    first = frame_number(page)
+    page.wait_for_timeout(2500)
+    assert frame_number(page) >= first + 2
+
+    link = TcpLink("127.0.0.1", serve["tcp"], timeout_s=60)
+    robot = VirtualRobot(link.send)
+    out = robot.run_plan("bench", "grid:3x3", rect, Z, stop_after=4, end=False)
+    assert len(out["points"]) == 4
+    expect(page.locator("#c-state")).to_have_text("collecting")
+    expect(page.locator("#points tbody tr")).to_have_count(4)
+    expect(page.locator("#plan-count")).to_have_text("4 of 9 poses done")
+    # the live image now shows the target at the robot's last pose, detected (sim: a fresh grab)
+    png = httpx.get(url + "/api/camera/frame.png", timeout=30)
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert png.headers["x-frame-source"] == "live"
+    n0 = frame_number(page)
+    page.wait_for_timeout(2500)
+    assert frame_number(page) >= n0 + 2
+    (tmp_path / "collect-live.png").write_bytes(page.locator("#frame").screenshot())
+
+    # drop point 2 from the page: left out of the fit, its pose offered again by CAL NEXT
+    row2 = page.locator("#points tbody tr[data-n='2']")
+    row2.locator("button.drop").click()
+    expect(row2).to_have_class("dropped")
+    expect(page.locator("#points-count")).to_have_text("3 in the fit, 1 dropped")
+    st = httpx.get(url + "/api/collect/status").json()
+    assert [p["dropped"] for p in st["points"]] == [False, True, False, False]
+    assert httpx.post(url + "/api/collect/points/99/drop").status_code == 404
+
+    out = robot.run_plan("bench", "grid:3x3", rect, Z)  # the robot program again: resumes
+    link.close()
+    assert len(out["points"]) == 6 and out["errors"] == []  # 5 left + the dropped pose again
+    assert out["end"].startswith("OK ") and out["end"].split(",")[1] == "9"
+    expect(page.locator("#c-state")).to_have_text("calibrated", timeout=10_000)
+    expect(page.locator("#points tbody tr")).to_have_count(10)
+    expect(page.locator("#plan-count")).to_have_text("9 of 9 poses done")
+    expect(page.locator("#fit")).to_contain_text("9 points, leave-one-out rms")
+    # each recorded point shows its detection
+    cells = page.locator("#points tbody tr[data-n='1'] td").all_inner_texts()
+    assert float(cells[6]) > 5 and 0 < float(cells[7]) and re.match(r"^\d+\.\d{4}$", cells[4])
+    # the stored calibration is a version in the server's database
+    cals = httpx.get(url + "/api/calibrations").json()
+    assert [c["name"] for c in cals] == ["bench"] and cals[0]["current_version"] == 1
+
+    shot = tmp_path / "collect.png"
+    page.screenshot(path=str(shot), full_page=True)
+    assert shot.stat().st_size > 20_000
+    out_dir = ROOT / "out"
+    if out_dir.is_dir():
+        shutil.copy(shot, out_dir / "collect.png")
+        shutil.copy(tmp_path / "collect-live.png", out_dir / "collect-live.png")
+    assert not page.problems, page.problems
