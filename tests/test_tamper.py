@@ -177,7 +177,7 @@ def _interfaces(path: Path, pairs_csv: Path, tmp: Path):
         ["apply", str(path), "--uv", "1200", "1000", "--json"],
         ["evaluate", str(path), str(pairs_csv)],
         ["report", str(path), "-o", str(tmp / "rep")],
-        # ["verify", str(path), str(pairs_csv), "--tolerance", "1"],
+        ["verify", str(path), str(pairs_csv), "--tolerance", "1"],
     ]
 
 
