@@ -40,8 +40,10 @@ def register(sub) -> None:
                         "default $EYETOHAND_TOKEN")
     p.add_argument("--tcp", metavar="HOST:PORT", default=None,
                    help="also answer 'u,v[,z]' lines with 'x,y,z' on this TCP address")
-    p.add_argument("--calibration", metavar="NAME", default=None,
-                   help="stored calibration (name or id) the TCP service uses (its current version)")
+    p.add_argument("--calibration", metavar="REF", default=None,
+                   help="what the TCP service maps with: a stored calibration's name (or name:NAME), "
+                        "id:N (followed: its current version, within 1 s), or a calibration file "
+                        "(FILE.json, a path, or file:PATH; proved intact before anything binds)")
     p.add_argument("--db-wait", type=float, default=2.0, metavar="S",
                    help="how long a write waits for another writer's database lock before answering "
                         "503 with Retry-After (default 2 s)")

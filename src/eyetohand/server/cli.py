@@ -48,9 +48,37 @@ def check_options(args) -> None:
         if not is_loopback(host) and not args.token:
             raise ServeError(f"--tcp {args.tcp}: a non-loopback address needs --token T; refusing to start")
         if not args.calibration:
-            raise ServeError("--tcp needs --calibration NAME (the stored calibration to serve)")
+            raise ServeError("--tcp needs --calibration NAME, id:N or FILE.json (the calibration to serve)")
     elif args.calibration:
         raise ServeError("--calibration is for the TCP service: give --tcp HOST:PORT too")
+    args.calibration_file = None
+    if args.calibration:
+        path = calibration_path(args.calibration)
+        if path is not None:
+            from .tcp import FixedCalibration
+
+            try:
+                args.calibration_file = FixedCalibration.from_file(path)
+            except InputError as exc:
+                raise ServeError(f"--calibration: {exc}") from None
+
+
+def calibration_path(ref: str):
+    """The file a ``--calibration`` value names, or None for a stored calibration.
+
+    Unambiguous by its form: ``file:PATH``, or a value ending in ``.json`` or containing a path
+    separator, is a file; ``id:N`` is the stored calibration with id N; ``name:NAME`` (or any other
+    value) is a stored calibration's name (digits alone: the id, refused when another's name)."""
+    import os
+    from pathlib import Path
+
+    if ref.startswith("file:"):
+        return Path(ref[5:])
+    if ref.lower().startswith(("id:", "name:")):
+        return None
+    if ref.lower().endswith(".json") or "/" in ref or (os.sep != "/" and os.sep in ref):
+        return Path(ref)
+    return None
 
 
 async def _serve(args, data_dir) -> None:
@@ -58,32 +86,33 @@ async def _serve(args, data_dir) -> None:
 
     from .app import LOOPBACK_HOSTS, create_app
     from .storage import Ambiguous, NotFound, StorageError, Store
-    from .tcp import LineServer
+    from .tcp import LineServer, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     line_server = None
     if args.tcp:
         host, port = parse_hostport(args.tcp)
-        store = Store(data_dir, wait_s=args.db_wait)
-        try:
-            rec = store.find(args.calibration)
-            ver = store.version(rec.id)
-        except (NotFound, Ambiguous, StorageError) as exc:
-            http_sock.close()
-            raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
-        finally:
-            store.close()
-        from ..calibration import Calibration
-
-        cal = Calibration.from_dict(ver.calibration, f"calibration {rec.name!r}")
-        line_server = LineServer(cal, host, port, token=args.token)
+        source = getattr(args, "calibration_file", None)
+        if source is None:
+            store = Store(data_dir, wait_s=args.db_wait)
+            try:
+                rec = store.find(args.calibration)
+                source = StoredCalibration(store, rec.id)
+            except (NotFound, Ambiguous, StorageError, InputError) as exc:
+                store.close()
+                http_sock.close()
+                raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
+            what = (f"calibration {rec.name!r} (id {rec.id}, version {source.version}, followed: a new "
+                    "version or a rollback takes effect within a second)")
+        else:
+            what = f"the file {source.label} (sha256 {source.sha256[:12]}…)"
+        line_server = LineServer(source, host, port, token=args.token)
         try:
             await line_server.start()
         except OSError as exc:
             http_sock.close()
             raise ServeError(f"--tcp {args.tcp}: cannot listen there ({exc.strerror or exc})") from None
-        print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with calibration {rec.name!r} "
-              f"(id {rec.id}, version {ver.version}, model {cal.model_name})", flush=True)
+        print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with {what}", flush=True)
 
     app = create_app(data_dir, token=args.token, db_wait_s=args.db_wait,
                      allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None)
@@ -96,6 +125,9 @@ async def _serve(args, data_dir) -> None:
     finally:
         if line_server is not None:
             line_server.close()
+            store = getattr(line_server.source, "store", None)
+            if store is not None:
+                store.close()
 
 
 def bind_http(host: str, port: int) -> socket.socket:
