@@ -800,3 +800,149 @@ def test_guarded_mapping_over_http_and_tcp_says_the_same(client):
     assert out[-1] == "OUTSIDE" and abs(float(out[0]) - m.xyz_mm[1, 0]) <= 1e-9
     rz = float(tcp_answer(cal, b"600,900,a=30").decode().split(",")[3])
     assert rz == pytest.approx(m.rz_deg[0], abs=1e-12)
+
+
+# ---------------------------------------------------------------------- deployment (issue 11)
+
+
+def _cal_file(tmp_path, model="homography") -> Path:
+    from eyetohand import calibrate
+    from eyetohand.pairs import pairs_from_records
+
+    cal = calibrate(pairs_from_records(PAIRS), model, "lm", check=pairs_from_records(CHECK), loo=False)
+    return cal.save(tmp_path / f"{model}.json")
+
+
+def _serve_args(**kw):
+    import argparse
+
+    d = {"port": 0, "db_wait": 2.0, "token": None, "host": "127.0.0.1", "tcp": "127.0.0.1:0",
+         "calibration": None}
+    d.update(kw)
+    return argparse.Namespace(**d)
+
+
+def test_serve_calibration_option_file_id_or_name(tmp_path):
+    from eyetohand.server.cli import ServeError, calibration_path, check_options
+
+    f = _cal_file(tmp_path)
+    args = _serve_args(calibration=str(f))
+    check_options(args)
+    assert args.calibration_file.cal.model_name == "homography"
+    assert calibration_path("id:3") is None and calibration_path("name:a/b.json") is None
+    assert calibration_path("cell 3") is None and calibration_path("file:x") == Path("x")
+    bad = tmp_path / "bad.json"
+    bad.write_text(f.read_text().replace('"rms_mm": 0.', '"rms_mm": 1.', 1))
+    with pytest.raises(ServeError, match=r"^--calibration: .*bad\.json"):
+        check_options(_serve_args(calibration=str(bad)))
+    with pytest.raises(ServeError, match="no such file|not found|does not exist"):
+        check_options(_serve_args(calibration=str(tmp_path / "missing.json")))
+
+
+def test_tcp_by_path_maps_bit_identically_to_apply(tmp_path, capsys):
+    from eyetohand.cli import main
+    from eyetohand.server.tcp import FixedCalibration
+
+    f = _cal_file(tmp_path)
+    src = FixedCalibration.from_file(f)
+    assert main(["apply", str(f), "--uv", "600.25", "1200.5", "--json"]) == 0
+    p = json.loads(capsys.readouterr().out)["points"][0]
+
+    async def run():
+        srv = LineServer(src, "127.0.0.1", 0)
+        await srv.start()
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+            writer.write(b"600.25,1200.5\nVERSION\n")
+            await writer.drain()
+            a = (await reader.readline()).decode().strip()
+            b = (await reader.readline()).decode().strip()
+            writer.close()
+            return a, b
+        finally:
+            srv.close()
+
+    a, b = asyncio.run(run())
+    assert [float(x) for x in a.split(",")] == [p["x"], p["y"], p["z"]]
+    import hashlib
+
+    assert b == f"OK {f.resolve()},{hashlib.sha256(f.read_bytes()).hexdigest()}"
+
+
+def test_import_then_tcp_follows_versions_rollback_and_delete(tmp_path):
+    from eyetohand.server.tcp import StoredCalibration
+
+    data = tmp_path / "data"
+    f_h, f_a = _cal_file(tmp_path, "homography"), _cal_file(tmp_path, "affine")
+    with TestClient(create_app(data)) as c:
+        body = {"name": "cell", "calibration": json.loads(f_h.read_text())}
+        r = c.post("/api/calibrations/import", json=body)
+        assert r.status_code == 201, r.text
+        cid = r.json()["id"]
+        store = Store(data)
+        src = StoredCalibration(store, cid)
+
+        async def ask(srv, lines):
+            reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+            writer.write(b"".join(ln + b"\n" for ln in lines))
+            await writer.drain()
+            out = [(await reader.readline()).decode().strip() for _ in lines]
+            writer.close()
+            return out
+
+        async def run():
+            srv = LineServer(src, "127.0.0.1", 0, poll_s=0.1)
+            await srv.start()
+            try:
+                first = await ask(srv, [b"600,1200", b"VERSION"])
+                r = await asyncio.to_thread(c.post, "/api/calibrations/import",
+                                            json={"name": "cell", "calibration": json.loads(f_a.read_text())})
+                assert r.status_code == 200 and r.json()["version"] == 2, r.text
+                t0 = asyncio.get_running_loop().time()
+                while (await ask(srv, [b"VERSION"]))[0].split(",")[1] != "2":
+                    assert asyncio.get_running_loop().time() - t0 < 1.0, "new version not in force in 1 s"
+                    await asyncio.sleep(0.05)
+                second = await ask(srv, [b"600,1200"])
+                await asyncio.to_thread(c.post, f"/api/calibrations/{cid}/rollback", json={"version": 1})
+                await asyncio.sleep(0.6)
+                third = await ask(srv, [b"600,1200", b"VERSION"])
+                await asyncio.to_thread(c.delete, f"/api/calibrations/{cid}")
+                await asyncio.sleep(0.6)
+                gone = await ask(srv, [b"600,1200", b"VERSION"])
+                return first, second, third, gone
+            finally:
+                srv.close()
+
+        first, second, third, gone = asyncio.run(run())
+        store.close()
+    assert first[1].startswith("OK cell,1,") and second[0] != first[0]
+    assert third[0] == first[0] and third[1].startswith("OK cell,3,")
+    assert gone == ["ERR calibration 'cell' was deleted"] * 2
+
+
+def test_import_refuses_a_tampered_file_naming_why(client, tmp_path):
+    d = json.loads(_cal_file(tmp_path).read_text())
+    d["model"]["params"][0] *= 1.0001
+    r = client.post("/api/calibrations/import", json={"name": "x", "calibration": d})
+    assert r.status_code == 422 and "reproduce" in r.json()["error"], r.text
+    d = json.loads(_cal_file(tmp_path).read_text())
+    d["schema_version"] = 9
+    r = client.post("/api/calibrations/import", json={"name": "x", "calibration": d})
+    assert r.status_code == 422 and "newer" in r.json()["error"]
+    assert client.get("/api/calibrations").json() == []
+
+
+def test_verify_endpoint_and_history(client, tmp_path):
+    d = create(client, "cell", model="homography")
+    cid = d["id"]
+    fresh = PAIRS[::2]  # inside the calibrated region (the paper's check points lie partly outside)
+    shifted = [dict(p, x=p["x"] + 0.5) for p in fresh]
+    for pairs, tol in ((fresh, 1.0), (shifted, 0.3)):
+        r = client.post(f"/api/calibrations/{cid}/verify", json={"pairs": pairs, "tolerance_mm": tol})
+        assert r.status_code == 200, r.text
+    last = r.json()
+    assert not last["passed"] and last["drift"]["significant"] and "shift" in last["drift"]["named"]
+    h = client.get(f"/api/calibrations/{cid}/history").json()
+    assert [e["passed"] for e in h["entries"]] == [True, False] and h["entries"][1]["version"] == 1
+    assert client.post(f"/api/calibrations/{cid}/verify",
+                       json={"pairs": fresh[:2], "tolerance_mm": 1}).status_code == 422

@@ -224,7 +224,7 @@ class Calibration:
         return self.model.robot_to_image(xyz_mm)
 
     # ------------------------------------------------------------ persistence
-    def to_dict(self) -> dict:
+    def _content(self) -> dict:
         frame = None
         if self.region is not None:
             try:
@@ -261,12 +261,25 @@ class Calibration:
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n"
 
+    def to_dict(self) -> dict:
+        """The file's content (JSON-able), sealed by ``content_sha256`` (see :func:`content_sha256`)."""
+        d = self._content()
+        d["content_sha256"] = content_sha256(d)
+        return d
+
     def save(self, path: str | os.PathLike) -> Path:
         """Write the calibration as JSON, atomically (a failure leaves any earlier file intact)."""
         return atomic_write_text(path, self.to_json())
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "<dict>") -> Calibration:
+        """Rebuild a calibration from :meth:`to_dict` output, proving it intact (schema version 2):
+        every field typed and shaped as this version writes it, the training pairs hashing to
+        ``data_sha256``, the recorded statistics reproduced (1e-9 mm), and the derived fields — the
+        calibrated region, the uncertainty, the local frame — recomputed from the stored pairs and
+        compared (the recomputed ones are used). Anything else is refused with one line naming the
+        field (:class:`InputError`). Only free text (notes, warnings, created_utc,
+        eyetohand_version) and the model's diagnostics are not checked: they never change a mapping."""
         if not isinstance(d, dict) or d.get("schema") != SCHEMA:
             raise InputError(f"{source}: not an eyetohand calibration file (no schema {SCHEMA!r})")
         ver = d.get("schema_version")
@@ -281,54 +294,90 @@ class Calibration:
                 )
             )
         try:
+            _check_numbers(d, "")
             cal = _from_dict(cls, d, ver)
+            if ver >= 2:
+                cal = cal._proven(d)
         except InputError as exc:
             raise InputError(f"{source}: {exc}") from None
-        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as exc:
             what = (
                 f"field {exc.args[0]!r} missing"
                 if isinstance(exc, KeyError)
                 else f"{type(exc).__name__}: {exc}"
             )
             raise InputError(f"{source}: malformed calibration file ({what})") from None
-        if ver >= 2:
-            try:
-                cal.verify()
-            except InputError as exc:
-                raise InputError(f"{source}: {exc}") from None
         return cal
+
+    def _proven(self, d: dict) -> Calibration:
+        """``self`` (parsed from ``d``) with its region and uncertainty recomputed from its pairs,
+        after proving that ``d`` is what this calibration writes (see :meth:`from_dict`)."""
+        self.verify()
+        fitted = self.fitted_pairs
+        assert fitted is not None  # verify() refuses a file without pairs
+        region = derived_region(self.model, fitted)
+        _same(region.to_dict(), d.get("region", _MISSING), "region", _rel_tol(REPRODUCE_TOL_MM))
+        unc = Uncertainty.of_fit(self.model, fitted.uv_px, fitted.xyz_mm)
+        _same_uncertainty(unc, d.get("uncertainty", _MISSING), self.model, fitted, region)
+        out = _replace(self, region=region, uncertainty=unc)
+        want = out._content()
+        for key in FREE_FIELDS:
+            want.pop(key, None)
+        given = {k: v for k, v in d.items() if k not in FREE_FIELDS}
+        want["model"] = dict(want["model"], diagnostics=given.get("model", {}).get("diagnostics"))
+        want["uncertainty"] = given.get("uncertainty")  # compared above, with its own tolerance
+        want["region"] = given.get("region")  # compared above
+        local = want.pop("local_frame")
+        _same(local, given.pop("local_frame", _MISSING), "local_frame", _rel_tol(REPRODUCE_TOL_MM))
+        given.pop("content_sha256", None)
+        _same(want, given, "", _rel_tol(0.0))
+        sha = d.get("content_sha256", _MISSING)
+        if sha is _MISSING:
+            raise InputError("field 'content_sha256' missing: this file cannot prove its records intact")
+        if sha != content_sha256(d):
+            raise InputError(
+                "the file's content does not match content_sha256 (a record such as fit, loo, selection "
+                "or the model's diagnostics was changed after it was written)"
+            )
+        return out
 
     def verify(self) -> None:
         """Prove the calibration intact: the stored pairs hash to ``data_sha256`` and the model
-        reproduces the recorded statistics (to 1e-9 mm) and maps its own pairs finitely."""
+        reproduces the recorded statistics (every per-point residual, the summaries and the outlier
+        flags, to 1e-9 mm) and maps its own pairs finitely."""
         if self.pairs is None:
             raise InputError("the file carries no training pairs, so it cannot prove it is intact")
         if self.pairs.sha256() != self.data_sha256:
             raise InputError(
                 "the training pairs do not match data_sha256: the file was changed after it was written"
             )
-        for label, pairs, stats in (
-            ("training", self.fitted_pairs, self.train),
-            ("check", _corrected_check(self.check_pairs, self.tcp_offset), self.check),
+        from .evaluate import stats_from_residuals
+
+        for label, key, pairs, stats in (
+            ("training", "train", self.fitted_pairs, self.train),
+            ("check", "check", _corrected_check(self.check_pairs, self.tcp_offset), self.check),
         ):
             if pairs is None and stats is None:
                 continue
             if pairs is None or stats is None:
                 raise InputError(f"the {label} statistics and the {label} pairs must come together")
-            res = self.model.residuals(pairs.uv_px, pairs.xyz_mm)
-            e = np.linalg.norm(res, axis=1)
-            rec = np.array([p.error_mm for p in stats.points], float)
-            if (
-                stats.n != len(pairs)
-                or len(rec) != len(e)
-                or not np.isfinite(e).all()
-                or np.abs(e - rec).max() > REPRODUCE_TOL_MM
-                or abs(float(np.sqrt(np.mean(e**2))) - stats.rms_mm) > REPRODUCE_TOL_MM
-            ):
+            with np.errstate(all="ignore"):
+                res = self.model.residuals(pairs.uv_px, pairs.xyz_mm)
+            if not np.isfinite(res).all():
                 raise InputError(
-                    f"the model does not reproduce its recorded {label} errors (to {REPRODUCE_TOL_MM:g} mm): "
+                    f"the model maps its own {label} pairs to no finite point: "
                     "the file was changed or damaged after it was written"
                 )
+            try:
+                with np.errstate(all="ignore"):
+                    again = stats_from_residuals(res, pairs.ids).to_dict()
+                _same(again, _stats_dict(stats), key,
+                      _rel_tol(REPRODUCE_TOL_MM, relative=False))
+            except InputError as exc:
+                raise InputError(
+                    f"the model does not reproduce its recorded {label} errors (to {REPRODUCE_TOL_MM:g} mm; "
+                    f"{exc.reason}): the file was changed or damaged after it was written"
+                ) from None
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Calibration:
@@ -347,6 +396,154 @@ class Calibration:
             raise InputError(f"{path}: not a calibration file ({exc})") from None
         return cls.from_dict(d, str(path))
 
+
+
+FREE_FIELDS = ("created_utc", "eyetohand_version", "notes", "warnings")
+"""Top-level fields of the file that are free text: checked for type only, never for value."""
+COVARIANCE_TOL = 1e-6
+"""A stored covariance entry may differ from the recomputed one by this fraction of
+sqrt(C_ii C_jj) (room for another machine's linear algebra; the recomputed one is used)."""
+_MISSING = object()
+
+
+def content_sha256(d: dict) -> str:
+    """SHA-256 of a calibration file's content as canonical JSON (sorted keys, no spaces), leaving
+    out the free text (``FREE_FIELDS``) and the hash itself: any change of a number, however small,
+    or of a record (fit, statistics, selection, diagnostics) changes it."""
+    import hashlib
+
+    body = {k: v for k, v in d.items() if k not in FREE_FIELDS and k != "content_sha256"}
+    canon = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canon.encode()).hexdigest()
+
+
+def derived_region(model: Model, fitted: PointPairs) -> CalibratedRegion:
+    """The calibrated region of a model fitted on ``fitted`` (as :func:`eyetohand.fit.calibrate` makes it)."""
+    plane = None if model.height_rule is HeightRule.GIVEN else float(np.mean(fitted.xyz_mm[:, 2]))
+    return CalibratedRegion.from_pairs(fitted.uv_px, fitted.xyz_mm, plane_z_mm=plane)
+
+
+def _replace(cal: Calibration, **changes) -> Calibration:
+    import dataclasses
+
+    return dataclasses.replace(cal, **changes)
+
+
+def _stats_dict(s: Stats) -> dict:
+    try:
+        return s.to_dict()
+    except (TypeError, AttributeError):  # points of the wrong type: compared (and refused) as given
+        return {"n": s.n, "rms_mm": s.rms_mm, "points": list(s.points)}
+
+
+def _rel_tol(tol: float, relative: bool = True):
+    """Numbers equal within ``tol`` (times max(1, |expected|) when ``relative``)."""
+
+    def f(path: str, want: float) -> float:
+        return tol * max(1.0, abs(want)) if relative else tol
+
+    return f
+
+
+_KIND = {bool: "true or false", int: "a number", float: "a number", str: "a string", list: "a list",
+         dict: "an object", type(None): "null"}
+
+
+def _kind(v) -> str:
+    return _KIND.get(type(v), type(v).__name__)
+
+
+def _join(path: str, key) -> str:
+    if isinstance(key, int):
+        return f"{path}[{key}]"
+    return f"{path}.{key}" if path else str(key)
+
+
+def _same(want, given, path: str, tol) -> None:
+    """Refuse (one line naming the field) unless ``given`` (from the file) is ``want`` (what this
+    version writes for it): same keys, types (true/false is not a number), lengths, and numbers
+    within ``tol(path, want)``."""
+    where = f"field '{path}'" if path else "the file"
+    if given is _MISSING:
+        raise InputError(f"{where} missing")
+    if isinstance(want, dict):
+        if not isinstance(given, dict):
+            raise InputError(f"{where} must be an object, got {_kind(given)}")
+        for key in want:
+            if key not in given:
+                raise InputError(f"field '{_join(path, key)}' missing")
+        for key in given:
+            if key not in want:
+                raise InputError(f"unexpected field '{_join(path, key)}'")
+        for key in want:
+            _same(want[key], given[key], _join(path, key), tol)
+        return
+    if isinstance(want, (list, tuple)):
+        if not isinstance(given, list):
+            raise InputError(f"{where} must be a list, got {_kind(given)}")
+        if len(given) != len(want):
+            raise InputError(f"{where} must have {len(want)} entries, got {len(given)}")
+        for i, (w, g) in enumerate(zip(want, given, strict=True)):
+            _same(w, g, _join(path, i), tol)
+        return
+    number = (int, float)
+    if isinstance(want, number) and not isinstance(want, bool):
+        if isinstance(given, bool) or not isinstance(given, number):
+            raise InputError(f"{where} must be a number, got {_kind(given)}")
+        if not abs(float(given) - float(want)) <= tol(path, float(want)):
+            raise InputError(
+                f"{where} is {given!r}, but the calibration gives {want!r}: "
+                "the file was changed after it was written"
+            )
+        return
+    if type(given) is not type(want):
+        raise InputError(f"{where} must be {_kind(want)}, got {_kind(given)}")
+    if given != want:
+        raise InputError(f"{where} is {given!r}, expected {want!r}")
+
+
+def _same_uncertainty(unc: Uncertainty, given, model: Model, fitted: PointPairs,
+                      region: CalibratedRegion) -> None:
+    """The stored uncertainty against the one recomputed from the pairs: same shape and types,
+    noise and sigma_mm (at the pairs and the hull) within 1e-9 mm, covariance within
+    ``COVARIANCE_TOL`` of its scale."""
+    want = unc.to_dict()
+    sd = np.sqrt(np.abs(np.diag(unc.covariance)))
+
+    def tol(path: str, w: float) -> float:
+        if path.startswith("uncertainty.covariance["):
+            i, j = (int(k) for k in path[len("uncertainty.covariance["):-1].split("]["))
+            return COVARIANCE_TOL * float(sd[i] * sd[j])
+        return REPRODUCE_TOL_MM
+
+    _same(want, given, "uncertainty", tol)
+    stored = Uncertainty.from_dict(given, model.n_params)
+    uv = np.vstack([fitted.uv_px, region.hull_px])
+    z_mid = float(np.mean(fitted.xyz_mm[:, 2]))
+    z = np.concatenate([fitted.xyz_mm[:, 2], np.full(len(region.hull_px), z_mid)])
+    if model.height_rule is HeightRule.COMPUTED:
+        z = np.zeros(len(uv))
+    with np.errstate(all="ignore"):
+        diff = np.abs(stored.sigma_mm(model, uv, z) - unc.sigma_mm(model, uv, z))
+    if not (diff <= REPRODUCE_TOL_MM).all():
+        raise InputError(
+            "field 'uncertainty' does not reproduce sigma_mm from the training pairs "
+            f"(to {REPRODUCE_TOL_MM:g} mm): the file was changed after it was written"
+        )
+
+
+def _check_numbers(obj, path: str) -> None:
+    """Every number in the parsed file finite and within the float range (JSON allows 1e400)."""
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            _check_numbers(v, _join(path, k))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            _check_numbers(v, _join(path, i))
+    elif isinstance(obj, float) and not np.isfinite(obj):
+        raise InputError(f"field '{path}': {obj!r} is not a finite number")
+    elif isinstance(obj, int) and not isinstance(obj, bool) and abs(obj) > 2**63:
+        raise InputError(f"field '{path}': {obj} is too large a number")
 
 def _refuse_constant(name: str):
     raise ValueError(f"{name} is not a number JSON allows")
@@ -379,6 +576,7 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
     f = d["fit"]
     if not isinstance(f, dict):
         raise InputError("'fit' must be an object")
+    _typed(f, "fit", FIT_TYPES)
     f = dict(f)
     known = {k: f.pop(k) for k in list(f) if k in FitInfo.__dataclass_fields__}
     known["history"] = tuple(float(v) for v in known.get("history", ()))
@@ -396,6 +594,19 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
     sha = d.get("data_sha256", "")
     if not isinstance(sha, str):
         raise InputError("'data_sha256' must be a string")
+    for key in ("train", "check", "loo"):
+        if d.get(key) is not None or key == "train":
+            _typed_stats(d.get(key, _MISSING), key)
+    if d.get("tcp_offset") is not None:
+        _typed(d["tcp_offset"], "tcp_offset", TCP_TYPES)
+    sel = d.get("selection")
+    if sel is not None:
+        _typed(sel, "selection", {"chosen": str, "reason": str, "candidates": list})
+        for i, c in enumerate(sel["candidates"]):
+            _typed(c, f"selection.candidates[{i}]", {"model": str, "unknowns": int})
+    for key in ("created_utc", "eyetohand_version"):
+        if not isinstance(d.get(key, ""), str):
+            raise InputError(f"field '{key}' must be a string")
     extra = {}
     if ver >= 2:
         extra = {
@@ -432,3 +643,46 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
         version=str(d.get("eyetohand_version", "")),
         **extra,
     )
+
+
+_NUM = (int, float)
+FIT_TYPES: dict = {"optimizer": str, "objective": str, "fitness": _NUM, "history": list, "nfev": int,
+                   "nit": int, "seconds": _NUM, "seed": (int, type(None)), "message": str}
+TCP_TYPES: dict = {"offset_mm": list, "std_mm": list, "model": str, "reference_angle_deg": _NUM,
+                   "n_turned": int, "n_pairs": int, "rms_mm": _NUM}
+STATS_TYPES: dict = {"n": int, "rms_mm": _NUM, "mean_mm": _NUM, "max_mm": _NUM, "p95_mm": _NUM,
+                     "outliers": list, "points": list}
+POINT_TYPES: dict = {"id": str, "dx_mm": _NUM, "dy_mm": _NUM, "dz_mm": _NUM, "error_mm": _NUM,
+                     "outlier": bool}
+
+
+def _typed(d, path: str, types: dict) -> None:
+    """Refuse unless ``d`` is an object with every key of ``types`` of its type (a bool is no number)."""
+    if not isinstance(d, dict):
+        raise InputError(f"field '{path}' must be an object, got {_kind(d)}")
+    for key, t in types.items():
+        if key not in d:
+            raise InputError(f"field '{path}.{key}' missing")
+        v = d[key]
+        ok = isinstance(v, t) and not (isinstance(v, bool) and t is not bool)
+        if not ok:
+            want = "a number" if t in (_NUM, int) else _KIND.get(t, "null or a number")
+            raise InputError(f"field '{path}.{key}' must be {want}, got {_kind(v)}")
+    for key in ("history", "offset_mm", "std_mm"):
+        if key in types and not all(isinstance(x, _NUM) and not isinstance(x, bool) for x in d[key]):
+            raise InputError(f"field '{path}.{key}' must be a list of numbers")
+    for key in ("offset_mm", "std_mm"):
+        if key in types and len(d[key]) != 2:
+            raise InputError(f"field '{path}.{key}' must be two numbers")
+
+
+def _typed_stats(d, path: str) -> None:
+    if d is _MISSING:
+        raise InputError(f"field '{path}' missing")
+    _typed(d, path, STATS_TYPES)
+    for i, p in enumerate(d["points"]):
+        _typed(p, f"{path}.points[{i}]", POINT_TYPES)
+    if not all(isinstance(x, str) for x in d["outliers"]):
+        raise InputError(f"field '{path}.outliers' must be a list of strings")
+    if d["n"] != len(d["points"]):
+        raise InputError(f"field '{path}.n' is {d['n']}, but '{path}.points' has {len(d['points'])} entries")

@@ -26,6 +26,8 @@ COMMAND_MODULES = (
     "eyetohand.cli.sim",
     "eyetohand.cli.images",
     "eyetohand.cli.conveyor",
+    "eyetohand.cli.export",
+    "eyetohand.cli.verify",
 )
 
 

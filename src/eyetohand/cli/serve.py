@@ -29,35 +29,75 @@ def register(sub) -> None:
         "serve",
         help="the calibration workbench (web page + JSON API) and the TCP positioning service",
     )
-    p.add_argument("--host", default="127.0.0.1",
-                   help="address to bind (default 127.0.0.1; a non-loopback one needs --token)")
+    p.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to bind (default 127.0.0.1; a non-loopback one needs --token)",
+    )
     p.add_argument("--port", type=int, default=8765, help="HTTP port (default 8765)")
-    p.add_argument("--data", metavar="DIR", default=None,
-                   help="folder of the calibration database (default: $XDG_DATA_HOME/eyetohand "
-                        "or ~/.local/share/eyetohand)")
-    p.add_argument("--token", default=None,
-                   help="require 'Authorization: Bearer T' on the API (and 'AUTH T' on TCP); "
-                        "default $EYETOHAND_TOKEN")
-    p.add_argument("--tcp", metavar="HOST:PORT", default=None,
-                   help="also answer 'u,v[,z]' lines with 'x,y,z' on this TCP address")
-    p.add_argument("--calibration", metavar="NAME", default=None,
-                   help="stored calibration (name or id) the TCP service uses (its current version); "
-                        "with --camera it may be new: CAL BEGIN … CAL END creates it")
-    p.add_argument("--camera", metavar="URI", default=None,
-                   help="camera source for the collection protocol on --tcp ('CAL …' lines): opencv:0, "
-                        "folder:DIR, sim:CELL.toml, genicam:PRODUCER.cti, pylon:[SERIAL] "
-                        "(docs/collection.md)")
-    p.add_argument("--reply-format", choices=["plain", "ur"], default="plain",
-                   help="form of the CAL replies: plain 'OK …'/'ERR …' lines, or ur: '(status,a,b,c)' "
-                        "for URScript's socket_read_ascii_float(4) (default plain)")
-    p.add_argument("--collect-dir", metavar="DIR", default=None,
-                   help="folder of the collection journal, verification histories and belt sessions "
-                        "(default DATA/collect)")
-    p.add_argument("--conveyor", metavar="FILE", default=None,
-                   help="conveyor calibration (eyetohand conveyor calibrate -o FILE) served by 'BELT …' "
-                        "lines on --tcp (docs/conveyor.md)")
-    p.add_argument("--db-wait", type=float, default=2.0, metavar="S",
-                   help="how long a write waits for another writer's database lock before answering "
-                        "503 with Retry-After (default 2 s)")
+    p.add_argument(
+        "--data",
+        metavar="DIR",
+        default=None,
+        help="folder of the calibration database (default: $XDG_DATA_HOME/eyetohand "
+        "or ~/.local/share/eyetohand)",
+    )
+    p.add_argument(
+        "--token",
+        default=None,
+        help="require 'Authorization: Bearer T' on the API (and 'AUTH T' on TCP); default $EYETOHAND_TOKEN",
+    )
+    p.add_argument(
+        "--tcp",
+        metavar="HOST:PORT",
+        default=None,
+        help="also answer 'u,v[,z]' lines with 'x,y,z' on this TCP address",
+    )
+    p.add_argument(
+        "--calibration",
+        metavar="REF",
+        default=None,
+        help="what the TCP service maps with: a stored calibration's name (or name:NAME), "
+        "id:N (followed: its current version, within 1 s), or a calibration file "
+        "(FILE.json, a path, or file:PATH; proved intact before anything binds); with --camera "
+        "a new name is created by CAL BEGIN … CAL END",
+    )
+    p.add_argument(
+        "--camera",
+        metavar="URI",
+        default=None,
+        help="camera source for the collection protocol on --tcp ('CAL …' lines): opencv:0, "
+        "folder:DIR, sim:CELL.toml, genicam:PRODUCER.cti, pylon:[SERIAL] "
+        "(docs/collection.md)",
+    )
+    p.add_argument(
+        "--reply-format",
+        choices=["plain", "ur"],
+        default="plain",
+        help="form of the CAL replies: plain 'OK …'/'ERR …' lines, or ur: '(status,a,b,c)' "
+        "for URScript's socket_read_ascii_float(4) (default plain)",
+    )
+    p.add_argument(
+        "--collect-dir",
+        metavar="DIR",
+        default=None,
+        help="folder of the collection journal, verification histories and belt sessions "
+        "(default DATA/collect)",
+    )
+    p.add_argument(
+        "--conveyor",
+        metavar="FILE",
+        default=None,
+        help="conveyor calibration (eyetohand conveyor calibrate -o FILE) served by 'BELT …' "
+        "lines on --tcp (docs/conveyor.md)",
+    )
+    p.add_argument(
+        "--db-wait",
+        type=float,
+        default=2.0,
+        metavar="S",
+        help="how long a write waits for another writer's database lock before answering "
+        "503 with Retry-After (default 2 s)",
+    )
     p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     p.set_defaults(func=cmd_serve)

@@ -8,7 +8,6 @@ import ipaddress
 import socket
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from ..errors import InputError
 
@@ -53,28 +52,50 @@ def check_options(args) -> None:
         if not is_loopback(host) and not args.token:
             raise ServeError(f"--tcp {args.tcp}: a non-loopback address needs --token T; refusing to start")
         if not (args.calibration or camera or conveyor):
-            raise ServeError("--tcp needs --calibration NAME (the stored calibration to serve), "
-                             "--camera URI (collect one) or --conveyor FILE")
+            raise ServeError(
+                "--tcp needs --calibration NAME, id:N or FILE.json (the calibration to serve), "
+                "--camera URI (collect one) or --conveyor FILE"
+            )
     else:
-        for flag, given in (("--calibration", args.calibration), ("--camera", camera),
-                            ("--conveyor", conveyor),
-                            ("--collect-dir", getattr(args, "collect_dir", None))):
+        for flag, given in (
+            ("--calibration", args.calibration),
+            ("--camera", camera),
+            ("--conveyor", conveyor),
+            ("--collect-dir", getattr(args, "collect_dir", None)),
+        ):
             if given:
                 raise ServeError(f"{flag} is for the TCP service: give --tcp HOST:PORT too")
     if getattr(args, "reply_format", "plain") != "plain" and not camera:
         raise ServeError("--reply-format is for the collection's CAL replies: give --camera URI too")
 
+    args.calibration_file = None
+    if args.calibration:
+        path = calibration_path(args.calibration)
+        if path is not None:
+            from .tcp import FixedCalibration
 
-class _NoCalibration:
-    """Stands in for the served calibration before one exists: every mapping line is one ERR."""
+            try:
+                args.calibration_file = FixedCalibration.from_file(path)
+            except InputError as exc:
+                raise ServeError(f"--calibration: {exc}") from None
 
-    def __init__(self, name: str | None):
-        self.name = name
 
-    def map(self, *a, **k):
-        what = f"'{self.name}' has none yet" if self.name else "none is served"
-        raise InputError(f"no calibration to map with: {what}; collect one (CAL BEGIN ... CAL END) "
-                         "or start serve with --calibration NAME")
+def calibration_path(ref: str):
+    """The file a ``--calibration`` value names, or None for a stored calibration.
+
+    Unambiguous by its form: ``file:PATH``, or a value ending in ``.json`` or containing a path
+    separator, is a file; ``id:N`` is the stored calibration with id N; ``name:NAME`` (or any other
+    value) is a stored calibration's name (digits alone: the id, refused when another's name)."""
+    import os
+    from pathlib import Path
+
+    if ref.startswith("file:"):
+        return Path(ref[5:])
+    if ref.lower().startswith(("id:", "name:")):
+        return None
+    if ref.lower().endswith(".json") or "/" in ref or (os.sep != "/" and os.sep in ref):
+        return Path(ref)
+    return None
 
 
 def store_save_fn(store, on_saved=None):
@@ -87,11 +108,13 @@ def store_save_fn(store, on_saved=None):
         check = cal.check_pairs.to_records() if cal.check_pairs is not None else None
         rec = store.by_name(name)
         if rec is None:
-            rec = store.create(name, request, cal.to_dict(), pairs, check,
-                               note=f"collected ({len(pairs)} points)")
+            rec = store.create(
+                name, request, cal.to_dict(), pairs, check, note=f"collected ({len(pairs)} points)"
+            )
         else:
-            rec = store.add_version(rec.id, request, cal.to_dict(), pairs, check,
-                                    note=f"collected ({len(pairs)} points)")
+            rec = store.add_version(
+                rec.id, request, cal.to_dict(), pairs, check, note=f"collected ({len(pairs)} points)"
+            )
         if on_saved is not None:
             on_saved(rec, cal)
 
@@ -117,7 +140,7 @@ async def _serve(args, data_dir) -> None:
 
     from .app import LOOPBACK_HOSTS, create_app
     from .storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
-    from .tcp import LineServer
+    from .tcp import LineServer, PendingCalibration, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     line_server = None
@@ -127,31 +150,40 @@ async def _serve(args, data_dir) -> None:
     store = None
     if args.tcp:
         host, port = parse_hostport(args.tcp)
-        # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
-        if args.calibration and not camera and not (Path(data_dir) / DB_NAME).is_file():
-            http_sock.close()
-            raise ServeError(f"--calibration: {args.calibration!r} not found: no calibrations are stored in "
-                             f"{data_dir} yet (no {DB_NAME}); save one in the workbench first")
-        store = Store(data_dir, wait_s=args.db_wait)
-        cal: Any = _NoCalibration(args.calibration)
-        rec = ver = None
-        try:
-            if args.calibration:
-                try:
-                    rec = store.find(args.calibration)
-                    ver = store.version(rec.id)
-                except NotFound:
-                    if not camera:  # with a camera, CAL BEGIN <name> … CAL END creates it
-                        raise
-        except (NotFound, Ambiguous, StorageError) as exc:
-            http_sock.close()
-            store.close()
-            raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
-        from ..calibration import Calibration
-
-        if ver is not None and rec is not None:
-            cal = Calibration.from_dict(ver.calibration, f"calibration {rec.name!r}")
+        served = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
+        if served is None:
+            # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
+            if args.calibration and not camera and not (data_dir / DB_NAME).is_file():
+                http_sock.close()
+                raise ServeError(
+                    f"--calibration: {args.calibration!r} not found: no calibrations are stored "
+                    f"in {data_dir} yet (no {DB_NAME}); save one in the workbench first"
+                )
+            store = Store(data_dir, wait_s=args.db_wait)
+            served = PendingCalibration(args.calibration)
+            try:
+                if args.calibration:
+                    try:
+                        rec = store.find(args.calibration)
+                        served = StoredCalibration(store, rec.id)
+                    except NotFound:
+                        if not camera:  # with a camera, CAL BEGIN <name> … CAL END creates it
+                            raise
+            except (NotFound, Ambiguous, StorageError, InputError) as exc:
+                http_sock.close()
+                store.close()
+                raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
+        if isinstance(served, StoredCalibration):
+            what = (
+                f"calibration {served.name!r} (id {served.cal_id}, version {served.version}, followed: a "
+                "new version or a rollback takes effect within a second)"
+            )
+        elif isinstance(served, PendingCalibration):
+            what = "no calibration yet (a collection creates it)"
+        else:
+            what = f"the file {served.label} (sha256 {served.sha256[:12]}…)"
         commands: dict[str, Callable[[str], str]] = {}
+        loop = asyncio.get_running_loop()
         try:
             if camera:
                 from ..collect import Collector
@@ -161,45 +193,62 @@ async def _serve(args, data_dir) -> None:
 
                 def on_saved(saved_rec, new_cal) -> None:
                     # the collected calibration is what the mapping lines use from now on
-                    if line_server is not None and saved_rec.name == (args.calibration or saved_rec.name):
-                        line_server.cal = new_cal
+                    wanted = args.calibration or saved_rec.name
+                    if line_server is not None and saved_rec.name == wanted and store is not None:
+                        current = line_server.source
+                        if isinstance(current, StoredCalibration) and current.cal_id == saved_rec.id:
+                            current.poll()  # at once, not at the next poll
+                        else:
+                            line_server.follow(StoredCalibration(store, saved_rec.id), loop)
                     if app is not None:  # the workbench's cache of current versions
                         app.state.service.invalidate(saved_rec.id)
 
+                if store is None:
+                    store = Store(data_dir, wait_s=args.db_wait)
                 collect_dir = args.collect_dir or (data_dir / "collect")
-                collector = Collector(collect_dir, source, save_fn=store_save_fn(store, on_saved),
-                                      load_fn=store_load_fn(store), calibration=args.calibration,
-                                      reply_format=args.reply_format)
+                collector = Collector(
+                    collect_dir,
+                    source,
+                    save_fn=store_save_fn(store, on_saved),
+                    load_fn=store_load_fn(store),
+                    calibration=args.calibration,
+                    reply_format=args.reply_format,
+                )
                 commands["CAL"] = collector.handle
             if conveyor:
                 from ..belt_protocol import BeltProtocol
 
-                belt = BeltProtocol(conveyor, source=source,
-                                    store_dir=args.collect_dir or (data_dir / "collect"))
+                belt = BeltProtocol(
+                    conveyor, source=source, store_dir=args.collect_dir or (data_dir / "collect")
+                )
                 commands["BELT"] = belt.handle
         except InputError as exc:
             http_sock.close()
-            store.close()
+            if store is not None:
+                store.close()
             raise ServeError(str(exc).splitlines()[0]) from None
-        line_server = LineServer(cal, host, port, token=args.token, commands=commands)
+        line_server = LineServer(served, host, port, token=args.token, commands=commands)
         try:
             await line_server.start()
         except OSError as exc:
             http_sock.close()
             raise ServeError(f"--tcp {args.tcp}: cannot listen there ({exc.strerror or exc})") from None
-        if ver is not None and rec is not None:
-            print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with calibration {rec.name!r} "
-                  f"(id {rec.id}, version {ver.version}, model {cal.model_name})", flush=True)
-        else:
-            print(f"TCP: {host}:{line_server.port} (no calibration to map with yet)", flush=True)
+        print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with {what}", flush=True)
         if collector is not None:
-            print(f"TCP: 'CAL …' lines collect with camera {camera} (journal {collector.journal.path}, "
-                  f"replies {args.reply_format})", flush=True)
+            print(
+                f"TCP: 'CAL …' lines collect with camera {camera} (journal {collector.journal.path}, "
+                f"replies {args.reply_format})",
+                flush=True,
+            )
         if belt is not None:
             print(f"TCP: 'BELT …' lines map with conveyor {conveyor}", flush=True)
 
-    app = create_app(data_dir, token=args.token, db_wait_s=args.db_wait,
-                     allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None)
+    app = create_app(
+        data_dir,
+        token=args.token,
+        db_wait_s=args.db_wait,
+        allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None,
+    )
     if collector is not None:
         from .routes.collect import CameraView
 

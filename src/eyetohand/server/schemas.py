@@ -123,6 +123,20 @@ class Rename(Strict):
     name: Name
 
 
+class ImportCalibration(Strict):
+    """A calibration file (as ``eyetohand calibrate -o`` writes it) to store: a new calibration with
+    this name, or a new version of the calibration that has it. The file must prove itself intact."""
+
+    name: Name
+    calibration: dict[str, Any] = Field(description="the calibration file's JSON object")
+    note: Note = "imported"
+
+
+class VerifyRequest(Strict):
+    pairs: list[PairIn] = Field(min_length=3, max_length=MAX_PAIRS, description="freshly measured pairs")
+    tolerance_mm: Finite = Field(gt=0, description="largest error (mm) a point may have to pass")
+
+
 class Rollback(Strict):
     version: Int = Field(ge=1, le=2**62, description="the version to make current again")
 

@@ -143,6 +143,41 @@ class Service:
             raise ApiError(409, f"a calibration named {name!r} exists already", "name")
         return self.save_new(self.wait_fit(opts), name, "created")
 
+    def import_calibration(self, name: str, calibration: dict, note: str) -> tuple[dict, bool]:
+        """Store a calibration file's JSON (proved intact first: 422 naming what is wrong) as a new
+        calibration called ``name``, or as a new version of the one that has that name. Returns the
+        stored calibration's view and whether it was created."""
+        from ..errors import InputError
+
+        try:
+            cal = Calibration.from_dict(calibration, "calibration")
+        except InputError as exc:
+            raise ApiError(422, str(exc), "calibration") from None
+        request = {"source": "import", "model": cal.model_name, "optimizer": cal.fit.optimizer,
+                   "objective": cal.fit.objective}
+        body = cal.to_dict()
+        pairs, check = _records(cal.pairs), _records(cal.check_pairs)
+        rec = self.store.by_name(name)
+        if rec is None:
+            rec = self.store.create(name, request, body, pairs or [], check, note=note or "imported")
+            return self.out(rec.id), True
+        try:
+            self.store.add_version(rec.id, request, body, pairs or [], check, note=note or "imported")
+        finally:
+            self.invalidate(rec.id)
+        return self.out(rec.id), False
+
+    def verify(self, cal_id: int, pairs: PointPairs, tolerance_mm: float,
+               version: int | None = None) -> dict:
+        """Verify freshly measured pairs against a stored calibration and keep the entry in its history."""
+        from ..verify import verify
+
+        ver, cal = self.calibration(cal_id, version)
+        v = verify(cal, pairs, tolerance_mm)
+        entry = v.history_entry("api")
+        self.store.add_verification(cal_id, ver.version, entry)
+        return {**v.to_dict(), "version": ver.version}
+
     # ------------------------------------------------------------ jobs
     def wait_fit(self, opts: FitOptions) -> Fitted:
         job = self.jobs.fit_job(opts)

@@ -45,6 +45,12 @@ CREATE TABLE IF NOT EXISTS versions (
     check_json TEXT,
     PRIMARY KEY (calibration_id, version)
 );
+CREATE TABLE IF NOT EXISTS verifications (
+    calibration_id INTEGER NOT NULL REFERENCES calibrations(id) ON DELETE CASCADE,
+    version INTEGER NOT NULL,
+    utc TEXT NOT NULL,
+    entry_json TEXT NOT NULL
+);
 """
 
 
@@ -275,6 +281,11 @@ class Store:
         calibration and the id of another (a name stored before digit-only names were refused) is
         refused as :class:`Ambiguous`, never resolved by guessing."""
         ref = name_or_id.strip()
+        if ref.lower().startswith("name:"):
+            rec = self.by_name(name_or_id.strip()[5:])
+            if rec is None:
+                raise NotFound(f"no calibration named {name_or_id.strip()[5:]!r}")
+            return rec
         if ref.lower().startswith("id:") and is_id_like(ref[3:].strip()):
             return self.get(int(ref[3:].strip()))
         rec = self.by_name(name_or_id)
@@ -359,8 +370,30 @@ class Store:
             raise NameTaken(f"a calibration named {name!r} exists already") from None
         return self.get(cal_id)
 
+    def current(self, cal_id: int) -> tuple[str, int] | None:
+        """(name, current version) of a calibration, or None when it is gone: one indexed read, cheap
+        enough to poll."""
+        rows = self._read("SELECT name, current_version FROM calibrations WHERE id = ?", (cal_id,))
+        return None if not rows else (str(rows[0][0]), int(rows[0][1]))
+
+    def add_verification(self, cal_id: int, version: int, entry: dict) -> None:
+        """Append one verification entry (see :mod:`eyetohand.verify`) to a calibration's history."""
+        with self._tx() as db, _translated(self.path):
+            if db.execute("SELECT 1 FROM calibrations WHERE id = ?", (cal_id,)).fetchone() is None:
+                raise NotFound(f"no calibration with id {cal_id}")
+            db.execute("INSERT INTO verifications (calibration_id, version, utc, entry_json) "
+                       "VALUES (?, ?, ?, ?)", (cal_id, version, _now(), _dumps(entry)))
+
+    def verifications(self, cal_id: int) -> list[dict]:
+        """The verification history, oldest first, each entry with the version it checked."""
+        self.get(cal_id)
+        rows = self._read("SELECT version, utc, entry_json FROM verifications WHERE calibration_id = ? "
+                          "ORDER BY rowid", (cal_id,))
+        return [{**json.loads(e), "version": int(v), "stored_utc": u} for v, u, e in rows]
+
     def delete(self, cal_id: int) -> None:
         with self._tx() as db, _translated(self.path):
+            db.execute("DELETE FROM verifications WHERE calibration_id = ?", (cal_id,))
             db.execute("DELETE FROM versions WHERE calibration_id = ?", (cal_id,))
             cur = db.execute("DELETE FROM calibrations WHERE id = ?", (cal_id,))
             if cur.rowcount == 0:

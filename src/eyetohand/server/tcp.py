@@ -9,6 +9,11 @@ closed (the stream cannot be trusted after that). With a token, the first line m
 connections are served at once and at most ``max_per_peer`` from one address (others get
 ``ERR busy`` and are closed), so idle sockets from one local process cannot lock the robot out.
 A last line cut off by the end of the stream (no newline) is not answered: it may be incomplete.
+
+``VERSION`` answers what is in force: ``OK <name>,<version>,<created_utc>`` for a stored calibration,
+``OK <path>,<sha256 of the file>`` for a file. A stored calibration is followed: the service polls
+the database every :data:`POLL_S` seconds (off the event loop), so a new version or a rollback takes
+effect within a second and a deleted calibration answers ``ERR calibration '<name>' was deleted``.
 """
 
 from __future__ import annotations
@@ -30,7 +35,96 @@ IDLE_S = 300.0
 AUTH_S = 10.0
 
 
-USAGE = "send u,v[,z][,a=ANGLE][,allow][,sigma]"
+USAGE = "send u,v[,z][,a=ANGLE][,allow][,sigma] or VERSION"
+POLL_S = 0.25
+
+
+class FixedCalibration:
+    """A calibration that does not change (a file, or one given in code): ``VERSION`` names it."""
+
+    def __init__(self, cal: Calibration, label: str = "calibration", sha256: str = ""):
+        self.cal: Calibration | None = cal
+        self.error: str | None = None
+        self.label = label
+        self.sha256 = sha256 or cal.to_dict()["content_sha256"]
+
+    def version_line(self) -> str:
+        return f"OK {self.label},{self.sha256}"
+
+    @classmethod
+    def from_file(cls, path) -> FixedCalibration:
+        import hashlib
+        from pathlib import Path
+
+        p = Path(path)
+        cal = Calibration.load(p)
+        return cls(cal, str(p.resolve()), hashlib.sha256(p.read_bytes()).hexdigest())
+
+
+class PendingCalibration:
+    """Stands in for the served calibration before one exists (``serve --camera`` with a new name):
+    every mapping line is one ERR until a collection creates it."""
+
+    def __init__(self, name: str | None):
+        self.name = name
+        self.cal: Calibration | None = None
+        what = f"'{name}' has none yet" if name else "none is served"
+        self.error: str | None = (
+            f"no calibration to map with: {what}; collect one (CAL BEGIN ... CAL END) "
+            "or start serve with --calibration NAME"
+        )
+
+    def version_line(self) -> str:
+        return f"ERR {self.error}"
+
+
+class StoredCalibration:
+    """The current version of a stored calibration, refreshed by :meth:`poll` (blocking: run it off
+    the event loop). A deleted calibration sets ``error``; a database that cannot be read for a moment
+    keeps the version in force."""
+
+    def __init__(self, store, cal_id: int):
+        self.store = store
+        self.cal_id = cal_id
+        self.cal: Calibration | None = None
+        self.error: str | None = None
+        self.name = ""
+        self.version = 0
+        self.created_utc = ""
+        self.poll()
+        if self.cal is None:
+            raise InputError(self.error or f"no calibration with id {cal_id}")
+
+    def version_line(self) -> str:
+        return f"OK {self.name},{self.version},{self.created_utc}"
+
+    def poll(self) -> None:
+        from .storage import NotFound, StorageError
+
+        try:
+            now = self.store.current(self.cal_id)
+            if now is None:
+                self.error = f"calibration '{self.name or self.cal_id}' was deleted"
+                self.cal = None
+                return
+            name, version = now
+            self.name = name
+            if version == self.version and self.cal is not None:
+                return
+            ver = self.store.version(self.cal_id, version)
+            cal = Calibration.from_dict(ver.calibration, f"calibration {name!r} version {version}")
+        except NotFound:
+            self.error = f"calibration '{self.name or self.cal_id}' was deleted"
+            self.cal = None
+            return
+        except StorageError:
+            return  # keep what is in force; the next poll tries again
+        except InputError as exc:
+            self.error = f"calibration '{self.name}' version {version} cannot be used: {exc}"[:200]
+            self.cal = None
+            return
+        # one assignment each, read by the event loop between lines (the GIL makes them atomic)
+        self.cal, self.version, self.created_utc, self.error = cal, ver.version, ver.created_utc, None
 
 
 def answer(cal: Calibration, line: bytes) -> bytes:
@@ -49,7 +143,7 @@ def answer(cal: Calibration, line: bytes) -> bytes:
         return f"ERR empty line; {USAGE}\n".encode()
     parts = [p.strip() for p in text.split(",")]
     nums = [p for p in parts if "=" not in p and p.lower() not in ("allow", "sigma")]
-    words = [p.lower() for p in parts[len(nums):]]
+    words = [p.lower() for p in parts[len(nums) :]]
     if parts[: len(nums)] != nums or len(nums) not in (2, 3):
         return f"ERR {len(nums)} numbers; {USAGE}\n".encode()
     vals = []
@@ -97,10 +191,25 @@ def answer(cal: Calibration, line: bytes) -> bytes:
 class LineServer:
     """Serve ``cal`` on ``host:port``. ``await start()``, then ``await serve_forever()`` or ``close()``."""
 
-    def __init__(self, cal: Calibration, host: str, port: int, *, max_clients: int = MAX_CLIENTS,
-                 idle_s: float = IDLE_S, token: str | None = None, max_per_peer: int = MAX_PER_PEER,
-                 auth_s: float = AUTH_S, commands: dict[str, Callable[[str], str]] | None = None):
-        self.cal = cal
+    def __init__(
+        self,
+        cal: Calibration | FixedCalibration | StoredCalibration | PendingCalibration,
+        host: str,
+        port: int,
+        *,
+        max_clients: int = MAX_CLIENTS,
+        idle_s: float = IDLE_S,
+        token: str | None = None,
+        max_per_peer: int = MAX_PER_PEER,
+        auth_s: float = AUTH_S,
+        poll_s: float = POLL_S,
+        commands: dict[str, Callable[[str], str]] | None = None,
+    ):
+        self.source: FixedCalibration | StoredCalibration | PendingCalibration = (
+            FixedCalibration(cal) if isinstance(cal, Calibration) else cal
+        )
+        self.poll_s = poll_s
+        self._poller: asyncio.Task | None = None
         # first word (upper case) -> handler(line) -> reply without line end, run off the event loop
         # (a command may grab and detect for a second); e.g. {"CAL": collector.handle}
         self.commands = {k.upper(): f for k, f in (commands or {}).items()}
@@ -118,6 +227,43 @@ class LineServer:
     async def start(self) -> None:
         self.server = await asyncio.start_server(self._client, self.host, self.port, limit=MAX_LINE)
         self.port = self.server.sockets[0].getsockname()[1]
+        if isinstance(self.source, StoredCalibration):
+            self._poller = asyncio.get_running_loop().create_task(self._follow(self.source))
+
+    def follow(self, source: StoredCalibration, loop: asyncio.AbstractEventLoop | None = None) -> None:
+        """Serve (and follow) ``source`` from now on: after a collection created the calibration.
+        Callable from any thread; ``loop`` is the server's (needed from another thread)."""
+        self.source = source
+
+        def restart() -> None:
+            if self._poller is not None:
+                self._poller.cancel()
+            self._poller = asyncio.get_running_loop().create_task(self._follow(source))
+
+        if loop is not None:
+            loop.call_soon_threadsafe(restart)
+        else:
+            restart()
+
+    @property
+    def cal(self) -> Calibration | None:
+        """The calibration in force (None while a followed one is deleted)."""
+        return self.source.cal
+
+    async def _follow(self, src: StoredCalibration) -> None:
+        while True:
+            await asyncio.sleep(self.poll_s)
+            await asyncio.to_thread(src.poll)
+
+    def reply(self, line: bytes) -> bytes:
+        """The answer to one line with the calibration in force (``VERSION`` names it)."""
+        src = self.source
+        if line.strip().upper() == b"VERSION":
+            return (src.version_line() if src.error is None else f"ERR {src.error}").encode() + b"\n"
+        cal = src.cal
+        if cal is None or src.error is not None:
+            return f"ERR {src.error}\n".encode()
+        return answer(cal, line)
 
     async def serve_forever(self) -> None:
         assert self.server is not None
@@ -125,6 +271,8 @@ class LineServer:
             await self.server.serve_forever()
 
     def close(self) -> None:
+        if self._poller is not None:
+            self._poller.cancel()
         if self.server is not None:
             self.server.close()
 
@@ -160,7 +308,7 @@ class LineServer:
                     reply = await asyncio.to_thread(self.commands[word], line[:-1].decode("ascii", "replace"))
                     writer.write(reply.encode("ascii", "replace") + b"\n")
                 else:
-                    writer.write(answer(self.cal, line[:-1]))
+                    writer.write(self.reply(line[:-1]))
                 await writer.drain()
         except (ConnectionError, asyncio.CancelledError):
             pass

@@ -15,10 +15,12 @@ from ..schemas import (
     CalibrationOut,
     CreateCalibration,
     EvaluateRequest,
+    ImportCalibration,
     NewVersion,
     Rename,
     Rollback,
     StatsOut,
+    VerifyRequest,
     VersionList,
 )
 from . import CalId, Svc, VersionQ
@@ -30,6 +32,17 @@ router = APIRouter(tags=["calibrations"])
 def create_calibration(req: CreateCalibration, svc: Svc):
     """Fit a calibration and store it as version 1 of a new named calibration."""
     return svc.create(req, req.name)
+
+
+@router.post("/api/calibrations/import", response_model=CalibrationOut, status_code=201,
+             responses={200: {"description": "stored as a new version of the calibration with that name"},
+                        422: {"description": "the file is not a valid, intact calibration (names why)"}})
+def import_calibration(req: ImportCalibration, svc: Svc, response: Response):
+    """Store a calibration file (``eyetohand calibrate -o``) as a new calibration, or as a new version
+    of the calibration with that name; it must prove itself intact (hash, statistics, region)."""
+    out, created = svc.import_calibration(req.name, req.calibration, req.note)
+    response.status_code = 201 if created else 200
+    return out
 
 
 @router.get("/api/calibrations", response_model=list[CalibrationBrief])
@@ -89,3 +102,18 @@ def evaluate_calibration(cal_id: CalId, req: EvaluateRequest, svc: Svc, version:
     """Errors (mm) of a stored calibration on other pairs (e.g. new check points)."""
     _, cal = svc.calibration(cal_id, version)
     return evaluate(cal, core.to_pairs(req.pairs, "pairs")).to_dict()
+
+
+@router.post("/api/calibrations/{cal_id}/verify")
+def verify_calibration(cal_id: CalId, req: VerifyRequest, svc: Svc, version: VersionQ = None):
+    """Freshly measured pairs against the stored calibration: per-point errors, the camera's estimated
+    motion since calibration and whether it is significant, pass/fail against ``tolerance_mm``; the
+    result joins the calibration's history."""
+    return svc.verify(cal_id, core.to_pairs(req.pairs, "pairs"), req.tolerance_mm, version)
+
+
+@router.get("/api/calibrations/{cal_id}/history")
+def verification_history(cal_id: CalId, svc: Svc):
+    """The calibration's verifications, oldest first (rms, max, shift, rotation, scale change)."""
+    rec = svc.store.get(cal_id)
+    return {"id": rec.id, "name": rec.name, "entries": svc.store.verifications(cal_id)}

@@ -711,6 +711,7 @@ async function refreshSaved() {
     const btn = (label, fn, cls) => { const b = el("button", { type: "button", class: "link " + (cls || "") }, label); b.addEventListener("click", fn); acts.appendChild(b); };
     btn("open", () => openSaved(c.id));
     btn("history", () => showVersions(c.id));
+    btn("checks", () => showChecks(c));
     const a = el("a", { href: `/api/calibrations/${c.id}/export`, download: "" }, "export JSON");
     a.addEventListener("click", (ev) => { if ($("#token").value) { ev.preventDefault(); exportWithToken(c.id); } });
     acts.appendChild(a);
@@ -722,6 +723,42 @@ async function refreshSaved() {
   $("#db-info").textContent = `${r.data.length} stored`;
   refreshMapSources();
   updateButtons();
+}
+
+// import a calibration file (eyetohand calibrate -o): a new calibration, or a new version of that name
+async function importFile() {
+  clearError("#saved-err");
+  const f = $("#import-file").files[0];
+  if (!f) { showError("#saved-err", { error: "choose a calibration file (.json) to import", field: "file" }); return; }
+  let cal;
+  try { cal = JSON.parse(await f.text()); } catch (e) { showError("#saved-err", { error: `${f.name}: not JSON (${e.message})` }); return; }
+  const name = $("#import-name").value.trim() || f.name.replace(/\.json$/i, "");
+  const r = await api("POST", "/api/calibrations/import", { name, calibration: cal, note: `imported ${f.name}`.slice(0, 200) });
+  if (!r.ok) { showError("#saved-err", r.data); return; }
+  await refreshSaved();
+}
+
+// the verification history of one calibration: a table, with a bar per check scaled to the worst max
+async function showChecks(c) {
+  clearError("#saved-err");
+  const r = await api("GET", `/api/calibrations/${c.id}/history`);
+  if (!r.ok) { showError("#saved-err", r.data); return; }
+  $("#checks-name").textContent = `“${c.name}”` + (r.data.entries.length ? "" : " — none yet");
+  const tb = $("#checks-table tbody");
+  tb.innerHTML = "";
+  const worst = Math.max(1e-9, ...r.data.entries.map((e) => e.max_mm));
+  for (const e of r.data.entries) {
+    const tr = el("tr");
+    tr.appendChild(td(e.utc.replace("T", " ").slice(0, 19), "text"));
+    for (const v of [String(e.version), String(e.n), fmt(e.rms_mm), fmt(e.max_mm)]) tr.appendChild(td(v));
+    tr.appendChild(td("█".repeat(Math.max(1, Math.round(12 * e.max_mm / worst))), "text"));
+    tr.appendChild(td(`${fmt(e.shift_px[0], 2)}, ${fmt(e.shift_px[1], 2)}`));
+    tr.appendChild(td(fmt(e.rotation_deg, 4)));
+    tr.appendChild(td(fmt(100 * e.scale_change, 3)));
+    tr.appendChild(td((e.passed ? "pass" : "FAIL") + (e.drift_significant ? ` — moved: ${e.named.join(", ")}` : ""), "text"));
+    tb.appendChild(tr);
+  }
+  $("#checks-block").hidden = false;
 }
 
 async function exportWithToken(id) {
@@ -883,6 +920,7 @@ async function init() {
   $("#compare-go").addEventListener("click", compareMethods);
   $("#saved-compare").addEventListener("click", compareSaved);
   renumber();
+  $("#import-btn").addEventListener("click", importFile);
   drawCurve();
   updateButtons();
   await refreshSaved();

@@ -1,0 +1,258 @@
+"""A tampered-file corpus: every JSON path of real calibration files removed, mistyped, reshaped,
+perturbed, made NaN / Infinity / huge, the hash changed, the text cut short — and every mutated file is
+either refused (one ``error:`` line, exit 2, by every interface that reads calibration files) or, for
+the free-text fields that never reach a mapping, loads and maps bit-identically to the original.
+No mutated file ever yields a different number or a traceback. A Hypothesis test adds random ones."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from synth import grid_pairs, make_camera
+
+from eyetohand import Calibration, InputError, calibrate
+from eyetohand.cli import main
+
+FREE = ("created_utc", "eyetohand_version", "notes", "warnings", "model.diagnostics")
+"""Paths whose mutations may load (they never reach a mapping): the file's free text and the model's
+diagnostics. A mutation anywhere else must be refused."""
+
+RECOMPUTED = ("uncertainty.covariance",)
+"""Stored copies of what load recomputes from the pairs and uses instead: a change below their
+tolerance (1e-6 of sqrt(C_ii C_jj), room for another machine's linear algebra) may load, and
+then maps bit-identically because the stored value is never used."""
+
+KEEP_PER_LIST = (0, 1, -1)
+"""Entries of long lists that are mutated (the others have the same shape as these)."""
+
+
+def _make(tmp: Path, name: str) -> Path:
+    cam = make_camera(tilt_deg=8, dist=[-0.05, 0, 0, 0, 0])
+    heights = (150.0, 210.0) if name == "dlt3d" else (150.0,)
+    pairs = grid_pairs(cam, 4, heights=heights, noise_px=0.3, seed=3)
+    check = grid_pairs(cam, 3, heights=heights, noise_px=0.3, seed=4, span_mm=100.0)
+    cal = calibrate(pairs, name, "lm", check=check, loo=(name == "affine"))
+    return cal.save(tmp / f"{name}.json")
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("tamper")
+    return {name: _make(tmp, name) for name in ("affine", "homography", "dlt3d")}
+
+
+def _query(cal: Calibration) -> tuple[np.ndarray, np.ndarray | None]:
+    """Pixels over the calibrated region (hull vertices pulled to the centre, and the centre)."""
+    hull = cal.region.hull_px
+    c = hull.mean(axis=0)
+    uv = np.vstack([c, c + 0.8 * (hull - c)])
+    z = None if cal.region.z_range_mm is None else np.full(len(uv), float(np.mean(cal.region.z_range_mm)))
+    return uv, z
+
+
+def _fingerprint(cal: Calibration) -> bytes:
+    uv, z = _query(cal)
+    m = cal.map(uv, z, angle_deg=np.full(len(uv), 30.0))
+    return m.xyz_mm.tobytes() + m.rz_deg.tobytes() + m.sigma_mm.tobytes() + m.inside.tobytes()
+
+
+# ---------------------------------------------------------------- the corpus
+
+
+def _paths(obj, path=()):
+    """Every path into ``obj`` (dict keys and list indices; of long lists only KEEP_PER_LIST)."""
+    yield path
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _paths(v, (*path, k))
+    elif isinstance(obj, list):
+        n = len(obj)
+        idx = range(n) if n <= len(KEEP_PER_LIST) else sorted({i % n for i in KEEP_PER_LIST})
+        for i in idx:
+            yield from _paths(obj[i], (*path, i))
+
+
+def _get(obj, path):
+    for k in path:
+        obj = obj[k]
+    return obj
+
+
+def _set(doc, path, value):
+    out = copy.deepcopy(doc)
+    _get(out, path[:-1])[path[-1]] = value
+    return out
+
+
+def _remove(doc, path):
+    out = copy.deepcopy(doc)
+    del _get(out, path[:-1])[path[-1]]
+    return out
+
+
+def _dotted(path) -> str:
+    s = ""
+    for k in path:
+        s += f"[{k}]" if isinstance(k, int) else (f".{k}" if s else str(k))
+    return s
+
+
+def mutations(doc: dict):
+    """(label, text) of every mutation of ``doc`` (labels name the path and the kind)."""
+    text = json.dumps(doc, indent=2)
+    for path in _paths(doc):
+        if not path:
+            continue
+        where = _dotted(path)
+        v = _get(doc, path)
+        yield f"{where}: removed", json.dumps(_remove(doc, path))
+        for bad in ("x", "1.5", True, False, [], {}, None, 0):
+            if not (bad == v and isinstance(bad, bool) == isinstance(v, bool)):  # 0 for 0.0 is no change
+                yield f"{where}: -> {bad!r}", json.dumps(_set(doc, path, bad))
+        if isinstance(v, list):
+            if v:
+                yield f"{where}: last entry dropped", json.dumps(_set(doc, path, v[:-1]))
+                yield f"{where}: last entry repeated", json.dumps(_set(doc, path, [*v, v[-1]]))
+            yield f"{where}: wrapped in a list", json.dumps(_set(doc, path, [v]))
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            yield f"{where}: wrapped in a list", json.dumps(_set(doc, path, [v]))
+            for rel in (1e-6, 1e-3):
+                p = v * (1 + rel) if v != 0 else rel
+                if isinstance(v, int):
+                    p = v + 1
+                yield f"{where}: perturbed {rel:g}", json.dumps(_set(doc, path, p))
+            yield f"{where}: huge", json.dumps(_set(doc, path, 1e300))
+            yield f"{where}: huge int", json.dumps(_set(doc, path, 10**30))
+            for lit in ("NaN", "Infinity", "-Infinity", "1e400"):
+                marker = "__LITERAL__"
+                yield f"{where}: {lit}", json.dumps(_set(doc, path, marker)).replace(f'"{marker}"', lit)
+        if isinstance(v, str) and where != "data_sha256":
+            yield f"{where}: changed text", json.dumps(_set(doc, path, v + "x"))
+    yield "data_sha256: wrong", json.dumps(_set(doc, ("data_sha256",), "0" * 64))
+    for frac in (0.0, 0.1, 0.5, 0.9, 0.999):
+        yield f"truncated at {frac:g}", text[: int(len(text) * frac)]
+    yield "not JSON", "calibration"
+    yield "a JSON list", "[]"
+
+
+def _is_free(label: str) -> bool:
+    where = label.split(":")[0]
+    kind = label.split(": ", 1)[-1]
+    if (kind.startswith("perturbed") or kind == "-> 0") and any(where.startswith(r) for r in RECOMPUTED):
+        return True
+    return any(where == f or where.startswith(f + ".") or where.startswith(f + "[") for f in FREE)
+
+
+def _refused_by_load(path: Path) -> str | None:
+    """The one-line refusal, or None when the file loads."""
+    try:
+        Calibration.load(path)
+    except InputError as exc:
+        msg = str(exc)
+        assert "\n" not in msg and msg, msg
+        return msg
+    return None
+
+
+def _cli_refuses(argv, capsys) -> str:
+    code = main(argv)
+    out, err = capsys.readouterr()
+    assert code == 2, (argv, code, out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert "Traceback" not in err and out == "", (out, err)
+    return lines[0]
+
+
+def _interfaces(path: Path, pairs_csv: Path, tmp: Path):
+    """argv of every command that reads the calibration file."""
+    return [
+        ["apply", str(path), "--uv", "1200", "1000", "--json"],
+        ["evaluate", str(path), str(pairs_csv)],
+        ["report", str(path), "-o", str(tmp / "rep")],
+        ["verify", str(path), str(pairs_csv), "--tolerance", "1"],
+    ]
+
+
+@pytest.mark.parametrize("name", ["affine", "homography", "dlt3d"])
+def test_every_mutation_is_refused_or_harmless(files, name, tmp_path, capsys):
+    orig_path = files[name]
+    doc = json.loads(orig_path.read_text())
+    original = Calibration.load(orig_path)
+    want = _fingerprint(original)
+    pairs_csv = tmp_path / "pairs.csv"
+    pairs_csv.write_text(original.pairs.to_csv_text())
+    loaded, refused, n = [], 0, 0
+    f = tmp_path / "m.json"
+    for i, (label, text) in enumerate(mutations(doc)):
+        n += 1
+        f.write_text(text)
+        msg = _refused_by_load(f)
+        if msg is None:
+            assert _is_free(label), f"{label}: loaded, but it is not free text"
+            assert _fingerprint(Calibration.load(f)) == want, f"{label}: loaded and maps differently"
+            loaded.append(label)
+            continue
+        refused += 1
+        assert str(f) in msg, (label, msg)
+        if i % 7 == 0:  # every interface on a seventh of the corpus (they all read through load)
+            for argv in _interfaces(f, pairs_csv, tmp_path):
+                line = _cli_refuses(argv, capsys)
+                assert msg in line, (label, argv, line)
+    assert n > 500 and refused > 0.8 * n, (n, refused)
+    print(f"{name}: {n} mutations, {refused} refused, {len(loaded)} free-text ones loaded")
+
+
+# ---------------------------------------------------------------- random mutations
+
+
+def _leaves(doc):
+    return [p for p in _paths(doc) if p]
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_random_mutations(files, data, tmp_path):
+    name = data.draw(st.sampled_from(sorted(files)))
+    doc = json.loads(files[name].read_text())
+    want = _fingerprint(Calibration.load(files[name]))
+    paths = _leaves(doc)
+    m = copy.deepcopy(doc)
+    n_edits = data.draw(st.integers(1, 3))
+    labels = []
+    for _ in range(n_edits):
+        path = data.draw(st.sampled_from(paths))
+        try:
+            _get(m, path)
+        except (KeyError, IndexError, TypeError):
+            continue
+        value = data.draw(
+            st.one_of(
+                st.none(), st.booleans(), st.integers(-(10**20), 10**20),
+                st.floats(allow_nan=False, allow_infinity=False), st.text(max_size=5),
+                st.lists(st.floats(-1e3, 1e3), max_size=3),
+                st.just("__relative__"),
+            )
+        )
+        old = _get(m, path)
+        if value == "__relative__":
+            if isinstance(old, bool) or not isinstance(old, (int, float)):
+                continue
+            value = old * (1 + data.draw(st.floats(1e-9, 1e-2))) if old else 1e-6
+        if type(value) is type(old) and value == old and not (isinstance(old, float) and math.isnan(old)):
+            continue
+        m = _set(m, path, value)
+        labels.append(_dotted(path))
+    f = tmp_path / f"r-{name}.json"
+    f.write_text(json.dumps(m))
+    msg = _refused_by_load(f)
+    if msg is None:
+        assert all(_is_free(lbl) for lbl in labels) or m == doc, labels
+        assert _fingerprint(Calibration.load(f)) == want, labels
