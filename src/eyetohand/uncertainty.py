@@ -7,8 +7,14 @@ pixel with parameter Jacobian ``J_p`` (c × D), the expected squared distance be
 position and a fresh robot measurement of that point is ``tr(J_p C J_pᵀ) + c·s²`` — the fit's own
 error at that pixel plus the noise any single measurement carries — and ``sigma_mm`` is its root.
 It grows where the training points are sparse or far away, which is what the report's map shows.
-Checked for calibration on simulated cells with known noise (tests/test_guarded.py, and
-``benchmarks/bench_uncertainty.py`` over many cells).
+The noise is measured in robot space (the fit's residuals), so the detector's pixel noise mapped
+through the local scale and the robot's repeatability are both in it, as they are in any measured
+check point. Checked for calibration on simulated cells with known noise: over 40 cells (all five
+models ``auto`` picks, 0.05–0.3 px, one and two heights, 16–49 pairs) RMS(sigma_mm) / measured check
+RMS lies in 0.74..1.15, median 1.01 (``benchmarks/bench_uncertainty.py``; tests/test_guarded.py).
+That holds inside the calibrated region, where mappings are answered: beyond it a model's
+extrapolation error (a lens term it lacks) is not in the parameter covariance, and sigma_mm there is
+a lower bound.
 """
 
 from __future__ import annotations
