@@ -49,6 +49,28 @@ def param_jacobian(model: Model, uv_px: np.ndarray, z_mm: np.ndarray) -> np.ndar
     return np.moveaxis(J, 0, -1)
 
 
+def _scaled_svd(model: Model, uv: np.ndarray, xyz: np.ndarray):
+    """SVD of the training pairs' parameter Jacobian (N c, D), columns scaled first (the paper's B
+    spans six orders of magnitude): ``(norms, U, s, Vt, keep)``."""
+    J = param_jacobian(model, uv, xyz[:, 2]).reshape(-1, model.n_params)
+    norms = np.linalg.norm(J, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    U, s, Vt = np.linalg.svd(J / norms, full_matrices=False)
+    return norms, U, s, Vt, s > 1e-10 * s[0]
+
+
+def pair_leverage(model: Model, uv_px, xyz_mm) -> np.ndarray:
+    """(N, c, c) the hat matrix's diagonal block of each training pair (its c coordinates): how much
+    the fit follows the pair (0: not at all; eigenvalues near 1: it passes through it). For a
+    linear least-squares fit a training residual's covariance is (I − H_ii)·s², a left-out one's
+    (I − H_ii)⁻¹·s² (:mod:`eyetohand.evaluate` studentizes with it before testing for outliers)."""
+    uv = np.asarray(uv_px, float)
+    xyz = np.asarray(xyz_mm, float)
+    _, U, _, _, keep = _scaled_svd(model, uv, xyz)
+    Ui = U[:, keep].reshape(len(uv), _coords(model), -1)
+    return np.einsum("nck,ndk->ncd", Ui, Ui)
+
+
 @dataclass(frozen=True)
 class Uncertainty:
     """The fit's parameter covariance (D, D) and the point-level noise per coordinate (mm)."""
@@ -64,13 +86,7 @@ class Uncertainty:
         xyz = np.asarray(xyz_mm, float)
         c = _coords(model)
         r = model.residuals(uv, xyz)[:, :c]
-        J = param_jacobian(model, uv, xyz[:, 2]).reshape(-1, model.n_params)  # (N c, D)
-        # scale columns before the pseudo-inverse: the paper's B spans six orders of magnitude
-        norms = np.linalg.norm(J, axis=0)
-        norms = np.where(norms > 0, norms, 1.0)
-        Js = J / norms
-        U, s, Vt = np.linalg.svd(Js, full_matrices=False)
-        keep = s > 1e-10 * s[0]
+        norms, _, s, Vt, keep = _scaled_svd(model, uv, xyz)
         rank = int(keep.sum())
         dof = max(r.size - rank, 1)
         s2 = float((r * r).sum()) / dof
