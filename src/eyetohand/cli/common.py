@@ -78,6 +78,7 @@ def calibration_summary(cal: Calibration) -> dict:
         "train": cal.train.to_dict(),
         "loo": cal.loo.to_dict() if cal.loo else None,
         "notes": list(cal.notes),
+        "warnings": list(cal.warnings),
         "selection": cal.selection,
         "tcp_offset": cal.tcp_offset.to_dict() if cal.tcp_offset else None,
         "condition_number": cal.model.condition_number,
