@@ -6,7 +6,8 @@ the detector's noise drawn from 0.05–0.3 px per set, seeded), fitted with ``ho
 flagged (in its training errors: evaluate.py does not flag held-out ones). Bad pair: a clean set of
 25 with one pair's robot x, y moved 1 mm in a random direction; it is detected when that pair is
 flagged. Prints the rates next to the old median + 3 MAD-sigma rule's on the same sets (training or
-leave-one-out errors). The test must keep false alarms ≤ 1 % per set and detect ≥ 95 %. About 12 min for 500 sets on a busy 2-core machine.
+leave-one-out errors). The test must keep false alarms ≤ 1 % per set and detect ≥ 95 %.
+About 12 min for 500 sets on a busy 2-core machine.
 """
 
 from __future__ import annotations
