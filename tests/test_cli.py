@@ -173,3 +173,62 @@ def test_failed_run_keeps_an_earlier_calibration(tmp_path, capsys, model):
     bad.write_text("u,v,x,y\n1,2,3,4\n")
     assert run(capsys, "calibrate", str(bad), "--model", model, "-o", str(cal_path))[0] == 2
     assert cal_path.read_bytes() == before
+
+
+def _paper_in(tmp_path, factor: float, name: str):
+    from eyetohand.pairs import PointPairs, load_pairs
+
+    p = load_pairs(TRAIN)
+    path = tmp_path / name
+    path.write_text(PointPairs.from_arrays(p.uv_px, p.xyz_mm * factor, p.ids).to_csv_text())
+    return str(path)
+
+
+def test_metres_data_warns_naming_the_units_and_robot_units_m_fits_cleanly(tmp_path, capsys):
+    metres = _paper_in(tmp_path, 1e-3, "metres.csv")
+    code, out, err = run(capsys, "calibrate", metres, "--model", "homography")
+    warn = [ln for ln in err.splitlines() if ln.startswith("warning:")]
+    assert code == 0 and len(warn) == 1 and "metres (use --robot-units m)" in warn[0], err
+    code, out, err = run(capsys, "calibrate", metres, "--model", "homography", "--robot-units", "m",
+                         "-o", str(tmp_path / "cal.json"))
+    assert code == 0 and "warning:" not in err, err
+    assert "read in m and converted to mm" in err
+    ref = run(capsys, "calibrate", TRAIN, "--model", "homography", "--json")[1]
+    cal = Calibration.load(tmp_path / "cal.json")
+    assert cal.train.rms_mm == pytest.approx(json.loads(ref)["train"]["rms_mm"], rel=1e-6)
+    assert cal.warnings == () and cal.pairs.xyz_mm[:, 2].mean() == pytest.approx(167.417, abs=1e-3)
+    inches = _paper_in(tmp_path, 1 / 25.4, "inches.csv")
+    code, _, err = run(capsys, "calibrate", inches, "--model", "homography", "--robot-units", "in")
+    assert code == 0 and "warning:" not in err
+    code, _, err = run(capsys, "calibrate", TRAIN, "--robot-units", "km")
+    assert code == 2 and err.count("\n") == 1
+
+
+def test_check_set_identical_or_overlapping_warns(tmp_path, capsys):
+    code, _, err = run(capsys, "calibrate", TRAIN, "--model", "homography", "--check", TRAIN)
+    assert code == 0 and "warning: " in err and "the check pairs are the training pairs" in err
+    from eyetohand.pairs import PointPairs, load_pairs
+
+    t, c = load_pairs(TRAIN), load_pairs(CHECK)
+    mixed = PointPairs.from_arrays(np.vstack([c.uv_px, t.uv_px[:2]]), np.vstack([c.xyz_mm, t.xyz_mm[:2]]),
+                                   [*c.ids, "t1", "t2"])
+    path = tmp_path / "mixed.csv"
+    path.write_text(mixed.to_csv_text())
+    code, _, err = run(capsys, "calibrate", TRAIN, "--model", "homography", "--check", str(path))
+    assert code == 0 and "2 check pair(s) repeat training pairs (ids t1, t2)" in err
+
+
+def test_outliers_printed_as_ids_with_their_set(tmp_path, capsys):
+    from eyetohand.pairs import PointPairs
+    from eyetohand.sim import Cell
+    from eyetohand.sim.simulate import simulate
+
+    sim = simulate(Cell.default(), "grid:5x5", (150.0,), n_check=0, seed=4)
+    xyz = sim.pairs.xyz_mm.copy()
+    xyz[4, 0] += 1.0
+    path = tmp_path / "bad.csv"
+    path.write_text(PointPairs.from_arrays(sim.pairs.uv_px, xyz, sim.pairs.ids).to_csv_text())
+    code, out, _ = run(capsys, "calibrate", str(path), "--model", "homography-radial")
+    lines = [ln for ln in out.splitlines() if ln.startswith("outliers")]
+    assert code == 0 and lines == ["outliers: ids 5 (training)"], out
+    assert not any("robust sigma" in ln for ln in out.splitlines())

@@ -52,10 +52,11 @@ def test_write_report_on_paper_data(tmp_path, paper_cal):
     assert f"{cal.check.rms_mm:.4f}" == report.mm(cal.check.rms_mm)
     assert f"<td class=\"num\">{cal.check.rms_mm:.4f}</td>" in text
     assert f"{cal.check.max_mm:.4f}" in text
-    for name in ("check_errors.png", "train_errors.png", "residual_vectors.png"):
+    for name in ("check_errors.png", "train_errors.png", "residual_vectors.png", "sigma_map.png"):
         assert_png(tmp_path / "r" / name)
     # self-contained: images embedded, no external resources, no scripts
-    assert text.count("data:image/png;base64,") == 3
+    assert text.count("data:image/png;base64,") == 4
+    assert "Where this calibration can be trusted" in text
     assert not re.search(r"(src|href)=\"(https?:|//)", text)
     assert "<script" not in text
     assert "operator" in text and "homography" in text
@@ -312,3 +313,24 @@ def test_demo_says_what_its_ranking_is_on(tmp_path, capsys):
     by_max = min(others, key=lambda k: others[k]["check_max_mm"])
     if by_max != by_rms:
         assert "Ranked on the check max instead" in text
+
+
+def test_sigma_map_shows_sigma_over_the_image_with_the_region_outlined(paper_cal):
+    cal, _, _ = paper_cal
+    hull = cal.region.hull_px
+    u = np.linspace(hull[:, 0].min() - 200, hull[:, 0].max() + 200, 40)
+    v = np.linspace(hull[:, 1].min() - 200, hull[:, 1].max() + 200, 30)
+    uv = np.column_stack([g.ravel() for g in np.meshgrid(u, v)])
+    s = cal.uncertainty.sigma_mm(cal.model, uv, np.full(len(uv), cal.region.plane_z_mm)).reshape(30, 40)
+    ax = plots.plot_sigma_map(u, v, s, hull, points_px=cal.pairs.uv_px)
+    mesh = ax.collections[0]
+    np.testing.assert_allclose(np.asarray(mesh.get_array()).reshape(30, 40), s)
+    outline = ax.lines[0].get_xydata()
+    np.testing.assert_allclose(outline[:-1], hull)
+    np.testing.assert_allclose(outline[-1], hull[0])  # closed
+    assert ax.get_ylim()[0] > ax.get_ylim()[1]  # v down
+    assert "sigma_mm [mm]" in [a.get_ylabel() for a in ax.figure.axes]
+    # the corners, far from the training points, have the largest sigma
+    assert s[0, 0] > s[15, 20] and s[-1, -1] > s[15, 20]
+    with pytest.raises(InputError, match="sigma_mm must have shape"):
+        plots.plot_sigma_map(u, v, s.T, hull)

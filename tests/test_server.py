@@ -946,3 +946,104 @@ def test_verify_endpoint_and_history(client, tmp_path):
     assert [e["passed"] for e in h["entries"]] == [True, False] and h["entries"][1]["version"] == 1
     assert client.post(f"/api/calibrations/{cid}/verify",
                        json={"pairs": fresh[:2], "tolerance_mm": 1}).status_code == 422
+
+
+def _refusal(fn):
+    try:
+        fn()
+    except InputError as exc:
+        return exc
+    raise AssertionError("not refused")
+
+
+def test_horizon_refused_on_every_interface_even_when_allowed(client, tmp_path, capsys):
+    """A pixel on a homography's vanishing line (and one beyond it) maps to no meaningful robot
+    point: refused by the library, the CLI (exit 2), HTTP (422 naming the point) and TCP, with
+    allow_outside too."""
+    create(client, "h", model="homography", optimizer="lm")
+    cal = Calibration.from_dict(client.get("/api/calibrations/1").json()["calibration"])
+    H = cal.model.matrix_image_to_robot
+    v_line = float(-(H[2, 0] * 600.0 + H[2, 2]) / H[2, 1])
+    for v in (v_line, v_line + float(np.sign(v_line)) * 1e5):
+        exc = _refusal(lambda v=v: cal.map([[600.0, v]], allow_outside=True))
+        assert "maps to no finite robot point" in exc.reason and exc.field_path == "points[0]"
+        r = client.post("/api/calibrations/1/image-to-robot",
+                        json={"points": [[600, v]], "allow_outside": True})
+        assert r.status_code == 422 and r.json()["field"] == "points[0]" and exc.reason in r.json()["error"]
+        assert tcp_answer(cal, f"600,{v!r},allow".encode()) == f"ERR {exc.reason}\n".encode()
+        path = cal.save(tmp_path / "h.json")
+        code = cli_main(["apply", str(path), "--uv", "600", repr(v), "--allow-outside"])
+        out, err = capsys.readouterr()
+        assert code == 2 and out == "" and err.count("\n") == 1 and "maps to no finite robot point" in err
+
+
+@pytest.fixture(scope="module")
+def two_height_records():
+    from eyetohand.sim import Cell
+    from eyetohand.sim.simulate import simulate
+
+    sim = simulate(Cell.default(), "grid:4x4", (150.0, 200.0), n_check=0, seed=8)
+    return sim.pairs.to_records()
+
+
+@pytest.mark.parametrize("model", ["dlt3d", "camera"])
+def test_multi_height_z_range_on_every_interface(client, tmp_path, capsys, two_height_records, model):
+    """A z beyond the calibrated range (150..200 mm, margin 12.5 mm) is refused by the library, the
+    CLI, HTTP and TCP with the same words; allowed, it is mapped and flagged inside = false."""
+    r = client.post("/api/calibrations", json={"name": model, "pairs": two_height_records, "model": model,
+                                               "optimizer": "lm"})
+    assert r.status_code == 201, r.text
+    cid = r.json()["id"]
+    cal = Calibration.from_dict(client.get(f"/api/calibrations/{cid}").json()["calibration"])
+    c = cal.region.hull_px.mean(axis=0)
+    u, v = float(c[0]), float(c[1])
+    exc = _refusal(lambda: cal.map([[u, v]], 260.0))
+    assert "outside the calibrated heights: z = 260 mm, calibrated 150..200 mm" in exc.reason
+    assert exc.field_path == "points[0].z"
+    url = f"/api/calibrations/{cid}/image-to-robot"
+    r = client.post(url, json={"points": [[u, v]], "z": 260})
+    assert r.status_code == 422 and r.json()["field"] == "points[0].z" and exc.reason in r.json()["error"]
+    assert tcp_answer(cal, f"{u!r},{v!r},260".encode()) == f"ERR {exc.reason}\n".encode()
+    path = cal.save(tmp_path / "m.json")
+    code = cli_main(["apply", str(path), "--uv", repr(u), repr(v), "--z", "260"])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == "" and err.count("\n") == 1 and exc.reason in err
+    # allowed: mapped and flagged, the same on every interface
+    m = cal.map([[u, v]], 260.0, allow_outside=True)
+    assert not m.inside[0] and m.xyz_mm[0, 2] == 260.0
+    r = client.post(url, json={"points": [[u, v]], "z": 260, "allow_outside": True})
+    assert r.status_code == 200 and r.json()["inside"] == [False]
+    assert np.abs(np.array(r.json()["points"]) - m.xyz_mm).max() <= 1e-9
+    fields = tcp_answer(cal, f"{u!r},{v!r},260,allow".encode()).decode().strip().split(",")
+    assert fields[-1] == "OUTSIDE" and abs(float(fields[0]) - m.xyz_mm[0, 0]) <= 1e-9
+    code = cli_main(["apply", str(path), "--uv", repr(u), repr(v), "--z", "260", "--allow-outside", "--json"])
+    out, err = capsys.readouterr()
+    rec = json.loads(out)["points"][0]
+    assert code == 0 and rec["inside"] is False and "warning: 1 point(s) outside" in err
+    # inside the range: answered, inside
+    assert cal.map([[u, v]], 175.0).inside[0]
+
+
+def test_apply_json_equals_the_http_mapping(client, tmp_path, capsys):
+    create(client, "j", model="homography", optimizer="lm")
+    body = client.get("/api/calibrations/1").json()["calibration"]
+    path = Calibration.from_dict(body).save(tmp_path / "j.json")
+    cal = Calibration.load(path)
+    c = cal.region.hull_px.mean(axis=0)
+    pts = [[600.0, 900.0], [float(c[0]) + 0.125, float(c[1]) - 3.5], [float(c[0]) - 20.25, float(c[1])]]
+    src = tmp_path / "pts.csv"
+    rows = [f"{u!r},{v!r},{a}\n" for (u, v), a in zip(pts, (0, 30, -75), strict=True)]
+    src.write_text("u,v,angle\n" + "".join(rows))
+    code = cli_main(["apply", str(path), str(src), "--json", "--symmetry", "2"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    cli = json.loads(out)["points"]
+    r = client.post("/api/calibrations/1/image-to-robot", json={"points": pts, "angles": [0, 30, -75],
+                                                                "symmetry": 2})
+    api = r.json()
+    assert code == 0 and r.status_code == 200
+    xyz = np.array([[p["x"], p["y"], p["z"]] for p in cli])
+    assert np.abs(xyz - np.array(api["points"])).max() <= 1e-9
+    assert np.abs(np.array([p["rz"] for p in cli]) - np.array(api["rz_deg"])).max() <= 1e-9
+    assert np.abs(np.array([p["sigma_mm"] for p in cli]) - np.array(api["sigma_mm"])).max() <= 1e-12
+    assert [p["inside"] for p in cli] == api["inside"]

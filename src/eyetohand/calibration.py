@@ -154,7 +154,8 @@ class Calibration:
         single-height model refuses a z off its plane (``region.PLANE_TOLERANCE_MM``). A point beyond
         the region's margin, a height beyond the calibrated range, or a non-finite result is refused
         with :class:`~eyetohand.region.OutsideError` / :class:`InputError` naming the point, unless
-        ``allow_outside`` (then ``inside`` is False for it; a non-finite result is always refused).
+        ``allow_outside`` (then ``inside`` is False for it; a non-finite result, or one on or beyond
+        the model's horizon, is always refused).
         ``angle_deg``: image angles (deg, from +u towards +v) → ``rz_deg`` (see
         :mod:`eyetohand.orientation`), folded by ``symmetry``; ``tool_rz_offset_deg`` makes rz the
         gripper's command.
@@ -179,6 +180,8 @@ class Calibration:
             inside, outside = self.region.check(uv, z, allow_outside=allow_outside)
         xyz = np.ascontiguousarray(self.model.image_to_robot(uv, z))
         bad = ~np.isfinite(xyz).all(axis=1)
+        if not bad.any() and self.region is not None and (outside > 0).any():
+            bad[outside > 0] = self._beyond_horizon(uv[outside > 0], None if z is None else z[outside > 0])
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise InputError(
@@ -207,6 +210,19 @@ class Calibration:
             zs = xyz[:, 2] if self.model.height_rule is not HeightRule.COMPUTED else np.zeros(n)
             sigma = self.uncertainty.sigma_mm(self.model, uv, zs)
         return Mapped(uv, xyz, rz, sigma, inside, outside)
+
+    HORIZON_SCALE_RATIO = 1e3
+
+    def _beyond_horizon(self, uv: np.ndarray, z) -> np.ndarray:
+        """(N,) True for points (outside the region) on or beyond the model's horizon: the local
+        map flips handedness there (a homography's det J = det H / w³ changes sign with w) or its
+        scale explodes (beyond ``HORIZON_SCALE_RATIO`` × the region centre's), where the answer is a
+        finite number that means nothing."""
+        with np.errstate(all="ignore"):
+            det = np.linalg.det(local_jacobian(self._map_xy_each(z), uv))
+            ref = np.linalg.det(local_jacobian(self._map_xy(None), self._centre()))[0]
+            ratio = np.sqrt(np.abs(det / ref))
+        return ~np.isfinite(det) | (np.sign(det) != np.sign(ref)) | ~(ratio < self.HORIZON_SCALE_RATIO)
 
     def _map_xy_each(self, z):
         """A (M, 2) → (M, 2) map for the Jacobian of N points (M = 4N), each at its own z."""

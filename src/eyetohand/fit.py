@@ -37,7 +37,7 @@ from .records import TcpOffset
 from .region import CalibratedRegion
 from .solvers import check_optimizer, get_solver, refine
 from .tcp_offset import correct_pairs, estimate_tcp_offset, has_turns, reference_pairs
-from .uncertainty import Uncertainty
+from .uncertainty import Uncertainty, pair_leverage
 
 AUTO_TOLERANCE = 0.02
 SPARE_EQUATIONS = 8
@@ -348,7 +348,8 @@ def calibrate(
         notes.append(f"{model}: {fitted.init_note}")
     if fitted.height_rule is HeightRule.PLANE:
         notes.append(f"single-height model: x, y are mapped on the plane z = {fitted.plane_z_mm:g} mm")
-    train = stats_from_residuals(fitted.residuals(pairs.uv_px, pairs.xyz_mm), pairs.ids)
+    lev = pair_leverage(fitted, pairs.uv_px, pairs.xyz_mm)
+    train = stats_from_residuals(fitted.residuals(pairs.uv_px, pairs.xyz_mm), pairs.ids, leverage=lev)
     loo_stats = None
     if loo and len(pairs) > fitted.min_pairs:
         loo_opt = solver.for_cross_validation(objective)
@@ -362,7 +363,7 @@ def calibrate(
                 full = fitted if loo_opt == optimizer else None
                 res = cross_validate(pairs, model, loo_opt, objective, image_size=image_size, seed=cv_seed,
                                      full=full)
-            loo_stats = stats_from_residuals(res, pairs.ids)
+            loo_stats = stats_from_residuals(res, pairs.ids, leverage=lev, held_out=True)
             if loo_opt != optimizer:
                 notes.append(f"leave-one-out refits used optimizer '{loo_opt}'")
         except InputError as exc:

@@ -27,6 +27,10 @@ OPTIONAL = ("z", "id", "angle")
 MAX_FILE_BYTES = 200 * 1024 * 1024
 
 
+ROBOT_UNITS = {"mm": 1.0, "m": 1000.0, "in": 25.4}
+"""Robot coordinate units :meth:`PointPairs.scaled_to_mm` converts, and their size in mm."""
+
+
 @dataclass(frozen=True, eq=False)
 class PointPairs:
     """Immutable arrays of pairs: ``uv_px`` (N, 2), ``xyz_mm`` (N, 3), ``ids`` (N,) strings.
@@ -108,6 +112,19 @@ class PointPairs:
             self.source,
             ang,
             self.notes,
+        )
+
+    def scaled_to_mm(self, units: str) -> PointPairs:
+        """These pairs with robot coordinates given in ``units`` (``ROBOT_UNITS``: mm, m, in)
+        converted to mm; a note records the conversion. ``"mm"`` returns the pairs unchanged."""
+        if units not in ROBOT_UNITS:
+            raise InputError(f"robot units {units!r} not known; expected one of {', '.join(ROBOT_UNITS)}")
+        if units == "mm":
+            return self
+        f = ROBOT_UNITS[units]
+        note = f"{self.source}: robot x, y, z read in {units} and converted to mm (× {f:g})"
+        return PointPairs(
+            self.uv_px, self.xyz_mm * f, self.ids, self.source, self.angle_deg, (*self.notes, note)
         )
 
     def sha256(self) -> str:

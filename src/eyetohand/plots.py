@@ -22,6 +22,7 @@ __all__ = [
     "plot_model_comparison",
     "plot_point_errors",
     "plot_residual_vectors",
+    "plot_sigma_map",
     "nice_step",
 ]
 
@@ -351,6 +352,66 @@ def plot_model_comparison(rows: Sequence[Mapping], ax=None, *, title: str | None
     ax.grid(True, axis="x", alpha=0.35)
     ax.set_axisbelow(True)
     ax.legend(fontsize=8, loc="lower right")
+    if title:
+        ax.set_title(title)
+    return ax
+
+
+# ------------------------------------------------------------------ where a calibration can be trusted
+
+
+def plot_sigma_map(
+    u_px,
+    v_px,
+    sigma_mm,
+    hull_px,
+    ax=None,
+    *,
+    margin_hull_px=None,
+    points_px=None,
+    image_size: tuple[int, int] | None = None,
+    title: str | None = "Predicted error sigma_mm over the image",
+):
+    """sigma_mm (mm) as a colour map over the image, the calibrated region outlined.
+
+    ``u_px`` (W,), ``v_px`` (H,): the grid's pixel coordinates; ``sigma_mm`` (H, W) (NaN where the
+    map has no answer). ``hull_px`` (K, 2): the training pixels' hull, drawn closed; optional
+    ``margin_hull_px`` the hull grown by the margin (dashed: beyond it mappings are refused);
+    ``points_px`` (N, 2) the training pixels. Image axes: u right, v down, equal aspect. Returns
+    the axes."""
+    u = np.asarray(u_px, float)
+    v = np.asarray(v_px, float)
+    s = np.asarray(sigma_mm, float)
+    if s.shape != (len(v), len(u)):
+        raise InputError(f"sigma_mm must have shape ({len(v)}, {len(u)}), got {s.shape}")
+    hull = np.asarray(hull_px, float)
+    if hull.ndim != 2 or hull.shape[1] != 2 or len(hull) < 3:
+        raise InputError("hull_px must be three or more (u, v) points")
+    if ax is None:
+        ax = _new_axes((7.2, 5.4))
+    finite = s[np.isfinite(s)]
+    vmax = float(np.percentile(finite, 99)) if finite.size else 1.0
+    mesh = ax.pcolormesh(u, v, s, shading="nearest", cmap="viridis", vmin=0.0, vmax=vmax)
+    ax.figure.colorbar(mesh, ax=ax, label="sigma_mm [mm]")
+    closed = np.vstack([hull, hull[:1]])
+    ax.plot(closed[:, 0], closed[:, 1], color="white", lw=2.0, label="calibrated region (training hull)")
+    if margin_hull_px is not None:
+        m = np.asarray(margin_hull_px, float)
+        m = np.vstack([m, m[:1]])
+        ax.plot(m[:, 0], m[:, 1], color="white", lw=1.0, ls="--", label="+ margin: refused beyond")
+    if points_px is not None:
+        pts = np.asarray(points_px, float)
+        ax.plot(pts[:, 0], pts[:, 1], "o", ms=3, color="#D55E00", label="training pairs")
+    if image_size is not None:
+        ax.set_xlim(-0.5, image_size[0] - 0.5)
+        ax.set_ylim(image_size[1] - 0.5, -0.5)
+    else:
+        ax.set_xlim(u.min(), u.max())
+        ax.set_ylim(v.max(), v.min())
+    ax.set_aspect("equal")
+    ax.set_xlabel("u [px]")
+    ax.set_ylabel("v [px]")
+    ax.legend(loc="upper right", fontsize="small", framealpha=0.7)
     if title:
         ax.set_title(title)
     return ax

@@ -433,6 +433,7 @@ def build_report(calibration: Calibration, check_pairs: PointPairs | None = None
     doc.figure("train_errors.png", ax, "Fit residual of each training point and, when computed, its "
                "leave-one-out error (the point predicted by a fit without it).")
     _residual_plot(doc, cal, [(train_label, train_pairs), ("check", check_pairs)])
+    _sigma_map(doc, cal)
 
     doc.h2("Per point residuals", "points")
     if check is not None:
@@ -486,6 +487,54 @@ def _residual_plot(doc: _Doc, cal: Calibration, sets: list[tuple[str, PointPairs
                f"(px), arrows magnified {scale:.3g} px per mm (see the key); arrows point in the "
                f"{directions}. A systematic pattern (rotation, radial flow) means the model misses "
                "something; random directions mean measurement noise.")
+
+
+SIGMA_GRID = 120
+
+
+def _sigma_map(doc: _Doc, cal: Calibration) -> None:
+    """sigma_mm over the image with the calibrated region outlined: where it can be trusted."""
+    from . import plots
+    from .models import HeightRule
+
+    if cal.region is None or cal.uncertainty is None:
+        doc.p("No sigma map: this calibration records no calibrated region or uncertainty "
+              "(a pre-0.2 file).", "muted")
+        return
+    hull = cal.region.hull_px
+    if cal.image_size is not None:
+        w, h = cal.image_size
+        lo, hi = np.array([0.0, 0.0]), np.array([w - 1.0, h - 1.0])
+    else:
+        span = hull.max(axis=0) - hull.min(axis=0)
+        lo, hi = hull.min(axis=0) - 0.25 * span, hull.max(axis=0) + 0.25 * span
+    n_u = SIGMA_GRID
+    n_v = max(int(round(SIGMA_GRID * (hi[1] - lo[1]) / max(hi[0] - lo[0], 1e-9))), 2)
+    u, v = np.linspace(lo[0], hi[0], n_u), np.linspace(lo[1], hi[1], n_v)
+    uv = np.column_stack([g.ravel() for g in np.meshgrid(u, v)])
+    if cal.region.plane_z_mm is not None:
+        z, where = cal.region.plane_z_mm, f"on the plane z = {cal.region.plane_z_mm:g} mm"
+    else:
+        lo_z, hi_z = cal.region.z_range_mm or (0.0, 0.0)
+        z, where = 0.5 * (lo_z + hi_z), f"at z = {0.5 * (lo_z + hi_z):g} mm, mid calibrated range"
+    zq = np.zeros(len(uv)) if cal.model.height_rule is HeightRule.COMPUTED else np.full(len(uv), z)
+    with np.errstate(all="ignore"):
+        s = cal.uncertainty.sigma_mm(cal.model, uv, zq).reshape(n_v, n_u)
+    pts = cal.fitted_pairs.uv_px if cal.fitted_pairs is not None else None
+    ax = plots.plot_sigma_map(u, v, s, hull, points_px=pts, image_size=cal.image_size,
+                              margin_hull_px=_grown(hull, cal.region.margin_px))
+    inner = s.ravel()[cal.region.outside_px(uv) <= cal.region.margin_px]
+    rng = f"{np.nanmin(inner):.4f}–{np.nanmax(inner):.4f} mm" if inner.size else "–"
+    doc.figure("sigma_map.png", ax, f"Where this calibration can be trusted: the predicted error "
+               f"sigma_mm of a mapped point ({where}), the calibrated region (training hull) in white "
+               f"and its margin dashed — mappings beyond it are refused. Inside: {rng}.")
+
+
+def _grown(hull: np.ndarray, margin_px: float) -> np.ndarray:
+    """The hull's outline moved out by ``margin_px`` (vertices pushed along their bisectors)."""
+    c = hull.mean(axis=0)
+    d = hull - c
+    return hull + margin_px * d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
 
 
 def _write_all(out_dir: str | os.PathLike, html_text: str, files: Mapping[str, bytes]) -> Path:

@@ -6,7 +6,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..evaluate import evaluate
-from ..pairs import load_image_points, load_pairs
+from ..pairs import ROBOT_UNITS, load_image_points, load_pairs
 from .common import (
     CliError,
     add_fit_options,
@@ -23,8 +23,8 @@ def cmd_calibrate(args) -> int:
         from ..io import check_output_path
 
         check_output_path(args.output)
-    pairs = load_pairs(args.pairs)
-    check = load_pairs(args.check) if args.check else None
+    pairs = load_pairs(args.pairs).scaled_to_mm(args.robot_units)
+    check = load_pairs(args.check).scaled_to_mm(args.robot_units) if args.check else None
     return run_calibration(args, pairs, check)
 
 
@@ -130,6 +130,12 @@ def register(sub) -> None:
     p = sub.add_parser("calibrate", help="fit an image-to-robot calibration from point pairs")
     p.add_argument("pairs", help="CSV (u,v,x,y[,z][,id]) or JSON of point pairs")
     p.add_argument("--check", help="check pairs, not used for fitting")
+    p.add_argument(
+        "--robot-units",
+        choices=sorted(ROBOT_UNITS),
+        default="mm",
+        help="units of the robot x, y, z in the pairs (and --check): converted to mm before fitting",
+    )
     add_fit_options(p)
     p.set_defaults(func=cmd_calibrate)
 

@@ -78,6 +78,7 @@ def calibration_summary(cal: Calibration) -> dict:
         "train": cal.train.to_dict(),
         "loo": cal.loo.to_dict() if cal.loo else None,
         "notes": list(cal.notes),
+        "warnings": list(cal.warnings),
         "selection": cal.selection,
         "tcp_offset": cal.tcp_offset.to_dict() if cal.tcp_offset else None,
         "condition_number": cal.model.condition_number,
@@ -109,11 +110,19 @@ def print_calibration(cal: Calibration, output: str | None) -> None:
     if cal.check:
         print(stats_line("check", cal.check))
         print_points(cal.check)
-    for s in (cal.train, cal.check):
-        if s is not None and s.outliers:
-            print(f"outliers (> 3 robust sigma): {', '.join(s.outliers)}")
+    for line in outlier_lines(cal):
+        print(line)
     if output:
         print(f"wrote {output}")
+
+
+def outlier_lines(cal: Calibration) -> list[str]:
+    """``outliers: ids 5, 12 (training)`` per set that flags any (the test: evaluate.py)."""
+    out = []
+    for label, s in (("training", cal.train), ("leave-one-out", cal.loo), ("check", cal.check)):
+        if s is not None and s.outliers:
+            out.append(f"outliers: ids {', '.join(s.outliers)} ({label})")
+    return out
 
 
 def print_points(s) -> None:
@@ -144,6 +153,8 @@ def run_calibration(args, pairs, check, extra: dict | None = None) -> int:
         cal.save(args.output)
     for note in cal.notes:
         print(f"note: {note}", file=sys.stderr)
+    for warning in cal.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     if args.json:
         out = calibration_summary(cal)
         out.update(extra or {})
