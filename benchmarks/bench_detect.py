@@ -55,15 +55,21 @@ def scenes(n: int, seed: int = 0, image_size=(2448, 2048)):
     rng = np.random.default_rng(seed)
     w, h = image_size
     for _ in range(n):
-        cam = Camera.looking_down(image_size, focal_px=4637.7 * w / 2448, tilt_deg=rng.uniform(0, 20),
-                                  tilt_direction_deg=rng.uniform(0, 360), yaw_deg=rng.uniform(0, 360))
+        cam = Camera.looking_down(
+            image_size,
+            focal_px=4637.7 * w / 2448,
+            tilt_deg=rng.uniform(0, 20),
+            tilt_direction_deg=rng.uniform(0, 360),
+            yaw_deg=rng.uniform(0, 360),
+        )
         # a place in the central 80 % of the view: back-project a random pixel onto z = 0
         uv = rng.uniform([0.1 * w, 0.1 * h], [0.9 * w, 0.9 * h])
         xy = cam.image_to_robot(uv, 0.0)[:2]
         blur = rng.uniform(0.6, 1.4)
         noise = rng.uniform(1.0, 3.0)
-        img, truth = render(cam, (xy[0], xy[1], 0.0), angle_deg=rng.uniform(0, 180), blur_px=blur,
-                            noise=noise / 255, rng=rng)
+        img, truth = render(
+            cam, (xy[0], xy[1], 0.0), angle_deg=rng.uniform(0, 180), blur_px=blur, noise=noise / 255, rng=rng
+        )
         yield img, truth, blur, noise
 
 
@@ -109,11 +115,21 @@ def run(n: int, seed: int = 0) -> dict:
         if kps:
             dists = [error(k.pt) for k in kps]
             theirs = min(dists) if min(dists) < 5 else None
-        rows.append({"blur_px": blur, "noise": noise, "sbd_px": theirs, "sbd_s": t2 - t1,
-                     "ours_px": error((d.u, d.v)) if d.ok else None, "ours_s": t1 - t0,
-                     "edge_px": error((e.u, e.v)) if e.ok else None, "edge_s": t3 - t2,
-                     "moments_px": error(mom) if mom else None, "moments_s": t4 - t2,
-                     "bias_px": truth.perspective_bias_px})
+        rows.append(
+            {
+                "blur_px": blur,
+                "noise": noise,
+                "sbd_px": theirs,
+                "sbd_s": t2 - t1,
+                "ours_px": error((d.u, d.v)) if d.ok else None,
+                "ours_s": t1 - t0,
+                "edge_px": error((e.u, e.v)) if e.ok else None,
+                "edge_s": t3 - t2,
+                "moments_px": error(mom) if mom else None,
+                "moments_s": t4 - t2,
+                "bias_px": truth.perspective_bias_px,
+            }
+        )
     return summarise(rows)
 
 
@@ -122,9 +138,13 @@ def summarise(rows) -> dict:
     for k in ("ours", "sbd", "edge", "moments"):
         e = np.array([r[f"{k}_px"] for r in rows if r[f"{k}_px"] is not None])
         t = np.array([r[f"{k}_s"] for r in rows])
-        out[k] = {"found": int(len(e)), "median_px": float(np.median(e)) if len(e) else None,
-                  "p95_px": float(np.percentile(e, 95)) if len(e) else None,
-                  "max_px": float(e.max()) if len(e) else None, "median_ms": float(1000 * np.median(t))}
+        out[k] = {
+            "found": int(len(e)),
+            "median_px": float(np.median(e)) if len(e) else None,
+            "p95_px": float(np.percentile(e, 95)) if len(e) else None,
+            "max_px": float(e.max()) if len(e) else None,
+            "median_ms": float(1000 * np.median(t)),
+        }
     if out["ours"]["median_px"] is not None and out["sbd"]["median_px"]:
         out["error_ratio"] = out["ours"]["median_px"] / out["sbd"]["median_px"]
     out["time_ratio"] = out["ours"]["median_ms"] / out["sbd"]["median_ms"]
@@ -139,8 +159,12 @@ STRESS = {  # name: (Target keywords, render keywords, tilt max deg, share of th
     "tilt 0-25 deg, k1 -0.2 lens": ({}, {}, 25, 0.8),
     "near the corners, vignetting 0.5": ({}, {"vignetting": 0.5}, 25, 0.96),
     "strip 6 mm (0.5 mm margin)": ({"strip_width_mm": 6.0}, {}, 25, 0.8),
-    "bright circle on dark strip": ({"circle_level": 0.9, "strip_level": 0.2, "belt_level": 0.5}, {},
-                                    25, 0.8),
+    "bright circle on dark strip": (
+        {"circle_level": 0.9, "strip_level": 0.2, "belt_level": 0.5},
+        {},
+        25,
+        0.8,
+    ),
     "low contrast (0.55 on 0.75)": ({"circle_level": 0.55, "strip_level": 0.75}, {}, 25, 0.8),
     "blur 2.5 px, noise 5": ({}, {"blur_px": 2.5, "noise": 5 / 255}, 25, 0.8),
     "16 bits": ({}, {"bits": 16}, 25, 0.8),
@@ -164,13 +188,22 @@ def stress(n: int, seed: int = 5) -> None:
     for name, (tk, rk, tilt, share) in STRESS.items():
         errs, fails = [], []
         for _ in range(n):
-            cam = Camera.looking_down(tilt_deg=rng.uniform(0, tilt), tilt_direction_deg=rng.uniform(0, 360),
-                                      yaw_deg=rng.uniform(0, 360), dist=(-0.2, 0.15, 5e-4, -3e-4, 0.0))
+            cam = Camera.looking_down(
+                tilt_deg=rng.uniform(0, tilt),
+                tilt_direction_deg=rng.uniform(0, 360),
+                yaw_deg=rng.uniform(0, 360),
+                dist=(-0.2, 0.15, 5e-4, -3e-4, 0.0),
+            )
             w, h = cam.image_size
             lo, hi = (1 - share) / 2, (1 + share) / 2
             xy = cam.image_to_robot(rng.uniform([lo * w, lo * h], [hi * w, hi * h]), 0.0)
-            kw = {"angle_deg": rng.uniform(0, 180), "blur_px": rng.uniform(0.6, 1.4),
-                  "noise": rng.uniform(1, 3) / 255, "vignetting": 0.25, **rk}
+            kw = {
+                "angle_deg": rng.uniform(0, 180),
+                "blur_px": rng.uniform(0.6, 1.4),
+                "noise": rng.uniform(1, 3) / 255,
+                "vignetting": 0.25,
+                **rk,
+            }
             img, truth = render(cam, xy, target=Target(**tk), rng=rng, **kw)
             d = detect_target(img)
             if d.ok:
@@ -198,26 +231,40 @@ def main(argv=None) -> int:
     if args.json:
         print(json.dumps(res))
         return 0
-    print(f"{n} rendered 2448x2048 images, blur 0.6-1.4 px, noise 1-3 grey levels; error vs the imaged "
-          "ellipse's centre (px)")
+    print(
+        f"{n} rendered 2448x2048 images, blur 0.6-1.4 px, noise 1-3 grey levels; error vs the imaged "
+        "ellipse's centre (px)"
+    )
     print(f"{'detector':<22} {'found':>7} {'median':>8} {'p95':>8} {'max':>8} {'ms/image':>9}")
-    for k, label in (("ours", "eyetohand.detect"), ("sbd", "SimpleBlobDetector"),
-                     ("edge", "edge points only"), ("moments", "moments (ablation)")):
+    for k, label in (
+        ("ours", "eyetohand.detect"),
+        ("sbd", "SimpleBlobDetector"),
+        ("edge", "edge points only"),
+        ("moments", "moments (ablation)"),
+    ):
         s = res[k]
-        print(f"{label:<22} {s['found']:>3}/{n:<3} {_f(s['median_px'])} {_f(s['p95_px'])} {_f(s['max_px'])} "
-              f"{s['median_ms']:9.1f}")
+        print(
+            f"{label:<22} {s['found']:>3}/{n:<3} {_f(s['median_px'])} {_f(s['p95_px'])} {_f(s['max_px'])} "
+            f"{s['median_ms']:9.1f}"
+        )
     if "error_ratio" in res:
-        print(f"ratio ours/SimpleBlobDetector: median error {res['error_ratio']:.3f}, "
-              f"time {res['time_ratio']:.2f}")
+        print(
+            f"ratio ours/SimpleBlobDetector: median error {res['error_ratio']:.3f}, "
+            f"time {res['time_ratio']:.2f}"
+        )
     o = res["ours"]
-    checks = [("every target found", o["found"] == n),
-              ("no error above 0.06 px", o["max_px"] is not None and o["max_px"] <= 0.06),
-              ("median error <= 0.7x SimpleBlobDetector's", res.get("error_ratio", np.inf) <= 0.7),
-              ("time per image <= SimpleBlobDetector's", res["time_ratio"] <= 1.0)]
+    checks = [
+        ("every target found", o["found"] == n),
+        ("no error above 0.06 px", o["max_px"] is not None and o["max_px"] <= 0.06),
+        ("median error <= 0.7x SimpleBlobDetector's", res.get("error_ratio", np.inf) <= 0.7),
+        ("time per image <= SimpleBlobDetector's", res["time_ratio"] <= 1.0),
+    ]
     print("claims: " + "; ".join(f"{label}: {'yes' if ok else 'NO'}" for label, ok in checks))
     bias = np.array([r["bias_px"] for r in res["rows"]])
-    print(f"(perspective bias, imaged ellipse's centre vs image of the circle's centre: median "
-          f"{np.median(bias):.4f} px, max {bias.max():.4f} px)")
+    print(
+        f"(perspective bias, imaged ellipse's centre vs image of the circle's centre: median "
+        f"{np.median(bias):.4f} px, max {bias.max():.4f} px)"
+    )
     return 0
 
 

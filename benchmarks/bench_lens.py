@@ -16,8 +16,10 @@ import numpy as np
 
 from eyetohand.camera import Camera
 
-LENSES = {"strong, tangential + k3": (-0.28, 0.12, 1.5e-3, -8e-4, -0.02),
-          "radial only": (-0.08, 0.12, 0.0, 0.0, 0.0)}
+LENSES = {
+    "strong, tangential + k3": (-0.28, 0.12, 1.5e-3, -8e-4, -0.02),
+    "radial only": (-0.08, 0.12, 0.0, 0.0, 0.0),
+}
 
 
 def _best_s(fn, number: int) -> float:
@@ -39,12 +41,15 @@ def main(argv=None) -> int:
             ours_i = _best_s(lambda uv=uv, cam=cam: cam.image_to_robot(uv, 10.0), number)
             ocv_i = _best_s(lambda uv=uv, K=K, d=d: cv2.undistortPoints(uv.reshape(-1, 1, 2), K, d), number)
             ours_p = _best_s(lambda xyz=xyz, cam=cam: cam.robot_to_image(xyz), number)
-            ocv_p = _best_s(lambda xyz=xyz, K=K, d=d, rvec=rvec, t=t: cv2.projectPoints(xyz, rvec, t, K, d),
-                            number)
+            ocv_p = _best_s(
+                lambda xyz=xyz, K=K, d=d, rvec=rvec, t=t: cv2.projectPoints(xyz, rvec, t, K, d), number
+            )
             unit, scale = ("us", 1e6) if n == 1 else ("ms", 1e3)
-            print(f"{label:24s} N={n:<7d} image_to_robot {ours_i * scale:8.2f} {unit} "
-                  f"({ours_i / ocv_i:5.2f}x undistortPoints)   robot_to_image {ours_p * scale:8.2f} {unit} "
-                  f"({ours_p / ocv_p:5.2f}x projectPoints)")
+            print(
+                f"{label:24s} N={n:<7d} image_to_robot {ours_i * scale:8.2f} {unit} "
+                f"({ours_i / ocv_i:5.2f}x undistortPoints)   robot_to_image {ours_p * scale:8.2f} {unit} "
+                f"({ours_p / ocv_p:5.2f}x projectPoints)"
+            )
     return 0
 
 

@@ -80,11 +80,14 @@ def main() -> None:
     K, dist, rvec, tvec, R, centre = _camera()
     plane = _pairs(K, dist, rvec, tvec, (0.0,))
     multi = _pairs(K, dist, rvec, tvec, (0.0, 40.0))
-    cals = {name: calibrate(plane, name, "lm", loo=False, image_size=(2448, 2048))
-            for name in ("affine", "homography", "homography-radial")}
+    cals = {
+        name: calibrate(plane, name, "lm", loo=False, image_size=(2448, 2048))
+        for name in ("affine", "homography", "homography-radial")
+    }
     plane_z = plane.xyz_mm[:, 2] + 10.0  # the paper's B needs a plane off z = 0
-    cals["paper"] = calibrate(PointPairs.from_arrays(plane.uv_px, np.c_[plane.xyz_mm[:, :2], plane_z]),
-                              "paper", "lm", loo=False)
+    cals["paper"] = calibrate(
+        PointPairs.from_arrays(plane.uv_px, np.c_[plane.xyz_mm[:, :2], plane_z]), "paper", "lm", loo=False
+    )
     cals["camera"] = calibrate(multi, "camera", "lm", loo=False, image_size=(2448, 2048))
     uv1 = plane.uv_px.mean(axis=0)
     H = cals["homography"].model.matrix_image_to_robot
@@ -103,23 +106,29 @@ def main() -> None:
         m = cal.model
         z = 20.0 if name == "camera" else None
         t = _best_us(lambda m=m, z=z: m.image_to_robot(uv1, z), n1, rep)
-        print(f"   {name:18s} {t:7.2f} µs  (goal ≤ {targets[name]} µs; "
-              f"{t / floor_np:.1f}× NumPy's matrix product)")
+        print(
+            f"   {name:18s} {t:7.2f} µs  (goal ≤ {targets[name]} µs; "
+            f"{t / floor_np:.1f}× NumPy's matrix product)"
+        )
 
     print(f"2. 10⁶ points (ms, median of {rep}); ratio = eyetohand / OpenCV, goal ≤ 1.5")
     for threads in (1, 2):
         env = {**os.environ, **{v: str(threads) for v in BLAS_VARS}}
         cmd = [sys.executable, __file__, "--big-only", str(threads)] + (["--quick"] if args.quick else [])
-        print(subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, check=True).stdout,
-              end="")
+        print(
+            subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, check=True).stdout,
+            end="",
+        )
 
     print("3. one guarded point, Calibration.map (µs per call)")
     cal = cals["homography"]
     t_plain = _best_us(lambda: cal.model.image_to_robot(uv1), n1, rep)
     t_guard = _best_us(lambda: cal.map(uv1, with_sigma=False), n1 // 2, rep)
     t_sigma = _best_us(lambda: cal.map(uv1), n1 // 2, rep)
-    print(f"   model {t_plain:.1f} µs; guarded {t_guard:.1f} µs; "
-          f"guarded with sigma {t_sigma:.1f} µs (goal ≤ 60)")
+    print(
+        f"   model {t_plain:.1f} µs; guarded {t_guard:.1f} µs; "
+        f"guarded with sigma {t_sigma:.1f} µs (goal ≤ 60)"
+    )
 
 
 def _big(args, cals, plane, K, H, threads: int) -> None:
@@ -160,7 +169,6 @@ def _big(args, cals, plane, K, H, threads: int) -> None:
         ours = _ms(lambda m=m, z=z: m.image_to_robot(big, z), rep)
         peer = _ms(peers[name], rep)
         print(f"   BLAS {threads}: {name:18s} {ours:7.1f} ms  OpenCV {peer:6.1f} ms  ratio {ours / peer:.2f}")
-
 
 
 if __name__ == "__main__":

@@ -66,8 +66,10 @@ def main(argv=None) -> int:
             old += bool(o.any())
         rate = new / args.sets
         ok &= rate <= 0.01
-        print(f"clean sets of {n:>2} pairs: false alarm {rate:6.2%} of {args.sets} sets "
-              f"(old 3-MAD rule {old / args.sets:6.2%})")
+        print(
+            f"clean sets of {n:>2} pairs: false alarm {rate:6.2%} of {args.sets} sets "
+            f"(old 3-MAD rule {old / args.sets:6.2%})"
+        )
     hit = hit_old = extra = 0
     for k in range(args.sets):
         f, o, bad = one_set(25, 7_000_000 + k, bad_mm=1.0)
@@ -76,8 +78,10 @@ def main(argv=None) -> int:
         extra += bool(np.delete(f, bad).any())
     rate = hit / args.sets
     ok &= rate >= 0.95
-    print(f"one 1 mm bad pair among 25: detected in {rate:6.2%} of {args.sets} sets "
-          f"(old rule {hit_old / args.sets:6.2%}); another pair flagged too in {extra / args.sets:6.2%}")
+    print(
+        f"one 1 mm bad pair among 25: detected in {rate:6.2%} of {args.sets} sets "
+        f"(old rule {hit_old / args.sets:6.2%}); another pair flagged too in {extra / args.sets:6.2%}"
+    )
     verdict = "PASS" if ok else "FAIL"
     print(f"{time.perf_counter() - t0:.0f} s; {verdict} (false alarm <= 1 %, detection >= 95 %)")
     return 0 if ok else 1

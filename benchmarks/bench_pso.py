@@ -70,9 +70,7 @@ def planar_start(uv: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     z0 = float(xyz[:, 2].mean())
     design = np.column_stack([xyz[:, :2], np.ones(len(xyz))])
     a, *_ = np.linalg.lstsq(design, uv, rcond=None)  # (3, 2)
-    return np.array(
-        [a[0, 0], a[1, 0], 0.0, a[2, 0], a[0, 1], a[1, 1], 0.0, a[2, 1], 0.0, 0.0, 1 / z0, 0.0]
-    )
+    return np.array([a[0, 0], a[1, 0], 0.0, a[2, 0], a[0, 1], a[1, 1], 0.0, a[2, 1], 0.0, 0.0, 1 / z0, 0.0])
 
 
 def own_forward(bs: np.ndarray, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -95,8 +93,7 @@ def pick_forward(b0, uv, xyz):
     except Exception:  # no models package yet, or no 'paper' model in it
         return own_forward, "benchmark's own equation (13) (np.linalg.inv + einsum)"
     probe = b0 * (1 + 1e-4 * np.random.default_rng(0).standard_normal((4, b0.size)))
-    if not np.allclose(fwd(probe, uv, xyz[:, 2]), own_forward(probe, uv, xyz[:, 2]),
-                       rtol=1e-9, atol=1e-9):
+    if not np.allclose(fwd(probe, uv, xyz[:, 2]), own_forward(probe, uv, xyz[:, 2]), rtol=1e-9, atol=1e-9):
         raise RuntimeError("eyetohand.models 'paper' disagrees with equation (13)")
     return fwd, "eyetohand.models 'paper' batch_image_to_robot (checked against eq. 13)"
 
@@ -114,10 +111,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="3 seeds: a smoke run")
     ap.add_argument("--seeds", type=int, default=None, help="number of seeds (default 20)")
-    ap.add_argument("--functions", action="store_true",
-                    help="instead: hybrid vs plain PSO on sphere, Rosenbrock and Rastrigin")
-    ap.add_argument("--study", action="store_true",
-                    help="instead: sigma choice and operator ablation of the hybrid PSO")
+    ap.add_argument(
+        "--functions",
+        action="store_true",
+        help="instead: hybrid vs plain PSO on sphere, Rosenbrock and Rastrigin",
+    )
+    ap.add_argument(
+        "--study", action="store_true", help="instead: sigma choice and operator ablation of the hybrid PSO"
+    )
     args = ap.parse_args(argv)
     n_seeds = args.seeds or (3 if args.quick else 20)
     seeds = list(range(1, n_seeds + 1))
@@ -196,18 +197,19 @@ def main(argv: list[str] | None = None) -> int:
     methods = {
         "hybrid PSO (ours)": (run_hybrid, f"{N_PARTICLES} x {ITERATIONS}"),
         "plain PSO (ours)": (run_plain, f"{N_PARTICLES} x {plain_iters}"),
-        "pyswarms GlobalBestPSO": (lambda s: run_pyswarms(s, False),
-                                   f"{N_PARTICLES} x {ps_iters}"),
-        "pyswarms, scaled coords": (lambda s: run_pyswarms(s, True),
-                                    f"{N_PARTICLES} x {ps_iters}"),
+        "pyswarms GlobalBestPSO": (lambda s: run_pyswarms(s, False), f"{N_PARTICLES} x {ps_iters}"),
+        "pyswarms, scaled coords": (lambda s: run_pyswarms(s, True), f"{N_PARTICLES} x {ps_iters}"),
         "SciPy LM (x_scale=jac)": (run_lm, "to convergence"),
     }
     results: dict[str, dict[str, list]] = {
         k: {"t": [], "wall": [], "f": [], "chk": [], "nfev": [], "hist": []} for k in methods
     }
     ablation_plain: list[np.ndarray] = []
-    print(f"fitness: {forward_name}; optimum (affine LS) {optimum:.6f} mm; "
-          f"f(B0) = {fitness(b0[None])[0]:.6f} mm; seeds {seeds[0]}-{seeds[-1]}", flush=True)
+    print(
+        f"fitness: {forward_name}; optimum (affine LS) {optimum:.6f} mm; "
+        f"f(B0) = {fitness(b0[None])[0]:.6f} mm; seeds {seeds[0]}-{seeds[-1]}",
+        flush=True,
+    )
     print("sigma (per element of B): " + np.array2string(sigma, precision=3), flush=True)
     for seed in seeds:
         for name, (fn, _) in methods.items():
@@ -228,12 +230,16 @@ def main(argv: list[str] | None = None) -> int:
     t_ref = float(np.median(results["pyswarms GlobalBestPSO"]["t"]))
     w_ref = float(np.median(results["pyswarms GlobalBestPSO"]["wall"]))
     print()
-    print(f"Same fitness (eq. 16, mm), {len(seeds)} seeds; nfev matched to the hybrid's "
-          f"{budget:,} ({N_PARTICLES} + {ITERATIONS} x {per_it}); "
-          f"'ok' = within 0.1 % of {optimum:.5f} mm")
-    head = (f"{'method':<25} {'swarm':>10} {'nfev':>7} {'cpu s':>7} {'x pysw':>6} {'wall s':>7} "
-            f"{'x pysw':>6} {'median f':>10} {'worst f':>10} {'ok':>6} {'chk max':>8} "
-            f"{'chk<=0.0898':>11}")
+    print(
+        f"Same fitness (eq. 16, mm), {len(seeds)} seeds; nfev matched to the hybrid's "
+        f"{budget:,} ({N_PARTICLES} + {ITERATIONS} x {per_it}); "
+        f"'ok' = within 0.1 % of {optimum:.5f} mm"
+    )
+    head = (
+        f"{'method':<25} {'swarm':>10} {'nfev':>7} {'cpu s':>7} {'x pysw':>6} {'wall s':>7} "
+        f"{'x pysw':>6} {'median f':>10} {'worst f':>10} {'ok':>6} {'chk max':>8} "
+        f"{'chk<=0.0898':>11}"
+    )
     print(head)
     print("-" * len(head))
     for name, (_, swarm) in methods.items():
@@ -243,37 +249,47 @@ def main(argv: list[str] | None = None) -> int:
         f = np.array(rec["f"])
         chk = np.array(rec["chk"])
         nfev = int(np.median(rec["nfev"]))
-        print(f"{name:<25} {swarm:>10} {nfev:>7} {t:>7.3f} {t / t_ref:>6.2f} {wall:>7.3f} "
-              f"{wall / w_ref:>6.2f} "
-              f"{np.median(f):>10.6f} {f.max():>10.6f} {np.sum(f <= tol):>3}/{len(f):<2} "
-              f"{chk.max():>8.4f} {np.sum(chk <= PAPER_MAX_CHECK_MM):>8}/{len(chk):<2}")
+        print(
+            f"{name:<25} {swarm:>10} {nfev:>7} {t:>7.3f} {t / t_ref:>6.2f} {wall:>7.3f} "
+            f"{wall / w_ref:>6.2f} "
+            f"{np.median(f):>10.6f} {f.max():>10.6f} {np.sum(f <= tol):>3}/{len(f):<2} "
+            f"{chk.max():>8.4f} {np.sum(chk <= PAPER_MAX_CHECK_MM):>8}/{len(chk):<2}"
+        )
     print("chk max = worst over seeds of the largest 3-D error (mm) on the 9 check points.")
 
     hyb = np.array(results["hybrid PSO (ours)"]["hist"])
     pla = np.array(ablation_plain)
     pla_eq = np.array(results["plain PSO (ours)"]["hist"])
     print()
-    print(f"Ablation: best fitness (mm) after k iterations, median of {len(seeds)} seeds "
-          f"(hybrid {per_it} evaluations/iteration, plain {N_PARTICLES}; last column: plain "
-          f"PSO at the hybrid's nfev)")
+    print(
+        f"Ablation: best fitness (mm) after k iterations, median of {len(seeds)} seeds "
+        f"(hybrid {per_it} evaluations/iteration, plain {N_PARTICLES}; last column: plain "
+        f"PSO at the hybrid's nfev)"
+    )
     print(f"{'k':>5} {'hybrid':>10} {'plain':>10} {'plain @ same nfev':>18}")
     for k in ABLATION_ITERATIONS:
         k_eq = min((N_PARTICLES + k * per_it - N_PARTICLES) // N_PARTICLES, pla_eq.shape[1])
-        print(f"{k:>5} {np.median(hyb[:, k - 1]):>10.6f} {np.median(pla[:, k - 1]):>10.6f} "
-              f"{np.median(pla_eq[:, k_eq - 1]):>18.6f}")
+        print(
+            f"{k:>5} {np.median(hyb[:, k - 1]):>10.6f} {np.median(pla[:, k - 1]):>10.6f} "
+            f"{np.median(pla_eq[:, k_eq - 1]):>18.6f}"
+        )
 
     cheap = cheap_fitness(seeds, new_pyswarms, ps_iters)
     print()
     for name, label in (("hybrid PSO (ours)", "Table 1 (paper model, eq. 16)"),):
         h, p = results[name], results["pyswarms GlobalBestPSO"]
-        print(f"RATIO {label}: hybrid / pyswarms = {np.median(h['t']) / t_ref:.2f} CPU, "
-              f"{np.median(h['wall']) / w_ref:.2f} wall (goal <= 0.6); final f median "
-              f"{np.median(h['f']):.6f} vs {np.median(p['f']):.6f} mm, worst "
-              f"{np.max(h['f']):.6f} vs {np.max(p['f']):.6f} mm")
+        print(
+            f"RATIO {label}: hybrid / pyswarms = {np.median(h['t']) / t_ref:.2f} CPU, "
+            f"{np.median(h['wall']) / w_ref:.2f} wall (goal <= 0.6); final f median "
+            f"{np.median(h['f']):.6f} vs {np.median(p['f']):.6f} mm, worst "
+            f"{np.max(h['f']):.6f} vs {np.max(p['f']):.6f} mm"
+        )
     for label, (rc, rw, fh, fp) in cheap.items():
-        print(f"RATIO cheap fitness, {label}: hybrid / pyswarms = {rc:.2f} CPU, {rw:.2f} wall "
-              f"(goal <= 0.6); final f median {np.median(fh):.3g} vs {np.median(fp):.3g}, "
-              f"worst {np.max(fh):.3g} vs {np.max(fp):.3g}")
+        print(
+            f"RATIO cheap fitness, {label}: hybrid / pyswarms = {rc:.2f} CPU, {rw:.2f} wall "
+            f"(goal <= 0.6); final f median {np.median(fh):.3g} vs {np.median(fp):.3g}, "
+            f"worst {np.max(fh):.3g} vs {np.max(fp):.3g}"
+        )
     return 0
 
 
@@ -295,11 +311,15 @@ def cheap_fitness(seeds, new_pyswarms, ps_iters) -> dict[str, tuple]:
         ("Rastrigin 6-D (x0 2.5, sigma 2)", rastrigin, np.full(6, 2.5), 2.0),
     ]
     print()
-    print(f"Cheap vectorised 6-parameter fitness, seeds {seeds[0]}-{seeds[-1]}, 93,200 "
-          f"evaluations each: hybrid {N_PARTICLES} x {ITERATIONS}, pyswarms {N_PARTICLES} x "
-          f"{ps_iters}; ms per run (median), interleaved per seed")
-    head = (f"{'function':<32} {'method':<9} {'cpu ms':>7} {'x pysw':>6} {'wall ms':>8} "
-            f"{'x pysw':>6} {'median f':>10} {'worst f':>10}")
+    print(
+        f"Cheap vectorised 6-parameter fitness, seeds {seeds[0]}-{seeds[-1]}, 93,200 "
+        f"evaluations each: hybrid {N_PARTICLES} x {ITERATIONS}, pyswarms {N_PARTICLES} x "
+        f"{ps_iters}; ms per run (median), interleaved per seed"
+    )
+    head = (
+        f"{'function':<32} {'method':<9} {'cpu ms':>7} {'x pysw':>6} {'wall ms':>8} "
+        f"{'x pysw':>6} {'median f':>10} {'worst f':>10}"
+    )
     print(head)
     print("-" * len(head))
     out = {}
@@ -322,10 +342,16 @@ def cheap_fitness(seeds, new_pyswarms, ps_iters) -> dict[str, tuple]:
         ref_w = np.median(rec["pyswarms"]["wall"])
         for method, r in rec.items():
             c, w = np.median(r["t"]), np.median(r["wall"])
-            print(f"{label:<32} {method:<9} {c * 1e3:>7.2f} {c / ref_c:>6.2f} {w * 1e3:>8.2f} "
-                  f"{w / ref_w:>6.2f} {np.median(r['f']):>10.3g} {np.max(r['f']):>10.3g}")
-        out[label] = (np.median(rec["hybrid"]["t"]) / ref_c, np.median(rec["hybrid"]["wall"]) / ref_w,
-                      rec["hybrid"]["f"], rec["pyswarms"]["f"])
+            print(
+                f"{label:<32} {method:<9} {c * 1e3:>7.2f} {c / ref_c:>6.2f} {w * 1e3:>8.2f} "
+                f"{w / ref_w:>6.2f} {np.median(r['f']):>10.3g} {np.max(r['f']):>10.3g}"
+            )
+        out[label] = (
+            np.median(rec["hybrid"]["t"]) / ref_c,
+            np.median(rec["hybrid"]["wall"]) / ref_w,
+            rec["hybrid"]["f"],
+            rec["pyswarms"]["f"],
+        )
     return out
 
 
@@ -349,8 +375,7 @@ def functions(seeds) -> int:
         ("Rastrigin 5-D, x0=2.5, sigma=2", rastrigin, np.full(5, 2.5), 2.0, 1e-6),
     ]
     n = len(seeds)
-    print(f"200 x 150, seeds {seeds[0]}-{seeds[-1]}; 'ok' = f below the threshold "
-          "(global minimum 0)")
+    print(f"200 x 150, seeds {seeds[0]}-{seeds[-1]}; 'ok' = f below the threshold (global minimum 0)")
     head = f"{'function':<32} {'method':<7} {'nfev':>6} {'median f':>10} {'worst f':>10} {'ok':>7}"
     print(head)
     print("-" * len(head))
@@ -358,8 +383,10 @@ def functions(seeds) -> int:
         for label, kw in (("hybrid", {}), ("plain", {"crossover": False, "mutation": False})):
             res = [hybrid_pso(fn, x0, sig, seed=s, **kw) for s in seeds]
             f = np.array([r.fun for r in res])
-            print(f"{name:<32} {label:<7} {res[0].nfev:>6} {np.median(f):>10.3g} "
-                  f"{f.max():>10.3g} {np.sum(f < thr):>3}/{n:<3} (f < {thr:g})")
+            print(
+                f"{name:<32} {label:<7} {res[0].nfev:>6} {np.median(f):>10.3g} "
+                f"{f.max():>10.3g} {np.sum(f < thr):>3}/{n:<3} (f < {thr:g})"
+            )
     return 0
 
 
@@ -376,10 +403,14 @@ def study(fitness, b0, sigma, check_max, optimum, seeds) -> int:
         ("operators: mutation only", sigma, {"crossover": False}),
         ("operators: neither (plain PSO)", sigma, {"crossover": False, "mutation": False}),
     ]
-    print(f"Hybrid PSO, 200 x 150, paper's w/c1/c2, seeds {seeds[0]}-{seeds[-1]}; "
-          f"'ok' = within 0.1 % of {optimum:.5f} mm")
-    head = (f"{'variant':<40} {'nfev':>7} {'median f':>10} {'worst f':>11} {'ok':>7} "
-            f"{'chk max':>9} {'chk<=0.0898':>11}")
+    print(
+        f"Hybrid PSO, 200 x 150, paper's w/c1/c2, seeds {seeds[0]}-{seeds[-1]}; "
+        f"'ok' = within 0.1 % of {optimum:.5f} mm"
+    )
+    head = (
+        f"{'variant':<40} {'nfev':>7} {'median f':>10} {'worst f':>11} {'ok':>7} "
+        f"{'chk max':>9} {'chk<=0.0898':>11}"
+    )
     print(head)
     print("-" * len(head))
     for name, sig, kw in rows:
@@ -387,9 +418,12 @@ def study(fitness, b0, sigma, check_max, optimum, seeds) -> int:
         f = np.array([r.fun for r in res])
         chk = np.array([check_max(r.x) for r in res])
         n = len(seeds)
-        print(f"{name:<40} {res[0].nfev:>7} {np.median(f):>10.6f} {f.max():>11.6g} "
-              f"{np.sum(f <= optimum * 1.001):>3}/{n:<3} {chk.max():>9.4f} "
-              f"{np.sum(chk <= PAPER_MAX_CHECK_MM):>7}/{n:<3}", flush=True)
+        print(
+            f"{name:<40} {res[0].nfev:>7} {np.median(f):>10.6f} {f.max():>11.6g} "
+            f"{np.sum(f <= optimum * 1.001):>3}/{n:<3} {chk.max():>9.4f} "
+            f"{np.sum(chk <= PAPER_MAX_CHECK_MM):>7}/{n:<3}",
+            flush=True,
+        )
     return 0
 
 

@@ -36,8 +36,17 @@ def _pairs_csv(n: int, path: Path, seed: int = 0) -> None:
 
 def _run(csv: Path, model: str) -> tuple[float, float]:
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
-    cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "eyetohand.cli", "calibrate", str(csv),
-           "--model", model]
+    cmd = [
+        "/usr/bin/time",
+        "-v",
+        sys.executable,
+        "-m",
+        "eyetohand.cli",
+        "calibrate",
+        str(csv),
+        "--model",
+        model,
+    ]
     t = time.perf_counter()
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
     wall = time.perf_counter() - t
@@ -53,8 +62,10 @@ def main() -> None:
     ap.add_argument("--models", nargs="+", default=["homography", "auto"])
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        print(f"{'model':12s} {'pairs':>8s} {'time s':>8s} {'peak MiB':>9s}  "
-              "growth per 10× pairs (time, memory)")
+        print(
+            f"{'model':12s} {'pairs':>8s} {'time s':>8s} {'peak MiB':>9s}  "
+            "growth per 10× pairs (time, memory)"
+        )
         for model in args.models:
             prev = None
             for n in args.sizes:

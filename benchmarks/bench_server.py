@@ -52,9 +52,17 @@ def seed_database(data: Path) -> None:
     from eyetohand.server.app import create_app
 
     app = create_app(data)
-    r = TestClient(app).post("/api/calibrations", json={
-        "name": "bench", "pairs": records(PAPER / "calibration_points.csv"),
-        "check": records(PAPER / "check_points.csv"), "model": "paper", "optimizer": "hybrid-pso", "seed": 0})
+    r = TestClient(app).post(
+        "/api/calibrations",
+        json={
+            "name": "bench",
+            "pairs": records(PAPER / "calibration_points.csv"),
+            "check": records(PAPER / "check_points.csv"),
+            "model": "paper",
+            "optimizer": "hybrid-pso",
+            "seed": 0,
+        },
+    )
     assert r.status_code == 201, r.text
     app.state.jobs.shutdown()
     app.state.store.close()
@@ -75,8 +83,7 @@ def wait_http(url: str, proc: subprocess.Popen, timeout: float = 30) -> None:
 
 def pct(ms: list[float]) -> str:
     a = np.asarray(ms)
-    return (f"p50 {np.percentile(a, 50):.2f} ms  p99 {np.percentile(a, 99):.2f} ms  "
-            f"max {a.max():.2f} ms")
+    return f"p50 {np.percentile(a, 50):.2f} ms  p99 {np.percentile(a, 99):.2f} ms  max {a.max():.2f} ms"
 
 
 def bench_http(url: str) -> None:
@@ -104,8 +111,10 @@ def bench_http(url: str) -> None:
         t.join()
     wall = time.perf_counter() - t0
     n = CLIENTS * REQUESTS
-    print(f"HTTP  {CLIENTS} clients x {REQUESTS} single-point requests: {n} ok, {len(errors)} errors, "
-          f"{wall:.1f} s, {n / wall:.0f} req/s")
+    print(
+        f"HTTP  {CLIENTS} clients x {REQUESTS} single-point requests: {n} ok, {len(errors)} errors, "
+        f"{wall:.1f} s, {n / wall:.0f} req/s"
+    )
     print(f"      latency {pct([x for ls in lat for x in ls])}")
     if errors:
         raise SystemExit(f"errors: {errors[:3]}")
@@ -133,8 +142,9 @@ async def bench_tcp(port: int) -> None:
     lat = await asyncio.gather(*(client(k) for k in range(CLIENTS)))
     wall = time.perf_counter() - t0
     n = CLIENTS * REQUESTS
-    print(f"TCP   {CLIENTS} clients x {REQUESTS} lines: {n} ok, 0 errors, {wall:.1f} s, "
-          f"{n / wall:.0f} lines/s")
+    print(
+        f"TCP   {CLIENTS} clients x {REQUESTS} lines: {n} ok, 0 errors, {wall:.1f} s, {n / wall:.0f} lines/s"
+    )
     print(f"      latency {pct([x for ls in lat for x in ls])}")
 
 
@@ -151,22 +161,36 @@ def bench_big(url: str, pid: int) -> None:
     body = orjson.dumps({"points": uv}, option=orjson.OPT_SERIALIZE_NUMPY)
     before = vm_hwm_mib(pid)
     t0 = time.perf_counter()
-    r = httpx.post(url + "/api/calibrations/1/image-to-robot", content=body,
-                   headers={"Content-Type": "application/json"}, timeout=300)
+    r = httpx.post(
+        url + "/api/calibrations/1/image-to-robot",
+        content=body,
+        headers={"Content-Type": "application/json"},
+        timeout=300,
+    )
     wall = time.perf_counter() - t0
     assert r.status_code == 200, r.text[:300]
     n = len(orjson.loads(r.content)["points"])
-    print(f"BIG   {BIG} points in one request ({len(body) / 2**20:.1f} MiB in, "
-          f"{len(r.content) / 2**20:.1f} MiB out): {r.status_code}, {n} points, {wall:.1f} s; "
-          f"server peak RSS {before:.0f} -> {vm_hwm_mib(pid):.0f} MiB")
+    print(
+        f"BIG   {BIG} points in one request ({len(body) / 2**20:.1f} MiB in, "
+        f"{len(r.content) / 2**20:.1f} MiB out): {r.status_code}, {n} points, {wall:.1f} s; "
+        f"server peak RSS {before:.0f} -> {vm_hwm_mib(pid):.0f} MiB"
+    )
     body = b'{"points": [' + b",".join([b"[1,2]"] * (BIG + 1)) + b"]}"
-    r = httpx.post(url + "/api/calibrations/1/image-to-robot", content=body,
-                   headers={"Content-Type": "application/json"}, timeout=300)
+    r = httpx.post(
+        url + "/api/calibrations/1/image-to-robot",
+        content=body,
+        headers={"Content-Type": "application/json"},
+        timeout=300,
+    )
     print(f"      {BIG + 1} points: {r.status_code} {r.json()}")
     assert r.status_code == 413
     body = b'{"points": [' + b",".join([b"[1,2]"] * (14 * 2**20)) + b"]}"
-    r = httpx.post(url + "/api/calibrations/1/image-to-robot", content=body,
-                   headers={"Content-Type": "application/json"}, timeout=300)
+    r = httpx.post(
+        url + "/api/calibrations/1/image-to-robot",
+        content=body,
+        headers={"Content-Type": "application/json"},
+        timeout=300,
+    )
     print(f"      {len(body) / 2**20:.0f} MiB body: {r.status_code} {r.json()}")
     assert r.status_code == 413
 
@@ -177,14 +201,35 @@ def main() -> int:
         seed_database(data)
         port, tcp_port = free_port(), free_port()
         url = f"http://127.0.0.1:{port}"
-        cmd = [sys.executable, "-m", "eyetohand.cli", "serve", "--port", str(port), "--data", str(data),
-               "--tcp", f"127.0.0.1:{tcp_port}", "--calibration", "bench", "--log-level", "warning"]
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        cmd = [
+            sys.executable,
+            "-m",
+            "eyetohand.cli",
+            "serve",
+            "--port",
+            str(port),
+            "--data",
+            str(data),
+            "--tcp",
+            f"127.0.0.1:{tcp_port}",
+            "--calibration",
+            "bench",
+            "--log-level",
+            "warning",
+        ]
+        proc = subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
         try:
             wait_http(url, proc)
-            print(f"server pid {proc.pid}: eyetohand serve on 127.0.0.1:{port}, TCP 127.0.0.1:{tcp_port}; "
-                  f"{os.cpu_count()} cores shared with the clients")
+            print(
+                f"server pid {proc.pid}: eyetohand serve on 127.0.0.1:{port}, TCP 127.0.0.1:{tcp_port}; "
+                f"{os.cpu_count()} cores shared with the clients"
+            )
             bench_http(url)
             asyncio.run(bench_tcp(tcp_port))
             bench_big(url, proc.pid)

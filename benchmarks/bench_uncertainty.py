@@ -78,8 +78,10 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     by_model: dict[str, list[float]] = {}
     bad = 0
-    print(f"{'cell':>4} {'model':<18} {'noise':>5} {'tilt':>4} {'lens k1':>7} {'plan':<10} {'heights':<12} "
-          f"{'sigma':>7} {'check':>7} {'ratio':>6}")
+    print(
+        f"{'cell':>4} {'model':<18} {'noise':>5} {'tilt':>4} {'lens k1':>7} {'plan':<10} {'heights':<12} "
+        f"{'sigma':>7} {'check':>7} {'ratio':>6}"
+    )
     for i in range(args.cells):
         cfg = cell_config(i)
         name, ratio, rs, re_ = sigma_ratio(cfg)
@@ -87,16 +89,21 @@ def main(argv=None) -> int:
         ok = BAND[0] <= ratio <= BAND[1]
         bad += not ok
         hs = ",".join(f"{h:g}" for h in cfg["heights"])
-        print(f"{i:>4} {name:<18} {cfg['noise_px']:>5.2f} {cfg['tilt_deg']:>4g} {cfg['lens'][0]:>7g} "
-              f"{cfg['plan']:<10} {hs:<12} {rs:>7.4f} {re_:>7.4f} {ratio:>6.3f}{'' if ok else '  OUTSIDE'}")
+        print(
+            f"{i:>4} {name:<18} {cfg['noise_px']:>5.2f} {cfg['tilt_deg']:>4g} {cfg['lens'][0]:>7g} "
+            f"{cfg['plan']:<10} {hs:<12} {rs:>7.4f} {re_:>7.4f} {ratio:>6.3f}{'' if ok else '  OUTSIDE'}"
+        )
     print(f"\nratio RMS(sigma_mm) / measured check RMS, band [{BAND[0]}, {BAND[1]}]:")
     for name, rs in sorted(by_model.items()):
         r = np.array(rs)
-        print(f"  {name:<18} cells {len(r):>2}  min {r.min():.3f}  median {np.median(r):.3f}  "
-              f"max {r.max():.3f}")
+        print(
+            f"  {name:<18} cells {len(r):>2}  min {r.min():.3f}  median {np.median(r):.3f}  max {r.max():.3f}"
+        )
     allr = np.concatenate([np.array(v) for v in by_model.values()])
-    print(f"  {'all':<18} cells {len(allr):>2}  min {allr.min():.3f}  median {np.median(allr):.3f}  "
-          f"max {allr.max():.3f}")
+    print(
+        f"  {'all':<18} cells {len(allr):>2}  min {allr.min():.3f}  median {np.median(allr):.3f}  "
+        f"max {allr.max():.3f}"
+    )
     print(f"{bad} cell(s) outside the band; {time.perf_counter() - t0:.0f} s")
     return 1 if bad else 0
 

@@ -53,8 +53,9 @@ def heights_table(seeds: int = 10) -> str:
             fits[f"{name} (150 + 200)"] = fit_model(two.pairs, name, "lm", image_size=cell.image_size)[0]
         auto2 = calibrate(two.pairs, "auto", image_size=cell.image_size, loo=False)
         fits[f"auto → {auto2.model_name} (150 + 200)"] = auto2.model
-        fits["OpenCV calibrateCamera (150 + 200)"] = OpenCVCalibration(two.pairs, cell.image_size,
-                                                                       cell.focal_px)
+        fits["OpenCV calibrateCamera (150 + 200)"] = OpenCVCalibration(
+            two.pairs, cell.image_size, cell.focal_px
+        )
         for label, m in fits.items():
             row = []
             for h in CHECK_HEIGHTS:
@@ -84,8 +85,13 @@ def aspect_table(seeds: int = 10) -> str:
     ``calibrateCamera`` (5 terms) with a free and a fixed aspect ratio, on the same pairs."""
     import cv2
 
-    labels = ["camera, square pixels (before)", "camera, fx fy free", "camera, aspect chosen (default)",
-              "OpenCV calibrateCamera, free aspect", "OpenCV calibrateCamera, fixed aspect"]
+    labels = [
+        "camera, square pixels (before)",
+        "camera, fx fy free",
+        "camera, aspect chosen (default)",
+        "OpenCV calibrateCamera, free aspect",
+        "OpenCV calibrateCamera, fixed aspect",
+    ]
     settings, med, worst, chosen = [], {k: [] for k in labels}, [], []
     for aspect in ASPECT_CELLS:
         for plan in ASPECT_PLANS:
@@ -93,8 +99,9 @@ def aspect_table(seeds: int = 10) -> str:
             per = {k: [] for k in labels}
             n_free = 0
             for seed in range(seeds):
-                sim = simulate(cell, plan, (150.0, 200.0), n_check=30, check_heights_mm=(175.0, 220.0),
-                               seed=seed)
+                sim = simulate(
+                    cell, plan, (150.0, 200.0), n_check=30, check_heights_mm=(175.0, 220.0), seed=seed
+                )
                 uv, xyz = sim.pairs.uv_px, sim.pairs.xyz_mm
                 for label, asp in zip(labels[:3], ("square", "free", "auto"), strict=True):
                     m = PinholeCamera.from_pairs(uv, xyz, image_size=cell.image_size, aspect=asp)
@@ -109,19 +116,31 @@ def aspect_table(seeds: int = 10) -> str:
                 med[k].append(float(np.median(per[k])))
             ratio = np.array(per[labels[2]]) / np.array(per[labels[3]])
             before = np.array(per[labels[2]]) / np.array(per[labels[0]])
-            worst.append((float(np.median(ratio)), float(ratio.max()), float(np.median(before)),
-                          float(before.max())))
+            worst.append(
+                (float(np.median(ratio)), float(ratio.max()), float(np.median(before)), float(before.max()))
+            )
             chosen.append(n_free)
-    lines = ["| calibration (pairs 150 + 200 mm) | " + " | ".join(settings) + " |",
-             "|" + "---|" * (len(settings) + 1)]
+    lines = [
+        "| calibration (pairs 150 + 200 mm) | " + " | ".join(settings) + " |",
+        "|" + "---|" * (len(settings) + 1),
+    ]
     for k in labels:
         lines.append(f"| {k} | " + " | ".join(f"{v:.4f}" for v in med[k]) + " |")
-    lines.append("| chosen / OpenCV free, per seed: median (max) | "
-                 + " | ".join(f"{a:.2f} ({b:.2f})" for a, b, _, _ in worst) + " |")
-    lines.append("| chosen / square (before), per seed: median (max) | "
-                 + " | ".join(f"{c:.2f} ({d:.2f})" for _, _, c, d in worst) + " |")
-    lines.append(f"| seeds where the fit chose a free aspect (of {seeds}) | "
-                 + " | ".join(str(n) for n in chosen) + " |")
+    lines.append(
+        "| chosen / OpenCV free, per seed: median (max) | "
+        + " | ".join(f"{a:.2f} ({b:.2f})" for a, b, _, _ in worst)
+        + " |"
+    )
+    lines.append(
+        "| chosen / square (before), per seed: median (max) | "
+        + " | ".join(f"{c:.2f} ({d:.2f})" for _, _, c, d in worst)
+        + " |"
+    )
+    lines.append(
+        f"| seeds where the fit chose a free aspect (of {seeds}) | "
+        + " | ".join(str(n) for n in chosen)
+        + " |"
+    )
     return "\n".join(lines)
 
 
@@ -135,9 +154,11 @@ def tcp_table(seeds: int = 20) -> str:
         errs.append(float(np.linalg.norm(np.array(est.offset_mm) - o)))
         stds.append(float(np.hypot(*est.std_mm)))
     e = np.array(errs)
-    return (f"| offset error over {seeds} seeds | median {np.median(e):.4f} mm | 90th pct "
-            f"{np.percentile(e, 90):.4f} mm | max {e.max():.4f} mm | reported std (median) "
-            f"{np.median(stds):.4f} mm |")
+    return (
+        f"| offset error over {seeds} seeds | median {np.median(e):.4f} mm | 90th pct "
+        f"{np.percentile(e, 90):.4f} mm | max {e.max():.4f} mm | reported std (median) "
+        f"{np.median(stds):.4f} mm |"
+    )
 
 
 def main(argv=None) -> int:

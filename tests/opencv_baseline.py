@@ -40,8 +40,9 @@ class OpenCVCalibration:
         import cv2
 
         uv = np.asarray(uv_px, float).reshape(-1, 1, 2)
-        n = cv2.undistortPoints(uv, self.K, self.dist,
-                                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-15))
+        n = cv2.undistortPoints(
+            uv, self.K, self.dist, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-15)
+        )
         ray = np.column_stack([n.reshape(-1, 2), np.ones(len(uv))]) @ self.R
         c = -self.R.T @ self.t
         z = np.broadcast_to(np.asarray(z_mm, float), (len(uv),))

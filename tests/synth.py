@@ -12,8 +12,9 @@ import numpy as np
 from eyetohand.pairs import PointPairs
 
 
-def make_camera(tilt_deg=8.0, height_mm=450.0, f_px=2600.0, size=(2448, 2048), dist=None, seed=0,
-                pp_offset_px=(6.0, -4.0)):
+def make_camera(
+    tilt_deg=8.0, height_mm=450.0, f_px=2600.0, size=(2448, 2048), dist=None, seed=0, pp_offset_px=(6.0, -4.0)
+):
     rng = np.random.default_rng(seed)
     w, h = size
     du, dv = pp_offset_px
@@ -32,8 +33,9 @@ def make_camera(tilt_deg=8.0, height_mm=450.0, f_px=2600.0, size=(2448, 2048), d
 
 
 def project(cam, xyz_mm):
-    uv, _ = cv2.projectPoints(np.asarray(xyz_mm, float).reshape(-1, 1, 3), cam["rvec"], cam["tvec"],
-                              cam["K"], cam["dist"])
+    uv, _ = cv2.projectPoints(
+        np.asarray(xyz_mm, float).reshape(-1, 1, 3), cam["rvec"], cam["tvec"], cam["K"], cam["dist"]
+    )
     return uv.reshape(-1, 2)
 
 

@@ -34,9 +34,13 @@ repeatability_mm = 0.0
 """
 Z = 150.0
 YAW, PITCH, MM_PER_COUNT = 3.0, 0.3, 0.01
-B = MM_PER_COUNT * np.array([math.cos(math.radians(PITCH)) * math.cos(math.radians(YAW)),
-                             math.cos(math.radians(PITCH)) * math.sin(math.radians(YAW)),
-                             math.sin(math.radians(PITCH))])
+B = MM_PER_COUNT * np.array(
+    [
+        math.cos(math.radians(PITCH)) * math.cos(math.radians(YAW)),
+        math.cos(math.radians(PITCH)) * math.sin(math.radians(YAW)),
+        math.sin(math.radians(PITCH)),
+    ]
+)
 ENC = Encoder(width_bits=24)
 E0 = 2**24 - 60_000  # rolls over ~600 mm into the session
 TRAVEL = (100_000, 108_000)  # counts between a sighting and its two touches (1.00 m, 1.08 m)
@@ -111,8 +115,10 @@ def test_collected_belt_recovers_the_belt(collected):
     end = collected["end"]
     assert end.startswith("OK 18,36,"), end
     n_parts, n_touch, mmpc, yaw, pitch, rms = end[3:].split(",")
-    print(f"belt fitted: {float(mmpc):.8f} mm/count (truth {MM_PER_COUNT}), yaw {float(yaw):.5f} deg "
-          f"(truth {YAW}), pitch {float(pitch):.5f} deg (truth {PITCH}), rms {float(rms):.4f} mm")
+    print(
+        f"belt fitted: {float(mmpc):.8f} mm/count (truth {MM_PER_COUNT}), yaw {float(yaw):.5f} deg "
+        f"(truth {YAW}), pitch {float(pitch):.5f} deg (truth {PITCH}), rms {float(rms):.4f} mm"
+    )
     assert abs(float(mmpc) / MM_PER_COUNT - 1) < 1e-4
     assert abs(float(yaw) - YAW) < 0.01 and abs(float(pitch) - PITCH) < 0.01
     assert float(rms) < 0.05
@@ -157,10 +163,17 @@ def test_belt_maps_a_new_part_downstream_and_refuses_outside(collected, source, 
 
 def test_belt_refusals_one_err_each(tmp_path, source, collected):
     belt = collected["belt"]
-    for bad, why in (("BELT", "no fields"), ("BELT 1,2,3", "3 numbers"), ("BELT 1,2,3.5,4", "whole number"),
-                     (f"BELT 1,2,{2**24},4", "e_image"), ("BELT 1,2,3,4,b=3", "unknown word"),
-                     ("BELT 1,x,3,4", "not a number"), ("BELT TRACK 1,2", "2 fields"),
-                     ("BELT END 3", "takes no fields"), ("BELTS", "unknown command")):
+    for bad, why in (
+        ("BELT", "no fields"),
+        ("BELT 1,2,3", "3 numbers"),
+        ("BELT 1,2,3.5,4", "whole number"),
+        (f"BELT 1,2,{2**24},4", "e_image"),
+        ("BELT 1,2,3,4,b=3", "unknown word"),
+        ("BELT 1,x,3,4", "not a number"),
+        ("BELT TRACK 1,2", "2 fields"),
+        ("BELT END 3", "takes no fields"),
+        ("BELTS", "unknown command"),
+    ):
         reply = belt.handle(bad)
         assert reply.startswith("ERR ") and why in reply, (bad, reply)
     nothing = BeltProtocol(None, source=source, store_dir=tmp_path)
@@ -193,12 +206,34 @@ def test_serve_conveyor_answers_belt_lines(tmp_path, collected):
         tcp_port = s.getsockname()[1]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "eyetohand.cli", "serve", "--port", "0", "--data", str(tmp_path / "data"),
-         "--tcp", f"127.0.0.1:{tcp_port}", "--conveyor", str(conv), "--log-level", "warning"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        [
+            sys.executable,
+            "-m",
+            "eyetohand.cli",
+            "serve",
+            "--port",
+            "0",
+            "--data",
+            str(tmp_path / "data"),
+            "--tcp",
+            f"127.0.0.1:{tcp_port}",
+            "--conveyor",
+            str(conv),
+            "--log-level",
+            "warning",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
     try:
-        lines = [f"BELT 320.5,250.25,{2**24 - 100},{100_000}", "BELT TRACK 320.5,250.25,7",
-                 f"BELT 320.5,250.25,0,{200_000}", "600,400"]
+        lines = [
+            f"BELT 320.5,250.25,{2**24 - 100},{100_000}",
+            "BELT TRACK 320.5,250.25,7",
+            f"BELT 320.5,250.25,0,{200_000}",
+            "600,400",
+        ]
         deadline = time.monotonic() + 30
         while True:
             try:

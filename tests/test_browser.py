@@ -23,8 +23,16 @@ from eyetohand.cli import build_parser, main
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "examples" / "paper"
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 
 
 def free_port() -> int:
@@ -149,8 +157,14 @@ def test_paper_preset_in_the_workbench(server, page, tmp_path):
     # the preset is `eyetohand demo`'s run (its default seed): the same figure in both
     demo_seed = build_parser().parse_args(["demo"]).seed
     assert page.input_value("#seed") == str(demo_seed)
-    ref = calibrate(load_pairs(PAPER / "calibration_points.csv"), "paper", "hybrid-pso",
-                    check=load_pairs(PAPER / "check_points.csv"), seed=demo_seed, loo=False)
+    ref = calibrate(
+        load_pairs(PAPER / "calibration_points.csv"),
+        "paper",
+        "hybrid-pso",
+        check=load_pairs(PAPER / "check_points.csv"),
+        seed=demo_seed,
+        loo=False,
+    )
     assert f"{ref.check.rms_mm:.4f}" == check_row.split("\t")[2], (ref.check.rms_mm, check_row)
     assert curve_pixels(page) > 300  # the 150 iterations are drawn
     head = page.locator("#check-table thead").inner_text()
@@ -255,9 +269,11 @@ def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     page.fill("#map-angle", "30")
     page.click("#map-go")
     expect(page.locator("#map-out")).to_have_text(
-        re.compile(r"x \d+\.\d{4} mm, y \d+\.\d{4} mm, z 167\.4166 mm, rz -?\d+\.\d{3} deg"))
+        re.compile(r"x \d+\.\d{4} mm, y \d+\.\d{4} mm, z 167\.4166 mm, rz -?\d+\.\d{3} deg")
+    )
     expect(page.locator("#map-extra")).to_have_text(
-        re.compile(r"predicted error σ 0\.\d{4} mm · inside the calibrated region"))
+        re.compile(r"predicted error σ 0\.\d{4} mm · inside the calibrated region")
+    )
     expect(page.locator("#map-err")).to_be_hidden()
     page.fill("#map-u", "99999")
     page.fill("#map-v", "-5000")
@@ -285,7 +301,8 @@ def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     page.fill("#map-angle", "")
     page.click("#map-go")
     expect(page.locator("#map-out")).to_have_text(
-        re.compile(r"^x \d+\.\d{4} mm, y \d+\.\d{4} mm, z 167\.4166 mm$"))
+        re.compile(r"^x \d+\.\d{4} mm, y \d+\.\d{4} mm, z 167\.4166 mm$")
+    )
 
     # PSO: 40 iterations drawn
     page.select_option("#optimizer", "hybrid-pso")
@@ -318,7 +335,8 @@ def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     page.set_viewport_size({"width": 800, "height": 1000})
     page.wait_for_timeout(200)
     widths = page.evaluate(
-        "() => [document.documentElement.scrollWidth, document.documentElement.clientWidth]")
+        "() => [document.documentElement.scrollWidth, document.documentElement.clientWidth]"
+    )
     assert widths[0] <= widths[1], widths
     shot = tmp_path / "workbench_800px.png"
     page.screenshot(path=str(shot), full_page=True)
@@ -333,8 +351,24 @@ def test_two_heights_and_refused_files(server, page, tmp_path, capsys):
     from playwright.sync_api import expect
 
     sim = tmp_path / "sim"
-    assert main(["simulate", "--plan", "grid:4x4", "--heights", "150,200", "--check", "6",
-                 "--out", str(sim), "--seed", "2"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--plan",
+                "grid:4x4",
+                "--heights",
+                "150,200",
+                "--check",
+                "6",
+                "--out",
+                str(sim),
+                "--seed",
+                "2",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     pairs = load_pairs(sim / "pairs.csv")
     page.goto(server + "/")
@@ -351,7 +385,7 @@ def test_two_heights_and_refused_files(server, page, tmp_path, capsys):
         (t) => { const b = t.getBBox(); return [b.x, b.y, b.width, b.height]; })""")
     assert boxes, "no labels at all"
     for i, a in enumerate(boxes):
-        for b in boxes[i + 1:]:
+        for b in boxes[i + 1 :]:
             overlap = a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
             assert not overlap, (a, b)
     shot = tmp_path / "vectors_two_heights.png"
@@ -365,7 +399,8 @@ def test_two_heights_and_refused_files(server, page, tmp_path, capsys):
         load_pairs(latin)
     page.set_input_files("#pairs-file", str(latin))
     expect(page.locator("#pairs-err")).to_have_text(
-        f"latin1.csv line {cli_err.value.line}: {cli_err.value.reason}")
+        f"latin1.csv line {cli_err.value.line}: {cli_err.value.reason}"
+    )
     expect(page.locator("#pairs-count")).to_have_text("not loaded")
     # German Excel: semicolons and decimal commas; the line named once, the fix said
     excel = tmp_path / "excel.csv"

@@ -28,8 +28,16 @@ sys.path.insert(0, str(ROOT / "examples" / "robots"))
 from robot_client import TcpLink, VirtualRobot  # noqa: E402
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 CELL = """[camera]
 width_px = 640
 height_px = 512
@@ -44,10 +52,29 @@ def serve(tmp_path):
     cell.write_text(CELL)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "eyetohand.cli", "serve", "--port", "0", "--data", str(tmp_path / "data"),
-         "--tcp", "127.0.0.1:0", "--camera", f"sim:{cell}?seed=1", "--calibration", "bench",
-         "--log-level", "warning"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        [
+            sys.executable,
+            "-m",
+            "eyetohand.cli",
+            "serve",
+            "--port",
+            "0",
+            "--data",
+            str(tmp_path / "data"),
+            "--tcp",
+            "127.0.0.1:0",
+            "--camera",
+            f"sim:{cell}?seed=1",
+            "--calibration",
+            "bench",
+            "--log-level",
+            "warning",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
     lines: queue.Queue = queue.Queue()
     out: list[str] = []
 

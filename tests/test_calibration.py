@@ -25,8 +25,17 @@ def test_save_load_bit_identical(tmp_path, name):
     assert back.data_sha256 == pairs.sha256() and len(back.data_sha256) == 64
     assert back.check.to_dict() == cal.check.to_dict()
     d = json.loads(path.read_text())
-    for key in ("schema_version", "model", "units", "train", "check", "data_sha256",
-                "eyetohand_version", "created_utc", "fit"):
+    for key in (
+        "schema_version",
+        "model",
+        "units",
+        "train",
+        "check",
+        "data_sha256",
+        "eyetohand_version",
+        "created_utc",
+        "fit",
+    ):
         assert key in d
     assert evaluate(back, pairs).rms_mm == pytest.approx(cal.train.rms_mm, abs=1e-12)
 
@@ -48,12 +57,18 @@ def test_failed_save_keeps_the_earlier_file(tmp_path, paper_pairs, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["cal.json"]  # no temp file left behind
 
 
-@pytest.mark.parametrize("content,match", [
-    ('{"a": 1}', "not an eyetohand calibration"),
-    ("u,v,x,y\n1,2,3,4\n", "invalid JSON"),
-    ('{"schema": "eyetohand.calibration", "schema_version": 99}', "schema_version 99"),
-    ('{"schema": "eyetohand.calibration", "schema_version": 1, "model": {"name": "x"}}', "malformed|model"),
-])
+@pytest.mark.parametrize(
+    "content,match",
+    [
+        ('{"a": 1}', "not an eyetohand calibration"),
+        ("u,v,x,y\n1,2,3,4\n", "invalid JSON"),
+        ('{"schema": "eyetohand.calibration", "schema_version": 99}', "schema_version 99"),
+        (
+            '{"schema": "eyetohand.calibration", "schema_version": 1, "model": {"name": "x"}}',
+            "malformed|model",
+        ),
+    ],
+)
 def test_load_refuses_non_calibrations(tmp_path, content, match):
     p = tmp_path / "c.json"
     p.write_text(content)

@@ -15,8 +15,16 @@ STRONG = (-0.28, 0.12, 1.5e-3, -8e-4, -0.02)  # k1 k2 p1 p2 k3: a strongly disto
 
 @pytest.fixture(scope="module")
 def cam():
-    return Camera.looking_down((2448, 2048), focal_px=3000.0, height_mm=450.0, tilt_deg=15.0,
-                               tilt_direction_deg=-40.0, yaw_deg=70.0, dist=STRONG, pp_offset_px=(20, -15))
+    return Camera.looking_down(
+        (2448, 2048),
+        focal_px=3000.0,
+        height_mm=450.0,
+        tilt_deg=15.0,
+        tilt_direction_deg=-40.0,
+        yaw_deg=70.0,
+        dist=STRONG,
+        pp_offset_px=(20, -15),
+    )
 
 
 def random_pixels(cam, n, seed=0):
@@ -41,8 +49,12 @@ def test_projection_matches_opencv_project_points(cam):
 def test_undistortion_matches_opencv_undistort_points(cam):
     uv = random_pixels(cam, 20000)
     ours = cam.image_to_normalized(uv)
-    tight = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist,
-                                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-16))
+    tight = cv2.undistortPoints(
+        uv.reshape(-1, 1, 2),
+        cam.K,
+        cam.dist,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-16),
+    )
     assert np.isfinite(ours).all()
     assert np.abs(ours - tight.reshape(-1, 2)).max() * cam.fx_px < 1e-8  # px
     # OpenCV's default (5 fixed-point steps) stops short on this lens; ours is converged

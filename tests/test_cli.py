@@ -23,8 +23,20 @@ def run(capsys, *argv):
 
 def test_calibrate_json_has_the_documented_fields(tmp_path, capsys):
     out_path = tmp_path / "cal.json"
-    code, out, err = run(capsys, "calibrate", TRAIN, "--model", "homography", "--optimizer", "lm",
-                         "--check", CHECK, "-o", str(out_path), "--json")
+    code, out, err = run(
+        capsys,
+        "calibrate",
+        TRAIN,
+        "--model",
+        "homography",
+        "--optimizer",
+        "lm",
+        "--check",
+        CHECK,
+        "-o",
+        str(out_path),
+        "--json",
+    )
     assert code == 0, err
     d = json.loads(out)
     assert d["model"] == "homography" and d["optimizer"] == "lm"
@@ -58,12 +70,15 @@ def test_apply_single_point_and_csv(tmp_path, capsys):
 def test_apply_refuses_outside_off_plane_and_clashing_columns_and_flags_allowed(tmp_path, capsys):
     cal_path = tmp_path / "cal.json"
     assert run(capsys, "calibrate", TRAIN, "--model", "homography", "-o", str(cal_path))[0] == 0
-    for args, words in ((["--uv", "99999", "-5000"], "px outside the training points' hull"),
-                        (["--uv", "600", "900", "--z", "100"], "off the calibration plane z = 167.417 mm")):
+    for args, words in (
+        (["--uv", "99999", "-5000"], "px outside the training points' hull"),
+        (["--uv", "600", "900", "--z", "100"], "off the calibration plane z = 167.417 mm"),
+    ):
         code, out, err = run(capsys, "apply", str(cal_path), *args)
         assert code == 2 and out == "" and err.count("\n") == 1 and words in err
-    code, out, err = run(capsys, "apply", str(cal_path), "--uv", "99999", "-5000", "--allow-outside",
-                         "--json")
+    code, out, err = run(
+        capsys, "apply", str(cal_path), "--uv", "99999", "-5000", "--allow-outside", "--json"
+    )
     rec = json.loads(out)["points"][0]
     assert code == 0 and rec["inside"] is False and "warning: 1 point(s) outside" in err
     src = tmp_path / "in.csv"
@@ -120,8 +135,11 @@ def bad_cases(tmp_path):
         ("1 pair", ["calibrate", f("p1.csv", "u,v,x,y\n1,2,3,4\n"), "--model", "affine"], "at least 4"),
         ("3 pairs homography", ["calibrate", f("p3.csv", pts), "--model", "homography"], "at least 5"),
         ("3 pairs auto", ["calibrate", f("p3b.csv", pts)], "too few pairs"),
-        ("collinear", ["calibrate", f("c.csv", "u,v,x,y\n0,0,0,0\n1,1,1,1\n2,2,2,2\n3,3,3,3\n"),
-                       "--model", "affine"], "collinear"),
+        (
+            "collinear",
+            ["calibrate", f("c.csv", "u,v,x,y\n0,0,0,0\n1,1,1,1\n2,2,2,2\n3,3,3,3\n"), "--model", "affine"],
+            "collinear",
+        ),
         ("identical", ["calibrate", f("s.csv", "u,v,x,y\n1,2,3,4\n1,2,3,4\n1,2,3,4\n")], "repeats"),
         ("binary", ["calibrate", f("b.csv", b"\x89PNG\r\n\x1a\n\x00\x00")], "binary file"),
         ("latin-1", ["calibrate", f("l.csv", "u,v,x,y\n\xe9,1,2,3\n".encode("latin-1"))], "not UTF-8"),
@@ -157,8 +175,9 @@ def test_bad_input_exit_2_one_line_no_output(tmp_path, capsys):
 def test_real_process_bad_input_has_no_traceback(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("u,v,x,y\n1,2,oops,4\n")
-    r = subprocess.run([sys.executable, "-m", "eyetohand.cli", "calibrate", str(bad)],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "eyetohand.cli", "calibrate", str(bad)], capture_output=True, text=True
+    )
     assert r.returncode == 2
     assert r.stderr.strip() == f"error: {bad} line 2, field 'x': 'oops' is not a number"
     assert r.stdout == ""
@@ -189,8 +208,17 @@ def test_metres_data_warns_naming_the_units_and_robot_units_m_fits_cleanly(tmp_p
     code, out, err = run(capsys, "calibrate", metres, "--model", "homography")
     warn = [ln for ln in err.splitlines() if ln.startswith("warning:")]
     assert code == 0 and len(warn) == 1 and "metres (use --robot-units m)" in warn[0], err
-    code, out, err = run(capsys, "calibrate", metres, "--model", "homography", "--robot-units", "m",
-                         "-o", str(tmp_path / "cal.json"))
+    code, out, err = run(
+        capsys,
+        "calibrate",
+        metres,
+        "--model",
+        "homography",
+        "--robot-units",
+        "m",
+        "-o",
+        str(tmp_path / "cal.json"),
+    )
     assert code == 0 and "warning:" not in err, err
     assert "read in m and converted to mm" in err
     ref = run(capsys, "calibrate", TRAIN, "--model", "homography", "--json")[1]
@@ -210,8 +238,9 @@ def test_check_set_identical_or_overlapping_warns(tmp_path, capsys):
     from eyetohand.pairs import PointPairs, load_pairs
 
     t, c = load_pairs(TRAIN), load_pairs(CHECK)
-    mixed = PointPairs.from_arrays(np.vstack([c.uv_px, t.uv_px[:2]]), np.vstack([c.xyz_mm, t.xyz_mm[:2]]),
-                                   [*c.ids, "t1", "t2"])
+    mixed = PointPairs.from_arrays(
+        np.vstack([c.uv_px, t.uv_px[:2]]), np.vstack([c.xyz_mm, t.xyz_mm[:2]]), [*c.ids, "t1", "t2"]
+    )
     path = tmp_path / "mixed.csv"
     path.write_text(mixed.to_csv_text())
     code, _, err = run(capsys, "calibrate", TRAIN, "--model", "homography", "--check", str(path))

@@ -83,7 +83,7 @@ def check_pairs(cell_file, rect):
 
 def check_rms_mm(cal, check):
     e = np.linalg.norm(cal.model.residuals(check.uv_px, check.xyz_mm), axis=1)
-    return float(np.sqrt(np.mean(e ** 2)))
+    return float(np.sqrt(np.mean(e**2)))
 
 
 @pytest.fixture(scope="module")
@@ -111,8 +111,19 @@ def offline(tmp_path_factory, rect, cell_file):
         names.append(f"img_{k:02d}.png")
         cv2.imwrite(str(tmp_path / names[-1]), cam.render())
     (tmp_path / "poses.csv").write_text(poses_csv(names, sent))
-    assert main(["calibrate-images", str(tmp_path / "poses.csv"), "--image-size", "640x512",
-                 "-o", str(tmp_path / "offline.json")]) == 0
+    assert (
+        main(
+            [
+                "calibrate-images",
+                str(tmp_path / "poses.csv"),
+                "--image-size",
+                "640x512",
+                "-o",
+                str(tmp_path / "offline.json"),
+            ]
+        )
+        == 0
+    )
     return Calibration.load(tmp_path / "offline.json")
 
 
@@ -127,14 +138,19 @@ def test_sim_collection_end_to_end(run_sim, rect, check_pairs, offline):
     cal = Calibration.load(run_sim["store"] / "cell1.json")
     assert cal.model_name == model and len(cal.train.points) == 25
     # the NEXT poses are the plan's poses in order
-    sent = [tuple(float(v) for v in line.split(" ", 2)[2].split(","))
-            for line, _ in run_sim["robot"].transcript if line.startswith("CAL POINT")]
+    sent = [
+        tuple(float(v) for v in line.split(" ", 2)[2].split(","))
+        for line, _ in run_sim["robot"].transcript
+        if line.startswith("CAL POINT")
+    ]
     np.testing.assert_allclose(sent, plan_poses("grid:5x5", *rect, Z), atol=1e-4)
 
     rms_loop, rms_off = check_rms_mm(cal, check_pairs), check_rms_mm(offline, check_pairs)
-    print(f"check RMS: collection {rms_loop:.4f} mm ({cal.model_name}), calibrate-images "
-          f"{rms_off:.4f} mm ({offline.model_name}), ratio {rms_loop / rms_off:.3f}, "
-          f"{len(check_pairs)} check points")
+    print(
+        f"check RMS: collection {rms_loop:.4f} mm ({cal.model_name}), calibrate-images "
+        f"{rms_off:.4f} mm ({offline.model_name}), ratio {rms_loop / rms_off:.3f}, "
+        f"{len(check_pairs)} check points"
+    )
     assert rms_loop <= 1.2 * rms_off
 
 
@@ -157,8 +173,9 @@ def test_folder_collection_over_tcp_matches_sim(run_sim, rect, cell_file, tmp_pa
     threading.Thread(target=server.serve_forever, daemon=True).start()
     link = TcpLink("127.0.0.1", server.server_address[1], timeout_s=60)
     try:
-        robot = VirtualRobot(link.send, FolderCamera(shots, load_cell(cell_file), seed=SEED,
-                                                     delay_s=0.1, gap_s=0.15))
+        robot = VirtualRobot(
+            link.send, FolderCamera(shots, load_cell(cell_file), seed=SEED, delay_s=0.1, gap_s=0.15)
+        )
         out = robot.run_plan("cell1", "grid:5x5", rect, Z)
     finally:
         link.close()
@@ -184,14 +201,27 @@ def test_errors_one_each_and_session_continues(tmp_path, cell_file, rect):
         return f"CAL POINT {x:.4f},{y:.4f},{z:.4f}"
 
     def n_recorded():
-        return sum(1 for line in (tmp_path / "collect.jsonl").read_text().splitlines()
-                   if json.loads(line)["op"] == "point")
+        return sum(
+            1
+            for line in (tmp_path / "collect.jsonl").read_text().splitlines()
+            if json.loads(line)["op"] == "point"
+        )
 
     assert col.handle(pt(0)) == "ERR no collection open; send CAL BEGIN <name> first"
     assert col.handle("CAL STATUS") == "OK -,0,none"
-    for bad in ("hello", "CAL", "CAL FLY 1,2,3", "CAL POINT 1,2", "CAL POINT 1,abc,3",
-                "CAL POINT 1,nan,3", "CAL BEGIN bad name!", "CAL BEGIN c,grid:0x3,0,0,1,1,150",
-                "CAL BEGIN c,grid:3x3,0,0,1,1", "CAL BEGIN c,nosuchmodel", "CAL NEXT 3"):
+    for bad in (
+        "hello",
+        "CAL",
+        "CAL FLY 1,2,3",
+        "CAL POINT 1,2",
+        "CAL POINT 1,abc,3",
+        "CAL POINT 1,nan,3",
+        "CAL BEGIN bad name!",
+        "CAL BEGIN c,grid:0x3,0,0,1,1,150",
+        "CAL BEGIN c,grid:3x3,0,0,1,1",
+        "CAL BEGIN c,nosuchmodel",
+        "CAL NEXT 3",
+    ):
         reply = col.handle(bad)
         assert reply.startswith("ERR ") and "\n" not in reply, (bad, reply)
     begin = "CAL BEGIN c2,grid:5x5,{:.4f},{:.4f},{:.4f},{:.4f},{:.1f}\r\n".format(*rect, Z)
@@ -289,10 +319,14 @@ robot.run_plan("cell1", "grid:5x5", {rect!r}, {z!r}, stop_after=1, end=False)
 def test_killed_collection_resumes_to_the_same_calibration(run_sim, tmp_path, cell_file, rect):
     store = tmp_path / "store"
     uri = f"sim:{cell_file}?seed={SEED}"
-    script = KILL_SCRIPT.format(robots=str(ROOT / "examples" / "robots"), uri=uri, store=str(store),
-                                rect=tuple(float(v) for v in rect), z=Z)
-    env = {**os.environ,
-           "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
+    script = KILL_SCRIPT.format(
+        robots=str(ROOT / "examples" / "robots"),
+        uri=uri,
+        store=str(store),
+        rect=tuple(float(v) for v in rect),
+        z=Z,
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, env=env)
     try:
         assert proc.stdout.readline().strip() == "12"
@@ -345,6 +379,7 @@ def test_sim_source_places_the_target_with_the_hidden_errors(cell_file):
     cell = load_cell(cell_file).with_values(robot={"tcp_offset_mm": [2.0, 0.0], "repeatability_mm": 0.0})
     cam = CellCamera(cell, seed=1)
     from eyetohand.detect import detect_target
+
     c = np.array([20.0, 600.0, Z])
     found = []
     for angle in (0.0, 180.0):
@@ -437,13 +472,35 @@ class Serve:
     def __init__(self, data, cell_file, *extra):
         import queue
 
-        env = {**os.environ,
-               "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
+        env = {
+            **os.environ,
+            "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")]),
+        }
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "eyetohand.cli", "serve", "--port", "0", "--data", str(data),
-             "--tcp", "127.0.0.1:0", "--camera", f"sim:{cell_file}?seed={SEED}", "--calibration", "cell1",
-             "--log-level", "warning", *extra],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+            [
+                sys.executable,
+                "-m",
+                "eyetohand.cli",
+                "serve",
+                "--port",
+                "0",
+                "--data",
+                str(data),
+                "--tcp",
+                "127.0.0.1:0",
+                "--camera",
+                f"sim:{cell_file}?seed={SEED}",
+                "--calibration",
+                "cell1",
+                "--log-level",
+                "warning",
+                *extra,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+        )
         self.lines: queue.Queue = queue.Queue()
         self.out: list[str] = []
         threading.Thread(target=self._pump, daemon=True).start()
@@ -488,8 +545,9 @@ def stored(data, name="cell1"):
         st.close()
 
 
-def test_serve_collects_over_tcp_with_the_robot_client(tmp_path, cell_file, rect, run_sim, check_pairs,
-                                                       offline):
+def test_serve_collects_over_tcp_with_the_robot_client(
+    tmp_path, cell_file, rect, run_sim, check_pairs, offline
+):
     """No human: the real server process with the sim: camera, the virtual robot program
     (examples/robots/robot_client.py, its own process) runs a 5x5 plan; the calibration is stored as
     a version in the server's database, then served to mapping lines and checked by CAL CHECK."""
@@ -498,11 +556,24 @@ def test_serve_collects_over_tcp_with_the_robot_client(tmp_path, cell_file, rect
         link = srv.link()
         assert link.send("600,400").startswith("ERR no calibration to map with: 'cell1' has none yet")
         client = subprocess.run(
-            [sys.executable, str(ROOT / "examples" / "robots" / "robot_client.py"), "--tcp",
-             f"127.0.0.1:{srv.tcp_port}", "--name", "cell1", "--plan", "grid:5x5",
-             "--rect=" + ",".join(f"{v:.4f}" for v in rect), "--z", str(Z)],
-            capture_output=True, text=True, timeout=120,
-            env={**os.environ, "PYTHONPATH": str(ROOT / "src")})
+            [
+                sys.executable,
+                str(ROOT / "examples" / "robots" / "robot_client.py"),
+                "--tcp",
+                f"127.0.0.1:{srv.tcp_port}",
+                "--name",
+                "cell1",
+                "--plan",
+                "grid:5x5",
+                "--rect=" + ",".join(f"{v:.4f}" for v in rect),
+                "--z",
+                str(Z),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+        )
         assert client.returncode == 0, client.stdout + client.stderr
         replies = [ln[2:] for ln in client.stdout.splitlines() if ln.startswith("< ")]
         assert replies[-1] == run_sim["out"]["end"]  # the same images, the same fit as in-process
@@ -510,8 +581,10 @@ def test_serve_collects_over_tcp_with_the_robot_client(tmp_path, cell_file, rect
         assert len(vers) == 1 and vers[0].note == "collected (25 points)"
         assert cal.data_sha256 == Calibration.load(run_sim["store"] / "cell1.json").data_sha256
         rms_loop, rms_off = check_rms_mm(cal, check_pairs), check_rms_mm(offline, check_pairs)
-        print(f"server process: check RMS {rms_loop:.4f} mm vs calibrate-images {rms_off:.4f} mm, "
-              f"ratio {rms_loop / rms_off:.3f}")
+        print(
+            f"server process: check RMS {rms_loop:.4f} mm vs calibrate-images {rms_off:.4f} mm, "
+            f"ratio {rms_loop / rms_off:.3f}"
+        )
         assert rms_loop <= 1.2 * rms_off
         # the mapping lines now use the collected calibration; CAL CHECK records into the history
         uv = cal.model.robot_to_image(np.array([[0.5 * (rect[0] + rect[2]), 0.5 * (rect[1] + rect[3]), Z]]))

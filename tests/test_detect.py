@@ -43,10 +43,16 @@ def test_full_size_renders_beat_simpleblobdetector():
         assert d.ok, d.reason
         ours.append(err(d, truth))
         kp = sbd.detect(img)
-        theirs.append(min(np.hypot(k.pt[0] - truth.ellipse_centre_px[0], k.pt[1] - truth.ellipse_centre_px[1])
-                          for k in kp))
-    print(f"median error: ours {np.median(ours):.4f} px, SimpleBlobDetector {np.median(theirs):.4f} px; "
-          f"max ours {max(ours):.4f} px")
+        theirs.append(
+            min(
+                np.hypot(k.pt[0] - truth.ellipse_centre_px[0], k.pt[1] - truth.ellipse_centre_px[1])
+                for k in kp
+            )
+        )
+    print(
+        f"median error: ours {np.median(ours):.4f} px, SimpleBlobDetector {np.median(theirs):.4f} px; "
+        f"max ours {max(ours):.4f} px"
+    )
     assert max(ours) < 0.06
     assert np.median(ours) <= 0.7 * np.median(theirs)
 
@@ -56,8 +62,9 @@ def test_accuracy_over_blur_and_noise(small_cam, blur, noise, seed):
     rng = np.random.default_rng(seed)
     for _ in range(3):
         xy = rng.uniform(-5, 5, 2)
-        img, tr = render(small_cam, (*xy, 0.0), angle_deg=rng.uniform(0, 180), blur_px=blur,
-                         noise=noise / 255, rng=rng)
+        img, tr = render(
+            small_cam, (*xy, 0.0), angle_deg=rng.uniform(0, 180), blur_px=blur, noise=noise / 255, rng=rng
+        )
         d = detect_target(img)
         assert d.ok and d.polarity == "dark" and err(d, tr) < 0.06, (d.reason, err(d, tr) if d.ok else None)
         assert d.diameter_px == pytest.approx(tr.diameter_px, abs=0.15)
@@ -85,8 +92,9 @@ def test_intensity_fit_beats_the_edge_points_it_starts_from():
         grey = img.astype(np.float32)
         assert _fit_intensity(grey, e.ellipse, -1.0, noise_sigma(grey)) is None
         assert _fit_intensity(grey, e.ellipse, 1.0, noise_sigma(grey)) is not None
-    print(f"median error: intensity fit {np.median(fit_err):.4f} px, "
-          f"edge points {np.median(edge_err):.4f} px")
+    print(
+        f"median error: intensity fit {np.median(fit_err):.4f} px, edge points {np.median(edge_err):.4f} px"
+    )
     assert np.median(fit_err) < np.median(edge_err)
     with pytest.raises(InputError, match="refine"):
         detect_target(img, refine="moments")
@@ -99,8 +107,9 @@ def test_uneven_light_bright_target_and_16_bit(small_cam):
     d = detect_target(dim)
     assert d.ok and err(d, tr) < 0.06, d.reason
     bright = Target(circle_level=0.9, strip_level=0.15, belt_level=0.5)
-    img, tr = render(small_cam, (-3.0, 2.0, 0.0), angle_deg=70, target=bright, blur_px=1.2, noise=2 / 255,
-                     rng=6)
+    img, tr = render(
+        small_cam, (-3.0, 2.0, 0.0), angle_deg=70, target=bright, blur_px=1.2, noise=2 / 255, rng=6
+    )
     d = detect_target(img)
     assert d.ok and d.polarity == "bright" and err(d, tr) < 0.06, d.reason
     assert not detect_target(img, polarity="dark").ok
@@ -109,8 +118,14 @@ def test_uneven_light_bright_target_and_16_bit(small_cam):
 def test_image_formats_give_the_same_centre(small_cam, tmp_path):
     img, tr = render(small_cam, (1.0, 2.0, 0.0), angle_deg=20, blur_px=1.0, noise=1 / 255, rng=7, bits=16)
     img8 = (img >> 8).astype(np.uint8)
-    files = {"a.png": img, "b.png": img8, "c.bmp": img8, "d.tif": img, "e.jpg": img8,
-             "f.png": cv2.cvtColor(img8, cv2.COLOR_GRAY2BGR)}
+    files = {
+        "a.png": img,
+        "b.png": img8,
+        "c.bmp": img8,
+        "d.tif": img,
+        "e.jpg": img8,
+        "f.png": cv2.cvtColor(img8, cv2.COLOR_GRAY2BGR),
+    }
     for name, a in files.items():
         params = [cv2.IMWRITE_JPEG_QUALITY, 95] if name.endswith(".jpg") else []
         assert cv2.imwrite(str(tmp_path / name), a, params)
@@ -145,16 +160,25 @@ def finish(img, seed=0, blur=1.0, noise=2.0):
 REFUSALS = {
     "blank": (lambda: finish(canvas(), noise=0, blur=0), "no contrast"),
     "flat with noise": (lambda: finish(canvas()), "no target found"),
-    "noise only": (lambda: np.random.default_rng(1).integers(0, 256, (480, 640)).astype(np.uint8),
-                   "no target found"),
-    "two equal circles": (lambda: finish(disc(disc(canvas(), 200.3, 200.7, 30, 30), 450, 260, 30, 30)),
-                          "ambiguous: 2"),
+    "noise only": (
+        lambda: np.random.default_rng(1).integers(0, 256, (480, 640)).astype(np.uint8),
+        "no target found",
+    ),
+    "two equal circles": (
+        lambda: finish(disc(disc(canvas(), 200.3, 200.7, 30, 30), 450, 260, 30, 30)),
+        "ambiguous: 2",
+    ),
     "a square": (lambda: finish(cv2.rectangle(canvas(), (250, 180), (310, 240), 30, -1)), "no target found"),
-    "a square at 45°": (lambda: finish(cv2.fillPoly(canvas(), [np.array([[300, 150], [345, 195], [300, 240],
-                                                                           [255, 195]])], 30)),
-                        "no target found"),
-    "a circle cut by the border": (lambda: finish(disc(canvas(), 620, 200, 40, 30)),
-                                   "cut by the image border"),
+    "a square at 45°": (
+        lambda: finish(
+            cv2.fillPoly(canvas(), [np.array([[300, 150], [345, 195], [300, 240], [255, 195]])], 30)
+        ),
+        "no target found",
+    ),
+    "a circle cut by the border": (
+        lambda: finish(disc(canvas(), 620, 200, 40, 30)),
+        "cut by the image border",
+    ),
 }
 
 
@@ -186,9 +210,14 @@ def test_unreadable_files_raise_one_line_naming_the_file(tmp_path):
     (tmp_path / "empty.png").write_bytes(b"")
     cv2.imwrite(str(tmp_path / "one.png"), np.zeros((1, 1), np.uint8))
     (tmp_path / "dir.png").mkdir()
-    for name, words in [("missing.png", "no such file"), ("trunc.png", "truncated PNG"),
-                        ("text.png", "not an image"), ("empty.png", "empty file"), ("one.png", "1x1 px"),
-                        ("dir.png", "folder")]:
+    for name, words in [
+        ("missing.png", "no such file"),
+        ("trunc.png", "truncated PNG"),
+        ("text.png", "not an image"),
+        ("empty.png", "empty file"),
+        ("one.png", "1x1 px"),
+        ("dir.png", "folder"),
+    ]:
         with pytest.raises(InputError, match=words) as info:
             detect_target(tmp_path / name)
         assert str(tmp_path / name) in str(info.value) and "\n" not in str(info.value)
@@ -214,8 +243,9 @@ def test_fit_ellipse_recovers_a_known_ellipse():
     t = np.linspace(0, 2 * np.pi, 50, endpoint=False)
     a, b, ang = 40.0, 25.0, np.radians(30)
     x, y = a * np.cos(t), b * np.sin(t)
-    pts = np.column_stack([x * np.cos(ang) - y * np.sin(ang) + 100.25,
-                           x * np.sin(ang) + y * np.cos(ang) + 50.5])
+    pts = np.column_stack(
+        [x * np.cos(ang) - y * np.sin(ang) + 100.25, x * np.sin(ang) + y * np.cos(ang) + 50.5]
+    )
     c, axes, angle, *_ = fit_ellipse(pts)
     assert np.allclose(c, [100.25, 50.5], atol=1e-9) and np.allclose(axes, [80, 50], atol=1e-8)
     assert angle == pytest.approx(30.0, abs=1e-6)
@@ -305,6 +335,7 @@ def test_the_windowed_candidate_search_finds_what_the_whole_image_search_finds()
         fast, fast_rej, everywhere = _candidates(grey, sigma, "auto", None, f)
         full, full_rej, _ = _candidates(grey, sigma, "auto", None, f, everywhere=True)
         assert not everywhere and len(fast) >= 1
-        assert [(c.x, c.y, c.diameter, c.polarity, c.levels) for c in fast] == \
-            [(c.x, c.y, c.diameter, c.polarity, c.levels) for c in full]
+        assert [(c.x, c.y, c.diameter, c.polarity, c.levels) for c in fast] == [
+            (c.x, c.y, c.diameter, c.polarity, c.levels) for c in full
+        ]
     assert len(fast) == 2 and "ambiguous" in detect_target(two).reason

@@ -59,9 +59,29 @@ class Serve:
         self.url = f"http://127.0.0.1:{self.port}"
         env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "eyetohand.cli", "serve", "--port", str(self.port), "--data", str(data),
-             "--tcp", f"127.0.0.1:{self.tcp_port}", "--calibration", "cal 0", "--log-level", "error", *extra],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, preexec_fn=preexec)
+            [
+                sys.executable,
+                "-m",
+                "eyetohand.cli",
+                "serve",
+                "--port",
+                str(self.port),
+                "--data",
+                str(data),
+                "--tcp",
+                f"127.0.0.1:{self.tcp_port}",
+                "--calibration",
+                "cal 0",
+                "--log-level",
+                "error",
+                *extra,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+            preexec_fn=preexec,
+        )
         deadline = time.monotonic() + 30
         while True:
             assert self.proc.poll() is None, self.proc.stdout.read()
@@ -142,8 +162,9 @@ def test_a_foreign_write_lock_gives_503_while_mapping_keeps_answering(tmp_path):
         with httpx.Client(base_url=srv.url, timeout=10) as c:  # warm the cache of calibration 1
             r = c.post("/api/calibrations/1/image-to-robot", json={"points": [[600, 900]]})
             assert r.status_code == 200
-        holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(data / DB_NAME), "8"],
-                                  stdout=subprocess.PIPE, text=True)
+        holder = subprocess.Popen(
+            [sys.executable, "-c", HOLD_LOCK, str(data / DB_NAME), "8"], stdout=subprocess.PIPE, text=True
+        )
         assert holder.stdout.readline().strip() == "locked"
         t_lock = time.monotonic()
         write: dict = {}
@@ -151,14 +172,21 @@ def test_a_foreign_write_lock_gives_503_while_mapping_keeps_answering(tmp_path):
         def do_write() -> None:
             t0 = time.monotonic()
             r = httpx.post(srv.url + "/api/calibrations/1/rollback", json={"version": 1}, timeout=30)
-            write.update(status=r.status_code, body=r.json(), retry=r.headers.get("Retry-After"),
-                         seconds=time.monotonic() - t0, ctype=r.headers["content-type"])
+            write.update(
+                status=r.status_code,
+                body=r.json(),
+                retry=r.headers.get("Retry-After"),
+                seconds=time.monotonic() - t0,
+                ctype=r.headers["content-type"],
+            )
 
         wt = threading.Thread(target=do_write)
         wt.start()
         http_ms, tcp_ms = [], []
-        with httpx.Client(base_url=srv.url, timeout=10) as c, \
-                socket.create_connection(("127.0.0.1", srv.tcp_port), timeout=10) as s:
+        with (
+            httpx.Client(base_url=srv.url, timeout=10) as c,
+            socket.create_connection(("127.0.0.1", srv.tcp_port), timeout=10) as s,
+        ):
             f = s.makefile("rb")
             while time.monotonic() - t_lock < 7.0:  # the lock is held 8 s (the write waits 1 s of it)
                 t0 = time.perf_counter()
@@ -171,8 +199,10 @@ def test_a_foreign_write_lock_gives_503_while_mapping_keeps_answering(tmp_path):
                 tcp_ms.append((time.perf_counter() - t0) * 1e3)
         wt.join(timeout=30)
         holder.wait(timeout=10)
-        print(f"under a foreign write lock: HTTP mapping p99 {np.percentile(http_ms, 99):.1f} ms "
-              f"(n={len(http_ms)}), TCP p99 {np.percentile(tcp_ms, 99):.1f} ms; write {write}")
+        print(
+            f"under a foreign write lock: HTTP mapping p99 {np.percentile(http_ms, 99):.1f} ms "
+            f"(n={len(http_ms)}), TCP p99 {np.percentile(tcp_ms, 99):.1f} ms; write {write}"
+        )
         assert write["status"] == 503 and write["ctype"] == "application/json", write
         assert write["retry"] and int(write["retry"]) >= 1 and "busy" in write["body"]["error"]
         assert write["seconds"] < 3.0  # the bounded wait (1 s here), not the lock's 8 s
@@ -196,8 +226,12 @@ def test_a_huge_body_is_refused_while_the_robot_keeps_being_served(tmp_path):
         def post() -> None:
             t0 = time.monotonic()
             try:
-                r = httpx.post(srv.url + "/api/calibrations", content=body, timeout=60,
-                               headers={"Content-Type": "application/json"})
+                r = httpx.post(
+                    srv.url + "/api/calibrations",
+                    content=body,
+                    timeout=60,
+                    headers={"Content-Type": "application/json"},
+                )
                 result.update(status=r.status_code, ctype=r.headers.get("content-type", ""))
             except httpx.HTTPError as exc:  # the server may close the connection after its 413
                 result.update(status=None, error=str(exc))
@@ -245,16 +279,19 @@ def test_a_write_past_the_file_size_limit_fails_cleanly(tmp_path):
     size = (data / DB_NAME).stat().st_size
     srv = Serve(data, preexec=_limit_file_size(size + 4096))
     try:  # ~100 KB to store (pairs, and the calibration's copy of them): more than the 4 KiB left
-        big = [{**p, "id": f"{k}-{p['id']}-{'x' * 40}", "u": p["u"] + 0.37 * k,
-                "x": p["x"] + 0.05 * k}
-               for k in range(20) for p in PAIRS]
+        big = [
+            {**p, "id": f"{k}-{p['id']}-{'x' * 40}", "u": p["u"] + 0.37 * k, "x": p["x"] + 0.05 * k}
+            for k in range(20)
+            for p in PAIRS
+        ]
         body = {"name": "big", "pairs": big, "model": "homography"}
         r = httpx.post(srv.url + "/api/calibrations", json=body, timeout=60)
         assert r.status_code in (503, 507), r.text
         assert r.headers["content-type"] == "application/json"
         assert "nothing was changed" in r.json()["error"]
-        ok = httpx.post(srv.url + "/api/calibrations/1/image-to-robot", json={"points": [[600, 900]]},
-                        timeout=10)
+        ok = httpx.post(
+            srv.url + "/api/calibrations/1/image-to-robot", json={"points": [[600, 900]]}, timeout=10
+        )
         assert ok.status_code == 200  # the service is still up and serving
     finally:
         srv.stop()

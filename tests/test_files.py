@@ -20,8 +20,9 @@ def run(capsys, *args):
 
 
 @pytest.mark.parametrize("kind", ["folder", "fifo", "symlink", "missing-folder", "read-only-folder"])
-def test_an_output_that_cannot_be_a_regular_file_is_refused_before_the_fit(tmp_path, capsys, kind,
-                                                                           monkeypatch):
+def test_an_output_that_cannot_be_a_regular_file_is_refused_before_the_fit(
+    tmp_path, capsys, kind, monkeypatch
+):
     target = tmp_path / "out.json"
     if kind == "folder":
         target.mkdir()

@@ -21,8 +21,9 @@ def camera_pairs(cam: Camera, heights, *, n_side=6, noise_px=0.1, repeat_mm=0.01
     robot, the robot's repeatability and the detector's noise added (as the simulator does)."""
     rng = np.random.default_rng(seed)
     w, h = cam.image_size
-    uu, vv = np.meshgrid(np.linspace(margin_px, w - 1 - margin_px, n_side),
-                         np.linspace(margin_px, h - 1 - margin_px, n_side))
+    uu, vv = np.meshgrid(
+        np.linspace(margin_px, w - 1 - margin_px, n_side), np.linspace(margin_px, h - 1 - margin_px, n_side)
+    )
     q = np.column_stack([uu.ravel(), vv.ravel()])
     xyz = np.vstack([cam.image_to_robot(q, z) for z in heights])
     actual = xyz + rng.normal(0.0, repeat_mm, xyz.shape)
@@ -35,8 +36,9 @@ def bottom_camera(k1=-0.06) -> Camera:
     seen unmirrored (det J > 0), tilted 6°, with lens distortion."""
     eye = np.array([40.0, 580.0, -300.0])
     target = np.array([40.0 + 450 * np.tan(np.deg2rad(6.0)), 580.0, 150.0])
-    return Camera.look_at(eye, target, focal_px=4637.7, up=(np.cos(0.4), np.sin(0.4), 0.0),
-                          dist=(k1, 0.1, 0.0002, -0.0001, 0.0))
+    return Camera.look_at(
+        eye, target, focal_px=4637.7, up=(np.cos(0.4), np.sin(0.4), 0.0), dist=(k1, 0.1, 0.0002, -0.0001, 0.0)
+    )
 
 
 def segments(cal, cam: Camera, z_mm: float, n: int, rng: np.random.Generator):
@@ -178,8 +180,9 @@ def test_sigma_mm_matches_measured_check_rms(noise_px, tilt_deg, k1, heights, pl
     same robot repeatability) over its measured RMS lies in [0.67, 1.5], on the check points inside
     the calibrated region (the ones a calibration answers)."""
     lens = {"k1": k1, "k2": 0.0 if k1 == 0 else 0.12, "p1": 0.0, "p2": 0.0}
-    cell = Cell.default().with_values(camera={"tilt_deg": tilt_deg, **lens},
-                                      detection={"pixel_noise_px": noise_px})
+    cell = Cell.default().with_values(
+        camera={"tilt_deg": tilt_deg, **lens}, detection={"pixel_noise_px": noise_px}
+    )
     pairs = simulate(cell, plan, heights, n_check=0, seed=seed).pairs
     check = simulate(cell, "random:150", heights, n_check=0, seed=1000 + seed).pairs
     cal = calibrate(pairs, loo=False)

@@ -71,8 +71,12 @@ def _bad_files(tmp_path):
     (tmp_path / "trunc.png").write_bytes(png.tobytes()[: len(png) // 2])
     (tmp_path / "text.png").write_text("hello\n")
     cv2.imwrite(str(tmp_path / "tiny.png"), np.full((1, 1), 128, np.uint8))
-    return {"trunc.png": "truncated PNG", "text.png": "not an image", "tiny.png": "1x1 px",
-            "missing.png": "no such file"}
+    return {
+        "trunc.png": "truncated PNG",
+        "text.png": "not an image",
+        "tiny.png": "1x1 px",
+        "missing.png": "no such file",
+    }
 
 
 def test_detect_refuses_unreadable_files(tmp_path, capsys):
@@ -118,8 +122,24 @@ def session(tmp_path_factory):
     distortion, at a third of its resolution (816×683, 10.35 µm pixels: the same view, target ~26 px)."""
     d = tmp_path_factory.mktemp("session")
     (d / "cell.toml").write_text(CELL)
-    code = main(["simulate", "--config", str(d / "cell.toml"), "--plan", "grid:5x5", "--heights", "150",
-                 "--check", "20", "--out", str(d / "sim"), "--seed", "3", "--images"])
+    code = main(
+        [
+            "simulate",
+            "--config",
+            str(d / "cell.toml"),
+            "--plan",
+            "grid:5x5",
+            "--heights",
+            "150",
+            "--check",
+            "20",
+            "--out",
+            str(d / "sim"),
+            "--seed",
+            "3",
+            "--images",
+        ]
+    )
     assert code == 0
     return d / "sim"
 
@@ -144,8 +164,13 @@ def _opencv_reference(folder):
     uv, xy = centres("poses.csv")
     cuv, cxy = centres("check_poses.csv")
     K0 = np.array([[W, 0, (W - 1) / 2], [0, W, (H - 1) / 2], [0, 0, 1.0]])
-    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
-             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3)
+    flags = (
+        cv2.CALIB_USE_INTRINSIC_GUESS
+        | cv2.CALIB_FIX_PRINCIPAL_POINT
+        | cv2.CALIB_FIX_ASPECT_RATIO
+        | cv2.CALIB_ZERO_TANGENT_DIST
+        | cv2.CALIB_FIX_K3
+    )
     objp = np.c_[xy, np.zeros(len(xy))].astype(np.float32)
     _, K, dist, _, _ = cv2.calibrateCamera([objp], [uv.astype(np.float32)], (W, H), K0, None, flags=flags)
     und = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
@@ -156,17 +181,28 @@ def _opencv_reference(folder):
 
 
 def test_calibrate_images_matches_an_opencv_pipeline(session, capsys):
-    code, out, err = run(capsys, "calibrate-images", session / "poses.csv",
-                         "--check", session / "check_poses.csv", "--model", "auto",
-                         "--image-size", f"{W}x{H}", "--json")
+    code, out, err = run(
+        capsys,
+        "calibrate-images",
+        session / "poses.csv",
+        "--check",
+        session / "check_poses.csv",
+        "--model",
+        "auto",
+        "--image-size",
+        f"{W}x{H}",
+        "--json",
+    )
     assert code == 0, err
     d = json.loads(out)
     assert d["train"]["n"] == 25 and d["check"]["n"] == 20
     assert d["left_out"] == [] and d["check_left_out"] == []
     assert len(d["detections"]) == 25 and all(r["ok"] for r in d["detections"])
     ref = _opencv_reference(session)
-    print(f"calibrate-images --model auto: {d['model']}, check rms {d['check']['rms_mm']:.4f} mm; "
-          f"OpenCV (SimpleBlobDetector + calibrateCamera + homography) {ref:.4f} mm")
+    print(
+        f"calibrate-images --model auto: {d['model']}, check rms {d['check']['rms_mm']:.4f} mm; "
+        f"OpenCV (SimpleBlobDetector + calibrateCamera + homography) {ref:.4f} mm"
+    )
     assert d["check"]["rms_mm"] <= 1.5 * ref
 
 
@@ -180,8 +216,9 @@ def test_calibrate_images_leaves_out_failed_images_and_says_so(session, tmp_path
             fh.write(f"{session / r['image']},{r['x']},{r['y']},{r['z']}\n")
         fh.write(f"blank.png,{rows[0]['x']},{rows[1]['y']},150\n")
         fh.write("text.png,1,2,150\n")
-    code, out, err = run(capsys, "calibrate-images", tmp_path / "poses.csv", "--model", "homography",
-                         "--json")
+    code, out, err = run(
+        capsys, "calibrate-images", tmp_path / "poses.csv", "--model", "homography", "--json"
+    )
     assert code == 0, err
     d = json.loads(out)
     assert d["left_out"] == ["blank.png", "text.png"] and d["train"]["n"] == 12
@@ -212,14 +249,25 @@ def test_calibrate_images_reports_progress_saves_pairs_and_annotated_images(sess
         for r in rows:
             fh.write(f"{session / r['image']},{r['x']},{r['y']},{r['z']}\n")
     pairs_out, ann = tmp_path / "pairs.csv", tmp_path / "ann"
-    code, out, err = run(capsys, "calibrate-images", tmp_path / "poses.csv", "--model", "homography",
-                         "--pairs-out", pairs_out, "--annotate", ann, "--json")
+    code, out, err = run(
+        capsys,
+        "calibrate-images",
+        tmp_path / "poses.csv",
+        "--model",
+        "homography",
+        "--pairs-out",
+        pairs_out,
+        "--annotate",
+        ann,
+        "--json",
+    )
     assert code == 0, err
     d = json.loads(out)
     lines = err.splitlines()
     # capsys' stderr is no terminal: one line per image, in order, then the end
     assert [ln for ln in lines if ln.startswith("detecting ")] == [
-        f"detecting {i}/9: {session / r['image']}" for i, r in enumerate(rows, 1)]
+        f"detecting {i}/9: {session / r['image']}" for i, r in enumerate(rows, 1)
+    ]
     assert "detected 9 images" in lines and f"wrote {pairs_out}: 9 detected pairs" in lines
     # the CSV calibrates to the same figures with `eyetohand calibrate`
     code, out2, err2 = run(capsys, "calibrate", pairs_out, "--model", "homography", "--json")
@@ -256,6 +304,6 @@ def test_per_point_table_aligns_long_ids(tmp_path, capsys):
     assert code == 0, err
     lines = out.splitlines()
     head = next(k for k, ln in enumerate(lines) if ln.split()[:2] == ["id", "dx_mm"])
-    table = lines[head:head + 10]
+    table = lines[head : head + 10]
     assert all(len(ln.removesuffix("  outlier")) == len(table[0]) for ln in table), "\n".join(table)
     assert all(ln.split()[0] in long_ids for ln in table[1:])

@@ -39,7 +39,8 @@ def _is_package(name: str) -> bool:
 
 def _is_type_checking(test: ast.expr) -> bool:
     return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
 
 
 def _runtime_nodes(tree: ast.AST):
@@ -184,14 +185,22 @@ def test_find_cycles_reports_a_cycle():
 def test_no_import_cycle():
     cycles = find_cycles(GRAPH)
     on_cycles = sorted({m for c in cycles for m in c})
-    assert not cycles, ("import cycles:\n" + "\n".join(_describe(c) for c in cycles)
-                        + "\nmodules on a cycle: " + ", ".join(on_cycles))
+    assert not cycles, (
+        "import cycles:\n"
+        + "\n".join(_describe(c) for c in cycles)
+        + "\nmodules on a cycle: "
+        + ", ".join(on_cycles)
+    )
 
 
 def test_only_the_cli_imports_the_cli():
-    bad = [f"{name} line {GRAPH[name][t]} imports {t}" for name in sorted(GRAPH)
-           if not (name == CLI or name.startswith(CLI + "."))
-           for t in GRAPH[name] if t == CLI or t.startswith(CLI + ".")]
+    bad = [
+        f"{name} line {GRAPH[name][t]} imports {t}"
+        for name in sorted(GRAPH)
+        if not (name == CLI or name.startswith(CLI + "."))
+        for t in GRAPH[name]
+        if t == CLI or t.startswith(CLI + ".")
+    ]
     assert not bad, "library modules importing the CLI:\n" + "\n".join(bad)
 
 
@@ -201,17 +210,27 @@ def _terminal_uses(path: Path) -> list[str]:
     for node in ast.walk(tree):
         if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "print":
             found.append(f"line {node.lineno}: print(")
-        elif (isinstance(node, ast.Attribute) and node.attr in ("stdout", "stderr")
-              and isinstance(node.value, ast.Name) and node.value.id == "sys"):
+        elif (
+            isinstance(node, ast.Attribute)
+            and node.attr in ("stdout", "stderr")
+            and isinstance(node.value, ast.Name)
+            and node.value.id == "sys"
+        ):
             found.append(f"line {node.lineno}: sys.{node.attr}")
         elif isinstance(node, ast.ImportFrom) and node.module == "sys":
-            found += [f"line {node.lineno}: from sys import {a.name}" for a in node.names
-                      if a.name in ("stdout", "stderr")]
+            found += [
+                f"line {node.lineno}: from sys import {a.name}"
+                for a in node.names
+                if a.name in ("stdout", "stderr")
+            ]
     return found
 
 
 def test_library_modules_print_nothing():
-    bad = [f"{name} {use}" for name, path in sorted(MODULES.items())
-           if not any(name == p or name.startswith(p + ".") for p in MAY_PRINT)
-           for use in _terminal_uses(path)]
+    bad = [
+        f"{name} {use}"
+        for name, path in sorted(MODULES.items())
+        if not any(name == p or name.startswith(p + ".") for p in MAY_PRINT)
+        for use in _terminal_uses(path)
+    ]
     assert not bad, "library modules writing to the terminal (use a callback):\n" + "\n".join(bad)

@@ -18,8 +18,13 @@ from eyetohand.models.radial import HomographyRadial
 TIGHT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-16)
 # (k1, k2, p1, p2, k3): mild, strong with tangential and k3, radial only (fast path), tangential only,
 # and 4 coefficients (k3 absent)
-LENSES = [(-0.08, 0.12, 2e-4, -1e-4, 0.0), (-0.28, 0.12, 1.5e-3, -8e-4, -0.02), (-0.3, 0.4, 0.0, 0.0, 0.05),
-          (0.0, 0.0, 2e-3, -1.5e-3, 0.0), (0.1, -0.05, 0.0, 0.0, 0.0)]
+LENSES = [
+    (-0.08, 0.12, 2e-4, -1e-4, 0.0),
+    (-0.28, 0.12, 1.5e-3, -8e-4, -0.02),
+    (-0.3, 0.4, 0.0, 0.0, 0.05),
+    (0.0, 0.0, 2e-3, -1.5e-3, 0.0),
+    (0.1, -0.05, 0.0, 0.0, 0.0),
+]
 
 
 def cv_distort(n, k):
@@ -70,8 +75,9 @@ def test_a_few_points_take_the_plain_float_path_with_the_same_answer(ideal):
         many, ok = undistort(d, k)
         few = np.concatenate([undistort(d[i : i + 2], k)[0] for i in range(0, 40, 2)])
         assert ok.all() and np.abs(few - many).max() < 1e-15, row
-        np.testing.assert_allclose(np.concatenate([distort(d[i : i + 1], k) for i in range(40)]),
-                                   distort(d, k), rtol=0, atol=1e-16)
+        np.testing.assert_allclose(
+            np.concatenate([distort(d[i : i + 1], k) for i in range(40)]), distort(d, k), rtol=0, atol=1e-16
+        )
     one, ok1 = undistort(np.array([0.2, -0.1]), np.array(LENSES[1]))
     assert one.shape == (2,) and ok1.shape == () and bool(ok1)
 
@@ -127,8 +133,14 @@ def test_rodrigues_both_ways_match_opencv_batched():
 
 
 def test_camera_with_non_square_pixels_matches_opencv():
-    cam = Camera.look_at((40.0, -30.0, 480.0), (0.0, 0.0, 0.0), focal_px=3000.0, aspect=1.002,
-                         dist=LENSES[1], principal_point_px=(1230.0, 1015.0))
+    cam = Camera.look_at(
+        (40.0, -30.0, 480.0),
+        (0.0, 0.0, 0.0),
+        focal_px=3000.0,
+        aspect=1.002,
+        dist=LENSES[1],
+        principal_point_px=(1230.0, 1015.0),
+    )
     rng = np.random.default_rng(3)
     xyz = np.column_stack([rng.uniform(-120, 120, (3000, 2)), rng.uniform(-20, 60, 3000)])
     ref, _ = cv2.projectPoints(xyz, np.array(cam.rvec), cam.t, cam.K, cam.dist)
@@ -151,10 +163,15 @@ def _plane_point(K, dist, rvec, t, uv, z):
 def test_camera_model_matches_opencv_for_every_particle(aspect):
     rng = np.random.default_rng(4)
     origin = np.array([20.0, 600.0, 170.0])
-    base = np.array([3000.0, 3004.0, 1230.0, 1015.0, -0.2, 0.1, 8e-4, -5e-4, 3.1, 0.05, -0.4,
-                     5.0, -3.0, 300.0])
-    meta = {"origin_mm": origin.tolist(), "heights_mm": [150.0, 200.0], "image_size": [2448, 2048],
-            "aspect": aspect}
+    base = np.array(
+        [3000.0, 3004.0, 1230.0, 1015.0, -0.2, 0.1, 8e-4, -5e-4, 3.1, 0.05, -0.4, 5.0, -3.0, 300.0]
+    )
+    meta = {
+        "origin_mm": origin.tolist(),
+        "heights_mm": [150.0, 200.0],
+        "image_size": [2448, 2048],
+        "aspect": aspect,
+    }
     if aspect == "square":
         base = np.delete(base, 1)
     model = PinholeCamera(base, meta)
@@ -175,10 +192,13 @@ def test_camera_model_matches_opencv_for_every_particle(aspect):
 
 
 def test_camera_model_maps_beyond_the_fold_to_nan():
-    model = PinholeCamera(np.array([3000.0, 1224.0, 1024.0, -0.6, 0.0, 0.0, 0.0, np.pi, 0, 0, 0, 0, 300.0]),
-                          {"origin_mm": [0.0, 0.0, 0.0], "heights_mm": [0.0, 50.0], "image_size": None})
-    out = model.batch_image_to_robot(model.params[None], np.array([[1224.0, 1024.0], [3500.0, 3000.0]]),
-                                     np.zeros(2))
+    model = PinholeCamera(
+        np.array([3000.0, 1224.0, 1024.0, -0.6, 0.0, 0.0, 0.0, np.pi, 0, 0, 0, 0, 300.0]),
+        {"origin_mm": [0.0, 0.0, 0.0], "heights_mm": [0.0, 50.0], "image_size": None},
+    )
+    out = model.batch_image_to_robot(
+        model.params[None], np.array([[1224.0, 1024.0], [3500.0, 3000.0]]), np.zeros(2)
+    )
     assert np.isfinite(out[0, 0]).all() and np.isnan(out[0, 1]).all()
 
 
@@ -186,9 +206,18 @@ def test_homography_radial_matches_opencv_on_its_own_lens():
     f, c, k1, k2 = 2800.0, np.array([1223.5, 1023.5]), -0.12, 0.09
     rng = np.random.default_rng(5)
     H = np.array([[0.07, 0.01, -80.0], [-0.008, 0.069, 540.0], [1e-7, -2e-7, 1.0]])  # ideal px → mm
-    meta = {"T_uv": np.eye(3).tolist(), "T_xy": np.eye(3).tolist(), "plane_z_mm": 150.0,
-            "centre_px": c.tolist(), "centre_source": "image-size", "focal_px": f, "k1": k1, "k2": k2,
-            "lens_fit_rms_px": 0.0, "condition_number": 1.0}
+    meta = {
+        "T_uv": np.eye(3).tolist(),
+        "T_xy": np.eye(3).tolist(),
+        "plane_z_mm": 150.0,
+        "centre_px": c.tolist(),
+        "centre_source": "image-size",
+        "focal_px": f,
+        "k1": k1,
+        "k2": k2,
+        "lens_fit_rms_px": 0.0,
+        "condition_number": 1.0,
+    }
     model = HomographyRadial(H.reshape(-1)[:8], meta)
     K = np.array([[f, 0, c[0]], [0, f, c[1]], [0, 0, 1.0]])
     dist = np.array([k1, k2, 0.0, 0.0])

@@ -14,8 +14,9 @@ def run(capsys, *argv):
     return code, out, err
 
 
-@pytest.mark.parametrize("model, label",
-                         [("camera", "a pinhole camera"), ("dlt3d", "the paper's equation 5")])
+@pytest.mark.parametrize(
+    "model, label", [("camera", "a pinhole camera"), ("dlt3d", "the paper's equation 5")]
+)
 def test_coplanar_refusal_names_the_model_and_the_real_height(capsys, model, label, tmp_path):
     code, out, err = run(capsys, "calibrate", TRAIN, "--model", model, "-o", str(tmp_path / "c.json"))
     assert code == 2 and out == ""
@@ -29,8 +30,9 @@ def test_coplanar_refusal_names_the_model_and_the_real_height(capsys, model, lab
 
 def test_serve_unknown_calibration_creates_no_database(tmp_path, capsys):
     data = tmp_path / "data"
-    code = main(["serve", "--data", str(data), "--port", "0", "--tcp", "127.0.0.1:0",
-                 "--calibration", "nope"])
+    code = main(
+        ["serve", "--data", str(data), "--port", "0", "--tcp", "127.0.0.1:0", "--calibration", "nope"]
+    )
     err = capsys.readouterr().err
     assert code == 2
     assert "'nope' not found" in err and "no calibrations are stored" in err, err

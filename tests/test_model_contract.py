@@ -54,12 +54,14 @@ def test_save_load_is_bit_identical_and_keeps_constants_apart(name):
     assert np.array_equal(back.image_to_robot(pairs.uv_px, z), model.image_to_robot(pairs.uv_px, z))
     # diagnostics never change a mapping
     d2 = dict(d, diagnostics={})
-    assert np.array_equal(model_from_dict(d2).image_to_robot(pairs.uv_px, z),
-                          model.image_to_robot(pairs.uv_px, z))
+    assert np.array_equal(
+        model_from_dict(d2).image_to_robot(pairs.uv_px, z), model.image_to_robot(pairs.uv_px, z)
+    )
     # the pre-0.2 form (one merged 'meta') still loads to the same mapping
     legacy = {"name": d["name"], "params": d["params"], "meta": {**d["diagnostics"], **d["constants"]}}
-    assert np.array_equal(model_from_dict(legacy).image_to_robot(pairs.uv_px, z),
-                          model.image_to_robot(pairs.uv_px, z))
+    assert np.array_equal(
+        model_from_dict(legacy).image_to_robot(pairs.uv_px, z), model.image_to_robot(pairs.uv_px, z)
+    )
 
 
 @pytest.mark.parametrize("name", [n for n in ALL if MODELS[n].constant_shapes])
@@ -141,8 +143,13 @@ def test_no_code_outside_models_special_cases_a_model_by_name():
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Compare):
                 consts = [c for c in [node.left, *node.comparators] if isinstance(c, ast.Constant)]
-                consts += [e for c in node.comparators if isinstance(c, (ast.Tuple, ast.List, ast.Set))
-                           for e in c.elts if isinstance(e, ast.Constant)]
+                consts += [
+                    e
+                    for c in node.comparators
+                    if isinstance(c, (ast.Tuple, ast.List, ast.Set))
+                    for e in c.elts
+                    if isinstance(e, ast.Constant)
+                ]
                 hit = [c.value for c in consts if c.value in names]
                 if hit:
                     found.append(f"{path.relative_to(SRC)}:{node.lineno} compares with {hit}")

@@ -45,8 +45,9 @@ def test_homography_matches_opencv_find_homography():
     pairs = random_pairs(cam, 40, noise_px=0.5)
     model, _ = _fit(pairs, "homography", "lm")
     H_cv, _ = cv2.findHomography(pairs.uv_px, pairs.xyz_mm[:, :2], 0)
-    test_uv = project(cam, np.c_[np.random.default_rng(5).uniform(-50, 50, (20, 2)) + [20, 600],
-                                 np.zeros(20)])
+    test_uv = project(
+        cam, np.c_[np.random.default_rng(5).uniform(-50, 50, (20, 2)) + [20, 600], np.zeros(20)]
+    )
     ref = cv2.perspectiveTransform(test_uv.reshape(-1, 1, 2), H_cv).reshape(-1, 2)
     np.testing.assert_allclose(model.image_to_robot(test_uv)[:, :2], ref, atol=2e-4)
 
@@ -83,11 +84,17 @@ def test_radial_matches_opencv_single_view_on_real_photos():
         ours, _ = _fit(pairs, "homography-radial", "lm", image_size=(w, h))
         hom, _ = _fit(pairs, "homography", "lm")
         K0 = np.array([[500.0, 0, (w - 1) / 2], [0, 500.0, (h - 1) / 2], [0, 0, 1]])
-        flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT
-                 | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3)
+        flags = (
+            cv2.CALIB_USE_INTRINSIC_GUESS
+            | cv2.CALIB_FIX_PRINCIPAL_POINT
+            | cv2.CALIB_FIX_ASPECT_RATIO
+            | cv2.CALIB_ZERO_TANGENT_DIST
+            | cv2.CALIB_FIX_K3
+        )
         objp = np.c_[obj[train], np.zeros(train.sum())].astype(np.float32)
-        _, K, d, _, _ = cv2.calibrateCamera([objp], [uv[train].astype(np.float32)], (w, h), K0, None,
-                                            flags=flags)
+        _, K, d, _, _ = cv2.calibrateCamera(
+            [objp], [uv[train].astype(np.float32)], (w, h), K0, None, flags=flags
+        )
         und = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, d, P=K).reshape(-1, 2)
         H, _ = cv2.findHomography(und[train], obj[train], 0)
         pred = cv2.perspectiveTransform(und[~train].reshape(-1, 1, 2), H).reshape(-1, 2)
@@ -187,8 +194,9 @@ def test_too_few_pairs(name):
     cls = get_model(name)
     n = cls.min_pairs - 1
     rng = np.random.default_rng(0)
-    pairs = PointPairs.from_arrays(rng.uniform(0, 100, (n, 2)), np.c_[rng.uniform(0, 10, (n, 2)),
-                                                                      rng.uniform(1, 5, n)])
+    pairs = PointPairs.from_arrays(
+        rng.uniform(0, 100, (n, 2)), np.c_[rng.uniform(0, 10, (n, 2)), rng.uniform(1, 5, n)]
+    )
     with pytest.raises(DegenerateError, match=rf"at least {cls.min_pairs} pairs"):
         _fit(pairs, name, "linear")
 

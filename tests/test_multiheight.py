@@ -30,8 +30,14 @@ def two_heights():
 def test_undistort_inverts_distort_for_a_whole_swarm():
     rng = np.random.default_rng(0)
     n = rng.uniform(-0.35, 0.35, (4, 50, 2))
-    k = np.array([[-0.08, 0.12, 2e-4, -1e-4, 0.0], [-0.3, 0.4, 5e-4, -3e-4, 0.0],  # k1 k2 p1 p2 k3
-                  [0.05, 0.0, 0.0, 0.0, 0.0], [-0.1, 0.1, 1e-3, 1e-3, 0.02]])
+    k = np.array(
+        [
+            [-0.08, 0.12, 2e-4, -1e-4, 0.0],
+            [-0.3, 0.4, 5e-4, -3e-4, 0.0],  # k1 k2 p1 p2 k3
+            [0.05, 0.0, 0.0, 0.0, 0.0],
+            [-0.1, 0.1, 1e-3, 1e-3, 0.02],
+        ]
+    )
     np.testing.assert_allclose(undistort(distort(n, k), k)[0], n, atol=1e-12)
 
 
@@ -41,16 +47,19 @@ def test_auto_maps_other_heights_within_1p5x_of_opencv(two_heights):
     assert cal.model_name == "camera"
     assert cal.selection["chosen"] == "camera"
     ocv = OpenCVCalibration(sim.pairs, CELL.image_size, CELL.focal_px)
-    single = calibrate(sim.pairs.subset(sim.pairs.xyz_mm[:, 2] == 150.0), "auto",
-                       image_size=CELL.image_size, loo=False)
+    single = calibrate(
+        sim.pairs.subset(sim.pairs.xyz_mm[:, 2] == 150.0), "auto", image_size=CELL.image_size, loo=False
+    )
     for h in (175.0, 220.0):
         chk = sim.check.subset(sim.check.xyz_mm[:, 2] == h)
         e_auto = rms(cal.model.residuals(chk.uv_px, chk.xyz_mm))
         e_ocv = rms(ocv.residuals(chk.uv_px, chk.xyz_mm))
         e_dlt = rms(eyetohand.fit.fit_model(sim.pairs, "dlt3d", "lm")[0].residuals(chk.uv_px, chk.xyz_mm))
         e_single = rms(single.model.residuals(chk.uv_px, chk.xyz_mm))
-        print(f"z={h:g}: auto({cal.model_name}) {e_auto:.4f}  opencv {e_ocv:.4f}  dlt3d {e_dlt:.4f}  "
-              f"single-height {single.model_name} {e_single:.3f} mm")
+        print(
+            f"z={h:g}: auto({cal.model_name}) {e_auto:.4f}  opencv {e_ocv:.4f}  dlt3d {e_dlt:.4f}  "
+            f"single-height {single.model_name} {e_single:.3f} mm"
+        )
         assert e_auto <= 1.5 * e_ocv
         assert e_auto < 0.02
         assert e_dlt > 3 * e_auto  # no lens model: dlt3d is limited by the distortion
@@ -60,8 +69,9 @@ def test_auto_maps_other_heights_within_1p5x_of_opencv(two_heights):
 
 
 def test_camera_recovers_the_hidden_lens_and_pose(two_heights):
-    m = PinholeCamera.from_pairs(two_heights.pairs.uv_px, two_heights.pairs.xyz_mm,
-                                 image_size=CELL.image_size)
+    m = PinholeCamera.from_pairs(
+        two_heights.pairs.uv_px, two_heights.pairs.xyz_mm, image_size=CELL.image_size
+    )
     cam = m.camera
     assert cam["K"][0][0] == pytest.approx(CELL.focal_px, rel=0.02)
     np.testing.assert_allclose(cam["centre_mm"], CELL.camera_centre_mm, atol=8.0)
@@ -90,8 +100,16 @@ def test_image_to_robot_at_any_height_and_apply_z(two_heights, tmp_path, capsys)
 def test_pso_refines_the_camera_over_a_vectorised_swarm(two_heights):
     sim = two_heights
     lm = calibrate(sim.pairs, "camera", "lm", image_size=CELL.image_size, loo=False)
-    pso = calibrate(sim.pairs, "camera", "hybrid-pso", image_size=CELL.image_size, loo=False, seed=3,
-                    n_particles=60, iterations=60)
+    pso = calibrate(
+        sim.pairs,
+        "camera",
+        "hybrid-pso",
+        image_size=CELL.image_size,
+        loo=False,
+        seed=3,
+        n_particles=60,
+        iterations=60,
+    )
     assert np.isfinite(pso.fit.fitness) and pso.fit.fitness < 0.1 * pso.fit.history[0]
     e_pso = rms(pso.model.residuals(sim.check.uv_px, sim.check.xyz_mm))
     e_lm = rms(lm.model.residuals(sim.check.uv_px, sim.check.xyz_mm))
@@ -125,8 +143,9 @@ def test_camera_estimates_a_non_square_pixel_aspect_ratio(aspect):
     assert cal.model_name == "camera" and cal.model.constants["aspect"] == "free"
     K = np.array(cal.model.camera["K"])
     assert K[1, 1] / K[0, 0] == pytest.approx(aspect, abs=3e-4)
-    square = PinholeCamera.from_pairs(sim.pairs.uv_px, sim.pairs.xyz_mm, image_size=cell.image_size,
-                                      aspect="square")
+    square = PinholeCamera.from_pairs(
+        sim.pairs.uv_px, sim.pairs.xyz_mm, image_size=cell.image_size, aspect="square"
+    )
     square, _ = eyetohand.solvers.refine(square, sim.pairs.uv_px, sim.pairs.xyz_mm, optimizer="lm")
     ocv = OpenCVCalibration(sim.pairs, cell.image_size, cell.focal_px)
     e_cam = rms(cal.model.residuals(sim.check.uv_px, sim.check.xyz_mm))
@@ -138,11 +157,13 @@ def test_camera_estimates_a_non_square_pixel_aspect_ratio(aspect):
 
 
 def test_square_pixels_are_kept_on_a_square_pixel_camera(two_heights):
-    m = PinholeCamera.from_pairs(two_heights.pairs.uv_px, two_heights.pairs.xyz_mm,
-                                 image_size=CELL.image_size)
+    m = PinholeCamera.from_pairs(
+        two_heights.pairs.uv_px, two_heights.pairs.xyz_mm, image_size=CELL.image_size
+    )
     assert m.constants["aspect"] == "square" and m.n_params == 13 and m.diagnostics["aspect_z"] < 3.0
-    free = PinholeCamera.from_pairs(two_heights.pairs.uv_px, two_heights.pairs.xyz_mm,
-                                    image_size=CELL.image_size, aspect="free")
+    free = PinholeCamera.from_pairs(
+        two_heights.pairs.uv_px, two_heights.pairs.xyz_mm, image_size=CELL.image_size, aspect="free"
+    )
     assert free.n_params == 14 and free.constants["aspect"] == "free"
     with pytest.raises(eyetohand.InputError, match="aspect"):
         PinholeCamera.from_pairs(two_heights.pairs.uv_px, two_heights.pairs.xyz_mm, aspect="wide")

@@ -86,9 +86,7 @@ def _paper_problem():
     z0 = xyz[0, 2]
     design = np.column_stack([xyz[:, :2], np.ones(len(xyz))])
     a, *_ = np.linalg.lstsq(design, uv, rcond=None)  # (3, 2): robot -> image affine
-    b0 = np.array(
-        [a[0, 0], a[1, 0], 0, a[2, 0], a[0, 1], a[1, 1], 0, a[2, 1], 0, 0, 1 / z0, 0]
-    )
+    b0 = np.array([a[0, 0], a[1, 0], 0, a[2, 0], a[0, 1], a[1, 1], 0, a[2, 1], 0, 0, 1 / z0, 0])
 
     def mapped(bs: np.ndarray, pix: np.ndarray) -> np.ndarray:
         b = bs.reshape(-1, 3, 4)
@@ -171,8 +169,7 @@ def test_result_is_frozen_dataclass():
 
 @pytest.mark.parametrize("iterations", [1, 17])
 def test_history_length_and_monotone(iterations):
-    res = hybrid_pso(rastrigin, np.full(3, 2.0), 1.0, n_particles=25, iterations=iterations,
-                     seed=3)
+    res = hybrid_pso(rastrigin, np.full(3, 2.0), 1.0, n_particles=25, iterations=iterations, seed=3)
     assert res.nit == iterations
     assert res.history.shape == (iterations,)
     assert np.all(np.diff(res.history) <= 0)
@@ -186,8 +183,7 @@ def test_history_length_and_monotone(iterations):
 )
 def test_nfev_counts_every_evaluated_row(n, rate, per_iteration):
     f = Counting(sphere)
-    res = hybrid_pso(f, np.ones(5), 1.0, n_particles=n, iterations=12, mutation_rate=rate,
-                     seed=0)
+    res = hybrid_pso(f, np.ones(5), 1.0, n_particles=n, iterations=12, mutation_rate=rate, seed=0)
     assert res.nfev == sum(f.sizes)
     assert res.nfev_per_iteration == per_iteration
     assert res.nfev == n + 12 * per_iteration
@@ -201,8 +197,9 @@ def test_plain_pso_has_no_crossover_or_mutation():
     assert f.sizes == [20] * 10  # initial swarm + one batch per iteration, nothing else
     assert res.nfev == 200 and res.nfev_per_iteration == 20
     # pso is hybrid_pso with both operators off, bit for bit
-    same = hybrid_pso(sphere, np.ones(5), 1.0, n_particles=20, iterations=9, seed=0,
-                      crossover=False, mutation=False)
+    same = hybrid_pso(
+        sphere, np.ones(5), 1.0, n_particles=20, iterations=9, seed=0, crossover=False, mutation=False
+    )
     assert np.array_equal(res.history, same.history)
 
 
@@ -227,8 +224,7 @@ def test_nan_fitness_is_never_the_best():
 
 
 def test_bounds_clip_the_search():
-    res = hybrid_pso(sphere, np.full(3, 3.0), 1.0, n_particles=30, iterations=60, seed=0,
-                     bounds=(1.0, 10.0))
+    res = hybrid_pso(sphere, np.full(3, 3.0), 1.0, n_particles=30, iterations=60, seed=0, bounds=(1.0, 10.0))
     assert np.all(res.x >= 1.0)
     assert res.fun == pytest.approx(3.0, abs=1e-9)
 
@@ -243,8 +239,7 @@ def test_callback_stops_and_sees_each_iteration():
         seen.append((it, best_fun, best_x.shape))
         return it == 7
 
-    res = hybrid_pso(sphere, np.ones(3), 1.0, n_particles=20, iterations=100, seed=0,
-                     callback=cb)
+    res = hybrid_pso(sphere, np.ones(3), 1.0, n_particles=20, iterations=100, seed=0, callback=cb)
     assert res.nit == 7 and len(res.history) == 7
     assert [s[0] for s in seen] == list(range(1, 8))
     assert [s[1] for s in seen] == list(res.history)
@@ -252,21 +247,35 @@ def test_callback_stops_and_sees_each_iteration():
 
 
 def test_callback_returning_none_does_not_stop():
-    res = pso(sphere, np.ones(3), 1.0, n_particles=10, iterations=12, seed=0,
-              callback=lambda *a: None)
+    res = pso(sphere, np.ones(3), 1.0, n_particles=10, iterations=12, seed=0, callback=lambda *a: None)
     assert res.nit == 12 and res.status == 0 and "maximum" in res.message
 
 
 def test_stall_stop_on_flat_fitness():
-    res = hybrid_pso(lambda x: np.ones(len(x)), np.zeros(4), 1.0, n_particles=10,
-                     iterations=100, seed=0, stall_iterations=5)
+    res = hybrid_pso(
+        lambda x: np.ones(len(x)),
+        np.zeros(4),
+        1.0,
+        n_particles=10,
+        iterations=100,
+        seed=0,
+        stall_iterations=5,
+    )
     assert res.nit == 5 and res.status == 1 and "improved" in res.message
 
 
 def test_stall_tol_stops_converged_run_early():
     full = hybrid_pso(sphere, np.full(5, 2.0), 1.0, n_particles=40, iterations=150, seed=0)
-    early = hybrid_pso(sphere, np.full(5, 2.0), 1.0, n_particles=40, iterations=150, seed=0,
-                       stall_iterations=3, stall_tol=1e-6)
+    early = hybrid_pso(
+        sphere,
+        np.full(5, 2.0),
+        1.0,
+        n_particles=40,
+        iterations=150,
+        seed=0,
+        stall_iterations=3,
+        stall_tol=1e-6,
+    )
     assert early.status == 1 and early.nit < full.nit
     # identical trajectory up to the stop
     assert np.array_equal(early.history, full.history[: early.nit])
@@ -276,8 +285,7 @@ def test_stall_tol_stops_converged_run_early():
 
 
 def test_stall_off_by_default():
-    res = hybrid_pso(lambda x: np.ones(len(x)), np.zeros(2), 1.0, n_particles=5, iterations=40,
-                     seed=0)
+    res = hybrid_pso(lambda x: np.ones(len(x)), np.zeros(2), 1.0, n_particles=5, iterations=40, seed=0)
     assert res.nit == 40 and res.status == 0
 
 
@@ -349,8 +357,7 @@ def test_pso_rejects_operator_switches():
 # ------------------------------------------------------------------ in-place implementation
 
 
-def _reference_hybrid(fitness, x0, sigma, n, iterations, seed, crossover=True, mutation=True,
-                      bounds=None):
+def _reference_hybrid(fitness, x0, sigma, n, iterations, seed, crossover=True, mutation=True, bounds=None):
     """The algorithm written plainly (fresh arrays everywhere), as it was before the in-place
     rewrite: the optimised hybrid_pso must give exactly these numbers."""
     rng = np.random.default_rng(seed)

@@ -89,8 +89,14 @@ finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinit
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.lists(st.tuples(finite, finite, finite, finite, finite), min_size=1, max_size=20,
-                unique_by=(lambda r: (r[0], r[1]), lambda r: (r[2], r[3], r[4]))))
+@given(
+    st.lists(
+        st.tuples(finite, finite, finite, finite, finite),
+        min_size=1,
+        max_size=20,
+        unique_by=(lambda r: (r[0], r[1]), lambda r: (r[2], r[3], r[4])),
+    )
+)
 def test_csv_round_trip_is_exact(tmp_path, rows):
     arr = np.array(rows, float)
     pairs = PointPairs.from_arrays(arr[:, :2], arr[:, 2:])

@@ -63,8 +63,19 @@ def test_huber_lm_ignores_a_bad_pair(paper_pairs):
 
 
 def test_cli_json_reports_the_swarm(capsys):
-    code = main(["calibrate", str(PAPER / "calibration_points.csv"), "--model", "paper",
-                 "--optimizer", "hybrid-pso", "--seed", "3", "--json"])
+    code = main(
+        [
+            "calibrate",
+            str(PAPER / "calibration_points.csv"),
+            "--model",
+            "paper",
+            "--optimizer",
+            "hybrid-pso",
+            "--seed",
+            "3",
+            "--json",
+        ]
+    )
     d = json.loads(capsys.readouterr().out)
     assert code == 0
     assert d["seed"] == 3 and len(d["history"]) == 150 and d["nfev"] > 200 * 150

@@ -61,8 +61,9 @@ def test_truth_without_distortion_is_the_exact_conic():
         assert np.hypot(*(np.array(tr.ellipse_centre_px) - c)) < 1e-8
         # points of the projected boundary lie on the conic
         th = np.linspace(0, 2 * np.pi, 7)
-        ring = np.column_stack([centre[0] + 2.5 * np.cos(th), centre[1] + 2.5 * np.sin(th),
-                                np.full(7, centre[2])])
+        ring = np.column_stack(
+            [centre[0] + 2.5 * np.cos(th), centre[1] + 2.5 * np.sin(th), np.full(7, centre[2])]
+        )
         uv1 = np.column_stack([straight.robot_to_image(ring), np.ones(7)])
         assert np.abs(np.einsum("ni,ij,nj->n", uv1, C / np.abs(C).max(), uv1)).max() < 1e-9
         bent_tr = circle_truth(bent, centre, 5.0)
@@ -119,8 +120,16 @@ def test_belt_is_textured_and_fixed_in_the_robot_frame(small_cam):
     b, _ = render(small_cam, (8.0, 0.0, 0.0), angle_deg=90, noise=0, blur_px=0, vignetting=0, bits=16)
     same = a == b
     assert same.mean() > 0.6
-    smooth, _ = render(small_cam, (-8.0, 0.0, 0.0), angle_deg=90, target=Target(belt_grain=0), noise=0,
-                       blur_px=0, vignetting=0, bits=16)
+    smooth, _ = render(
+        small_cam,
+        (-8.0, 0.0, 0.0),
+        angle_deg=90,
+        target=Target(belt_grain=0),
+        noise=0,
+        blur_px=0,
+        vignetting=0,
+        bits=16,
+    )
     waves = smooth[same].astype(float) / 65535
     grain = a[same].astype(float) / 65535 - waves
     assert 0.02 < waves.std() < 0.1  # the sinusoids
@@ -132,8 +141,9 @@ def test_belt_is_textured_and_fixed_in_the_robot_frame(small_cam):
 
 
 def test_any_opencv_style_camera_renders_the_same(small_cam):
-    duck = SimpleNamespace(K=small_cam.K, dist=small_cam.dist, R=small_cam.R, t=small_cam.t,
-                           image_size=small_cam.image_size)
+    duck = SimpleNamespace(
+        K=small_cam.K, dist=small_cam.dist, R=small_cam.R, t=small_cam.t, image_size=small_cam.image_size
+    )
     a, ta = render(small_cam, (1.0, 1.0, 0.0), rng=2)
     b, tb = render(duck, (1.0, 1.0, 0.0), rng=2)
     assert np.abs(a.astype(int) - b).max() <= 1

@@ -44,13 +44,14 @@ def snapshot(folder):
 
 def test_write_report_on_paper_data(tmp_path, paper_cal):
     cal, train, check = paper_cal
-    index = write_report(tmp_path / "r", cal, check_pairs=check, train_pairs=train,
-                         extra={"operator": "test"})
+    index = write_report(
+        tmp_path / "r", cal, check_pairs=check, train_pairs=train, extra={"operator": "test"}
+    )
     assert index == tmp_path / "r" / "index.html"
     text = index.read_text(encoding="utf-8")
     # the check RMS as the accuracy table prints it (4 decimals, mm)
     assert f"{cal.check.rms_mm:.4f}" == report.mm(cal.check.rms_mm)
-    assert f"<td class=\"num\">{cal.check.rms_mm:.4f}</td>" in text
+    assert f'<td class="num">{cal.check.rms_mm:.4f}</td>' in text
     assert f"{cal.check.max_mm:.4f}" in text
     for name in ("check_errors.png", "train_errors.png", "residual_vectors.png", "sigma_map.png"):
         assert_png(tmp_path / "r" / name)
@@ -78,15 +79,28 @@ def test_report_with_pso_history_has_convergence_and_selection(tmp_path, paper_c
     from dataclasses import replace
 
     # the selection record of fit.select_model (made up here: the real one costs seconds)
-    selection = {"chosen": "homography", "reason": "lowest held-out RMS (0.0308 mm)",
-                 "method": "leave-one-out",
-                 "candidates": [
-                     {"model": "affine", "unknowns": 6, "cv_rms_mm": 0.0321, "cv_max_mm": 0.07,
-                      "considered": True},
-                     {"model": "homography", "unknowns": 8, "cv_rms_mm": 0.0308, "cv_max_mm": 0.0667,
-                      "considered": True},
-                     {"model": "homography-radial", "unknowns": 10, "cv_rms_mm": None, "considered": False,
-                      "why": "needs at least 9 pairs, have 8"}]}
+    selection = {
+        "chosen": "homography",
+        "reason": "lowest held-out RMS (0.0308 mm)",
+        "method": "leave-one-out",
+        "candidates": [
+            {"model": "affine", "unknowns": 6, "cv_rms_mm": 0.0321, "cv_max_mm": 0.07, "considered": True},
+            {
+                "model": "homography",
+                "unknowns": 8,
+                "cv_rms_mm": 0.0308,
+                "cv_max_mm": 0.0667,
+                "considered": True,
+            },
+            {
+                "model": "homography-radial",
+                "unknowns": 10,
+                "cv_rms_mm": None,
+                "considered": False,
+                "why": "needs at least 9 pairs, have 8",
+            },
+        ],
+    }
     cal = replace(paper_cal[0], selection=selection)
     text = write_report(tmp_path / "r", cal).read_text(encoding="utf-8")
     assert "auto selection chose" in text and "held-out RMS" in text and "needs at least 9 pairs" in text
@@ -148,8 +162,12 @@ def test_plots_draw_on_a_given_ax_and_label_units():
     assert plots.plot_convergence({"hybrid": [2, 1, 0.1], "plain": [2, 1.5, 0.3, 0.2]}, ax=ax) is ax
     assert len(ax.get_lines()) == 2
     ax = new_ax()
-    out = plots.plot_point_errors({"a": [0.1, 0.2, None], "b": [0.05, 0.1, 0.02]}, ["p1", "p2", "p3"], ax=ax,
-                                  reference_lines={"limit": 0.0898})
+    out = plots.plot_point_errors(
+        {"a": [0.1, 0.2, None], "b": [0.05, 0.1, 0.02]},
+        ["p1", "p2", "p3"],
+        ax=ax,
+        reference_lines={"limit": 0.0898},
+    )
     assert out is ax and "[mm]" in ax.get_ylabel()
     assert [t.get_text() for t in ax.get_xticklabels()] == ["p1", "p2", "p3"]
     ax = new_ax()
@@ -159,8 +177,10 @@ def test_plots_draw_on_a_given_ax_and_label_units():
     assert ax.get_ylim() == (480, 0)  # v down
     assert "[px]" in ax.get_xlabel() and "[px]" in ax.get_ylabel()
     ax = new_ax()
-    rows = [{"model": "homography", "optimizer": "lm", "check_rms_mm": 0.027, "check_max_mm": 0.056},
-            {"model": "paper", "optimizer": "pso", "error": "unavailable"}]
+    rows = [
+        {"model": "homography", "optimizer": "lm", "check_rms_mm": 0.027, "check_max_mm": 0.056},
+        {"model": "paper", "optimizer": "pso", "error": "unavailable"},
+    ]
     assert plots.plot_model_comparison(rows, ax=ax) is ax
     assert "[mm]" in ax.get_xlabel()
 
@@ -197,8 +217,18 @@ def test_cli_report(tmp_path, cal_file, capsys):
     from conftest import PAPER
 
     out = tmp_path / "out"
-    rc = main(["report", str(cal_file), "--check", str(PAPER / "check_points.csv"),
-               "--pairs", str(PAPER / "calibration_points.csv"), "-o", str(out)])
+    rc = main(
+        [
+            "report",
+            str(cal_file),
+            "--check",
+            str(PAPER / "check_points.csv"),
+            "--pairs",
+            str(PAPER / "calibration_points.csv"),
+            "-o",
+            str(out),
+        ]
+    )
     assert rc == 0
     printed = capsys.readouterr().out.strip()
     assert printed == str(out / "index.html")
@@ -281,7 +311,7 @@ def test_long_image_ids_do_not_overlap_on_the_axis():
     r = _drawn(ax)
     boxes = [t.get_window_extent(r) for t in ax.get_xticklabels() if t.get_text()]
     assert [t.get_text() for t in ax.get_xticklabels()] == [f"pose_{i:03d}" for i in range(14)]
-    assert all(not a.overlaps(b) for k, a in enumerate(boxes) for b in boxes[k + 1:])
+    assert all(not a.overlaps(b) for k, a in enumerate(boxes) for b in boxes[k + 1 :])
 
 
 def test_a_users_report_does_not_cite_the_paper(tmp_path, paper_cal, monkeypatch):

@@ -816,8 +816,14 @@ def _cal_file(tmp_path, model="homography") -> Path:
 def _serve_args(**kw):
     import argparse
 
-    d = {"port": 0, "db_wait": 2.0, "token": None, "host": "127.0.0.1", "tcp": "127.0.0.1:0",
-         "calibration": None}
+    d = {
+        "port": 0,
+        "db_wait": 2.0,
+        "token": None,
+        "host": "127.0.0.1",
+        "tcp": "127.0.0.1:0",
+        "calibration": None,
+    }
     d.update(kw)
     return argparse.Namespace(**d)
 
@@ -895,8 +901,11 @@ def test_import_then_tcp_follows_versions_rollback_and_delete(tmp_path):
             await srv.start()
             try:
                 first = await ask(srv, [b"600,1200", b"VERSION"])
-                r = await asyncio.to_thread(c.post, "/api/calibrations/import",
-                                            json={"name": "cell", "calibration": json.loads(f_a.read_text())})
+                r = await asyncio.to_thread(
+                    c.post,
+                    "/api/calibrations/import",
+                    json={"name": "cell", "calibration": json.loads(f_a.read_text())},
+                )
                 assert r.status_code == 200 and r.json()["version"] == 2, r.text
                 t0 = asyncio.get_running_loop().time()
                 while (await ask(srv, [b"VERSION"]))[0].split(",")[1] != "2":
@@ -944,8 +953,12 @@ def test_verify_endpoint_and_history(client, tmp_path):
     assert not last["passed"] and last["drift"]["significant"] and "shift" in last["drift"]["named"]
     h = client.get(f"/api/calibrations/{cid}/history").json()
     assert [e["passed"] for e in h["entries"]] == [True, False] and h["entries"][1]["version"] == 1
-    assert client.post(f"/api/calibrations/{cid}/verify",
-                       json={"pairs": fresh[:2], "tolerance_mm": 1}).status_code == 422
+    assert (
+        client.post(
+            f"/api/calibrations/{cid}/verify", json={"pairs": fresh[:2], "tolerance_mm": 1}
+        ).status_code
+        == 422
+    )
 
 
 def _refusal(fn):
@@ -967,8 +980,9 @@ def test_horizon_refused_on_every_interface_even_when_allowed(client, tmp_path, 
     for v in (v_line, v_line + float(np.sign(v_line)) * 1e5):
         exc = _refusal(lambda v=v: cal.map([[600.0, v]], allow_outside=True))
         assert "maps to no finite robot point" in exc.reason and exc.field_path == "points[0]"
-        r = client.post("/api/calibrations/1/image-to-robot",
-                        json={"points": [[600, v]], "allow_outside": True})
+        r = client.post(
+            "/api/calibrations/1/image-to-robot", json={"points": [[600, v]], "allow_outside": True}
+        )
         assert r.status_code == 422 and r.json()["field"] == "points[0]" and exc.reason in r.json()["error"]
         assert tcp_answer(cal, f"600,{v!r},allow".encode()) == f"ERR {exc.reason}\n".encode()
         path = cal.save(tmp_path / "h.json")
@@ -990,8 +1004,10 @@ def two_height_records():
 def test_multi_height_z_range_on_every_interface(client, tmp_path, capsys, two_height_records, model):
     """A z beyond the calibrated range (150..200 mm, margin 12.5 mm) is refused by the library, the
     CLI, HTTP and TCP with the same words; allowed, it is mapped and flagged inside = false."""
-    r = client.post("/api/calibrations", json={"name": model, "pairs": two_height_records, "model": model,
-                                               "optimizer": "lm"})
+    r = client.post(
+        "/api/calibrations",
+        json={"name": model, "pairs": two_height_records, "model": model, "optimizer": "lm"},
+    )
     assert r.status_code == 201, r.text
     cid = r.json()["id"]
     cal = Calibration.from_dict(client.get(f"/api/calibrations/{cid}").json()["calibration"])
@@ -1038,8 +1054,9 @@ def test_apply_json_equals_the_http_mapping(client, tmp_path, capsys):
     out, err = capsys.readouterr()
     assert code == 0, err
     cli = json.loads(out)["points"]
-    r = client.post("/api/calibrations/1/image-to-robot", json={"points": pts, "angles": [0, 30, -75],
-                                                                "symmetry": 2})
+    r = client.post(
+        "/api/calibrations/1/image-to-robot", json={"points": pts, "angles": [0, 30, -75], "symmetry": 2}
+    )
     api = r.json()
     assert code == 0 and r.status_code == 200
     xyz = np.array([[p["x"], p["y"], p["z"]] for p in cli])

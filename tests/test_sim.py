@@ -90,8 +90,17 @@ def test_cli_bad_config_exits_2_with_one_line(tmp_path, capsys):
 # ---------------------------------------------------------------- plans
 
 
-@pytest.mark.parametrize("text, n", [("grid:5x5", 25), ("grid:3x4", 12), ("radial:17", 17), ("radial:1", 1),
-                                     ("random:25", 25), ("GRID:2x2", 4)])
+@pytest.mark.parametrize(
+    "text, n",
+    [
+        ("grid:5x5", 25),
+        ("grid:3x4", 12),
+        ("radial:17", 17),
+        ("radial:1", 1),
+        ("random:25", 25),
+        ("GRID:2x2", 4),
+    ],
+)
 def test_plans_lay_out_their_points_inside_the_view(text, n):
     plan = parse_plan(text)
     pts = plan.layout_px((2448, 2048), 100.0, np.random.default_rng(0))
@@ -132,8 +141,22 @@ def test_bad_heights_name_the_option(capsys, tmp_path):
 
 def test_simulate_writes_pairs_check_and_truth(tmp_path, capsys):
     out = tmp_path / "sim"
-    code, text, err = run(capsys, "simulate", "--plan", "grid:4x4", "--heights", "150,200", "--check", "7",
-                          "--check-heights", "175,220", "--out", out, "--seed", "3")
+    code, text, err = run(
+        capsys,
+        "simulate",
+        "--plan",
+        "grid:4x4",
+        "--heights",
+        "150,200",
+        "--check",
+        "7",
+        "--check-heights",
+        "175,220",
+        "--out",
+        out,
+        "--seed",
+        "3",
+    )
     assert code == 0, err
     pairs = load_pairs(out / "pairs.csv")
     check = load_pairs(out / "check.csv")
@@ -147,12 +170,34 @@ def test_simulate_writes_pairs_check_and_truth(tmp_path, capsys):
     du = pairs.uv_px - np.array([[p["u_true"], p["v_true"]] for p in truth["pairs"]])
     assert 0.03 < du.std() < 0.3
     # same seed, same session; another seed, another
-    run(capsys, "simulate", "--plan", "grid:4x4", "--heights", "150,200", "--check", "7",
-        "--check-heights", "175,220", "--out", tmp_path / "again", "--seed", "3")
+    run(
+        capsys,
+        "simulate",
+        "--plan",
+        "grid:4x4",
+        "--heights",
+        "150,200",
+        "--check",
+        "7",
+        "--check-heights",
+        "175,220",
+        "--out",
+        tmp_path / "again",
+        "--seed",
+        "3",
+    )
     assert (tmp_path / "again" / "pairs.csv").read_bytes() == (out / "pairs.csv").read_bytes()
     # the pairs calibrate with the documented command
-    code, text, err = run(capsys, "calibrate", out / "pairs.csv", "--check", out / "check.csv",
-                          "--image-size", "2448x2048", "--json")
+    code, text, err = run(
+        capsys,
+        "calibrate",
+        out / "pairs.csv",
+        "--check",
+        out / "check.csv",
+        "--image-size",
+        "2448x2048",
+        "--json",
+    )
     assert code == 0, err
     d = json.loads(text)
     assert d["model"] == "camera" and d["check"]["rms_mm"] < 0.03
@@ -186,17 +231,35 @@ def test_planner_predicts_the_rms_of_independent_sessions():
         cal = calibrate(sim.pairs, "auto", check=sim.check, image_size=cell.image_size, loo=False)
         measured.append(cal.check.rms_mm)
     med = float(np.median(measured))
-    print(f"grid:5x5 predicted rms {pred['predicted_rms_mm']:.4f} mm, measured median {med:.4f} mm "
-          f"(runs {min(measured):.4f}..{max(measured):.4f})")
+    print(
+        f"grid:5x5 predicted rms {pred['predicted_rms_mm']:.4f} mm, measured median {med:.4f} mm "
+        f"(runs {min(measured):.4f}..{max(measured):.4f})"
+    )
     assert abs(pred["predicted_rms_mm"] - med) <= 0.3 * med
     assert pred["model"] == "camera" and pred["n_pairs"] == 50
 
 
 def test_plan_cli_json_recommends_the_smallest_plan_that_meets_the_target(tmp_path, capsys):
     png = tmp_path / "plan.png"
-    code, out, err = run(capsys, "plan", "--plan", "grid:3x3,grid:4x4", "--plan", "grid:6x6",
-                         "--heights", "150", "--runs", "4", "--check", "10", "--target-error", "0.03",
-                         "--plot", png, "--json")
+    code, out, err = run(
+        capsys,
+        "plan",
+        "--plan",
+        "grid:3x3,grid:4x4",
+        "--plan",
+        "grid:6x6",
+        "--heights",
+        "150",
+        "--runs",
+        "4",
+        "--check",
+        "10",
+        "--target-error",
+        "0.03",
+        "--plot",
+        png,
+        "--json",
+    )
     assert code == 0, err
     d = json.loads(out)
     assert [r["plan"] for r in d["plans"]] == ["grid:3x3", "grid:4x4", "grid:6x6"]
@@ -279,14 +342,31 @@ def test_images_end_to_end(tmp_path, capsys):
     cfg = tmp_path / "small.toml"
     cfg.write_text(SMALL_CELL)
     out = tmp_path / "sim"
-    code, sim_out, err = run(capsys, "simulate", "--config", cfg, "--plan", "grid:3x3",
-                             "--heights", "150,200", "--check", "4", "--check-heights", "175,220",
-                             "--out", out, "--seed", "7", "--images")
+    code, sim_out, err = run(
+        capsys,
+        "simulate",
+        "--config",
+        cfg,
+        "--plan",
+        "grid:3x3",
+        "--heights",
+        "150,200",
+        "--check",
+        "4",
+        "--check-heights",
+        "175,220",
+        "--out",
+        out,
+        "--seed",
+        "7",
+        "--images",
+    )
     assert code == 0, err
     # the hint names the images' command, with the poses files just written
     hint = next(ln for ln in sim_out.splitlines() if ln.startswith("next: "))
-    assert hint == (f"next: eyetohand calibrate-images {out}/poses.csv --check {out}/check_poses.csv "
-                    "--image-size 640x512"), sim_out
+    assert hint == (
+        f"next: eyetohand calibrate-images {out}/poses.csv --check {out}/check_poses.csv --image-size 640x512"
+    ), sim_out
     poses = (out / "poses.csv").read_text().splitlines()
     assert poses[0] == "image,x,y,z" and len(poses) == 19
     assert (out / "check_poses.csv").read_text().splitlines()[0] == "image,x,y,z"
@@ -301,10 +381,12 @@ def test_images_end_to_end(tmp_path, capsys):
     true_uv = {f"images/pair_{p['id']}.png": (p["u_true"], p["v_true"]) for p in truth["pairs"]}
     d_px = pairs.uv_px - np.array([true_uv[i] for i in pairs.ids])
     cal = calibrate(pairs, "auto", check=check, image_size=(640, 512), loo=False)
-    print(f"detector {name}: centre error rms {np.sqrt((d_px ** 2).sum(1).mean()):.3f} px; "
-          f"model {cal.model_name}: check rms {cal.check.rms_mm:.4f} mm, max {cal.check.max_mm:.4f} mm "
-          "(at 175 and 220 mm)")
-    assert np.sqrt((d_px ** 2).sum(1).mean()) < 0.3
+    print(
+        f"detector {name}: centre error rms {np.sqrt((d_px**2).sum(1).mean()):.3f} px; "
+        f"model {cal.model_name}: check rms {cal.check.rms_mm:.4f} mm, max {cal.check.max_mm:.4f} mm "
+        "(at 175 and 220 mm)"
+    )
+    assert np.sqrt((d_px**2).sum(1).mean()) < 0.3
     assert cal.model_name == "camera" and cal.check.rms_mm < 0.1
 
     if name == "eyetohand.detect":  # the lead's command, when it and the detector are there

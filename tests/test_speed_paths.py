@@ -18,10 +18,7 @@ HEAVY = ("scipy", "cv2", "matplotlib", "fastapi")
 
 @pytest.mark.parametrize("module", ["eyetohand.cli", "eyetohand.calibration", "eyetohand"])
 def test_import_does_not_pull_heavy_packages(module):
-    code = (
-        f"import json, sys; import {module}; "
-        f"print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))"
-    )
+    code = f"import json, sys; import {module}; print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))"
     env = {**os.environ, "PYTHONPATH": str(SRC)}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr
@@ -109,9 +106,14 @@ def _loo_cases():
     cam = make_camera(dist=[-0.05, 0.01, 0, 0, 0], seed=3)
     cell = grid_pairs(cam, n_side=5, noise_px=0.15, seed=5)  # 25 pairs, one height
     cell3 = grid_pairs(cam, n_side=4, heights=(0.0, 40.0), noise_px=0.15, seed=6)
-    return [("paper data", paper, "affine", "linear"), ("paper data", paper, "affine", "lm"),
-            ("paper data", paper, "homography", "lm"), ("simulated cell", cell, "homography", "lm"),
-            ("simulated cell", cell, "affine", "lm"), ("simulated cell, two heights", cell3, "dlt3d", "lm")]
+    return [
+        ("paper data", paper, "affine", "linear"),
+        ("paper data", paper, "affine", "lm"),
+        ("paper data", paper, "homography", "lm"),
+        ("simulated cell", cell, "homography", "lm"),
+        ("simulated cell", cell, "affine", "lm"),
+        ("simulated cell, two heights", cell3, "dlt3d", "lm"),
+    ]
 
 
 @pytest.mark.parametrize("case", range(6))

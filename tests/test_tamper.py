@@ -235,8 +235,11 @@ def test_random_mutations(files, data, tmp_path):
             continue
         value = data.draw(
             st.one_of(
-                st.none(), st.booleans(), st.integers(-(10**20), 10**20),
-                st.floats(allow_nan=False, allow_infinity=False), st.text(max_size=5),
+                st.none(),
+                st.booleans(),
+                st.integers(-(10**20), 10**20),
+                st.floats(allow_nan=False, allow_infinity=False),
+                st.text(max_size=5),
                 st.lists(st.floats(-1e3, 1e3), max_size=3),
                 st.just("__relative__"),
             )

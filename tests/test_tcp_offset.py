@@ -16,6 +16,7 @@ def calibrate_with_tcp(pairs, **options):
     cal = calibrate(pairs, **options)
     return cal, cal.tcp_offset
 
+
 OFFSET = np.array([0.35, -0.2])
 CELL = Cell.default().with_values(robot={"tcp_offset_mm": OFFSET.tolist()})
 
@@ -40,8 +41,10 @@ def test_nine_plus_two_recovers_the_offset_within_20_um(seed):
     assert len(sim.pairs) == 11 and has_turns(sim.pairs)
     est = estimate_tcp_offset(sim.pairs, image_size=CELL.image_size)
     err = np.linalg.norm(np.array(est.offset_mm) - OFFSET)
-    print(f"seed {seed}: offset {est.offset_mm[0]:.4f}, {est.offset_mm[1]:.4f} mm "
-          f"(± {est.std_mm[0]:.4f}), error {err:.4f} mm, model {est.model}")
+    print(
+        f"seed {seed}: offset {est.offset_mm[0]:.4f}, {est.offset_mm[1]:.4f} mm "
+        f"(± {est.std_mm[0]:.4f}), error {err:.4f} mm, model {est.model}"
+    )
     assert err < 0.02
     assert est.n_turned == 2 and est.reference_angle_deg == 0.0
 
@@ -53,8 +56,9 @@ def test_calibration_with_the_offset_removed_finds_objects():
     one_angle = sim.pairs.subset(sim.pairs.angle_deg == 0.0)
     plain = calibrate(one_angle, check=sim.check, image_size=CELL.image_size, loo=False)
     assert plain.tcp_offset is None
-    print(f"check rms: with offset removed {cal.check.rms_mm:.4f} mm, "
-          f"ignoring it {plain.check.rms_mm:.4f} mm")
+    print(
+        f"check rms: with offset removed {cal.check.rms_mm:.4f} mm, ignoring it {plain.check.rms_mm:.4f} mm"
+    )
     assert tcp is not None
     assert cal.check.rms_mm < 0.03
     assert plain.check.rms_mm > 0.1  # the offset biases an uncorrected calibration
@@ -75,8 +79,23 @@ def test_simulate_cli_writes_the_angle_column(tmp_path, capsys):
     cfg = tmp_path / "cell.toml"
     cfg.write_text("[robot]\ntcp_offset_mm = [0.35, -0.2]\n")
     out = tmp_path / "sim"
-    code = main(["simulate", "--config", str(cfg), "--plan", "grid:3x3", "--angles", "0,90,180",
-                 "--out", str(out), "--seed", "5", "--check", "5"])
+    code = main(
+        [
+            "simulate",
+            "--config",
+            str(cfg),
+            "--plan",
+            "grid:3x3",
+            "--angles",
+            "0,90,180",
+            "--out",
+            str(out),
+            "--seed",
+            "5",
+            "--check",
+            "5",
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     pairs = load_pairs(out / "pairs.csv")
     assert pairs.angle_deg is not None and sorted(set(pairs.angle_deg)) == [0.0, 90.0, 180.0]

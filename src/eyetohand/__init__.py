@@ -1,9 +1,9 @@
 """eyetohand: calibrate a fixed ("eye-to-hand") camera to an industrial robot.
 
-    >>> import eyetohand
-    >>> pairs = eyetohand.load_pairs("examples/paper/calibration_points.csv")
-    >>> cal = eyetohand.calibrate(pairs, model="homography", optimizer="lm")
-    >>> xyz_mm = cal.image_to_robot([[600.0, 900.0]])
+>>> import eyetohand
+>>> pairs = eyetohand.load_pairs("examples/paper/calibration_points.csv")
+>>> cal = eyetohand.calibrate(pairs, model="homography", optimizer="lm")
+>>> xyz_mm = cal.image_to_robot([[600.0, 900.0]])
 """
 
 from ._version import __version__

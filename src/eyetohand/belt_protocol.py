@@ -58,8 +58,7 @@ from .errors import InputError
 
 NOISE_COUNTS = 5
 DEFAULT_MODEL = "homography-radial"
-USAGE = ("BELT u,v,e_image,e_now[,a=DEG] | BELT TRACK u,v,e_image | BELT BEGIN|SIGHT|TOUCH|END|ABORT|"
-         "STATUS")
+USAGE = "BELT u,v,e_image,e_now[,a=DEG] | BELT TRACK u,v,e_image | BELT BEGIN|SIGHT|TOUCH|END|ABORT|STATUS"
 
 
 def _count(text: str, name: str, encoder: Encoder) -> int:
@@ -85,8 +84,15 @@ class BeltProtocol:
     journal and fitted conveyors go; ``encoder``: the counter for collecting without a served
     conveyor (default the served one's, else 24-bit unsigned)."""
 
-    def __init__(self, conveyor=None, *, source=None, store_dir: str | os.PathLike | None = None,
-                 encoder: Encoder | None = None, detect_options: dict | None = None):
+    def __init__(
+        self,
+        conveyor=None,
+        *,
+        source=None,
+        store_dir: str | os.PathLike | None = None,
+        encoder: Encoder | None = None,
+        detect_options: dict | None = None,
+    ):
         if conveyor is not None and not isinstance(conveyor, ConveyorCalibration):
             conveyor = ConveyorCalibration.load(conveyor)
         self.conveyor: ConveyorCalibration | None = conveyor
@@ -155,8 +161,15 @@ class BeltProtocol:
         rest = words[1] if len(words) > 1 else ""
         head = rest.split(None, 1)
         cmd = head[0].upper() if head else ""
-        handlers = {"TRACK": self._track, "BEGIN": self._begin, "SIGHT": self._sight,
-                    "TOUCH": self._touch, "END": self._end, "ABORT": self._abort, "STATUS": self._status}
+        handlers = {
+            "TRACK": self._track,
+            "BEGIN": self._begin,
+            "SIGHT": self._sight,
+            "TOUCH": self._touch,
+            "END": self._end,
+            "ABORT": self._abort,
+            "STATUS": self._status,
+        }
         if cmd in handlers:
             args = [a.strip() for a in head[1].split(",")] if len(head) > 1 else []
             if cmd in ("END", "ABORT", "STATUS") and args:
@@ -168,14 +181,16 @@ class BeltProtocol:
 
     def _served(self) -> ConveyorCalibration:
         if self.conveyor is None:
-            raise CommandError("no conveyor calibration: start serve with --conveyor FILE, or collect one "
-                               "(BELT BEGIN … BELT END)")
+            raise CommandError(
+                "no conveyor calibration: start serve with --conveyor FILE, or collect one "
+                "(BELT BEGIN … BELT END)"
+            )
         return self.conveyor
 
     # -- mapping
     def _map(self, args: list[str]) -> list[str]:
         nums = [a for a in args if "=" not in a]
-        words = [a.lower() for a in args[len(nums):]]
+        words = [a.lower() for a in args[len(nums) :]]
         if args[: len(nums)] != nums or len(nums) != 4:
             raise CommandError(f"BELT: {len(nums)} numbers; expected u,v,e_image,e_now[,a=DEG]")
         conv = self._served()
@@ -236,8 +251,10 @@ class BeltProtocol:
         if s is not None and s["state"] == "collecting":
             if s["name"] == name and s["model"] == model:
                 return []
-            raise CommandError(f"busy: belt session '{s['name']}' is open with {len(s['rows'])} rows; "
-                               "send BELT END or BELT ABORT first")
+            raise CommandError(
+                f"busy: belt session '{s['name']}' is open with {len(s['rows'])} rows; "
+                "send BELT END or BELT ABORT first"
+            )
         self._record({"op": "begin", "name": name, "model": model})
         return []
 
@@ -246,8 +263,10 @@ class BeltProtocol:
             return
         back = -int(self.encoder.delta(s["rows"][-1]["e"], e))
         if back > NOISE_COUNTS:
-            raise CommandError(f"{where}: count {e} is {back} counts before the previous row's "
-                               f"{s['rows'][-1]['e']} (more than the {NOISE_COUNTS}-count noise allowance)")
+            raise CommandError(
+                f"{where}: count {e} is {back} counts before the previous row's "
+                f"{s['rows'][-1]['e']} (more than the {NOISE_COUNTS}-count noise allowance)"
+            )
 
     def _sight(self, args: list[str]) -> list[str]:
         from .detect import detect_target
@@ -279,9 +298,18 @@ class BeltProtocol:
         if not d.ok or d.u is None or d.v is None:
             raise CommandError(f"target not found: {d.reason}")
         h, w = img.shape[:2]
-        self._record({"op": "sight", "id": pid, "u": float(d.u), "v": float(d.v), "e": e,
-                      "moving": "stopped" not in [f.lower() for f in flags], "image_size": [int(w), int(h)],
-                      "detection": d.to_dict()})
+        self._record(
+            {
+                "op": "sight",
+                "id": pid,
+                "u": float(d.u),
+                "v": float(d.v),
+                "e": e,
+                "moving": "stopped" not in [f.lower() for f in flags],
+                "image_size": [int(w), int(h)],
+                "detection": d.to_dict(),
+            }
+        )
         return [_mm(d.u), _mm(d.v)]
 
     def _touch(self, args: list[str]) -> list[str]:
@@ -301,12 +329,22 @@ class BeltProtocol:
         for k, r in enumerate(s["rows"], start=1):
             where = f"belt session {s['name']} row {k}"
             if r["op"] == "sight":
-                rows.append({"kind": "sight", "id": r["id"], "u": r["u"], "v": r["v"], "e": r["e"],
-                             "moving": "1" if r["moving"] else "0", "_where": where})
+                rows.append(
+                    {
+                        "kind": "sight",
+                        "id": r["id"],
+                        "u": r["u"],
+                        "v": r["v"],
+                        "e": r["e"],
+                        "moving": "1" if r["moving"] else "0",
+                        "_where": where,
+                    }
+                )
             else:
                 x, y, z = r["xyz_mm"]
-                rows.append({"kind": "touch", "id": r["id"], "x": x, "y": y, "z": z, "e": r["e"],
-                             "_where": where})
+                rows.append(
+                    {"kind": "touch", "id": r["id"], "x": x, "y": y, "z": z, "e": r["e"], "_where": where}
+                )
         return rows
 
     def _end(self, args) -> list[str]:
@@ -316,20 +354,39 @@ class BeltProtocol:
             raise CommandError("fit failed: no rows recorded")
         try:
             session = Session.from_rows(rows, f"belt session {s['name']}")
-            conv = calibrate_conveyor(session, model=s["model"], encoder=self.encoder,
-                                      image_size=self.image_size, noise_counts=NOISE_COUNTS)
+            conv = calibrate_conveyor(
+                session,
+                model=s["model"],
+                encoder=self.encoder,
+                image_size=self.image_size,
+                noise_counts=NOISE_COUNTS,
+            )
         except InputError as exc:
             raise CommandError(f"fit failed: {str(exc).splitlines()[0]}") from None
         assert self.dir is not None
         path = conv.save(self.dir / f"{s['name']}.conveyor.json")
         rep = conv.report or {}
         belt = conv.belt
-        self._record({"op": "end", "name": s["name"], "file": str(path), "mm_per_count": belt.mm_per_count,
-                      "yaw_deg": belt.yaw_deg, "pitch_deg": belt.pitch_deg, "rms_mm": rep.get("rms_mm")})
+        self._record(
+            {
+                "op": "end",
+                "name": s["name"],
+                "file": str(path),
+                "mm_per_count": belt.mm_per_count,
+                "yaw_deg": belt.yaw_deg,
+                "pitch_deg": belt.pitch_deg,
+                "rms_mm": rep.get("rms_mm"),
+            }
+        )
         self.conveyor = conv
-        return [str(rep.get("n_sighted_parts", 0)), str(rep.get("n_touches", 0)),
-                f"{belt.mm_per_count:.8f}", f"{belt.yaw_deg:.6f}", f"{belt.pitch_deg:.6f}",
-                _mm(float(rep.get("rms_mm", math.nan)))]
+        return [
+            str(rep.get("n_sighted_parts", 0)),
+            str(rep.get("n_touches", 0)),
+            f"{belt.mm_per_count:.8f}",
+            f"{belt.yaw_deg:.6f}",
+            f"{belt.pitch_deg:.6f}",
+            _mm(float(rep.get("rms_mm", math.nan))),
+        ]
 
     def _abort(self, args) -> list[str]:
         s = self._open()

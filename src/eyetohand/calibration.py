@@ -387,8 +387,7 @@ class Calibration:
             try:
                 with np.errstate(all="ignore"):
                     again = stats_from_residuals(res, pairs.ids).to_dict()
-                _same(again, _stats_dict(stats), key,
-                      _rel_tol(REPRODUCE_TOL_MM, relative=False))
+                _same(again, _stats_dict(stats), key, _rel_tol(REPRODUCE_TOL_MM, relative=False))
             except InputError as exc:
                 raise InputError(
                     f"the model does not reproduce its recorded {label} errors (to {REPRODUCE_TOL_MM:g} mm; "
@@ -411,7 +410,6 @@ class Calibration:
         except ValueError as exc:
             raise InputError(f"{path}: not a calibration file ({exc})") from None
         return cls.from_dict(d, str(path))
-
 
 
 FREE_FIELDS = ("created_utc", "eyetohand_version", "notes", "warnings")
@@ -461,8 +459,15 @@ def _rel_tol(tol: float, relative: bool = True):
     return f
 
 
-_KIND = {bool: "true or false", int: "a number", float: "a number", str: "a string", list: "a list",
-         dict: "an object", type(None): "null"}
+_KIND = {
+    bool: "true or false",
+    int: "a number",
+    float: "a number",
+    str: "a string",
+    list: "a list",
+    dict: "an object",
+    type(None): "null",
+}
 
 
 def _kind(v) -> str:
@@ -518,8 +523,9 @@ def _same(want, given, path: str, tol) -> None:
         raise InputError(f"{where} is {given!r}, expected {want!r}")
 
 
-def _same_uncertainty(unc: Uncertainty, given, model: Model, fitted: PointPairs,
-                      region: CalibratedRegion) -> None:
+def _same_uncertainty(
+    unc: Uncertainty, given, model: Model, fitted: PointPairs, region: CalibratedRegion
+) -> None:
     """The stored uncertainty against the one recomputed from the pairs: same shape and types,
     noise and sigma_mm (at the pairs and the hull) within 1e-9 mm, covariance within
     ``COVARIANCE_TOL`` of its scale."""
@@ -528,7 +534,7 @@ def _same_uncertainty(unc: Uncertainty, given, model: Model, fitted: PointPairs,
 
     def tol(path: str, w: float) -> float:
         if path.startswith("uncertainty.covariance["):
-            i, j = (int(k) for k in path[len("uncertainty.covariance["):-1].split("]["))
+            i, j = (int(k) for k in path[len("uncertainty.covariance[") : -1].split("]["))
             return COVARIANCE_TOL * float(sd[i] * sd[j])
         return REPRODUCE_TOL_MM
 
@@ -560,6 +566,7 @@ def _check_numbers(obj, path: str) -> None:
         raise InputError(f"field '{path}': {obj!r} is not a finite number")
     elif isinstance(obj, int) and not isinstance(obj, bool) and abs(obj) > 2**63:
         raise InputError(f"field '{path}': {obj} is too large a number")
+
 
 def _refuse_constant(name: str):
     raise ValueError(f"{name} is not a number JSON allows")
@@ -662,14 +669,43 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
 
 
 _NUM = (int, float)
-FIT_TYPES: dict = {"optimizer": str, "objective": str, "fitness": _NUM, "history": list, "nfev": int,
-                   "nit": int, "seconds": _NUM, "seed": (int, type(None)), "message": str}
-TCP_TYPES: dict = {"offset_mm": list, "std_mm": list, "model": str, "reference_angle_deg": _NUM,
-                   "n_turned": int, "n_pairs": int, "rms_mm": _NUM}
-STATS_TYPES: dict = {"n": int, "rms_mm": _NUM, "mean_mm": _NUM, "max_mm": _NUM, "p95_mm": _NUM,
-                     "outliers": list, "points": list}
-POINT_TYPES: dict = {"id": str, "dx_mm": _NUM, "dy_mm": _NUM, "dz_mm": _NUM, "error_mm": _NUM,
-                     "outlier": bool}
+FIT_TYPES: dict = {
+    "optimizer": str,
+    "objective": str,
+    "fitness": _NUM,
+    "history": list,
+    "nfev": int,
+    "nit": int,
+    "seconds": _NUM,
+    "seed": (int, type(None)),
+    "message": str,
+}
+TCP_TYPES: dict = {
+    "offset_mm": list,
+    "std_mm": list,
+    "model": str,
+    "reference_angle_deg": _NUM,
+    "n_turned": int,
+    "n_pairs": int,
+    "rms_mm": _NUM,
+}
+STATS_TYPES: dict = {
+    "n": int,
+    "rms_mm": _NUM,
+    "mean_mm": _NUM,
+    "max_mm": _NUM,
+    "p95_mm": _NUM,
+    "outliers": list,
+    "points": list,
+}
+POINT_TYPES: dict = {
+    "id": str,
+    "dx_mm": _NUM,
+    "dy_mm": _NUM,
+    "dz_mm": _NUM,
+    "error_mm": _NUM,
+    "outlier": bool,
+}
 
 
 def _typed(d, path: str, types: dict) -> None:

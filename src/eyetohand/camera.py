@@ -149,13 +149,35 @@ class Camera:
         rot = np.asarray(rotation, float)
         rvec = matrix_to_rodrigues(rot) if rot.shape == (3, 3) else rot.reshape(3)
         w, h = image_size
-        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, k1=d[0], k2=d[1], k3=d[4], p1=d[2],
-                   p2=d[3], rvec=tuple(rvec), tvec_mm=tuple(np.asarray(t_mm, float).reshape(3)))
+        return cls(
+            K[0, 0],
+            K[1, 1],
+            K[0, 2],
+            K[1, 2],
+            w,
+            h,
+            k1=d[0],
+            k2=d[1],
+            k3=d[4],
+            p1=d[2],
+            p2=d[3],
+            rvec=tuple(rvec),
+            tvec_mm=tuple(np.asarray(t_mm, float).reshape(3)),
+        )
 
     @classmethod
-    def look_at(cls, eye_mm, target_mm, *, image_size=(2448, 2048), focal_px: float = 4637.7,
-                aspect: float = 1.0, principal_point_px=None, dist=(0.0, 0.0, 0.0, 0.0, 0.0),
-                up=(0.0, 1.0, 0.0)) -> Camera:
+    def look_at(
+        cls,
+        eye_mm,
+        target_mm,
+        *,
+        image_size=(2448, 2048),
+        focal_px: float = 4637.7,
+        aspect: float = 1.0,
+        principal_point_px=None,
+        dist=(0.0, 0.0, 0.0, 0.0, 0.0),
+        up=(0.0, 1.0, 0.0),
+    ) -> Camera:
         """A camera at ``eye_mm`` (robot frame) whose optical axis passes through ``target_mm``.
 
         ``up``: a robot-frame direction that appears pointing up the image (towards −v); it must not
@@ -203,8 +225,13 @@ class Camera:
         if height_mm <= 0:
             raise InputError(f"height_mm: expected a positive height, got {height_mm}")
         w, h = image_size
-        K = np.array([[focal_px, 0.0, (w - 1) / 2 + pp_offset_px[0]],
-                      [0.0, focal_px, (h - 1) / 2 + pp_offset_px[1]], [0.0, 0.0, 1.0]])
+        K = np.array(
+            [
+                [focal_px, 0.0, (w - 1) / 2 + pp_offset_px[0]],
+                [0.0, focal_px, (h - 1) / 2 + pp_offset_px[1]],
+                [0.0, 0.0, 1.0],
+            ]
+        )
         tilt, az, yaw = (math.radians(a) for a in (tilt_deg, tilt_direction_deg, yaw_deg))
         z_cam = np.array([math.sin(tilt) * math.cos(az), math.sin(tilt) * math.sin(az), -math.cos(tilt)])
         centre = np.asarray(target_mm, float).reshape(3) - (height_mm / math.cos(tilt)) * z_cam
@@ -308,8 +335,12 @@ class Camera:
         """Whether pixels lie inside the image (pixel area, −½ … w − ½), ``margin_px`` inside it."""
         p, lead = _as_points(uv_px, 2, "uv_px")
         lo = -0.5 + margin_px
-        ok = ((p[:, 0] >= lo) & (p[:, 0] <= self.width_px - 0.5 - margin_px)
-              & (p[:, 1] >= lo) & (p[:, 1] <= self.height_px - 0.5 - margin_px))
+        ok = (
+            (p[:, 0] >= lo)
+            & (p[:, 0] <= self.width_px - 0.5 - margin_px)
+            & (p[:, 1] >= lo)
+            & (p[:, 1] <= self.height_px - 0.5 - margin_px)
+        )
         return ok.reshape(lead)
 
     # the names the renderer and the simulator use
@@ -326,8 +357,9 @@ def as_camera(camera) -> Camera:
     try:
         return Camera.from_opencv(camera.K, camera.dist, camera.R, camera.t, camera.image_size)
     except AttributeError:
-        raise InputError(f"expected a camera with K, dist, R, t and image_size, got {type(camera).__name__}"
-                         ) from None
+        raise InputError(
+            f"expected a camera with K, dist, R, t and image_size, got {type(camera).__name__}"
+        ) from None
 
 
 __all__ = ["Camera", "as_camera"]

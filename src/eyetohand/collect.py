@@ -83,8 +83,15 @@ NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 REPLY_FORMATS = ("plain", "ur")
 UR_STATES = {"none": 0, "collecting": 1, "calibrated": 2, "aborted": 3}
 UR_ERROR_CODES = {  # reason prefix -> code (ur reply format)
-    "target not found": -2, "ambiguous": -3, "moving": -4, "outside the image": -5, "timeout": -6,
-    "no collection": -7, "fit failed": -8, "no calibration": -9, "busy": -10,
+    "target not found": -2,
+    "ambiguous": -3,
+    "moving": -4,
+    "outside the image": -5,
+    "timeout": -6,
+    "no collection": -7,
+    "fit failed": -8,
+    "no calibration": -9,
+    "busy": -10,
 }
 UR_ERROR_OTHER = -1  # a malformed command, or anything else
 SQLITE_SUFFIXES = (".db", ".sqlite", ".sqlite3")
@@ -142,16 +149,20 @@ class _SqliteJournal:
         self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=FULL")
-        self._db.execute("CREATE TABLE IF NOT EXISTS collect_journal "
-                         "(seq INTEGER PRIMARY KEY AUTOINCREMENT, record TEXT NOT NULL)")
+        self._db.execute(
+            "CREATE TABLE IF NOT EXISTS collect_journal "
+            "(seq INTEGER PRIMARY KEY AUTOINCREMENT, record TEXT NOT NULL)"
+        )
 
     def records(self) -> list[dict]:
         return [json.loads(r) for (r,) in self._db.execute("SELECT record FROM collect_journal ORDER BY seq")]
 
     def append(self, rec: dict) -> None:
         with self._db:
-            self._db.execute("INSERT INTO collect_journal (record) VALUES (?)",
-                             (json.dumps(rec, allow_nan=False, separators=(",", ":")),))
+            self._db.execute(
+                "INSERT INTO collect_journal (record) VALUES (?)",
+                (json.dumps(rec, allow_nan=False, separators=(",", ":")),),
+            )
 
     def close(self) -> None:
         self._db.close()
@@ -247,11 +258,20 @@ class Collector:
     ``--calibration``). ``detect_options`` go to :func:`eyetohand.detect.detect_target`.
     """
 
-    def __init__(self, store, source, *, calibrate_fn: Callable | None = None,
-                 save_fn: Callable | None = None, load_fn: Callable | None = None,
-                 calibration: str | None = None, reply_format: str = "plain",
-                 still_tol_px: float = STILL_TOL_PX, detect_options: dict | None = None,
-                 keep_images: bool = False):
+    def __init__(
+        self,
+        store,
+        source,
+        *,
+        calibrate_fn: Callable | None = None,
+        save_fn: Callable | None = None,
+        load_fn: Callable | None = None,
+        calibration: str | None = None,
+        reply_format: str = "plain",
+        still_tol_px: float = STILL_TOL_PX,
+        detect_options: dict | None = None,
+        keep_images: bool = False,
+    ):
         if reply_format not in REPLY_FORMATS:
             raise InputError(f"reply format {reply_format!r}: expected one of {', '.join(REPLY_FORMATS)}")
         if not (still_tol_px > 0):
@@ -372,20 +392,52 @@ class Collector:
         with self._lock:
             s = self.session
             if s is None:
-                return {"name": None, "state": "none", "poses": [], "points": [], "result": None,
-                        "calibration": self.calibration_name}
-            poses = [{"index": i, "xyz_mm": [float(v) for v in p], "done": bool(s.done[i]),
-                      "failed": bool(s.failed[i])} for i, p in enumerate(s.poses)]
-            points = [{"n": p["n"], "xyz_mm": p["xyz_mm"], "angle_deg": p["angle_deg"], "u": p["u"],
-                       "v": p["v"], "pose_index": p.get("pose_index"), "still_shift_px": p["still_shift_px"],
-                       "dropped": bool(p.get("dropped")), "utc": p.get("utc"),
-                       "detection": {k: p["detection"].get(k) for k in
-                                     ("diameter_px", "score", "rms_px", "contrast", "blur_px", "method")
-                                     if k in p["detection"]}}
-                      for p in s.points]
-            return {"name": s.name, "state": s.state, "model": s.model, "plan": s.begin.get("plan"),
-                    "poses": poses, "points": points, "result": s.result,
-                    "calibration": self.calibration_name}
+                return {
+                    "name": None,
+                    "state": "none",
+                    "poses": [],
+                    "points": [],
+                    "result": None,
+                    "calibration": self.calibration_name,
+                }
+            poses = [
+                {
+                    "index": i,
+                    "xyz_mm": [float(v) for v in p],
+                    "done": bool(s.done[i]),
+                    "failed": bool(s.failed[i]),
+                }
+                for i, p in enumerate(s.poses)
+            ]
+            points = [
+                {
+                    "n": p["n"],
+                    "xyz_mm": p["xyz_mm"],
+                    "angle_deg": p["angle_deg"],
+                    "u": p["u"],
+                    "v": p["v"],
+                    "pose_index": p.get("pose_index"),
+                    "still_shift_px": p["still_shift_px"],
+                    "dropped": bool(p.get("dropped")),
+                    "utc": p.get("utc"),
+                    "detection": {
+                        k: p["detection"].get(k)
+                        for k in ("diameter_px", "score", "rms_px", "contrast", "blur_px", "method")
+                        if k in p["detection"]
+                    },
+                }
+                for p in s.points
+            ]
+            return {
+                "name": s.name,
+                "state": s.state,
+                "model": s.model,
+                "plan": s.begin.get("plan"),
+                "poses": poses,
+                "points": points,
+                "result": s.result,
+                "calibration": self.calibration_name,
+            }
 
     # ---------------------------------------------------------------- protocol
     def handle(self, line: str) -> str:
@@ -415,11 +467,19 @@ class Collector:
             raise CommandError("unknown command; expected CAL BEGIN|NEXT|POINT|END|ABORT|STATUS|CHECK")
         cmd = words[1].upper()
         args = [a.strip() for a in words[2].split(",")] if len(words) > 2 else []
-        handler = {"BEGIN": self._begin, "NEXT": self._next, "POINT": self._point, "END": self._end,
-                   "ABORT": self._abort, "STATUS": self._status, "CHECK": self._check}.get(cmd)
+        handler = {
+            "BEGIN": self._begin,
+            "NEXT": self._next,
+            "POINT": self._point,
+            "END": self._end,
+            "ABORT": self._abort,
+            "STATUS": self._status,
+            "CHECK": self._check,
+        }.get(cmd)
         if handler is None:
-            raise CommandError(f"unknown command CAL {cmd[:20]}; expected BEGIN, NEXT, POINT, END, ABORT, "
-                               "STATUS or CHECK")
+            raise CommandError(
+                f"unknown command CAL {cmd[:20]}; expected BEGIN, NEXT, POINT, END, ABORT, STATUS or CHECK"
+            )
         if cmd in ("NEXT", "END", "ABORT", "STATUS") and args:
             raise CommandError(f"CAL {cmd} takes no fields")
         return handler(args)
@@ -449,8 +509,10 @@ class Collector:
         if len(rest) == 1:
             model = rest[0]
         elif rest:
-            raise CommandError(f"CAL BEGIN: {len(args)} fields; expected <name>[,<model>] or "
-                               "<name>,<plan>,<x0>,<y0>,<x1>,<y1>,<z>[,<model>]")
+            raise CommandError(
+                f"CAL BEGIN: {len(args)} fields; expected <name>[,<model>] or "
+                "<name>,<plan>,<x0>,<y0>,<x1>,<y1>,<z>[,<model>]"
+            )
         if model != "auto":
             try:
                 get_model(model)
@@ -458,14 +520,21 @@ class Collector:
                 raise CommandError(f"CAL BEGIN: {exc}") from None
         s = self.session
         if s is not None and s.state == "collecting":
-            same = (s.name == name and s.begin.get("plan") == plan and s.begin.get("rect") == rect
-                    and s.model == model)
+            same = (
+                s.name == name
+                and s.begin.get("plan") == plan
+                and s.begin.get("rect") == rect
+                and s.model == model
+            )
             if same:
                 return []  # resume
-            raise CommandError(f"busy: collection '{s.name}' is open with {len(s.points)} points; "
-                               "send CAL END or CAL ABORT first")
-        self._record({"op": "begin", "name": name, "plan": plan, "rect": rect, "model": model,
-                      "poses": poses})
+            raise CommandError(
+                f"busy: collection '{s.name}' is open with {len(s.points)} points; "
+                "send CAL END or CAL ABORT first"
+            )
+        self._record(
+            {"op": "begin", "name": name, "plan": plan, "rect": rect, "model": model, "poses": poses}
+        )
         return []
 
     def _open(self) -> _Session:
@@ -514,8 +583,10 @@ class Collector:
             raise CommandError("moving: the target was not found again in the second grab")
         shift = math.hypot(d2.u - d1.u, d2.v - d1.v)
         if shift > self.still_tol_px:
-            raise CommandError(f"moving: the target moved {shift:.2f} px between two grabs "
-                               f"(tolerance {self.still_tol_px:g} px)")
+            raise CommandError(
+                f"moving: the target moved {shift:.2f} px between two grabs "
+                f"(tolerance {self.still_tol_px:g} px)"
+            )
         self.image_size = (int(w), int(h))
         self.last_grab = (img1, d1, _now())
         return (float(d1.u), float(d1.v)), d1, img1, shift
@@ -530,8 +601,10 @@ class Collector:
         for k, p in enumerate(s.points):
             if p.get("dropped"):
                 continue
-            if (max(abs(a - b) for a, b in zip(p["xyz_mm"], xyz, strict=True)) <= REPEAT_MATCH_MM
-                    and abs(p["angle_deg"] - angle) <= REPEAT_MATCH_MM):
+            if (
+                max(abs(a - b) for a, b in zip(p["xyz_mm"], xyz, strict=True)) <= REPEAT_MATCH_MM
+                and abs(p["angle_deg"] - angle) <= REPEAT_MATCH_MM
+            ):
                 return [str(k + 1), _f(p["u"]), _f(p["v"])]
         idx = None
         if len(s.poses):
@@ -542,8 +615,15 @@ class Collector:
             uv, det, img, shift = self._acquire(xyz, angle)
         except CommandError as exc:
             if idx is not None and not s.done[idx]:
-                self._record({"op": "miss", "pose_index": idx, "xyz_mm": xyz, "angle_deg": angle,
-                              "reason": _reason(str(exc))})
+                self._record(
+                    {
+                        "op": "miss",
+                        "pose_index": idx,
+                        "xyz_mm": xyz,
+                        "angle_deg": angle,
+                        "reason": _reason(str(exc)),
+                    }
+                )
             raise
         n = len(s.points) + 1
         digest = hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
@@ -556,10 +636,24 @@ class Collector:
             rel = Path("images") / s.name / f"{n:04d}_{digest[:12]}.png"
             atomic_write_bytes(self.dir / rel, cv2.imencode(".png", img)[1].tobytes())
             image_file = str(rel)
-        self._record({"op": "point", "name": s.name, "n": n, "xyz_mm": xyz, "angle_deg": angle,
-                      "angle_given": len(vals) == 4, "pose_index": idx, "u": uv[0], "v": uv[1],
-                      "still_shift_px": shift, "image_sha256": digest, "image_file": image_file,
-                      "image_size": list(self.image_size), "detection": det.to_dict()})
+        self._record(
+            {
+                "op": "point",
+                "name": s.name,
+                "n": n,
+                "xyz_mm": xyz,
+                "angle_deg": angle,
+                "angle_given": len(vals) == 4,
+                "pose_index": idx,
+                "u": uv[0],
+                "v": uv[1],
+                "still_shift_px": shift,
+                "image_sha256": digest,
+                "image_file": image_file,
+                "image_size": list(self.image_size),
+                "detection": det.to_dict(),
+            }
+        )
         return [str(n), _f(uv[0]), _f(uv[1])]
 
     # -- END
@@ -576,8 +670,9 @@ class Collector:
         angles = None
         if any(p["angle_given"] for p in pts):
             angles = np.array([p["angle_deg"] for p in pts])
-        return PointPairs.from_arrays(uv, xyz, [str(p["n"]) for p in pts],
-                                      source=f"collection {s.name}", angle_deg=angles)
+        return PointPairs.from_arrays(
+            uv, xyz, [str(p["n"]) for p in pts], source=f"collection {s.name}", angle_deg=angles
+        )
 
     def _end(self, args) -> list:
         s = self._open()
@@ -587,12 +682,21 @@ class Collector:
         except InputError as exc:
             raise CommandError(f"fit failed: {len(pairs)} points: {exc}") from None
         if cal.loo is None:
-            raise CommandError(f"fit failed: {len(pairs)} points are too few to fit and cross-check "
-                               f"model {cal.model_name}")
+            raise CommandError(
+                f"fit failed: {len(pairs)} points are too few to fit and cross-check model {cal.model_name}"
+            )
         self.save_fn(s.name, cal)
-        self._record({"op": "end", "name": s.name, "model": cal.model_name, "n": len(pairs),
-                      "loo_rms_mm": cal.loo.rms_mm, "loo_max_mm": cal.loo.max_mm,
-                      "data_sha256": cal.data_sha256})
+        self._record(
+            {
+                "op": "end",
+                "name": s.name,
+                "model": cal.model_name,
+                "n": len(pairs),
+                "loo_rms_mm": cal.loo.rms_mm,
+                "loo_max_mm": cal.loo.max_mm,
+                "data_sha256": cal.data_sha256,
+            }
+        )
         return [cal.model_name, str(len(pairs)), _f(cal.loo.rms_mm), _f(cal.loo.max_mm)]
 
     def _abort(self, args) -> list:
@@ -615,8 +719,10 @@ class Collector:
         name = self.calibration_name
         cal = self.load_fn(name) if name else None
         if cal is None:
-            raise CommandError("no calibration to check" + (f": '{name}' has none yet" if name else
-                                                             "; send CAL BEGIN … CAL END first"))
+            raise CommandError(
+                "no calibration to check"
+                + (f": '{name}' has none yet" if name else "; send CAL BEGIN … CAL END first")
+            )
         uv, det, img, _ = self._acquire(xyz, 0.0)
         with np.errstate(all="ignore"):
             got = cal.image_to_robot(np.array([uv]), xyz[2])[0]
@@ -624,10 +730,20 @@ class Collector:
             raise CommandError("target not found: the centre maps to no finite robot point")
         dx, dy = float(got[0] - xyz[0]), float(got[1] - xyz[1])
         err = math.hypot(dx, dy)
-        rec = {"utc": _now(), "name": name, "calibration_created_utc": cal.created_utc,
-               "data_sha256": cal.data_sha256, "xyz_mm": xyz, "u": uv[0], "v": uv[1],
-               "mapped_mm": [float(v) for v in got], "dx_mm": dx, "dy_mm": dy, "error_mm": err,
-               "image_sha256": hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()}
+        rec = {
+            "utc": _now(),
+            "name": name,
+            "calibration_created_utc": cal.created_utc,
+            "data_sha256": cal.data_sha256,
+            "xyz_mm": xyz,
+            "u": uv[0],
+            "v": uv[1],
+            "mapped_mm": [float(v) for v in got],
+            "dx_mm": dx,
+            "dy_mm": dy,
+            "error_mm": err,
+            "image_sha256": hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest(),
+        }
         path = self.history_path(name)
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(path, "ab") as fh:
@@ -667,5 +783,13 @@ def _ur_number(v: float) -> str:
     return str(int(v)) if float(v).is_integer() and abs(v) < 1e9 else f"{v:.4f}"
 
 
-__all__ = ["Collector", "CommandError", "REPLY_FORMATS", "STILL_TOL_PX", "UR_ERROR_CODES", "UR_STATES",
-           "default_calibrate", "plan_poses"]
+__all__ = [
+    "Collector",
+    "CommandError",
+    "REPLY_FORMATS",
+    "STILL_TOL_PX",
+    "UR_ERROR_CODES",
+    "UR_STATES",
+    "default_calibrate",
+    "plan_poses",
+]

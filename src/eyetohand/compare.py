@@ -45,14 +45,19 @@ def compare(pairs, check, *, image_size=None, seed=0, optimizers=OPTIMIZERS) -> 
 def compared_models(pairs):
     """Every model for the pairs' geometry, simplest first (the paper's B with the one-height ones)."""
     multi = len(pairs.z_levels_mm) > 1
-    cands = [c for c in MODELS.values()
-             if c.needs_heights() == multi and not (multi and c.height_rule is HeightRule.COMPUTED)]
+    cands = [
+        c
+        for c in MODELS.values()
+        if c.needs_heights() == multi and not (multi and c.height_rule is HeightRule.COMPUTED)
+    ]
     return sorted(cands, key=lambda c: (c.n_unknowns(), c.name))
 
 
 def format_compare(rows: list[dict]) -> str:
-    lines = [f"{'model':<18} {'optimizer':<11} {'fitness_mm':>10} {'check_rms_mm':>12} "
-             f"{'check_max_mm':>12} {'seconds':>8}"]
+    lines = [
+        f"{'model':<18} {'optimizer':<11} {'fitness_mm':>10} {'check_rms_mm':>12} "
+        f"{'check_max_mm':>12} {'seconds':>8}"
+    ]
     for r in rows:
         if "error" in r:
             lines.append(f"{r['model']:<18} {r['optimizer']:<11} n/a: {r['error']}")

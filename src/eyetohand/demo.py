@@ -246,11 +246,15 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
     _cards(doc, cards)
     if with_check:
         by_max = min(checks, key=lambda k: checks[k].max_mm)
-        ranking = (f"'lowest check RMS' ranks the fits on one figure, the RMS over the {b.n} check points; "
-                   "auto chooses its model by cross-validation on the training pairs alone, never on these.")
+        ranking = (
+            f"'lowest check RMS' ranks the fits on one figure, the RMS over the {b.n} check points; "
+            "auto chooses its model by cross-validation on the training pairs alone, never on these."
+        )
         if by_max != best_key:
-            ranking += (f" Ranked on the check max instead, {by_max} comes first "
-                        f"({mm(checks[by_max].max_mm)} mm against {mm(b.max_mm)} mm).")
+            ranking += (
+                f" Ranked on the check max instead, {by_max} comes first "
+                f"({mm(checks[by_max].max_mm)} mm against {mm(b.max_mm)} mm)."
+            )
         doc.p(ranking, "muted")
     if t4:
         doc.p(

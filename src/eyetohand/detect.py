@@ -83,13 +83,27 @@ class Detection:
     method: str | None = None  # "intensity" (model fit, the default) or "edge" (its fallback)
 
     def to_dict(self) -> dict:
-        return {"ok": self.ok, "u": self.u, "v": self.v, "diameter_px": self.diameter_px,
-                "ellipse": None if self.ellipse is None else {
-                    "centre": list(self.ellipse[0]), "axes": list(self.ellipse[1]),
-                    "angle_deg": self.ellipse[2]},
-                "score": self.score, "reason": self.reason, "polarity": self.polarity,
-                "rms_px": self.rms_px, "n_edge_points": self.n_edge_points, "contrast": self.contrast,
-                "blur_px": self.blur_px, "method": self.method}
+        return {
+            "ok": self.ok,
+            "u": self.u,
+            "v": self.v,
+            "diameter_px": self.diameter_px,
+            "ellipse": None
+            if self.ellipse is None
+            else {
+                "centre": list(self.ellipse[0]),
+                "axes": list(self.ellipse[1]),
+                "angle_deg": self.ellipse[2],
+            },
+            "score": self.score,
+            "reason": self.reason,
+            "polarity": self.polarity,
+            "rms_px": self.rms_px,
+            "n_edge_points": self.n_edge_points,
+            "contrast": self.contrast,
+            "blur_px": self.blur_px,
+            "method": self.method,
+        }
 
 
 # ------------------------------------------------------------------ reading
@@ -138,8 +152,10 @@ def load_image(image, name: str | None = None) -> tuple[np.ndarray, str, float]:
         raise InputError(f"{name}: expected a grey or colour image, got an array of shape {arr.shape}")
     h, w = arr.shape[:2]
     if h < MIN_SIZE_PX or w < MIN_SIZE_PX:
-        raise InputError(f"{name}: the image is {w}x{h} px, too small to hold a target "
-                         f"(at least {MIN_SIZE_PX}x{MIN_SIZE_PX})")
+        raise InputError(
+            f"{name}: the image is {w}x{h} px, too small to hold a target "
+            f"(at least {MIN_SIZE_PX}x{MIN_SIZE_PX})"
+        )
     if arr.dtype == np.uint8:
         full = 255.0
     elif arr.dtype == np.uint16:
@@ -219,15 +235,16 @@ def _regions(mask: np.ndarray, min_d: float, shape=None, offset=(0, 0)):
     bx, by, bw_, bh_ = cv2.boundingRect(mask)
     if bw_ == 0 or bh_ == 0:
         return (None, 0, 0), np.zeros((0, 6), np.int64), np.zeros((0, 2))
-    n, lab, stats, cents = cv2.connectedComponentsWithStats(mask[by : by + bh_, bx : bx + bw_],
-                                                            connectivity=8)
+    n, lab, stats, cents = cv2.connectedComponentsWithStats(
+        mask[by : by + bh_, bx : bx + bw_], connectivity=8
+    )
     stats[:, 0] += bx
     stats[:, 1] += by
     x, y, bw, bh, area = (stats[1:, i] for i in range(5))
     ox, oy = offset
     fill = area / (bw * bh)
     # an ellipse of axis ratio >= 0.4 fills 0.6–0.8 of its bounding box (a square 0.5 or 1)
-    keep = (area >= math.pi / 4 * min_d ** 2) & (fill > 0.6) & (fill < 0.9) & (bw < 0.9 * W) & (bh < 0.9 * H)
+    keep = (area >= math.pi / 4 * min_d**2) & (fill > 0.6) & (fill < 0.9) & (bw < 0.9 * W) & (bh < 0.9 * H)
     keep &= np.maximum(bw, bh) < 2.5 * np.minimum(bw, bh)
     if (h, w) != (H, W):
         keep &= ((x > 0) | (ox == 0)) & ((y > 0) | (oy == 0))
@@ -277,8 +294,16 @@ def _examine(coarse, lab, row, f: int, polarity: str, uniformity: float = RING_U
         contrast = -contrast
     if contrast < uniformity * (q75 - q25):  # the surround is not one background (a gap between dots)
         return None
-    return _Cand((x0 + cx + 0.5) * f - 0.5, (y0 + cy + 0.5) * f - 0.5, cov * f * f, 2 * rad * f, polarity,
-                 contrast, roundness=roundness, cut=cut)
+    return _Cand(
+        (x0 + cx + 0.5) * f - 0.5,
+        (y0 + cy + 0.5) * f - 0.5,
+        cov * f * f,
+        2 * rad * f,
+        polarity,
+        contrast,
+        roundness=roundness,
+        cut=cut,
+    )
 
 
 def _candidates(img, sigma, polarity, diameter_px, f: int, everywhere: bool = False):
@@ -329,14 +354,23 @@ def _windows(coarse, levels, pols, min_d: float, sigma: float, f: int):
     if min(H, W) < 192 or min_d < 8:
         return None
     loc = cv2.resize(coarse[: H - H % 2, : W - W % 2], (W // 2, H // 2), interpolation=cv2.INTER_AREA)
-    cands, rejected = _grouped(loc, [(0, 0, W // 2, H // 2)], levels, pols, 0.5 * min_d - 1, sigma, 2 * f,
-                               loose=True)
+    cands, rejected = _grouped(
+        loc, [(0, 0, W // 2, H // 2)], levels, pols, 0.5 * min_d - 1, sigma, 2 * f, loose=True
+    )
     boxes = []
     for c in cands + rejected:
         x, y = (c.x + 0.5) / f - 0.5, (c.y + 0.5) / f - 0.5  # coarse px
         r = 0.5 * c.diameter / f * 1.3 + 4  # room for the region's growth at the finer levels
-        boxes.append(np.array([max(int(x - r), 0), max(int(y - r), 0), min(int(math.ceil(x + r)) + 1, W),
-                               min(int(math.ceil(y + r)) + 1, H)]))
+        boxes.append(
+            np.array(
+                [
+                    max(int(x - r), 0),
+                    max(int(y - r), 0),
+                    min(int(math.ceil(x + r)) + 1, W),
+                    min(int(math.ceil(y + r)) + 1, H),
+                ]
+            )
+        )
     merged: list[np.ndarray] = []
     for box in boxes:
         grown = True
@@ -443,8 +477,14 @@ def fit_ellipse(pts: np.ndarray):
     semi = np.sqrt(-k / ev) * s  # semi-axes along evec[:, 0], evec[:, 1]
     j = int(np.argmax(semi))
     ang = math.degrees(math.atan2(evec[1, j], evec[0, j])) % 180.0
-    return (m + s * np.array([cx, cy]), (2 * float(semi.max()), 2 * float(semi.min())), ang,
-            np.array([a, b, c, d, e, f0]), m, s)
+    return (
+        m + s * np.array([cx, cy]),
+        (2 * float(semi.max()), 2 * float(semi.min())),
+        ang,
+        np.array([a, b, c, d, e, f0]),
+        m,
+        s,
+    )
 
 
 def _ellipse_distance(fit, pts: np.ndarray) -> np.ndarray:
@@ -461,7 +501,7 @@ def _shape_matrix(centre_axes_angle) -> np.ndarray:
     (_, _), (A, B), ang = centre_axes_angle
     t = math.radians(ang)
     Rm = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
-    return Rm @ np.diag([4 / A ** 2, 4 / B ** 2]) @ Rm.T
+    return Rm @ np.diag([4 / A**2, 4 / B**2]) @ Rm.T
 
 
 def _edge_points(img, centre, Q, sign: float, half_window: float, step: float = 0.25):
@@ -509,11 +549,16 @@ def _refine(img, cand: _Cand, sigma: float, full: float, refine: str = "intensit
     for W in windows:
         pts, valid, gmax, inside = _edge_points(img, centre, _shape_matrix(ell), sign, W)
         if inside.mean() < MIN_VALID_RAYS:
-            return Detection(False, reason=f"the circle at ({cand.x:.1f}, {cand.y:.1f}) px is cut by the "
-                             "image border", polarity=cand.polarity)
+            return Detection(
+                False,
+                reason=f"the circle at ({cand.x:.1f}, {cand.y:.1f}) px is cut by the image border",
+                polarity=cand.polarity,
+            )
         if valid.mean() < 0.5:
-            why = f"the edge of the candidate at ({cand.x:.1f}, {cand.y:.1f}) px was found on only " \
-                  f"{100 * valid.mean():.0f} % of its profiles"
+            why = (
+                f"the edge of the candidate at ({cand.x:.1f}, {cand.y:.1f}) px was found on only "
+                f"{100 * valid.mean():.0f} % of its profiles"
+            )
             fit = None
             break
         use = valid.copy()
@@ -536,29 +581,51 @@ def _refine(img, cand: _Cand, sigma: float, full: float, refine: str = "intensit
         return Detection(False, reason=why, polarity=cand.polarity)
     frac = float(use.mean())
     dist = _ellipse_distance(fit, pts[use])
-    rms = float(np.sqrt(np.mean(dist ** 2)))
+    rms = float(np.sqrt(np.mean(dist**2)))
     (A, B), ang = fit[1], fit[2]
     mean_r = (A + B) / 4
     if frac < MIN_VALID_RAYS:
-        return Detection(False, reason=f"the candidate at ({centre[0]:.1f}, {centre[1]:.1f}) px is not a "
-                         f"clean ellipse: its edge fits on only {100 * frac:.0f} % of the profiles",
-                         polarity=cand.polarity)
+        return Detection(
+            False,
+            reason=f"the candidate at ({centre[0]:.1f}, {centre[1]:.1f}) px is not a "
+            f"clean ellipse: its edge fits on only {100 * frac:.0f} % of the profiles",
+            polarity=cand.polarity,
+        )
     if rms > MAX_RMS_REL * mean_r:
-        return Detection(False, reason=f"the candidate at ({centre[0]:.1f}, {centre[1]:.1f}) px is not a "
-                         f"circle: its edge lies {rms:.2f} px rms from the best ellipse",
-                         polarity=cand.polarity)
+        return Detection(
+            False,
+            reason=f"the candidate at ({centre[0]:.1f}, {centre[1]:.1f}) px is not a "
+            f"circle: its edge lies {rms:.2f} px rms from the best ellipse",
+            polarity=cand.polarity,
+        )
     contrast = float(cand.contrast)
     score = frac / (1 + (rms / 0.25) ** 2) * min(1.0, contrast / (20 * max(sigma, 1e-12)))
     method, blur = "edge", None
-    fine = None if refine == "edge" else _fit_intensity(
-        img, ((float(centre[0]), float(centre[1])), (float(A), float(B)), float(ang)), sign, sigma)
+    fine = (
+        None
+        if refine == "edge"
+        else _fit_intensity(
+            img, ((float(centre[0]), float(centre[1])), (float(A), float(B)), float(ang)), sign, sigma
+        )
+    )
     if fine is not None:
         (centre, (A, B), ang), blur = fine
         method = "intensity"
-    return Detection(True, float(centre[0]), float(centre[1]), float(math.sqrt(A * B)),
-                     ((float(centre[0]), float(centre[1])), (float(A), float(B)), float(ang)),
-                     float(np.clip(score, 0, 1)), "", cand.polarity, rms, int(use.sum()), contrast, blur,
-                     method)
+    return Detection(
+        True,
+        float(centre[0]),
+        float(centre[1]),
+        float(math.sqrt(A * B)),
+        ((float(centre[0]), float(centre[1])), (float(A), float(B)), float(ang)),
+        float(np.clip(score, 0, 1)),
+        "",
+        cand.polarity,
+        rms,
+        int(use.sum()),
+        contrast,
+        blur,
+        method,
+    )
 
 
 def _ellipse_distance_px(p: np.ndarray, dx: np.ndarray, dy: np.ndarray, R: float) -> np.ndarray:
@@ -578,8 +645,9 @@ N_HARMONICS = 4  # angular harmonics of the outer level in the intensity model (
 _CHUNK = 256  # rows per product in the normal equations (see _normal_equations)
 
 
-def _edge_model(p: np.ndarray, dx: np.ndarray, dy: np.ndarray, R: float, harmonics: np.ndarray,
-                jacobian: bool = False):
+def _edge_model(
+    p: np.ndarray, dx: np.ndarray, dy: np.ndarray, R: float, harmonics: np.ndarray, jacobian: bool = False
+):
     """The intensity model of :func:`_fit_intensity` at points (dx, dy) from the initial centre, for the
     parameters p = (cx, cy, q11, q12, q22, a_in, a_out, log s, gx, gy, c1, s1, …, cK, sK): the outer
     level is a_out + Σ c_k cos kφ + s_k sin kφ around the initial centre (``harmonics`` (2K, N) holds
@@ -762,8 +830,9 @@ def _check_options(polarity, diameter_px, roi, shape, name):
         raise InputError(f"roi: expected (x, y, w, h) in px, got {roi!r}") from None
     H, W = shape
     if w < MIN_SIZE_PX or h < MIN_SIZE_PX or x < 0 or y < 0 or x + w > W or y + h > H:
-        raise InputError(f"{name}: roi {roi!r} is not inside the {W}x{H} image (or smaller than "
-                         f"{MIN_SIZE_PX} px)")
+        raise InputError(
+            f"{name}: roi {roi!r} is not inside the {W}x{H} image (or smaller than {MIN_SIZE_PX} px)"
+        )
     return x, y
 
 
@@ -781,14 +850,19 @@ def _search(image, polarity, diameter_px, roi, name=None, refine="intensity"):
         found, failed, rejected = _found(img, sigma, polarity, diameter_px, 1, full, refine, False)
     unique: list[Detection] = []
     for d in sorted(found, key=lambda d: -d.score):  # the same circle reached from two candidates
-        if not any(math.hypot(d.u - e.u, d.v - e.v) < 0.25 * min(d.diameter_px, e.diameter_px)
-                   and e.polarity == d.polarity for e in unique):
+        if not any(
+            math.hypot(d.u - e.u, d.v - e.v) < 0.25 * min(d.diameter_px, e.diameter_px)
+            and e.polarity == d.polarity
+            for e in unique
+        ):
             unique.append(d)
     found = unique
     if roi is not None:
         found = [_shifted(d, x0, y0) for d in found]
-        rejected = [_Cand(c.x + x0, c.y + y0, c.cov, c.diameter, c.polarity, c.contrast, c.levels,
-                          c.roundness, c.cut) for c in rejected]
+        rejected = [
+            _Cand(c.x + x0, c.y + y0, c.cov, c.diameter, c.polarity, c.contrast, c.levels, c.roundness, c.cut)
+            for c in rejected
+        ]
     return img, sigma, found, failed, rejected
 
 
@@ -818,19 +892,30 @@ def _why_none(img, sigma, failed, rejected) -> str:
     cut = [c for c in rejected if c.cut]
     if cut:
         c = max(cut, key=lambda c: c.diameter)
-        return (f"no target found: the only circle-like region, at ({c.x:.0f}, {c.y:.0f}) px, is cut by the "
-                "image border")
+        return (
+            f"no target found: the only circle-like region, at ({c.x:.0f}, {c.y:.0f}) px, is cut by the "
+            "image border"
+        )
     for d in failed:
         return f"no target found: {d.reason}"
     if rejected:
         c = min(rejected, key=lambda c: c.roundness)
-        return (f"no target found: the best region, at ({c.x:.0f}, {c.y:.0f}) px, is not round "
-                f"(boundary radius spread {100 * c.roundness:.0f} %)")
+        return (
+            f"no target found: the best region, at ({c.x:.0f}, {c.y:.0f}) px, is not round "
+            f"(boundary radius spread {100 * c.roundness:.0f} %)"
+        )
     return "no target found: no solid circle stands out from the background"
 
 
-def detect_target(image, *, polarity: str = "auto", diameter_px: float | None = None, roi=None,
-                  name: str | None = None, refine: str = "intensity") -> Detection:
+def detect_target(
+    image,
+    *,
+    polarity: str = "auto",
+    diameter_px: float | None = None,
+    roi=None,
+    name: str | None = None,
+    refine: str = "intensity",
+) -> Detection:
     """The one solid circle of ``image`` (path or array): see :class:`Detection` and the module docstring.
 
     ``polarity``: "dark" circle on bright, "bright" on dark, or "auto". ``diameter_px``: expected
@@ -847,13 +932,23 @@ def detect_target(image, *, polarity: str = "auto", diameter_px: float | None = 
     if rivals:
         where = ", ".join(f"({d.u:.0f}, {d.v:.0f}) d {d.diameter_px:.0f}" for d in [best, *rivals[:3]])
         hint = "" if diameter_px is not None else "; give the expected diameter to choose"
-        return Detection(False, reason=f"ambiguous: {1 + len(rivals)} equally good circles at {where} px"
-                         f"{hint}", score=best.score)
+        return Detection(
+            False,
+            reason=f"ambiguous: {1 + len(rivals)} equally good circles at {where} px{hint}",
+            score=best.score,
+        )
     return best
 
 
-def detect_circles(image, *, polarity: str = "auto", diameter_px: float | None = None, roi=None,
-                   name: str | None = None, refine: str = "intensity") -> list[Detection]:
+def detect_circles(
+    image,
+    *,
+    polarity: str = "auto",
+    diameter_px: float | None = None,
+    roi=None,
+    name: str | None = None,
+    refine: str = "intensity",
+) -> list[Detection]:
     """Every solid circle of ``image`` (only those found, ``ok`` True), sorted by v then u; options
     as :func:`detect_target`."""
     _, _, found, _, _ = _search(image, polarity, diameter_px, roi, name, refine)
@@ -873,13 +968,31 @@ def annotate(image, detection: Detection | list[Detection]) -> np.ndarray:
     S = 16  # sub-pixel drawing: coordinates × 16
     for d in dets:
         if not d.ok:
-            cv2.putText(out, (d.reason or "not found")[:80], (10, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.7,
-                        (0, 0, 255), 2, cv2.LINE_AA)
+            cv2.putText(
+                out,
+                (d.reason or "not found")[:80],
+                (10, 30),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.7,
+                (0, 0, 255),
+                2,
+                cv2.LINE_AA,
+            )
             continue
         (cx, cy), (A, B), ang = d.ellipse
         c = (int(round(cx * S)), int(round(cy * S)))
-        cv2.ellipse(out, c, (int(round(A / 2 * S)), int(round(B / 2 * S))), ang, 0, 360, (0, 255, 0), 1,
-                    cv2.LINE_AA, 4)
+        cv2.ellipse(
+            out,
+            c,
+            (int(round(A / 2 * S)), int(round(B / 2 * S))),
+            ang,
+            0,
+            360,
+            (0, 255, 0),
+            1,
+            cv2.LINE_AA,
+            4,
+        )
         arm = int(max(4, 0.15 * A) * S)
         cv2.line(out, (c[0] - arm, c[1]), (c[0] + arm, c[1]), (0, 0, 255), 1, cv2.LINE_AA, 4)
         cv2.line(out, (c[0], c[1] - arm), (c[0], c[1] + arm), (0, 0, 255), 1, cv2.LINE_AA, 4)
@@ -895,5 +1008,12 @@ def annotate(image, detection: Detection | list[Detection]) -> np.ndarray:
     return out
 
 
-__all__ = ["Detection", "annotate", "detect_circles", "detect_target", "fit_ellipse", "load_image",
-           "noise_sigma"]
+__all__ = [
+    "Detection",
+    "annotate",
+    "detect_circles",
+    "detect_target",
+    "fit_ellipse",
+    "load_image",
+    "noise_sigma",
+]

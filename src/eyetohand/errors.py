@@ -69,13 +69,16 @@ class InputError(ValueError):
         arrays and re-raised by a caller that knows which file or request they came from."""
         if self.source is not None or not source:
             return self
-        err = type(self)(self.reason, source=source, line=self.line, index=self.index,
-                         field=self.field, label=self.label)
+        err = type(self)(
+            self.reason, source=source, line=self.line, index=self.index, field=self.field, label=self.label
+        )
         return err
 
     def __reduce__(self):  # picklable across process pools with its attributes
-        return (_rebuild, (type(self), self.reason, self.source, self.line, self.index, self.field,
-                           self.label))
+        return (
+            _rebuild,
+            (type(self), self.reason, self.source, self.line, self.index, self.field, self.label),
+        )
 
 
 def _rebuild(cls, reason, source, line, index, field, label):

@@ -78,16 +78,22 @@ def matrix_text(m: dict) -> str:
 def _no_matrix_reason(cal: Calibration) -> str | None:
     model = cal.model
     if model.height_rule is HeightRule.GIVEN:
-        return (f"model '{model.name}' maps pixels at several heights (x, y depend on z): no single "
-                "matrix represents it; export --format csv at the height you need (--z), or use json")
+        return (
+            f"model '{model.name}' maps pixels at several heights (x, y depend on z): no single "
+            "matrix represents it; export --format csv at the height you need (--z), or use json"
+        )
     if model.height_rule is HeightRule.COMPUTED:
-        return (f"model '{model.name}' computes z with x and y (non-linear in the pixels): no matrix "
-                "represents it; export --format csv or json")
+        return (
+            f"model '{model.name}' computes z with x and y (non-linear in the pixels): no matrix "
+            "represents it; export --format csv or json"
+        )
     if not isinstance(model, PlanarMatrixModel):
         return f"model '{model.name}' is not a matrix model; export --format csv or json"
     if type(model)._ideal_px is not PlanarMatrixModel._ideal_px:
-        return (f"model '{model.name}' corrects lens distortion before its matrix, so no matrix maps the "
-                "camera's pixels; export --format csv (a grid), json, or calibrate with homography")
+        return (
+            f"model '{model.name}' corrects lens distortion before its matrix, so no matrix maps the "
+            "camera's pixels; export --format csv (a grid), json, or calibrate with homography"
+        )
     return None
 
 
@@ -103,8 +109,10 @@ def grid_points(cal: Calibration, pitch_px: float) -> np.ndarray:
     hi = r.hull_px.max(axis=0) + r.margin_px
     nu, nv = (np.floor((hi - lo) / pitch_px) + 1).astype(int)
     if nu * nv > MAX_GRID_POINTS:
-        raise InputError(f"--pitch {pitch_px:g} px gives {nu * nv} grid points over the region "
-                         f"(at most {MAX_GRID_POINTS}): use a larger pitch")
+        raise InputError(
+            f"--pitch {pitch_px:g} px gives {nu * nv} grid points over the region "
+            f"(at most {MAX_GRID_POINTS}): use a larger pitch"
+        )
     uu, vv = np.meshgrid(lo[0] + pitch_px * np.arange(nu), lo[1] + pitch_px * np.arange(nv))
     uv = np.c_[uu.ravel(), vv.ravel()]
     return uv[r.outside_px(uv) <= r.margin_px]
@@ -115,8 +123,9 @@ def grid_csv(cal: Calibration, pitch_px: float, z_mm: float | None = None) -> st
     model = cal.model
     if model.height_rule is HeightRule.GIVEN and z_mm is None:
         lo, hi = cal.region.z_range_mm if cal.region and cal.region.z_range_mm else (0.0, 0.0)
-        raise InputError(f"model '{model.name}' maps at a given height: give --z MM "
-                         f"(calibrated {lo:g}..{hi:g} mm)")
+        raise InputError(
+            f"model '{model.name}' maps at a given height: give --z MM (calibrated {lo:g}..{hi:g} mm)"
+        )
     uv = grid_points(cal, pitch_px)
     m = cal.map(uv, z_mm)
     head = [
@@ -132,8 +141,15 @@ def grid_csv(cal: Calibration, pitch_px: float, z_mm: float | None = None) -> st
     return "\n".join(head) + "\n" + body + ("\n" if len(rows) else "")
 
 
-def export_text(cal: Calibration, fmt: str, *, file_text: str | None = None, as_text: bool = False,
-                pitch_px: float = 10.0, z_mm: float | None = None) -> str:
+def export_text(
+    cal: Calibration,
+    fmt: str,
+    *,
+    file_text: str | None = None,
+    as_text: bool = False,
+    pitch_px: float = 10.0,
+    z_mm: float | None = None,
+) -> str:
     """The export of ``cal`` in ``fmt`` (one of :data:`FORMATS`) as text."""
     if fmt == "matrix":
         m = matrix_export(cal)

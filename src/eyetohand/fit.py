@@ -99,8 +99,9 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
     with np.errstate(all="ignore"):
         for _ in range(steps):
             h = 1e-5 * np.maximum(np.abs(P), 1e-2)  # (n, D) central-difference steps
-            rows = np.concatenate([P[:, None, :] + h[:, :, None] * np.eye(D),
-                                   P[:, None, :] - h[:, :, None] * np.eye(D)], axis=1)  # (n, 2D, D)
+            rows = np.concatenate(
+                [P[:, None, :] + h[:, :, None] * np.eye(D), P[:, None, :] - h[:, :, None] * np.eye(D)], axis=1
+            )  # (n, 2D, D)
             out = full.batch_image_to_robot(np.vstack([P, rows.reshape(-1, D)]), uv, z)
             R = out[:n] - xyz  # (n, N, 3)
             F = out[n:].reshape(n, 2 * D, n, 3)
@@ -158,12 +159,18 @@ def cross_validate(
     Leave-one-out takes Gauss–Newton from the full fit where it can (:func:`loo_gauss_newton`;
     ``full``: that fit, when the caller has it), unless ``refit``."""
     n = len(pairs)
-    if not refit and n <= LOO_MAX_PAIRS and n - 1 >= get_model(model).min_pairs and _loo_warm(
-        model, optimizer, objective
+    if (
+        not refit
+        and n <= LOO_MAX_PAIRS
+        and n - 1 >= get_model(model).min_pairs
+        and _loo_warm(model, optimizer, objective)
     ):
         try:
-            base = full if full is not None else fit_model(
-                pairs, model, optimizer, objective, image_size=image_size, seed=seed)[0]
+            base = (
+                full
+                if full is not None
+                else fit_model(pairs, model, optimizer, objective, image_size=image_size, seed=seed)[0]
+            )
             fast = loo_gauss_newton(base, pairs.uv_px, pairs.xyz_mm)
         except InputError:
             fast = None
@@ -361,8 +368,9 @@ def calibrate(
                 res = reused
             else:
                 full = fitted if loo_opt == optimizer else None
-                res = cross_validate(pairs, model, loo_opt, objective, image_size=image_size, seed=cv_seed,
-                                     full=full)
+                res = cross_validate(
+                    pairs, model, loo_opt, objective, image_size=image_size, seed=cv_seed, full=full
+                )
             loo_stats = stats_from_residuals(res, pairs.ids, leverage=lev, held_out=True)
             if loo_opt != optimizer:
                 notes.append(f"leave-one-out refits used optimizer '{loo_opt}'")

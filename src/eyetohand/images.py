@@ -44,8 +44,15 @@ class ImageResult:
     reason: str = ""
 
     def to_dict(self) -> dict:
-        return {"image": self.image, "ok": self.ok, "u": self.u, "v": self.v,
-                "diameter_px": self.diameter_px, "score": self.score, "reason": self.reason}
+        return {
+            "image": self.image,
+            "ok": self.ok,
+            "u": self.u,
+            "v": self.v,
+            "diameter_px": self.diameter_px,
+            "score": self.score,
+            "reason": self.reason,
+        }
 
 
 def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = None) -> list[Pose]:
@@ -56,13 +63,14 @@ def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = N
     header = [h.strip().lower() for h in rows[first]]
     missing = [c for c in ("image", "x", "y") if c not in header]
     if missing:
-        raise InputError(f"{name} line {first + 1}: missing column(s) {', '.join(missing)}; "
-                         "expected image,x,y[,z]")
+        raise InputError(
+            f"{name} line {first + 1}: missing column(s) {', '.join(missing)}; expected image,x,y[,z]"
+        )
     col = {c: header.index(c) for c in ("image", "x", "y", "z", "angle") if c in header}
     base = Path(images_dir) if images_dir is not None else path.parent
     poses: list[Pose] = []
     seen: dict[str, str] = {}
-    for k, row in enumerate(rows[first + 1:], start=first + 2):
+    for k, row in enumerate(rows[first + 1 :], start=first + 2):
         if not row or all(not c.strip() for c in row):
             continue
         loc = _Where(name, line=k)
@@ -88,8 +96,13 @@ def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = N
 Progress = Callable[[int, int, str], None]
 
 
-def detect_poses(poses: list[Pose], *, progress: Progress | None = None,
-                 annotate_dir: str | os.PathLike | None = None, **detect_options) -> list[ImageResult]:
+def detect_poses(
+    poses: list[Pose],
+    *,
+    progress: Progress | None = None,
+    annotate_dir: str | os.PathLike | None = None,
+    **detect_options,
+) -> list[ImageResult]:
     """Detect the target in each pose's image; failures carry their reason. With ``annotate_dir``,
     each image where it was found is written there as ``<stem>.annotated.png`` (see :func:`detect_images`)."""
     from .detect import detect_target
@@ -115,8 +128,9 @@ def _detect_one(path, name, detect_target, detect_options) -> tuple[ImageResult,
     except InputError as exc:
         return ImageResult(name, False, reason=str(exc)), None
     if det.ok:
-        return ImageResult(name, True, float(det.u), float(det.v), float(det.diameter_px),
-                           float(det.score)), det
+        return ImageResult(
+            name, True, float(det.u), float(det.v), float(det.diameter_px), float(det.score)
+        ), det
     return ImageResult(name, False, reason=det.reason or "no target found"), det
 
 
@@ -139,8 +153,9 @@ def _write_annotated(path, det: Detection, annotate_dir: str | os.PathLike, used
         atomic_write_bytes(Path(annotate_dir) / name, buf.tobytes())
 
 
-def detect_images(paths: Sequence[str | os.PathLike], annotate_dir: str | os.PathLike | None = None,
-                  **detect_options) -> list[ImageResult]:
+def detect_images(
+    paths: Sequence[str | os.PathLike], annotate_dir: str | os.PathLike | None = None, **detect_options
+) -> list[ImageResult]:
     """Detect the target in each image (results named by the path as given); with ``annotate_dir``,
     each image where it was found is written there as ``<stem>.annotated.png`` with the fit drawn."""
     from .detect import detect_target

@@ -42,8 +42,9 @@ def _coeffs(k) -> tuple:
     """(k1, k2, p1, p2, k3) as scalars (one row) or (P, 1) columns (P rows)."""
     k = np.asarray(k, dtype=float)
     if k.ndim not in (1, 2) or k.shape[-1] not in (4, 5):
-        raise InputError(f"lens coefficients: expected (k1, k2, p1, p2[, k3]) as shape (4|5,) or (P, 4|5), "
-                         f"got {k.shape}")
+        raise InputError(
+            f"lens coefficients: expected (k1, k2, p1, p2[, k3]) as shape (4|5,) or (P, 4|5), got {k.shape}"
+        )
     if k.ndim == 1:
         c = [float(v) for v in k] + [0.0] * (5 - k.size)
         return tuple(c)
@@ -70,8 +71,12 @@ def distort(n, k) -> np.ndarray:
         for x, y in n.reshape(-1, 2).tolist():
             r2 = x * x + y * y
             g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            out.append((x * g + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-                        y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y))
+            out.append(
+                (
+                    x * g + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                    y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y,
+                )
+            )
         return np.array(out, dtype=float).reshape(n.shape)
     x, y = n[..., 0], n[..., 1]
     r2 = x * x + y * y
@@ -86,8 +91,9 @@ def _is_zero(c) -> bool:
     return not np.any(c) if isinstance(c, np.ndarray) else c == 0.0
 
 
-def undistort(d, k, *, tol: float = TOL, max_iter: int = MAX_ITER,
-              fixed_point_steps: int = FIXED_POINT_STEPS) -> tuple[np.ndarray, np.ndarray]:
+def undistort(
+    d, k, *, tol: float = TOL, max_iter: int = MAX_ITER, fixed_point_steps: int = FIXED_POINT_STEPS
+) -> tuple[np.ndarray, np.ndarray]:
     """Ideal normalised points from distorted ones ``d`` (..., 2) for coefficients ``k`` (OpenCV
     order, (4|5,) or (P, 4|5)). Returns ``(n, converged)``: ``n`` of the broadcast shape (P, N, 2)
     with NaN where ``converged`` (P, N) is False. ``tol``: Newton step size at which a point stops
@@ -134,12 +140,13 @@ def undistort(d, k, *, tol: float = TOL, max_iter: int = MAX_ITER,
         g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
         dg = k1 + r2 * (2 * k2 + 3 * k3 * r2)
         xy = x * y
-        res = (np.abs(x * g + 2 * p1 * xy + p2 * (r2 + 2 * x * x) - xd)
-               + np.abs(y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * xy - yd))
+        res = np.abs(x * g + 2 * p1 * xy + p2 * (r2 + 2 * x * x) - xd) + np.abs(
+            y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * xy - yd
+        )
         a = g + 2 * x * x * dg + 2 * p1 * y + 6 * p2 * x
         b = 2 * xy * dg + 2 * p1 * x + 2 * p2 * y
         c = g + 2 * y * y * dg + 6 * p1 * y + 2 * p2 * x
-        ok = ((res <= ACCEPT_RESIDUAL * (1 + np.abs(xd) + np.abs(yd))) & (a * c - b * b > 0) & (g > 0))
+        ok = (res <= ACCEPT_RESIDUAL * (1 + np.abs(xd) + np.abs(yd))) & (a * c - b * b > 0) & (g > 0)
     x[~ok] = np.nan
     y[~ok] = np.nan
     return np.stack([x, y], axis=-1), ok
@@ -156,8 +163,10 @@ def _undistort_few(d, k, tol, max_iter, fixed_point_steps):
                 r2 = x * x + y * y
                 g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
                 xy = x * y
-                x, y = ((xd - 2 * p1 * xy - p2 * (r2 + 2 * x * x)) / g,
-                        (yd - p1 * (r2 + 2 * y * y) - 2 * p2 * xy) / g)
+                x, y = (
+                    (xd - 2 * p1 * xy - p2 * (r2 + 2 * x * x)) / g,
+                    (yd - p1 * (r2 + 2 * y * y) - 2 * p2 * xy) / g,
+                )
             for it in range(max_iter + 1):
                 r2 = x * x + y * y
                 g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -245,9 +254,13 @@ def rodrigues_to_matrix(rvec) -> np.ndarray:
             c1 = math.cos(t)  # = 1 - b θ², exactly -1 at θ = π
             a1, b1 = math.sin(t) / t, (1 - c1) / t2
         # I + a K + b K² with K² = r rᵀ - θ² I
-        M1 = np.array([[c1 + b1 * x * x, b1 * x * y - a1 * z, b1 * x * z + a1 * y],
-                       [b1 * x * y + a1 * z, c1 + b1 * y * y, b1 * y * z - a1 * x],
-                       [b1 * x * z - a1 * y, b1 * y * z + a1 * x, c1 + b1 * z * z]])
+        M1 = np.array(
+            [
+                [c1 + b1 * x * x, b1 * x * y - a1 * z, b1 * x * z + a1 * y],
+                [b1 * x * y + a1 * z, c1 + b1 * y * y, b1 * y * z - a1 * x],
+                [b1 * x * z - a1 * y, b1 * y * z + a1 * x, c1 + b1 * z * z],
+            ]
+        )
         return M1 if single else M1[None]
     th2 = np.einsum("pi,pi->p", r, r)
     th = np.sqrt(th2)

@@ -135,9 +135,7 @@ def _per_dimension(name: str, value: object, dim: int) -> np.ndarray:
     if arr.ndim == 0:
         return np.full(dim, float(arr))
     if arr.shape != (dim,):
-        raise ValueError(
-            f"{name} must be a scalar or have shape ({dim},) to match x0, got shape {arr.shape}"
-        )
+        raise ValueError(f"{name} must be a scalar or have shape ({dim},) to match x0, got shape {arr.shape}")
     return arr.copy()
 
 
@@ -148,9 +146,7 @@ def _make_rng(seed: object) -> np.random.Generator:
         if seed is not None and seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed}")
         return np.random.default_rng(seed)
-    raise ValueError(
-        f"seed must be an int, None or a numpy.random.Generator, got {type(seed).__name__}"
-    )
+    raise ValueError(f"seed must be an int, None or a numpy.random.Generator, got {type(seed).__name__}")
 
 
 def hybrid_pso(
@@ -422,9 +418,7 @@ def hybrid_pso(
     )
 
 
-def pso(
-    fitness: Fitness, x0: np.ndarray, sigma: float | np.ndarray, **kwargs: object
-) -> OptimizeResult:
+def pso(fitness: Fitness, x0: np.ndarray, sigma: float | np.ndarray, **kwargs: object) -> OptimizeResult:
     """Plain global-best PSO (eqs 14, 15): :func:`hybrid_pso` with crossover and mutation off.
 
     Accepts the same keyword arguments as :func:`hybrid_pso` except ``crossover`` and

@@ -100,13 +100,33 @@ def plot_convergence(
     for i, (label, h) in enumerate(curves.items()):
         color = COLORS[i % len(COLORS)]
         it = np.arange(1, h.size + 1)
-        ax.plot(it, h, color=color, lw=1.8, label=f"{label} (final {h[-1]:.5f} mm)",
-                drawstyle="steps-post" if h.size > 1 else "default", marker=None if h.size > 1 else "o")
-        ax.annotate(f"{h[-1]:.5f}", (it[-1], h[-1]), xytext=(-4, 6), textcoords="offset points",
-                    ha="right", va="bottom", fontsize=8, color=color)
+        ax.plot(
+            it,
+            h,
+            color=color,
+            lw=1.8,
+            label=f"{label} (final {h[-1]:.5f} mm)",
+            drawstyle="steps-post" if h.size > 1 else "default",
+            marker=None if h.size > 1 else "o",
+        )
+        ax.annotate(
+            f"{h[-1]:.5f}",
+            (it[-1], h[-1]),
+            xytext=(-4, 6),
+            textcoords="offset points",
+            ha="right",
+            va="bottom",
+            fontsize=8,
+            color=color,
+        )
     for i, (label, value) in enumerate((reference_lines or {}).items()):
-        ax.axhline(float(value), color="0.3", ls=("--", ":", "-.")[i % 3], lw=1.0,
-                   label=f"{label}: {float(value):.5f} mm")
+        ax.axhline(
+            float(value),
+            color="0.3",
+            ls=("--", ":", "-.")[i % 3],
+            lw=1.0,
+            label=f"{label}: {float(value):.5f} mm",
+        )
     if log:
         ax.set_yscale("log")
     ax.set_xlabel("iteration")
@@ -169,22 +189,31 @@ def plot_point_errors(
         ok = np.isfinite(e)
         pos = x - 0.4 + width * (j + 0.5)
         known = e[ok]
-        summary = (f"rms {_fmt_mm(float(np.sqrt(np.mean(known**2))))}, max {_fmt_mm(float(known.max()))} mm"
-                   if known.size else "no values")
+        summary = (
+            f"rms {_fmt_mm(float(np.sqrt(np.mean(known**2))))}, max {_fmt_mm(float(known.max()))} mm"
+            if known.size
+            else "no values"
+        )
         if (~ok).any():
             summary += f", {int((~ok).sum())} n/a"
         ax.bar(pos[ok], known, width=width * 0.95, color=color, label=f"{label} ({summary})")
         for p in pos[~ok]:
             ax.text(p, top * 0.01, "n/a", rotation=90, ha="center", va="bottom", fontsize=7, color=color)
     for i, (label, value) in enumerate((reference_lines or {}).items()):
-        ax.axhline(float(value), color="0.25", ls=("--", ":", "-.")[i % 3], lw=1.1,
-                   label=f"{label}: {_fmt_mm(float(value))} mm")
+        ax.axhline(
+            float(value),
+            color="0.25",
+            ls=("--", ":", "-.")[i % 3],
+            lw=1.1,
+            label=f"{label}: {_fmt_mm(float(value))} mm",
+        )
     step = max(1, math.ceil(n / MAX_TICK_LABELS))  # thin the labels of long point lists
     shown = [_short_id(i) for i in ids[::step]]
     longest = max(len(i) for i in shown)
     upright = step == 1 and n <= 20 and longest * n <= 60  # short ids side by side, others turned
-    ax.set_xticks(x[::step], shown, rotation=0 if upright else 90,
-                  fontsize=None if n <= 20 and longest <= 8 else 7)
+    ax.set_xticks(
+        x[::step], shown, rotation=0 if upright else 90, fontsize=None if n <= 20 and longest <= 8 else 7
+    )
     ax.set_xlim(-0.6, n - 0.4)
     n_entries = len(arrays) + len(reference_lines or {})
     refs = [float(v) for v in (reference_lines or {}).values()]
@@ -210,7 +239,7 @@ def _short_id(pid: str, limit: int = 16) -> str:
         return pid
     if "/" in pid or "\\" in pid or "." in pid:
         pid = pid.replace("\\", "/").rsplit("/", 1)[-1].rsplit(".", 1)[0] or pid
-    return pid if len(pid) <= limit else "…" + pid[-(limit - 1):]
+    return pid if len(pid) <= limit else "…" + pid[-(limit - 1) :]
 
 
 # ------------------------------------------------------------------ residual vectors
@@ -289,16 +318,39 @@ def plot_residual_vectors(
     ax._eyetohand_sets = n_sets + 1
     color = color or COLORS[n_sets % len(COLORS)]
     ax.scatter(uv[:, 0], uv[:, 1], s=14, color=color, zorder=3, label=label)
-    q = ax.quiver(uv[:, 0], uv[:, 1], vec[:, 0], vec[:, 1], angles="xy", scale_units="xy", scale=1.0,
-                  color=color, width=0.004, headwidth=3.5, headlength=4.5, zorder=4)
+    q = ax.quiver(
+        uv[:, 0],
+        uv[:, 1],
+        vec[:, 0],
+        vec[:, 1],
+        angles="xy",
+        scale_units="xy",
+        scale=1.0,
+        color=color,
+        width=0.004,
+        headwidth=3.5,
+        headlength=4.5,
+        zorder=4,
+    )
     if ids is not None:
         if len(ids) != len(uv):
             raise InputError(f"plot_residual_vectors: {len(ids)} ids for {len(uv)} points")
-        shown = (np.arange(len(uv)) if len(uv) <= MAX_ID_LABELS
-                 else np.argsort(-mag, kind="stable")[:max(0, label_largest)])
+        shown = (
+            np.arange(len(uv))
+            if len(uv) <= MAX_ID_LABELS
+            else np.argsort(-mag, kind="stable")[: max(0, label_largest)]
+        )
         for (u, v), name in zip(uv[shown], np.asarray(ids, dtype=object)[shown], strict=True):
-            ax.annotate(str(name), (u, v), xytext=(3, -3), textcoords="offset points", fontsize=7,
-                        color=color, ha="left", va="top")
+            ax.annotate(
+                str(name),
+                (u, v),
+                xytext=(3, -3),
+                textcoords="offset points",
+                fontsize=7,
+                color=color,
+                ha="left",
+                va="top",
+            )
     if image_size is not None:
         ax.set_xlim(0, w)
         ax.set_ylim(h, 0)
@@ -312,8 +364,17 @@ def plot_residual_vectors(
     ax.grid(True, alpha=0.25)
     if key and not getattr(ax, "_eyetohand_key", False):
         ref_mm = nice_step(0.1 * extent / scale)
-        ax.quiverkey(q, 0.93, 1.025, ref_mm * scale, f"key: {_fmt_mm(ref_mm).rstrip('0').rstrip('.')} mm",
-                     labelpos="W", coordinates="axes", color="0.2", fontproperties={"size": 8})
+        ax.quiverkey(
+            q,
+            0.93,
+            1.025,
+            ref_mm * scale,
+            f"key: {_fmt_mm(ref_mm).rstrip('0').rstrip('.')} mm",
+            labelpos="W",
+            coordinates="axes",
+            color="0.2",
+            fontproperties={"size": 8},
+        )
         ax._eyetohand_key = True
     if label:
         ax.legend(fontsize=8, loc="best", framealpha=0.9)

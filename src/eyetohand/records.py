@@ -58,8 +58,9 @@ class Stats:
     @classmethod
     def from_dict(cls, d: dict) -> Stats:
         pts = tuple(
-            PointError(p["id"], p["dx_mm"], p["dy_mm"], p.get("dz_mm", 0.0), p["error_mm"],
-                       p.get("outlier", False))
+            PointError(
+                p["id"], p["dx_mm"], p["dy_mm"], p.get("dz_mm", 0.0), p["error_mm"], p.get("outlier", False)
+            )
             for p in d["points"]
         )
         return cls(d["n"], d["rms_mm"], d["mean_mm"], d["max_mm"], d["p95_mm"], pts)
@@ -121,5 +122,12 @@ class TcpOffset:
 
     @classmethod
     def from_dict(cls, d: dict) -> TcpOffset:
-        return cls(tuple(d["offset_mm"]), tuple(d["std_mm"]), d["model"], d["reference_angle_deg"],
-                   d["n_turned"], d["n_pairs"], d["rms_mm"])
+        return cls(
+            tuple(d["offset_mm"]),
+            tuple(d["std_mm"]),
+            d["model"],
+            d["reference_angle_deg"],
+            d["n_turned"],
+            d["n_pairs"],
+            d["rms_mm"],
+        )

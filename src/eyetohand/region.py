@@ -62,8 +62,13 @@ class CalibratedRegion:
         """The hull's edges as columns: start (a_u, a_v), direction (e_u, e_v), squared length."""
         a = self.hull_px
         e = np.roll(a, -1, axis=0) - a
-        return (a[:, 0].copy(), a[:, 1].copy(), e[:, 0].copy(), e[:, 1].copy(),
-                np.maximum((e * e).sum(-1), 1e-300))
+        return (
+            a[:, 0].copy(),
+            a[:, 1].copy(),
+            e[:, 0].copy(),
+            e[:, 1].copy(),
+            np.maximum((e * e).sum(-1), 1e-300),
+        )
 
     def _outside_one(self, u: float, v: float) -> float:
         """``outside_px`` of one point on (K,) edge columns: no (N, K, 2) temporaries."""

@@ -88,9 +88,13 @@ class Truth:
         return float(np.hypot(*np.subtract(self.ellipse_centre_px, self.centre_px)))
 
     def to_dict(self) -> dict:
-        return {"centre_px": list(self.centre_px), "ellipse_centre_px": list(self.ellipse_centre_px),
-                "centroid_px": list(self.centroid_px), "axes_px": list(self.axes_px),
-                "angle_deg": self.angle_deg}
+        return {
+            "centre_px": list(self.centre_px),
+            "ellipse_centre_px": list(self.ellipse_centre_px),
+            "centroid_px": list(self.centroid_px),
+            "axes_px": list(self.axes_px),
+            "angle_deg": self.angle_deg,
+        }
 
 
 def project(camera, xyz_mm) -> np.ndarray:
@@ -133,18 +137,24 @@ def _belt_image(cam: Camera, grid: np.ndarray, step: int, target: Target) -> np.
     wh, hh = (w + 1) // 2, (h + 1) // 2
     # half-resolution sample k is at pixel 2k + ½; node n of the grid at pixel n·step − ½
     mx = np.ascontiguousarray(np.broadcast_to(((2 * np.arange(wh) + 1) / step).astype(np.float32), (hh, wh)))
-    my = np.ascontiguousarray(np.broadcast_to(((2 * np.arange(hh) + 1) / step).astype(np.float32)[:, None],
-                                              (hh, wh)))
+    my = np.ascontiguousarray(
+        np.broadcast_to(((2 * np.arange(hh) + 1) / step).astype(np.float32)[:, None], (hh, wh))
+    )
     xy = cv2.remap(grid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     img = np.full((hh, wh), target.belt_level, np.float32)
     for (kx, ky), a, ph in zip(BELT_WAVES, BELT_AMPLITUDES, target.belt_phases, strict=False):
-        img += np.float32(a) * np.sin(np.float32(kx) * xy[..., 0] + np.float32(ky) * xy[..., 1]
-                                      + np.float32(ph))
+        img += np.float32(a) * np.sin(
+            np.float32(kx) * xy[..., 0] + np.float32(ky) * xy[..., 1] + np.float32(ph)
+        )
     if target.belt_grain > 0:
         tile = _grain_tile(target.belt_seed)
         img += np.float32(target.belt_grain) * cv2.remap(
-            tile, xy[..., 0] / np.float32(GRAIN_TEXEL_MM), xy[..., 1] / np.float32(GRAIN_TEXEL_MM),
-            cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+            tile,
+            xy[..., 0] / np.float32(GRAIN_TEXEL_MM),
+            xy[..., 1] / np.float32(GRAIN_TEXEL_MM),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_WRAP,
+        )
     # back to full resolution: pixel j sits at half-resolution coordinate (j − ½)/2
     full = cv2.resize(img, (2 * wh, 2 * hh), interpolation=cv2.INTER_LINEAR)
     return np.ascontiguousarray(full[:h, :w])
@@ -185,8 +195,9 @@ def _corner_stats(corners_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, reach
 
 
-def _coverage(corners_xy: np.ndarray, d_centre: np.ndarray, reach: np.ndarray, to_local, signed,
-              S: int) -> np.ndarray:
+def _coverage(
+    corners_xy: np.ndarray, d_centre: np.ndarray, reach: np.ndarray, to_local, signed, S: int
+) -> np.ndarray:
     """Area fraction of each pixel inside a shape. ``corners_xy`` (h+1, w+1, 2) plane points of the pixel
     corners, ``d_centre`` the signed distance (mm) of the pixel centres from the shape's edge, ``reach``
     half a pixel's diagonal on the plane (mm); pixels an edge may cross are supersampled S×S
@@ -255,8 +266,13 @@ def circle_truth(camera, centre_mm, diameter_mm: float, n: int = 4096) -> Truth:
     area = cross.sum() / 2
     centroid = np.array([((x + x1) * cross).sum(), ((y + y1) * cross).sum()]) / (6 * area) + b.mean(axis=0)
     ec, axes, ang = _fit_conic_centre(b)
-    return Truth((float(centre[0]), float(centre[1])), (float(ec[0]), float(ec[1])),
-                 (float(centroid[0]), float(centroid[1])), axes, ang)
+    return Truth(
+        (float(centre[0]), float(centre[1])),
+        (float(ec[0]), float(ec[1])),
+        (float(centroid[0]), float(centroid[1])),
+        axes,
+        ang,
+    )
 
 
 # ------------------------------------------------------------------ the renderer
@@ -347,7 +363,7 @@ def render(
         local_near = to_local(0.25 * c_near)
         d1 = corners[1:, 1:][sel] - corners[:-1, :-1][sel]
         d2 = corners[1:, :-1][sel] - corners[:-1, 1:][sel]
-        reach[sel] = 0.5 * np.sqrt(np.maximum((d1 ** 2).sum(-1), (d2 ** 2).sum(-1)))
+        reach[sel] = 0.5 * np.sqrt(np.maximum((d1**2).sum(-1), (d2**2).sum(-1)))
         d_circle[sel] = _signed_circle(local_near, r)
         roi = img[y0:y1, x0:x1].astype(float)
         if has_strip:

@@ -31,8 +31,13 @@ from .pairs import PointPairs
 
 __all__ = ["build_report", "write_report"]
 
-PNG_NAMES = ("convergence.png", "check_errors.png", "train_errors.png", "residual_vectors.png",
-             "point_errors.png")
+PNG_NAMES = (
+    "convergence.png",
+    "check_errors.png",
+    "train_errors.png",
+    "residual_vectors.png",
+    "point_errors.png",
+)
 
 
 # ------------------------------------------------------------------ small helpers
@@ -117,12 +122,13 @@ class _Doc:
         b64 = base64.b64encode(data).decode("ascii")
         self.add(
             f'<figure><img src="data:image/png;base64,{b64}" alt="{_e(caption)}">'
-            f"<figcaption>{_e(caption)} <span class=\"muted\">(also saved as {_e(name)})</span>"
+            f'<figcaption>{_e(caption)} <span class="muted">(also saved as {_e(name)})</span>'
             "</figcaption></figure>"
         )
 
-    def table(self, header: list[str] | None, rows: list[list[str]], *,
-              row_classes: list[str] | None = None) -> None:
+    def table(
+        self, header: list[str] | None, rows: list[list[str]], *, row_classes: list[str] | None = None
+    ) -> None:
         """A table of already formatted cells. Numeric cells (and their columns' headers) are right
         aligned in tabular figures; ``header=None`` gives a key–value table without a header row."""
         ncol = max([len(header or [])] + [len(r) for r in rows])
@@ -151,15 +157,13 @@ class _Doc:
     def render(self, subtitle: str = "") -> str:
         now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
         return (
-            "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-            f"<meta name=\"generator\" content=\"eyetohand {_e(__version__)}\">"
-            "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
+            '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+            f'<meta name="generator" content="eyetohand {_e(__version__)}">'
+            '<meta name="viewport" content="width=device-width, initial-scale=1">'
             f"<title>{_e(self.title)}</title><style>{CSS}</style></head><body><main>"
-            f"<header><h1>{_e(self.title)}</h1><p class=\"muted\">{_e(subtitle)}"
+            f'<header><h1>{_e(self.title)}</h1><p class="muted">{_e(subtitle)}'
             f"{' · ' if subtitle else ''}generated {_e(now)} by eyetohand {_e(__version__)} · "
-            "units: robot mm, image px</p></header>\n"
-            + "\n".join(self.parts)
-            + "\n</main></body></html>\n"
+            "units: robot mm, image px</p></header>\n" + "\n".join(self.parts) + "\n</main></body></html>\n"
         )
 
 
@@ -207,8 +211,10 @@ nav a { margin-right: 12px; font-size: 13px; }
 def _cards(doc: _Doc, items: list[tuple[str, str, str]]) -> None:
     parts = ['<div class="cards">']
     for k, v, u in items:
-        parts.append(f'<div class="card"><div class="k">{_e(k)}</div><div class="v">{_e(v)}'
-                     f'<span class="u">{_e(u)}</span></div></div>')
+        parts.append(
+            f'<div class="card"><div class="k">{_e(k)}</div><div class="v">{_e(v)}'
+            f'<span class="u">{_e(u)}</span></div></div>'
+        )
     parts.append("</div>")
     doc.add("".join(parts))
 
@@ -222,18 +228,26 @@ def _stats_table(doc: _Doc, sets: list[tuple[str, Stats | None, str]]) -> None:
         rows.append([label, str(s.n), mm(s.rms_mm), mm(s.mean_mm), mm(s.p95_mm), mm(s.max_mm), outl, what])
         classes.append("")
     if rows:
-        doc.table(["set", "n", "RMS [mm]", "mean [mm]", "p95 [mm]", "max [mm]", "outliers", "what it is"],
-                  rows, row_classes=classes)
-        doc.p("Error of a point = ‖predicted − actual‖ in robot space. Outlier: error above median + "
-              "3 robust σ (1.4826 × MAD) of the set's errors.", "muted")
+        doc.table(
+            ["set", "n", "RMS [mm]", "mean [mm]", "p95 [mm]", "max [mm]", "outliers", "what it is"],
+            rows,
+            row_classes=classes,
+        )
+        doc.p(
+            "Error of a point = ‖predicted − actual‖ in robot space. Outlier: error above median + "
+            "3 robust σ (1.4826 × MAD) of the set's errors.",
+            "muted",
+        )
 
 
 def _positions_by_id(pairs: PointPairs | None) -> dict[str, tuple[float, float, float]]:
     """id → (u px, v px, z mm) of the pairs, empty without pairs."""
     if pairs is None:
         return {}
-    return {i: (float(uv[0]), float(uv[1]), float(xyz[2]))
-            for i, uv, xyz in zip(pairs.ids, pairs.uv_px, pairs.xyz_mm, strict=True)}
+    return {
+        i: (float(uv[0]), float(uv[1]), float(xyz[2]))
+        for i, uv, xyz in zip(pairs.ids, pairs.uv_px, pairs.xyz_mm, strict=True)
+    }
 
 
 LONG_TABLE_ROWS = 50
@@ -265,8 +279,9 @@ def _points_table(doc: _Doc, s: Stats, pairs: PointPairs | None, loo: Stats | No
     long = len(rows) > LONG_TABLE_ROWS
     if long:
         n_out = sum(1 for p in s.points if p.outlier)
-        doc.add(f"<details><summary>{len(rows)} points ({n_out} flagged as outliers): show the table"
-                "</summary>")
+        doc.add(
+            f"<details><summary>{len(rows)} points ({n_out} flagged as outliers): show the table</summary>"
+        )
     doc.table(header, rows, row_classes=classes)
     if long:
         doc.add("</details>")
@@ -289,8 +304,11 @@ def _params_section(doc: _Doc, cal: Calibration) -> None:
             parts.append(f"<tr><td>{_e(k)}</td><td><pre>{_e(text)}</pre></td></tr>")
         parts.append("</tbody></table>")
         doc.add("".join(parts))
-    doc.p("Parameters are in the model's normalised coordinates (see the constants); the calibration "
-          "JSON holds them bit-exact.", "muted")
+    doc.p(
+        "Parameters are in the model's normalised coordinates (see the constants); the calibration "
+        "JSON holds them bit-exact.",
+        "muted",
+    )
 
 
 def _fit_table(doc: _Doc, cal: Calibration) -> None:
@@ -316,17 +334,25 @@ def _fit_table(doc: _Doc, cal: Calibration) -> None:
 
 
 def _selection_section(doc: _Doc, sel: Mapping) -> None:
-    doc.p(f"auto selection chose '{sel.get('chosen')}': {sel.get('reason', '')}"
-          + (f" ({sel['method']} cross-validation)" if sel.get("method") else ""))
+    doc.p(
+        f"auto selection chose '{sel.get('chosen')}': {sel.get('reason', '')}"
+        + (f" ({sel['method']} cross-validation)" if sel.get("method") else "")
+    )
     rows = []
     for r in sel.get("candidates", []):
-        rows.append([
-            str(r.get("model")), str(r.get("unknowns", "")), mm(r.get("cv_rms_mm")), mm(r.get("cv_max_mm")),
-            "chosen" if r.get("model") == sel.get("chosen") else ("yes" if r.get("considered") else "no"),
-            r.get("why", ""),
-        ])
-    doc.table(["candidate", "unknowns", "held-out RMS [mm]", "held-out max [mm]", "considered", "why not"],
-              rows)
+        rows.append(
+            [
+                str(r.get("model")),
+                str(r.get("unknowns", "")),
+                mm(r.get("cv_rms_mm")),
+                mm(r.get("cv_max_mm")),
+                "chosen" if r.get("model") == sel.get("chosen") else ("yes" if r.get("considered") else "no"),
+                r.get("why", ""),
+            ]
+        )
+    doc.table(
+        ["candidate", "unknowns", "held-out RMS [mm]", "held-out max [mm]", "considered", "why not"], rows
+    )
 
 
 def _notes(doc: _Doc, notes: list[str], warn: bool = False) -> None:
@@ -340,9 +366,14 @@ def _notes(doc: _Doc, notes: list[str], warn: bool = False) -> None:
 # ------------------------------------------------------------------ one calibration
 
 
-def build_report(calibration: Calibration, check_pairs: PointPairs | None = None,
-                 train_pairs: PointPairs | None = None, extra: Mapping | None = None,
-                 *, title: str | None = None) -> tuple[str, dict[str, bytes]]:
+def build_report(
+    calibration: Calibration,
+    check_pairs: PointPairs | None = None,
+    train_pairs: PointPairs | None = None,
+    extra: Mapping | None = None,
+    *,
+    title: str | None = None,
+) -> tuple[str, dict[str, bytes]]:
     """The report of one calibration, in memory: ``(index.html text, {png name: bytes})``.
 
     ``check_pairs``: pairs not used for fitting; the check statistics are recomputed on them (and
@@ -374,34 +405,47 @@ def build_report(calibration: Calibration, check_pairs: PointPairs | None = None
                 "its statistics are shown as 'given pairs', not as training residuals"
             )
     doc = _Doc(title or f"Calibration report — {cal.model_name} + {cal.fit.optimizer}")
-    doc.add('<nav><a href="#summary">summary</a><a href="#accuracy">accuracy</a><a href="#plots">plots</a>'
-            '<a href="#points">per point</a><a href="#fit">fit</a><a href="#params">parameters</a></nav>')
+    doc.add(
+        '<nav><a href="#summary">summary</a><a href="#accuracy">accuracy</a><a href="#plots">plots</a>'
+        '<a href="#points">per point</a><a href="#fit">fit</a><a href="#params">parameters</a></nav>'
+    )
 
     # summary
     doc.h2("Summary", "summary")
-    cards = [("model", cal.model_name, ""), ("optimizer", cal.fit.optimizer, ""),
-             ("training fitness", f"{cal.fit.fitness:.5f}", "mm²" if cal.fit.objective == "huber" else "mm")]
+    cards = [
+        ("model", cal.model_name, ""),
+        ("optimizer", cal.fit.optimizer, ""),
+        ("training fitness", f"{cal.fit.fitness:.5f}", "mm²" if cal.fit.objective == "huber" else "mm"),
+    ]
     if check is not None:
         cards += [("check RMS", mm(check.rms_mm), "mm"), ("check max", mm(check.max_mm), "mm")]
     elif cal.loo is not None:
-        cards += [("leave-one-out RMS", mm(cal.loo.rms_mm), "mm"),
-                  ("leave-one-out max", mm(cal.loo.max_mm), "mm")]
+        cards += [
+            ("leave-one-out RMS", mm(cal.loo.rms_mm), "mm"),
+            ("leave-one-out max", mm(cal.loo.max_mm), "mm"),
+        ]
     cards.append((f"{train_label} RMS", mm(train.rms_mm), "mm"))
     _cards(doc, cards)
     if extra:
         doc.table(None, [[str(k), str(v)] for k, v in extra.items()])
     if check is None:
-        doc.p("No check pairs: accuracy on unseen points is estimated by leave-one-out only. "
-              "Give check pairs (--check) to measure it.", "warn")
+        doc.p(
+            "No check pairs: accuracy on unseen points is estimated by leave-one-out only. "
+            "Give check pairs (--check) to measure it.",
+            "warn",
+        )
     if warnings:
         _notes(doc, warnings, warn=True)
 
     doc.h2("Accuracy", "accuracy")
-    _stats_table(doc, [
-        (train_label, train, train_what),
-        ("leave-one-out", cal.loo, "each training pair predicted by a fit without it"),
-        ("check", check, "pairs not used for fitting"),
-    ])
+    _stats_table(
+        doc,
+        [
+            (train_label, train, train_what),
+            ("leave-one-out", cal.loo, "each training pair predicted by a fit without it"),
+            ("check", check, "pairs not used for fitting"),
+        ],
+    )
     if cal.selection:
         doc.add("<h3>Model selection</h3>")
         _selection_section(doc, cal.selection)
@@ -412,26 +456,38 @@ def build_report(calibration: Calibration, check_pairs: PointPairs | None = None
     doc.h2("Plots", "plots")
     hist = cal.fit.history
     if len(hist) > 1:
-        ax = plots.plot_convergence({f"{cal.model_name} + {cal.fit.optimizer}": hist},
-                                    ylabel=_fitness_label(cal.fit.objective),
-                                    title=f"Convergence of {cal.fit.optimizer}")
+        ax = plots.plot_convergence(
+            {f"{cal.model_name} + {cal.fit.optimizer}": hist},
+            ylabel=_fitness_label(cal.fit.objective),
+            title=f"Convergence of {cal.fit.optimizer}",
+        )
         doc.figure("convergence.png", ax, "Best fitness of the swarm per iteration, training pairs.")
     else:
-        doc.p(f"No convergence plot: optimizer '{cal.fit.optimizer}' records no iteration history "
-              "(only hybrid-pso and pso do).", "muted")
+        doc.p(
+            f"No convergence plot: optimizer '{cal.fit.optimizer}' records no iteration history "
+            "(only hybrid-pso and pso do).",
+            "muted",
+        )
     if check is not None:
         label = f"{cal.model_name} + {cal.fit.optimizer}"
-        ax = plots.plot_point_errors({label: [p.error_mm for p in check.points]},
-                                     [p.id for p in check.points],
-                                     title="Error per check point")
+        ax = plots.plot_point_errors(
+            {label: [p.error_mm for p in check.points]},
+            [p.id for p in check.points],
+            title="Error per check point",
+        )
         doc.figure("check_errors.png", ax, "Error norm of each check point, robot space.")
     tr = {f"{train_label} (fit residual)": [p.error_mm for p in train.points]}
     if cal.loo is not None and train_label == "train":
         tr["leave-one-out"] = [p.error_mm for p in cal.loo.points]
-    ax = plots.plot_point_errors(tr, [p.id for p in train.points], xlabel="training point id",
-                                 title="Error per training point")
-    doc.figure("train_errors.png", ax, "Fit residual of each training point and, when computed, its "
-               "leave-one-out error (the point predicted by a fit without it).")
+    ax = plots.plot_point_errors(
+        tr, [p.id for p in train.points], xlabel="training point id", title="Error per training point"
+    )
+    doc.figure(
+        "train_errors.png",
+        ax,
+        "Fit residual of each training point and, when computed, its "
+        "leave-one-out error (the point predicted by a fit without it).",
+    )
     _residual_plot(doc, cal, [(train_label, train_pairs), ("check", check_pairs)])
     _sigma_map(doc, cal)
 
@@ -449,16 +505,19 @@ def build_report(calibration: Calibration, check_pairs: PointPairs | None = None
     return doc.render(), doc.files
 
 
-def _residual_plot(doc: _Doc, cal: Calibration, sets: list[tuple[str, PointPairs | None]],
-                   name: str = "residual_vectors.png") -> None:
+def _residual_plot(
+    doc: _Doc, cal: Calibration, sets: list[tuple[str, PointPairs | None]], name: str = "residual_vectors.png"
+) -> None:
     """One quiver plot of the given pair sets (same scale); a note when no positions are known."""
     from . import plots
 
     given = [(label, p) for label, p in sets if p is not None]
     if not given:
-        doc.p("Residual vectors: not drawn. The calibration file stores each point's error but not "
-              "its image position; give the pairs (--pairs TRAIN and/or --check CHECK) to draw them.",
-              "muted")
+        doc.p(
+            "Residual vectors: not drawn. The calibration file stores each point's error but not "
+            "its image position; give the pairs (--pairs TRAIN and/or --check CHECK) to draw them.",
+            "muted",
+        )
         return
     data: list[tuple[str, PointPairs, np.ndarray, np.ndarray | None]] = []
     for label, pairs in given:
@@ -473,20 +532,33 @@ def _residual_plot(doc: _Doc, cal: Calibration, sets: list[tuple[str, PointPairs
         data.append((label, pairs, res, jac))
     all_uv = np.vstack([p.uv_px for _, p, _, _ in data])
     all_mag = np.concatenate([np.linalg.norm(r[:, :2], axis=1) for _, _, r, _ in data])
-    extent = (max(cal.image_size) if cal.image_size else float(max(np.ptp(all_uv, axis=0).max(), 1.0)))
+    extent = max(cal.image_size) if cal.image_size else float(max(np.ptp(all_uv, axis=0).max(), 1.0))
     scale = 0.1 * extent / all_mag.max() if all_mag.max() > 0 else 1.0
     ax = None
-    directions = "image direction of the error" if all(j is not None for *_, j in data) else \
-        "dx along +u, dy along +v"
+    directions = (
+        "image direction of the error" if all(j is not None for *_, j in data) else "dx along +u, dy along +v"
+    )
     for i, (label, pairs, res, jac) in enumerate(data):
         ax = plots.plot_residual_vectors(
-            pairs.uv_px, res, ax, cal.image_size, scale, jacobian_mm_per_px=jac, ids=pairs.ids,
-            label=f"{label} ({len(pairs)} points)", color=plots.COLORS[i],
-            title=f"Residual vectors — {cal.model_name} + {cal.fit.optimizer}")
-    doc.figure(name, ax, f"Predicted − actual robot position (mm) drawn at each pair's image position "
-               f"(px), arrows magnified {scale:.3g} px per mm (see the key); arrows point in the "
-               f"{directions}. A systematic pattern (rotation, radial flow) means the model misses "
-               "something; random directions mean measurement noise.")
+            pairs.uv_px,
+            res,
+            ax,
+            cal.image_size,
+            scale,
+            jacobian_mm_per_px=jac,
+            ids=pairs.ids,
+            label=f"{label} ({len(pairs)} points)",
+            color=plots.COLORS[i],
+            title=f"Residual vectors — {cal.model_name} + {cal.fit.optimizer}",
+        )
+    doc.figure(
+        name,
+        ax,
+        f"Predicted − actual robot position (mm) drawn at each pair's image position "
+        f"(px), arrows magnified {scale:.3g} px per mm (see the key); arrows point in the "
+        f"{directions}. A systematic pattern (rotation, radial flow) means the model misses "
+        "something; random directions mean measurement noise.",
+    )
 
 
 SIGMA_GRID = 120
@@ -498,8 +570,10 @@ def _sigma_map(doc: _Doc, cal: Calibration) -> None:
     from .models import HeightRule
 
     if cal.region is None or cal.uncertainty is None:
-        doc.p("No sigma map: this calibration records no calibrated region or uncertainty "
-              "(a pre-0.2 file).", "muted")
+        doc.p(
+            "No sigma map: this calibration records no calibrated region or uncertainty (a pre-0.2 file).",
+            "muted",
+        )
         return
     hull = cal.region.hull_px
     if cal.image_size is not None:
@@ -521,13 +595,24 @@ def _sigma_map(doc: _Doc, cal: Calibration) -> None:
     with np.errstate(all="ignore"):
         s = cal.uncertainty.sigma_mm(cal.model, uv, zq).reshape(n_v, n_u)
     pts = cal.fitted_pairs.uv_px if cal.fitted_pairs is not None else None
-    ax = plots.plot_sigma_map(u, v, s, hull, points_px=pts, image_size=cal.image_size,
-                              margin_hull_px=_grown(hull, cal.region.margin_px))
+    ax = plots.plot_sigma_map(
+        u,
+        v,
+        s,
+        hull,
+        points_px=pts,
+        image_size=cal.image_size,
+        margin_hull_px=_grown(hull, cal.region.margin_px),
+    )
     inner = s.ravel()[cal.region.outside_px(uv) <= cal.region.margin_px]
     rng = f"{np.nanmin(inner):.4f}–{np.nanmax(inner):.4f} mm" if inner.size else "–"
-    doc.figure("sigma_map.png", ax, f"Where this calibration can be trusted: the predicted error "
-               f"sigma_mm of a mapped point ({where}), the calibrated region (training hull) in white "
-               f"and its margin dashed — mappings beyond it are refused. Inside: {rng}.")
+    doc.figure(
+        "sigma_map.png",
+        ax,
+        f"Where this calibration can be trusted: the predicted error "
+        f"sigma_mm of a mapped point ({where}), the calibrated region (training hull) in white "
+        f"and its margin dashed — mappings beyond it are refused. Inside: {rng}.",
+    )
 
 
 def _grown(hull: np.ndarray, margin_px: float) -> np.ndarray:
@@ -555,8 +640,13 @@ def _write_all(out_dir: str | os.PathLike, html_text: str, files: Mapping[str, b
     return index
 
 
-def write_report(out_dir: str | os.PathLike, calibration: Calibration, check_pairs: PointPairs | None = None,
-                 train_pairs: PointPairs | None = None, extra: Mapping | None = None) -> Path:
+def write_report(
+    out_dir: str | os.PathLike,
+    calibration: Calibration,
+    check_pairs: PointPairs | None = None,
+    train_pairs: PointPairs | None = None,
+    extra: Mapping | None = None,
+) -> Path:
     """Write the report of ``calibration`` into ``out_dir``; returns the path of ``index.html``.
 
     See :func:`build_report` for the arguments. All plots and the HTML are built in memory before

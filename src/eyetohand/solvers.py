@@ -104,8 +104,18 @@ def _lm(problem: Problem, **_):
         extra["huber_delta_mm"] = delta
     best = model.with_params(sol.x)
     f = float(objective_values(fun(sol.x).reshape(1, -1, 3), objective, delta)[0])
-    return best, FitInfo("lm", objective, f, (f,), int(sol.nfev), int(sol.nfev), time.perf_counter() - t0,
-                         None, str(sol.message), extra)
+    return best, FitInfo(
+        "lm",
+        objective,
+        f,
+        (f,),
+        int(sol.nfev),
+        int(sol.nfev),
+        time.perf_counter() - t0,
+        None,
+        str(sol.message),
+        extra,
+    )
 
 
 def _swarm(kind: str):
@@ -115,16 +125,31 @@ def _swarm(kind: str):
         model = problem.model
         t0 = time.perf_counter()
         # each element alone moves the mapped points by 1/sqrt(D) mm RMS, the swarm ~1 mm (docs/pso.md)
-        sigma = param_scale(model, problem.uv_px, problem.xyz_mm[:, 2],
-                            step_mm=PSO_SPREAD_MM / np.sqrt(model.n_params))
+        sigma = param_scale(
+            model, problem.uv_px, problem.xyz_mm[:, 2], step_mm=PSO_SPREAD_MM / np.sqrt(model.n_params)
+        )
         fn = optimize.hybrid_pso if kind == "hybrid-pso" else optimize.pso
-        res = fn(problem.fitness, model.params, sigma, n_particles=n_particles, iterations=iterations,
-                 seed=seed, callback=callback)
+        res = fn(
+            problem.fitness,
+            model.params,
+            sigma,
+            n_particles=n_particles,
+            iterations=iterations,
+            seed=seed,
+            callback=callback,
+        )
         extra = {"huber_delta_mm": problem.delta_mm} if problem.objective == "huber" else {}
         return model.with_params(res.x), FitInfo(
-            kind, problem.objective, float(res.fun), tuple(float(v) for v in res.history),
-            int(res.nfev), int(res.nit), time.perf_counter() - t0,
-            int(seed) if isinstance(seed, (int, np.integer)) else None, str(res.message), extra,
+            kind,
+            problem.objective,
+            float(res.fun),
+            tuple(float(v) for v in res.history),
+            int(res.nfev),
+            int(res.nit),
+            time.perf_counter() - t0,
+            int(seed) if isinstance(seed, (int, np.integer)) else None,
+            str(res.message),
+            extra,
         )
 
     return run
@@ -135,10 +160,22 @@ SOLVERS: dict[str, Solver] = {
     for s in (
         Solver("linear", _linear, OBJECTIVES, summary="the model's closed-form (normalised linear) estimate"),
         Solver("lm", _lm, SMOOTH_OBJECTIVES, summary="Levenberg–Marquardt on the robot-space residuals"),
-        Solver("hybrid-pso", _swarm("hybrid-pso"), OBJECTIVES, ("n_particles", "iterations"),
-               "the paper's hybrid particle swarm (PSO + crossover + mutation)", cv_solver="lm"),
-        Solver("pso", _swarm("pso"), OBJECTIVES, ("n_particles", "iterations"),
-               "plain particle swarm (the ablation)", cv_solver="lm"),
+        Solver(
+            "hybrid-pso",
+            _swarm("hybrid-pso"),
+            OBJECTIVES,
+            ("n_particles", "iterations"),
+            "the paper's hybrid particle swarm (PSO + crossover + mutation)",
+            cv_solver="lm",
+        ),
+        Solver(
+            "pso",
+            _swarm("pso"),
+            OBJECTIVES,
+            ("n_particles", "iterations"),
+            "plain particle swarm (the ablation)",
+            cv_solver="lm",
+        ),
     )
 }
 OPTIMIZERS = tuple(SOLVERS)
@@ -172,8 +209,17 @@ def check_optimizer(name: str, objective: str = "l2", options: dict | None = Non
     return solver
 
 
-def refine(model, uv_px: np.ndarray, xyz_mm: np.ndarray, *, optimizer: str = "linear", objective: str = "l2",
-           seed=None, callback=None, **options):
+def refine(
+    model,
+    uv_px: np.ndarray,
+    xyz_mm: np.ndarray,
+    *,
+    optimizer: str = "linear",
+    objective: str = "l2",
+    seed=None,
+    callback=None,
+    **options,
+):
     """Refine ``model`` on the pairs; returns ``(model, FitInfo)``. Options another solver takes
     (``n_particles``, ``iterations`` for the swarms) are accepted and unused by ``linear``/``lm``."""
     solver = check_optimizer(optimizer, objective, options)
@@ -194,7 +240,10 @@ def param_scale(model, uv_px, z_mm, step_mm: float = 1.0) -> np.ndarray:
     """
     p = model.params
     uv, z = np.asarray(uv_px, float), np.asarray(z_mm, float)
-    J = batch_jacobian(lambda P: model.batch_image_to_robot(P, uv, z).reshape(len(P), -1), p,
-                       step=1e-6 * np.maximum(np.abs(p), 1e-3))  # (N*3, D) mm per unit
+    J = batch_jacobian(
+        lambda P: model.batch_image_to_robot(P, uv, z).reshape(len(P), -1),
+        p,
+        step=1e-6 * np.maximum(np.abs(p), 1e-3),
+    )  # (N*3, D) mm per unit
     sens = np.sqrt((J**2).sum(axis=0) / len(uv))  # RMS over points of the 3-D displacement
     return step_mm / np.maximum(sens, 1e-12)

@@ -168,8 +168,9 @@ class FolderSource(Source):
         t_end = time.monotonic() + self.timeout_s
         while True:
             now = self._scan()
-            fresh = sorted((st.st_mtime_ns, n) for n, st in now.items()
-                           if before.get(n) != (st.st_mtime_ns, st.st_size))
+            fresh = sorted(
+                (st.st_mtime_ns, n) for n, st in now.items() if before.get(n) != (st.st_mtime_ns, st.st_size)
+            )
             for _, name in fresh:
                 size = now[name].st_size
                 if size == 0 or sizes.get(name) != size:  # still being written: look again next poll
@@ -223,8 +224,9 @@ class GenICamSource(Source):
         try:
             from harvesters.core import Harvester
         except ImportError:
-            raise InputError(f"{uri}: the genicam: source needs the 'harvesters' extra "
-                             "(pip install eyetohand[genicam])") from None
+            raise InputError(
+                f"{uri}: the genicam: source needs the 'harvesters' extra (pip install eyetohand[genicam])"
+            ) from None
         cti, _, index = target.partition("#")
         if not cti or not Path(cti).is_file():
             raise InputError(f"{uri}: expected genicam:<GenTL producer .cti file>[#camera index]")
@@ -262,15 +264,19 @@ class PylonSource(Source):
         try:
             from pypylon import pylon
         except ImportError:
-            raise InputError(f"{uri}: the pylon: source needs the 'pypylon' extra "
-                             "(pip install eyetohand[pylon])") from None
+            raise InputError(
+                f"{uri}: the pylon: source needs the 'pypylon' extra (pip install eyetohand[pylon])"
+            ) from None
         self._pylon = pylon
         factory = pylon.TlFactory.GetInstance()
         devices = factory.EnumerateDevices()
         chosen = [d for d in devices if not serial or d.GetSerialNumber() == serial]
         if not chosen:
-            raise InputError(f"{uri}: no Basler camera" + (f" with serial {serial}" if serial else "")
-                             + f" ({len(devices)} found)")
+            raise InputError(
+                f"{uri}: no Basler camera"
+                + (f" with serial {serial}" if serial else "")
+                + f" ({len(devices)} found)"
+            )
         self._cam = pylon.InstantCamera(factory.CreateDevice(chosen[0]))
         self._cam.Open()
 
@@ -311,8 +317,10 @@ def open_source(uri: str, **overrides) -> Source:
     scheme, sep, rest = text.partition(":")
     scheme = scheme.lower()
     if not sep or scheme not in SCHEMES:
-        raise InputError(f"camera {text!r}: unknown source; valid: opencv:<device|url>, folder:<dir>, "
-                         "sim:<cell.toml>, genicam:<producer.cti>, pylon:[serial]")
+        raise InputError(
+            f"camera {text!r}: unknown source; valid: opencv:<device|url>, folder:<dir>, "
+            "sim:<cell.toml>, genicam:<producer.cti>, pylon:[serial]"
+        )
     if scheme == "opencv" and "://" in rest:  # a URL keeps its own query string
         target, query = rest, ""
     else:
@@ -323,10 +331,20 @@ def open_source(uri: str, **overrides) -> Source:
         return SimSource(target, text, seed=seed)
     opts = _options(text, query, {"timeout": float})
     timeout = float(overrides.get("timeout_s", opts.get("timeout", DEFAULT_TIMEOUT_S)))
-    cls = {"opencv": OpenCVSource, "folder": FolderSource, "genicam": GenICamSource,
-           "pylon": PylonSource}[scheme]
+    cls = {"opencv": OpenCVSource, "folder": FolderSource, "genicam": GenICamSource, "pylon": PylonSource}[
+        scheme
+    ]
     return cls(target, text, timeout_s=timeout)
 
 
-__all__ = ["FolderSource", "GenICamSource", "GrabTimeout", "OpenCVSource", "PylonSource", "SCHEMES",
-           "SimSource", "Source", "open_source"]
+__all__ = [
+    "FolderSource",
+    "GenICamSource",
+    "GrabTimeout",
+    "OpenCVSource",
+    "PylonSource",
+    "SCHEMES",
+    "SimSource",
+    "Source",
+    "open_source",
+]

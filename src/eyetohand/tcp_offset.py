@@ -112,8 +112,13 @@ def estimate_tcp_offset(pairs: PointPairs, fit_linear: Callable[[PointPairs], Mo
     q0 = np.r_[m1.params, o0]
     from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
 
-    sol = least_squares(lambda q: fun_batch(q[None])[0], q0, jac=lambda q: batch_jacobian(fun_batch, q),
-                        method="lm", x_scale="jac")
+    sol = least_squares(
+        lambda q: fun_batch(q[None])[0],
+        q0,
+        jac=lambda q: batch_jacobian(fun_batch, q),
+        method="lm",
+        x_scale="jac",
+    )
     o = sol.x[d:]
     dof = max(sol.fun.size - sol.x.size, 1)
     s2 = float(sol.fun @ sol.fun) / dof

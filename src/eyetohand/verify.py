@@ -73,12 +73,16 @@ class Drift:
 
     def describe(self) -> str:
         if not self.significant:
-            return (f"no significant camera motion (chi-square {self.chi2:.2f} <= {self.threshold:.2f}, "
-                    "4 dof, p = 0.001)")
+            return (
+                f"no significant camera motion (chi-square {self.chi2:.2f} <= {self.threshold:.2f}, "
+                "4 dof, p = 0.001)"
+            )
         parts = []
         if "shift" in self.named:
-            parts.append(f"shifted ({self.shift_px[0]:+.2f}, {self.shift_px[1]:+.2f}) px = "
-                         f"({self.shift_mm[0]:+.4f}, {self.shift_mm[1]:+.4f}) mm")
+            parts.append(
+                f"shifted ({self.shift_px[0]:+.2f}, {self.shift_px[1]:+.2f}) px = "
+                f"({self.shift_mm[0]:+.4f}, {self.shift_mm[1]:+.4f}) mm"
+            )
         if "rotation" in self.named:
             parts.append(f"rotated {self.rotation_deg:+.4f} deg")
         if "scale" in self.named:
@@ -114,8 +118,15 @@ class Verification:
             "max_mm": self.max_mm,
             "drift": self.drift.to_dict(),
             "points": [
-                {"id": i, "dx_mm": float(e[0]), "dy_mm": float(e[1]), "dz_mm": float(e[2]),
-                 "error_mm": float(n), "sigma_mm": float(s), "within": bool(n <= self.tolerance_mm)}
+                {
+                    "id": i,
+                    "dx_mm": float(e[0]),
+                    "dy_mm": float(e[1]),
+                    "dz_mm": float(e[2]),
+                    "error_mm": float(n),
+                    "sigma_mm": float(s),
+                    "within": bool(n <= self.tolerance_mm),
+                }
                 for i, e, n, s in zip(self.ids, self.error_mm, self.norm_mm, self.sigma_mm, strict=True)
             ],
         }
@@ -141,8 +152,10 @@ class Verification:
 
 
 def check_tolerance(tolerance_mm) -> float:
-    if isinstance(tolerance_mm, bool) or not isinstance(tolerance_mm, (int, float)) or not (
-        np.isfinite(tolerance_mm) and tolerance_mm > 0
+    if (
+        isinstance(tolerance_mm, bool)
+        or not isinstance(tolerance_mm, (int, float))
+        or not (np.isfinite(tolerance_mm) and tolerance_mm > 0)
     ):
         raise InputError(f"tolerance: expected a positive number of mm, got {tolerance_mm!r}")
     return float(tolerance_mm)
@@ -152,8 +165,10 @@ def verify(cal: Calibration, pairs: PointPairs, tolerance_mm: float) -> Verifica
     """Freshly measured ``pairs`` against ``cal`` (see the module docstring)."""
     tol = check_tolerance(tolerance_mm)
     if len(pairs) < MIN_PAIRS:
-        raise InputError(f"{pairs.source}: verify needs at least {MIN_PAIRS} pairs to estimate a camera "
-                         f"motion, got {len(pairs)}")
+        raise InputError(
+            f"{pairs.source}: verify needs at least {MIN_PAIRS} pairs to estimate a camera "
+            f"motion, got {len(pairs)}"
+        )
     model = cal.model
     z = None if model.height_rule is HeightRule.COMPUTED else pairs.xyz_mm[:, 2]
     try:
@@ -166,8 +181,9 @@ def verify(cal: Calibration, pairs: PointPairs, tolerance_mm: float) -> Verifica
     norm = np.linalg.norm(err, axis=1)
     sigma = m.sigma_mm if m.sigma_mm is not None else np.full(len(pairs), cal.train.rms_mm)
     drift = fit_drift(cal, pairs, err[:, :2], sigma)
-    return Verification(tuple(pairs.ids), err, norm, np.asarray(sigma, float), tol, drift,
-                        bool((norm <= tol).all()))
+    return Verification(
+        tuple(pairs.ids), err, norm, np.asarray(sigma, float), tol, drift, bool((norm <= tol).all())
+    )
 
 
 def fit_drift(cal: Calibration, pairs: PointPairs, err_xy: np.ndarray, sigma_mm: np.ndarray) -> Drift:
@@ -187,15 +203,21 @@ def fit_drift(cal: Calibration, pairs: PointPairs, err_xy: np.ndarray, sigma_mm:
     N = A.T @ (A * w[:, None])
     rank = np.linalg.matrix_rank(N)
     if rank < 4:
-        raise InputError(f"{pairs.source}: the pairs do not span the plane (collinear or repeated): "
-                         "cannot tell a rotation or scale change from a shift")
+        raise InputError(
+            f"{pairs.source}: the pairs do not span the plane (collinear or repeated): "
+            "cannot tell a rotation or scale change from a shift"
+        )
     cov = np.linalg.inv(N)
     beta = cov @ (A.T @ (w * e))
     chi2 = float(beta @ N @ beta)
     zs = beta / np.sqrt(np.diag(cov))
     names = ("shift", "shift", "rotation", "scale")
-    z_scores = {"shift_x": float(zs[0]), "shift_y": float(zs[1]), "rotation": float(zs[2]),
-                "scale": float(zs[3])}
+    z_scores = {
+        "shift_x": float(zs[0]),
+        "shift_y": float(zs[1]),
+        "rotation": float(zs[2]),
+        "scale": float(zs[3]),
+    }
     # the shift is named on its own 2-D test (chi-square, 2 dof, 0.1 %: 13.82)
     shift_chi2 = float(beta[:2] @ np.linalg.inv(cov[:2, :2]) @ beta[:2])
     named = []

@@ -48,8 +48,9 @@ def progress_callback(label: str, total: int):
 
     def cb(iteration, best, *_):  # iteration counts from 1
         done = int(30 * iteration / total)
-        sys.stderr.write(f"\r{label} [{'#' * done}{'.' * (30 - done)}] {iteration}/{total} "
-                         f"best {best:.5f} mm")
+        sys.stderr.write(
+            f"\r{label} [{'#' * done}{'.' * (30 - done)}] {iteration}/{total} best {best:.5f} mm"
+        )
         if iteration >= total:
             sys.stderr.write("\n")
         sys.stderr.flush()
@@ -59,8 +60,10 @@ def progress_callback(label: str, total: int):
 
 
 def stats_line(label: str, s) -> str:
-    return (f"{label:<6} n={s.n:<3} rms {s.rms_mm:.4f}  mean {s.mean_mm:.4f}  "
-            f"p95 {s.p95_mm:.4f}  max {s.max_mm:.4f} mm")
+    return (
+        f"{label:<6} n={s.n:<3} rms {s.rms_mm:.4f}  mean {s.mean_mm:.4f}  "
+        f"p95 {s.p95_mm:.4f}  max {s.max_mm:.4f} mm"
+    )
 
 
 def calibration_summary(cal: Calibration) -> dict:
@@ -90,8 +93,10 @@ def calibration_summary(cal: Calibration) -> dict:
 
 
 def print_calibration(cal: Calibration, output: str | None) -> None:
-    print(f"model {cal.model_name}  optimizer {cal.fit.optimizer}  objective {cal.fit.objective}  "
-          f"fitness {cal.fit.fitness:.5f} mm")
+    print(
+        f"model {cal.model_name}  optimizer {cal.fit.optimizer}  objective {cal.fit.objective}  "
+        f"fitness {cal.fit.fitness:.5f} mm"
+    )
     cond = cal.model.condition_number
     if cond is not None:
         print(f"linear solve (Hartley-normalised): condition number {cond:.3g}")
@@ -102,8 +107,10 @@ def print_calibration(cal: Calibration, output: str | None) -> None:
             print(f"  {r['model']:<18} {r['unknowns']:>2} unknowns  held-out rms {score}")
     if cal.tcp_offset:
         t = cal.tcp_offset
-        print(f"tool-centre offset ({t.offset_mm[0]:.4f}, {t.offset_mm[1]:.4f}) mm "
-              f"± ({t.std_mm[0]:.4f}, {t.std_mm[1]:.4f}) from {t.n_turned} turned pairs: removed")
+        print(
+            f"tool-centre offset ({t.offset_mm[0]:.4f}, {t.offset_mm[1]:.4f}) mm "
+            f"± ({t.std_mm[0]:.4f}, {t.std_mm[1]:.4f}) from {t.n_turned} turned pairs: removed"
+        )
     print(stats_line("train", cal.train))
     if cal.loo:
         print(stats_line("loo", cal.loo))

@@ -26,12 +26,21 @@ def cmd_export(args) -> int:
 def register(sub) -> None:
     p = sub.add_parser("export", help="a calibration as a px->mm matrix, the JSON file, or a CSV lookup grid")
     p.add_argument("calibration", metavar="CAL.json")
-    p.add_argument("--format", required=True, choices=FORMATS,
-                   help="matrix: 3x3 homography / 2x3 affine (planar models); json: the file; "
-                        "csv: a grid u,v,x,y,z,sigma_mm over the calibrated region")
+    p.add_argument(
+        "--format",
+        required=True,
+        choices=FORMATS,
+        help="matrix: 3x3 homography / 2x3 affine (planar models); json: the file; "
+        "csv: a grid u,v,x,y,z,sigma_mm over the calibrated region",
+    )
     p.add_argument("--text", action="store_true", help="matrix as plain text rows (default JSON)")
     p.add_argument("--pitch", type=float, default=10.0, metavar="PX", help="csv grid pitch (default 10 px)")
-    p.add_argument("--z", type=float, default=None, metavar="MM",
-                   help="csv: the height to map at (models of several heights)")
+    p.add_argument(
+        "--z",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="csv: the height to map at (models of several heights)",
+    )
     p.add_argument("-o", "--output", metavar="OUT", help="output file (default: standard output)")
     p.set_defaults(func=cmd_export)

@@ -25,8 +25,9 @@ def _progress_bar(done: int, total: int, image: str) -> None:
     """The detection progress bar on stderr (only used when stderr is a terminal)."""
     if done < total:
         filled = int(30 * done / total)
-        sys.stderr.write(f"\rdetecting [{'#' * filled}{'.' * (30 - filled)}] {done}/{total} "
-                         f"{image[-30:]:<30}")
+        sys.stderr.write(
+            f"\rdetecting [{'#' * filled}{'.' * (30 - filled)}] {done}/{total} {image[-30:]:<30}"
+        )
         sys.stderr.flush()
     else:
         sys.stderr.write(f"\rdetecting [{'#' * 30}] {total}/{total} {'':<30}\n")
@@ -59,13 +60,14 @@ def cmd_detect(args) -> int:
     else:
         for r in results:
             if r.ok:
-                print(f"{r.image}: u {r.u:.3f} v {r.v:.3f} px  diameter {r.diameter_px:.2f} px  "
-                      f"score {r.score:.3f}")
+                print(
+                    f"{r.image}: u {r.u:.3f} v {r.v:.3f} px  diameter {r.diameter_px:.2f} px  "
+                    f"score {r.score:.3f}"
+                )
             else:
                 print(f"{r.image}: FAILED — {r.reason}")
     if failed:
-        print(f"error: the target was not found in {len(failed)} of {len(results)} images",
-              file=sys.stderr)
+        print(f"error: the target was not found in {len(failed)} of {len(results)} images", file=sys.stderr)
         return 2
     return 0
 
@@ -93,8 +95,7 @@ def cmd_calibrate_images(args) -> int:
     for r in results + check_results:
         if not r.ok:
             print(f"note: left out {r.image}: {r.reason}", file=sys.stderr)
-    extra = {"detections": [r.to_dict() for r in results],
-             "left_out": [r.image for r in results if not r.ok]}
+    extra = {"detections": [r.to_dict() for r in results], "left_out": [r.image for r in results if not r.ok]}
     if args.check:
         extra["check_detections"] = [r.to_dict() for r in check_results]
         extra["check_left_out"] = [r.image for r in check_results if not r.ok]
@@ -117,8 +118,11 @@ def register(sub) -> None:
     p.add_argument("--check-images", help="folder of the check images (default: the folder of CHECK)")
     p.add_argument("--polarity", default="auto", choices=("auto", "dark", "bright"))
     p.add_argument("--diameter", type=float, default=None, help="expected target diameter in px")
-    p.add_argument("--pairs-out", metavar="PAIRS.csv",
-                   help="also write the detected pairs (id = image) as CSV, for eyetohand calibrate")
+    p.add_argument(
+        "--pairs-out",
+        metavar="PAIRS.csv",
+        help="also write the detected pairs (id = image) as CSV, for eyetohand calibrate",
+    )
     p.add_argument("--annotate", metavar="DIR", help="write each image with the fitted ellipse drawn")
     add_fit_options(p)
     p.set_defaults(func=cmd_calibrate_images)

@@ -24,8 +24,11 @@ def cmd_report(args) -> int:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("report", help="write an HTML report (plots, tables) of a calibration",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = sub.add_parser(
+        "report",
+        help="write an HTML report (plots, tables) of a calibration",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     p.add_argument("calibration", metavar="CAL.json", help="calibration file written by 'calibrate -o'")
     p.add_argument("--check", metavar="CHECK", help="check pairs: evaluate the calibration on them")
     p.add_argument("--pairs", metavar="TRAIN", help="the training pairs (for the residual-vector plot)")

@@ -23,8 +23,9 @@ def cmd_simulate(args) -> int:
     if args.write_config:
         cell = load_cell(args.config) if args.config else Cell.default()
         atomic_write_text(args.write_config, cell.to_toml())
-        print(f"wrote {args.write_config} (edit it, then: "
-              f"eyetohand simulate --config {args.write_config} ...)")
+        print(
+            f"wrote {args.write_config} (edit it, then: eyetohand simulate --config {args.write_config} ...)"
+        )
         return 0
     if not args.out:
         raise InputError("simulate: give --out DIR (or --write-config FILE to write the default cell)")
@@ -33,19 +34,36 @@ def cmd_simulate(args) -> int:
     cell = load_cell(args.config)
     heights = parse_numbers(args.heights, "--heights")
     angles = parse_numbers(args.angles, "--angles", example="0,90,180") if args.angles else None
-    sim = simulate(cell, parse_plan(args.plan), heights, n_check=args.check,
-                   check_heights_mm=_heights(args.check_heights, "--check-heights"),
-                   angles_deg=angles, seed=args.seed)
+    sim = simulate(
+        cell,
+        parse_plan(args.plan),
+        heights,
+        n_check=args.check,
+        check_heights_mm=_heights(args.check_heights, "--check-heights"),
+        angles_deg=angles,
+        seed=args.seed,
+    )
     files = write_simulation(sim, args.out, images=args.images)
     if args.json:
-        print(json.dumps({"out": str(args.out), "n_pairs": len(sim.pairs),
-                          "n_check": 0 if sim.check is None else len(sim.check),
-                          "heights_mm": list(sim.heights_mm), "check_heights_mm": list(sim.check_heights_mm),
-                          "files": [str(f) for f in files]}))
+        print(
+            json.dumps(
+                {
+                    "out": str(args.out),
+                    "n_pairs": len(sim.pairs),
+                    "n_check": 0 if sim.check is None else len(sim.check),
+                    "heights_mm": list(sim.heights_mm),
+                    "check_heights_mm": list(sim.check_heights_mm),
+                    "files": [str(f) for f in files],
+                }
+            )
+        )
         return 0
     h = ", ".join(f"{v:g}" for v in sim.heights_mm)
-    print(f"simulated {len(sim.pairs)} pairs ({sim.plan.label} at z = {h} mm"
-          + (f", angles {', '.join(f'{a:g}' for a in sim.angles_deg)} deg" if sim.angles_deg else "") + ")")
+    print(
+        f"simulated {len(sim.pairs)} pairs ({sim.plan.label} at z = {h} mm"
+        + (f", angles {', '.join(f'{a:g}' for a in sim.angles_deg)} deg" if sim.angles_deg else "")
+        + ")"
+    )
     if sim.check is not None:
         ch = ", ".join(f"{v:g}" for v in sim.check_heights_mm)
         print(f"check: {len(sim.check)} points at z = {ch} mm")
@@ -71,9 +89,16 @@ def cmd_plan(args) -> int:
     if args.check < 1:
         raise InputError(f"--check: expected a whole number >= 1, got {args.check}")
     study = plan_study(
-        cell, plans, parse_numbers(args.heights, "--heights"), target_error_mm=args.target_error,
-        metric=args.target_metric, runs=args.runs, n_check=args.check,
-        check_heights_mm=_heights(args.check_heights, "--check-heights"), model=args.model, seed=args.seed,
+        cell,
+        plans,
+        parse_numbers(args.heights, "--heights"),
+        target_error_mm=args.target_error,
+        metric=args.target_metric,
+        runs=args.runs,
+        n_check=args.check,
+        check_heights_mm=_heights(args.check_heights, "--check-heights"),
+        model=args.model,
+        seed=args.seed,
     )
     if args.plot:
         plot_study(study, args.plot)
@@ -84,8 +109,10 @@ def cmd_plan(args) -> int:
         print(json.dumps(out, allow_nan=False))
         return 0
     heights = ", ".join(f"{h:g}" for h in study["plans"][0]["heights"])
-    print(f"Monte Carlo: {study['runs']} simulated sessions per plan, pairs at z = {heights} mm, "
-          f"{study['check_points_per_height']} check points per height")
+    print(
+        f"Monte Carlo: {study['runs']} simulated sessions per plan, pairs at z = {heights} mm, "
+        f"{study['check_points_per_height']} check points per height"
+    )
     print(f"  {'plan':<12} {'pairs':>5} {'model':<18} {'rms_mm':>8} {'max_mm':>8} {'max_p90_mm':>10}")
     for r in study["plans"]:
         if r.get("predicted_rms_mm") is None:
@@ -94,15 +121,22 @@ def cmd_plan(args) -> int:
         flag = ""
         if "meets_target" in r:
             flag = "  meets target" if r["meets_target"] else ""
-        print(f"  {r['plan']:<12} {r['n_pairs']:>5} {r['model']:<18} {r['predicted_rms_mm']:>8.4f} "
-              f"{r['predicted_max_mm']:>8.4f} {r['max_p90_mm']:>10.4f}{flag}")
+        print(
+            f"  {r['plan']:<12} {r['n_pairs']:>5} {r['model']:<18} {r['predicted_rms_mm']:>8.4f} "
+            f"{r['predicted_max_mm']:>8.4f} {r['max_p90_mm']:>10.4f}{flag}"
+        )
     if study["target_error_mm"] is not None:
         if study["recommended"]:
-            print(f"recommended: {study['recommended']} (fewest pairs with predicted "
-                  f"{study['target_metric']} <= {study['target_error_mm']:g} mm)")
+            print(
+                f"recommended: {study['recommended']} (fewest pairs with predicted "
+                f"{study['target_metric']} <= {study['target_error_mm']:g} mm)"
+            )
         else:
-            print(f"no plan meets the target ({study['target_metric']} <= {study['target_error_mm']:g} mm): "
-                  "try denser plans, a second height, or a cell with less noise", file=sys.stderr)
+            print(
+                f"no plan meets the target ({study['target_metric']} <= {study['target_error_mm']:g} mm): "
+                "try denser plans, a second height, or a cell with less noise",
+                file=sys.stderr,
+            )
     if args.plot:
         print(f"wrote {args.plot}")
     return 0
@@ -116,8 +150,11 @@ def register(sub) -> None:
     p.add_argument("--heights", default="150", help="robot z of the pairs, mm, comma-separated (default 150)")
     p.add_argument("--check", type=int, default=20, metavar="N", help="check points per height (default 20)")
     p.add_argument("--check-heights", metavar="Z[,Z..]", help="check point heights (default: --heights)")
-    p.add_argument("--angles", metavar="A0,A1,..",
-                   help="tool angles (deg): all pairs at A0, the centre position again at A1, .. (9 + 2)")
+    p.add_argument(
+        "--angles",
+        metavar="A0,A1,..",
+        help="tool angles (deg): all pairs at A0, the centre position again at A1, .. (9 + 2)",
+    )
     p.add_argument("--out", metavar="DIR", help="output folder")
     p.add_argument("--seed", type=int, default=None, help="random seed (same seed, same session)")
     p.add_argument("--images", action="store_true", help="also render the target images")
@@ -126,15 +163,22 @@ def register(sub) -> None:
 
     p = sub.add_parser("plan", help="predict the accuracy of calibration plans (Monte Carlo)")
     p.add_argument("--config", metavar="CELL.toml", help=CONFIG_HELP)
-    p.add_argument("--plan", action="append", metavar="P",
-                   help=f"a plan, repeatable or comma-separated: {VALID_FORMS} "
-                        f"(default {','.join(DEFAULT_PLANS)})")
+    p.add_argument(
+        "--plan",
+        action="append",
+        metavar="P",
+        help=f"a plan, repeatable or comma-separated: {VALID_FORMS} (default {','.join(DEFAULT_PLANS)})",
+    )
     p.add_argument("--heights", default="150", help="robot z of the pairs, mm, comma-separated (default 150)")
     p.add_argument("--check-heights", metavar="Z[,Z..]", help="heights to check at (default: --heights)")
     p.add_argument("--check", type=int, default=30, metavar="N", help="check points per height (default 30)")
     p.add_argument("--target-error", type=float, metavar="MM", help="required accuracy (mm)")
-    p.add_argument("--target-metric", default="max", choices=METRICS,
-                   help="compare the target with the predicted max (default) or RMS")
+    p.add_argument(
+        "--target-metric",
+        default="max",
+        choices=METRICS,
+        help="compare the target with the predicted max (default) or RMS",
+    )
     p.add_argument("--runs", type=int, default=20, help="simulated sessions per plan (default 20)")
     p.add_argument("--model", default="auto", help="model to calibrate with (default auto)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

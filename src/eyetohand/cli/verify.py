@@ -27,8 +27,10 @@ def cmd_verify(args) -> int:
         print(f"  {'id':>6} {'dx_mm':>9} {'dy_mm':>9} {'error_mm':>9} {'sigma_mm':>9}")
         for p in v.to_dict()["points"]:
             flag = "" if p["within"] else "  beyond tolerance"
-            print(f"  {p['id']:>6} {p['dx_mm']:>9.4f} {p['dy_mm']:>9.4f} {p['error_mm']:>9.4f} "
-                  f"{p['sigma_mm']:>9.4f}{flag}")
+            print(
+                f"  {p['id']:>6} {p['dx_mm']:>9.4f} {p['dy_mm']:>9.4f} {p['error_mm']:>9.4f} "
+                f"{p['sigma_mm']:>9.4f}{flag}"
+            )
         print(f"rms {v.rms_mm:.4f} mm  max {v.max_mm:.4f} mm")
         print(v.drift.describe())
         print("PASS" if v.passed else f"FAIL: {int((v.norm_mm > tol).sum())} point(s) beyond {tol:g} mm")
@@ -38,13 +40,22 @@ def cmd_verify(args) -> int:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("verify", help="re-check a deployed calibration with freshly measured pairs "
-                                      "(errors, camera motion, pass/fail; exit 1 on fail)")
+    p = sub.add_parser(
+        "verify",
+        help="re-check a deployed calibration with freshly measured pairs "
+        "(errors, camera motion, pass/fail; exit 1 on fail)",
+    )
     p.add_argument("calibration", metavar="CAL.json")
     p.add_argument("pairs", metavar="PAIRS", help="CSV or JSON of freshly measured point pairs")
-    p.add_argument("--tolerance", type=float, required=True, metavar="MM",
-                   help="largest error (mm) a point may have for the check to pass")
+    p.add_argument(
+        "--tolerance",
+        type=float,
+        required=True,
+        metavar="MM",
+        help="largest error (mm) a point may have for the check to pass",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.add_argument("--no-history", action="store_true",
-                   help="do not append to CAL.json.history.jsonl beside the file")
+    p.add_argument(
+        "--no-history", action="store_true", help="do not append to CAL.json.history.jsonl beside the file"
+    )
     p.set_defaults(func=cmd_verify)

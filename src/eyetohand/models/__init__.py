@@ -22,9 +22,7 @@ def get_model(name: str) -> type[Model]:
     try:
         return MODELS[name]
     except (KeyError, TypeError):
-        raise InputError(
-            f"unknown model {name!r}; choose one of: {', '.join(['auto', *MODELS])}"
-        ) from None
+        raise InputError(f"unknown model {name!r}; choose one of: {', '.join(['auto', *MODELS])}") from None
 
 
 def model_from_dict(d: dict) -> Model:

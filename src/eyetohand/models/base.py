@@ -86,8 +86,9 @@ class Model(ABC):
         cls.multi_height = cls.uses_z = cls.height_rule is HeightRule.GIVEN
 
     # ----------------------------------------------------------- construction
-    def __init__(self, params, constants: Mapping[str, Any] | None = None,
-                 diagnostics: Mapping[str, Any] | None = None):
+    def __init__(
+        self, params, constants: Mapping[str, Any] | None = None, diagnostics: Mapping[str, Any] | None = None
+    ):
         p = np.array(params, dtype=float).reshape(-1)
         if p.size != self.n_params:
             raise InputError(f"model '{self.name}': expected {self.n_params} parameters, got {p.size}")

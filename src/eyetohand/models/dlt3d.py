@@ -19,8 +19,14 @@ from .homography import null_space_rows
 COPLANAR_RATIO = 1e-4
 
 
-def dlt_projection(uv_px: np.ndarray, xyz_mm: np.ndarray, model_name: str, *,
-                   what: str = "the paper's equation 5", z_offset_mm: float = 0.0):
+def dlt_projection(
+    uv_px: np.ndarray,
+    xyz_mm: np.ndarray,
+    model_name: str,
+    *,
+    what: str = "the paper's equation 5",
+    z_offset_mm: float = 0.0,
+):
     """Normalised DLT: returns (P_n (3×4, P_n[2,3] = 1), T_uv, T_xyz, condition number).
 
     ``what`` names the model in the coplanar refusal (a caller's own label), ``z_offset_mm`` is added

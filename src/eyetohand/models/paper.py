@@ -143,8 +143,9 @@ class PaperB(Model):
         pt = one_point(uv_px)
         if pt is not None:
             du, dv = pt[0] - t0, pt[1] - t1
-            return np.array([[a0 * du + a1 * dv + a2 * dw, b0 * du + b1 * dv + b2 * dw,
-                              c0 * du + c1 * dv + c2 * dw]])
+            return np.array(
+                [[a0 * du + a1 * dv + a2 * dw, b0 * du + b1 * dv + b2 * dw, c0 * du + c1 * dv + c2 * dw]]
+            )
         uv = as_uv(uv_px)
         out = np.empty((len(uv), 3))
         for s in range(0, len(uv), MAP_CHUNK):

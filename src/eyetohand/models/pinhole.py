@@ -109,8 +109,10 @@ class PinholeCamera(Model):
     min_pairs = 8
     height_rule = HeightRule.GIVEN
     constant_shapes = MappingProxyType({"origin_mm": (3,), "aspect": Choice("free", "square")})
-    summary = ("14 unknowns: pinhole camera fx fy cx cy, lens k1 k2 p1 p2 and pose; pairs at 2+ heights, "
-               "lens distortion")
+    summary = (
+        "14 unknowns: pinhole camera fx fy cx cy, lens k1 k2 p1 p2 and pose; pairs at 2+ heights, "
+        "lens distortion"
+    )
 
     # -------------------------------------------------------------- estimation
     @classmethod
@@ -125,8 +127,9 @@ class PinholeCamera(Model):
         check_enough(cls.name, cls.min_pairs, len(uv))
         x0 = xyz.mean(axis=0)
         rel = xyz - x0
-        P_n, T_uv, T3, _ = dlt_projection(uv, rel, cls.name, what="a pinhole camera with lens",
-                                          z_offset_mm=float(x0[2]))
+        P_n, T_uv, T3, _ = dlt_projection(
+            uv, rel, cls.name, what="a pinhole camera with lens", z_offset_mm=float(x0[2])
+        )
         P = np.linalg.inv(T_uv) @ P_n @ T3
         if image_size is not None:
             w, h = image_size
@@ -139,8 +142,9 @@ class PinholeCamera(Model):
         K, R, t = decompose_projection(P)
         f_dlt = float(np.sqrt(abs(K[0, 0] * K[1, 1])))
         if np.isfinite(K).all() and 0.05 * size < f_dlt < 100 * size:
-            starts.append(("DLT", np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.zeros(4),
-                                        matrix_to_rodrigues(R), t]))
+            starts.append(
+                ("DLT", np.r_[K[0, 0], K[1, 1], K[0, 2], K[1, 2], np.zeros(4), matrix_to_rodrigues(R), t])
+            )
         else:
             f_dlt = 2.0 * size
         pnp = _pnp_start(uv, rel, centre, f_dlt)
@@ -149,7 +153,7 @@ class PinholeCamera(Model):
         if not starts:
             raise DegenerateError(f"model '{cls.name}': could not find a starting camera for these pairs")
         fits = {}
-        for square in ((False, True) if aspect == "auto" else (aspect == "square",)):
+        for square in (False, True) if aspect == "auto" else (aspect == "square",):
             best = _fit_reprojection(uv, rel, starts, square)
             if best is not None:
                 fits[square] = best
@@ -181,8 +185,10 @@ class PinholeCamera(Model):
         if diagnostics is None and "aspect" not in consts:  # files written before fy was estimated
             consts["aspect"] = "free" if "fy" in consts.get("terms", ()) else "square"
         if consts.get("aspect") not in ("free", "square"):
-            raise InputError(f"model 'camera': constant 'aspect': expected 'free' or 'square', got "
-                             f"{consts.get('aspect')!r}")
+            raise InputError(
+                f"model 'camera': constant 'aspect': expected 'free' or 'square', got "
+                f"{consts.get('aspect')!r}"
+            )
         self._square = consts["aspect"] == "square"
         # per instance: the aspect decides (13 with square pixels, 14 with fx and fy)
         self.n_params = 13 if self._square else 14  # type: ignore[misc]
@@ -227,8 +233,12 @@ class PinholeCamera(Model):
         pt = one_point(uv_px)
         if pt is not None:
             z = self._z_for(1, z_mm)
-            xyz = self._backproject(np.array([[(pt[0] - self._intr[2]) / self._intr[0],
-                                               (pt[1] - self._intr[3]) / self._intr[1]]]), z)
+            xyz = self._backproject(
+                np.array(
+                    [[(pt[0] - self._intr[2]) / self._intr[0], (pt[1] - self._intr[3]) / self._intr[1]]]
+                ),
+                z,
+            )
             return xyz
         uv = _as_uv(uv_px)
         z = self._z_for(len(uv), z_mm)
@@ -295,8 +305,13 @@ def _fit_reprojection(uv, rel, starts, square: bool):
             return (project_full(expand(p, square), rel) - uv).reshape(len(p), -1)
 
         try:
-            sol = least_squares(lambda p: fun_batch(p[None])[0], p0, method="lm",
-                                jac=lambda p: batch_jacobian(fun_batch, p), x_scale="jac")
+            sol = least_squares(
+                lambda p: fun_batch(p[None])[0],
+                p0,
+                method="lm",
+                jac=lambda p: batch_jacobian(fun_batch, p),
+                x_scale="jac",
+            )
         except ValueError:
             continue
         cost = float(np.mean(sol.fun**2)) if np.isfinite(sol.fun).all() else np.inf
@@ -307,6 +322,7 @@ def _fit_reprojection(uv, rel, starts, square: bool):
 
 def _aspect_z(uv, rel, full) -> float:
     """|fy/fx − 1| in standard errors at the free-aspect reprojection fit ``full`` (14,)."""
+
     def fun_batch(p):
         return (project_full(p, rel) - uv).reshape(len(p), -1)
 
@@ -330,8 +346,9 @@ def _pnp_start(uv, rel, centre, f):
 
     K = np.array([[f, 0, centre[0]], [0, f, centre[1]], [0, 0, 1.0]])
     try:
-        ok, rvec, tvec = cv2.solvePnP(rel.astype(np.float64), uv.astype(np.float64), K, None,
-                                      flags=cv2.SOLVEPNP_ITERATIVE)
+        ok, rvec, tvec = cv2.solvePnP(
+            rel.astype(np.float64), uv.astype(np.float64), K, None, flags=cv2.SOLVEPNP_ITERATIVE
+        )
     except cv2.error:
         return None
     if not ok:

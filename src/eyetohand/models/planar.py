@@ -154,8 +154,9 @@ class PlanarMatrixModel(Model):
             return np.array([[[gx, gy, g, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, gx, gy, g]]])
         xn = (m[0] * p0 + m[1] * p1 + m[2]) / w
         yn = (m[3] * p0 + m[4] * p1 + m[5]) / w
-        return np.array([[[gx, gy, g, 0.0, 0.0, 0.0, -gx * xn, -gy * xn],
-                          [0.0, 0.0, 0.0, gx, gy, g, -gx * yn, -gy * yn]]])
+        return np.array(
+            [[[gx, gy, g, 0.0, 0.0, 0.0, -gx * xn, -gy * xn], [0.0, 0.0, 0.0, gx, gy, g, -gx * yn, -gy * yn]]]
+        )
 
     def _map_chunk(self, uv: np.ndarray, xy: np.ndarray) -> None:
         """(n, 2) ideal px → ``xy`` (n, 2) mm in place, elementwise."""

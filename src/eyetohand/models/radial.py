@@ -129,8 +129,15 @@ class HomographyRadial(Homography):
         T_uv, ideal_n = hartley(ideal)
         T_xy, xy_n = hartley(xyz[:, :2])
         H, cond = dlt_homography(ideal_n, xy_n, cls.name)
-        constants = {"T_uv": T_uv.tolist(), "T_xy": T_xy.tolist(), "plane_z_mm": z0,
-                     "centre_px": centre.tolist(), "focal_px": f, "k1": k1, "k2": k2}
+        constants = {
+            "T_uv": T_uv.tolist(),
+            "T_xy": T_xy.tolist(),
+            "plane_z_mm": z0,
+            "centre_px": centre.tolist(),
+            "focal_px": f,
+            "k1": k1,
+            "k2": k2,
+        }
         diagnostics = {"centre_source": source, "lens_fit_rms_px": rms_px, "condition_number": cond}
         return cls(H.reshape(-1)[:8], constants, diagnostics)
 

@@ -39,10 +39,14 @@ LOOPBACK_HOSTS = ["127.0.0.1", "localhost", "::1", "[::1]"]
 
 ERRORS: dict[int | str, dict[str, Any]] = {
     code: {"model": ErrorOut, "description": desc}
-    for code, desc in ((400, "malformed request"), (404, "no such calibration, version or job"),
-                       (413, "request too large"), (415, "body not sent as application/json"),
-                       (422, "invalid field (named in 'field')"),
-                       (503, "database busy (another writer; see Retry-After) or unavailable"))
+    for code, desc in (
+        (400, "malformed request"),
+        (404, "no such calibration, version or job"),
+        (413, "request too large"),
+        (415, "body not sent as application/json"),
+        (422, "invalid field (named in 'field')"),
+        (503, "database busy (another writer; see Retry-After) or unavailable"),
+    )
 }
 
 
@@ -61,12 +65,18 @@ def create_app(
     ``allowed_hosts``: accepted Host header names (None: any). ``max_pso_work``: the largest
     particles × iterations a PSO fit may ask for (422 beyond). ``db_wait_s``: how long a write
     waits for another connection's lock before answering 503."""
-    limits = Limits(max_body_bytes=max_body_bytes,
-                    max_fit_body_bytes=min(max_fit_body_bytes, max_body_bytes),
-                    max_parse_body_bytes=min(MAX_PARSE_BODY_BYTES, max_body_bytes),
-                    max_pso_work=max_pso_work)
-    service = Service(Store(data_dir, wait_s=db_wait_s),
-                      Jobs(max_pending=max_pending_jobs, max_pso_work=max_pso_work), limits, token)
+    limits = Limits(
+        max_body_bytes=max_body_bytes,
+        max_fit_body_bytes=min(max_fit_body_bytes, max_body_bytes),
+        max_parse_body_bytes=min(MAX_PARSE_BODY_BYTES, max_body_bytes),
+        max_pso_work=max_pso_work,
+    )
+    service = Service(
+        Store(data_dir, wait_s=db_wait_s),
+        Jobs(max_pending=max_pending_jobs, max_pso_work=max_pso_work),
+        limits,
+        token,
+    )
 
     @asynccontextmanager
     async def lifespan(_app):
@@ -79,7 +89,7 @@ def create_app(
         description=(
             "Calibrate a fixed camera to a robot from point pairs, keep calibrations with their "
             "history, and map image points (px) to robot points (mm). Errors are "
-            "`{\"error\", \"field\"}` objects. Limits: mapping body ≤ 64 MiB and ≤ 1 000 000 points "
+            '`{"error", "field"}` objects. Limits: mapping body ≤ 64 MiB and ≤ 1 000 000 points '
             f"per request, fit bodies ≤ {limits.max_fit_body_bytes // 2**20} MiB (413 beyond), "
             "≤ 5000 pairs per fit. A write that cannot get the database within "
             f"{db_wait_s:g} s answers 503 with Retry-After."

@@ -40,14 +40,17 @@ class BodyLimit:
         too_big = f"request body larger than the limit of {limit} bytes for {scope['path']}"
         if length is not None:
             if not length.strip().isdigit():
-                return await send_response(send, error_response(
-                    400, "Content-Length is not a number", "Content-Length"))
+                return await send_response(
+                    send, error_response(400, "Content-Length is not a number", "Content-Length")
+                )
             if int(length) > limit:
                 return await send_response(send, error_response(413, too_big, "body"))
-        if (chunked or (length is not None and int(length) > 0)) \
-                and (ctype or b"").split(b";")[0].strip().lower() not in JSON_TYPES:
-            return await send_response(send, error_response(
-                415, "Content-Type must be application/json", "Content-Type"))
+        if (chunked or (length is not None and int(length) > 0)) and (ctype or b"").split(b";")[
+            0
+        ].strip().lower() not in JSON_TYPES:
+            return await send_response(
+                send, error_response(415, "Content-Type must be application/json", "Content-Type")
+            )
         received = 0
         exceeded = False
 
@@ -81,14 +84,23 @@ class TokenGuard:
         self.token = token.encode() if token else None
 
     async def __call__(self, scope, receive, send):
-        if self.token and scope["type"] == "http" and scope["path"].startswith("/api/") \
-                and scope["path"] != "/api/health":
+        if (
+            self.token
+            and scope["type"] == "http"
+            and scope["path"].startswith("/api/")
+            and scope["path"] != "/api/health"
+        ):
             auth = dict(scope.get("headers") or []).get(b"authorization", b"")
             given = auth[7:].strip() if auth[:7].lower() == b"bearer " else b""
             if not hmac.compare_digest(given, self.token):
-                return await send_response(send, error_response(
-                    401, "missing or wrong token: send the header 'Authorization: Bearer <token>'",
-                    "Authorization"))
+                return await send_response(
+                    send,
+                    error_response(
+                        401,
+                        "missing or wrong token: send the header 'Authorization: Bearer <token>'",
+                        "Authorization",
+                    ),
+                )
         return await self.app(scope, receive, send)
 
 
@@ -104,6 +116,7 @@ class HostGuard:
             host = dict(scope.get("headers") or []).get(b"host", b"").decode("latin-1").lower()
             name = host.rsplit(":", 1)[0] if not host.endswith("]") else host
             if name not in self.hosts and host not in self.hosts:
-                return await send_response(send, error_response(
-                    400, f"Host {host!r} is not served here", "Host"))
+                return await send_response(
+                    send, error_response(400, f"Host {host!r} is not served here", "Host")
+                )
         return await self.app(scope, receive, send)

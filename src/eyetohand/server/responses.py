@@ -16,8 +16,14 @@ from .core import ApiError, input_error
 from .storage import Ambiguous, NameTaken, NotFound, StorageError
 
 
-def error_response(status: int, message: str, field: str | None = None, line: int | None = None,
-                   errors: list | None = None, headers: dict[str, str] | None = None) -> JSONResponse:
+def error_response(
+    status: int,
+    message: str,
+    field: str | None = None,
+    line: int | None = None,
+    errors: list | None = None,
+    headers: dict[str, str] | None = None,
+) -> JSONResponse:
     body: dict[str, Any] = {"error": message, "field": field}
     if line is not None:
         body["line"] = line
@@ -28,8 +34,9 @@ def error_response(status: int, message: str, field: str | None = None, line: in
 
 async def send_response(send, response: JSONResponse) -> None:
     """Send ``response`` straight from ASGI middleware."""
-    await send({"type": "http.response.start", "status": response.status_code,
-                "headers": response.raw_headers})
+    await send(
+        {"type": "http.response.start", "status": response.status_code, "headers": response.raw_headers}
+    )
     await send({"type": "http.response.body", "body": response.body})
 
 
@@ -76,8 +83,9 @@ def validation_response(errors) -> JSONResponse:
         fld = _field_of(e.get("loc", ()))
         msg = _message(e)
         listed.append({"field": fld, "error": f"{fld}: {msg}" if fld else msg})
-    return error_response(422, listed[0]["error"], listed[0]["field"],
-                          errors=listed if len(listed) > 1 else None)
+    return error_response(
+        422, listed[0]["error"], listed[0]["field"], errors=listed if len(listed) > 1 else None
+    )
 
 
 def api_error_of_validation(errors) -> ApiError:

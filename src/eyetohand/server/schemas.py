@@ -58,10 +58,13 @@ def _label(text: str) -> str:
 
 Name = Annotated[
     str,
-    Field(min_length=1, max_length=MAX_NAME,
-          description="display name: 1–100 characters in NFC, no control or format (zero-width, bidi) "
-                      "characters, not only digits (that reads as an id), no leading/trailing space; "
-                      "stored as data only"),
+    Field(
+        min_length=1,
+        max_length=MAX_NAME,
+        description="display name: 1–100 characters in NFC, no control or format (zero-width, bidi) "
+        "characters, not only digits (that reads as an id), no leading/trailing space; "
+        "stored as data only",
+    ),
     AfterValidator(_name),
 ]
 PairId = Annotated[str, Field(min_length=1, max_length=64), AfterValidator(_pair_id)]
@@ -90,18 +93,22 @@ class PairIn(Strict):
 class FitOptions(Strict):
     pairs: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS, description="calibration pairs")
     check: list[PairIn] | None = Field(
-        None, min_length=1, max_length=MAX_PAIRS, description="check pairs, not used for fitting")
+        None, min_length=1, max_length=MAX_PAIRS, description="check pairs, not used for fitting"
+    )
     model: ModelName = Field("auto", description="transform model; 'auto' picks by cross-validation")
     optimizer: OptimizerName = Field("lm", description="solver refining the model")
     objective: ObjectiveName = Field("l2", description="robot-space objective (mm)")
     seed: Int | None = Field(None, ge=0, le=2**32 - 1, description="seed of the stochastic solvers")
     exclude: list[Annotated[str, Field(max_length=64), AfterValidator(_pair_id)]] = Field(
-        default_factory=list, max_length=MAX_PAIRS,
-        description="ids of pairs left out of the fit (their errors are still reported)")
+        default_factory=list,
+        max_length=MAX_PAIRS,
+        description="ids of pairs left out of the fit (their errors are still reported)",
+    )
     particles: Int = Field(200, ge=2, le=MAX_PARTICLES, description="swarm size (pso, hybrid-pso)")
     iterations: Int = Field(150, ge=1, le=MAX_ITERATIONS, description="iterations (pso, hybrid-pso)")
     image_size: tuple[Px, Px] | None = Field(
-        None, description="image width and height, px (sets the distortion centre)")
+        None, description="image width and height, px (sets the distortion centre)"
+    )
 
 
 class CreateCalibration(FitOptions):
@@ -115,7 +122,8 @@ class NewVersion(FitOptions):
 class SaveJob(Strict):
     name: Name | None = Field(None, description="save as a new calibration with this name")
     calibration_id: Int | None = Field(
-        None, ge=1, le=2**62, description="or: add the result as a new version of this calibration")
+        None, ge=1, le=2**62, description="or: add the result as a new version of this calibration"
+    )
     note: Note = ""
 
 
@@ -143,17 +151,23 @@ class Rollback(Strict):
 
 class MapRequest(Strict):
     points: list[tuple[Finite, Finite]] = Field(
-        min_length=1, json_schema_extra={"maxItems": MAX_POINTS},
-        description=f"image points [u, v] in px; at most {MAX_POINTS} (more gets 413)")
+        min_length=1,
+        json_schema_extra={"maxItems": MAX_POINTS},
+        description=f"image points [u, v] in px; at most {MAX_POINTS} (more gets 413)",
+    )
     z: Finite | list[Finite] | None = Field(
-        None, description="object height, mm: one value, one per point, or none (calibration plane)")
+        None, description="object height, mm: one value, one per point, or none (calibration plane)"
+    )
     angles: list[Finite] | None = Field(
-        None, description="image angles, deg from +u towards +v, one per point: answered as rz (deg)")
+        None, description="image angles, deg from +u towards +v, one per point: answered as rz (deg)"
+    )
     symmetry: int = Field(1, ge=1, le=360, description="fold rz into (-180/s, 180/s] (2: 180° symmetric)")
     tool_rz_offset_deg: Finite | None = Field(
-        None, description="the gripper's rz when aligned with the image's +u: rz becomes its command")
+        None, description="the gripper's rz when aligned with the image's +u: rz becomes its command"
+    )
     allow_outside: StrictBool = Field(
-        False, description="map points outside the calibrated region too (flagged inside=false)")
+        False, description="map points outside the calibrated region too (flagged inside=false)"
+    )
     sigma: StrictBool = Field(True, description="compute each point's predicted error sigma_mm")
 
 
@@ -168,11 +182,14 @@ class MapResponse(BaseModel):
 
 
 class ParseRequest(Strict):
-    text: str = Field(min_length=1, max_length=MAX_TEXT_CHARS,
-                      description="CSV with header u,v,x,y[,z][,id], or JSON {\"pairs\": [...]}")
+    text: str = Field(
+        min_length=1,
+        max_length=MAX_TEXT_CHARS,
+        description='CSV with header u,v,x,y[,z][,id], or JSON {"pairs": [...]}',
+    )
     source: Annotated[str, AfterValidator(_label)] = Field(
-        "pasted", max_length=200,
-        description="label used in error messages (e.g. the file's name); data only")
+        "pasted", max_length=200, description="label used in error messages (e.g. the file's name); data only"
+    )
 
 
 class PairOut(BaseModel):

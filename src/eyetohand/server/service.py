@@ -89,9 +89,15 @@ class Service:
         check = _pairs_of(ver.check, "check")
         excluded = ver.request.get("exclude") or []
         d = {
-            "id": rec.id, "name": rec.name, "version": ver.version, "current_version": rec.current_version,
-            "created_utc": rec.created_utc, "updated_utc": rec.updated_utc, "note": ver.note,
-            "request": ver.request, "summary": core.summarize(cal, pairs, check, excluded),
+            "id": rec.id,
+            "name": rec.name,
+            "version": ver.version,
+            "current_version": rec.current_version,
+            "created_utc": rec.created_utc,
+            "updated_utc": rec.updated_utc,
+            "note": ver.note,
+            "request": ver.request,
+            "summary": core.summarize(cal, pairs, check, excluded),
         }
         if detail:
             d.update(pairs=ver.pairs, check=ver.check, calibration=ver.calibration)
@@ -101,22 +107,39 @@ class Service:
         rows = []
         for rec, ver in self.store.list():
             b = ver.brief()
-            rows.append({"id": rec.id, "name": rec.name, "current_version": rec.current_version,
-                         "updated_utc": rec.updated_utc, **{k: b[k] for k in (
-                             "model", "optimizer", "fitness_mm", "train_rms_mm", "check_rms_mm")}})
+            rows.append(
+                {
+                    "id": rec.id,
+                    "name": rec.name,
+                    "current_version": rec.current_version,
+                    "updated_utc": rec.updated_utc,
+                    **{k: b[k] for k in ("model", "optimizer", "fitness_mm", "train_rms_mm", "check_rms_mm")},
+                }
+            )
         return rows
 
     # ------------------------------------------------------------ writes
     def save_new(self, fitted: Fitted, name: str, note: str) -> dict:
-        rec = self.store.create(name, fitted.request, fitted.calibration.to_dict(), _records(fitted.pairs),
-                                _records(fitted.check), note=note or "created")
+        rec = self.store.create(
+            name,
+            fitted.request,
+            fitted.calibration.to_dict(),
+            _records(fitted.pairs),
+            _records(fitted.check),
+            note=note or "created",
+        )
         return self.out(rec.id)
 
     def save_version(self, cal_id: int, fitted: Fitted, note: str) -> dict:
         try:
-            rec = self.store.add_version(cal_id, fitted.request, fitted.calibration.to_dict(),
-                                         _records(fitted.pairs), _records(fitted.check),
-                                         note=note or "refit")
+            rec = self.store.add_version(
+                cal_id,
+                fitted.request,
+                fitted.calibration.to_dict(),
+                _records(fitted.pairs),
+                _records(fitted.check),
+                note=note or "refit",
+            )
         finally:
             self.invalidate(cal_id)
         return self.out(rec.id)
@@ -153,8 +176,12 @@ class Service:
             cal = Calibration.from_dict(calibration, "calibration")
         except InputError as exc:
             raise ApiError(422, str(exc), "calibration") from None
-        request = {"source": "import", "model": cal.model_name, "optimizer": cal.fit.optimizer,
-                   "objective": cal.fit.objective}
+        request = {
+            "source": "import",
+            "model": cal.model_name,
+            "optimizer": cal.fit.optimizer,
+            "objective": cal.fit.objective,
+        }
         body = cal.to_dict()
         pairs, check = _records(cal.pairs), _records(cal.check_pairs)
         rec = self.store.by_name(name)
@@ -167,8 +194,7 @@ class Service:
             self.invalidate(rec.id)
         return self.out(rec.id), False
 
-    def verify(self, cal_id: int, pairs: PointPairs, tolerance_mm: float,
-               version: int | None = None) -> dict:
+    def verify(self, cal_id: int, pairs: PointPairs, tolerance_mm: float, version: int | None = None) -> dict:
         """Verify freshly measured pairs against a stored calibration and keep the entry in its history."""
         from ..verify import verify
 
@@ -200,8 +226,9 @@ class Service:
     def save_job(self, job_id: str, name: str | None, calibration_id: int | None, note: str) -> dict:
         fitted = self.finished_fit(job_id)
         if (name is None) == (calibration_id is None):
-            raise ApiError(422, "give either name (a new calibration) or calibration_id (a new version)",
-                           "name")
+            raise ApiError(
+                422, "give either name (a new calibration) or calibration_id (a new version)", "name"
+            )
         if name is not None:
             d = self.save_new(fitted, name, note)
         else:

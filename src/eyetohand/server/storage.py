@@ -133,8 +133,10 @@ def clean_text(text: str, what: str) -> str:
     for i, ch in enumerate(text):
         cat = unicodedata.category(ch)
         if cat in BAD_CATEGORIES:
-            raise ValueError(f"{what}: character {i} is U+{ord(ch):04X} "
-                             f"({unicodedata.name(ch, cat)}), not allowed in {what}s")
+            raise ValueError(
+                f"{what}: character {i} is U+{ord(ch):04X} "
+                f"({unicodedata.name(ch, cat)}), not allowed in {what}s"
+            )
     return text
 
 
@@ -203,8 +205,9 @@ class Store:
         if db is None:
             if self._closed:
                 raise StorageError(f"the store of {self.path} is closed")
-            db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None,
-                                 timeout=self.wait_s)
+            db = sqlite3.connect(
+                self.path, check_same_thread=False, isolation_level=None, timeout=self.wait_s
+            )
             db.execute("PRAGMA synchronous=FULL")
             db.execute("PRAGMA foreign_keys=ON")
             db.execute(f"PRAGMA busy_timeout={int(self.wait_s * 1000)}")
@@ -257,13 +260,15 @@ class Store:
             "v.calibration_id, v.version, v.created_utc, v.note, v.request_json, "
             "v.calibration_json, v.pairs_json, v.check_json "
             "FROM calibrations c JOIN versions v "
-            "ON v.calibration_id = c.id AND v.version = c.current_version ORDER BY c.id")
+            "ON v.calibration_id = c.id AND v.version = c.current_version ORDER BY c.id"
+        )
         return [(Record(*r[:5]), _version(r[5:])) for r in rows]
 
     def get(self, cal_id: int) -> Record:
         rows = self._read(
             "SELECT id, name, created_utc, updated_utc, current_version FROM calibrations WHERE id = ?",
-            (cal_id,))
+            (cal_id,),
+        )
         row = rows[0] if rows else None
         if row is None:
             raise NotFound(f"no calibration with id {cal_id}")
@@ -272,7 +277,8 @@ class Store:
     def by_name(self, name: str) -> Record | None:
         rows = self._read(
             "SELECT id, name, created_utc, updated_utc, current_version FROM calibrations WHERE name = ?",
-            (unicodedata.normalize("NFC", name),))
+            (unicodedata.normalize("NFC", name),),
+        )
         row = rows[0] if rows else None
         return None if row is None else Record(*row)
 
@@ -295,8 +301,10 @@ class Store:
             except NotFound:
                 by_id = None
             if rec is not None and by_id is not None and rec.id != by_id.id:
-                raise Ambiguous(f"{ref!r} is the name of calibration {rec.id} and the id of calibration "
-                                f"{by_id.id}; say 'id:{by_id.id}', or rename calibration {rec.id}")
+                raise Ambiguous(
+                    f"{ref!r} is the name of calibration {rec.id} and the id of calibration "
+                    f"{by_id.id}; say 'id:{by_id.id}', or rename calibration {rec.id}"
+                )
             rec = rec or by_id
         if rec is not None:
             return rec
@@ -307,7 +315,9 @@ class Store:
         v = rec.current_version if version is None else version
         rows = self._read(
             "SELECT calibration_id, version, created_utc, note, request_json, calibration_json, "
-            "pairs_json, check_json FROM versions WHERE calibration_id = ? AND version = ?", (cal_id, v))
+            "pairs_json, check_json FROM versions WHERE calibration_id = ? AND version = ?",
+            (cal_id, v),
+        )
         row = rows[0] if rows else None
         if row is None:
             raise NotFound(f"calibration {cal_id} has no version {v} (versions 1..{rec.current_version})")
@@ -317,12 +327,21 @@ class Store:
         self.get(cal_id)
         rows = self._read(
             "SELECT calibration_id, version, created_utc, note, request_json, calibration_json, "
-            "pairs_json, check_json FROM versions WHERE calibration_id = ? ORDER BY version", (cal_id,))
+            "pairs_json, check_json FROM versions WHERE calibration_id = ? ORDER BY version",
+            (cal_id,),
+        )
         return [_version(r) for r in rows]
 
     # ------------------------------------------------------------------ writes
-    def create(self, name: str, request: dict, calibration: dict, pairs: list, check: list | None,
-               note: str = "created") -> Record:
+    def create(
+        self,
+        name: str,
+        request: dict,
+        calibration: dict,
+        pairs: list,
+        check: list | None,
+        note: str = "created",
+    ) -> Record:
         now = _now()
         try:
             with self._tx() as db, _translated(self.path):
@@ -337,8 +356,9 @@ class Store:
             raise NameTaken(f"a calibration named {name!r} exists already") from None
         return self.get(cal_id)
 
-    def add_version(self, cal_id: int, request: dict, calibration: dict, pairs: list,
-                    check: list | None, note: str) -> Record:
+    def add_version(
+        self, cal_id: int, request: dict, calibration: dict, pairs: list, check: list | None, note: str
+    ) -> Record:
         now = _now()
         with self._tx() as db, _translated(self.path):
             row = db.execute("SELECT current_version FROM calibrations WHERE id = ?", (cal_id,)).fetchone()
@@ -349,21 +369,25 @@ class Store:
             ).fetchone()[0]
             new = int(latest) + 1
             self._insert_version(db, cal_id, new, now, note, request, calibration, pairs, check)
-            db.execute("UPDATE calibrations SET current_version = ?, updated_utc = ? WHERE id = ?",
-                       (new, now, cal_id))
+            db.execute(
+                "UPDATE calibrations SET current_version = ?, updated_utc = ? WHERE id = ?",
+                (new, now, cal_id),
+            )
         return self.get(cal_id)
 
     def rollback(self, cal_id: int, version: int) -> Record:
         """Make a copy of ``version`` the new current version (the history keeps everything)."""
         old = self.version(cal_id, version)
-        return self.add_version(cal_id, old.request, old.calibration, old.pairs, old.check,
-                                note=f"rollback to version {version}")
+        return self.add_version(
+            cal_id, old.request, old.calibration, old.pairs, old.check, note=f"rollback to version {version}"
+        )
 
     def rename(self, cal_id: int, name: str) -> Record:
         try:
             with self._tx() as db, _translated(self.path):
-                cur = db.execute("UPDATE calibrations SET name = ?, updated_utc = ? WHERE id = ?",
-                                 (name, _now(), cal_id))
+                cur = db.execute(
+                    "UPDATE calibrations SET name = ?, updated_utc = ? WHERE id = ?", (name, _now(), cal_id)
+                )
                 if cur.rowcount == 0:
                     raise NotFound(f"no calibration with id {cal_id}")
         except sqlite3.IntegrityError:
@@ -381,14 +405,18 @@ class Store:
         with self._tx() as db, _translated(self.path):
             if db.execute("SELECT 1 FROM calibrations WHERE id = ?", (cal_id,)).fetchone() is None:
                 raise NotFound(f"no calibration with id {cal_id}")
-            db.execute("INSERT INTO verifications (calibration_id, version, utc, entry_json) "
-                       "VALUES (?, ?, ?, ?)", (cal_id, version, _now(), _dumps(entry)))
+            db.execute(
+                "INSERT INTO verifications (calibration_id, version, utc, entry_json) VALUES (?, ?, ?, ?)",
+                (cal_id, version, _now(), _dumps(entry)),
+            )
 
     def verifications(self, cal_id: int) -> list[dict]:
         """The verification history, oldest first, each entry with the version it checked."""
         self.get(cal_id)
-        rows = self._read("SELECT version, utc, entry_json FROM verifications WHERE calibration_id = ? "
-                          "ORDER BY rowid", (cal_id,))
+        rows = self._read(
+            "SELECT version, utc, entry_json FROM verifications WHERE calibration_id = ? ORDER BY rowid",
+            (cal_id,),
+        )
         return [{**json.loads(e), "version": int(v), "stored_utc": u} for v, u, e in rows]
 
     def delete(self, cal_id: int) -> None:
@@ -404,8 +432,16 @@ class Store:
         db.execute(
             "INSERT INTO versions (calibration_id, version, created_utc, note, request_json, "
             "calibration_json, pairs_json, check_json) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-            (cal_id, version, now, note, _dumps(request), _dumps(calibration), _dumps(pairs),
-             None if check is None else _dumps(check)),
+            (
+                cal_id,
+                version,
+                now,
+                note,
+                _dumps(request),
+                _dumps(calibration),
+                _dumps(pairs),
+                None if check is None else _dumps(check),
+            ),
         )
 
 
@@ -415,5 +451,13 @@ def _dumps(obj) -> str:
 
 def _version(row) -> Version:
     cid, ver, created, note, req, cal, pairs, check = row
-    return Version(int(cid), int(ver), created, note, json.loads(req), json.loads(cal), json.loads(pairs),
-                   None if check is None else json.loads(check))
+    return Version(
+        int(cid),
+        int(ver),
+        created,
+        note,
+        json.loads(req),
+        json.loads(cal),
+        json.loads(pairs),
+        None if check is None else json.loads(check),
+    )

@@ -66,8 +66,9 @@ class CellCamera:
         """The robot was commanded to (x, y, z) at tool angle ``angle_deg``: place the target."""
         c = np.array([x_mm, y_mm, z_mm], float)
         if not np.isfinite(c).all() or not np.isfinite(angle_deg):
-            raise InputError(f"sim camera: the robot pose must be finite numbers, got "
-                             f"{(x_mm, y_mm, z_mm, angle_deg)}")
+            raise InputError(
+                f"sim camera: the robot pose must be finite numbers, got {(x_mm, y_mm, z_mm, angle_deg)}"
+            )
         A = self.cell.axis_matrix
         actual = c.copy()
         actual[:2] = A @ c[:2]

@@ -43,8 +43,17 @@ def render_target(camera, cell, centre_mm, angle_deg: float, rng: np.random.Gene
     tgt = cell.values["target"]
     rnd = cell.values["render"]
     target = Target(tgt["diameter_mm"], tgt["strip_width_mm"], tgt["strip_length_mm"])
-    img, _ = render(camera, centre_mm, angle_deg=angle_deg, target=target, blur_px=rnd["blur_px"],
-                    noise=rnd["noise"], vignetting=rnd["vignetting"], bits=8, rng=rng)
+    img, _ = render(
+        camera,
+        centre_mm,
+        angle_deg=angle_deg,
+        target=target,
+        blur_px=rnd["blur_px"],
+        noise=rnd["noise"],
+        vignetting=rnd["vignetting"],
+        bits=8,
+        rng=rng,
+    )
     return img
 
 
@@ -62,8 +71,9 @@ def write_images(sim, out: Path) -> list[Path]:
         img = render_target(sim.camera, sim.cell, sim.target_mm[i], float(angles[i]), rng)
         written.append(atomic_write_bytes(out / name, cv2.imencode(".png", img)[1].tobytes()))
         names.append(name)
-    written.append(atomic_write_text(out / "poses.csv", poses_csv(names, sim.pairs.xyz_mm,
-                                                                  sim.pairs.angle_deg)))
+    written.append(
+        atomic_write_text(out / "poses.csv", poses_csv(names, sim.pairs.xyz_mm, sim.pairs.angle_deg))
+    )
     if sim.check is not None:
         A = sim.cell.axis_matrix
         names = []

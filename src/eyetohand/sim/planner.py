@@ -40,8 +40,9 @@ def predict_plan(
     if not isinstance(runs, (int, np.integer)) or runs < 1:
         raise InputError(f"runs: expected a whole number >= 1, got {runs!r}")
     if not isinstance(n_check, (int, np.integer)) or n_check < 1:
-        raise InputError(f"n_check: expected a whole number >= 1 (the prediction is the check error), "
-                         f"got {n_check!r}")
+        raise InputError(
+            f"n_check: expected a whole number >= 1 (the prediction is the check error), got {n_check!r}"
+        )
     p = parse_plan(plan)
     seeds = np.random.SeedSequence(seed).generate_state(runs)
     rms_runs: list[float] = []
@@ -52,12 +53,24 @@ def predict_plan(
         sim = simulate(cell, p, heights_mm, n_check=n_check, check_heights_mm=check_heights_mm, seed=int(s))
         n_pairs = len(sim.pairs)
         try:
-            cal = calibrate(sim.pairs, model=chosen, optimizer=optimizer, check=sim.check,
-                            image_size=cell.image_size, seed=int(s), loo=False)
+            cal = calibrate(
+                sim.pairs,
+                model=chosen,
+                optimizer=optimizer,
+                check=sim.check,
+                image_size=cell.image_size,
+                seed=int(s),
+                loo=False,
+            )
         except InputError as exc:
-            return {"plan": p.label, "heights": [float(h) for h in np.atleast_1d(heights_mm)],
-                    "n_pairs": n_pairs, "error": str(exc), "predicted_rms_mm": None,
-                    "predicted_max_mm": None}
+            return {
+                "plan": p.label,
+                "heights": [float(h) for h in np.atleast_1d(heights_mm)],
+                "n_pairs": n_pairs,
+                "error": str(exc),
+                "predicted_rms_mm": None,
+                "predicted_max_mm": None,
+            }
         if i == 0:
             chosen = cal.model_name
         assert cal.check is not None  # n_check >= 1
@@ -99,8 +112,19 @@ def plan_study(
     labels = [parse_plan(p).label for p in plans]  # validate all before the long part
     if not labels:
         raise InputError("plan: give at least one plan")
-    rows = [predict_plan(cell, p, heights_mm, runs=runs, n_check=n_check, check_heights_mm=check_heights_mm,
-                         model=model, seed=seed) for p in labels]
+    rows = [
+        predict_plan(
+            cell,
+            p,
+            heights_mm,
+            runs=runs,
+            n_check=n_check,
+            check_heights_mm=check_heights_mm,
+            model=model,
+            seed=seed,
+        )
+        for p in labels
+    ]
     key = f"predicted_{metric}_mm"
     recommended = None
     if target_error_mm is not None:
@@ -129,8 +153,9 @@ def plot_study(study: dict, path) -> None:
 
     from ..io import atomic_write_bytes
 
-    rows = sorted([r for r in study["plans"] if r.get("predicted_rms_mm") is not None],
-                  key=lambda r: r["n_pairs"])
+    rows = sorted(
+        [r for r in study["plans"] if r.get("predicted_rms_mm") is not None], key=lambda r: r["n_pairs"]
+    )
     if not rows:
         raise InputError("plot: no plan could be calibrated, nothing to plot")
     x = np.arange(len(rows))
@@ -139,11 +164,22 @@ def plot_study(study: dict, path) -> None:
     mx = [r["predicted_max_mm"] for r in rows]
     mx90 = [r["max_p90_mm"] for r in rows]
     ax.bar(x - 0.2, rms, 0.4, label="predicted RMS (median of runs)")
-    ax.bar(x + 0.2, mx, 0.4, label="predicted max (median of runs)",
-           yerr=[np.zeros(len(rows)), np.subtract(mx90, mx)], capsize=3)
+    ax.bar(
+        x + 0.2,
+        mx,
+        0.4,
+        label="predicted max (median of runs)",
+        yerr=[np.zeros(len(rows)), np.subtract(mx90, mx)],
+        capsize=3,
+    )
     if study.get("target_error_mm") is not None:
-        ax.axhline(study["target_error_mm"], color="k", ls="--", lw=1,
-                   label=f"target ({study['target_metric']}) {study['target_error_mm']:g} mm")
+        ax.axhline(
+            study["target_error_mm"],
+            color="k",
+            ls="--",
+            lw=1,
+            label=f"target ({study['target_metric']}) {study['target_error_mm']:g} mm",
+        )
     ax.set_xticks(x, [f"{r['plan']}\n{r['n_pairs']} pairs" for r in rows], fontsize=8)
     ax.set_ylabel("check error (mm)")
     heights = ", ".join(f"{h:g}" for h in rows[0]["heights"])

@@ -47,8 +47,9 @@ class Plan:
         lo = np.array([margin_px, margin_px], float)
         hi = np.array([w - 1 - margin_px, h - 1 - margin_px], float)
         if (hi <= lo).any():
-            raise InputError(f"plan {self.label}: a margin of {margin_px:g} px leaves no room in a "
-                             f"{w}x{h} image")
+            raise InputError(
+                f"plan {self.label}: a margin of {margin_px:g} px leaves no room in a {w}x{h} image"
+            )
         centre = 0.5 * (lo + hi)
         if self.kind == "grid":
             us = np.linspace(lo[0], hi[0], self.cols) if self.cols > 1 else centre[:1]

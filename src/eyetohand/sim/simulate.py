@@ -63,8 +63,14 @@ class Simulation:
 
     def truth(self) -> dict:
         recs = [
-            {"id": pid, "u_true": float(uv[0]), "v_true": float(uv[1]),
-             "x_target": float(p[0]), "y_target": float(p[1]), "z_target": float(p[2])}
+            {
+                "id": pid,
+                "u_true": float(uv[0]),
+                "v_true": float(uv[1]),
+                "x_target": float(p[0]),
+                "y_target": float(p[1]),
+                "z_target": float(p[2]),
+            }
             for pid, uv, p in zip(self.pairs.ids, self.true_uv_px, self.target_mm, strict=True)
         ]
         return {
@@ -145,8 +151,7 @@ def simulate(
     uv = true_uv + rng_pixel.normal(0.0, 1.0, (n, 2)) * cell.values["detection"]["pixel_noise_px"]
     _check_visible(cell, true_uv, "pairs")
     ids = [str(i + 1) for i in range(n)]
-    pairs = PointPairs.from_arrays(uv, cmd, ids, source="simulated pairs",
-                                   angle_deg=ang if angles else None)
+    pairs = PointPairs.from_arrays(uv, cmd, ids, source="simulated pairs", angle_deg=ang if angles else None)
 
     chk_cmd: list[np.ndarray] = []
     chk_uv: list[np.ndarray] = []
@@ -161,9 +166,12 @@ def simulate(
     check: PointPairs | None
     if n_check:
         check_uv = np.vstack(chk_uv)
-        check = PointPairs.from_arrays(check_uv, np.vstack(chk_cmd),
-                                       [f"c{i + 1}" for i in range(len(check_uv))],
-                                       source="simulated check points")
+        check = PointPairs.from_arrays(
+            check_uv,
+            np.vstack(chk_cmd),
+            [f"c{i + 1}" for i in range(len(check_uv))],
+            source="simulated check points",
+        )
     else:
         check = None
     return Simulation(cell, plan, heights, check_heights, angles, seed, pairs, check, true_uv, target, cam)

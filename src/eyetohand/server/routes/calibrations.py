@@ -34,9 +34,15 @@ def create_calibration(req: CreateCalibration, svc: Svc):
     return svc.create(req, req.name)
 
 
-@router.post("/api/calibrations/import", response_model=CalibrationOut, status_code=201,
-             responses={200: {"description": "stored as a new version of the calibration with that name"},
-                        422: {"description": "the file is not a valid, intact calibration (names why)"}})
+@router.post(
+    "/api/calibrations/import",
+    response_model=CalibrationOut,
+    status_code=201,
+    responses={
+        200: {"description": "stored as a new version of the calibration with that name"},
+        422: {"description": "the file is not a valid, intact calibration (names why)"},
+    },
+)
 def import_calibration(req: ImportCalibration, svc: Svc, response: Response):
     """Store a calibration file (``eyetohand calibrate -o``) as a new calibration, or as a new version
     of the calibration with that name; it must prove itself intact (hash, statistics, region)."""
@@ -69,8 +75,12 @@ def delete_calibration(cal_id: CalId, svc: Svc):
 @router.get("/api/calibrations/{cal_id}/versions", response_model=VersionList)
 def list_versions(cal_id: CalId, svc: Svc):
     rec = svc.store.get(cal_id)
-    return {"id": rec.id, "name": rec.name, "current_version": rec.current_version,
-            "versions": [v.brief() for v in svc.store.versions(cal_id)]}
+    return {
+        "id": rec.id,
+        "name": rec.name,
+        "current_version": rec.current_version,
+        "versions": [v.brief() for v in svc.store.versions(cal_id)],
+    }
 
 
 @router.post("/api/calibrations/{cal_id}/versions", response_model=CalibrationOut, status_code=201)
@@ -86,15 +96,24 @@ def rollback(cal_id: CalId, req: Rollback, svc: Svc):
     return svc.rollback(cal_id, req.version)
 
 
-@router.get("/api/calibrations/{cal_id}/export",
-            responses={200: {"description": "the calibration file (JSON), as `eyetohand apply` reads it",
-                             "content": {"application/json": {}}}})
+@router.get(
+    "/api/calibrations/{cal_id}/export",
+    responses={
+        200: {
+            "description": "the calibration file (JSON), as `eyetohand apply` reads it",
+            "content": {"application/json": {}},
+        }
+    },
+)
 def export(cal_id: CalId, svc: Svc, version: VersionQ = None):
     rec = svc.store.get(cal_id)
     ver, cal = svc.calibration(cal_id, version)
     safe = re.sub(r"[^A-Za-z0-9._-]+", "_", rec.name).strip("._")[:60] or "calibration"
-    return Response(cal.to_json(), media_type="application/json", headers={
-        "Content-Disposition": f'attachment; filename="{safe}-v{ver.version}.json"'})
+    return Response(
+        cal.to_json(),
+        media_type="application/json",
+        headers={"Content-Disposition": f'attachment; filename="{safe}-v{ver.version}.json"'},
+    )
 
 
 @router.post("/api/calibrations/{cal_id}/evaluate", response_model=StatsOut)

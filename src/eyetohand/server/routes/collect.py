@@ -74,27 +74,54 @@ class CameraView:
         info = {"frame": n, "source": where, "ok": None}
         if img is None:
             out = np.full((240, 640, 3), 40, np.uint8)
-            cv2.putText(out, (where or "no image")[:70], (10, 120), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
-                        (0, 200, 255), 1, cv2.LINE_AA)
+            cv2.putText(
+                out,
+                (where or "no image")[:70],
+                (10, 120),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.5,
+                (0, 200, 255),
+                1,
+                cv2.LINE_AA,
+            )
         else:
             out = annotate(img, det)
             info["ok"] = bool(det.ok)
             if det.ok:
                 info.update(u=det.u, v=det.v, score=det.score, rms_px=det.rms_px, contrast=det.contrast)
-                text = (f"u {det.u:.2f} v {det.v:.2f}  d {det.diameter_px:.1f} px  score {det.score:.2f}  "
-                        f"rms {det.rms_px:.3f} px  contrast {det.contrast:.0f}")
-                cv2.putText(out, text, (8, out.shape[0] - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                            (0, 255, 0), 1, cv2.LINE_AA)
-        cv2.putText(out, f"#{n} {time.strftime('%H:%M:%S')}", (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                    (255, 255, 0), 1, cv2.LINE_AA)
+                text = (
+                    f"u {det.u:.2f} v {det.v:.2f}  d {det.diameter_px:.1f} px  score {det.score:.2f}  "
+                    f"rms {det.rms_px:.3f} px  contrast {det.contrast:.0f}"
+                )
+                cv2.putText(
+                    out,
+                    text,
+                    (8, out.shape[0] - 10),
+                    cv2.FONT_HERSHEY_SIMPLEX,
+                    0.45,
+                    (0, 255, 0),
+                    1,
+                    cv2.LINE_AA,
+                )
+        cv2.putText(
+            out,
+            f"#{n} {time.strftime('%H:%M:%S')}",
+            (8, 18),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.45,
+            (255, 255, 0),
+            1,
+            cv2.LINE_AA,
+        )
         return cv2.imencode(".png", out)[1].tobytes(), info
 
 
 def _view(request: Request) -> CameraView:
     view = getattr(request.app.state, "collect", None)
     if view is None:
-        raise ApiError(404, "no collection on this server: start it with "
-                            "eyetohand serve --tcp HOST:PORT --camera URI")
+        raise ApiError(
+            404, "no collection on this server: start it with eyetohand serve --tcp HOST:PORT --camera URI"
+        )
     return view
 
 
@@ -107,8 +134,11 @@ def collect_page():
 def camera_frame(request: Request):
     """The camera's image now, with the detected target (ellipse, centre) and its quality drawn."""
     png, info = _view(request).frame_png()
-    headers = {"Cache-Control": "no-store", "X-Frame": str(info["frame"]),
-               "X-Frame-Source": str(info["source"])[:120].encode("ascii", "replace").decode()}
+    headers = {
+        "Cache-Control": "no-store",
+        "X-Frame": str(info["frame"]),
+        "X-Frame-Source": str(info["source"])[:120].encode("ascii", "replace").decode(),
+    }
     return Response(png, media_type="image/png", headers=headers)
 
 

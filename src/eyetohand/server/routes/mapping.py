@@ -21,8 +21,12 @@ INLINE_BYTES = 64 * 1024
 INLINE_POINTS = 2000
 
 router = APIRouter(tags=["mapping"])
-MAP_OPENAPI = {"requestBody": {"required": True, "content": {
-    "application/json": {"schema": MapRequest.model_json_schema()}}}}
+MAP_OPENAPI = {
+    "requestBody": {
+        "required": True,
+        "content": {"application/json": {"schema": MapRequest.model_json_schema()}},
+    }
+}
 
 
 async def map_body(request: Request) -> MapRequest:
@@ -35,19 +39,39 @@ async def map_body(request: Request) -> MapRequest:
     except ValidationError as exc:
         raise api_error_of_validation(exc.errors(include_url=False)) from None
     if len(req.points) > MAX_POINTS:
-        raise ApiError(413, f"points: {len(req.points)} points, more than the {MAX_POINTS} per request "
-                       "limit; split the request", "points")
+        raise ApiError(
+            413,
+            f"points: {len(req.points)} points, more than the {MAX_POINTS} per request "
+            "limit; split the request",
+            "points",
+        )
     return req
 
 
 def _work(cal: Calibration, req: MapRequest, cal_id, version) -> bytes:
     pts = np.asarray(req.points, float).reshape(-1, 2)
-    m = core.map_points(cal, pts, req.z, angles=req.angles, symmetry=req.symmetry,
-                        tool_rz_offset_deg=req.tool_rz_offset_deg, allow_outside=req.allow_outside,
-                        sigma=req.sigma)
-    return orjson.dumps({"id": cal_id, "version": version, "units": "mm", "points": m.xyz_mm,
-                         "rz_deg": m.rz_deg, "sigma_mm": m.sigma_mm, "inside": m.inside},
-                        option=orjson.OPT_SERIALIZE_NUMPY)
+    m = core.map_points(
+        cal,
+        pts,
+        req.z,
+        angles=req.angles,
+        symmetry=req.symmetry,
+        tool_rz_offset_deg=req.tool_rz_offset_deg,
+        allow_outside=req.allow_outside,
+        sigma=req.sigma,
+    )
+    return orjson.dumps(
+        {
+            "id": cal_id,
+            "version": version,
+            "units": "mm",
+            "points": m.xyz_mm,
+            "rz_deg": m.rz_deg,
+            "sigma_mm": m.sigma_mm,
+            "inside": m.inside,
+        },
+        option=orjson.OPT_SERIALIZE_NUMPY,
+    )
 
 
 async def mapped(cal: Calibration, req: MapRequest, cal_id=None, version=None) -> Response:
@@ -58,8 +82,9 @@ async def mapped(cal: Calibration, req: MapRequest, cal_id=None, version=None) -
     return Response(content, media_type="application/json")
 
 
-@router.post("/api/calibrations/{cal_id}/image-to-robot", response_model=MapResponse,
-             openapi_extra=MAP_OPENAPI)
+@router.post(
+    "/api/calibrations/{cal_id}/image-to-robot", response_model=MapResponse, openapi_extra=MAP_OPENAPI
+)
 async def image_to_robot(cal_id: CalId, request: Request, version: VersionQ = None):
     """Map image points (px) to robot points (mm) with a stored calibration."""
     svc = request.app.state.service

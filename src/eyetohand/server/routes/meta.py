@@ -11,8 +11,14 @@ from ...solvers import OPTIMIZERS
 from ..schemas import MAX_ITERATIONS, MAX_NAME, MAX_PAIRS, MAX_PARTICLES, MAX_POINTS, MAX_TEXT_CHARS, Meta
 from . import Svc
 
-PAPER_PRESET = {"model": "paper", "optimizer": "hybrid-pso", "objective": "l2", "particles": 200,
-                "iterations": 150, "seed": 1}  # eyetohand demo's default seed: the same figure
+PAPER_PRESET = {
+    "model": "paper",
+    "optimizer": "hybrid-pso",
+    "objective": "l2",
+    "particles": 200,
+    "iterations": 150,
+    "seed": 1,
+}  # eyetohand demo's default seed: the same figure
 
 router = APIRouter(tags=["service"])
 
@@ -26,12 +32,21 @@ async def health() -> dict[str, str]:
 async def meta(svc: Svc):
     lim = svc.limits
     return {
-        "version": __version__, "models": list(MODEL_CHOICES), "optimizers": list(OPTIMIZERS),
-        "objectives": list(OBJECTIVES), "presets": {"paper": PAPER_PRESET},
-        "limits": {"max_body_bytes": lim.max_body_bytes, "max_fit_body_bytes": lim.max_fit_body_bytes,
-                   "max_points": MAX_POINTS, "max_pairs": MAX_PAIRS,
-                   "max_text_chars": MAX_TEXT_CHARS, "max_name": MAX_NAME,
-                   "max_particles": MAX_PARTICLES, "max_iterations": MAX_ITERATIONS,
-                   "max_pso_work": lim.max_pso_work},
+        "version": __version__,
+        "models": list(MODEL_CHOICES),
+        "optimizers": list(OPTIMIZERS),
+        "objectives": list(OBJECTIVES),
+        "presets": {"paper": PAPER_PRESET},
+        "limits": {
+            "max_body_bytes": lim.max_body_bytes,
+            "max_fit_body_bytes": lim.max_fit_body_bytes,
+            "max_points": MAX_POINTS,
+            "max_pairs": MAX_PAIRS,
+            "max_text_chars": MAX_TEXT_CHARS,
+            "max_name": MAX_NAME,
+            "max_particles": MAX_PARTICLES,
+            "max_iterations": MAX_ITERATIONS,
+            "max_pso_work": lim.max_pso_work,
+        },
         "auth": svc.auth,
     }

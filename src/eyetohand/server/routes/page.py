@@ -12,9 +12,11 @@ from fastapi.staticfiles import StaticFiles
 from starlette.responses import Response
 
 STATIC_DIR = Path(str(resources.files("eyetohand.server") / "static"))
-FAVICON = (b'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 16 16">'
-           b'<circle cx="8" cy="8" r="6" fill="none" stroke="#1f5fae" stroke-width="2"/>'
-           b'<circle cx="8" cy="8" r="2" fill="#1f5fae"/></svg>')
+FAVICON = (
+    b'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 16 16">'
+    b'<circle cx="8" cy="8" r="6" fill="none" stroke="#1f5fae" stroke-width="2"/>'
+    b'<circle cx="8" cy="8" r="2" fill="#1f5fae"/></svg>'
+)
 
 router = APIRouter(include_in_schema=False)
 
@@ -33,10 +35,13 @@ def favicon():
 def docs() -> HTMLResponse:
     """Swagger UI from the ``swagger-ui-bundle`` package: works with no network, runs no
     third-party script from elsewhere."""
-    return get_swagger_ui_html(openapi_url="/openapi.json", title="eyetohand API",
-                               swagger_js_url="/docs-assets/swagger-ui-bundle.js",
-                               swagger_css_url="/docs-assets/swagger-ui.css",
-                               swagger_favicon_url="/favicon.ico")
+    return get_swagger_ui_html(
+        openapi_url="/openapi.json",
+        title="eyetohand API",
+        swagger_js_url="/docs-assets/swagger-ui-bundle.js",
+        swagger_css_url="/docs-assets/swagger-ui.css",
+        swagger_favicon_url="/favicon.ico",
+    )
 
 
 def mount_static(app: FastAPI) -> None:

@@ -14,5 +14,10 @@ router = APIRouter(tags=["pairs"])
 def parse_pairs(req: ParseRequest):
     """Read CSV or JSON text of point pairs with the rules of `eyetohand calibrate`."""
     p = core.parse_text(req.text, req.source)
-    return {"source": p.source, "n": len(p), "pairs": p.to_records(), "notes": list(p.notes),
-            "z_levels_mm": [float(z) for z in p.z_levels_mm]}
+    return {
+        "source": p.source,
+        "n": len(p),
+        "pairs": p.to_records(),
+        "notes": list(p.notes),
+        "z_levels_mm": [float(z) for z in p.z_levels_mm],
+    }
