@@ -112,13 +112,17 @@ def read_bounded_bytes(
 
 def read_bounded_text(path: str | os.PathLike, *, what: str = "a file", limit: int = MAX_INPUT_BYTES) -> str:
     """UTF-8 text of a regular file (see :func:`read_bounded_bytes`); bad bytes named by line."""
-    data = read_bounded_bytes(path, what=what, limit=limit)
+    return decode_utf8(read_bounded_bytes(path, what=what, limit=limit), str(path))
+
+
+def decode_utf8(data: bytes, source: str) -> str:
+    """UTF-8 text (a BOM dropped); bad bytes refused naming the line and what to do."""
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         line = data[: exc.start].count(b"\n") + 1
         raise InputError(
             f"not UTF-8 text (byte {exc.start}); save the file as UTF-8 (in Excel: 'CSV UTF-8')",
-            source=str(path),
+            source=source,
             line=line,
         ) from None

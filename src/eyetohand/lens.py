@@ -152,6 +152,20 @@ def undistort(
     return np.stack([x, y], axis=-1), ok
 
 
+def _newton_terms(x, y, xd, yd, k1, k2, k3, p1, p2):
+    """g, the residual (fx, fy) of distort(x, y) − (xd, yd), and its Jacobian [[a, b], [b, c]]."""
+    r2 = x * x + y * y
+    g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dg = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    xy = x * y
+    fx = x * g + 2 * p1 * xy + p2 * (r2 + 2 * x * x) - xd
+    fy = y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * xy - yd
+    a = g + 2 * x * x * dg + 2 * p1 * y + 6 * p2 * x
+    b = 2 * xy * dg + 2 * p1 * x + 2 * p2 * y
+    c = g + 2 * y * y * dg + 6 * p1 * y + 2 * p2 * x
+    return g, fx, fy, a, b, c
+
+
 def _undistort_few(d, k, tol, max_iter, fixed_point_steps):
     """The same iteration as :func:`undistort` on plain floats, for a handful of points, one lens."""
     k1, k2, p1, p2, k3 = k
@@ -168,15 +182,7 @@ def _undistort_few(d, k, tol, max_iter, fixed_point_steps):
                     (yd - p1 * (r2 + 2 * y * y) - 2 * p2 * xy) / g,
                 )
             for it in range(max_iter + 1):
-                r2 = x * x + y * y
-                g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                dg = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-                xy = x * y
-                fx = x * g + 2 * p1 * xy + p2 * (r2 + 2 * x * x) - xd
-                fy = y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * xy - yd
-                a = g + 2 * x * x * dg + 2 * p1 * y + 6 * p2 * x
-                b = 2 * xy * dg + 2 * p1 * x + 2 * p2 * y
-                c = g + 2 * y * y * dg + 6 * p1 * y + 2 * p2 * x
+                g, fx, fy, a, b, c = _newton_terms(x, y, xd, yd, k1, k2, k3, p1, p2)
                 det = a * c - b * b
                 if it == max_iter:
                     break
@@ -184,15 +190,7 @@ def _undistort_few(d, k, tol, max_iter, fixed_point_steps):
                 x, y = x - sx, y - sy
                 if abs(sx) + abs(sy) <= tol * (1 + abs(x) + abs(y)):
                     # the residual and determinant at the new point (one more evaluation)
-                    r2 = x * x + y * y
-                    g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                    dg = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-                    xy = x * y
-                    fx = x * g + 2 * p1 * xy + p2 * (r2 + 2 * x * x) - xd
-                    fy = y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * xy - yd
-                    a = g + 2 * x * x * dg + 2 * p1 * y + 6 * p2 * x
-                    b = 2 * xy * dg + 2 * p1 * x + 2 * p2 * y
-                    c = g + 2 * y * y * dg + 6 * p1 * y + 2 * p2 * x
+                    g, fx, fy, a, b, c = _newton_terms(x, y, xd, yd, k1, k2, k3, p1, p2)
                     det = a * c - b * b
                     break
             ok = abs(fx) + abs(fy) <= ACCEPT_RESIDUAL * (1 + abs(xd) + abs(yd)) and det > 0 and g > 0

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .io import read_bounded_bytes
+from .io import decode_utf8, read_bounded_bytes
 
 REQUIRED = ("u", "v", "x", "y")
 OPTIONAL = ("z", "id", "angle")
@@ -208,15 +208,7 @@ def _read_text(path: Path) -> str:
         raise InputError(f"{path}: empty file, expected a header line 'u,v,x,y[,z][,id]' and rows")
     if b"\x00" in data:
         raise InputError(f"{path}: binary file, expected CSV or JSON text")
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise InputError(
-            f"not UTF-8 text (byte {exc.start}); save the file as UTF-8 (in Excel: 'CSV UTF-8')",
-            source=str(path),
-            line=line,
-        ) from None
+    return decode_utf8(data, str(path))
 
 
 def _csv_rows(text: str, name: str) -> tuple[list[list[str]], int]:
