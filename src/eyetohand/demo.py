@@ -127,8 +127,9 @@ def run_demo(seed: int = 1, optimizer: str = "hybrid-pso"):
     if region is not None:
         beyond = region.outside_px(check.uv_px) - region.margin_px
         if (beyond > 0).any():
+            n_out = int((beyond > 0).sum())
             lines[3:3] = [
-                f"{int((beyond > 0).sum())} of the {len(check)} check points lie beyond the calibrated region "
+                f"{n_out} of the {len(check)} check points lie beyond the calibrated region "
                 f"(up to {beyond.max():.0f} px past its {region.margin_px:.0f} px margin around the",
                 "calibration points' hull); a robot would be refused there: they are mapped here with the",
                 "guard lifted, as the paper maps them.",
