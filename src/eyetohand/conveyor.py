@@ -21,8 +21,9 @@ Calibrating it (:func:`calibrate_conveyor`): every touch of a sighted part gives
 counts without a sighting (the Omron/Adept belt recipe) gives ``P_k + b · Δe = xyz_touch`` with the
 part's position ``P_k`` unknown. The camera map's parameters, the belt vector, the surface plane, the
 latch delay and the unseen parts' positions are fitted jointly (``scipy.optimize.least_squares`` on
-the batched forward map); the covariance of every estimate is ``s² (JᵀJ)⁻¹`` at the solution, ``s²``
-the residual variance. :func:`calibrate_belt` is the belt-only recipe.
+the batched forward map); the covariance of every estimate is the cluster-robust sandwich at the
+solution (:func:`_cluster_covariance`: the touches of one part share its sighting's errors), never
+below ``s² (JᵀJ)⁻¹`` with ``s²`` the residual variance. :func:`calibrate_belt` is the belt-only recipe.
 
 The report (:class:`ConveyorReport`) separates the error sources and names the faults it finds, each
 by a statistical test with the threshold stated in :data:`THRESHOLDS`.
@@ -711,8 +712,42 @@ def _joint_fit(prep: _Prepared, model, x0, lay, xy0, z_plane, fixed_b=None) -> _
     dof = len(r) - len(idx)
     s2 = float(r @ r / dof) if dof > 0 else float("nan")
     cov = np.zeros((lay["n"], lay["n"]))
-    cov[np.ix_(idx, idx)] = np.linalg.pinv(J.T @ J) * s2
+    cov[np.ix_(idx, idx)] = _cluster_covariance(J, r, _clusters(prep), s2)
     return _Fit(x_full, cov, r.reshape(-1, 3), s2, dof, lay)
+
+
+def _clusters(prep: _Prepared) -> np.ndarray:
+    """(3T,) the part each residual coordinate belongs to: the touches of one part share its
+    sighting's latched count (quantisation, latch jitter) and its camera detection."""
+    n_s = len(prep.s_uv)
+    g = np.where(prep.t_sight >= 0, prep.t_sight, n_s + prep.t_part)
+    return np.repeat(g, 3)
+
+
+def _cluster_covariance(J: np.ndarray, r: np.ndarray, groups: np.ndarray, s2: float) -> np.ndarray:
+    """The estimates' covariance, robust to errors shared by the touches of one part and to errors
+    that are not isotropic: the sandwich ``B M B`` with ``B = (JᵀJ)⁺`` and ``M = Σ_g (J_gᵀ r_g)(J_gᵀ
+    r_g)ᵀ`` over parts g (small-sample factor G/(G−1)·(n−1)/(n−k)), never below the iid
+    ``s² (JᵀJ)⁺``. The iid form alone assumed every touch coordinate independent, while a sighting's
+    count quantisation (±0.5 count) and latch jitter move all its touches together along the belt:
+    over 30 clean simulated sessions the latch delay's scatter was 0.28 count where it reported 0.17."""
+    B = np.linalg.pinv(J.T @ J)
+    iid = B * s2
+    G = int(groups.max()) + 1 if len(groups) else 0
+    n, k = J.shape
+    if G < 2 or n <= k:
+        return iid
+    score = np.zeros((G, k))
+    np.add.at(score, groups, J * r[:, None])
+    M = score.T @ score
+    c = (G / (G - 1)) * ((n - 1) / (n - k))
+    robust = c * (B @ M @ B)
+    # per estimate, the larger of the two variances (a robust covariance from few parts can come out
+    # small by chance): scale the robust one so no variance is below the iid one
+    d_r, d_i = np.diag(robust), np.diag(iid)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(d_r > 0, np.sqrt(np.maximum(d_i / d_r, 1.0)), 1.0)
+    return robust * np.outer(f, f)
 
 
 def _linear_start(prep: _Prepared) -> tuple[np.ndarray, np.ndarray]:
