@@ -386,6 +386,9 @@ class ImagesCalibrate(Strict):
 
     poses: UploadedFile = Field(description="the poses CSV file, bytes as uploaded (UTF-8 expected)")
     images: list[UploadedFile] = Field(min_length=1, max_length=MAX_IMAGES, description="the image files")
+    check: list[PairIn] | None = Field(
+        None, min_length=1, max_length=MAX_PAIRS, description="check pairs, not used for fitting"
+    )
     polarity: Literal["auto", "dark", "bright"] = "auto"
     diameter_px: Finite | None = Field(None, description="expected target diameter, px")
     model: ModelName = Field("auto", description="transform model; 'auto' picks by cross-validation")
@@ -414,3 +417,4 @@ class ImagesJobOut(JobOut):
     detections: list[ImageDetectionOut] = Field(description="one per pose detected so far, in CSV order")
     left_out: list[str] = Field(description="images whose target was not found (not fitted)")
     unused_images: list[str] = Field(description="uploaded files the poses CSV does not name")
+    pairs: list[PairOut] | None = Field(None, description="the detected pairs (id = image), once fitted")

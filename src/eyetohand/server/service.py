@@ -295,6 +295,7 @@ class Service:
             "detections": list(run["detections"]),
             "left_out": list(run["left_out"]),
             "unused_images": list(run["unused_images"]),
+            "pairs": job.fitted.pairs.to_records() if (job.fitted and job.status == "done") else None,
         }
 
     def close(self) -> None:
@@ -384,7 +385,7 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
     ]
     fit_opts = FitOptions.model_construct(
         pairs=records,
-        check=None,
+        check=req.check,
         model=req.model,
         optimizer=req.optimizer,
         objective=req.objective,
