@@ -546,7 +546,15 @@ def plot_sigma_map(
     ax.set_aspect("equal")
     ax.set_xlabel("u [px]")
     ax.set_ylabel("v [px]")
-    ax.legend(loc="upper right", fontsize="small", framealpha=0.7)
+    # under the axes: inside, it hid the top of the region's outline
+    ax.legend(
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.12),
+        ncol=3,
+        fontsize="small",
+        facecolor="0.45",
+        labelcolor="white",
+    )
     if title:
         ax.set_title(title)
     return ax
