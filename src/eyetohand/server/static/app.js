@@ -1000,7 +1000,7 @@ async function compareSaved() {
 function updateButtons() {
   const running = !$("#cancel").disabled;
   $("#run").disabled = !state.pairs || running;
-  $("#run-hint").textContent = state.pairs ? "" : "load calibration pairs first";
+  $("#run-hint").textContent = state.pairs ? "" : "load calibration pairs first, or detect them from images (section 1)";
   const pso = $("#optimizer").value.includes("pso");
   document.querySelectorAll("label.pso").forEach((l) => { l.style.opacity = pso ? 1 : 0.45; l.querySelector("input").disabled = !pso; });
   const unsaved = state.job && state.result && !state.resultSaved;
