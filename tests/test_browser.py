@@ -413,3 +413,97 @@ def test_two_heights_and_refused_files(server, page, tmp_path, capsys):
     page.locator("#sec-data").screenshot(path=str(shot))
     keep(shot)
     assert not page.problems, page.problems
+
+
+# orange (#D55E00) pixels on a thumbnail canvas: the detected target is circled
+THUMB_PIXELS_JS = """(c) => {
+  const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  let n = 0;
+  for (let i = 0; i < d.length; i += 4)
+    if (Math.abs(d[i] - 213) < 40 && Math.abs(d[i + 1] - 94) < 40 && d[i + 2] < 60) n++;
+  return n;
+}"""
+
+
+def test_calibrate_from_uploaded_images(server, page, tmp_path, capsys):
+    """Upload a poses CSV and 9 rendered images (+ one blank image it names): the detections per
+    image (one not found, its reason shown), the fit, the save; screenshots at 1280 and 800 px."""
+    import csv
+    import json
+
+    import cv2
+    import numpy as np
+    from playwright.sync_api import expect
+
+    (tmp_path / "cell.toml").write_text(
+        "[camera]\nwidth_px = 816\nheight_px = 683\npixel_size_um = 10.35\n"
+        "principal_offset_px = [4.0, -3.0]\n"
+    )
+    argv = ["simulate", "--config", str(tmp_path / "cell.toml"), "--plan", "grid:3x3", "--heights", "150"]
+    assert main([*argv, "--check", "4", "--out", str(tmp_path / "sim"), "--seed", "5", "--images"]) == 0
+    sim = tmp_path / "sim"
+    rows = list(csv.DictReader((sim / "poses.csv").open()))
+    blank = sim / "images" / "blank.png"
+    cv2.imwrite(str(blank), np.full((683, 816), 128, np.uint8))
+    poses = tmp_path / "poses.csv"
+    poses.write_text(
+        "image,x,y,z\n"
+        + "".join(f"{r['image']},{r['x']},{r['y']},{r['z']}\n" for r in rows)
+        + "images/blank.png,0,600,150\n"
+    )
+    images = [str(sim / r["image"]) for r in rows] + [str(blank)]
+
+    page.set_viewport_size({"width": 1280, "height": 1000})
+    page.goto(server + "/")
+    expect(page.locator("#server-status")).to_contain_text("server v")
+    assert page.locator("#images-go").is_disabled()
+    page.set_input_files("#images-poses", str(poses))
+    page.set_input_files("#images-files", images)
+    expect(page.locator("#images-count")).to_contain_text("poses.csv, 10 images")
+    page.select_option("#model", "homography")
+    page.click("#images-go")
+    expect(page.locator("#sec-result")).to_be_visible(timeout=90_000)
+    rows_el = page.locator("#images-table tbody tr")
+    expect(rows_el).to_have_count(10)
+    found = page.locator("#images-table tbody td.ok")
+    expect(found).to_have_count(9)
+    last = rows_el.nth(9)
+    expect(last).to_have_class("bad")
+    expect(last).to_contain_text("images/blank.png")
+    expect(last).to_contain_text("no target found")
+    expect(page.locator("#images-count")).to_contain_text("10 of 10 images detected, target found in 9")
+    expect(page.locator("#images-notes")).to_contain_text("left out 1 image(s)")
+    expect(page.locator("#pairs-count")).to_contain_text("9 pairs detected in the images of poses.csv")
+    expect(page.locator("#result-title")).to_contain_text("homography")
+    expect(page.locator("#train-table tbody tr")).to_have_count(9)
+    thumbs = page.locator("#images-thumbs canvas")
+    expect(thumbs).to_have_count(10)
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('#images-thumbs canvas')].every((c) => c.height !== 126)"
+    )
+    circled = [thumbs.nth(k).evaluate(THUMB_PIXELS_JS) for k in range(10)]
+    assert all(n > 20 for n in circled[:9]) and circled[9] == 0, circled
+    # the detections and the fit equal the CLI's on the same files
+    capsys.readouterr()
+    code = main(["calibrate-images", str(poses), "--images", str(sim), "--model", "homography", "--json"])
+    cli = json.loads(capsys.readouterr().out)
+    assert code == 0 and cli["left_out"] == ["images/blank.png"]
+    for k, det in enumerate(cli["detections"][:9]):
+        cells = rows_el.nth(k).locator("td").all_inner_texts()
+        assert cells[:4] == [det["image"], "found", f"{det['u']:.3f}", f"{det['v']:.3f}"], (cells, det)
+    expect(page.locator("#stats-table")).to_contain_text(f"{cli['train']['rms_mm']:.4f}")
+
+    page.fill("#save-name", "from images")
+    page.click("#save-new")
+    expect(page.locator("#save-state")).to_contain_text("saved as “from images”")
+    expect(page.locator("#saved-table")).to_contain_text("from images")
+    shot = tmp_path / "images_1280.png"
+    page.screenshot(path=str(shot), full_page=True)
+    keep(shot)
+    page.set_viewport_size({"width": 800, "height": 1000})
+    wide = page.evaluate("() => document.documentElement.scrollWidth")
+    assert wide <= 800, wide
+    shot = tmp_path / "images_800.png"
+    page.locator("#sec-data").screenshot(path=str(shot))
+    keep(shot)
+    assert not page.problems, page.problems

@@ -364,3 +364,19 @@ def test_sigma_map_shows_sigma_over_the_image_with_the_region_outlined(paper_cal
     assert s[0, 0] > s[15, 20] and s[-1, -1] > s[15, 20]
     with pytest.raises(InputError, match="sigma_mm must have shape"):
         plots.plot_sigma_map(u, v, s.T, hull)
+
+
+def test_sigma_map_legend_sits_under_the_map():
+    """The sigma map's legend is drawn under the axes, never over the calibrated region's outline."""
+    import numpy as np
+
+    from eyetohand.plots import plot_sigma_map
+
+    u, v = np.arange(0, 800, 20.0), np.arange(0, 600, 20.0)
+    hull = np.array([[40.0, 30.0], [760.0, 30.0], [760.0, 570.0], [40.0, 570.0]])
+    ax = plot_sigma_map(u, v, np.ones((len(v), len(u))), hull, points_px=hull)
+    fig = ax.figure
+    fig.canvas.draw()
+    legend = ax.get_legend().get_window_extent()
+    assert legend.y1 < ax.get_window_extent().y0, (legend, ax.get_window_extent())
+    assert [t.get_text() for t in ax.get_legend().get_texts()][0].startswith("calibrated region")

@@ -1064,3 +1064,108 @@ def test_apply_json_equals_the_http_mapping(client, tmp_path, capsys):
     assert np.abs(np.array([p["rz"] for p in cli]) - np.array(api["rz_deg"])).max() <= 1e-9
     assert np.abs(np.array([p["sigma_mm"] for p in cli]) - np.array(api["sigma_mm"])).max() <= 1e-12
     assert [p["inside"] for p in cli] == api["inside"]
+
+
+# ---------------------------------------------------------------------- calibration from uploaded images
+
+SMALL_CELL = """[camera]
+width_px = 816
+height_px = 683
+pixel_size_um = 10.35
+principal_offset_px = [4.0, -3.0]
+"""
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """9 images of a grid:3x3 at z = 150 mm, rendered at a third of the default camera's resolution."""
+    d = tmp_path_factory.mktemp("rendered")
+    (d / "cell.toml").write_text(SMALL_CELL)
+    argv = ["simulate", "--config", str(d / "cell.toml"), "--plan", "grid:3x3", "--heights", "150"]
+    assert cli_main([*argv, "--check", "4", "--out", str(d / "sim"), "--seed", "2", "--images"]) == 0
+    return d / "sim"
+
+
+def _upload(folder: Path, poses: str = "poses.csv", skip=()) -> dict:
+    import base64
+
+    def f(path: Path) -> dict:
+        return {"name": path.name, "data_base64": base64.b64encode(path.read_bytes()).decode()}
+
+    names = [r["image"] for r in csv.DictReader((folder / poses).open())]
+    return {
+        "poses": f(folder / poses),
+        "images": [f(folder / n) for n in names if n not in skip],
+        "model": "homography",
+    }
+
+
+def _follow_images(client, jid: str) -> dict:
+    deadline = time.monotonic() + 120
+    while True:
+        j = client.get(f"/api/images/jobs/{jid}").json()
+        if j["status"] in ("done", "failed", "cancelled"):
+            return j
+        assert time.monotonic() < deadline, j
+        time.sleep(0.05)
+
+
+def test_images_calibrate_upload_equals_the_cli(client, rendered, capsys):
+    """POST /api/images/calibrate with the poses CSV and its images: per-image detections, the fit and
+    the saved calibration equal `eyetohand calibrate-images` on the same files; one image missing from
+    the upload is left out with the CLI's words."""
+    code = cli_main(["calibrate-images", str(rendered / "poses.csv"), "--model", "homography", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    cli = json.loads(out)
+    r = client.post("/api/images/calibrate", json=_upload(rendered))
+    assert r.status_code == 202 and r.json()["kind"] == "fit"
+    j = _follow_images(client, r.json()["id"])
+    assert j["status"] == "done", j
+    assert j["poses"] == 9 and len(j["detections"]) == 9 and j["left_out"] == [] and j["unused_images"] == []
+    assert [d["image"] for d in j["detections"]] == [d["image"] for d in cli["detections"]]
+    for a, b in zip(j["detections"], cli["detections"], strict=True):
+        assert a["ok"] and abs(a["u"] - b["u"]) < 1e-9 and abs(a["v"] - b["v"]) < 1e-9
+    assert j["result"]["model"] == "homography" and j["result"]["n_pairs"] == 9
+    assert abs(j["result"]["train"]["rms_mm"] - cli["train"]["rms_mm"]) < 1e-9
+    saved = client.post(f"/api/jobs/{j['id']}/save", json={"name": "from images"})
+    assert saved.status_code == 201 and saved.json()["request"]["source"] == "images"
+    # one image not uploaded: left out, named as the CLI names a missing file
+    first = next(csv.DictReader((rendered / "poses.csv").open()))["image"]
+    r = client.post("/api/images/calibrate", json=_upload(rendered, skip={first}))
+    j = _follow_images(client, r.json()["id"])
+    assert j["status"] == "done" and j["left_out"] == [first] and j["result"]["n_pairs"] == 8
+    assert "no such file" in j["detections"][0]["reason"]
+
+
+def test_images_calibrate_refusals_use_the_cli_words(tmp_path, rendered, capsys):
+    """A Latin-1 poses CSV fails the job with the CLI's message (no temporary path in it); bad base64
+    and a body over the limit are refused at once (422, 413 before parsing)."""
+    import base64
+
+    bad = tmp_path / "poses.csv"
+    bad.write_bytes((rendered / "poses.csv").read_bytes().replace(b"image,", b"image,\xe9,", 1))
+    code = cli_main(["calibrate-images", str(bad), "--images", str(rendered)])
+    _, err = capsys.readouterr()
+    assert code != 0 and "not UTF-8" in err
+    cli_words = err.strip().removeprefix("error: ").replace(str(tmp_path) + "/", "")
+    app = create_app(tmp_path / "data", max_body_bytes=8_000_000)
+    with TestClient(app) as c:
+        body = _upload(rendered)
+        body["poses"]["data_base64"] = base64.b64encode(bad.read_bytes()).decode()
+        j = _follow_images(c, c.post("/api/images/calibrate", json=body).json()["id"])
+        assert j["status"] == "failed" and j["error"]["error"] == cli_words, (j["error"], cli_words)
+        assert j["error"]["field"] == "poses" and "eyetohand-images-" not in j["error"]["error"]
+        body = _upload(rendered)
+        body["images"][0]["data_base64"] = "not base64!"
+        r = c.post("/api/images/calibrate", json=body)
+        assert r.status_code == 422 and r.json()["field"] == "images[0].data_base64"
+        body["images"][0]["name"] = "../up.png"
+        r = c.post("/api/images/calibrate", json=body)
+        assert r.status_code == 422 and "images" in r.json()["field"]
+        big = _upload(rendered)
+        big["images"] *= 3  # ~10 MB of base64
+        r = c.post(
+            "/api/images/calibrate", content=orjson.dumps(big), headers={"content-type": "application/json"}
+        )
+        assert r.status_code == 413 and "limit" in r.json()["error"]

@@ -399,3 +399,51 @@ def test_images_end_to_end(tmp_path, capsys):
             d = json.loads(text)
             print(f"calibrate-images: model {d['model']}, check rms {d['check']['rms_mm']:.4f} mm")
             assert d["check"]["rms_mm"] < 0.1
+
+
+def test_plan_plot_is_report_sized_explains_its_whiskers_and_uses_the_shared_palette(tmp_path):
+    """plan.png: the report plots' size (7 × 4.2 in at 110 dpi), the p90 whiskers named in the legend,
+    the recommended plan marked, bar colours from eyetohand.plots.COLORS."""
+    import struct
+
+    from matplotlib.colors import to_hex
+
+    from eyetohand.plots import COLORS, plot_plan_study
+    from eyetohand.sim.planner import plot_study
+
+    def row(plan, n, rms, mx):
+        return {
+            "plan": plan,
+            "heights": [150.0],
+            "n_pairs": n,
+            "runs": 5,
+            "predicted_rms_mm": rms,
+            "predicted_max_mm": mx,
+            "rms_p90_mm": rms and rms * 1.5,
+            "max_p90_mm": mx and mx * 1.5,
+        }
+
+    study = {
+        "plans": [
+            row("grid:5x5", 25, 0.006, 0.010),
+            row("grid:3x3", 9, 0.012, 0.020),
+            row("bad", 4, None, None),
+        ],
+        "recommended": "grid:5x5",
+        "target_error_mm": 0.012,
+        "target_metric": "max",
+        "runs": 5,
+    }
+    ax = plot_plan_study(study)
+    assert tuple(ax.figure.get_size_inches()) == (7.0, 4.2)
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert any("90th percentile of 5 runs" in t for t in legend), legend
+    assert any("median" in t and "RMS" in t for t in legend) and any("target" in t for t in legend)
+    colours = {to_hex(p.get_facecolor()).upper() for p in ax.patches}
+    assert colours == {COLORS[0], COLORS[1]}, colours
+    ticks = [t.get_text() for t in ax.get_xticklabels()]
+    assert ticks == ["grid:3x3\n9 pairs", "grid:5x5\n25 pairs\nrecommended"]  # fewest pairs first
+    assert ax.get_ylim()[1] > 0.015 * 1.3  # headroom above the tallest whisker for the legend
+    png = tmp_path / "plan.png"
+    plot_study(study, png)
+    assert struct.unpack(">II", png.read_bytes()[16:24]) == (770, 462)

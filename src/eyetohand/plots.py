@@ -20,6 +20,7 @@ from .errors import InputError
 __all__ = [
     "plot_convergence",
     "plot_model_comparison",
+    "plot_plan_study",
     "plot_point_errors",
     "plot_residual_vectors",
     "plot_sigma_map",
@@ -418,6 +419,79 @@ def plot_model_comparison(rows: Sequence[Mapping], ax=None, *, title: str | None
     return ax
 
 
+# ------------------------------------------------------------------ plan study (eyetohand plan)
+
+
+def plot_plan_study(study: Mapping, ax=None, *, title: str | None = None):
+    """Predicted check RMS and max (mm) per plan of :func:`eyetohand.sim.planner.plan_study`.
+
+    Bars: the median over the simulated sessions; whiskers: their 90th percentile (one session in
+    ten is worse), both named in the legend. Plans sorted by number of pairs; the target error is a
+    dashed line, the recommended plan is marked under its bars. Plans that could not be calibrated
+    are left out. Returns the axes."""
+    rows = sorted(
+        [r for r in study.get("plans", ()) if r.get("predicted_rms_mm") is not None],
+        key=lambda r: r["n_pairs"],
+    )
+    if not rows:
+        raise InputError("plot: no plan could be calibrated, nothing to plot")
+    if ax is None:
+        ax = _new_axes((7.0, 4.2))
+    n = len(rows)
+    x = np.arange(n)
+    runs = int(study.get("runs") or rows[0].get("runs") or 0)
+    rms = np.array([r["predicted_rms_mm"] for r in rows], float)
+    mx = np.array([r["predicted_max_mm"] for r in rows], float)
+    rms90 = np.array([r.get("rms_p90_mm", r["predicted_rms_mm"]) for r in rows], float)
+    mx90 = np.array([r.get("max_p90_mm", r["predicted_max_mm"]) for r in rows], float)
+    w = 0.38
+    ax.bar(x - w / 2, rms, w * 0.95, color=COLORS[0], label="check RMS, median of the runs")
+    ax.bar(x + w / 2, mx, w * 0.95, color=COLORS[1], label="check max, median of the runs")
+    ax.errorbar(
+        np.concatenate([x - w / 2, x + w / 2]),
+        np.concatenate([rms, mx]),
+        yerr=[np.zeros(2 * n), np.concatenate([rms90 - rms, mx90 - mx])],
+        fmt="none",
+        ecolor="0.2",
+        elinewidth=1.0,
+        capsize=3,
+        label=f"whisker: 90th percentile of {runs} runs (1 session in 10 is worse)",
+    )
+    target = study.get("target_error_mm")
+    if target is not None:
+        ax.axhline(
+            float(target),
+            color="0.25",
+            ls="--",
+            lw=1.1,
+            label=f"target: {study.get('target_metric', 'max')} ≤ {_fmt_mm(float(target))} mm",
+        )
+    recommended = study.get("recommended")
+    labels = [
+        f"{r['plan']}\n{r['n_pairs']} pairs" + ("\nrecommended" if r["plan"] == recommended else "")
+        for r in rows
+    ]
+    ax.set_xticks(x, labels, fontsize=8)
+    for tick, r in zip(ax.get_xticklabels(), rows, strict=True):
+        if r["plan"] == recommended:
+            tick.set_fontweight("bold")
+    n_entries = 3 + (target is not None)
+    high = max(float(mx90.max()), float(target or 0.0)) or 1.0
+    ax.set_ylim(0, high * (1.1 + 0.09 * n_entries))  # headroom: the legend never covers a bar
+    ax.set_xlim(-0.6, n - 0.4)
+    ax.set_ylabel("predicted check error [mm]")
+    ax.set_xlabel("calibration plan (fewest pairs first)")
+    ax.grid(True, axis="y", alpha=0.35)
+    ax.set_axisbelow(True)
+    ax.legend(fontsize=8, loc="upper right", frameon=True)
+    if title is None:
+        heights = ", ".join(f"{h:g}" for h in rows[0].get("heights", ()))
+        title = f"Planned accuracy: Monte Carlo over {runs} simulated sessions per plan, z = {heights} mm"
+    if title:
+        ax.set_title(title, fontsize=10.5)
+    return ax
+
+
 # ------------------------------------------------------------------ where a calibration can be trusted
 
 
@@ -472,7 +546,15 @@ def plot_sigma_map(
     ax.set_aspect("equal")
     ax.set_xlabel("u [px]")
     ax.set_ylabel("v [px]")
-    ax.legend(loc="upper right", fontsize="small", framealpha=0.7)
+    # under the axes: inside, it hid the top of the region's outline
+    ax.legend(
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.12),
+        ncol=3,
+        fontsize="small",
+        facecolor="0.45",
+        labelcolor="white",
+    )
     if title:
         ax.set_title(title)
     return ax

@@ -22,7 +22,7 @@ from .. import __version__
 from .core import Jobs
 from .middleware import BodyLimit, HostGuard, TokenGuard
 from .responses import install_handlers
-from .routes import calibrations, collect, jobs, mapping, meta, page, pairs
+from .routes import calibrations, collect, images, jobs, mapping, meta, page, pairs
 from .routes.meta import PAPER_PRESET
 from .schemas import (
     MAX_BODY_BYTES,
@@ -103,7 +103,7 @@ def create_app(
     app.state.store = service.store  # kept for callers that close the store themselves
     app.state.jobs = service.jobs
     install_handlers(app)
-    for r in (page, meta, pairs, calibrations, mapping, jobs, collect):
+    for r in (page, meta, pairs, calibrations, mapping, jobs, collect, images):
         app.include_router(r.router)
     page.mount_static(app)
 
@@ -112,6 +112,8 @@ def create_app(
             return limits.max_body_bytes
         if path == "/api/pairs/parse":
             return limits.max_parse_body_bytes
+        if path == "/api/images/calibrate":  # images as base64
+            return limits.max_body_bytes
         return limits.max_fit_body_bytes
 
     app.add_middleware(BodyLimit, limit_for=limit_for)

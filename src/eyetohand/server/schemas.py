@@ -353,3 +353,68 @@ class Meta(BaseModel):
     presets: dict[str, dict[str, Any]]
     limits: dict[str, int]
     auth: bool
+
+
+# ---------------------------------------------------------------- calibration from uploaded images
+
+MAX_IMAGES = 500
+"""Most images in one POST /api/images/calibrate."""
+MAX_IMAGES_BODY_BYTES = MAX_BODY_BYTES
+"""Largest body of POST /api/images/calibrate (images as base64: ~48 MiB of image files); refused
+(413) from Content-Length before parsing."""
+
+
+def _file_name(text: str) -> str:
+    text = clean_text(text, "file name")
+    if "/" in text or "\\" in text or text in (".", "..") or not text.strip():
+        raise ValueError("a file name without folders, e.g. 'pose_01.png'")
+    return text
+
+
+FileName = Annotated[str, Field(min_length=1, max_length=255), AfterValidator(_file_name)]
+Base64 = Annotated[str, Field(max_length=MAX_IMAGES_BODY_BYTES, description="the file's bytes, base64")]
+
+
+class UploadedFile(Strict):
+    name: FileName = Field(description="the file's name (no folders), as the poses CSV names it")
+    data_base64: Base64
+
+
+class ImagesCalibrate(Strict):
+    """`eyetohand calibrate-images` from the page: the poses CSV (``image,x,y[,z][,angle]``) and the
+    image files it names, detected one by one in the job queue, then fitted."""
+
+    poses: UploadedFile = Field(description="the poses CSV file, bytes as uploaded (UTF-8 expected)")
+    images: list[UploadedFile] = Field(min_length=1, max_length=MAX_IMAGES, description="the image files")
+    check: list[PairIn] | None = Field(
+        None, min_length=1, max_length=MAX_PAIRS, description="check pairs, not used for fitting"
+    )
+    polarity: Literal["auto", "dark", "bright"] = "auto"
+    diameter_px: Finite | None = Field(None, description="expected target diameter, px")
+    model: ModelName = Field("auto", description="transform model; 'auto' picks by cross-validation")
+    optimizer: OptimizerName = Field("lm", description="solver refining the model")
+    objective: ObjectiveName = Field("l2", description="robot-space objective (mm)")
+    seed: Int | None = Field(None, ge=0, le=2**32 - 1, description="seed of the stochastic solvers")
+    particles: Int = Field(200, ge=2, le=MAX_PARTICLES, description="swarm size (pso, hybrid-pso)")
+    iterations: Int = Field(150, ge=1, le=MAX_ITERATIONS, description="iterations (pso, hybrid-pso)")
+    image_size: tuple[Px, Px] | None = Field(
+        None, description="image width and height, px (sets the distortion centre)"
+    )
+
+
+class ImageDetectionOut(BaseModel):
+    image: str = Field(description="the image as the poses CSV names it")
+    ok: bool
+    u: float | None = Field(None, description="target centre, image column, px")
+    v: float | None = Field(None, description="target centre, image row, px")
+    diameter_px: float | None = None
+    score: float | None = Field(None, description="detection quality, 0..1")
+    reason: str = Field("", description="why the image was left out")
+
+
+class ImagesJobOut(JobOut):
+    poses: int = Field(description="poses in the CSV (0 until it is read)")
+    detections: list[ImageDetectionOut] = Field(description="one per pose detected so far, in CSV order")
+    left_out: list[str] = Field(description="images whose target was not found (not fitted)")
+    unused_images: list[str] = Field(description="uploaded files the poses CSV does not name")
+    pairs: list[PairOut] | None = Field(None, description="the detected pairs (id = image), once fitted")

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from ..calibration import Calibration
 from ..pairs import PointPairs
 from . import core
-from .core import ApiError, Fitted, Jobs
-from .schemas import FitOptions
+from .core import ApiError, Fitted, Job, Jobs
+from .schemas import FitOptions, ImagesCalibrate
 from .storage import Record, Store, Version
 
 
@@ -43,6 +43,7 @@ class Service:
         self._by_version: OrderedDict[tuple[int, int], Calibration] = OrderedDict()
         self._current: dict[int, tuple[int, Calibration]] = {}
         self._generation: dict[int, int] = {}
+        self._image_runs: OrderedDict[str, dict] = OrderedDict()  # job id -> its detections
 
     # ------------------------------------------------------------ cache
     def cached(self, cal_id: int, version: int | None = None) -> tuple[int, Calibration] | None:
@@ -236,9 +237,175 @@ class Service:
         self.jobs.get(job_id).saved = {"id": d["id"], "version": d["version"], "name": d["name"]}
         return d
 
+    # ------------------------------------------------------------ calibration from uploaded images
+    def images_job(self, req: ImagesCalibrate) -> Job:
+        """Start ``calibrate-images`` on uploaded files: a job of kind "fit" (saved, followed and
+        cancelled like any fit) that reads the poses CSV and detects each image on the job worker,
+        with the CLI's rules and messages; :meth:`images_view` adds the per-image detections."""
+        import base64
+        import binascii
+
+        if req.diameter_px is not None and not req.diameter_px > 0:
+            raise ApiError(
+                422, f"diameter_px: expected a positive number of px, got {req.diameter_px:g}", "diameter_px"
+            )
+        pso = req.optimizer in ("pso", "hybrid-pso")
+        if pso and req.particles * req.iterations > self.jobs.max_pso_work:
+            raise ApiError(
+                422,
+                f"particles × iterations = {req.particles} × {req.iterations} = "
+                f"{req.particles * req.iterations}, more than this server's limit of "
+                f"{self.jobs.max_pso_work}",
+                "iterations",
+            )
+        files: dict[str, bytes] = {}
+        for i, f in enumerate([req.poses, *req.images]):
+            fld = "poses" if i == 0 else f"images[{i - 1}]"
+            if i and f.name in files:
+                raise ApiError(422, f"{fld}.name: {f.name!r} is uploaded twice", f"{fld}.name")
+            try:
+                data = base64.b64decode(f.data_base64, validate=True)
+            except (binascii.Error, ValueError):
+                raise ApiError(422, f"{fld}.data_base64: not base64 text", f"{fld}.data_base64") from None
+            if i == 0:
+                poses_bytes = data
+            else:
+                files[f.name] = data
+        run: dict = {"poses": 0, "detections": [], "left_out": [], "unused_images": []}
+
+        def work(job: Job) -> None:
+            _images_work(job, req, poses_bytes, files, run)
+
+        job = self.jobs.submit("fit", work, req.iterations if pso else 0)
+        with self._lock:
+            self._image_runs[job.id] = run
+            while len(self._image_runs) > self.jobs.keep:
+                self._image_runs.popitem(last=False)
+        return job
+
+    def images_view(self, job_id: str, since: int = 0) -> dict:
+        job = self.jobs.get(job_id)
+        with self._lock:
+            run = self._image_runs.get(job_id)
+        if run is None:
+            raise ApiError(404, f"job {job_id} is not a calibration from images", "id")
+        return {
+            **job.view(since),
+            "poses": run["poses"],
+            "detections": list(run["detections"]),
+            "left_out": list(run["left_out"]),
+            "unused_images": list(run["unused_images"]),
+            "pairs": job.fitted.pairs.to_records() if (job.fitted and job.status == "done") else None,
+        }
+
     def close(self) -> None:
         self.jobs.shutdown()
         self.store.close()
+
+
+def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict[str, bytes], run: dict):
+    """The job: the upload written to a private temporary folder, then exactly what
+    ``eyetohand calibrate-images POSES.csv`` does there (messages name the files as uploaded)."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    from ..errors import InputError
+    from ..images import ImageResult, detect_poses, load_poses, pairs_from_detections
+    from .schemas import PairIn
+
+    opts: dict = {"polarity": req.polarity}
+    if req.diameter_px is not None:
+        opts["diameter_px"] = req.diameter_px
+    with tempfile.TemporaryDirectory(prefix="eyetohand-images-") as tmp:
+        root = Path(tmp).resolve()
+        prefix = str(root) + os.sep
+
+        def fail(exc: InputError, fld: str) -> ApiError:
+            return ApiError(422, str(exc).replace(prefix, ""), fld, exc.line)
+
+        poses_path = root / req.poses.name
+        poses_path.write_bytes(poses_bytes)
+        job.phase = f"reading {req.poses.name}"
+        try:
+            poses = load_poses(poses_path, root)
+        except InputError as exc:
+            raise fail(exc, "poses") from None
+        run["poses"] = len(poses)
+        named = set()
+        results: list[ImageResult] = []
+        for i, pose in enumerate(poses):
+            if job.cancel.is_set():
+                return
+            job.phase = f"detecting the target: image {i + 1} of {len(poses)} ({pose.image})"
+            base = pose.image.replace("\\", "/").rsplit("/", 1)[-1]
+            upload = base if base in files else None
+            inside = pose.path.resolve().is_relative_to(root) and not Path(pose.image).is_absolute()
+            if upload is None or not inside:
+                res = ImageResult(
+                    pose.image, False, reason=f"{pose.image}: no such file among the uploaded images"
+                )
+            else:
+                named.add(upload)
+                pose.path.parent.mkdir(parents=True, exist_ok=True)
+                pose.path.write_bytes(files[upload])
+                res = detect_poses([pose], **opts)[0]
+                pose.path.unlink()
+            results.append(res)
+            run["detections"].append(res.to_dict())
+            if not res.ok:
+                run["left_out"].append(res.image)
+        run["unused_images"] = sorted(set(files) - named)
+        try:
+            pairs = pairs_from_detections(poses, results, req.poses.name)
+        except InputError as exc:
+            raise fail(exc, "images") from None
+    job.phase = (
+        "choosing the model by cross-validation, then fitting"
+        if req.model == "auto"
+        else f"fitting {req.model} with {req.optimizer}"
+    )
+    pso = req.optimizer in ("pso", "hybrid-pso")
+
+    def progress(_iteration, best, *_):
+        job.history.append(core._finite(best))
+        done = len(job.history)
+        job.phase = (
+            "leave-one-out refits and check points"
+            if done >= req.iterations
+            else f"{req.optimizer}: iteration {done} of {req.iterations}"
+        )
+        return job.cancel.is_set()
+
+    records = [
+        PairIn.model_construct(
+            id=pid, u=float(uv[0]), v=float(uv[1]), x=float(p[0]), y=float(p[1]), z=float(p[2])
+        )
+        for pid, uv, p in zip(pairs.ids, pairs.uv_px, pairs.xyz_mm, strict=True)
+    ]
+    fit_opts = FitOptions.model_construct(
+        pairs=records,
+        check=req.check,
+        model=req.model,
+        optimizer=req.optimizer,
+        objective=req.objective,
+        seed=req.seed,
+        exclude=[],
+        particles=req.particles,
+        iterations=req.iterations,
+        image_size=req.image_size,
+    )
+    fitted = core.fit(fit_opts, progress if pso else None)
+    fitted.request.update(
+        source="images",
+        poses=req.poses.name,
+        polarity=req.polarity,
+        diameter_px=req.diameter_px,
+        left_out=list(run["left_out"]),
+    )
+    job.fitted = fitted
+    if not pso:
+        job.history = list(fitted.summary()["history"])
 
 
 def _pairs_of(records: list[dict] | None, label: str) -> PointPairs | None:

@@ -145,50 +145,14 @@ def plan_study(
 
 
 def plot_study(study: dict, path) -> None:
-    """Bar chart of predicted RMS and max per plan (fewest pairs first), the target as a line (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..io import atomic_write_bytes
-
-    rows = sorted(
-        [r for r in study["plans"] if r.get("predicted_rms_mm") is not None], key=lambda r: r["n_pairs"]
-    )
-    if not rows:
-        raise InputError("plot: no plan could be calibrated, nothing to plot")
-    x = np.arange(len(rows))
-    fig, ax = plt.subplots(figsize=(max(5.0, 1.1 * len(rows) + 2), 4.0), dpi=110)
-    rms = [r["predicted_rms_mm"] for r in rows]
-    mx = [r["predicted_max_mm"] for r in rows]
-    mx90 = [r["max_p90_mm"] for r in rows]
-    ax.bar(x - 0.2, rms, 0.4, label="predicted RMS (median of runs)")
-    ax.bar(
-        x + 0.2,
-        mx,
-        0.4,
-        label="predicted max (median of runs)",
-        yerr=[np.zeros(len(rows)), np.subtract(mx90, mx)],
-        capsize=3,
-    )
-    if study.get("target_error_mm") is not None:
-        ax.axhline(
-            study["target_error_mm"],
-            color="k",
-            ls="--",
-            lw=1,
-            label=f"target ({study['target_metric']}) {study['target_error_mm']:g} mm",
-        )
-    ax.set_xticks(x, [f"{r['plan']}\n{r['n_pairs']} pairs" for r in rows], fontsize=8)
-    ax.set_ylabel("check error (mm)")
-    heights = ", ".join(f"{h:g}" for h in rows[0]["heights"])
-    ax.set_title(f"Monte Carlo over {study['runs']} runs, heights {heights} mm", fontsize=10)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
+    """Bar chart of predicted RMS and max per plan (fewest pairs first), the target as a line (PNG):
+    :func:`eyetohand.plots.plot_plan_study`, same size and palette as the report's plots."""
     import io
 
+    from ..io import atomic_write_bytes
+    from ..plots import plot_plan_study
+
+    ax = plot_plan_study(study)
     buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    plt.close(fig)
+    ax.figure.savefig(buf, format="png", dpi=110)
     atomic_write_bytes(path, buf.getvalue())

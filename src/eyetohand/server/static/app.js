@@ -14,7 +14,11 @@ const state = {
   excluded: new Set(),
   saved: [],
   poll: null,
+  imagesJob: false,   // the current job is a calibration from uploaded images
+  imageFiles: new Map(),  // file name -> File, for the thumbnails
+  thumbs: 0,
 };
+const MAX_THUMBS = 48;
 
 // ------------------------------------------------------------------ helpers
 
@@ -159,6 +163,129 @@ function wireLoader(set) {
   $(`#${set}-load`).addEventListener("click", () => loadPairs(set, $(`#${set}-text`).value, "pasted text"));
 }
 
+// ------------------------------------------------------------------ 1b. from images (calibrate-images)
+
+function imagesChosen() {
+  const poses = $("#images-poses").files[0];
+  const files = [...$("#images-files").files];
+  const total = files.reduce((n, f) => n + f.size, 0) + (poses ? poses.size : 0);
+  $("#images-count").textContent = poses || files.length
+    ? `${poses ? poses.name : "no poses CSV yet"}, ${files.length} image${files.length === 1 ? "" : "s"} (${(total / 2 ** 20).toFixed(1)} MiB)`
+    : "none chosen";
+  $("#images-count").classList.remove("ok");
+  imagesButton();
+}
+function imagesButton() {
+  $("#images-go").disabled = !($("#images-poses").files.length && $("#images-files").files.length) || !$("#cancel").disabled;
+}
+
+function fileBase64(file) {
+  return new Promise((resolve, reject) => {
+    const r = new FileReader();
+    r.onload = () => resolve(String(r.result).split(",", 2)[1] || "");
+    r.onerror = () => reject(r.error);
+    r.readAsDataURL(file);
+  });
+}
+
+async function runImages() {
+  clearError("#images-err", "#loader-images");
+  clearError("#fit-err", "#sec-fit");
+  $("#images-notes").innerHTML = "";
+  const poses = $("#images-poses").files[0];
+  const files = [...$("#images-files").files];
+  if (!poses || !files.length) { showError("#images-err", { error: "choose the poses CSV and the images it names" }); return; }
+  const limit = state.meta.limits.max_body_bytes;
+  const total = files.reduce((n, f) => n + f.size, 0) + poses.size;
+  if ((total * 4) / 3 + 65536 > limit) {  // sent as base64: 4 bytes per 3
+    showError("#images-err", { error: `${files.length} images, ${(total / 2 ** 20).toFixed(1)} MiB: more than one upload to this server takes (about ${Math.floor((limit * 0.75) / 2 ** 20)} MiB of files); choose fewer or smaller images, or run eyetohand calibrate-images on this computer` });
+    return;
+  }
+  $("#images-go").disabled = true;
+  $("#images-hint").textContent = "reading the files…";
+  const req = { poses: { name: poses.name, data_base64: await fileBase64(poses) }, images: [], polarity: $("#images-polarity").value };
+  for (const f of files) req.images.push({ name: f.name, data_base64: await fileBase64(f) });
+  const d = $("#images-diameter").value;
+  if (d !== "") req.diameter_px = Number(d);
+  const fit = fitRequest();
+  for (const k of ["model", "optimizer", "objective", "particles", "iterations", "seed", "check"]) if (fit[k] !== undefined) req[k] = fit[k];
+  state.imageFiles = new Map(files.map((f) => [f.name, f]));
+  $("#images-hint").textContent = `uploading ${(total / 2 ** 20).toFixed(1)} MiB…`;
+  const r = await api("POST", "/api/images/calibrate", req);
+  $("#images-hint").textContent = "";
+  if (!r.ok) { showError("#images-err", r.data, "#loader-images"); imagesButton(); return; }
+  $("#images-table tbody").innerHTML = "";
+  $("#images-table").hidden = false;
+  $("#images-thumbs").innerHTML = "";
+  state.thumbs = 0;
+  startJob(r.data.id, req, true);
+}
+
+// the detections so far: a table row and a thumbnail (target circled) per image
+function renderDetections(j) {
+  const tb = $("#images-table tbody");
+  for (const det of j.detections.slice(tb.children.length)) {
+    const tr = el("tr", det.ok ? {} : { class: "bad" });
+    tr.appendChild(td(det.image, "text"));
+    tr.appendChild(td(det.ok ? "found" : "not found", det.ok ? "ok" : "no"));
+    tr.appendChild(td(fmt(det.u, 3)));
+    tr.appendChild(td(fmt(det.v, 3)));
+    tr.appendChild(td(fmt(det.diameter_px, 2)));
+    tr.appendChild(td(fmt(det.score, 3)));
+    tr.appendChild(td(det.reason || "", "errcell"));
+    tb.appendChild(tr);
+    if (state.thumbs++ < MAX_THUMBS) thumbnail(det);
+  }
+  const found = j.detections.filter((d) => d.ok).length;
+  $("#images-count").textContent = `${j.detections.length} of ${j.poses || "?"} images detected, target found in ${found}`;
+  $("#images-count").classList.toggle("ok", j.status === "done");
+}
+
+function thumbnail(det) {
+  const base = det.image.split(/[\\/]/).pop();
+  const file = state.imageFiles.get(base);
+  const fig = el("figure", det.ok ? {} : { class: "bad" });
+  const c = el("canvas", { width: 168, height: 126 });
+  fig.appendChild(c);
+  const cap = el("figcaption", { title: det.ok ? det.image : det.reason }, base);
+  cap.appendChild(el("br"));
+  cap.appendChild(document.createTextNode(det.ok ? `(${fmt(det.u, 1)}, ${fmt(det.v, 1)}) px · score ${fmt(det.score, 2)}` : "not found"));
+  fig.appendChild(cap);
+  $("#images-thumbs").appendChild(fig);
+  if (!file) return;
+  const img = new Image();
+  img.onload = () => {
+    const k = c.width / img.naturalWidth;
+    c.height = Math.max(1, Math.round(img.naturalHeight * k));
+    const g = c.getContext("2d");
+    g.drawImage(img, 0, 0, c.width, c.height);
+    URL.revokeObjectURL(img.src);
+    if (!det.ok) return;
+    const x = det.u * k, y = det.v * k, r = Math.max(5, (det.diameter_px * k) / 2 + 3);
+    g.strokeStyle = "#D55E00"; g.lineWidth = 2;
+    g.beginPath(); g.arc(x, y, r, 0, 2 * Math.PI); g.stroke();
+    g.beginPath(); g.moveTo(x - r - 4, y); g.lineTo(x + r + 4, y); g.moveTo(x, y - r - 4); g.lineTo(x, y + r + 4); g.stroke();
+  };
+  img.src = URL.createObjectURL(file);
+}
+
+function imagesFinished(j) {
+  const notes = $("#images-notes");
+  if (j.left_out.length) notes.appendChild(el("li", {}, `left out ${j.left_out.length} image(s) where the target was not found: ${j.left_out.join(", ")}`));
+  if (j.unused_images.length) notes.appendChild(el("li", {}, `not named in the poses CSV, not used: ${j.unused_images.join(", ")}`));
+  if (j.detections.length > MAX_THUMBS) notes.appendChild(el("li", {}, `the first ${MAX_THUMBS} images are shown; the table lists all`));
+  if (j.status !== "done" || !j.pairs) return;
+  // the detected pairs become the loaded calibration pairs: refit, compare and save work on them
+  state.pairs = j.pairs.map((p) => ({ id: p.id, u: p.u, v: p.v, x: p.x, y: p.y, z: p.z }));
+  state.excluded = new Set();
+  $("#pairs-text").value = "";
+  $("#pairs-file").value = "";
+  clearError("#pairs-err", "#loader-pairs");
+  $("#pairs-notes").innerHTML = "";
+  $("#pairs-count").textContent = `${state.pairs.length} pairs detected in the images of ${$("#images-poses").files[0] ? $("#images-poses").files[0].name : "the poses CSV"}`;
+  $("#pairs-count").classList.add("ok");
+}
+
 // ------------------------------------------------------------------ 2. model and solver
 
 function fillSelect(sel, values, value) {
@@ -220,8 +347,9 @@ function reportFitError(err) {
   }
 }
 
-function startJob(id, req) {
+function startJob(id, req, images = false) {
   state.job = id;
+  state.imagesJob = images;
   state.history = [];
   state.iterations = req.optimizer.includes("pso") ? (req.iterations || 150) : 0;
   state.resultRequest = req;
@@ -235,17 +363,21 @@ function startJob(id, req) {
 
 async function pollJob() {
   const id = state.job;
-  const r = await api("GET", `/api/jobs/${id}?since=${state.history.length}`);
+  const images = state.imagesJob;
+  const r = await api("GET", `/api/${images ? "images/jobs" : "jobs"}/${id}?since=${state.history.length}`);
   if (id !== state.job) return;
-  if (!r.ok) { showError("#fit-err", r.data); finishJob(); return; }
+  if (!r.ok) { showError(images ? "#images-err" : "#fit-err", r.data); finishJob(); return; }
   const j = r.data;
+  if (images) renderDetections(j);
   if (j.history_from === state.history.length) state.history.push(...j.history);
   if (j.iterations) state.iterations = j.iterations;
   setJobState(j);
   drawCurve();
   if (j.status === "queued" || j.status === "running") { state.poll = setTimeout(pollJob, 150); return; }
   finishJob();
+  if (images) imagesFinished(j);
   if (j.status === "done") showResult(j.result, null);
+  else if (j.status === "failed" && images && j.error.field !== "pairs") showError("#images-err", j.error, "#loader-images");
   else if (j.status === "failed") reportFitError(j.error);
   else showError("#fit-err", { error: "the fit was cancelled; nothing changed" });
 }
@@ -253,6 +385,7 @@ async function pollJob() {
 function finishJob() {
   $("#run").disabled = !state.pairs;
   $("#cancel").disabled = true;
+  imagesButton();
 }
 
 function setJobState(j) {
@@ -867,7 +1000,7 @@ async function compareSaved() {
 function updateButtons() {
   const running = !$("#cancel").disabled;
   $("#run").disabled = !state.pairs || running;
-  $("#run-hint").textContent = state.pairs ? "" : "load calibration pairs first";
+  $("#run-hint").textContent = state.pairs ? "" : "load calibration pairs first, or detect them from images (section 1)";
   const pso = $("#optimizer").value.includes("pso");
   document.querySelectorAll("label.pso").forEach((l) => { l.style.opacity = pso ? 1 : 0.45; l.querySelector("input").disabled = !pso; });
   const unsaved = state.job && state.result && !state.resultSaved;
@@ -908,6 +1041,9 @@ async function init() {
     clearError("#check-err"); updateButtons();
   });
   $("#run").addEventListener("click", runFit);
+  $("#images-poses").addEventListener("change", imagesChosen);
+  $("#images-files").addEventListener("change", imagesChosen);
+  $("#images-go").addEventListener("click", runImages);
   $("#cancel").addEventListener("click", async () => { if (state.job) await api("DELETE", `/api/jobs/${state.job}`); });
   $("#refit").addEventListener("click", async () => {
     if (!state.pairs) { showError("#fit-err", { error: "no pairs loaded" }); return; }
