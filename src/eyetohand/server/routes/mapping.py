@@ -49,28 +49,27 @@ _NUMBER_BYTES = b"0123456789.eE+-"
 _POINTS_BYTES = _NUMBER_BYTES + b",[] \t\r\n"
 _AFTER_KEY = re.compile(rb"\s*:\s*\[")
 _END = re.compile(rb"\]\s*\]")
-_ROW = np.frombuffer(b"[,],", np.uint8)
-_BRACKETS = np.frombuffer(b"[],", np.uint8)
+_NUMBER_WS = _NUMBER_BYTES + b" \t\r\n"
+_ROW = b"[,],"
+_PLAIN = {"points": [[0, 0]]}
+_DEFAULT = MapRequest(points=[(0.0, 0.0)])
 
 
 def _pairs(chunk: bytes) -> np.ndarray | None:
     """``[u,v],[u,v],...,[u,v]`` (numbers, brackets, commas, white space only) → (k, 2) floats, or
-    None if it is not exactly that."""
-    a = np.frombuffer(chunk, np.uint8)
-    s = a[(a == _BRACKETS[0]) | (a == _BRACKETS[1]) | (a == _BRACKETS[2])]
-    if (len(s) + 1) % 4:
-        return None
-    rows = np.append(s, _ROW[3]).reshape(-1, 4)
-    if not (rows == _ROW).all():
+    None if it is not exactly that: its brackets and commas must read ``[,],`` k times (less the
+    last comma), and what the brackets held one flat JSON array of 2k numbers."""
+    s = chunk.translate(None, _NUMBER_WS) + b","
+    k = len(s) // 4
+    if s != _ROW * k:
         return None
     try:
         flat = orjson.loads(b"[" + chunk.translate(None, b"[]") + b"]")
     except orjson.JSONDecodeError:
         return None
-    out = np.array(flat, dtype=float)
-    if out.size != 2 * len(rows):
+    if len(flat) != 2 * k:
         return None
-    return out.reshape(-1, 2)
+    return np.array(flat, dtype=float).reshape(k, 2)
 
 
 def fast_points(body: bytes | bytearray) -> tuple[np.ndarray, bytes] | None:
@@ -123,13 +122,21 @@ def fast_points(body: bytes | bytearray) -> tuple[np.ndarray, bytes] | None:
     return out, body[:start] + b"[[0,0]]" + body[end:]
 
 
+def _plain(rest: bytes) -> bool:
+    """Whether the body has nothing but its points (then every option is its default)."""
+    try:
+        return orjson.loads(rest) == _PLAIN
+    except orjson.JSONDecodeError:
+        return False
+
+
 def parse_map_body(body: bytes | bytearray) -> tuple[MapRequest, np.ndarray]:
     """The request's options and its (N, 2) points; a 422 / 400 / 413 :class:`ApiError` as before."""
     fast = fast_points(body)
     try:
         if fast is not None:
             pts, rest = fast
-            req = MapRequest.model_validate_json(rest)
+            req = _DEFAULT if _plain(rest) else MapRequest.model_validate_json(rest)
         else:
             req = MapRequest.model_validate_json(body)
             pts = np.asarray(req.points, float).reshape(-1, 2)
