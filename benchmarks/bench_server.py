@@ -101,11 +101,28 @@ class Http:
         head_b, _, self.buf = self.buf.partition(b"\r\n\r\n")
         lines = head_b.split(b"\r\n")
         status = int(lines[0].split()[1])
-        length = next(int(x.split(b":")[1]) for x in lines[1:] if x.lower().startswith(b"content-length:"))
+        fields = {k.strip().lower(): v.strip() for k, _, v in (x.partition(b":") for x in lines[1:])}
+        if fields.get(b"transfer-encoding", b"").lower() == b"chunked":
+            return status, self._chunked()
+        length = int(fields[b"content-length"])
         while len(self.buf) < length:
             self._more()
         out, self.buf = self.buf[:length], self.buf[length:]
         return status, out
+
+    def _chunked(self) -> bytes:
+        parts = []
+        while True:
+            while b"\r\n" not in self.buf:
+                self._more()
+            size_b, _, self.buf = self.buf.partition(b"\r\n")
+            size = int(size_b.split(b";")[0], 16)
+            while len(self.buf) < size + 2:
+                self._more()
+            parts.append(self.buf[:size])
+            self.buf = self.buf[size + 2 :]
+            if size == 0:
+                return b"".join(parts)
 
     def _more(self) -> None:
         chunk = self.sock.recv(1 << 20)
