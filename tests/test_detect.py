@@ -339,3 +339,32 @@ def test_the_windowed_candidate_search_finds_what_the_whole_image_search_finds()
             (c.x, c.y, c.diameter, c.polarity, c.levels) for c in full
         ]
     assert len(fast) == 2 and "ambiguous" in detect_target(two).reason
+
+
+def test_two_targets_of_one_size_get_a_hint_that_can_help(tmp_path, capsys):
+    """Two equal circles: the expected diameter cannot choose, so the refusal says what can (a crop,
+    a mask or a region), and `detect --roi` then finds the one asked for."""
+    from eyetohand.cli import main as cli_main
+
+    two = finish(disc(disc(canvas(), 200.3, 200.7, 30, 30), 450.2, 260.4, 30, 30))
+    for d in (detect_target(two), detect_target(two, diameter_px=60)):
+        assert d.reason.startswith("ambiguous: 2") and "diameter" not in d.reason.split("px;")[-1]
+        assert "--roi X Y W H" in d.reason and "crop or mask" in d.reason
+    sizes = finish(disc(disc(canvas(), 200.3, 200.7, 30, 30), 450.2, 260.4, 12, 30))
+    assert detect_target(sizes).reason.endswith("give the expected diameter to choose")
+    d = detect_target(two, diameter_px=60, roi=(350, 150, 200, 220))
+    assert d.ok and abs(d.u - 450.2) < 0.1 and abs(d.v - 260.4) < 0.1
+    path = tmp_path / "two.png"
+    cv2.imwrite(str(path), np.clip(two, 0, 255).astype(np.uint8))
+    assert cli_main(["detect", str(path), "--diameter", "60"]) == 2
+    assert "--roi X Y W H" in capsys.readouterr().err
+    assert (
+        cli_main(["detect", str(path), "--diameter", "60", "--roi", "350", "150", "200", "220", "--json"])
+        == 0
+    )
+    import json
+
+    rec = json.loads(capsys.readouterr().out)["results"][0]
+    assert abs(rec["u"] - 450.2) < 0.1 and abs(rec["v"] - 260.4) < 0.1
+    assert cli_main(["detect", str(path), "--roi", "-1", "0", "10", "10"]) == 2
+    assert "--roi: expected" in capsys.readouterr().err

@@ -1169,3 +1169,127 @@ def test_images_calibrate_refusals_use_the_cli_words(tmp_path, rendered, capsys)
             "/api/images/calibrate", content=orjson.dumps(big), headers={"content-type": "application/json"}
         )
         assert r.status_code == 413 and "limit" in r.json()["error"]
+
+
+# ---------------------------------------------------------------------- mapping fast paths (issue 13)
+
+MAP_BODIES = [
+    b'{"points": [[1,2]]}',
+    b'{"points":[[1.5e3, -2]], "z": 3}',
+    b'{"points": [ [1, 2] , [3,4] ]}',
+    b'{"points": [\n  [\n    1,\n    2\n  ]\n]}',
+    b'{"points": [[1,2,3]]}',
+    b'{"points": [[1]]}',
+    b'{"points": [[true,2]]}',
+    b'{"points": [["1",2]]}',
+    b'{"points": [[null,2]]}',
+    b'{"points": []}',
+    b'{"points": [[1,2]], "z": [1,2]}',
+    b'{"points": [[+1,2]]}',
+    b'{"points": [[01,2]]}',
+    b'{"points": [[1.,2]]}',
+    b'{"points": [[1e400,2]]}',
+    b'{"points": [[[1,2]]]}',
+    b'{"points": [[1,2],[[3,4],[5,6]],[7,8]]}',
+    b'{"points": [[1,2]], "\\u0070oints": [[5,6]]}',
+    b'{"a": {"points": [[1,2]]}}',
+    b'{"points": [[1,2]]',
+    b'{"points": [[1,2]],}',
+    b'{"points": [[1,2] [3,4]]}',
+    b'{"points": [[1 2,3]]}',
+    b"[1]",
+    b'{"points": [[1,2]], "sigma": 1}',
+    b'{"points": [[1,2]], "symmetry": 0}',
+    b'{"points": [[1,2],[3,4]], "angles": [1], "allow_outside": true}',
+]
+
+
+def test_fast_points_parse_answers_as_the_schema_does():
+    """Every body gets the points, options, status, message and field that MapRequest gives."""
+    from pydantic import ValidationError
+
+    from eyetohand.server.core import ApiError
+    from eyetohand.server.responses import api_error_of_validation
+    from eyetohand.server.routes import mapping
+    from eyetohand.server.schemas import MapRequest
+
+    taken = 0
+    for body in MAP_BODIES:
+        taken += mapping.fast_points(body) is not None
+        try:
+            req, pts = mapping.parse_map_body(body)
+            got = ("ok", pts.tolist(), req.model_dump(exclude={"points"}))
+        except ApiError as exc:
+            got = (exc.status, exc.message, exc.field)
+        try:
+            ref_req = MapRequest.model_validate_json(body)
+            ref = ("ok", [list(p) for p in ref_req.points], ref_req.model_dump(exclude={"points"}))
+        except ValidationError as exc:
+            e = api_error_of_validation(exc.errors(include_url=False))
+            ref = (e.status, e.message, e.field)
+        assert got == ref, body
+    assert taken >= 8  # the plain spellings do take the fast path
+    uv = np.random.default_rng(3).uniform(-5000, 5000, (3001, 2))
+    for opt in (0, orjson.OPT_INDENT_2):
+        body = orjson.dumps({"points": uv}, option=orjson.OPT_SERIALIZE_NUMPY | opt)
+        fast = mapping.fast_points(body)
+        assert fast is not None and (fast[0] == uv).all()
+
+
+JSON_CT = {"Content-Type": "application/json"}
+
+
+def test_large_mapping_is_chunked_and_streamed_identically(client, monkeypatch):
+    """Above INLINE_POINTS the answer streams in pieces, above CHUNK_POINTS it is mapped in chunks:
+    the same bytes as one call, and a refusal names the same point."""
+    from eyetohand.server.routes import mapping
+
+    create(client, "big", model="homography", optimizer="lm")
+    cal = Calibration.from_dict(client.get("/api/calibrations/1").json()["calibration"])
+    monkeypatch.setattr(mapping, "CHUNK_POINTS", 700)
+    monkeypatch.setattr(mapping, "CHUNK_BYTES", 5000)
+    c = cal.region.hull_px.mean(axis=0)
+    rng = np.random.default_rng(5)
+    uv = c + rng.uniform(-300, 300, (2500, 2))
+    z = cal.model.plane_z_mm if hasattr(cal.model, "plane_z_mm") else None
+    body = {"points": uv.tolist(), "angles": rng.uniform(-90, 90, 2500).tolist(), "allow_outside": True}
+    if z is not None:
+        body["z"] = [z] * 2500
+    r = client.post("/api/calibrations/1/image-to-robot", content=orjson.dumps(body), headers=JSON_CT)
+    assert r.status_code == 200
+    req, pts = mapping.parse_map_body(orjson.dumps(body))
+    m = mapping.core.map_points(
+        cal,
+        pts,
+        req.z,
+        angles=req.angles,
+        allow_outside=True,
+        sigma=True,
+        symmetry=1,
+        tool_rz_offset_deg=None,
+    )
+    whole = {"id": 1, "version": 1, "units": "mm", "points": m.xyz_mm, "rz_deg": m.rz_deg}
+    whole.update({"sigma_mm": m.sigma_mm, "inside": m.inside})
+    assert r.content == orjson.dumps(whole, option=orjson.OPT_SERIALIZE_NUMPY)
+    assert 0 < sum(orjson.loads(r.content)["inside"]) < 2500
+    del body["allow_outside"]
+    r = client.post("/api/calibrations/1/image-to-robot", content=orjson.dumps(body), headers=JSON_CT)
+    first = int(np.flatnonzero(~m.inside)[0])
+    assert r.status_code == 422 and r.json()["field"] == f"points[{first}]"
+
+
+def test_tcp_numbers_only_line_answers_as_the_general_path(client):
+    create(client, "t", model="homography", optimizer="lm")
+    cal = Calibration.from_dict(client.get("/api/calibrations/1").json()["calibration"])
+    c = cal.region.hull_px.mean(axis=0)
+    u, v = float(c[0]), float(c[1])
+    plain = tcp_answer(cal, f"{u!r},{v!r}".encode())
+    assert (
+        plain
+        == tcp_answer(cal, f" {u!r} , {v!r} \r".encode())
+        == tcp_answer(cal, f"{u!r},{v!r},a=0".encode()).rsplit(b",", 1)[0] + b"\n"
+    )
+    assert tcp_answer(cal, b"600,nan") == b"ERR v: 'nan' is not a finite number\n"
+    assert tcp_answer(cal, b"600,1e999") == b"ERR v: '1e999' is not a finite number\n"
+    assert tcp_answer(cal, b"99999,-5000").startswith(b"ERR outside the calibrated region")
+    assert tcp_answer(cal, b"1,2,3,4").startswith(b"ERR 4 numbers;")

@@ -52,6 +52,7 @@ MIN_SIZE_PX = 8  # an image smaller than this in either direction is refused
 N_LEVELS = 10  # grey levels of the candidate search, twice: over the full range and the bulk
 MIN_COARSE_DIAMETER = 10.0  # px at the search scale
 MIN_CONTRAST_SIGMA = 6.0  # a candidate's contrast against its ring, in noise σ
+DIAMETER_WINDOW = (0.7, 1.4)  # an expected diameter keeps circles within these multiples of it
 AMBIGUOUS_RATIO = 0.8  # a runner-up scoring this fraction of the best makes the choice ambiguous
 MAX_RMS_REL = 0.02  # edge points' rms distance from the ellipse, as a fraction of its mean radius
 MIN_VALID_RAYS = 0.85
@@ -871,9 +872,10 @@ def _found(img, sigma, polarity, diameter_px, f, full, refine, everywhere):
     in windows finds nothing it is repeated everywhere, so that every refusal is the whole image's."""
     cands, rejected, everywhere = _candidates(img, sigma, polarity, diameter_px, f, everywhere)
     found, failed = [], []
+    lo, hi = DIAMETER_WINDOW
     for c in cands:
         d = _refine(img, c, sigma, full, refine)
-        if d.ok and diameter_px is not None and not (0.7 < d.diameter_px / diameter_px < 1.4):
+        if d.ok and diameter_px is not None and not (lo < d.diameter_px / diameter_px < hi):
             continue
         (found if d.ok else failed).append(d)
     if not found and not everywhere:
@@ -931,7 +933,14 @@ def detect_target(
     rivals = [d for d in found[1:] if d.score >= AMBIGUOUS_RATIO * best.score]
     if rivals:
         where = ", ".join(f"({d.u:.0f}, {d.v:.0f}) d {d.diameter_px:.0f}" for d in [best, *rivals[:3]])
-        hint = "" if diameter_px is not None else "; give the expected diameter to choose"
+        sizes = [d.diameter_px for d in [best, *rivals]]
+        if diameter_px is None and max(sizes) > DIAMETER_WINDOW[1] / DIAMETER_WINDOW[0] * min(sizes):
+            hint = "; give the expected diameter to choose"
+        else:  # of one size: no diameter can choose, only the place can
+            hint = (
+                "; crop or mask the image to one target, or give its region "
+                "(roi=(x, y, w, h), detect --roi X Y W H)"
+            )
         return Detection(
             False,
             reason=f"ambiguous: {1 + len(rivals)} equally good circles at {where} px{hint}",

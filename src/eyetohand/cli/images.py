@@ -18,6 +18,11 @@ def _detect_options(args) -> dict:
     opts = {"polarity": args.polarity}
     if args.diameter is not None:
         opts["diameter_px"] = args.diameter
+    if getattr(args, "roi", None) is not None:
+        x, y, w, h = args.roi
+        if min(x, y) < 0 or min(w, h) <= 0:
+            raise InputError(f"--roi: expected X Y >= 0 and W H > 0 (px), got {x} {y} {w} {h}")
+        opts["roi"] = (x, y, w, h)
     return opts
 
 
@@ -107,6 +112,13 @@ def register(sub) -> None:
     p.add_argument("images", nargs="+", metavar="IMAGE")
     p.add_argument("--polarity", default="auto", choices=("auto", "dark", "bright"))
     p.add_argument("--diameter", type=float, default=None, help="expected diameter in px")
+    p.add_argument(
+        "--roi",
+        type=int,
+        nargs=4,
+        metavar=("X", "Y", "W", "H"),
+        help="search only this rectangle (px, top-left corner and size): picks one of several equal targets",
+    )
     p.add_argument("--annotate", metavar="DIR", help="write pictures with the fitted ellipse drawn")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_detect)

@@ -135,6 +135,15 @@ def answer(cal: Calibration, line: bytes) -> bytes:
     the calibrated region too, and such an answer ends with ``,OUTSIDE``. Refusals: ``ERR <reason>``
     (``ERR outside the calibrated region: ...`` for a point beyond the margin).
     """
+    parts_b = line.split(b",")
+    if 2 <= len(parts_b) <= 3:  # the common line, numbers only: parsed as the general path would
+        try:
+            vals = [float(p) for p in parts_b]
+        except ValueError:
+            pass
+        else:
+            if all(map(math.isfinite, vals)):
+                return _mapped_line(cal, vals, None, False, False)
     try:
         text = line.decode("ascii").strip()
     except UnicodeDecodeError:
@@ -170,6 +179,10 @@ def answer(cal: Calibration, line: bytes) -> bytes:
                 return f"ERR a: {w[2:22]!r} is not a finite number\n".encode()
         else:
             return f"ERR unknown word {w[:20]!r}; {USAGE}\n".encode()
+    return _mapped_line(cal, vals, angle, allow, want_sigma)
+
+
+def _mapped_line(cal: Calibration, vals: list[float], angle, allow: bool, want_sigma: bool) -> bytes:
     z = vals[2] if len(vals) == 3 else None
     try:
         with np.errstate(all="ignore"):

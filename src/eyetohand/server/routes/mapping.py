@@ -1,16 +1,30 @@
 """Image → robot mapping (HTTP). These routes run on the event loop and never touch the database
 once a calibration is cached: a cache miss is read on the thread pool; small bodies are parsed and
-mapped inline (a thread hop costs more than the work), large ones off the loop."""
+mapped inline (a thread hop costs more than the work), large ones off the loop.
+
+The points array is not built by pydantic (10⁶ tuples of Python floats cost ~10× the array): the
+body's ``"points"`` value is located, checked to be only numbers, brackets and commas nested as
+``[[u, v], ...]`` (NumPy over its bytes), and parsed by orjson in flat chunks straight into one
+(N, 2) float array; the rest of the body (with one placeholder point) is validated by
+:class:`~eyetohand.server.schemas.MapRequest` as before. Anything else — other spellings, wrong
+types or shapes, non-finite values — goes through ``MapRequest`` whole, so every 422 names the
+field with the same words. Large answers are mapped in chunks into the output arrays and streamed
+out in pieces, so a 10⁶-point request holds little more than its arrays.
+"""
 
 from __future__ import annotations
+
+import re
+from collections.abc import Iterator
 
 import numpy as np
 import orjson
 from fastapi import APIRouter, Request, Response
+from fastapi.responses import StreamingResponse
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from ...calibration import Calibration
+from ...calibration import Calibration, Mapped
 from .. import core
 from ..core import ApiError
 from ..responses import api_error_of_validation
@@ -19,6 +33,8 @@ from . import CalId, JobId, VersionQ
 
 INLINE_BYTES = 64 * 1024
 INLINE_POINTS = 2000
+CHUNK_POINTS = 65536  # mapped, parsed and written this many points at a time
+CHUNK_BYTES = 1 << 20
 
 router = APIRouter(tags=["mapping"])
 MAP_OPENAPI = {
@@ -28,38 +44,187 @@ MAP_OPENAPI = {
     }
 }
 
+_KEY = b'"points"'
+_NUMBER_BYTES = b"0123456789.eE+-"
+_POINTS_BYTES = _NUMBER_BYTES + b",[] \t\r\n"
+_AFTER_KEY = re.compile(rb"\s*:\s*\[")
+_END = re.compile(rb"\]\s*\]")
+_NUMBER_WS = _NUMBER_BYTES + b" \t\r\n"
+_ROW = b"[,],"
+_PLAIN = {"points": [[0, 0]]}
+_DEFAULT = MapRequest(points=[(0.0, 0.0)])
 
-async def map_body(request: Request) -> MapRequest:
-    body = await request.body()  # the size guard has checked the length; read once, not copied
+
+def _pairs(chunk: bytes) -> np.ndarray | None:
+    """``[u,v],[u,v],...,[u,v]`` (numbers, brackets, commas, white space only) → (k, 2) floats, or
+    None if it is not exactly that: its brackets and commas must read ``[,],`` k times (less the
+    last comma), and what the brackets held one flat JSON array of 2k numbers."""
+    s = chunk.translate(None, _NUMBER_WS) + b","
+    k = len(s) // 4
+    if s != _ROW * k:
+        return None
     try:
-        if len(body) <= INLINE_BYTES:
-            req = MapRequest.model_validate_json(body)
+        flat = orjson.loads(b"[" + chunk.translate(None, b"[]") + b"]")
+    except orjson.JSONDecodeError:
+        return None
+    if len(flat) != 2 * k:
+        return None
+    return np.array(flat, dtype=float).reshape(k, 2)
+
+
+def fast_points(body: bytes | bytearray) -> tuple[np.ndarray, bytes] | None:
+    """(points (N, 2), the body with ``[[0, 0]]`` for its points) when the body's top-level
+    ``"points"`` is a plain array of number pairs, else None (then the caller validates it whole)."""
+    body = bytes(body) if isinstance(body, bytearray) else body
+    i = body.find(_KEY)
+    if i < 1 or b"\\" in body or body.find(_KEY, i + 1) != -1:
+        return None
+    m = _AFTER_KEY.match(body, i + len(_KEY))
+    if m is None:
+        return None
+    start = m.end() - 1  # the outer '['
+    k = body.find(b"]]", start)
+    end = k + 2 if k != -1 else -1
+    if k == -1 or body[start:end].translate(None, _POINTS_BYTES):
+        e = _END.search(body, start)
+        if e is None:
+            return None
+        end = e.end()
+    seg = body[start:end]
+    if seg.translate(None, _POINTS_BYTES):
+        return None
+    n = seg.count(b"[") - 1
+    if n < 1:
+        return None
+    out = np.empty((n, 2))
+    inner = seg[1 : seg.rindex(b"]")].strip()  # '[u,v],...,[u,v]'
+    pos, row = 0, 0
+    while pos < len(inner):
+        cut = inner.find(b"]", min(pos + CHUNK_BYTES, len(inner) - 1))
+        if cut == -1:
+            return None
+        part = inner[pos : cut + 1]
+        pairs = _pairs(part.strip())
+        if pairs is None or row + len(pairs) > n:
+            return None
+        out[row : row + len(pairs)] = pairs
+        row += len(pairs)
+        nxt = inner.find(b",", cut + 1)
+        if nxt == -1:
+            if inner[cut + 1 :].strip():
+                return None
+            break
+        if inner[cut + 1 : nxt].strip():
+            return None
+        pos = nxt + 1
+    if row != n or not np.isfinite(out).all():
+        return None
+    return out, body[:start] + b"[[0,0]]" + body[end:]
+
+
+def _plain(rest: bytes) -> bool:
+    """Whether the body has nothing but its points (then every option is its default)."""
+    try:
+        return orjson.loads(rest) == _PLAIN
+    except orjson.JSONDecodeError:
+        return False
+
+
+def parse_map_body(body: bytes | bytearray) -> tuple[MapRequest, np.ndarray]:
+    """The request's options and its (N, 2) points; a 422 / 400 / 413 :class:`ApiError` as before."""
+    fast = fast_points(body)
+    try:
+        if fast is not None:
+            pts, rest = fast
+            req = _DEFAULT if _plain(rest) else MapRequest.model_validate_json(rest)
         else:
-            req = await run_in_threadpool(MapRequest.model_validate_json, body)
+            req = MapRequest.model_validate_json(body)
+            pts = np.asarray(req.points, float).reshape(-1, 2)
     except ValidationError as exc:
         raise api_error_of_validation(exc.errors(include_url=False)) from None
-    if len(req.points) > MAX_POINTS:
+    if len(pts) > MAX_POINTS:
         raise ApiError(
             413,
-            f"points: {len(req.points)} points, more than the {MAX_POINTS} per request "
-            "limit; split the request",
+            f"points: {len(pts)} points, more than the {MAX_POINTS} per request limit; split the request",
             "points",
         )
-    return req
+    return req, pts
 
 
-def _work(cal: Calibration, req: MapRequest, cal_id, version) -> bytes:
-    pts = np.asarray(req.points, float).reshape(-1, 2)
-    m = core.map_points(
-        cal,
-        pts,
-        req.z,
-        angles=req.angles,
-        symmetry=req.symmetry,
-        tool_rz_offset_deg=req.tool_rz_offset_deg,
-        allow_outside=req.allow_outside,
-        sigma=req.sigma,
-    )
+async def read_body(request: Request) -> bytes | bytearray:
+    """The body, read once (the size guard has checked its length); a large one into one buffer
+    as it streams in, not as a list of chunks joined."""
+    length = request.headers.get("content-length", "")
+    if length.isdigit() and int(length) <= INLINE_BYTES:
+        return await request.body()
+    buf = bytearray()
+    async for chunk in request.stream():
+        buf += chunk
+    return buf
+
+
+async def map_body(request: Request) -> tuple[MapRequest, np.ndarray]:
+    body = await read_body(request)
+    if len(body) <= INLINE_BYTES:
+        return parse_map_body(body)
+    return await run_in_threadpool(parse_map_body, body)
+
+
+def _map(cal: Calibration, req: MapRequest, pts: np.ndarray) -> Mapped:
+    """``core.map_points`` over the request; a large one in chunks written into the output arrays
+    (each point's answer is its own: the same numbers). A refusal is re-done on the whole array, so
+    it names the same point, with the same words, as one call would."""
+
+    def one(sl: slice) -> Mapped:
+        return core.map_points(
+            cal,
+            pts[sl],
+            req.z[sl] if isinstance(req.z, list) else req.z,
+            angles=None if req.angles is None else req.angles[sl],
+            symmetry=req.symmetry,
+            tool_rz_offset_deg=req.tool_rz_offset_deg,
+            allow_outside=req.allow_outside,
+            sigma=req.sigma,
+        )
+
+    n = len(pts)
+    if (
+        n <= CHUNK_POINTS
+        or (isinstance(req.z, list) and len(req.z) != n)
+        or (req.angles is not None and len(req.angles) != n)
+    ):
+        return one(slice(None))
+    out: Mapped | None = None
+    try:
+        for a in range(0, n, CHUNK_POINTS):
+            sl = slice(a, a + CHUNK_POINTS)
+            m = one(sl)
+            if out is None:
+                out = Mapped(
+                    pts,
+                    np.empty((n, 3)),
+                    None if m.rz_deg is None else np.empty(n),
+                    None if m.sigma_mm is None else np.empty(n),
+                    np.empty(n, bool),
+                    np.empty(n),
+                )
+            for name in ("xyz_mm", "rz_deg", "sigma_mm", "inside", "outside_px"):
+                dst = getattr(out, name)
+                if dst is not None:
+                    dst[sl] = getattr(m, name)
+    except ApiError:
+        out = None
+        return one(slice(None))
+    assert out is not None
+    return out
+
+
+def _head(cal_id, version) -> bytes:
+    return orjson.dumps({"id": cal_id, "version": version, "units": "mm"})[:-1]
+
+
+def _work(cal: Calibration, req: MapRequest, pts: np.ndarray, cal_id, version) -> bytes:
+    m = _map(cal, req, pts)
     return orjson.dumps(
         {
             "id": cal_id,
@@ -74,12 +239,35 @@ def _work(cal: Calibration, req: MapRequest, cal_id, version) -> bytes:
     )
 
 
-async def mapped(cal: Calibration, req: MapRequest, cal_id=None, version=None) -> Response:
-    if len(req.points) <= INLINE_POINTS:
-        content = _work(cal, req, cal_id, version)
-    else:
-        content = await run_in_threadpool(_work, cal, req, cal_id, version)
-    return Response(content, media_type="application/json")
+def _pieces(m: Mapped, cal_id, version) -> Iterator[bytes]:
+    """The same JSON as :func:`_work`, in pieces of :data:`CHUNK_POINTS` points."""
+    n = len(m.xyz_mm)
+
+    def array(a: np.ndarray) -> Iterator[bytes]:
+        yield b"["
+        for s in range(0, n, CHUNK_POINTS):
+            piece = orjson.dumps(a[s : s + CHUNK_POINTS], option=orjson.OPT_SERIALIZE_NUMPY)[1:-1]
+            yield piece if s == 0 else b"," + piece
+
+        yield b"]"
+
+    yield _head(cal_id, version) + b',"points":'
+    yield from array(m.xyz_mm)
+    yield b',"rz_deg":'
+    yield from (array(m.rz_deg) if m.rz_deg is not None else [b"null"])
+    yield b',"sigma_mm":'
+    yield from (array(m.sigma_mm) if m.sigma_mm is not None else [b"null"])
+    yield b',"inside":'
+    yield from array(m.inside)
+    yield b"}"
+
+
+async def mapped(cal: Calibration, req: MapRequest, pts: np.ndarray, cal_id=None, version=None) -> Response:
+    if len(pts) <= INLINE_POINTS:
+        return Response(_work(cal, req, pts, cal_id, version), media_type="application/json")
+    m = await run_in_threadpool(_map, cal, req, pts)
+    del pts
+    return StreamingResponse(_pieces(m, cal_id, version), media_type="application/json")
 
 
 @router.post(
@@ -92,13 +280,13 @@ async def image_to_robot(cal_id: CalId, request: Request, version: VersionQ = No
     if hit is None:
         ver, cal = await run_in_threadpool(svc.calibration, cal_id, version)
         hit = (ver.version, cal)
-    req = await map_body(request)
-    return await mapped(hit[1], req, cal_id, hit[0])
+    req, pts = await map_body(request)
+    return await mapped(hit[1], req, pts, cal_id, hit[0])
 
 
 @router.post("/api/jobs/{job_id}/image-to-robot", response_model=MapResponse, openapi_extra=MAP_OPENAPI)
 async def job_image_to_robot(job_id: JobId, request: Request):
     """Map image points (px) to robot points (mm) with a finished, unsaved fit."""
     fitted = request.app.state.service.finished_fit(job_id)
-    req = await map_body(request)
-    return await mapped(fitted.calibration, req)
+    req, pts = await map_body(request)
+    return await mapped(fitted.calibration, req, pts)
