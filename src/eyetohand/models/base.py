@@ -152,6 +152,14 @@ class Model(ABC):
         z = self._z_for(len(uv), z_mm)
         return self.batch_image_to_robot(self.params[None, :], uv, z)[0]
 
+    def batch_map_and_jacobian(
+        self, params: np.ndarray, uv_px: np.ndarray, z_mm: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``batch_image_to_robot`` (P, N, 3) and its derivative by the parameters (P, N, 3, D), in
+        closed form, for the models that have one (the leave-one-out's Gauss–Newton steps); None
+        otherwise (the caller differentiates numerically)."""
+        return None
+
     def params_jacobian(self, uv_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray | None:
         """(N, c, D) derivative of the mapped coordinates by the parameters, in closed form, for the
         models that have one; None otherwise (:mod:`eyetohand.uncertainty` then differentiates)."""

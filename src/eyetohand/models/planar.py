@@ -85,6 +85,35 @@ class PlanarMatrixModel(Model):
         num = np.einsum("pij,nj->pni", M[:, :, :2], pts) + M[:, None, :, 2]
         return to_robot(num[..., :2] / num[..., 2:3], self._Tinv_xy, z_mm)
 
+    def batch_map_and_jacobian(self, params, uv_px, z_mm):
+        """(P, N, 3) mapped pairs and (P, N, 3, D) d(x, y, z)/d(params) in closed form (see
+        :meth:`params_jacobian`), elementwise over (P, N): no (P, 2D, N) difference rows."""
+        P = np.asarray(params, float).reshape(-1, self.n_params)
+        D = self.n_params
+        pts = apply_h(self._T_uv, self._ideal_px(np.asarray(uv_px, float)))
+        p0, p1 = pts[:, 0], pts[:, 1]
+        M = self.batch_matrices(P).reshape(len(P), 9)
+        m = [M[:, k, None] for k in range(9)]
+        nx = m[0] * p0 + m[1] * p1 + m[2]
+        ny = m[3] * p0 + m[4] * p1 + m[5]
+        w = m[6] * p0 + m[7] * p1 + m[8]
+        s = self._Tinv_xy[0, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            g = s / w
+            xn, yn = nx / w, ny / w
+        out = np.empty((len(P), len(p0), 3))
+        out[..., 0] = s * xn + self._Tinv_xy[0, 2]
+        out[..., 1] = s * yn + self._Tinv_xy[1, 2]
+        out[..., 2] = z_mm
+        J = np.zeros((len(P), len(p0), 3, D))
+        gx, gy = g * p0, g * p1
+        J[..., 0, 0], J[..., 0, 1], J[..., 0, 2] = gx, gy, g
+        J[..., 1, 3], J[..., 1, 4], J[..., 1, 5] = gx, gy, g
+        if D == 8:
+            J[..., 0, 6], J[..., 0, 7] = -gx * xn, -gy * xn
+            J[..., 1, 6], J[..., 1, 7] = -gx * yn, -gy * yn
+        return out, J
+
     @property
     def matrix_image_to_robot(self) -> np.ndarray:
         """3×3 matrix mapping (u', v', 1) px to (x, y, 1) mm (up to scale; [2, 2] = 1)."""
