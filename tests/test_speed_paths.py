@@ -95,6 +95,44 @@ def test_closed_form_params_jacobian_matches_differences(name):
     np.testing.assert_allclose(one, closed, rtol=1e-12, atol=1e-15 * scale)
 
 
+@pytest.mark.parametrize("name", ["affine", "homography", "paper"])
+def test_opencv_path_for_many_points_equals_the_numpy_map(name):
+    """From CV_MIN_POINTS points the affine-family maps go through OpenCV; they must equal the
+    elementwise NumPy path (and the batch map) to 1e-9 mm, the horizon included for a homography."""
+    from eyetohand.models.base import CV_MIN_POINTS
+
+    pairs = load_pairs(PAPER)
+    model, _ = fit_model(pairs, name, "lm")
+    rng = np.random.default_rng(7)
+    n = CV_MIN_POINTS + 123
+    uv = rng.uniform(pairs.uv_px.min(0) - 500, pairs.uv_px.max(0) + 500, size=(n, 2))
+    z = np.full(n, float(pairs.xyz_mm[0, 2]))
+    if name == "homography":  # points on the horizon w = 0, where OpenCV would write (0, 0)
+        h = model.matrix_image_to_robot
+        u = uv[:5, 0]
+        uv[:5, 1] = -(h[2, 0] * u + h[2, 2]) / h[2, 1]
+    zq = None if name == "paper" else z
+    fast = model.image_to_robot(uv, zq)
+    slow = np.concatenate(
+        [
+            model.image_to_robot(uv[s : s + 5000], None if zq is None else zq[s : s + 5000])
+            for s in range(0, n, 5000)
+        ]
+    )
+    assert fast.shape == (n, 3)
+    np.testing.assert_allclose(fast[5:], slow[5:], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(np.isfinite(fast), np.isfinite(slow))
+    if name == "homography":
+        big = np.abs(slow[:5, :2]) > 1e6
+        assert (~np.isfinite(slow[:5, :2]) | big).all()  # the horizon: not mapped to (0, 0)
+        finite = np.isfinite(slow[:5])
+        np.testing.assert_allclose(fast[:5][finite], slow[:5][finite], rtol=1e-9)
+    else:
+        np.testing.assert_allclose(fast[:5], slow[:5], rtol=0, atol=1e-9)
+    batch = model.batch_image_to_robot(model.params[None], uv[5:], z[5:])[0]
+    np.testing.assert_allclose(fast[5:], batch, rtol=0, atol=1e-9)
+
+
 # ---------------------------------------------------------------- leave-one-out without refits
 
 

@@ -32,6 +32,16 @@ from ..numdiff import batch_jacobian  # noqa: F401  (models' own estimation step
 
 COLLINEAR_RATIO = 1e-6
 MAP_CHUNK = 1 << 13  # points per elementwise pass of the models' one-parameter-set maps (stays in cache)
+CV_MIN_POINTS = 1 << 16  # from this many points, the affine maps go through OpenCV's one-pass loops
+
+
+def opencv():
+    """The ``cv2`` module, imported on first use (it costs start-up time); None if it cannot be."""
+    try:
+        import cv2
+    except ImportError:  # a declared dependency, but a broken install should not stop the NumPy path
+        return None
+    return cv2
 
 
 class HeightRule(StrEnum):

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..normalize import apply_h, hartley
 from .base import (
+    CV_MIN_POINTS,
     MAP_CHUNK,
     HeightRule,
     Model,
@@ -25,6 +26,7 @@ from .base import (
     check_not_collinear,
     check_single_height,
     one_point,
+    opencv,
 )
 
 PLANAR_CONSTANTS = MappingProxyType({"T_uv": (3, 3), "T_xy": (3, 3), "plane_z_mm": ()})
@@ -140,6 +142,10 @@ class PlanarMatrixModel(Model):
                 return np.array([[(h0 * u + h1 * v + h2) / w, (h3 * u + h4 * v + h5) / w, z]])
         uv = as_uv(uv_px)
         zs = self._z_for(len(uv), z_mm)
+        if len(uv) >= CV_MIN_POINTS and type(self)._ideal_px is PlanarMatrixModel._ideal_px:
+            fast = self._map_opencv(uv, zs)
+            if fast is not None:
+                return fast
         out = np.empty((len(uv), 3))
         for s in range(0, len(uv), MAP_CHUNK):
             self._map_chunk(self._ideal_px(uv[s : s + MAP_CHUNK]), out[s : s + MAP_CHUNK, :2])
@@ -186,6 +192,29 @@ class PlanarMatrixModel(Model):
         return np.array(
             [[[gx, gy, g, 0.0, 0.0, 0.0, -gx * xn, -gy * xn], [0.0, 0.0, 0.0, gx, gy, g, -gx * yn, -gy * yn]]]
         )
+
+    def _map_opencv(self, uv: np.ndarray, zs: np.ndarray) -> np.ndarray | None:
+        """Many pixels (no lens) through OpenCV's float64 ``transform`` (affine) or
+        ``perspectiveTransform`` with the precomputed px → mm matrix, z appended by ``cv2.merge``: one
+        pass each, no BLAS. OpenCV writes (0, 0) where |w| ≤ FLT_EPSILON (the horizon); points that
+        come out exactly (0, 0) are mapped again elementwise, so the result equals the NumPy path
+        (to rounding, tests/test_speed_paths.py) there too. None when OpenCV is not importable."""
+        cv2 = opencv()
+        if cv2 is None:
+            return None
+        src = np.ascontiguousarray(uv).reshape(-1, 1, 2)
+        if self._affine:
+            xy = cv2.transform(src, self._H_px[:2])
+        else:
+            xy = cv2.perspectiveTransform(src, self._H_px)
+        flat = xy.reshape(-1, 2)
+        if cv2.countNonZero(flat) < flat.size:  # some coordinate is exactly 0: redo those points
+            redo = np.flatnonzero((flat == 0.0).all(axis=1))
+            if len(redo):
+                fixed = np.empty((len(redo), 2))
+                self._map_chunk(uv[redo], fixed)
+                flat[redo] = fixed
+        return cv2.merge([xy, np.ascontiguousarray(zs).reshape(-1, 1)]).reshape(-1, 3)
 
     def _map_chunk(self, uv: np.ndarray, xy: np.ndarray) -> None:
         """(n, 2) ideal px → ``xy`` (n, 2) mm in place, elementwise."""
