@@ -188,6 +188,15 @@ def cross_validate(
             fast = None
         if fast is not None:
             return fast
+    if not refit and n <= LOO_MAX_PAIRS and objective == "l2" and optimizer == "lm":
+        own = getattr(get_model(model), "leave_one_out", None)  # a model's own warm-started refits
+        if own is not None:
+            try:
+                fast = own(pairs.uv_px, pairs.xyz_mm, image_size=image_size)
+            except InputError:
+                fast = None
+            if fast is not None:
+                return fast
     res = np.full((n, 3), np.nan)
     for held in folds_for(n, seed):
         keep = np.setdiff1d(np.arange(n), held)
