@@ -88,10 +88,9 @@ def lens_start(uv_px, xy_mm, centre, f_default) -> tuple[np.ndarray, bool]:
     T_xy, xy_n = hartley(xy_mm)
     Hn, _ = dlt_homography(xy_n, uv_n, "homography-radial")
     H = np.linalg.inv(T_uv) @ Hn @ T_xy
-    f = focal_from_homography(H, centre)
-    told = f is not None and 0.1 * f_default < f < 10 * f_default
-    if not told:
-        f = f_default
+    f_told = focal_from_homography(H, centre)
+    told = f_told is not None and 0.1 * f_default < f_told < 10 * f_default
+    f = f_told if f_told is not None and told else float(f_default)
     rvec, tvec = pose_from_homography(H, centre, f)
     return np.r_[f, 0.0, 0.0, rvec, tvec], told
 
