@@ -131,6 +131,9 @@ def test_opencv_path_for_many_points_equals_the_numpy_map(name):
         np.testing.assert_allclose(fast[:5], slow[:5], rtol=0, atol=1e-9)
     batch = model.batch_image_to_robot(model.params[None], uv[5:], z[5:])[0]
     np.testing.assert_allclose(fast[5:], batch, rtol=0, atol=1e-9)
+    if name != "paper":  # one height for all (a number, or None: the plane): the one-pass form
+        for zone in (None, float(z[0])):
+            np.testing.assert_allclose(model.image_to_robot(uv[5:], zone), batch, rtol=0, atol=1e-9)
 
 
 # ---------------------------------------------------------------- leave-one-out without refits

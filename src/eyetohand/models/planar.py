@@ -17,6 +17,7 @@ import numpy as np
 
 from ..normalize import apply_h, hartley
 from .base import (
+    CV_CHUNK,
     CV_MIN_POINTS,
     MAP_CHUNK,
     HeightRule,
@@ -141,11 +142,12 @@ class PlanarMatrixModel(Model):
             with np.errstate(divide="ignore", invalid="ignore"):
                 return np.array([[(h0 * u + h1 * v + h2) / w, (h3 * u + h4 * v + h5) / w, z]])
         uv = as_uv(uv_px)
-        zs = self._z_for(len(uv), z_mm)
         if len(uv) >= CV_MIN_POINTS and type(self)._ideal_px is PlanarMatrixModel._ideal_px:
-            fast = self._map_opencv(uv, zs)
+            zq = self._z_for(1, z_mm)[0] if z_mm is None or np.ndim(z_mm) == 0 else self._z_for(len(uv), z_mm)
+            fast = self._map_opencv(uv, zq)
             if fast is not None:
                 return fast
+        zs = self._z_for(len(uv), z_mm)
         out = np.empty((len(uv), 3))
         for s in range(0, len(uv), MAP_CHUNK):
             self._map_chunk(self._ideal_px(uv[s : s + MAP_CHUNK]), out[s : s + MAP_CHUNK, :2])
@@ -193,28 +195,45 @@ class PlanarMatrixModel(Model):
             [[[gx, gy, g, 0.0, 0.0, 0.0, -gx * xn, -gy * xn], [0.0, 0.0, 0.0, gx, gy, g, -gx * yn, -gy * yn]]]
         )
 
-    def _map_opencv(self, uv: np.ndarray, zs: np.ndarray) -> np.ndarray | None:
+    def _map_opencv(self, uv: np.ndarray, zs) -> np.ndarray | None:
         """Many pixels (no lens) through OpenCV's float64 ``transform`` (affine) or
-        ``perspectiveTransform`` with the precomputed px → mm matrix, z appended by ``cv2.merge``: one
-        pass each, no BLAS. OpenCV writes (0, 0) where |w| ≤ FLT_EPSILON (the horizon); points that
-        come out exactly (0, 0) are mapped again elementwise, so the result equals the NumPy path
-        (to rounding, tests/test_speed_paths.py) there too. None when OpenCV is not importable."""
+        ``perspectiveTransform`` with the precomputed px → mm matrix: an affine map at one height in
+        one pass straight into the (N, 3) output; otherwise in chunks of ``CV_CHUNK`` points, each
+        merged with its z into the output by ``cv2.merge`` (no BLAS, no 16 MB intermediates). OpenCV
+        writes (0, 0) where |w| ≤ FLT_EPSILON (the horizon); points that come out exactly (0, 0) are
+        mapped again elementwise, so the result equals the NumPy path (to rounding,
+        tests/test_speed_paths.py) there too. ``zs``: one height (a number) or (N,). None when
+        OpenCV is not importable."""
         cv2 = opencv()
         if cv2 is None:
             return None
         src = np.ascontiguousarray(uv).reshape(-1, 1, 2)
-        if self._affine:
-            xy = cv2.transform(src, self._H_px[:2])
-        else:
-            xy = cv2.perspectiveTransform(src, self._H_px)
-        flat = xy.reshape(-1, 2)
-        if cv2.countNonZero(flat) < flat.size:  # some coordinate is exactly 0: redo those points
-            redo = np.flatnonzero((flat == 0.0).all(axis=1))
-            if len(redo):
-                fixed = np.empty((len(redo), 2))
-                self._map_chunk(uv[redo], fixed)
-                flat[redo] = fixed
-        return cv2.merge([xy, np.ascontiguousarray(zs).reshape(-1, 1)]).reshape(-1, 3)
+        n = len(src)
+        out = np.empty((n, 3))
+        scalar = np.ndim(zs) == 0  # one height for all the points (the plane's, or one given)
+        if self._affine and scalar:  # one pass straight into (N, 3), z = 0·u + 0·v + z exactly
+            A = np.vstack([self._H_px[:2], [0.0, 0.0, float(zs)]])
+            cv2.transform(src, A, dst=out.reshape(n, 1, 3))
+            return out
+        # in cache-sized chunks (no 16 MB intermediate), each merged with its z into the output
+        zcol = np.empty((CV_CHUNK, 1))
+        for s in range(0, n, CV_CHUNK):
+            e = min(s + CV_CHUNK, n)
+            if self._affine:
+                xy = cv2.transform(src[s:e], self._H_px[:2])
+            else:
+                xy = cv2.perspectiveTransform(src[s:e], self._H_px)
+            flat = xy.reshape(-1, 2)
+            if cv2.countNonZero(flat) < flat.size:  # some coordinate is exactly 0: redo those points
+                redo = np.flatnonzero((flat == 0.0).all(axis=1))
+                if len(redo):
+                    fixed = np.empty((len(redo), 2))
+                    self._map_chunk(uv[s + redo], fixed)
+                    flat[redo] = fixed
+            zc = zcol[: e - s]
+            zc[:, 0] = zs if scalar else zs[s:e]
+            cv2.merge([xy, zc], dst=out[s:e].reshape(e - s, 1, 3))
+        return out
 
     def _map_chunk(self, uv: np.ndarray, xy: np.ndarray) -> None:
         """(n, 2) ideal px → ``xy`` (n, 2) mm in place, elementwise."""
