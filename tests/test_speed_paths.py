@@ -99,12 +99,12 @@ def test_closed_form_params_jacobian_matches_differences(name):
 def test_opencv_path_for_many_points_equals_the_numpy_map(name):
     """From CV_MIN_POINTS points the affine-family maps go through OpenCV; they must equal the
     elementwise NumPy path (and the batch map) to 1e-9 mm, the horizon included for a homography."""
-    from eyetohand.models.base import CV_MIN_POINTS
+    from eyetohand.models.base import CV_CHUNK, CV_MIN_POINTS
 
     pairs = load_pairs(PAPER)
     model, _ = fit_model(pairs, name, "lm")
     rng = np.random.default_rng(7)
-    n = CV_MIN_POINTS + 123
+    n = max(CV_MIN_POINTS, 2 * CV_CHUNK) + 123  # several chunks and a short one
     uv = rng.uniform(pairs.uv_px.min(0) - 500, pairs.uv_px.max(0) + 500, size=(n, 2))
     z = np.full(n, float(pairs.xyz_mm[0, 2]))
     if name == "homography":  # points on the horizon w = 0, where OpenCV would write (0, 0)
@@ -131,7 +131,7 @@ def test_opencv_path_for_many_points_equals_the_numpy_map(name):
         np.testing.assert_allclose(fast[:5], slow[:5], rtol=0, atol=1e-9)
     batch = model.batch_image_to_robot(model.params[None], uv[5:], z[5:])[0]
     np.testing.assert_allclose(fast[5:], batch, rtol=0, atol=1e-9)
-    if name != "paper":  # one height for all (a number, or None: the plane): the one-pass form
+    if name != "paper":  # one height for all the points: a number, or None (the plane)
         for zone in (None, float(z[0])):
             np.testing.assert_allclose(model.image_to_robot(uv[5:], zone), batch, rtol=0, atol=1e-9)
 

@@ -197,9 +197,9 @@ class PlanarMatrixModel(Model):
 
     def _map_opencv(self, uv: np.ndarray, zs) -> np.ndarray | None:
         """Many pixels (no lens) through OpenCV's float64 ``transform`` (affine) or
-        ``perspectiveTransform`` with the precomputed px → mm matrix: an affine map at one height in
-        one pass straight into the (N, 3) output; otherwise in chunks of ``CV_CHUNK`` points, each
-        merged with its z into the output by ``cv2.merge`` (no BLAS, no 16 MB intermediates). OpenCV
+        ``perspectiveTransform`` with the precomputed px → mm matrix, in chunks of ``CV_CHUNK``
+        points, each merged with its z into the output by ``cv2.merge`` (no BLAS, no 16 MB
+        intermediates: a one-pass ``cv2.transform`` into (N, 3) measured slower). OpenCV
         writes (0, 0) where |w| ≤ FLT_EPSILON (the horizon); points that come out exactly (0, 0) are
         mapped again elementwise, so the result equals the NumPy path (to rounding,
         tests/test_speed_paths.py) there too. ``zs``: one height (a number) or (N,). None when
@@ -211,10 +211,6 @@ class PlanarMatrixModel(Model):
         n = len(src)
         out = np.empty((n, 3))
         scalar = np.ndim(zs) == 0  # one height for all the points (the plane's, or one given)
-        if self._affine and scalar:  # one pass straight into (N, 3), z = 0·u + 0·v + z exactly
-            A = np.vstack([self._H_px[:2], [0.0, 0.0, float(zs)]])
-            cv2.transform(src, A, dst=out.reshape(n, 1, 3))
-            return out
         # in cache-sized chunks (no 16 MB intermediate), each merged with its z into the output
         zcol = np.empty((CV_CHUNK, 1))
         for s in range(0, n, CV_CHUNK):
