@@ -77,7 +77,7 @@ def project_plane(p: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> np.nd
 
 
 LENS_FIT_TOL = 1e-8  # least_squares' ftol, xtol, gtol for the lens fit (SciPy's defaults)
-_LENS_CACHE: dict[tuple, tuple[np.ndarray, float, bool]] = {}  # the last few fits (auto repeats them)
+_LENS_CACHE: dict[tuple, tuple[np.ndarray, float]] = {}  # the last few fits (auto repeats them)
 _LENS_CACHE_SIZE = 4
 
 
@@ -96,13 +96,8 @@ def lens_start(uv_px, xy_mm, centre, f_default) -> tuple[np.ndarray, bool]:
 
 
 def fit_lens(uv_px, xy_mm, centre, f_default):
-    """Single-view camera fit (f, k1, k2, pose) on image-space residuals; returns (params, rms_px)."""
-    p, rms, _ = _fit_lens(uv_px, xy_mm, centre, f_default)
-    return p, rms
-
-
-def _fit_lens(uv_px, xy_mm, centre, f_default) -> tuple[np.ndarray, float, bool]:
-    """``fit_lens`` and whether the DLT told the focal length (memoised on the inputs)."""
+    """Single-view camera fit (f, k1, k2, pose) on image-space residuals; returns (params, rms_px).
+    Memoised on the inputs (the last few: ``auto`` fits the same full set twice)."""
     uv_px, xy_mm = np.asarray(uv_px, float), np.asarray(xy_mm, float)
     key = (
         uv_px.tobytes(),
@@ -113,8 +108,8 @@ def _fit_lens(uv_px, xy_mm, centre, f_default) -> tuple[np.ndarray, float, bool]
     )
     hit = _LENS_CACHE.get(key)
     if hit is not None:
-        return hit[0].copy(), hit[1], hit[2]
-    p0, told = lens_start(uv_px, xy_mm, centre, f_default)
+        return hit[0].copy(), hit[1]
+    p0, _ = lens_start(uv_px, xy_mm, centre, f_default)
     from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
 
     sol = least_squares(
@@ -127,10 +122,13 @@ def _fit_lens(uv_px, xy_mm, centre, f_default) -> tuple[np.ndarray, float, bool]
         gtol=LENS_FIT_TOL,
     )
     rms = float(np.sqrt(np.mean(sol.fun**2) * 2))
-    if len(_LENS_CACHE) >= _LENS_CACHE_SIZE:
-        _LENS_CACHE.pop(next(iter(_LENS_CACHE)))
-    _LENS_CACHE[key] = (sol.x.copy(), rms, told)
-    return sol.x, rms, told
+    while len(_LENS_CACHE) >= _LENS_CACHE_SIZE:  # oldest first; tolerant of another thread's pop
+        try:
+            _LENS_CACHE.pop(next(iter(_LENS_CACHE)), None)
+        except (StopIteration, RuntimeError):
+            break
+    _LENS_CACHE[key] = (sol.x.copy(), rms)
+    return sol.x, rms
 
 
 def project_plane_batch(P: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> np.ndarray:
