@@ -63,6 +63,7 @@ def _best_us(fn, number: int, repeat: int) -> float:
 
 
 def _ms(fn, repeat: int) -> float:
+    fn()  # warm-up, not timed: the first call of a size pays the allocator's page faults
     times = []
     for _ in range(repeat):
         t = time.perf_counter()

@@ -98,22 +98,17 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
     steps = 3 if full.linear_in_params else LOO_GN_MAX_STEPS  # linear: one step, then rounding
     with np.errstate(all="ignore"):
         for _ in range(steps):
-            h = 1e-5 * np.maximum(np.abs(P), 1e-2)  # (n, D) central-difference steps
-            rows = np.concatenate(
-                [P[:, None, :] + h[:, :, None] * np.eye(D), P[:, None, :] - h[:, :, None] * np.eye(D)], axis=1
-            )  # (n, 2D, D)
-            out = full.batch_image_to_robot(np.vstack([P, rows.reshape(-1, D)]), uv, z)
-            R = out[:n] - xyz  # (n, N, 3)
-            F = out[n:].reshape(n, 2 * D, n, 3)
-            J = (F[:, :D] - F[:, D:]) / (2 * h)[:, :, None, None]  # (n, D, N, 3)
-            Jk = (J * keep[:, None, :, None]).reshape(n, D, -1)
-            A = Jk @ Jk.transpose(0, 2, 1)  # (n, D, D)
-            g = (Jk @ R.reshape(n, -1, 1))[..., 0]
+            R, J = _map_and_jacobian(full, P, uv, z)  # (n, N, 3), (n, N, 3, D)
+            R -= xyz
+            Jk = (J * keep[:, :, None, None]).reshape(n, -1, D)
+            A = Jk.transpose(0, 2, 1) @ Jk  # (n, D, D)
+            g = (Jk.transpose(0, 2, 1) @ R.reshape(n, -1, 1))[..., 0]
             s = np.sqrt(np.einsum("idd->id", A))
             if not (np.isfinite(A).all() and np.isfinite(g).all() and (s > 0).all()):
                 return None
             As = A / (s[:, :, None] * s[:, None, :])
-            if (np.linalg.cond(As) > 1e12).any():
+            ev = np.linalg.eigvalsh(As)  # As is symmetric: its condition number from its eigenvalues
+            if not (ev[:, 0] > 1e-12 * ev[:, -1]).all():
                 return None  # a held-out subset that does not determine the model: refit says why
             scaled = -np.linalg.solve(As, (g / s)[..., None])[..., 0]  # ≈ mm the step moves the pairs
             P = P + scaled / s
@@ -126,6 +121,23 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
     if full.height_rule is not HeightRule.COMPUTED:
         res[:, 2] = _held_out_plane_z(full, z)
     return res if np.isfinite(res).all() else None
+
+
+def _map_and_jacobian(model: Model, P: np.ndarray, uv: np.ndarray, z: np.ndarray):
+    """(P, N, 3) mapped pairs and (P, N, 3, D) their parameter derivative: the model's closed form
+    when it has one, else central differences (all rows in one batched call)."""
+    closed = model.batch_map_and_jacobian(P, uv, z)
+    if closed is not None:
+        return closed
+    n, D = P.shape
+    h = 1e-5 * np.maximum(np.abs(P), 1e-2)  # (n, D) central-difference steps
+    rows = np.concatenate(
+        [P[:, None, :] + h[:, :, None] * np.eye(D), P[:, None, :] - h[:, :, None] * np.eye(D)], axis=1
+    )  # (n, 2D, D)
+    out = model.batch_image_to_robot(np.vstack([P, rows.reshape(-1, D)]), uv, z)
+    F = out[n:].reshape(n, 2 * D, len(uv), 3)
+    J = (F[:, :D] - F[:, D:]) / (2 * h)[:, :, None, None]  # (n, D, N, 3)
+    return out[:n], J.transpose(0, 2, 3, 1)
 
 
 def _held_out_plane_z(model: Model, z: np.ndarray) -> np.ndarray:
@@ -176,6 +188,15 @@ def cross_validate(
             fast = None
         if fast is not None:
             return fast
+    if not refit and n <= LOO_MAX_PAIRS and objective == "l2" and optimizer == "lm":
+        own = getattr(get_model(model), "leave_one_out", None)  # a model's own warm-started refits
+        if own is not None:
+            try:
+                fast = own(pairs.uv_px, pairs.xyz_mm, image_size=image_size)
+            except InputError:
+                fast = None
+            if fast is not None:
+                return fast
     res = np.full((n, 3), np.nan)
     for held in folds_for(n, seed):
         keep = np.setdiff1d(np.arange(n), held)

@@ -32,6 +32,18 @@ from ..numdiff import batch_jacobian  # noqa: F401  (models' own estimation step
 
 COLLINEAR_RATIO = 1e-6
 MAP_CHUNK = 1 << 13  # points per elementwise pass of the models' one-parameter-set maps (stays in cache)
+CV_MIN_POINTS = 1 << 16  # from this many points, the affine maps go through OpenCV's one-pass loops
+CV_CHUNK = 1 << 17  # points per OpenCV call there (2 MB outputs: fewer calls, no 16 MB intermediates;
+# measured fastest of 2^12..2^20)
+
+
+def opencv():
+    """The ``cv2`` module, imported on first use (it costs start-up time); None if it cannot be."""
+    try:
+        import cv2
+    except ImportError:  # a declared dependency, but a broken install should not stop the NumPy path
+        return None
+    return cv2
 
 
 class HeightRule(StrEnum):
@@ -151,6 +163,14 @@ class Model(ABC):
         uv = as_uv(uv_px)
         z = self._z_for(len(uv), z_mm)
         return self.batch_image_to_robot(self.params[None, :], uv, z)[0]
+
+    def batch_map_and_jacobian(
+        self, params: np.ndarray, uv_px: np.ndarray, z_mm: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``batch_image_to_robot`` (P, N, 3) and its derivative by the parameters (P, N, 3, D), in
+        closed form, for the models that have one (the leave-one-out's Gauss–Newton steps); None
+        otherwise (the caller differentiates numerically)."""
+        return None
 
     def params_jacobian(self, uv_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray | None:
         """(N, c, D) derivative of the mapped coordinates by the parameters, in closed form, for the

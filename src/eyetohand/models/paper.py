@@ -21,6 +21,7 @@ import numpy as np
 from ..errors import DegenerateError
 from ..normalize import hartley, spread_ratio
 from .base import (
+    CV_MIN_POINTS,
     MAP_CHUNK,
     HeightRule,
     Model,
@@ -29,6 +30,7 @@ from .base import (
     check_enough,
     check_not_collinear,
     one_point,
+    opencv,
 )
 from .dlt3d import COPLANAR_RATIO, dlt_projection
 
@@ -132,6 +134,9 @@ class PaperB(Model):
         Minv, _ = batch_inverse3(B[:, :, :3])
         self._Minv = tuple(tuple(row) for row in Minv[0].tolist())
         self._t = tuple(B[0, :, 3].tolist())
+        # the same map as a 3×3 affine matrix on (u, v, 1): M⁻¹ (u − b14, v − b24, 1 − b34)
+        G = Minv[0]
+        self._affine3 = np.column_stack([G[:, :2], G @ (np.array([0.0, 0.0, 1.0]) - B[0, :, 3])])
 
     def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
         """Equation (13) with the precomputed M⁻¹: one point on plain floats, many elementwise in
@@ -147,6 +152,10 @@ class PaperB(Model):
                 [[a0 * du + a1 * dv + a2 * dw, b0 * du + b1 * dv + b2 * dw, c0 * du + c1 * dv + c2 * dw]]
             )
         uv = as_uv(uv_px)
+        if len(uv) >= CV_MIN_POINTS:
+            cv2 = opencv()
+            if cv2 is not None:  # equation (13) is affine in (u, v): OpenCV's one-pass transform
+                return cv2.transform(np.ascontiguousarray(uv).reshape(-1, 1, 2), self._affine3).reshape(-1, 3)
         out = np.empty((len(uv), 3))
         for s in range(0, len(uv), MAP_CHUNK):
             chunk = uv[s : s + MAP_CHUNK]

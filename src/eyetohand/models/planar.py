@@ -17,6 +17,8 @@ import numpy as np
 
 from ..normalize import apply_h, hartley
 from .base import (
+    CV_CHUNK,
+    CV_MIN_POINTS,
     MAP_CHUNK,
     HeightRule,
     Model,
@@ -25,6 +27,7 @@ from .base import (
     check_not_collinear,
     check_single_height,
     one_point,
+    opencv,
 )
 
 PLANAR_CONSTANTS = MappingProxyType({"T_uv": (3, 3), "T_xy": (3, 3), "plane_z_mm": ()})
@@ -85,6 +88,35 @@ class PlanarMatrixModel(Model):
         num = np.einsum("pij,nj->pni", M[:, :, :2], pts) + M[:, None, :, 2]
         return to_robot(num[..., :2] / num[..., 2:3], self._Tinv_xy, z_mm)
 
+    def batch_map_and_jacobian(self, params, uv_px, z_mm):
+        """(P, N, 3) mapped pairs and (P, N, 3, D) d(x, y, z)/d(params) in closed form (see
+        :meth:`params_jacobian`), elementwise over (P, N): no (P, 2D, N) difference rows."""
+        P = np.asarray(params, float).reshape(-1, self.n_params)
+        D = self.n_params
+        pts = apply_h(self._T_uv, self._ideal_px(np.asarray(uv_px, float)))
+        p0, p1 = pts[:, 0], pts[:, 1]
+        M = self.batch_matrices(P).reshape(len(P), 9)
+        m = [M[:, k, None] for k in range(9)]
+        nx = m[0] * p0 + m[1] * p1 + m[2]
+        ny = m[3] * p0 + m[4] * p1 + m[5]
+        w = m[6] * p0 + m[7] * p1 + m[8]
+        s = self._Tinv_xy[0, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            g = s / w
+            xn, yn = nx / w, ny / w
+        out = np.empty((len(P), len(p0), 3))
+        out[..., 0] = s * xn + self._Tinv_xy[0, 2]
+        out[..., 1] = s * yn + self._Tinv_xy[1, 2]
+        out[..., 2] = z_mm
+        J = np.zeros((len(P), len(p0), 3, D))
+        gx, gy = g * p0, g * p1
+        J[..., 0, 0], J[..., 0, 1], J[..., 0, 2] = gx, gy, g
+        J[..., 1, 3], J[..., 1, 4], J[..., 1, 5] = gx, gy, g
+        if D == 8:
+            J[..., 0, 6], J[..., 0, 7] = -gx * xn, -gy * xn
+            J[..., 1, 6], J[..., 1, 7] = -gx * yn, -gy * yn
+        return out, J
+
     @property
     def matrix_image_to_robot(self) -> np.ndarray:
         """3×3 matrix mapping (u', v', 1) px to (x, y, 1) mm (up to scale; [2, 2] = 1)."""
@@ -110,6 +142,11 @@ class PlanarMatrixModel(Model):
             with np.errstate(divide="ignore", invalid="ignore"):
                 return np.array([[(h0 * u + h1 * v + h2) / w, (h3 * u + h4 * v + h5) / w, z]])
         uv = as_uv(uv_px)
+        if len(uv) >= CV_MIN_POINTS and type(self)._ideal_px is PlanarMatrixModel._ideal_px:
+            zq = self._z_for(1, z_mm)[0] if z_mm is None or np.ndim(z_mm) == 0 else self._z_for(len(uv), z_mm)
+            fast = self._map_opencv(uv, zq)
+            if fast is not None:
+                return fast
         zs = self._z_for(len(uv), z_mm)
         out = np.empty((len(uv), 3))
         for s in range(0, len(uv), MAP_CHUNK):
@@ -157,6 +194,42 @@ class PlanarMatrixModel(Model):
         return np.array(
             [[[gx, gy, g, 0.0, 0.0, 0.0, -gx * xn, -gy * xn], [0.0, 0.0, 0.0, gx, gy, g, -gx * yn, -gy * yn]]]
         )
+
+    def _map_opencv(self, uv: np.ndarray, zs) -> np.ndarray | None:
+        """Many pixels (no lens) through OpenCV's float64 ``transform`` (affine) or
+        ``perspectiveTransform`` with the precomputed px → mm matrix, in chunks of ``CV_CHUNK``
+        points, each merged with its z into the output by ``cv2.merge`` (no BLAS, no 16 MB
+        intermediates: a one-pass ``cv2.transform`` into (N, 3) measured slower). OpenCV
+        writes (0, 0) where |w| ≤ FLT_EPSILON (the horizon); points that come out exactly (0, 0) are
+        mapped again elementwise, so the result equals the NumPy path (to rounding,
+        tests/test_speed_paths.py) there too. ``zs``: one height (a number) or (N,). None when
+        OpenCV is not importable."""
+        cv2 = opencv()
+        if cv2 is None:
+            return None
+        src = np.ascontiguousarray(uv).reshape(-1, 1, 2)
+        n = len(src)
+        out = np.empty((n, 3))
+        scalar = np.ndim(zs) == 0  # one height for all the points (the plane's, or one given)
+        # in cache-sized chunks (no 16 MB intermediate), each merged with its z into the output
+        zcol = np.empty((CV_CHUNK, 1))
+        for s in range(0, n, CV_CHUNK):
+            e = min(s + CV_CHUNK, n)
+            if self._affine:
+                xy = cv2.transform(src[s:e], self._H_px[:2])
+            else:
+                xy = cv2.perspectiveTransform(src[s:e], self._H_px)
+            flat = xy.reshape(-1, 2)
+            if cv2.countNonZero(flat) < flat.size:  # some coordinate is exactly 0: redo those points
+                redo = np.flatnonzero((flat == 0.0).all(axis=1))
+                if len(redo):
+                    fixed = np.empty((len(redo), 2))
+                    self._map_chunk(uv[s + redo], fixed)
+                    flat[redo] = fixed
+            zc = zcol[: e - s]
+            zc[:, 0] = zs if scalar else zs[s:e]
+            cv2.merge([xy, zc], dst=out[s:e].reshape(e - s, 1, 3))
+        return out
 
     def _map_chunk(self, uv: np.ndarray, xy: np.ndarray) -> None:
         """(n, 2) ideal px → ``xy`` (n, 2) mm in place, elementwise."""

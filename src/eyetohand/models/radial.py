@@ -76,24 +76,110 @@ def project_plane(p: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> np.nd
     return centre + p[0] * distort(n, np.array([p[1], p[2], 0.0, 0.0]))
 
 
-def fit_lens(uv_px, xy_mm, centre, f_default):
-    """Single-view camera fit (f, k1, k2, pose) on image-space residuals; returns (params, rms_px)."""
+LENS_FIT_TOL = 1e-8  # least_squares' ftol, xtol, gtol for the lens fit (SciPy's defaults)
+_LENS_CACHE: dict[tuple, tuple[np.ndarray, float]] = {}  # the last few fits (auto repeats them)
+_LENS_CACHE_SIZE = 4
+
+
+def lens_start(uv_px, xy_mm, centre, f_default) -> tuple[np.ndarray, bool]:
+    """The lens fit's start (f, 0, 0, pose) from the DLT homography, and whether the homography told
+    f (False: the view is too straight-on, f is the default)."""
     T_uv, uv_n = hartley(uv_px)
     T_xy, xy_n = hartley(xy_mm)
     Hn, _ = dlt_homography(xy_n, uv_n, "homography-radial")
     H = np.linalg.inv(T_uv) @ Hn @ T_xy
-    f = focal_from_homography(H, centre)
-    if f is None or not (0.1 * f_default < f < 10 * f_default):
-        f = f_default
+    f_told = focal_from_homography(H, centre)
+    told = f_told is not None and 0.1 * f_default < f_told < 10 * f_default
+    f = f_told if f_told is not None and told else float(f_default)
     rvec, tvec = pose_from_homography(H, centre, f)
-    p0 = np.r_[f, 0.0, 0.0, rvec, tvec]
+    return np.r_[f, 0.0, 0.0, rvec, tvec], told
+
+
+def fit_lens(uv_px, xy_mm, centre, f_default):
+    """Single-view camera fit (f, k1, k2, pose) on image-space residuals; returns (params, rms_px).
+    Memoised on the inputs (the last few: ``auto`` fits the same full set twice)."""
+    uv_px, xy_mm = np.asarray(uv_px, float), np.asarray(xy_mm, float)
+    key = (
+        uv_px.tobytes(),
+        xy_mm.tobytes(),
+        tuple(np.asarray(centre, float).tolist()),
+        float(f_default),
+        LENS_FIT_TOL,
+    )
+    hit = _LENS_CACHE.get(key)
+    if hit is not None:
+        return hit[0].copy(), hit[1]
+    p0, _ = lens_start(uv_px, xy_mm, centre, f_default)
     from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
 
     sol = least_squares(
-        lambda p: (project_plane(p, xy_mm, centre) - uv_px).ravel(), p0, method="lm", x_scale="jac"
+        lambda p: (project_plane(p, xy_mm, centre) - uv_px).ravel(),
+        p0,
+        method="lm",
+        x_scale="jac",
+        ftol=LENS_FIT_TOL,
+        xtol=LENS_FIT_TOL,
+        gtol=LENS_FIT_TOL,
     )
     rms = float(np.sqrt(np.mean(sol.fun**2) * 2))
+    while len(_LENS_CACHE) >= _LENS_CACHE_SIZE:  # oldest first; tolerant of another thread's pop
+        try:
+            _LENS_CACHE.pop(next(iter(_LENS_CACHE)), None)
+        except (StopIteration, RuntimeError):
+            break
+    _LENS_CACHE[key] = (sol.x.copy(), rms)
     return sol.x, rms
+
+
+def project_plane_batch(P: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """:func:`project_plane` for (S, 9) camera parameter rows at once → (S, N, 2) px."""
+    R = rodrigues_to_matrix(P[:, 3:6])  # (S, 3, 3)
+    x, y = xy_mm[:, 0], xy_mm[:, 1]
+    Xc = [R[:, i, 0, None] * x + R[:, i, 1, None] * y + P[:, 6 + i, None] for i in range(3)]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        n = np.stack([Xc[0] / Xc[2], Xc[1] / Xc[2]], axis=-1)
+    k = np.column_stack([P[:, 1], P[:, 2], np.zeros(len(P)), np.zeros(len(P))])
+    return centre + P[:, 0, None, None] * distort(n, k)
+
+
+LENS_LOO_MAX_STEPS = 30
+LENS_LOO_TOL_PX = 1e-6  # the held-out lens fits stop when no step moves a pixel by more than this (the
+# steps settle at ~2e-7 px: rounding in the gradient)
+
+
+def lens_leave_one_out(p_full: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, centre) -> np.ndarray | None:
+    """The n held-out lens fits (f, k1, k2, pose), each without one pair, by Gauss–Newton from the
+    full fit ``p_full``, all at once (central-difference Jacobians in one batched projection);
+    (n, 9) or None when a held-out fit is ill-conditioned or does not settle (the caller refits)."""
+    n, D = len(uv_px), len(p_full)
+    keep = 1.0 - np.eye(n)
+    P = np.tile(p_full, (n, 1))
+    eye = np.eye(D)
+    with np.errstate(all="ignore"):
+        for _ in range(LENS_LOO_MAX_STEPS):
+            h = 1e-5 * np.maximum(np.abs(P), 1.0)
+            rows = np.concatenate(
+                [P[:, None] + h[:, :, None] * eye, P[:, None] - h[:, :, None] * eye], axis=1
+            )
+            out = project_plane_batch(np.vstack([P, rows.reshape(-1, D)]), xy_mm, centre)
+            r = (out[:n] - uv_px) * keep[:, :, None]  # (n, N, 2)
+            F = out[n:].reshape(n, 2 * D, n, 2)
+            J = ((F[:, :D] - F[:, D:]) / (2 * h)[:, :, None, None]) * keep[:, None, :, None]  # (n, D, N, 2)
+            Jf = J.reshape(n, D, -1)
+            A = Jf @ Jf.transpose(0, 2, 1)
+            g = (Jf @ r.reshape(n, -1, 1))[..., 0]
+            s = np.sqrt(np.einsum("idd->id", A))
+            if not (np.isfinite(A).all() and np.isfinite(g).all() and (s > 0).all()):
+                return None
+            As = A / (s[:, :, None] * s[:, None, :])
+            ev = np.linalg.eigvalsh(As)
+            if not (ev[:, 0] > 1e-10 * ev[:, -1]).all():
+                return None  # f, k1, k2 and the distance are not told apart: refits say which
+            scaled = -np.linalg.solve(As, (g / s)[..., None])[..., 0]
+            P = P + scaled / s
+            if (np.abs(scaled) <= LENS_LOO_TOL_PX).all():
+                return P
+    return None
 
 
 class HomographyRadial(Homography):
@@ -114,15 +200,7 @@ class HomographyRadial(Homography):
     @classmethod
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> HomographyRadial:
         uv, xyz, z0, *_ = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
-        if image_size is not None:
-            w, h = image_size
-            centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-            f_default = 1.2 * max(w, h)
-            source = "image-size"
-        else:
-            centre = 0.5 * (uv.min(axis=0) + uv.max(axis=0))
-            f_default = 2.4 * float(np.abs(uv - centre).max())
-            source = "points"
+        centre, f_default, source = _centre(uv, image_size)
         lens, rms_px = fit_lens(uv, xyz[:, :2], centre, f_default)
         f, k1, k2 = (float(v) for v in lens[:3])
         ideal = undistort_px(uv, centre, f, k1, k2)
@@ -140,6 +218,52 @@ class HomographyRadial(Homography):
         }
         diagnostics = {"centre_source": source, "lens_fit_rms_px": rms_px, "condition_number": cond}
         return cls(H.reshape(-1)[:8], constants, diagnostics)
+
+    @classmethod
+    def leave_one_out(cls, uv_px, xyz_mm, *, image_size=None) -> np.ndarray | None:
+        """Held-out residuals (N, 3) mm of the least-squares (``lm``) refits without each pair, the
+        lens fits warm-started from the full one (:func:`lens_leave_one_out`), each held-out
+        homography by Gauss–Newton on its own pairs from its DLT; None where that cannot be trusted
+        (the caller then refits). Checked against refits in tests/test_speed_paths.py."""
+        uv, xyz, z0, *_ = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
+        n = len(uv)
+        if n - 1 < cls.min_pairs:
+            return None
+        centre, f_default, _ = _centre(uv, image_size)
+        if not lens_start(uv, xyz[:, :2], centre, f_default)[1]:
+            # seen straight on, the lens fits wander along a valley of equal (f, k1, k2): where each
+            # refit stops depends on its own start, so the caller refits
+            return None
+        p_full, _ = fit_lens(uv, xyz[:, :2], centre, f_default)
+        lenses = lens_leave_one_out(p_full, uv, xyz[:, :2], centre)
+        if lenses is None:
+            return None
+        res = np.empty((n, 3))
+        for i in range(n):
+            keep = np.r_[0:i, i + 1 : n]
+            f, k1, k2 = (float(v) for v in lenses[i, :3])
+            ideal = undistort_px(uv[keep], centre, f, k1, k2)
+            if not np.isfinite(ideal).all():
+                return None
+            T_uv, ideal_n = hartley(ideal)
+            T_xy, xy_n = hartley(xyz[keep, :2])
+            H, _ = dlt_homography(ideal_n, xy_n, cls.name)
+            z_i = float(xyz[keep, 2].mean())
+            constants = {
+                "T_uv": T_uv.tolist(),
+                "T_xy": T_xy.tolist(),
+                "plane_z_mm": z_i,
+                "centre_px": centre.tolist(),
+                "focal_px": f,
+                "k1": k1,
+                "k2": k2,
+            }
+            m = cls(H.reshape(-1)[:8], constants, {})
+            fitted = _gauss_newton(m, uv[keep], xyz[keep])
+            if fitted is None:
+                return None
+            res[i] = fitted.image_to_robot(uv[i : i + 1], None)[0] - xyz[i]
+        return res if np.isfinite(res).all() else None
 
     def _prepare(self) -> None:
         super()._prepare()
@@ -166,6 +290,34 @@ class HomographyRadial(Homography):
     def _distorted_px(self, uv_px: np.ndarray) -> np.ndarray:
         f, k1, k2 = self._lens
         return self._c + f * distort((uv_px - self._c) / f, np.array([k1, k2, 0.0, 0.0]))
+
+
+def _gauss_newton(model, uv: np.ndarray, xyz: np.ndarray, max_steps: int = 12, tol_mm: float = 1e-7):
+    """The least-squares refinement of ``model``'s parameters on the pairs by Gauss–Newton with the
+    closed-form Jacobian (the ``lm`` solver's minimum); None when it does not settle."""
+    p = model.params.copy()
+    with np.errstate(all="ignore"):
+        for _ in range(max_steps):
+            out, J = model.batch_map_and_jacobian(p[None], uv, xyz[:, 2])
+            r = (out[0] - xyz)[:, :2].reshape(-1)
+            Jf = J[0, :, :2].reshape(-1, len(p))
+            s = np.sqrt((Jf * Jf).sum(axis=0))
+            if not (np.isfinite(Jf).all() and (s > 0).all()):
+                return None
+            step, *_ = np.linalg.lstsq(Jf / s, -r, rcond=None)
+            p = p + step / s
+            if np.abs(step).max() <= tol_mm:
+                return model.with_params(p)
+    return None
+
+
+def _centre(uv: np.ndarray, image_size):
+    """Distortion centre, default focal length (px) and where the centre came from."""
+    if image_size is not None:
+        w, h = image_size
+        return np.array([(w - 1) / 2.0, (h - 1) / 2.0]), 1.2 * max(w, h), "image-size"
+    centre = 0.5 * (uv.min(axis=0) + uv.max(axis=0))
+    return centre, 2.4 * float(np.abs(uv - centre).max()), "points"
 
 
 def undistort_px(uv_px: np.ndarray, centre, f: float, k1: float, k2: float) -> np.ndarray:
