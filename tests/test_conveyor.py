@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eyetohand.cli.conveyor import main
+from eyetohand.cli import main
 from eyetohand.conveyor import (
     ConveyorCalibration,
     Encoder,

@@ -1,24 +1,17 @@
 """``eyetohand conveyor calibrate | apply | simulate``: conveyor tracking on the command line.
 
-``register(subparsers)`` adds the ``conveyor`` command; ``main(argv)`` runs it on its own (exit 0 ok,
-2 bad input with one ``error:`` line on stderr).
+``register(subparsers)`` adds the ``conveyor`` command to ``eyetohand`` (exit 0 ok, 2 bad input with one
+``error:`` line on stderr).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 
 import numpy as np
 
 from ..conveyor import ConveyorCalibration, Encoder, calibrate_conveyor, format_report, load_session
 from ..errors import InputError
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):
-        raise InputError(f"{self.prog}: {message}")
 
 
 def _encoder(args) -> Encoder:
@@ -112,7 +105,7 @@ def _counter_options(p) -> None:
 
 def register(sub) -> None:
     conv = sub.add_parser("conveyor", help="conveyor tracking: belt calibration, mapping, simulation")
-    csub = conv.add_subparsers(dest="conveyor_command", metavar="ACTION", parser_class=_Parser)
+    csub = conv.add_subparsers(dest="conveyor_command", metavar="ACTION", parser_class=type(conv))
 
     p = csub.add_parser("calibrate", help="fit camera map + belt (+ latch delay) from a session CSV")
     p.add_argument("session", help="CSV kind,id,u,v,x,y,z,e[,moving], rows in time order")
@@ -155,22 +148,3 @@ def register(sub) -> None:
     _counter_options(p)
     p.set_defaults(func=cmd_simulate)
     conv.set_defaults(func=lambda a: (conv.print_help(), 2)[1])
-
-
-def main(argv=None) -> int:
-    """Run ``conveyor ...`` alone (the lead wires :func:`register` into ``eyetohand``)."""
-    parser = _Parser(prog="eyetohand")
-    register(parser.add_subparsers(dest="command", parser_class=_Parser))
-    try:
-        args = parser.parse_args(argv)
-        if not getattr(args, "func", None):
-            parser.print_help()
-            return 2
-        return int(args.func(args) or 0)
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())
