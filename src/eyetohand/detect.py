@@ -166,7 +166,7 @@ def load_image(image, name: str | None = None) -> tuple[np.ndarray, str, float]:
     grey = arr.astype(np.float32, copy=False)
     if grey.ndim == 3:
         grey = cv2.cvtColor(grey, cv2.COLOR_BGRA2GRAY if grey.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    if not np.isfinite(grey).all():
+    if not np.issubdtype(arr.dtype, np.integer) and not np.isfinite(grey).all():
         raise InputError(f"{name}: the image holds NaN or infinite values")
     return np.ascontiguousarray(grey), name, full
 
@@ -412,20 +412,19 @@ def _grouped(coarse, windows, levels, pols, min_d: float, sigma: float, f: int, 
     # level), larger ones join the nearest core they are centred on — a blob that merged two regions
     # at a mid level is centred on neither and stays alone
     order = np.argsort(diam, kind="stable")
-    gc = np.zeros((0, 2))
-    gd = np.zeros(0)
-    gp = np.zeros(0, dtype=pol_of.dtype)
+    n = len(order)
+    gx, gy, gd = np.empty(n), np.empty(n), np.empty(n)  # the groups' cores: centre and diameter
+    gp = np.empty(n, dtype=pol_of.dtype)
     members: list[list[int]] = []
     for j in order:
-        if len(gd):
-            dist = np.hypot(*(gc - cents[j]).T)
-            near = (dist < 0.25 * gd) & (diam[j] / gd < 1.6) & (gp == pol_of[j])
+        k = len(members)
+        if k:
+            dist = np.hypot(gx[:k] - cents[j, 0], gy[:k] - cents[j, 1])
+            near = (dist < 0.25 * gd[:k]) & (diam[j] / gd[:k] < 1.6) & (gp[:k] == pol_of[j])
             if near.any():
                 members[int(np.argmin(np.where(near, dist, np.inf)))].append(j)
                 continue
-        gc = np.vstack([gc, cents[j]])
-        gd = np.append(gd, diam[j])
-        gp = np.append(gp, pol_of[j])
+        gx[k], gy[k], gd[k], gp[k] = cents[j, 0], cents[j, 1], diam[j], pol_of[j]
         members.append([j])
     cands, rejected = [], []
     for mem in members:
