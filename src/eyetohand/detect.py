@@ -356,7 +356,7 @@ def _windows(coarse, levels, pols, min_d: float, sigma: float, f: int):
         return None
     loc = cv2.resize(coarse[: H - H % 2, : W - W % 2], (W // 2, H // 2), interpolation=cv2.INTER_AREA)
     cands, rejected = _grouped(
-        loc, [(0, 0, W // 2, H // 2)], levels, pols, 0.5 * min_d - 1, sigma, 2 * f, loose=True
+        loc, [(0, 0, W // 2, H // 2)], levels[::2], pols, 0.5 * min_d - 1, sigma, 2 * f, loose=True
     )
     boxes = []
     for c in cands + rejected:
