@@ -735,7 +735,9 @@ def _fit_edge_model(p0, dx, dy, val, R: float, scale: float, f_scale: float = 3.
             q = p + step
             if not np.isfinite(q).all():
                 return None
-            m_new = _edge_model(q, dx, dy, R, harmonics)
+            # the Jacobian with the trial's value: steps are nearly always accepted, and then the
+            # next iteration needs both (one evaluation instead of two)
+            m_new, J_new = _edge_model(q, dx, dy, R, harmonics, jacobian=True)
             r_new = (m_new - val) / scale
             c_new = cost(r_new)
             if c_new <= c:
@@ -748,8 +750,7 @@ def _fit_edge_model(p0, dx, dy, val, R: float, scale: float, f_scale: float = 3.
         lam = max(lam / 10, 1e-9)
         if small:
             return p
-        model, J = _edge_model(p, dx, dy, R, harmonics, jacobian=True)
-        res = (model - val) / scale
+        J, res = J_new, r_new
     return None
 
 
