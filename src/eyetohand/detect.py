@@ -641,6 +641,7 @@ def _ellipse_distance_px(p: np.ndarray, dx: np.ndarray, dy: np.ndarray, R: float
     return (rho - 1) * rho / np.maximum(np.hypot(qx, qy), 1e-300)
 
 
+GEO_TOL = 1e-6  # px (and log s): the intensity fit stops when a step moves the ellipse less than this
 N_HARMONICS = 4  # angular harmonics of the outer level in the intensity model (a textured surround)
 _CHUNK = 256  # rows per product in the normal equations (see _normal_equations)
 
@@ -745,7 +746,13 @@ def _fit_edge_model(p0, dx, dy, val, R: float, scale: float, f_scale: float = 3.
             lam *= 10
             if lam > 1e12:  # no step lowers the cost: converged at a minimum
                 return p
-        small = np.all(np.abs(step) <= 1e-8 * (np.abs(q) + 1e-8)) or c - c_new <= 1e-12 * max(c, 1e-300)
+        # converged: a step that moves the centre, the axes (q · R / 2 px) and log s by < 1e-6 (the
+        # iterations shrink the step ~10× each: what is left is ~1e-7 px), or that changes nothing
+        small = (
+            max(abs(step[0]), abs(step[1]), 0.5 * R * float(np.abs(step[2:5]).max()), abs(step[7])) <= GEO_TOL
+            or np.all(np.abs(step) <= 1e-8 * (np.abs(q) + 1e-8))
+            or c - c_new <= 1e-12 * max(c, 1e-300)
+        )
         p, c = q, c_new
         lam = max(lam / 10, 1e-9)
         if small:
@@ -790,7 +797,10 @@ def _fit_intensity(img, ellipse, sign: float, sigma: float):
             return None
         scale = max(sigma, 1e-3 * abs(a_out - a_in))
 
-        p0 = np.concatenate([p_geo, [a_in, a_out, math.log(1.0), 0.0, 0.0], np.zeros(2 * N_HARMONICS)])
+        if result is None:
+            p0 = np.concatenate([p_geo, [a_in, a_out, math.log(1.0), 0.0, 0.0], np.zeros(2 * N_HARMONICS)])
+        else:  # the wider band starts from the narrower band's fit: fewer iterations, the same minimum
+            p0 = result
         p = _fit_edge_model(p0, dx, dy, val, R, scale)
         if p is None:
             return None
