@@ -177,9 +177,9 @@ def noise_sigma(img: np.ndarray) -> float:
     d = np.diff(img[:: max(1, min(16, img.shape[0] // 64))], axis=1).ravel()
     if d.size == 0:
         return 0.0
-    if 0 < np.ptp(d) < 1 << 18 and np.array_equal(d, np.rint(d)):  # integer grey levels: by counting
-        med = _median_halves(2 * d)
-        mad = d.dtype.type(_median_halves(np.abs(2 * d - 2 * med)))  # np.median's dtype
+    lo = d.min()
+    if 0 < d.max() - lo < 1 << 18 and np.array_equal(d, np.rint(d)):  # integer grey levels: by counting
+        mad = d.dtype.type(_mad_by_counting(np.bincount((d - lo).astype(np.intp)), int(lo)))
     else:
         mad = np.median(np.abs(d - np.median(d)))
     if mad == 0:  # quantised flat image: fall back to the mean absolute difference
@@ -187,15 +187,20 @@ def noise_sigma(img: np.ndarray) -> float:
     return float(1.4826 * mad / math.sqrt(2))
 
 
-def _median_halves(v2: np.ndarray) -> float:
-    """The median of v2 / 2 for integer-valued v2 (np.median's value, ties averaged), by counting:
-    a few times faster than np.median's partition on the 300 000 differences of a 5 Mpx image."""
-    v = v2.astype(np.int64)
-    lo = int(v.min())
-    c = np.cumsum(np.bincount(v - lo))
-    n = len(v)
-    a, b = np.searchsorted(c, [(n - 1) // 2, n // 2], side="right") + lo
-    return (a + b) / 4
+def _mad_by_counting(counts: np.ndarray, lo: int) -> float:
+    """np.median(|x − np.median(x)|) of integer values x given as a histogram (``counts[i]`` values
+    equal to ``lo + i``), by counting: one pass over the values (the histogram) instead of
+    np.median's two partitions of the 300 000 differences of a 5 Mpx image (ties averaged as
+    np.median does; the deviations from a half-integer median are truncated to integers)."""
+    c = np.cumsum(counts)
+    n = int(c[-1])
+    ia, ib = np.searchsorted(c, [(n - 1) // 2, n // 2], side="right")
+    med2 = (2 * (lo + int(ia)) + 2 * (lo + int(ib))) / 2  # 2 × the median
+    x2 = 2 * (lo + np.arange(len(counts)))
+    dev = np.abs(x2 - med2).astype(np.int64)  # 2 |x − median|, truncated
+    c2 = np.cumsum(np.bincount(dev, weights=counts))
+    a, b = np.searchsorted(c2, [(n - 1) // 2, n // 2], side="right")
+    return (int(a) + int(b)) / 4
 
 
 # ------------------------------------------------------------------ stage 1: candidates
