@@ -10,7 +10,8 @@ Three stages:
    the ring around them by at least 6 noise σ. A region found at two or more levels in the same place
    is a candidate. Uneven light only moves the levels at which a region appears, not whether it
    does. Only windows around what the same search with looser bounds (and every other level) finds
-   on a copy downscaled 2× more are labelled (the whole image when that finds nothing, or when the windows give no circle).
+   on a copy downscaled 2× more are labelled (the whole image when that finds nothing, or when the
+   windows give no circle).
 2. **Edge points** at full resolution around each candidate: the image is sampled (bilinear) along
    one radial profile per boundary pixel, from inside to outside the candidate's ellipse; each
    profile's edge is the centroid of its gradient above a quarter of its peak (exact for a
@@ -352,9 +353,9 @@ def _windows(coarse, levels, pols, min_d: float, sigma: float, f: int):
     ``coarse`` around every candidate and rejected region of the same search on a copy downscaled 2×
     more, with looser bounds (half the diameter less a pixel, half the contrast and ring
     uniformity) at every other level (a circle spans many levels; half the labellings, the same
-    windows on every render measured); overlapping windows merged. Labelling a few windows instead of the whole image at
-    every level is what makes the search fast (the coarser copy has a quarter of the pixels). None
-    when the image is too small for this to pay."""
+    windows on every render measured); overlapping windows merged. Labelling a few windows instead of
+    the whole image at every level is what makes the search fast (the coarser copy has a quarter of
+    the pixels). None when the image is too small for this to pay."""
     import cv2
 
     H, W = coarse.shape
