@@ -368,3 +368,23 @@ def test_two_targets_of_one_size_get_a_hint_that_can_help(tmp_path, capsys):
     assert abs(rec["u"] - 450.2) < 0.1 and abs(rec["v"] - 260.4) < 0.1
     assert cli_main(["detect", str(path), "--roi", "-1", "0", "10", "10"]) == 2
     assert "--roi: expected" in capsys.readouterr().err
+
+
+def test_noise_sigma_by_counting_equals_the_median_definition():
+    """The noise σ of integer images is computed from a histogram of the neighbour differences: it
+    must equal 1.4826 · median(|d − median(d)|) / √2 computed with np.median (odd and even counts,
+    half-integer medians, 8- and 16-bit ranges), and a non-integer image takes np.median itself."""
+    import math
+
+    from eyetohand.detect import noise_sigma
+
+    rng = np.random.default_rng(3)
+    for i in range(40):
+        h, w = rng.integers(64, 300, 2)
+        spread = rng.uniform(0.5, 6) * (300 if i % 4 == 3 else 1)
+        a = np.rint(rng.normal(30000 if i % 4 == 3 else 120, spread, (h, w))).astype(np.float32)
+        if i % 4 == 2:
+            a += rng.uniform(0, 0.5, a.shape).astype(np.float32)  # not integer grey levels
+        d = np.diff(a[:: max(1, min(16, h // 64))], axis=1).ravel()
+        ref = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(2)
+        assert noise_sigma(a) == pytest.approx(ref, rel=1e-6)
