@@ -16,23 +16,13 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import launch_chromium
 
 from eyetohand import InputError, calibrate, load_pairs
 from eyetohand.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "examples" / "paper"
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 
 
 def free_port() -> int:
@@ -65,12 +55,10 @@ def server(tmp_path, request):
 
 @pytest.fixture
 def page():
-    if not Path(CHROMIUM).exists():
-        pytest.fail("Chromium is not installed: run `apt-get install -y chromium` (make test does)")
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+        browser = launch_chromium(pw)
         pg = browser.new_page(viewport={"width": 1400, "height": 1000})
         problems: list[str] = []
         pg.on("pageerror", lambda e: problems.append(f"page error: {e}"))

@@ -22,22 +22,12 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from conftest import launch_chromium
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples" / "robots"))
 from robot_client import TcpLink, VirtualRobot  # noqa: E402
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 CELL = """[camera]
 width_px = 640
 height_px = 512
@@ -108,12 +98,10 @@ def serve(tmp_path):
 
 @pytest.fixture
 def page():
-    if not Path(CHROMIUM).exists():
-        pytest.fail("Chromium is not installed: run `apt-get install -y chromium` (make test does)")
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+        browser = launch_chromium(pw)
         pg = browser.new_page(viewport={"width": 1300, "height": 1000})
         problems: list[str] = []
         pg.on("pageerror", lambda e: problems.append(f"page error: {e}"))
