@@ -52,7 +52,7 @@ def outlier_threshold_mm(errors_mm: np.ndarray, n_coords: int = 2, alpha: float 
 def outlier_mask(errors_mm: np.ndarray, n_coords: int = 2, alpha: float = OUTLIER_ALPHA) -> np.ndarray:
     """True where an error exceeds :func:`outlier_threshold_mm` (none below ``OUTLIER_MIN_PAIRS``)."""
     e = np.asarray(errors_mm, float)
-    if len(e) < OUTLIER_MIN_PAIRS:
+    if int(np.isfinite(e).sum()) < OUTLIER_MIN_PAIRS:
         return np.zeros(len(e), bool)
     return e > outlier_threshold_mm(e, n_coords, alpha)
 

@@ -15,6 +15,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from ..errors import DegenerateError
 from ..normalize import apply_h, hartley
 from .base import (
     CV_CHUNK,
@@ -63,6 +64,10 @@ class PlanarMatrixModel(Model):
         self._Tinv_xy = np.linalg.inv(np.asarray(self.constants["T_xy"], float))
         # what the parameters fix: the px → mm matrix, as floats for one point and for columns
         H = self._Tinv_xy @ self.batch_matrices(self.params[None])[0] @ self._T_uv
+        if not (np.isfinite(H).all() and abs(H[2, 2]) > 1e-300):
+            raise DegenerateError(
+                f"model '{self.name}': degenerate matrix (it maps pixels to the plane at infinity)"
+            )
         self._H_px = H / H[2, 2]
         self._h = tuple(self._H_px.ravel().tolist())
         self._M = tuple(self.batch_matrices(self.params[None])[0].ravel().tolist())
