@@ -43,6 +43,10 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_scale.py --sizes 1000 10000 100000 --models homography
 	$(BIN)/python benchmarks/bench_lens.py
 	$(BIN)/python benchmarks/bench_conveyor.py
+	$(BIN)/python benchmarks/bench_fit.py --quick
+	$(BIN)/python benchmarks/bench_uncertainty.py --cells 20
+	$(BIN)/python benchmarks/bench_verify.py --trials 300 --seeds 2
+	$(BIN)/python benchmarks/bench_outliers.py --sets 100
 
 clean:
 	rm -rf $(VENV) build dist demo-out src/*.egg-info
