@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from .calibration import Calibration
+from .calibration import Calibration, derived_region
 from .errors import InputError
 from .evaluate import stats_from_residuals
 from .models import MODELS, HeightRule, Model, get_model
@@ -400,8 +400,7 @@ def calibrate(
     check_stats = None
     if check is not None:
         check_stats = stats_from_residuals(fitted.residuals(check.uv_px, check.xyz_mm), check.ids)
-    plane = None if fitted.height_rule is HeightRule.GIVEN else float(np.mean(pairs.xyz_mm[:, 2]))
-    region = CalibratedRegion.from_pairs(pairs.uv_px, pairs.xyz_mm, plane_z_mm=plane)
+    region = derived_region(fitted, pairs)  # the one rule, which loading re-checks
     uncertainty = Uncertainty.of_fit(fitted, pairs.uv_px, pairs.xyz_mm)
     warnings = sanity_warnings(fitted, region, original, original_check)
     return Calibration(
