@@ -1293,3 +1293,21 @@ def test_tcp_numbers_only_line_answers_as_the_general_path(client):
     assert tcp_answer(cal, b"600,1e999") == b"ERR v: '1e999' is not a finite number\n"
     assert tcp_answer(cal, b"99999,-5000").startswith(b"ERR outside the calibrated region")
     assert tcp_answer(cal, b"1,2,3,4").startswith(b"ERR 4 numbers;")
+
+
+def test_tcp_takes_the_orientation_words_apply_and_http_take(client):
+    """Symmetry and the tool offset answer over TCP as through the library (and HTTP); '6_00' is no number."""
+    create(client, "o", model="homography", optimizer="lm")
+    cal = Calibration.from_dict(client.get("/api/calibrations/1").json()["calibration"])
+    m = cal.map([[600, 900]], angle_deg=[150.0], symmetry=2, tool_rz_offset_deg=12.5)
+    rz = float(tcp_answer(cal, b"600,900,a=150,s=2,t=12.5").decode().split(",")[3])
+    assert rz == m.rz_deg[0] and -90 < rz <= 90
+    r = client.post(
+        "/api/calibrations/1/image-to-robot",
+        json={"points": [[600, 900]], "angles": [150.0], "symmetry": 2, "tool_rz_offset_deg": 12.5},
+    )
+    assert r.json()["rz_deg"][0] == pytest.approx(rz, abs=1e-12)
+    assert tcp_answer(cal, b"6_00,900") == b"ERR u: '6_00' is not a number\n"
+    assert tcp_answer(cal, b"600,900,a=30,s=1.5").startswith(b"ERR s: 1.5 is not a whole number")
+    assert tcp_answer(cal, b"600,900,a=30,s=0").startswith(b"ERR symmetry must be a whole number")
+    assert tcp_answer(cal, b"600,900,q=1").startswith(b"ERR unknown word 'q=1'")

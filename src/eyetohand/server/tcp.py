@@ -35,7 +35,7 @@ IDLE_S = 300.0
 AUTH_S = 10.0
 
 
-USAGE = "send u,v[,z][,a=ANGLE][,allow][,sigma] or VERSION"
+USAGE = "send u,v[,z][,a=ANGLE][,s=N][,t=DEG][,allow][,sigma] or VERSION"
 POLL_S = 0.25
 
 
@@ -130,20 +130,23 @@ class StoredCalibration:
 def answer(cal: Calibration, line: bytes) -> bytes:
     """The reply to one request line (without its newline).
 
-    ``u,v[,z]`` → ``x,y,z`` (mm). Optional words after the numbers: ``a=ANGLE`` (the image angle, deg
-    from +u towards +v) adds ``,rz``; ``sigma`` adds ``,sigma_mm``; ``allow`` maps a point outside
-    the calibrated region too, and such an answer ends with ``,OUTSIDE``. Refusals: ``ERR <reason>``
-    (``ERR outside the calibrated region: ...`` for a point beyond the margin).
+    ``u,v[,z]`` → ``x,y,z`` (mm). Optional words after the numbers, as ``apply`` and the HTTP API take
+    them: ``a=ANGLE`` (the image angle, deg from +u towards +v) adds ``,rz``; ``s=N`` folds rz for a part
+    symmetric under 360/N turns; ``t=DEG`` (the gripper's rz when aligned with the image's +u) makes rz
+    the gripper's command; ``sigma`` adds ``,sigma_mm``; ``allow`` maps a point outside the calibrated
+    region too, and such an answer ends with ``,OUTSIDE``. Numbers are plain decimals (``6_00`` is not
+    one, as in the library's loaders). Refusals: ``ERR <reason>`` (``ERR outside the calibrated region:
+    ...`` for a point beyond the margin).
     """
     parts_b = line.split(b",")
-    if 2 <= len(parts_b) <= 3:  # the common line, numbers only: parsed as the general path would
+    if 2 <= len(parts_b) <= 3 and b"_" not in line:  # the common line, numbers only: as the general path
         try:
             vals = [float(p) for p in parts_b]
         except ValueError:
             pass
         else:
             if all(map(math.isfinite, vals)):
-                return _mapped_line(cal, vals, None, False, False)
+                return _mapped_line(cal, vals, {})
     try:
         text = line.decode("ascii").strip()
     except UnicodeDecodeError:
@@ -157,36 +160,58 @@ def answer(cal: Calibration, line: bytes) -> bytes:
         return f"ERR {len(nums)} numbers; {USAGE}\n".encode()
     vals = []
     for name, p in zip("uvz", nums, strict=False):
-        try:
-            x = float(p)
-        except ValueError:
-            return f"ERR {name}: {p[:20]!r} is not a number\n".encode()
-        if not math.isfinite(x):
-            return f"ERR {name}: {p[:20]!r} is not a finite number\n".encode()
+        x, err = _number(name, p)
+        if err:
+            return err
         vals.append(x)
-    angle, allow, want_sigma = None, False, False
+    opts: dict = {}
     for w in words:
-        if w == "allow":
-            allow = True
-        elif w == "sigma":
-            want_sigma = True
-        elif w.startswith("a="):
-            try:
-                angle = float(w[2:])
-            except ValueError:
-                return f"ERR a: {w[2:22]!r} is not a number\n".encode()
-            if not math.isfinite(angle):
-                return f"ERR a: {w[2:22]!r} is not a finite number\n".encode()
-        else:
+        if w in ("allow", "sigma"):
+            opts[w] = True
+            continue
+        key, _, text_value = w.partition("=")
+        if key not in _WORDS:
             return f"ERR unknown word {w[:20]!r}; {USAGE}\n".encode()
-    return _mapped_line(cal, vals, angle, allow, want_sigma)
+        x, err = _number(key, text_value)
+        if err:
+            return err
+        opts[_WORDS[key]] = x
+    return _mapped_line(cal, vals, opts)
 
 
-def _mapped_line(cal: Calibration, vals: list[float], angle, allow: bool, want_sigma: bool) -> bytes:
+_WORDS = {"a": "angle_deg", "s": "symmetry", "t": "tool_rz_offset_deg"}
+
+
+def _number(name: str, text: str) -> tuple[float, bytes | None]:
+    """A finite plain decimal, or the ERR line that refuses it."""
+    try:
+        if "_" in text:
+            raise ValueError(text)
+        x = float(text)
+    except ValueError:
+        return 0.0, f"ERR {name}: {text[:20]!r} is not a number\n".encode()
+    if not math.isfinite(x):
+        return 0.0, f"ERR {name}: {text[:20]!r} is not a finite number\n".encode()
+    return x, None
+
+
+def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
     z = vals[2] if len(vals) == 3 else None
+    want_sigma = bool(opts.get("sigma"))
+    symmetry = opts.get("symmetry", 1)
+    if symmetry != int(symmetry):
+        return f"ERR s: {symmetry!r} is not a whole number\n".encode()
     try:
         with np.errstate(all="ignore"):
-            m = cal.map(np.array([vals[:2]]), z, angle_deg=angle, allow_outside=allow, with_sigma=want_sigma)
+            m = cal.map(
+                np.array([vals[:2]]),
+                z,
+                angle_deg=opts.get("angle_deg"),
+                allow_outside=bool(opts.get("allow")),
+                symmetry=int(symmetry),
+                tool_rz_offset_deg=opts.get("tool_rz_offset_deg"),
+                with_sigma=want_sigma,
+            )
     except InputError as exc:
         reason = exc.reason if exc.index is not None else str(exc)
         return f"ERR {reason.splitlines()[0][:200]}\n".encode()

@@ -732,6 +732,8 @@ function mapError(err) {
   if (/^points\[0\]$/.test(f)) { mark("#map-u"); mark("#map-v"); }
   else if (/(^|\.)z$/.test(f)) mark("#map-z");
   else if (f.startsWith("angles")) mark("#map-angle");
+  else if (f.startsWith("symmetry")) mark("#map-symmetry");
+  else if (f.startsWith("tool_rz")) mark("#map-tool");
   else if (f === "points[0][0]") mark("#map-u");
   else if (f === "points[0][1]") mark("#map-v");
 }
@@ -746,6 +748,9 @@ async function mapPoint() {
   const body = { points: [[Number(u), Number(v)]], allow_outside: $("#map-allow").checked };
   if (z !== "") body.z = Number(z);  // the server refuses a z off a single-height calibration's plane
   if (a !== "") body.angles = [Number(a)];
+  const sym = $("#map-symmetry").value, tool = $("#map-tool").value;
+  if (sym !== "" && sym !== "1") body.symmetry = Number(sym);
+  if (tool !== "") body.tool_rz_offset_deg = Number(tool);
   const path = src === "job" ? `/api/jobs/${state.job}/image-to-robot` : `/api/calibrations/${src.slice(4)}/image-to-robot`;
   const r = await api("POST", path, body);
   if (!r.ok) { mapError(r.data); return; }
