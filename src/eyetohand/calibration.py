@@ -107,7 +107,7 @@ class Calibration:
     def local_frame(self, uv_px=None) -> LocalFrame:
         """Scale, rotation, skew and handedness of the map at ``uv_px`` (default: the region's centre)."""
         uv = self._centre() if uv_px is None else np.asarray(uv_px, float).reshape(1, 2)
-        return LocalFrame.from_jacobian(local_jacobian(self._map_xy(None), uv)[0])
+        return LocalFrame.from_jacobian(local_jacobian(self.xy_map(), uv)[0])
 
     @property
     def handedness(self) -> str:
@@ -120,14 +120,25 @@ class Calibration:
             return self.pairs.uv_px.mean(axis=0, keepdims=True)
         raise InputError("this calibration records no calibrated region (a pre-0.2 file): recalibrate it")
 
-    def _map_xy(self, z):
-        plane = self.region.plane_z_mm if self.region is not None else None
-        zz = z if z is not None else plane
+    def _default_z(self) -> float | None:
+        """The height a point is mapped at when none is given: the plane, or the middle of the z range."""
+        if self.region is None:
+            return None
+        if self.region.plane_z_mm is not None:
+            return self.region.plane_z_mm
+        return float(np.mean(self.region.z_range_mm)) if self.region.z_range_mm else None
+
+    def xy_map(self, z=None):
+        """(M, 2) px → (M, 2) mm for :func:`~eyetohand.orientation.local_jacobian`, at ``z``: None (the
+        calibration's own height), a number, or one per point of the N points whose M = k·N stencil
+        points are mapped (k blocks of N, each block at the N points' own heights)."""
+        zz: np.ndarray | None = None
+        if self.model.height_rule is not HeightRule.COMPUTED:
+            given = self._default_z() if z is None else z
+            zz = None if given is None else np.atleast_1d(np.asarray(given, float))
 
         def f(uv):
-            zq = None if zz is None or self.model.height_rule is HeightRule.COMPUTED else zz
-            if self.model.height_rule is HeightRule.GIVEN and zq is None:
-                zq = float(np.mean(self.region.z_range_mm)) if self.region and self.region.z_range_mm else 0.0
+            zq = None if zz is None else np.tile(zz, len(uv) // len(zz)) if len(zz) > 1 else float(zz[0])
             return self.model.image_to_robot(uv, zq)[:, :2]
 
         return f
@@ -198,7 +209,7 @@ class Calibration:
                 i = int(np.flatnonzero(~np.isfinite(ang))[0])
                 raise InputError("must be a finite number (deg)", index=i, field="angle", label="points")
             zq = None if z is None else z
-            J = local_jacobian(self._map_xy_each(zq), uv)
+            J = local_jacobian(self.xy_map(zq), uv)
             rz = image_angle_to_rz(J, ang)
             if tool_rz_offset_deg is not None:
                 if not np.isfinite(tool_rz_offset_deg):
@@ -219,21 +230,10 @@ class Calibration:
         scale explodes (beyond ``HORIZON_SCALE_RATIO`` × the region centre's), where the answer is a
         finite number that means nothing."""
         with np.errstate(all="ignore"):
-            det = np.linalg.det(local_jacobian(self._map_xy_each(z), uv))
-            ref = np.linalg.det(local_jacobian(self._map_xy(None), self._centre()))[0]
+            det = np.linalg.det(local_jacobian(self.xy_map(z), uv))
+            ref = np.linalg.det(local_jacobian(self.xy_map(), self._centre()))[0]
             ratio = np.sqrt(np.abs(det / ref))
         return ~np.isfinite(det) | (np.sign(det) != np.sign(ref)) | ~(ratio < self.HORIZON_SCALE_RATIO)
-
-    def _map_xy_each(self, z):
-        """A (M, 2) → (M, 2) map for the Jacobian of N points (M = 4N), each at its own z."""
-        if z is None:
-            return self._map_xy(None)
-
-        def f(uv):
-            zq = None if self.model.height_rule is HeightRule.COMPUTED else np.tile(z, len(uv) // len(z))
-            return self.model.image_to_robot(uv, zq)[:, :2]
-
-        return f
 
     def robot_to_image(self, xyz_mm) -> np.ndarray:
         """(N, 3) robot mm → (N, 2) pixels."""

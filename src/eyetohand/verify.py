@@ -366,7 +366,9 @@ def fit_drift(cal: Calibration, pairs: PointPairs, err_xy: np.ndarray, sigma_mm:
         if abs(zs[k]) > z_threshold:
             named.append(names[k])
     significant = chi2 > threshold
-    J = local_jacobian(_map_xy(cal, pairs), pairs.uv_px.mean(axis=0, keepdims=True))[0]
+    J = local_jacobian(
+        cal.xy_map(float(np.mean(pairs.xyz_mm[:, 2]))), pairs.uv_px.mean(axis=0, keepdims=True)
+    )[0]
     try:
         shift_px = np.linalg.solve(J, beta[:2])
     except np.linalg.LinAlgError:
@@ -399,16 +401,6 @@ def _thresholds(dof: int) -> tuple[float, float, float]:
         float(2 * stats.f.isf(0.001, 2, dof)),
         float(stats.t.isf(0.0005, dof)),
     )
-
-
-def _map_xy(cal: Calibration, pairs: PointPairs):
-    model = cal.model
-    zq = None if model.height_rule is HeightRule.COMPUTED else float(np.mean(pairs.xyz_mm[:, 2]))
-
-    def f(uv):
-        return model.image_to_robot(uv, zq)[:, :2]
-
-    return f
 
 
 # ---------------------------------------------------------------- history beside a file
