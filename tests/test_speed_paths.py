@@ -29,6 +29,7 @@ def test_import_does_not_pull_heavy_packages(module):
 
 import numpy as np  # noqa: E402
 
+from eyetohand.errors import InputError  # noqa: E402
 from eyetohand.fit import fit_model  # noqa: E402
 from eyetohand.pairs import load_pairs  # noqa: E402
 
@@ -224,3 +225,24 @@ def test_straight_on_lens_leave_one_out_refits():
     np.testing.assert_array_equal(
         cross_validate(pairs, "homography-radial"), cross_validate(pairs, "homography-radial", refit=True)
     )
+
+
+@pytest.mark.parametrize("name", ["affine", "homography", "paper"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_opencv_path_refuses_a_non_finite_pixel_in_any_chunk(name, bad):
+    """The OpenCV path checks finiteness chunk by chunk (an L1 norm): a NaN or ±inf anywhere — the
+    first chunk, a middle one, the short last one — is refused with as_uv's words, and nothing is
+    returned; the small-array path refuses it the same."""
+    from eyetohand.models.base import CV_CHUNK, CV_MIN_POINTS
+
+    pairs = load_pairs(PAPER)
+    model, _ = fit_model(pairs, name, "lm")
+    n = max(CV_MIN_POINTS, 2 * CV_CHUNK) + 77
+    base = np.random.default_rng(3).uniform(pairs.uv_px.min(0), pairs.uv_px.max(0), size=(n, 2))
+    for row, col in ((0, 0), (CV_CHUNK + 5, 1), (n - 1, 0)):
+        uv = base.copy()
+        uv[row, col] = bad
+        with pytest.raises(InputError, match="image points must be finite numbers"):
+            model.image_to_robot(uv)
+        with pytest.raises(InputError, match="image points must be finite numbers"):
+            model.image_to_robot(uv[max(row - 3, 0) : row + 3])

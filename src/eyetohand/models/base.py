@@ -33,8 +33,7 @@ from ..numdiff import batch_jacobian  # noqa: F401  (models' own estimation step
 COLLINEAR_RATIO = 1e-6
 MAP_CHUNK = 1 << 13  # points per elementwise pass of the models' one-parameter-set maps (stays in cache)
 CV_MIN_POINTS = 1 << 16  # from this many points, the affine maps go through OpenCV's one-pass loops
-CV_CHUNK = 1 << 17  # points per OpenCV call there (2 MB outputs: fewer calls, no 16 MB intermediates;
-# measured fastest of 2^12..2^20)
+CV_CHUNK = 1 << 16  # points per OpenCV call there (1 MB buffers, reused: no 16 MB intermediates)
 
 
 def opencv():
@@ -44,6 +43,34 @@ def opencv():
     except ImportError:  # a declared dependency, but a broken install should not stop the NumPy path
         return None
     return cv2
+
+
+def opencv_xy_into(
+    cv2, uv: np.ndarray, matrix: np.ndarray, out: np.ndarray, *, perspective: bool, fill_z
+) -> None:
+    """Many pixels through OpenCV's float64 ``transform`` (2 × 3 ``matrix``) or
+    ``perspectiveTransform`` (3 × 3) into ``out[:, :2]`` of the (N, 3) C-ordered output, in chunks of
+    ``CV_CHUNK`` points: each chunk goes into one reused buffer and is copied to its rows as 16-byte
+    items (a complex128 view with a 24-byte stride — one strided copy, not a 2-column one), then
+    ``fill_z(s, e, xy)`` writes ``out[s:e, 2]`` (and may repair ``xy``, the chunk's (n, 2) result,
+    before it is copied) while the rows are in cache. Pass ``uv`` from ``as_uv(..., check_finite=False)``:
+    each chunk's finiteness is checked here, on its L1 norm (one cheap pass that brings it into cache
+    for the transform), with the exact check and message of :func:`as_uv` where that is not finite."""
+    n = len(uv)
+    src = np.ascontiguousarray(uv).reshape(-1, 1, 2)
+    finite_l1 = cv2.NORM_L1
+    rows = np.ndarray((n,), dtype=np.complex128, buffer=out, strides=(out.strides[0],))
+    buf = np.empty((min(CV_CHUNK, n), 1, 2))
+    buf_c = buf.reshape(-1, 2).view(np.complex128).reshape(-1)
+    fn = cv2.perspectiveTransform if perspective else cv2.transform
+    for s in range(0, n, CV_CHUNK):
+        e = min(s + CV_CHUNK, n)
+        b = buf[: e - s]
+        if not math.isfinite(cv2.norm(src[s:e], finite_l1)):  # NaN or ±inf in the chunk (or overflow)
+            refuse_non_finite(uv[s:e])
+        fn(src[s:e], matrix, dst=b)
+        fill_z(s, e, b.reshape(-1, 2))
+        rows[s:e] = buf_c[: e - s]
 
 
 class HeightRule(StrEnum):
@@ -264,16 +291,23 @@ def batch_inverse3(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cof.reshape(3, 3, len(M)).transpose(2, 1, 0), det
 
 
-def as_uv(uv_px) -> np.ndarray:
-    """(N, 2) finite pixels from one point or many; anything else is refused."""
+def as_uv(uv_px, *, check_finite: bool = True) -> np.ndarray:
+    """(N, 2) finite pixels from one point or many; anything else is refused. ``check_finite=False``:
+    the caller checks finiteness itself (chunk by chunk, :func:`opencv_xy_into`) with
+    :func:`refuse_non_finite`."""
     uv = np.asarray(uv_px, dtype=float)
     if uv.ndim == 1 and uv.size == 2:
         uv = uv[None, :]
     if uv.ndim != 2 or uv.shape[1] != 2:
         raise InputError(f"image points must have shape (N, 2), got {uv.shape}")
+    if check_finite:
+        refuse_non_finite(uv)
+    return uv
+
+
+def refuse_non_finite(uv: np.ndarray) -> None:
     if not np.isfinite(uv).all():
         raise InputError("image points must be finite numbers (px)")
-    return uv
 
 
 _as_uv = as_uv

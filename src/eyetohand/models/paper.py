@@ -21,6 +21,7 @@ import numpy as np
 from ..errors import DegenerateError
 from ..normalize import hartley, spread_ratio
 from .base import (
+    CV_CHUNK,
     CV_MIN_POINTS,
     MAP_CHUNK,
     HeightRule,
@@ -31,6 +32,8 @@ from .base import (
     check_not_collinear,
     one_point,
     opencv,
+    opencv_xy_into,
+    refuse_non_finite,
 )
 from .dlt3d import COPLANAR_RATIO, dlt_projection
 
@@ -151,11 +154,24 @@ class PaperB(Model):
             return np.array(
                 [[a0 * du + a1 * dv + a2 * dw, b0 * du + b1 * dv + b2 * dw, c0 * du + c1 * dv + c2 * dw]]
             )
-        uv = as_uv(uv_px)
+        uv = as_uv(uv_px, check_finite=False)
         if len(uv) >= CV_MIN_POINTS:
             cv2 = opencv()
-            if cv2 is not None:  # equation (13) is affine in (u, v): OpenCV's one-pass transform
-                return cv2.transform(np.ascontiguousarray(uv).reshape(-1, 1, 2), self._affine3).reshape(-1, 3)
+            if cv2 is not None:  # equation (13) is affine in (u, v): x, y by OpenCV's 2 → 2 transform
+                out = np.empty((len(uv), 3))
+                # z by a second 2 → 2 transform (OpenCV's fast one; its second row is unused)
+                z_rows = np.vstack([self._affine3[2], np.zeros(3)])
+                src = np.ascontiguousarray(uv).reshape(-1, 1, 2)
+                zbuf = np.empty((min(CV_CHUNK, len(uv)), 1, 2))
+
+                def fill_z(s: int, e: int, xy: np.ndarray) -> None:
+                    zb = zbuf[: e - s]
+                    cv2.transform(src[s:e], z_rows, dst=zb)
+                    out[s:e, 2] = zb[:, 0, 0]
+
+                opencv_xy_into(cv2, uv, self._affine3[:2], out, perspective=False, fill_z=fill_z)
+                return out
+        refuse_non_finite(uv)
         out = np.empty((len(uv), 3))
         for s in range(0, len(uv), MAP_CHUNK):
             chunk = uv[s : s + MAP_CHUNK]

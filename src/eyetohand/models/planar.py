@@ -18,7 +18,6 @@ import numpy as np
 from ..errors import DegenerateError
 from ..normalize import apply_h, hartley
 from .base import (
-    CV_CHUNK,
     CV_MIN_POINTS,
     MAP_CHUNK,
     HeightRule,
@@ -29,6 +28,8 @@ from .base import (
     check_single_height,
     one_point,
     opencv,
+    opencv_xy_into,
+    refuse_non_finite,
 )
 
 PLANAR_CONSTANTS = MappingProxyType({"T_uv": (3, 3), "T_xy": (3, 3), "plane_z_mm": ()})
@@ -146,12 +147,13 @@ class PlanarMatrixModel(Model):
             w = h6 * u + h7 * v + h8
             with np.errstate(divide="ignore", invalid="ignore"):
                 return np.array([[(h0 * u + h1 * v + h2) / w, (h3 * u + h4 * v + h5) / w, z]])
-        uv = as_uv(uv_px)
+        uv = as_uv(uv_px, check_finite=False)
         if len(uv) >= CV_MIN_POINTS and type(self)._ideal_px is PlanarMatrixModel._ideal_px:
             zq = self._z_for(1, z_mm)[0] if z_mm is None or np.ndim(z_mm) == 0 else self._z_for(len(uv), z_mm)
             fast = self._map_opencv(uv, zq)
             if fast is not None:
                 return fast
+        refuse_non_finite(uv)
         zs = self._z_for(len(uv), z_mm)
         out = np.empty((len(uv), 3))
         for s in range(0, len(uv), MAP_CHUNK):
@@ -202,38 +204,30 @@ class PlanarMatrixModel(Model):
 
     def _map_opencv(self, uv: np.ndarray, zs) -> np.ndarray | None:
         """Many pixels (no lens) through OpenCV's float64 ``transform`` (affine) or
-        ``perspectiveTransform`` with the precomputed px → mm matrix, in chunks of ``CV_CHUNK``
-        points, each merged with its z into the output by ``cv2.merge`` (no BLAS, no 16 MB
-        intermediates: a one-pass ``cv2.transform`` into (N, 3) measured slower). OpenCV
-        writes (0, 0) where |w| ≤ FLT_EPSILON (the horizon); points that come out exactly (0, 0) are
-        mapped again elementwise, so the result equals the NumPy path (to rounding,
-        tests/test_speed_paths.py) there too. ``zs``: one height (a number) or (N,). None when
-        OpenCV is not importable."""
+        ``perspectiveTransform`` with the precomputed px → mm matrix (``opencv_xy_into``: no BLAS, no
+        16 MB intermediates; a one-pass 2 → 3 channel ``cv2.transform`` measured 2.3× slower).
+        ``perspectiveTransform`` writes (0, 0) where |w| ≤ FLT_EPSILON (the horizon); points that
+        come out exactly (0, 0) are mapped again elementwise, so the result equals the NumPy path
+        (to rounding, tests/test_speed_paths.py) there too. ``zs``: one height (a number) or (N,).
+        None when OpenCV is not importable."""
         cv2 = opencv()
         if cv2 is None:
             return None
-        src = np.ascontiguousarray(uv).reshape(-1, 1, 2)
-        n = len(src)
-        out = np.empty((n, 3))
+        out = np.empty((len(uv), 3))
         scalar = np.ndim(zs) == 0  # one height for all the points (the plane's, or one given)
-        # in cache-sized chunks (no 16 MB intermediate), each merged with its z into the output
-        zcol = np.empty((CV_CHUNK, 1))
-        for s in range(0, n, CV_CHUNK):
-            e = min(s + CV_CHUNK, n)
-            if self._affine:
-                xy = cv2.transform(src[s:e], self._H_px[:2])
-            else:
-                xy = cv2.perspectiveTransform(src[s:e], self._H_px)
-            flat = xy.reshape(-1, 2)
-            if cv2.countNonZero(flat) < flat.size:  # some coordinate is exactly 0: redo those points
-                redo = np.flatnonzero((flat == 0.0).all(axis=1))
+        perspective = not self._affine
+
+        def fill_z(s: int, e: int, xy: np.ndarray) -> None:
+            if perspective and cv2.countNonZero(xy) < xy.size:  # a coordinate is exactly 0: redo those
+                redo = np.flatnonzero((xy == 0.0).all(axis=1))
                 if len(redo):
                     fixed = np.empty((len(redo), 2))
                     self._map_chunk(uv[s + redo], fixed)
-                    flat[redo] = fixed
-            zc = zcol[: e - s]
-            zc[:, 0] = zs if scalar else zs[s:e]
-            cv2.merge([xy, zc], dst=out[s:e].reshape(e - s, 1, 3))
+                    xy[redo] = fixed
+            out[s:e, 2] = zs if scalar else zs[s:e]
+
+        matrix = self._H_px if perspective else self._H_px[:2]
+        opencv_xy_into(cv2, uv, matrix, out, perspective=perspective, fill_z=fill_z)
         return out
 
     def _map_chunk(self, uv: np.ndarray, xy: np.ndarray) -> None:
