@@ -61,6 +61,8 @@ THRESHOLDS = {
     "lens_p": 1e-4,  # F-test of residuals on a cubic in image position (Bonferroni over x, y)
 }
 SPARE_EQUATIONS = 8
+#: one-sided normal quantile for the latch test's power statement (95 %)
+POWER_Z = 1.645
 
 
 # ================================================================== encoder and belt
@@ -928,7 +930,10 @@ def calibrate_conveyor(
     if fit_latch is None:
         fit_latch = bool(has_stop and has_run)
         if not fit_latch:
-            notes.append("latch delay not tested: it needs sightings with the belt both stopped and running")
+            notes.append(
+                "latch delay not tested: it needs sightings with the belt both stopped and running "
+                "(sight each part both stopped and running)"
+            )
     elif fit_latch and not (has_stop and has_run):
         raise InputError(
             f"{src}: a latch delay can be fitted only with sightings taken with the belt both "
@@ -1079,8 +1084,12 @@ def build_report(prep, fit, conv, stated_counts_per_mm, stated_direction_deg) ->
         "n_touches": int(len(prep.t_de)),
         "n_sighted_parts": int(len(np.unique(prep.t_sight[prep.t_sight >= 0]))),
         "n_unseen_parts": prep.n_unseen,
+        "n_sightings": int(len(prep.s_uv)),
         "dof": fit.dof,
         "rms_mm": float(np.sqrt(np.mean(np.sum(r**2, axis=1)))),
+        "rms_sightings_mm": (
+            float(np.sqrt(np.mean(np.sum(fit.resid_pairs**2, axis=1)))) if len(fit.resid_pairs) else None
+        ),
         "sigma_mm": float(math.sqrt(fit.s2)),
         "belt": belt.to_dict(),
         "latch_counts": conv.latch_counts,
@@ -1134,17 +1143,25 @@ def build_report(prep, fit, conv, stated_counts_per_mm, stated_direction_deg) ->
         )
     )
     if conv.sigma_latch_counts is not None:
-        faults.append(
-            _test(
-                "latch delay",
-                conv.latch_counts,
-                0.0,
-                conv.sigma_latch_counts,
-                THRESHOLDS["latch_counts"],
-                "counts",
-                "the image's latched count runs ahead of its exposure by",
-            )
+        t = _test(
+            "latch delay",
+            conv.latch_counts,
+            0.0,
+            conv.sigma_latch_counts,
+            THRESHOLDS["latch_counts"],
+            "counts",
+            "the image's latched count runs ahead of its exposure by",
         )
+        # the test's power: the smallest delay it names 95 % of the time at this sigma
+        sig = conv.sigma_latch_counts
+        t["detectable"] = max(THRESHOLDS["z"] * sig, THRESHOLDS["latch_counts"]) + POWER_Z * sig
+        t["message"] += f"; a delay below {t['detectable']:.2f} counts cannot be told from noise here"
+        within = bool(len(prep.q_a)) and bool((prep.s_moving[prep.q_a] != prep.s_moving[prep.q_b]).any())
+        out["latch_within_part"] = within
+        if not within:
+            t["message"] += " (sight each part both stopped and running to test it within each part)"
+        out["latch_detectable_counts"] = t["detectable"]
+        faults.append(t)
     # across the image: a cubic in image position explaining the residuals -> the lens
     sighted = prep.t_sight >= 0
     if sighted.any():
@@ -1184,10 +1201,16 @@ def build_report(prep, fit, conv, stated_counts_per_mm, stated_direction_deg) ->
 
 def format_report(rep: dict) -> str:
     b = rep["belt"]
+    n_sightings = rep.get("n_sightings", rep["n_sighted_parts"])
+    again = (
+        f"; {n_sightings} sightings, rms {rep['rms_sightings_mm']:.4f} mm between a part's sightings"
+        if rep.get("rms_sightings_mm") is not None
+        else ""
+    )
     lines = [
         f"touches {rep['n_touches']} ({rep['n_sighted_parts']} sighted parts, {rep['n_unseen_parts']} "
         f"touched only), residual rms {rep['rms_mm']:.4f} mm, "
-        f"travel {rep['travel_mm'][0]:.0f}..{rep['travel_mm'][1]:.0f} mm",
+        f"travel {rep['travel_mm'][0]:.0f}..{rep['travel_mm'][1]:.0f} mm" + again,
         f"belt: {b['mm_per_count']:.8f} mm/count (± {b['sigma_scale_rel']:.1e} rel), "
         f"{b['counts_per_mm']:.5f} "
         f"counts/mm; yaw {b['yaw_deg']:.4f} ± {b['sigma_yaw_deg']:.4f} deg, pitch {b['pitch_deg']:.4f} ± "
