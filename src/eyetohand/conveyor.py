@@ -19,10 +19,14 @@ The model (robot frame, mm; see ``docs/conveyor.md``):
 Calibrating it (:func:`calibrate_conveyor`): every touch of a sighted part gives three equations
 ``p(uv_s) + b · (Δe + latch · moving_s) = xyz_touch``; every touch of a part touched at two or more
 counts without a sighting (the Omron/Adept belt recipe) gives ``P_k + b · Δe = xyz_touch`` with the
-part's position ``P_k`` unknown. The camera map's parameters, the belt vector, the surface plane, the
+part's position ``P_k`` unknown; every further sighting ``s`` of a part (first sighted at ``a``) gives
+``p(uv_a) + b · (Δe(a→s) + latch · (m_a − m_s)) = p(uv_s)`` — the latch contrast within one part,
+where the touches' errors cancel, when one frame was taken with the belt stopped and one running. The
+camera map's parameters, the belt vector, the surface plane, the
 latch delay and the unseen parts' positions are fitted jointly (``scipy.optimize.least_squares`` on
 the batched forward map); the covariance of every estimate is the cluster-robust sandwich at the
-solution (:func:`_cluster_covariance`: the touches of one part share its sighting's errors), never
+solution (:func:`_cluster_covariance`: the touches and further sightings of one part share its first
+sighting's errors), never
 below ``s² (JᵀJ)⁻¹`` with ``s²`` the residual variance. :func:`calibrate_belt` is the belt-only recipe.
 
 The report (:class:`ConveyorReport`) separates the error sources and names the faults it finds, each

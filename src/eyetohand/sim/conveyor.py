@@ -8,10 +8,13 @@ across. True belt travel ``S`` (mm) drives everything:
   into the counter (``counter_bits``, ``signed``); ``slip`` is a random walk of
   ``slip_mm_per_sqrt_m`` · √(travel in m) — the encoder wheel slipping on the belt;
 * sightings: part ``j`` is placed at a random pixel (the margin of the cell plan kept clear) at travel
-  ``S_j = j · spacing_mm``; the camera sees it there, detection adds ``pixel_sigma_px``. With the belt
-  running (a fraction ``1 − stopped_fraction`` of the parts) the latched count is read
-  ``latch_jitter_ms`` (sigma) × speed away from the exposure and ``latch_delay_counts`` late; with the
-  belt stopped it is exact;
+  ``S_j ≈ j · spacing_mm``; the camera sees it there, detection adds ``pixel_sigma_px``. By default
+  (``sightings=("stopped", "running")``) every part is seen in one frame per entry: first with the belt
+  stopped, then running after the belt carried it ``sighting_step_mm`` (5..15 mm) further, each frame
+  with its own detection noise, latch jitter and count quantisation (all its frames inside the image).
+  ``sightings=None``: one sighting per part, the belt stopped for a fraction ``stopped_fraction``.
+  With the belt running the latched count is read ``latch_jitter_ms`` (sigma) × speed away from the
+  exposure and ``latch_delay_counts`` late; with the belt stopped it is exact;
 * touches: the robot touches each part ``touches_per_part`` times inside the window (distances from
   the camera's view centre along the belt, ``window_mm``), with the belt stopped; it really goes to
   within ``touch_sigma_mm`` (per axis) of the part.
