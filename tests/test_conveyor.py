@@ -158,9 +158,10 @@ def test_counts_that_wrap_give_the_same_answers_as_counts_that_do_not():
     ids=["none", "scale-0.1%", "direction-1deg", "latch-1count"],
 )
 def test_planted_faults_are_named_and_absent_ones_are_not(changes, expected):
-    # 240 parts: a one-count latch delay is 1 / 0.17 sigma there (with 120 parts, 1 / 0.24: named on
-    # 7 of 10 seeds; benchmarks/bench_conveyor.py, docs/conveyor.md)
-    setup = ConveyorSetup(**changes, n_parts=240)
+    # the default session sights each part stopped and running: a one-count latch delay is 1 / 0.14
+    # sigma there (one sighting per part, half stopped: 1 / 0.24, named on 7 of 10 seeds;
+    # benchmarks/bench_conveyor.py, docs/conveyor.md)
+    setup = ConveyorSetup(**changes)
     _, conv = run(setup, seed=5)  # stated direction: the nearest robot axis, level
     assert conv.report["present"] == expected, format_report(conv.report)
     if "latch delay" in expected:

@@ -31,8 +31,10 @@ survives a restart like the CAL collection):
     out: the count the source latched with the frame, ``source.encoder_count``, where the source
     provides one — none of the built-in sources does yet, so give it); ``stopped`` when the belt stood
     still for the image (sightings with the belt both stopped and running let END fit the latch
-    delay) → ``OK <u>,<v>``. A part sighted twice, or counts going back by more than the noise
-    allowance (5 counts), is an ERR.
+    delay) → ``OK <u>,<v>``. A part may be sighted again — another frame of it, e.g. once with the belt
+    stopped under the camera and once running: END then tests the latch delay within each part, its
+    touches' errors cancelling. Counts going back by more than the noise allowance (5 counts) are an
+    ERR.
 ``BELT TOUCH <id>,<x>,<y>,<z>,<e>`` — the robot touched part ``id`` at (x, y, z) mm with the belt
     stopped at count ``e`` → ``OK <n_touches>``.
 ``BELT END`` — :func:`~eyetohand.conveyor.calibrate_conveyor` on the session (rows in the order they
@@ -278,8 +280,6 @@ class BeltProtocol:
         if not args or not args[0] or len(rest) > 1:
             raise CommandError("BELT SIGHT: expected <id>[,<e>][,stopped]")
         pid = args[0]
-        if any(r["op"] == "sight" and r["id"] == pid for r in s["rows"]):
-            raise CommandError(f"BELT SIGHT: part {pid[:30]!r} was sighted already")
         if self.source is None:
             raise CommandError("BELT SIGHT: no camera (start serve with --camera URI)")
         try:

@@ -19,10 +19,14 @@ The model (robot frame, mm; see ``docs/conveyor.md``):
 Calibrating it (:func:`calibrate_conveyor`): every touch of a sighted part gives three equations
 ``p(uv_s) + b · (Δe + latch · moving_s) = xyz_touch``; every touch of a part touched at two or more
 counts without a sighting (the Omron/Adept belt recipe) gives ``P_k + b · Δe = xyz_touch`` with the
-part's position ``P_k`` unknown. The camera map's parameters, the belt vector, the surface plane, the
+part's position ``P_k`` unknown; every further sighting ``s`` of a part (first sighted at ``a``) gives
+``p(uv_a) + b · (Δe(a→s) + latch · (m_a − m_s)) = p(uv_s)`` — the latch contrast within one part,
+where the touches' errors cancel, when one frame was taken with the belt stopped and one running. The
+camera map's parameters, the belt vector, the surface plane, the
 latch delay and the unseen parts' positions are fitted jointly (``scipy.optimize.least_squares`` on
 the batched forward map); the covariance of every estimate is the cluster-robust sandwich at the
-solution (:func:`_cluster_covariance`: the touches of one part share its sighting's errors), never
+solution (:func:`_cluster_covariance`: the touches and further sightings of one part share its first
+sighting's errors), never
 below ``s² (JᵀJ)⁻¹`` with ``s²`` the residual variance. :func:`calibrate_belt` is the belt-only recipe.
 
 The report (:class:`ConveyorReport`) separates the error sources and names the faults it finds, each
@@ -61,6 +65,8 @@ THRESHOLDS = {
     "lens_p": 1e-4,  # F-test of residuals on a cubic in image position (Bonferroni over x, y)
 }
 SPARE_EQUATIONS = 8
+#: one-sided normal quantile for the latch test's power statement (95 %)
+POWER_Z = 1.645
 
 
 # ================================================================== encoder and belt
@@ -514,18 +520,28 @@ class ConveyorCalibration:
 
 @dataclass(frozen=True)
 class _Prepared:
-    """Touch rows of a checked session, in continuous counts, with what each relates to."""
+    """Touch rows of a checked session, in continuous counts, with what each relates to.
+
+    The sightings ``s_*`` hold each sighted part's FIRST sighting (its reference: the touches count
+    from it) at indices ``0..n_ref-1``, in the order the parts were first sighted, then every further
+    sighting. A further sighting ``b`` of the part whose reference is ``a`` is a pair ``(q_a, q_b)``
+    with ``q_de`` the counts from ``a`` to ``b``."""
 
     sign: int  # +1: counts rise downstream
-    s_uv: np.ndarray  # (S, 2) sighted parts' pixels
+    s_uv: np.ndarray  # (S, 2) sightings' pixels
     s_moving: np.ndarray  # (S,) bool
     s_ids: tuple[str, ...]
     t_xyz: np.ndarray  # (T, 3) touches
-    t_de: np.ndarray  # (T,) counts since the sighting (sighted) or since the first touch (unseen)
-    t_sight: np.ndarray  # (T,) index of the sighting, −1 for unseen parts
+    t_de: np.ndarray  # (T,) counts since the reference sighting (sighted) or the first touch (unseen)
+    t_sight: np.ndarray  # (T,) index of the part's reference sighting, −1 for unseen parts
     t_part: np.ndarray  # (T,) index of the unseen part, −1 for sighted
     n_unseen: int
     t_wheres: tuple[str, ...]
+    n_ref: int  # reference sightings: one per sighted part
+    q_a: np.ndarray  # (Q,) a further sighting's part's reference sighting
+    q_b: np.ndarray  # (Q,) the further sighting
+    q_de: np.ndarray  # (Q,) counts from a to b
+    q_wheres: tuple[str, ...]
 
 
 def _prepare(session: Session, encoder: Encoder, noise_counts: float) -> _Prepared:
@@ -549,16 +565,21 @@ def _prepare(session: Session, encoder: Encoder, noise_counts: float) -> _Prepar
         )
     first_sight: dict[str, int] = {}
     s_rows: list[int] = []
+    x_rows: list[int] = []  # further sightings of parts sighted already
     for i, k in enumerate(session.kind):
         if k == "sight":
             pid = session.ids[i]
             if pid in first_sight:
-                raise InputError(
-                    f"{session.wheres[i]}: part {pid!r} sighted again (first at "
-                    f"{session.wheres[first_sight[pid]]}); one sighting per part"
-                )
-            first_sight[pid] = i
-            s_rows.append(i)
+                de = int(cont[i] - cont[first_sight[pid]])
+                if sign * de < -noise_counts:
+                    raise InputError(
+                        f"{session.wheres[i]}, field 'e': sighting of part {pid!r} is {abs(de)} counts "
+                        f"upstream of its first sighting at {session.wheres[first_sight[pid]]}"
+                    )
+                x_rows.append(i)
+            else:
+                first_sight[pid] = i
+                s_rows.append(i)
     sight_index = {session.ids[r]: j for j, r in enumerate(s_rows)}
     unseen: dict[str, int] = {}
     unseen_first: dict[str, int] = {}
@@ -600,18 +621,27 @@ def _prepare(session: Session, encoder: Encoder, noise_counts: float) -> _Prepar
             f"{session.wheres[unseen_first[pid]]}: part {pid!r} was touched once and never "
             "sighted; a part without a sighting must be touched at two or more counts"
         )
-    s_rows_a = np.array(s_rows, int)
+    all_s = np.array(s_rows + x_rows, int)
+    n_ref = len(s_rows)
+    q_a = np.array([sight_index[session.ids[i]] for i in x_rows], int)
+    q_b = n_ref + np.arange(len(x_rows), dtype=int)
+    q_de = np.array([cont[i] - cont[first_sight[session.ids[i]]] for i in x_rows], float)
     return _Prepared(
         sign,
-        session.uv_px[s_rows_a] if len(s_rows) else np.zeros((0, 2)),
-        session.moving[s_rows_a] if len(s_rows) else np.zeros(0, bool),
-        tuple(session.ids[r] for r in s_rows),
+        session.uv_px[all_s] if len(all_s) else np.zeros((0, 2)),
+        session.moving[all_s] if len(all_s) else np.zeros(0, bool),
+        tuple(session.ids[r] for r in all_s),
         session.xyz_mm[np.array(t_rows, int)] if t_rows else np.zeros((0, 3)),
         np.array(t_de, float),
         np.array(t_sight, int),
         t_part_a,
         len(unseen),
         tuple(session.wheres[r] for r in t_rows),
+        n_ref,
+        q_a,
+        q_b,
+        q_de,
+        tuple(session.wheres[r] for r in x_rows),
     )
 
 
@@ -622,10 +652,11 @@ def _prepare(session: Session, encoder: Encoder, noise_counts: float) -> _Prepar
 class _Fit:
     x: np.ndarray
     cov: np.ndarray
-    resid: np.ndarray  # (T, 3)
+    resid: np.ndarray  # (T, 3) touches
     s2: float
     dof: int
     layout: dict
+    resid_pairs: np.ndarray  # (Q, 3) further sightings against their part's reference sighting
 
 
 def _layout(D: int, n_unseen: int, with_map: bool, fit_latch: bool) -> dict:
@@ -644,26 +675,43 @@ def _layout(D: int, n_unseen: int, with_map: bool, fit_latch: bool) -> dict:
 
 
 def _joint_fit(prep: _Prepared, model, x0, lay, xy0, z_plane, fixed_b=None) -> _Fit:
-    """Least squares over all touches; ``fixed_b``: hold the belt vector at this value."""
+    """Least squares over all touches and all further sightings; ``fixed_b``: hold the belt vector at
+    this value.
+
+    A touch of a sighted part: ``p(uv_a) + b·(Δe(a→t) + latch·m_a) − xyz_t`` (``a`` its reference
+    sighting, ``m`` 1 when the belt ran for the image). A further sighting ``s`` of it:
+    ``p(uv_a) + b·(Δe(a→s) + latch·(m_a − m_s)) − p(uv_s)``: both images see one part, the belt moved
+    it by the counts in between, corrected by the latch where one image's count was latched running.
+    A touch of an unseen part: ``P_k + b·Δe − xyz_t``."""
     sighted = prep.t_sight >= 0
+    with_latch = lay["latch"].stop > lay["latch"].start
     uv_t = prep.s_uv[prep.t_sight[sighted]] if model is not None else None
     mv_t = prep.s_moving[prep.t_sight[sighted]].astype(float) if model is not None else None
+    n_q = len(prep.q_a) if model is not None else 0
+    if n_q:
+        uv_q = prep.s_uv[np.concatenate([prep.q_a, prep.q_b])]
+        dm_q = (prep.s_moving[prep.q_a].astype(float) - prep.s_moving[prep.q_b])[None, :]
     part = prep.t_part[~sighted]
     de = prep.t_de
+    T = len(de)
     free = np.ones(lay["n"], bool)
     if fixed_b is not None:
         free[lay["b"]] = False
 
-    def batch(X):  # (B, n) → (B, T, 3) residuals
+    def on_belt(X, uv):  # (B, n), (N, 2) → (B, N, 3): the camera map and the parts' top plane
+        xy = model.batch_image_to_robot(X[:, lay["map"]], uv, np.full(len(uv), z_plane))[..., :2]
+        c = X[:, lay["surf"]]
+        z = c[:, :1] + c[:, 1:2] * (xy[..., 0] - xy0[0]) + c[:, 2:3] * (xy[..., 1] - xy0[1])
+        return xy, z
+
+    def batch(X):  # (B, n) → (B, T + Q, 3) residuals
         B = len(X)
         b = X[:, lay["b"]]
-        pred = np.empty((B, len(de), 3))
+        pred = np.empty((B, T, 3))
         if sighted.any():
-            xy = model.batch_image_to_robot(X[:, lay["map"]], uv_t, np.full(len(uv_t), z_plane))[..., :2]
-            c = X[:, lay["surf"]]
-            z = c[:, :1] + c[:, 1:2] * (xy[..., 0] - xy0[0]) + c[:, 2:3] * (xy[..., 1] - xy0[1])
+            xy, z = on_belt(X, uv_t)
             shift = de[sighted][None, :]
-            if lay["latch"].stop > lay["latch"].start:
+            if with_latch:
                 shift = shift + X[:, lay["latch"]] * mv_t[None, :]
             pred[:, sighted, :2] = xy
             pred[:, sighted, 2] = z
@@ -671,7 +719,16 @@ def _joint_fit(prep: _Prepared, model, x0, lay, xy0, z_plane, fixed_b=None) -> _
         if (~sighted).any():
             P = X[:, lay["P"]].reshape(B, -1, 3)
             pred[:, ~sighted] = P[:, part] + de[~sighted][None, :, None] * b[:, None, :]
-        return pred - prep.t_xyz[None]
+        r = pred - prep.t_xyz[None]
+        if not n_q:
+            return r
+        xy, z = on_belt(X, uv_q)
+        p = np.concatenate([xy, z[..., None]], axis=2)
+        shift = np.broadcast_to(prep.q_de[None, :], (B, n_q))
+        if with_latch:
+            shift = shift + X[:, lay["latch"]] * dm_q
+        rq = p[:, :n_q] + shift[..., None] * b[:, None, :] - p[:, n_q:]
+        return np.concatenate([r, rq], axis=1)
 
     x_full = np.array(x0, float)
     if fixed_b is not None:
@@ -712,15 +769,18 @@ def _joint_fit(prep: _Prepared, model, x0, lay, xy0, z_plane, fixed_b=None) -> _
     dof = len(r) - len(idx)
     s2 = float(r @ r / dof) if dof > 0 else float("nan")
     cov = np.zeros((lay["n"], lay["n"]))
-    cov[np.ix_(idx, idx)] = _cluster_covariance(J, r, _clusters(prep), s2)
-    return _Fit(x_full, cov, r.reshape(-1, 3), s2, dof, lay)
+    cov[np.ix_(idx, idx)] = _cluster_covariance(J, r, _clusters(prep, n_q), s2)
+    rr = r.reshape(-1, 3)
+    return _Fit(x_full, cov, rr[:T], s2, dof, lay, rr[T:])
 
 
-def _clusters(prep: _Prepared) -> np.ndarray:
-    """(3T,) the part each residual coordinate belongs to: the touches of one part share its
-    sighting's latched count (quantisation, latch jitter) and its camera detection."""
-    n_s = len(prep.s_uv)
-    g = np.where(prep.t_sight >= 0, prep.t_sight, n_s + prep.t_part)
+def _clusters(prep: _Prepared, n_pairs: int = 0) -> np.ndarray:
+    """(3T + 3Q,) the part each residual coordinate belongs to: the touches of one part and its
+    further sightings share its reference sighting's latched count (quantisation, latch jitter) and
+    camera detection."""
+    g = np.where(prep.t_sight >= 0, prep.t_sight, prep.n_ref + prep.t_part)
+    if n_pairs:
+        g = np.concatenate([g, prep.q_a[:n_pairs]])
     return np.repeat(g, 3)
 
 
@@ -731,7 +791,13 @@ def _cluster_covariance(J: np.ndarray, r: np.ndarray, groups: np.ndarray, s2: fl
     ``s² (JᵀJ)⁺``. The iid form alone assumed every touch coordinate independent, while a sighting's
     count quantisation (±0.5 count) and latch jitter move all its touches together along the belt:
     over 30 clean simulated sessions the latch delay's scatter was 0.28 count where it reported 0.17."""
-    B = np.linalg.pinv(J.T @ J)
+    # (JᵀJ)⁺ on unit-norm columns: the parameters' scales span ~15 decades (a homography's
+    # perspective terms against counts), and an unscaled pseudo-inverse cut well-determined
+    # directions as if singular — a latch delay came out "± 1e-9 counts" on a noise-free z
+    norm = np.linalg.norm(J, axis=0)
+    norm[norm == 0] = 1.0
+    Jn = J / norm
+    B = np.linalg.pinv(Jn.T @ Jn) / np.outer(norm, norm)
     iid = B * s2
     G = int(groups.max()) + 1 if len(groups) else 0
     n, k = J.shape
@@ -754,7 +820,7 @@ def _linear_start(prep: _Prepared) -> tuple[np.ndarray, np.ndarray]:
     """Belt vector and unseen parts' positions by linear least squares with an affine camera map."""
     T = len(prep.t_de)
     sighted = prep.t_sight >= 0
-    uv = prep.s_uv
+    uv = prep.s_uv[: prep.n_ref]
     if len(uv):
         mu, sc = uv.mean(axis=0), max(uv.std(), 1.0)
     cols = []
@@ -868,7 +934,10 @@ def calibrate_conveyor(
     if fit_latch is None:
         fit_latch = bool(has_stop and has_run)
         if not fit_latch:
-            notes.append("latch delay not tested: it needs sightings with the belt both stopped and running")
+            notes.append(
+                "latch delay not tested: it needs sightings with the belt both stopped and running "
+                "(sight each part both stopped and running)"
+            )
     elif fit_latch and not (has_stop and has_run):
         raise InputError(
             f"{src}: a latch delay can be fitted only with sightings taken with the belt both "
@@ -914,10 +983,24 @@ def calibrate_conveyor(
     mean_back = (
         np.stack([np.bincount(idx, back[:, c], minlength=n_s) for c in range(3)], 1)[used] / cnt[used, None]
     )
+    uv_pairs, at_exposure = prep.s_uv[used], mean_back
+    labels = [prep.s_ids[j] for j in np.flatnonzero(used)]
+    further = used[prep.q_a]  # further sightings of touched parts: the belt carries them to their images
+    if further.any():
+        full = np.full((n_s, 3), np.nan)
+        full[used] = mean_back
+        qa, qb = prep.q_a[further], prep.q_b[further]
+        moved = prep.q_de[further] + latch * (prep.s_moving[qa].astype(float) - prep.s_moving[qb])
+        uv_pairs = np.vstack([uv_pairs, prep.s_uv[qb]])
+        at_exposure = np.vstack([at_exposure, full[qa] + moved[:, None] * b])
+        nth: dict[int, int] = {}
+        for a, j in zip(qa, qb, strict=True):  # labels: "p7#2" for the second sighting of p7
+            nth[int(a)] = nth.get(int(a), 1) + 1
+            labels.append(f"{prep.s_ids[j]}#{nth[int(a)]}")
     pairs = PointPairs.from_arrays(
-        prep.s_uv[used],
-        np.column_stack([mean_back[:, :2], np.full(len(mean_back), z_plane)]),
-        [prep.s_ids[j] for j in np.flatnonzero(used)],
+        uv_pairs,
+        np.column_stack([at_exposure[:, :2], np.full(len(at_exposure), z_plane)]),
+        labels,
         source=f"{src} (belt-corrected)",
     )
     cal = calibrate(pairs, model=model, image_size=image_size, loo=False)
@@ -1005,8 +1088,12 @@ def build_report(prep, fit, conv, stated_counts_per_mm, stated_direction_deg) ->
         "n_touches": int(len(prep.t_de)),
         "n_sighted_parts": int(len(np.unique(prep.t_sight[prep.t_sight >= 0]))),
         "n_unseen_parts": prep.n_unseen,
+        "n_sightings": int(len(prep.s_uv)),
         "dof": fit.dof,
         "rms_mm": float(np.sqrt(np.mean(np.sum(r**2, axis=1)))),
+        "rms_sightings_mm": (
+            float(np.sqrt(np.mean(np.sum(fit.resid_pairs**2, axis=1)))) if len(fit.resid_pairs) else None
+        ),
         "sigma_mm": float(math.sqrt(fit.s2)),
         "belt": belt.to_dict(),
         "latch_counts": conv.latch_counts,
@@ -1060,17 +1147,25 @@ def build_report(prep, fit, conv, stated_counts_per_mm, stated_direction_deg) ->
         )
     )
     if conv.sigma_latch_counts is not None:
-        faults.append(
-            _test(
-                "latch delay",
-                conv.latch_counts,
-                0.0,
-                conv.sigma_latch_counts,
-                THRESHOLDS["latch_counts"],
-                "counts",
-                "the image's latched count runs ahead of its exposure by",
-            )
+        t = _test(
+            "latch delay",
+            conv.latch_counts,
+            0.0,
+            conv.sigma_latch_counts,
+            THRESHOLDS["latch_counts"],
+            "counts",
+            "the image's latched count runs ahead of its exposure by",
         )
+        # the test's power: the smallest delay it names 95 % of the time at this sigma
+        sig = conv.sigma_latch_counts
+        t["detectable"] = max(THRESHOLDS["z"] * sig, THRESHOLDS["latch_counts"]) + POWER_Z * sig
+        t["message"] += f"; a delay below {t['detectable']:.2f} counts cannot be told from noise here"
+        within = bool(len(prep.q_a)) and bool((prep.s_moving[prep.q_a] != prep.s_moving[prep.q_b]).any())
+        out["latch_within_part"] = within
+        if not within:
+            t["message"] += " (sight each part both stopped and running to test it within each part)"
+        out["latch_detectable_counts"] = t["detectable"]
+        faults.append(t)
     # across the image: a cubic in image position explaining the residuals -> the lens
     sighted = prep.t_sight >= 0
     if sighted.any():
@@ -1110,10 +1205,16 @@ def build_report(prep, fit, conv, stated_counts_per_mm, stated_direction_deg) ->
 
 def format_report(rep: dict) -> str:
     b = rep["belt"]
+    n_sightings = rep.get("n_sightings", rep["n_sighted_parts"])
+    again = (
+        f"; {n_sightings} sightings, rms {rep['rms_sightings_mm']:.4f} mm between a part's sightings"
+        if rep.get("rms_sightings_mm") is not None
+        else ""
+    )
     lines = [
         f"touches {rep['n_touches']} ({rep['n_sighted_parts']} sighted parts, {rep['n_unseen_parts']} "
         f"touched only), residual rms {rep['rms_mm']:.4f} mm, "
-        f"travel {rep['travel_mm'][0]:.0f}..{rep['travel_mm'][1]:.0f} mm",
+        f"travel {rep['travel_mm'][0]:.0f}..{rep['travel_mm'][1]:.0f} mm" + again,
         f"belt: {b['mm_per_count']:.8f} mm/count (± {b['sigma_scale_rel']:.1e} rel), "
         f"{b['counts_per_mm']:.5f} "
         f"counts/mm; yaw {b['yaw_deg']:.4f} ± {b['sigma_yaw_deg']:.4f} deg, pitch {b['pitch_deg']:.4f} ± "

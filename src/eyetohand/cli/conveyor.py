@@ -71,6 +71,20 @@ def cmd_apply(args) -> int:
     return 0
 
 
+def _sightings(text: str):
+    """``--sightings``: 'one' (one sighting per part, half stopped) or a comma list of stopped/running."""
+    t = text.strip().lower()
+    if t == "one":
+        return None
+    words = tuple(w.strip() for w in t.split(","))
+    if not words or any(w not in ("stopped", "running") for w in words):
+        raise InputError(
+            f"--sightings: {text!r}; expected 'one' or a comma list of 'stopped' and 'running' "
+            "(e.g. stopped,running)"
+        )
+    return words
+
+
 def cmd_simulate(args) -> int:
     from ..sim.conveyor import ConveyorSetup, simulate_conveyor, write_conveyor_simulation
 
@@ -83,11 +97,14 @@ def cmd_simulate(args) -> int:
         stated_scale_error=args.scale_error,
         counter_bits=args.counter_bits,
         signed=args.signed,
+        sightings=_sightings(args.sightings),
     )
     sim = simulate_conveyor(setup, seed=args.seed)
     files = write_conveyor_simulation(sim, args.out)
     print(
-        f"simulated {len(sim.session)} rows ({setup.n_parts} parts); counts wrap: {sim.truth['counts_wrap']}"
+        f"simulated {len(sim.session)} rows ({setup.n_parts} parts, sighted "
+        f"{'once' if setup.sightings is None else '/'.join(setup.sightings)}); "
+        f"counts wrap: {sim.truth['counts_wrap']}"
     )
     print(f"wrote {', '.join(str(f) for f in files)}")
     lo, hi = sim.truth["window_along_belt_mm"]
@@ -145,6 +162,12 @@ def register(sub) -> None:
     p.add_argument("--mm-per-count", type=float, default=0.01)
     p.add_argument("--latch-delay", type=float, default=0.0, help="planted latch delay (counts)")
     p.add_argument("--scale-error", type=float, default=0.0, help="stated pulses per mm off by this fraction")
+    p.add_argument(
+        "--sightings",
+        default="stopped,running",
+        help="each part's frames: a comma list of stopped/running (default stopped,running), or 'one' "
+        "(one sighting per part, half of them stopped)",
+    )
     _counter_options(p)
     p.set_defaults(func=cmd_simulate)
     conv.set_defaults(func=lambda a: (conv.print_help(), 2)[1])

@@ -8,10 +8,13 @@ across. True belt travel ``S`` (mm) drives everything:
   into the counter (``counter_bits``, ``signed``); ``slip`` is a random walk of
   ``slip_mm_per_sqrt_m`` · √(travel in m) — the encoder wheel slipping on the belt;
 * sightings: part ``j`` is placed at a random pixel (the margin of the cell plan kept clear) at travel
-  ``S_j = j · spacing_mm``; the camera sees it there, detection adds ``pixel_sigma_px``. With the belt
-  running (a fraction ``1 − stopped_fraction`` of the parts) the latched count is read
-  ``latch_jitter_ms`` (sigma) × speed away from the exposure and ``latch_delay_counts`` late; with the
-  belt stopped it is exact;
+  ``S_j ≈ j · spacing_mm``; the camera sees it there, detection adds ``pixel_sigma_px``. By default
+  (``sightings=("stopped", "running")``) every part is seen in one frame per entry: first with the belt
+  stopped, then running after the belt carried it ``sighting_step_mm`` (5..15 mm) further, each frame
+  with its own detection noise, latch jitter and count quantisation (all its frames inside the image).
+  ``sightings=None``: one sighting per part, the belt stopped for a fraction ``stopped_fraction``.
+  With the belt running the latched count is read ``latch_jitter_ms`` (sigma) × speed away from the
+  exposure and ``latch_delay_counts`` late; with the belt stopped it is exact;
 * touches: the robot touches each part ``touches_per_part`` times inside the window (distances from
   the camera's view centre along the belt, ``window_mm``), with the belt stopped; it really goes to
   within ``touch_sigma_mm`` (per axis) of the part.
@@ -56,11 +59,28 @@ class ConveyorSetup:
     pixel_sigma_px: float = 0.1
     n_parts: int = 120
     touches_per_part: int = 2
+    #: each part's sightings in order, "stopped" or "running" (each a new frame: the belt carries the
+    #: part ``sighting_step_mm`` further between frames); None: ONE sighting per part, with the belt
+    #: stopped for a fraction ``stopped_fraction`` of the parts (the single-sighting session)
+    sightings: tuple[str, ...] | None = ("stopped", "running")
+    sighting_step_mm: tuple[float, float] = (5.0, 15.0)
     stopped_fraction: float = 0.5
     spacing_mm: float = 60.0
     stated_scale_error: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.sightings is not None:
+            sights = tuple(str(v).strip().lower() for v in self.sightings)
+            if not sights or any(v not in ("stopped", "running") for v in sights):
+                raise InputError(
+                    f"conveyor sim: sightings must each be 'stopped' or 'running', got {self.sightings!r}"
+                )
+            object.__setattr__(self, "sightings", sights)
+        lo_s, hi_s = (float(v) for v in self.sighting_step_mm)
+        if not 0 <= lo_s <= hi_s:
+            raise InputError(
+                f"conveyor sim: sighting_step_mm must be 0 <= lo <= hi, got {self.sighting_step_mm}"
+            )
         if self.n_parts < 1 or self.touches_per_part < 1:
             raise InputError("conveyor sim: n_parts and touches_per_part must be at least 1")
         if not 0 <= self.stopped_fraction <= 1:
@@ -163,32 +183,70 @@ def simulate_conveyor(
     w, h = cell.image_size
     m = cell.margin_px()
     n = setup.n_parts
-    uv_true = np.column_stack(
-        [m + r_layout.random(n) * (w - 1 - 2 * m), m + r_layout.random(n) * (h - 1 - 2 * m)]
-    )
-    X = belt.back_project(uv_true)  # where each part is at its exposure
-    S_sight = np.arange(n) * setup.spacing_mm + 10.0
-    moving = r_layout.random(n) >= setup.stopped_fraction
-    a0 = (X - belt.origin) @ belt.d  # distance along the belt from the view centre at exposure
     k = setup.touches_per_part
+    if setup.sightings is None:  # one sighting per part, stopped for a fraction of the parts
+        uv_true = np.column_stack(
+            [m + r_layout.random(n) * (w - 1 - 2 * m), m + r_layout.random(n) * (h - 1 - 2 * m)]
+        )
+        X = belt.back_project(uv_true)  # where each part is at its exposure
+        S_sight = np.arange(n) * setup.spacing_mm + 10.0
+        moving = r_layout.random(n) >= setup.stopped_fraction
+        uv_s, S_s, part_s = uv_true, S_sight, np.arange(n)
+    else:  # every part sighted once per entry of ``sightings``, carried along between the frames
+        n_view = len(setup.sightings)
+        lo_step, hi_step = setup.sighting_step_mm
+        uv_true = np.empty((n, 2))
+        steps = np.zeros((n, n_view))
+        uv_s3 = np.empty((n, n_view, 2))
+        todo = np.arange(n)
+        for _ in range(1000):  # rejection: every frame of a part inside the image (margin kept clear)
+            c = len(todo)
+            uv0 = np.column_stack(
+                [m + r_layout.random(c) * (w - 1 - 2 * m), m + r_layout.random(c) * (h - 1 - 2 * m)]
+            )
+            st = np.zeros((c, n_view))
+            st[:, 1:] = np.cumsum(lo_step + r_layout.random((c, n_view - 1)) * (hi_step - lo_step), axis=1)
+            Xc = belt.back_project(uv0)
+            uvc = belt.cam.robot_to_image(Xc[:, None, :] + st[..., None] * belt.d).reshape(c, n_view, 2)
+            ok = ((uvc >= m) & (uvc <= [w - 1 - m, h - 1 - m])).all(axis=(1, 2))
+            uv_true[todo[ok]], steps[todo[ok]], uv_s3[todo[ok]] = uv0[ok], st[ok], uvc[ok]
+            todo = todo[~ok]
+            if not len(todo):
+                break
+        else:
+            raise InputError(
+                f"conveyor sim: the view cannot hold {n_view} frames of a part "
+                f"{lo_step:g}..{hi_step:g} mm apart (sighting_step_mm)"
+            )
+        X = belt.back_project(uv_true)
+        # parts laid by hand, not on a lattice of whole counts (a lattice would give every first
+        # sighting the same fraction of a count: a bias the second sightings do not share)
+        S_sight = np.arange(n) * setup.spacing_mm + 10.0 + r_layout.random(n) * 0.2 * setup.spacing_mm
+        run = np.array([v == "running" for v in setup.sightings])
+        moving = np.broadcast_to(run, (n, n_view)).ravel()
+        uv_s = uv_s3.reshape(-1, 2)
+        S_s = (S_sight[:, None] + steps).ravel()
+        part_s = np.repeat(np.arange(n), n_view)
+    n_s = len(S_s)
+    a0 = (X - belt.origin) @ belt.d  # distance along the belt from the view centre at exposure
     edges = np.linspace(lo, hi, k + 1)
     a_t = edges[:-1][None, :] + r_layout.random((n, k)) * (edges[1] - edges[0])  # spread over the window
     S_touch = S_sight[:, None] + a_t - a0[:, None]
     # latch: the count read at the exposure, jittered in time and delayed, for a running belt
-    jit_mm = r_latch.normal(0.0, 1.0, n) * setup.latch_jitter_ms * 1e-3 * setup.speed_mm_s * moving
-    S_all = np.concatenate([S_sight + jit_mm, S_touch.ravel()])
+    jit_mm = r_latch.normal(0.0, 1.0, n_s) * setup.latch_jitter_ms * 1e-3 * setup.speed_mm_s * moving
+    S_all = np.concatenate([S_s + jit_mm, S_touch.ravel()])
     slip = belt.slip(S_all)
     cnt = belt.counts(S_all + slip, r_enc)
     sign = 1 if setup.mm_per_count > 0 else -1
-    cnt[:n] += (sign * np.round(setup.latch_delay_counts) * moving).astype(np.int64)
+    cnt[:n_s] += (sign * np.round(setup.latch_delay_counts) * moving).astype(np.int64)
     pos_touch = X[:, None, :] + (a_t - a0[:, None])[..., None] * belt.d  # exact: travel along d
     xyz = pos_touch.reshape(-1, 3) + r_touch.normal(0.0, 1.0, (n * k, 3)) * setup.touch_sigma_mm
-    uv = uv_true + r_pix.normal(0.0, 1.0, (n, 2)) * setup.pixel_sigma_px
-    order = np.argsort(np.concatenate([S_sight, S_touch.ravel()]), kind="stable")
-    kinds = ["sight"] * n + ["touch"] * (n * k)
-    ids = [f"p{j + 1}" for j in range(n)] + [f"p{j + 1}" for j in range(n) for _ in range(k)]
+    uv = uv_s + r_pix.normal(0.0, 1.0, (n_s, 2)) * setup.pixel_sigma_px
+    order = np.argsort(np.concatenate([S_s, S_touch.ravel()]), kind="stable")
+    kinds = ["sight"] * n_s + ["touch"] * (n * k)
+    ids = [f"p{j + 1}" for j in part_s] + [f"p{j + 1}" for j in range(n) for _ in range(k)]
     uv_all = np.vstack([uv, np.full((n * k, 2), np.nan)])
-    xyz_all = np.vstack([np.full((n, 3), np.nan), xyz])
+    xyz_all = np.vstack([np.full((n_s, 3), np.nan), xyz])
     mv_all = np.concatenate([moving, np.ones(n * k, bool)])
     raw = belt.enc.wrap(cnt)
     session = Session(
