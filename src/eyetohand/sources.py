@@ -13,6 +13,17 @@ URI                        source
 
 Options follow a ``?``: ``folder:DIR?timeout=5``, ``sim:cell.toml?seed=3``, ``opencv:0?timeout=2``.
 
+**Encoder counts latched with the frame** (conveyors, ``BELT SIGHT`` without a count): after each
+grab, ``source.encoder_count`` is the belt encoder's count the camera latched with that frame, or
+None (never a count left over from an earlier frame). Sources that provide one, with ``encoder=1``:
+
+* ``folder:DIR?encoder=1`` — each image comes with a sidecar ``<image file name>.json`` holding
+  ``{"encoder_count": <integer>}``, written *before* the image is moved into place (the image's
+  arrival is what the grab waits for). A missing or malformed sidecar fails the grab with its name.
+* ``genicam:CTI?encoder=1`` — the GenICam SFNC chunk ``EncoderValue``: chunk mode is switched on
+  (``ChunkModeActive``, ``ChunkSelector = EncoderValue``, ``ChunkEnable``) and each frame's
+  ``ChunkEncoderValue`` is read; a camera without those features is refused when opened, by name.
+
 Every source is a context manager with ``close()``. ``grab()`` returns a numpy image (grey (h, w)
 or BGR (h, w, 3), as the camera gives it) and the time it was taken (seconds since the epoch: for
 files their modification time, else the time the frame was read). A grab that gets no image in
@@ -62,9 +73,11 @@ class Source:
     encoder_count: int | None = None
 
     def grab(self, pose=None) -> tuple[np.ndarray, float]:
-        """One image and its timestamp (s). ``pose`` (x, y, z[, angle]): see :meth:`set_robot_pose`."""
+        """One image and its timestamp (s). ``pose`` (x, y, z[, angle]): see :meth:`set_robot_pose`.
+        ``encoder_count`` is this frame's latched count afterwards (None where the source has none)."""
         if pose is not None:
             self.set_robot_pose(*pose)
+        self.encoder_count = None  # never a count left from an earlier frame (nor from a failed grab)
         return self._grab()
 
     def set_robot_pose(self, x_mm: float, y_mm: float, z_mm: float, angle_deg: float = 0.0) -> None:
@@ -131,8 +144,9 @@ class FolderSource(Source):
     :func:`eyetohand.io.atomic_write_bytes` does) are picked up only when whole. Several new files:
     the oldest by modification time (then name)."""
 
-    def __init__(self, folder: str, uri: str, timeout_s: float = DEFAULT_TIMEOUT_S):
+    def __init__(self, folder: str, uri: str, timeout_s: float = DEFAULT_TIMEOUT_S, encoder: bool = False):
         self.uri, self.timeout_s = uri, timeout_s
+        self.latches_encoder = bool(encoder)
         self.folder = Path(folder)
         if not folder:
             raise InputError(f"{uri}: expected folder:<directory>")
@@ -186,10 +200,36 @@ class FolderSource(Source):
                 if img is None:
                     continue
                 self.last_path = path
+                if self.latches_encoder:
+                    self.encoder_count = _sidecar_count(path)
                 return img, now[name].st_mtime_ns * 1e-9
             if time.monotonic() >= t_end:
                 raise GrabTimeout(f"no new image within {self.timeout_s:g} s ({self.uri})")
             time.sleep(FOLDER_POLL_S)
+
+
+def _sidecar_count(image: Path) -> int:
+    """The encoder count in ``<image>.json`` (``{"encoder_count": <integer>}``)."""
+    import json
+
+    side = image.with_name(image.name + ".json")
+    try:
+        text = side.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(
+            f"{side}: no encoder count for {image.name} (folder:...?encoder=1 expects each image's count "
+            "in <image file name>.json, written before the image)"
+        ) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{side}: cannot read the encoder count ({exc})") from None
+    try:
+        doc = json.loads(text)
+    except ValueError as exc:
+        raise InputError(f"{side}: not JSON ({exc.args[0] if exc.args else exc})") from None
+    value = doc.get("encoder_count") if isinstance(doc, dict) else None
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputError(f"{side}, field 'encoder_count': {value!r}, expected an integer count")
+    return value
 
 
 # ------------------------------------------------------------------ sim
@@ -216,11 +256,16 @@ class SimSource(Source):
 # ------------------------------------------------------------------ optional extras
 
 
+#: GenICam SFNC features a camera needs to latch the encoder count into each frame's chunk data
+CHUNK_FEATURES = ("ChunkModeActive", "ChunkSelector", "ChunkEnable", "ChunkEncoderValue")
+
+
 class GenICamSource(Source):
     """A GenICam camera through a GenTL producer file (``genicam:/opt/.../producer.cti[#index]``)."""
 
-    def __init__(self, target: str, uri: str, timeout_s: float = DEFAULT_TIMEOUT_S):
+    def __init__(self, target: str, uri: str, timeout_s: float = DEFAULT_TIMEOUT_S, encoder: bool = False):
         self.uri, self.timeout_s = uri, timeout_s
+        self.latches_encoder = bool(encoder)
         try:
             from harvesters.core import Harvester
         except ImportError:
@@ -239,15 +284,43 @@ class GenICamSource(Source):
             self._h.reset()
             raise InputError(f"{uri}: camera #{k} not found ({n} camera(s) through {cti})")
         self._ia = self._h.create(k)
+        if self.latches_encoder:
+            self._enable_encoder_chunk()
         self._ia.start()
+
+    def _enable_encoder_chunk(self) -> None:
+        """SFNC chunk data: ``ChunkModeActive``, ``ChunkSelector = EncoderValue``, ``ChunkEnable``; each
+        frame then carries ``ChunkEncoderValue``. Refused by name where the camera lacks a feature."""
+        nm = self._ia.remote_device.node_map
+        missing = [f for f in CHUNK_FEATURES if not hasattr(nm, f)]
+        if missing:
+            self.close()
+            raise InputError(
+                f"{self.uri}: encoder=1 needs the camera's GenICam chunk features; it lacks "
+                f"{', '.join(missing)} (no EncoderValue chunk: send the count with BELT SIGHT)"
+            )
+        try:
+            nm.ChunkModeActive.value = True
+            nm.ChunkSelector.value = "EncoderValue"
+            nm.ChunkEnable.value = True
+        except Exception as exc:  # GenApi raises its own types (access mode, value not in enumeration)
+            self.close()
+            raise InputError(f"{self.uri}: cannot switch on the EncoderValue chunk ({exc})") from None
 
     def _grab(self):
         try:
             with self._ia.fetch(timeout=self.timeout_s) as buf:
                 comp = buf.payload.components[0]
                 img = comp.data.reshape(comp.height, comp.width).copy()
+                count = (
+                    self._ia.remote_device.node_map.ChunkEncoderValue.value if self.latches_encoder else None
+                )
         except Exception as exc:  # harvesters raises its own timeout types
             raise GrabTimeout(f"no frame within {self.timeout_s:g} s ({self.uri}: {exc})") from None
+        if count is not None:
+            if isinstance(count, bool) or not isinstance(count, int):
+                raise InputError(f"{self.uri}: ChunkEncoderValue {count!r} is not an integer count")
+            self.encoder_count = count
         return img, time.time()
 
     def close(self) -> None:
@@ -296,6 +369,13 @@ class PylonSource(Source):
 # ------------------------------------------------------------------ open_source
 
 
+def _flag(value: str) -> bool:
+    word = value.strip().lower()
+    if word not in ("0", "1", "true", "false"):
+        raise ValueError(value)
+    return word in ("1", "true")
+
+
 def _options(uri: str, query: str, allowed: dict) -> dict:
     out = {}
     for key, value in parse_qsl(query, keep_blank_values=True):
@@ -304,7 +384,8 @@ def _options(uri: str, query: str, allowed: dict) -> dict:
         try:
             out[key] = allowed[key](value)
         except ValueError:
-            raise InputError(f"{uri}: option {key}={value!r} is not a number") from None
+            expected = "0 or 1" if allowed[key] is _flag else "a number"
+            raise InputError(f"{uri}: option {key}={value!r}, expected {expected}") from None
         if key == "timeout" and not out[key] > 0:
             raise InputError(f"{uri}: option timeout must be positive seconds, got {value!r}")
     return out
@@ -329,11 +410,14 @@ def open_source(uri: str, **overrides) -> Source:
         opts = _options(text, query, {"seed": int})
         seed = overrides.get("seed", opts.get("seed", 0))
         return SimSource(target, text, seed=seed)
-    opts = _options(text, query, {"timeout": float})
+    latching = scheme in ("folder", "genicam")  # the sources that can carry a latched encoder count
+    opts = _options(text, query, {"timeout": float, "encoder": _flag} if latching else {"timeout": float})
     timeout = float(overrides.get("timeout_s", opts.get("timeout", DEFAULT_TIMEOUT_S)))
-    cls = {"opencv": OpenCVSource, "folder": FolderSource, "genicam": GenICamSource, "pylon": PylonSource}[
-        scheme
-    ]
+    if scheme == "folder":
+        return FolderSource(target, text, timeout_s=timeout, encoder=opts.get("encoder", False))
+    if scheme == "genicam":
+        return GenICamSource(target, text, timeout_s=timeout, encoder=opts.get("encoder", False))
+    cls = {"opencv": OpenCVSource, "pylon": PylonSource}[scheme]
     return cls(target, text, timeout_s=timeout)
 
 
