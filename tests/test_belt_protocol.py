@@ -144,6 +144,23 @@ def test_belt_maps_a_new_part_downstream_and_refuses_outside(collected, source, 
     # with the part's image angle: rz as well (the belt does not turn it)
     with_a = belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30")
     assert with_a.startswith(reply + ",") and len(with_a[3:].split(",")) == 4
+    # the TCP line's orientation words, with its meanings: symmetry folds rz, t= offsets it
+    cal = belt.conveyor.calibration
+    uv1 = np.array([[d.u, d.v]])
+    for words, kw in (
+        ("a=30,s=2", {"symmetry": 2}),
+        ("a=200,s=4", {"symmetry": 4}),
+        ("a=30,t=12.5", {"tool_rz_offset_deg": 12.5}),
+    ):
+        got_rz = float(belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},{words}")[3:].split(",")[3])
+        a = float(words.split(",")[0][2:])
+        want = float(cal.map(uv1, None, angle_deg=a, **kw).rz_deg[0])
+        assert abs(got_rz - want) < 1e-4, (words, got_rz, want)
+    assert (
+        belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2.5") == "ERR s: 2.5 is not a whole number"
+    )
+    bad = belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},q=1")
+    assert bad.startswith("ERR BELT: unknown word 'q=1'; expected a=DEG, s=N or t=DEG"), bad
     # the tracking form: position at the image's count and the belt vector
     track = belt.handle(f"BELT TRACK {d.u!r},{d.v!r},{e_img}")
     vals = np.array([float(v) for v in track[3:].split(",")])

@@ -9,11 +9,13 @@ counter's range (``Encoder.check``); every reply is ``OK …`` or ``ERR <reason>
 
 Mapping (needs a conveyor calibration, :class:`~eyetohand.conveyor.ConveyorCalibration`):
 
-``BELT <u>,<v>,<e_image>,<e_now>[,a=<deg>]``
+``BELT <u>,<v>,<e_image>,<e_now>[,a=<deg>][,s=<N>][,t=<deg>]``
     The part seen at pixel (u, v) in the image latched at ``e_image`` → ``OK x,y,z`` where it is when
     the encoder reads ``e_now`` (counts taken modulo the counter's range: a rollover in between is
     fine); with ``a=`` the image angle of the part (deg, +u towards +v) also its robot ``rz``
-    (``OK x,y,z,rz``: the belt translates, it does not turn the part). Refused, with how far: a part
+    (``OK x,y,z,rz``: the belt translates, it does not turn the part); ``s=`` and ``t=`` as on the
+    TCP mapping line (rz folded for a part symmetric under 360/N turns; the gripper's rz when aligned
+    with the image's +u). Refused, with how far: a part
     outside the robot's window (``ERR the part is 12.3 mm downstream of the robot window's far end
     …``) and a pixel outside the calibrated image region.
 ``BELT TRACK <u>,<v>,<e_image>``
@@ -60,7 +62,10 @@ from .errors import InputError
 
 NOISE_COUNTS = 5
 DEFAULT_MODEL = "homography-radial"
-USAGE = "BELT u,v,e_image,e_now[,a=DEG] | BELT TRACK u,v,e_image | BELT BEGIN|SIGHT|TOUCH|END|ABORT|STATUS"
+USAGE = (
+    "BELT u,v,e_image,e_now[,a=DEG][,s=N][,t=DEG] | BELT TRACK u,v,e_image | "
+    "BELT BEGIN|SIGHT|TOUCH|END|ABORT|STATUS"
+)
 
 
 def _count(text: str, name: str, encoder: Encoder) -> int:
@@ -74,6 +79,11 @@ def _count(text: str, name: str, encoder: Encoder) -> int:
     except InputError as exc:
         raise CommandError(str(exc).splitlines()[0]) from None
     return v
+
+
+#: ``BELT u,v,e_image,e_now`` words, as on the TCP mapping line: the part's image angle (deg), its
+#: rotational symmetry (rz folded into 360/N), the gripper's rz when aligned with the image's +u (deg)
+ORIENTATION_WORDS = ("a", "s", "t")
 
 
 def _mm(v: float) -> str:
@@ -194,23 +204,30 @@ class BeltProtocol:
         nums = [a for a in args if "=" not in a]
         words = [a.lower() for a in args[len(nums) :]]
         if args[: len(nums)] != nums or len(nums) != 4:
-            raise CommandError(f"BELT: {len(nums)} numbers; expected u,v,e_image,e_now[,a=DEG]")
+            raise CommandError(f"BELT: {len(nums)} numbers; expected u,v,e_image,e_now[,a=DEG][,s=N][,t=DEG]")
         conv = self._served()
         u, v = _numbers(nums[:2], ("u", "v"), "BELT")
         e_img = _count(nums[2], "e_image", conv.encoder)
         e_now = _count(nums[3], "e_now", conv.encoder)
-        angle = None
-        for w in words:
-            if not w.startswith("a="):
-                raise CommandError(f"BELT: unknown word {w[:20]!r}; expected a=DEG")
-            angle = _numbers([w[2:]], ("a",), "BELT")[0]
+        opts: dict[str, float] = {}
+        for w in words:  # the orientation words the TCP mapping line takes, with its meanings
+            key, sep, text = w.partition("=")
+            if not sep or key not in ORIENTATION_WORDS:
+                raise CommandError(f"BELT: unknown word {w[:20]!r}; expected a=DEG, s=N or t=DEG")
+            opts[key] = _numbers([text], (key,), "BELT")[0]
+        symmetry = opts.get("s", 1.0)
+        if symmetry != int(symmetry):
+            raise CommandError(f"s: {symmetry!r} is not a whole number")
+        angle = opts.get("a")
         uv = np.array([[u, v]])
         with np.errstate(all="ignore"):
             p = conv.image_to_robot_at(uv, e_img, e_now)[0]
         out = [_mm(c) for c in p]
         if angle is not None:
             with np.errstate(all="ignore"):
-                m = conv.calibration.map(uv, None, angle_deg=angle)
+                m = conv.calibration.map(
+                    uv, None, angle_deg=angle, symmetry=int(symmetry), tool_rz_offset_deg=opts.get("t")
+                )
             if m.rz_deg is None:
                 raise CommandError("BELT: this calibration gives no orientation")
             out.append(f"{float(m.rz_deg[0]):.4f}")
