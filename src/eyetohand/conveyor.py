@@ -42,6 +42,7 @@ import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -174,7 +175,9 @@ class Belt:
         b = np.asarray(b_mm_per_count, float)
         n = float(np.linalg.norm(b))
         sign = -1.0 if count_sign < 0 else 1.0
-        return cls(tuple(sign * b / n), sign * n, np.zeros((3, 3)) if cov is None else cov)
+        c = np.zeros((3, 3)) if cov is None else np.asarray(cov, float)
+        d = sign * b / n
+        return cls((float(d[0]), float(d[1]), float(d[2])), sign * n, tuple(map(tuple, c)))
 
     @property
     def vector_mm_per_count(self) -> np.ndarray:
@@ -660,7 +663,8 @@ class _Fit:
 
 
 def _layout(D: int, n_unseen: int, with_map: bool, fit_latch: bool) -> dict:
-    lay, k = {}, 0
+    lay: dict[str, Any] = {}
+    k = 0
     for name, size in (
         ("map", D if with_map else 0),
         ("b", 3),
@@ -712,6 +716,7 @@ def _joint_fit(prep: _Prepared, model, x0, lay, xy0, z_plane, fixed_b=None) -> _
             xy, z = on_belt(X, uv_t)
             shift = de[sighted][None, :]
             if with_latch:
+                assert mv_t is not None  # a latch is fitted only with the camera map
                 shift = shift + X[:, lay["latch"]] * mv_t[None, :]
             pred[:, sighted, :2] = xy
             pred[:, sighted, 2] = z
