@@ -159,6 +159,27 @@ def test_belt_maps_a_new_part_downstream_and_refuses_outside(collected, source, 
     assert (
         belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2.5") == "ERR s: 2.5 is not a whole number"
     )
+    # its refusals in the TCP line's words (tcp.answer on the same fields), 6_00 not a number on either
+    from eyetohand.server.tcp import answer
+
+    for fields in (
+        f"{d.u!r},{d.v!r},a=inf",
+        f"{d.u!r},{d.v!r},a=1_0",
+        f"{d.u!r},{d.v!r},a=",
+        f"{d.u!r},{d.v!r},t=x",
+        f"{d.u!r},{d.v!r},s=nan",
+        f"1_0,{d.v!r}",
+        f"{d.u!r},nan",
+        "2,2",  # outside the calibrated image region: the reason, without the point's index
+    ):
+        u, v, *words = fields.split(",")
+        via_tcp = answer(cal, fields.encode()).decode().strip()
+        via_belt = belt.handle(",".join([f"BELT {u}", v, str(e_img), str(e_now), *words]))
+        assert via_tcp.startswith("ERR ") and via_belt == via_tcp.replace("°", "?"), (via_belt, via_tcp)
+    assert (
+        belt.handle(f"BELT {d.u!r},{d.v!r},1_000,{e_now}")
+        == "ERR e_image: '1_000' is not a whole number of counts"
+    )
     bad = belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},q=1")
     assert bad.startswith("ERR BELT: unknown word 'q=1'; expected a=DEG, s=N or t=DEG"), bad
     # the tracking form: position at the image's count and the belt vector
@@ -187,6 +208,7 @@ def test_belt_refusals_one_err_each(tmp_path, source, collected):
         (f"BELT 1,2,{2**24},4", "e_image"),
         ("BELT 1,2,3,4,b=3", "unknown word"),
         ("BELT 1,x,3,4", "not a number"),
+        ("BELT TRACK 1_0,2,3", "BELT TRACK: u: '1_0' is not a number"),
         ("BELT TRACK 1,2", "2 fields"),
         ("BELT END 3", "takes no fields"),
         ("BELTS", "unknown command"),

@@ -71,9 +71,11 @@ USAGE = (
 def _count(text: str, name: str, encoder: Encoder) -> int:
     t = text.strip()
     try:
+        if "_" in t:  # not a plain decimal (as for every other number on the line)
+            raise ValueError(t)
         v = int(t)
     except ValueError:
-        raise CommandError(f"{name} {t[:20]!r} is not a whole number of counts") from None
+        raise CommandError(f"{name}: {t[:20]!r} is not a whole number of counts") from None
     try:
         encoder.check(v, name)
     except InputError as exc:
@@ -160,8 +162,9 @@ class BeltProtocol:
                 fields = self._dispatch(text)
             except CommandError as exc:
                 return f"ERR {_reason(str(exc))}"
-            except InputError as exc:
-                return f"ERR {_reason(str(exc).splitlines()[0])}"
+            except InputError as exc:  # one part per line: its index says nothing (as on the TCP line)
+                reason = exc.reason if exc.index is not None else str(exc)
+                return f"ERR {_reason(reason.splitlines()[0])}"
             except Exception as exc:  # a camera or a fit that breaks: still one ERR line
                 return f"ERR {_reason(f'internal error: {type(exc).__name__}: {exc}')}"
         return "OK" + (" " + ",".join(fields) if fields else "")
@@ -206,7 +209,7 @@ class BeltProtocol:
         if args[: len(nums)] != nums or len(nums) != 4:
             raise CommandError(f"BELT: {len(nums)} numbers; expected u,v,e_image,e_now[,a=DEG][,s=N][,t=DEG]")
         conv = self._served()
-        u, v = _numbers(nums[:2], ("u", "v"), "BELT")
+        u, v = _numbers(nums[:2], ("u", "v"), None)  # refused in the TCP mapping line's words
         e_img = _count(nums[2], "e_image", conv.encoder)
         e_now = _count(nums[3], "e_now", conv.encoder)
         opts: dict[str, float] = {}
@@ -214,7 +217,7 @@ class BeltProtocol:
             key, sep, text = w.partition("=")
             if not sep or key not in ORIENTATION_WORDS:
                 raise CommandError(f"BELT: unknown word {w[:20]!r}; expected a=DEG, s=N or t=DEG")
-            opts[key] = _numbers([text], (key,), "BELT")[0]
+            opts[key] = _numbers([text], (key,), None)[0]
         symmetry = opts.get("s", 1.0)
         if symmetry != int(symmetry):
             raise CommandError(f"s: {symmetry!r} is not a whole number")

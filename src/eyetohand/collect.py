@@ -186,15 +186,20 @@ def _reason(text: str) -> str:
     return s if len(s) <= MAX_REASON else s[: MAX_REASON - 3] + "..."
 
 
-def _numbers(fields: list[str], names: str | tuple[str, ...], what: str) -> list[float]:
+def _numbers(fields: list[str], names: str | tuple[str, ...], what: str | None) -> list[float]:
+    """Finite plain decimals, refused in the TCP mapping line's words (``u: 'abc' is not a number``,
+    after ``what: `` when given); ``6_00`` is not one, as in the library's loaders and on the TCP line."""
     out = []
+    prefix = f"{what}: " if what else ""
     for name, text in zip(names, fields, strict=False):
         try:
+            if "_" in text:
+                raise ValueError(text)
             v = float(text)
         except ValueError:
-            raise CommandError(f"{what}: {name} {text[:20]!r} is not a number") from None
+            raise CommandError(f"{prefix}{name}: {text[:20]!r} is not a number") from None
         if not math.isfinite(v):
-            raise CommandError(f"{what}: {name} {text[:20]!r} is not a finite number")
+            raise CommandError(f"{prefix}{name}: {text[:20]!r} is not a finite number")
         out.append(v)
     return out
 
