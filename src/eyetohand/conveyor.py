@@ -49,9 +49,10 @@ import numpy as np
 from .calibration import Calibration
 from .errors import DegenerateError, InputError
 from .fit import calibrate
-from .io import atomic_write_text
+from .io import atomic_write_text, read_bounded_text
 from .models import get_model
-from .pairs import PointPairs
+from .pairs import PointPairs, _csv_rows, _Where
+from .pairs import _number as _pairs_number
 
 SCHEMA = "eyetohand.conveyor"
 SCHEMA_VERSION = 1
@@ -333,11 +334,9 @@ class Session:
 
 def session_from_text(text: str, source: str = "<text>") -> Session:
     """Parse a session CSV (header ``kind,id,u,v,x,y,z,e[,moving]``, rows in time order)."""
-    lines = text.splitlines()
-    first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
-    if first is None:
+    if not text.strip():
         raise InputError(f"{source}: empty, expected a header line '{','.join(SESSION_COLUMNS)}' and rows")
-    rows = list(csv.reader(lines))
+    rows, first = _csv_rows(text, source)
     header = [h.strip().lower() for h in rows[first]]
     missing = [c for c in SESSION_COLUMNS if c not in header]
     if missing:
@@ -361,26 +360,16 @@ def session_from_text(text: str, source: str = "<text>") -> Session:
 
 
 def load_session(path: str | os.PathLike) -> Session:
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read the session ({exc})") from None
-    return session_from_text(text, str(path))
+    """A session CSV file (read bounded: a folder or FIFO is refused, not waited on)."""
+    return session_from_text(read_bounded_text(path, what="a session CSV"), str(path))
 
 
 def _number(value, where: str, name: str) -> float:
-    if value is None or (isinstance(value, str) and not value.strip()):
-        raise InputError(f"{where}, field '{name}': empty, expected a number")
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{where}, field '{name}': {value!r} is not a number") from None
-    if not math.isfinite(x):
-        raise InputError(f"{where}, field '{name}': {value!r} is not a finite number")
-    return x
+    """The loaders' number (:func:`eyetohand.pairs._number`: finite, no booleans, no ``6_00``), at a
+    row named ``where``."""
+    if value is None:
+        value = ""
+    return _pairs_number(value, _Where(where), name)
 
 
 # ================================================================== the calibrated conveyor
@@ -508,11 +497,7 @@ class ConveyorCalibration:
     def load(cls, path: str | os.PathLike) -> ConveyorCalibration:
         path = Path(path)
         try:
-            d = json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise InputError(f"{path}: no such file") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise InputError(f"{path}: cannot read ({exc})") from None
+            d = json.loads(read_bounded_text(path, what="a conveyor calibration file"))
         except json.JSONDecodeError as exc:
             raise InputError(f"{path} line {exc.lineno}: invalid JSON ({exc.msg})") from None
         return cls.from_dict(d, str(path))
