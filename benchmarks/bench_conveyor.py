@@ -35,12 +35,16 @@ import argparse
 
 import numpy as np
 
-from eyetohand.conveyor import calibrate_conveyor
 from eyetohand.fit import calibrate
 from eyetohand.pairs import PointPairs
-from eyetohand.sim.conveyor import ConveyorSetup, pick_check, simulate_conveyor, static_session
+from eyetohand.sim.conveyor import (
+    ConveyorSetup,
+    pick_check,
+    sightings_from_text,
+    simulate_conveyor,
+    static_session,
+)
 
-SIZE = (2448, 2048)
 FAULTS = {
     "none": ({"yaw_deg": 0.0, "pitch_deg": 0.0}, []),
     "scale 0.1%": ({"yaw_deg": 0.0, "pitch_deg": 0.0, "stated_scale_error": 1e-3}, ["encoder scale"]),
@@ -56,19 +60,7 @@ def rms(d) -> float:
 def fit(setup, seed, stated=None):
     """Simulate one session and calibrate it."""
     sim = simulate_conveyor(setup, seed=seed)
-    conv = calibrate_conveyor(
-        sim.session,
-        encoder=sim.encoder,
-        stated_counts_per_mm=setup.stated_counts_per_mm,
-        stated_direction_deg=stated,
-        window_mm=sim.truth["window_along_belt_mm"],
-        image_size=SIZE,
-    )
-    return sim, conv
-
-
-def _sightings(text: str):
-    return None if text.strip().lower() == "one" else tuple(w.strip() for w in text.split(","))
+    return sim, sim.calibrate(stated_direction_deg=stated)
 
 
 def faults(more: dict, seeds: int, label: str) -> None:
@@ -104,7 +96,11 @@ def main() -> None:
         help="each part's frames (default stopped,running) or 'one' (one sighting per part, half stopped)",
     )
     args = ap.parse_args()
-    more = {"n_parts": args.parts, "touches_per_part": args.touches, "sightings": _sightings(args.sightings)}
+    more = {
+        "n_parts": args.parts,
+        "touches_per_part": args.touches,
+        "sightings": sightings_from_text(args.sightings),
+    }
     setup = ConveyorSetup(**more)
     print(f"{args.parts} parts x {args.touches} touches per session, sightings per part: {args.sightings}")
     print(
@@ -136,7 +132,10 @@ def main() -> None:
         )
         (uv, xyz), (uv_c, xyz_c) = static_session(sim, seed=3000 + seed)
         cal = calibrate(
-            PointPairs.from_arrays(uv, xyz), model="homography-radial", image_size=SIZE, loo=False
+            PointPairs.from_arrays(uv, xyz),
+            model="homography-radial",
+            image_size=sim.cell.image_size,
+            loo=False,
         )
         uv_c_det = uv_c + rng.normal(0.0, setup.pixel_sigma_px, uv_c.shape)
         static = rms(cal.image_to_robot(uv_c, allow_outside=True)[:, :2] - xyz_c[:, :2])

@@ -22,21 +22,10 @@ from eyetohand.fit import calibrate
 from eyetohand.pairs import PointPairs
 from eyetohand.sim.conveyor import ConveyorSetup, pick_check, simulate_conveyor, static_session
 
-SIZE = (2448, 2048)
-
 
 def run(setup: ConveyorSetup, seed: int, *, stated_direction=None, e_start=None, model="homography-radial"):
     sim = simulate_conveyor(setup, seed=seed, e_start=e_start)
-    conv = calibrate_conveyor(
-        sim.session,
-        model=model,
-        encoder=sim.encoder,
-        stated_counts_per_mm=setup.stated_counts_per_mm,
-        stated_direction_deg=stated_direction,
-        window_mm=sim.truth["window_along_belt_mm"],
-        image_size=SIZE,
-    )
-    return sim, conv
+    return sim, sim.calibrate(model=model, stated_direction_deg=stated_direction)
 
 
 def rms(d):
@@ -100,7 +89,10 @@ def test_pick_at_far_end_of_window_within_2x_static_calibration_at_camera(must_s
     pick = rms(conv.image_to_robot_at(uv, e_i, e_n) - T)
     (uv_s, xyz_s), (uv_c, xyz_c) = static_session(sim, seed=12)
     static = calibrate(
-        PointPairs.from_arrays(uv_s, xyz_s), model="homography-radial", image_size=SIZE, loo=False
+        PointPairs.from_arrays(uv_s, xyz_s),
+        model="homography-radial",
+        image_size=sim.cell.image_size,
+        loo=False,
     )
     at_camera = rms(static.image_to_robot(uv_c, allow_outside=True)[:, :2] - xyz_c[:, :2])
     # the calibration's own error at the far end (fitted map and belt, the exact travel) is within 2x
@@ -328,3 +320,22 @@ def test_cli_simulate_calibrate_apply(tmp_path, capsys):
     assert "not reached it yet" in capsys.readouterr().err
     assert main(["conveyor", "calibrate", str(tmp_path / "nope.csv")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_pick_check_and_static_session_see_the_simulation_s_own_cell(tmp_path):
+    """A simulation on another cell (a 640x512 camera) is checked through that cell's camera."""
+    from eyetohand.sim.cell import load_cell
+    from eyetohand.sim.simulate import true_camera
+
+    path = tmp_path / "cell.toml"
+    path.write_text("[camera]\nwidth_px = 640\nheight_px = 512\npixel_size_um = 13.8\n")
+    cell = load_cell(path)
+    sim = simulate_conveyor(ConveyorSetup(n_parts=30), cell=cell, seed=3)
+    cam = true_camera(cell)
+    pc = pick_check(sim, 50, seed=4)
+    assert (pc["uv_px"] <= [639, 511]).all()
+    np.testing.assert_allclose(cam.robot_to_image(pc["xyz_at_image_mm"]), pc["uv_px"], atol=1e-6)
+    _, (uv_c, xyz_c) = static_session(sim, n_check=20, seed=5)
+    np.testing.assert_allclose(cam.robot_to_image(xyz_c), uv_c, atol=1e-6)
+    conv = sim.calibrate()
+    assert conv.calibration.image_size == (640, 512)  # the camera map fitted for that image

@@ -11,20 +11,10 @@ from eyetohand.conveyor import calibrate_conveyor, format_report, session_from_t
 from eyetohand.errors import InputError
 from eyetohand.sim.conveyor import ConveyorSetup, simulate_conveyor
 
-SIZE = (2448, 2048)
-
 
 def run(setup: ConveyorSetup, seed: int, *, stated_direction=None, e_start=None, session=None):
     sim = simulate_conveyor(setup, seed=seed, e_start=e_start)
-    conv = calibrate_conveyor(
-        sim.session if session is None else session,
-        encoder=sim.encoder,
-        stated_counts_per_mm=setup.stated_counts_per_mm,
-        stated_direction_deg=stated_direction,
-        window_mm=sim.truth["window_along_belt_mm"],
-        image_size=SIZE,
-    )
-    return sim, conv
+    return sim, sim.calibrate(session, stated_direction_deg=stated_direction)
 
 
 @pytest.fixture(scope="module")

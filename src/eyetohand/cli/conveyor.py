@@ -71,22 +71,13 @@ def cmd_apply(args) -> int:
     return 0
 
 
-def _sightings(text: str):
-    """``--sightings``: 'one' (one sighting per part, half stopped) or a comma list of stopped/running."""
-    t = text.strip().lower()
-    if t == "one":
-        return None
-    words = tuple(w.strip() for w in t.split(","))
-    if not words or any(w not in ("stopped", "running") for w in words):
-        raise InputError(
-            f"--sightings: {text!r}; expected 'one' or a comma list of 'stopped' and 'running' "
-            "(e.g. stopped,running)"
-        )
-    return words
-
-
 def cmd_simulate(args) -> int:
-    from ..sim.conveyor import ConveyorSetup, simulate_conveyor, write_conveyor_simulation
+    from ..sim.conveyor import (
+        ConveyorSetup,
+        sightings_from_text,
+        simulate_conveyor,
+        write_conveyor_simulation,
+    )
 
     setup = ConveyorSetup(
         yaw_deg=args.yaw_deg,
@@ -97,7 +88,7 @@ def cmd_simulate(args) -> int:
         stated_scale_error=args.scale_error,
         counter_bits=args.counter_bits,
         signed=args.signed,
-        sightings=_sightings(args.sightings),
+        sightings=sightings_from_text(args.sightings),
     )
     sim = simulate_conveyor(setup, seed=args.seed)
     files = write_conveyor_simulation(sim, args.out)
@@ -108,9 +99,10 @@ def cmd_simulate(args) -> int:
     )
     print(f"wrote {', '.join(str(f) for f in files)}")
     lo, hi = sim.truth["window_along_belt_mm"]
+    w, h = sim.cell.image_size
     print(
         f"next: eyetohand conveyor calibrate {args.out}/session.csv -o belt.json "
-        f"--pulses-per-mm {setup.stated_counts_per_mm:.9g} --window {lo:.3f} {hi:.3f} --image-size 2448x2048"
+        f"--pulses-per-mm {setup.stated_counts_per_mm:.9g} --window {lo:.3f} {hi:.3f} --image-size {w}x{h}"
     )
     return 0
 

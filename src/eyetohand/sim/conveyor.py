@@ -28,12 +28,12 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..conveyor import Encoder, Session, direction_from_angles
+from ..conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor, direction_from_angles
 from ..errors import InputError
 from ..io import atomic_write_text
 from .cell import Cell
@@ -109,6 +109,19 @@ class ConveyorSimulation:
     truth: dict
     origin_mm: np.ndarray  # belt top surface under the camera's view centre
     seed: int | None
+    cell: Cell = field(default_factory=Cell.default)  # the camera's cell: pick_check, static_session see it
+
+    def calibrate(self, session: Session | None = None, **options) -> ConveyorCalibration:
+        """:func:`~eyetohand.conveyor.calibrate_conveyor` on this session (or ``session``) as its user
+        would run it: the simulated counter, the stated pulses per mm, the true window and the camera's
+        image size; ``options`` (``model``, ``stated_direction_deg``, …) passed on."""
+        kw: dict = {
+            "encoder": self.encoder,
+            "stated_counts_per_mm": self.setup.stated_counts_per_mm,
+            "window_mm": tuple(self.truth["window_along_belt_mm"]),
+            "image_size": self.cell.image_size,
+        }
+        return calibrate_conveyor(self.session if session is None else session, **{**kw, **options})
 
 
 class _Belt:
@@ -272,7 +285,7 @@ def simulate_conveyor(
         "window_along_belt_mm": [float(belt.origin @ belt.d + lo), float(belt.origin @ belt.d + hi)],
         "counts_wrap": bool((np.abs(np.diff(raw[order])) > belt.enc.range // 2).any()),
     }
-    return ConveyorSimulation(setup, session, belt.enc, e0, truth, belt.origin, seed)
+    return ConveyorSimulation(setup, session, belt.enc, e0, truth, belt.origin, seed, cell)
 
 
 def pick_check(sim: ConveyorSimulation, n: int = 200, *, at_mm: float | None = None, seed=None) -> dict:
@@ -280,8 +293,7 @@ def pick_check(sim: ConveyorSimulation, n: int = 200, *, at_mm: float | None = N
     belt (jitter, delay, quantisation, slip), the count when the part reaches ``at_mm`` along the
     belt from the view centre (default 1 mm inside the window's far end) and the part's true
     position then."""
-    setup = sim.setup
-    cell = Cell.default()
+    setup, cell = sim.setup, sim.cell
     ss = np.random.SeedSequence(seed)
     r_layout, r_slip, r_latch, r_enc = (np.random.default_rng(s) for s in ss.spawn(4))
     belt = _Belt(setup, cell, r_slip, sim.e_start)
@@ -312,8 +324,7 @@ def static_session(sim: ConveyorSimulation, n_pairs: int | None = None, n_check:
     """The baseline: a static calibration at the camera — the same number of parts, on the belt under
     the camera, touched there by the robot (same pixel and touch noise). Returns ``(uv, xyz)`` pairs
     (z set to the mean: the planar models take one height) and noise-free check ``(uv, xyz)``."""
-    setup = sim.setup
-    cell = Cell.default()
+    setup, cell = sim.setup, sim.cell
     n_pairs = setup.n_parts if n_pairs is None else n_pairs
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     belt = _Belt(setup, cell, rng, sim.e_start)
@@ -349,14 +360,26 @@ def write_conveyor_simulation(sim: ConveyorSimulation, out_dir: str | os.PathLik
     ]
 
 
-def with_setup(setup: ConveyorSetup, **changes) -> ConveyorSetup:
-    return replace(setup, **changes)
+def sightings_from_text(text: str) -> tuple[str, ...] | None:
+    """``--sightings``: 'one' (None: one sighting per part, some stopped) or a comma list of
+    'stopped' / 'running' (each part's frames in order)."""
+    t = text.strip().lower()
+    if t == "one":
+        return None
+    words = tuple(w.strip() for w in t.split(","))
+    if any(w not in ("stopped", "running") for w in words):
+        raise InputError(
+            f"--sightings: {text!r}; expected 'one' or a comma list of 'stopped' and 'running' "
+            "(e.g. stopped,running)"
+        )
+    return words
 
 
 __all__ = [
     "ConveyorSetup",
     "ConveyorSimulation",
     "pick_check",
+    "sightings_from_text",
     "simulate_conveyor",
     "static_session",
     "write_conveyor_simulation",
