@@ -31,7 +31,8 @@ survives a restart like the CAL collection):
 ``BELT SIGHT <id>[,<e>][,stopped]``
     Grab one image and detect the part's target in it; ``e`` the count latched with the image (left
     out: the count the source latched with the frame, ``source.encoder_count``, where the source
-    provides one — none of the built-in sources does yet, so give it); ``stopped`` when the belt stood
+    provides one — ``folder:DIR?encoder=1`` and ``genicam:CTI?encoder=1`` do, see
+    :mod:`eyetohand.sources`; else give it); ``stopped`` when the belt stood
     still for the image (sightings with the belt both stopped and running let END fit the latch
     delay) → ``OK <u>,<v>``. A part may be sighted again — another frame of it, e.g. once with the belt
     stopped under the camera and once running: END then tests the latch delay within each part, its

@@ -69,7 +69,8 @@ class Source:
     uri = ""
     timeout_s = DEFAULT_TIMEOUT_S
     #: the encoder count latched with the last frame, where the source provides one (a conveyor's
-    #: camera wired to the belt's encoder); None for every built-in source: send the count with BELT SIGHT
+    #: camera wired to the belt's encoder: folder: and genicam: with encoder=1); else None: send the
+    #: count with BELT SIGHT
     encoder_count: int | None = None
 
     def grab(self, pose=None) -> tuple[np.ndarray, float]:
