@@ -281,42 +281,11 @@ def test_cli_simulate_calibrate_apply(tmp_path, capsys):
     assert "faults: belt direction, belt level" in text
     e0 = (1 << 24) - 100
     e1 = (e0 + 120_000) % (1 << 24)
-    assert (
-        main(
-            [
-                "conveyor",
-                "apply",
-                str(tmp_path / "belt.json"),
-                "--uv",
-                "1224",
-                "1024",
-                "--e-image",
-                str(e0),
-                "--e-now",
-                str(e1),
-            ]
-        )
-        == 0
-    )
+    apply = ["conveyor", "apply", str(tmp_path / "belt.json"), "--uv", "1224", "1024", "--e-image", str(e0)]
+    assert main([*apply, "--e-now", str(e1)]) == 0
     xyz = [float(v) for v in capsys.readouterr().out.split()]
     assert len(xyz) == 3 and 1000 < xyz[0] < 1400
-    assert (
-        main(
-            [
-                "conveyor",
-                "apply",
-                str(tmp_path / "belt.json"),
-                "--uv",
-                "1224",
-                "1024",
-                "--e-image",
-                str(e0),
-                "--e-now",
-                str((e0 + 10) % (1 << 24)),
-            ]
-        )
-        == 2
-    )
+    assert main([*apply, "--e-now", str((e0 + 10) % (1 << 24))]) == 2
     assert "not reached it yet" in capsys.readouterr().err
     assert main(["conveyor", "calibrate", str(tmp_path / "nope.csv")]) == 2
     assert "no such file" in capsys.readouterr().err

@@ -141,22 +141,8 @@ def test_bad_heights_name_the_option(capsys, tmp_path):
 
 def test_simulate_writes_pairs_check_and_truth(tmp_path, capsys):
     out = tmp_path / "sim"
-    code, text, err = run(
-        capsys,
-        "simulate",
-        "--plan",
-        "grid:4x4",
-        "--heights",
-        "150,200",
-        "--check",
-        "7",
-        "--check-heights",
-        "175,220",
-        "--out",
-        out,
-        "--seed",
-        "3",
-    )
+    plan = ("--plan", "grid:4x4", "--heights", "150,200", "--check", "7", "--check-heights", "175,220")
+    code, text, err = run(capsys, "simulate", *plan, "--out", out, "--seed", "3")
     assert code == 0, err
     pairs = load_pairs(out / "pairs.csv")
     check = load_pairs(out / "check.csv")
@@ -170,22 +156,7 @@ def test_simulate_writes_pairs_check_and_truth(tmp_path, capsys):
     du = pairs.uv_px - np.array([[p["u_true"], p["v_true"]] for p in truth["pairs"]])
     assert 0.03 < du.std() < 0.3
     # same seed, same session; another seed, another
-    run(
-        capsys,
-        "simulate",
-        "--plan",
-        "grid:4x4",
-        "--heights",
-        "150,200",
-        "--check",
-        "7",
-        "--check-heights",
-        "175,220",
-        "--out",
-        tmp_path / "again",
-        "--seed",
-        "3",
-    )
+    run(capsys, "simulate", *plan, "--out", tmp_path / "again", "--seed", "3")
     assert (tmp_path / "again" / "pairs.csv").read_bytes() == (out / "pairs.csv").read_bytes()
     # the pairs calibrate with the documented command
     code, text, err = run(
