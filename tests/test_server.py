@@ -588,6 +588,11 @@ def test_numbers_are_strict_and_names_clean(client):
         assert why in r.json()["error"] or bad is None
     r = client.post("/api/calibrations", json={"name": "x", "pairs": PAIRS, "seed": True})
     assert (r.status_code, r.json()["field"]) == (422, "seed")
+    create(client, "m", model="homography")
+    for bad in (True, "2", 2.5):  # as `apply --symmetry` and the library: a whole number, not true or "2"
+        body = {"points": [[600, 900]], "angles": [10], "symmetry": bad}
+        r = client.post("/api/calibrations/1/image-to-robot", json=body)
+        assert (r.status_code, r.json()["field"]) == (422, "symmetry"), (bad, r.text)
     for ch in ("\x00", "\x1b", "\x07", "\x7f", "\u200b", "\u202e", "\u2028"):
         r = client.post("/api/calibrations", json={"name": f"cell{ch}3", "pairs": PAIRS})
         assert (r.status_code, r.json()["field"]) == (422, "name"), repr(ch)
