@@ -261,3 +261,15 @@ def test_outliers_printed_as_ids_with_their_set(tmp_path, capsys):
     lines = [ln for ln in out.splitlines() if ln.startswith("outliers")]
     assert code == 0 and lines == ["outliers: ids 5 (training)"], out
     assert not any("robust sigma" in ln for ln in out.splitlines())
+
+
+def test_swarm_size_and_iterations_as_the_http_fit_takes_them(capsys):
+    """``--particles`` / ``--iterations`` reach the swarm (the page and the HTTP fit have them); a
+    swarm of one particle is refused with the library's words."""
+    argv = ["calibrate", TRAIN, "--model", "affine", "--optimizer", "pso", "--seed", "3"]
+    code, out, err = run(capsys, *argv, "--particles", "12", "--iterations", "7", "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    assert len(d["history"]) == 7 and d["nfev"] >= 12 * 7
+    code, out, err = run(capsys, *argv, "--particles", "1")
+    assert code == 2 and out == "" and "'n_particles' must be at least 2" in err

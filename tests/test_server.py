@@ -269,6 +269,20 @@ async def _tcp_map(cal, uv) -> np.ndarray:
 # ---------------------------------------------------------------------- persistence
 
 
+def _stored(c) -> dict:
+    """Every version list and stored calibration file of calibrations 1 (3 versions) and 2 (1)."""
+    return {
+        i: (
+            c.get(f"/api/calibrations/{i}/versions").json(),
+            [
+                c.get(f"/api/calibrations/{i}", params={"version": v}).json()["calibration"]
+                for v in range(1, 4 if i == 1 else 2)
+            ],
+        )
+        for i in (1, 2)
+    }
+
+
 def test_restart_keeps_every_calibration_and_its_history(tmp_path):
     data = tmp_path / "data"
     with TestClient(create_app(data)) as c:
@@ -277,29 +291,11 @@ def test_restart_keeps_every_calibration_and_its_history(tmp_path):
         c.post("/api/calibrations/1/versions", json={"pairs": PAIRS, "model": "affine", "exclude": ["0"]})
         c.post("/api/calibrations/1/rollback", json={"version": 1})
         c.patch("/api/calibrations/2", json={"name": "two renamed"})
-        before = {
-            i: (
-                c.get(f"/api/calibrations/{i}/versions").json(),
-                [
-                    c.get(f"/api/calibrations/{i}", params={"version": v}).json()["calibration"]
-                    for v in range(1, 4 if i == 1 else 2)
-                ],
-            )
-            for i in (1, 2)
-        }
+        before = _stored(c)
         mapped = c.post("/api/calibrations/1/image-to-robot", json={"points": [[500, 700]]}).json()
         c.app.state.store.close()
     with TestClient(create_app(data)) as c:
-        after = {
-            i: (
-                c.get(f"/api/calibrations/{i}/versions").json(),
-                [
-                    c.get(f"/api/calibrations/{i}", params={"version": v}).json()["calibration"]
-                    for v in range(1, 4 if i == 1 else 2)
-                ],
-            )
-            for i in (1, 2)
-        }
+        after = _stored(c)
         assert after == before
         assert before[1][0]["current_version"] == 3 and before[2][0]["name"] == "two renamed"
         assert c.post("/api/calibrations/1/image-to-robot", json={"points": [[500, 700]]}).json() == mapped
@@ -588,6 +584,11 @@ def test_numbers_are_strict_and_names_clean(client):
         assert why in r.json()["error"] or bad is None
     r = client.post("/api/calibrations", json={"name": "x", "pairs": PAIRS, "seed": True})
     assert (r.status_code, r.json()["field"]) == (422, "seed")
+    create(client, "m", model="homography")
+    for bad in (True, "2", 2.5):  # as `apply --symmetry` and the library: a whole number, not true or "2"
+        body = {"points": [[600, 900]], "angles": [10], "symmetry": bad}
+        r = client.post("/api/calibrations/1/image-to-robot", json=body)
+        assert (r.status_code, r.json()["field"]) == (422, "symmetry"), (bad, r.text)
     for ch in ("\x00", "\x1b", "\x07", "\x7f", "\u200b", "\u202e", "\u2028"):
         r = client.post("/api/calibrations", json={"name": f"cell{ch}3", "pairs": PAIRS})
         assert (r.status_code, r.json()["field"]) == (422, "name"), repr(ch)

@@ -37,6 +37,10 @@ def add_fit_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objective", default="l2", help=f"one of: {', '.join(OBJECTIVES)} (default l2)")
     p.add_argument("--image-size", metavar="WxH", help="image size in px (sets the distortion centre)")
     p.add_argument("--seed", type=int, default=None, help="seed for the stochastic solvers")
+    p.add_argument("--particles", type=int, default=None, metavar="N", help="swarm size (pso, hybrid-pso)")
+    p.add_argument(
+        "--iterations", type=int, default=None, metavar="N", help="swarm iterations (pso, hybrid-pso)"
+    )
     p.add_argument("-o", "--output", metavar="CAL.json", help="write the calibration here")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
@@ -146,6 +150,8 @@ def emit_json(obj) -> None:
 
 def run_calibration(args, pairs, check, extra: dict | None = None) -> int:
     """Shared end of calibrate and calibrate-images: fit, save, print (``extra`` joins the JSON)."""
+    swarm = {"n_particles": args.particles, "iterations": args.iterations}  # as the HTTP fit takes them
+    swarm = {k: v for k, v in swarm.items() if v is not None}  # absent: the solver's defaults
     cal = calibrate(
         pairs,
         model=args.model,
@@ -154,7 +160,10 @@ def run_calibration(args, pairs, check, extra: dict | None = None) -> int:
         check=check,
         image_size=parse_image_size(args.image_size),
         seed=args.seed,
-        callback=progress_callback(args.optimizer, 150) if "pso" in args.optimizer else None,
+        callback=progress_callback(args.optimizer, args.iterations or 150)
+        if "pso" in args.optimizer
+        else None,
+        **swarm,
     )
     if args.output:
         cal.save(args.output)

@@ -221,6 +221,40 @@ def map_points(
 
 # ---------------------------------------------------------------------- background jobs
 
+PSO_OPTIMIZERS = ("pso", "hybrid-pso")  # the solvers that report progress per iteration
+
+
+def fit_progress(job: Job, model: str, optimizer: str, iterations: int):
+    """Set a fit job's phase; the swarm's progress callback (records the best fitness per
+    iteration, stops on cancel), or None for the solvers that do not iterate visibly."""
+    job.phase = (
+        "choosing the model by cross-validation, then fitting"
+        if model == "auto"
+        else f"fitting {model} with {optimizer}"
+    )
+    if optimizer not in PSO_OPTIMIZERS:
+        return None
+
+    def progress(_iteration, best, *_):
+        job.history.append(_finite(best))
+        done = len(job.history)
+        job.phase = (
+            "leave-one-out refits and check points"
+            if done >= iterations
+            else f"{optimizer}: iteration {done} of {iterations}"
+        )
+        return job.cancel.is_set()
+
+    return progress
+
+
+def finish_fit(job: Job, fitted: Fitted, pso: bool) -> None:
+    """The fit's result on its job; a solver without progress (not ``pso``) gives its whole
+    history at once."""
+    job.fitted = fitted
+    if not pso:
+        job.history = [_finite(h) for h in fitted.calibration.fit.history]
+
 
 @dataclass
 class Job:
@@ -328,36 +362,24 @@ class Jobs:
             job.finished = time.monotonic()
             job.done.set()
 
-    def fit_job(self, opts: FitOptions) -> Job:
-        pso = opts.optimizer in ("pso", "hybrid-pso")
-        if pso and opts.particles * opts.iterations > self.max_pso_work:
+    def check_pso_work(self, optimizer: str, particles: int, iterations: int) -> bool:
+        """Whether ``optimizer`` is a swarm; refuses (422) a swarm of more particles × iterations
+        than this server's limit."""
+        pso = optimizer in PSO_OPTIMIZERS
+        if pso and particles * iterations > self.max_pso_work:
             raise ApiError(
                 422,
-                f"particles × iterations = {opts.particles} × {opts.iterations} = "
-                f"{opts.particles * opts.iterations}, more than this server's limit of "
-                f"{self.max_pso_work}",
+                f"particles × iterations = {particles} × {iterations} = "
+                f"{particles * iterations}, more than this server's limit of {self.max_pso_work}",
                 "iterations",
             )
+        return pso
+
+    def fit_job(self, opts: FitOptions) -> Job:
+        pso = self.check_pso_work(opts.optimizer, opts.particles, opts.iterations)
 
         def work(job: Job) -> None:
-            job.phase = (
-                "choosing the model by cross-validation, then fitting"
-                if opts.model == "auto"
-                else f"fitting {opts.model} with {opts.optimizer}"
-            )
-
-            def progress(_iteration, best, *_):
-                job.history.append(_finite(best))
-                done = len(job.history)
-                if done >= opts.iterations:
-                    job.phase = "leave-one-out refits and check points"
-                else:
-                    job.phase = f"{opts.optimizer}: iteration {done} of {opts.iterations}"
-                return job.cancel.is_set()
-
-            job.fitted = fit(opts, progress if pso else None)
-            if not pso:
-                job.history = list(job.fitted.summary()["history"])
+            finish_fit(job, fit(opts, fit_progress(job, opts.model, opts.optimizer, opts.iterations)), pso)
 
         return self.submit("fit", work, opts.iterations if pso else 0)
 

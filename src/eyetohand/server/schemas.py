@@ -161,7 +161,7 @@ class MapRequest(Strict):
     angles: list[Finite] | None = Field(
         None, description="image angles, deg from +u towards +v, one per point: answered as rz (deg)"
     )
-    symmetry: int = Field(1, ge=1, le=360, description="fold rz into (-180/s, 180/s] (2: 180° symmetric)")
+    symmetry: Int = Field(1, ge=1, le=360, description="fold rz into (-180/s, 180/s] (2: 180° symmetric)")
     tool_rz_offset_deg: Finite | None = Field(
         None, description="the gripper's rz when aligned with the image's +u: rz becomes its command"
     )

@@ -249,15 +249,7 @@ class Service:
             raise ApiError(
                 422, f"diameter_px: expected a positive number of px, got {req.diameter_px:g}", "diameter_px"
             )
-        pso = req.optimizer in ("pso", "hybrid-pso")
-        if pso and req.particles * req.iterations > self.jobs.max_pso_work:
-            raise ApiError(
-                422,
-                f"particles × iterations = {req.particles} × {req.iterations} = "
-                f"{req.particles * req.iterations}, more than this server's limit of "
-                f"{self.jobs.max_pso_work}",
-                "iterations",
-            )
+        pso = self.jobs.check_pso_work(req.optimizer, req.particles, req.iterations)
         files: dict[str, bytes] = {}
         for i, f in enumerate([req.poses, *req.images]):
             fld = "poses" if i == 0 else f"images[{i - 1}]"
@@ -360,23 +352,6 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
             pairs = pairs_from_detections(poses, results, req.poses.name)
         except InputError as exc:
             raise fail(exc, "images") from None
-    job.phase = (
-        "choosing the model by cross-validation, then fitting"
-        if req.model == "auto"
-        else f"fitting {req.model} with {req.optimizer}"
-    )
-    pso = req.optimizer in ("pso", "hybrid-pso")
-
-    def progress(_iteration, best, *_):
-        job.history.append(core._finite(best))
-        done = len(job.history)
-        job.phase = (
-            "leave-one-out refits and check points"
-            if done >= req.iterations
-            else f"{req.optimizer}: iteration {done} of {req.iterations}"
-        )
-        return job.cancel.is_set()
-
     records = [
         PairIn.model_construct(
             id=pid, u=float(uv[0]), v=float(uv[1]), x=float(p[0]), y=float(p[1]), z=float(p[2])
@@ -395,7 +370,7 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
         iterations=req.iterations,
         image_size=req.image_size,
     )
-    fitted = core.fit(fit_opts, progress if pso else None)
+    fitted = core.fit(fit_opts, core.fit_progress(job, req.model, req.optimizer, req.iterations))
     fitted.request.update(
         source="images",
         poses=req.poses.name,
@@ -403,9 +378,7 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
         diameter_px=req.diameter_px,
         left_out=list(run["left_out"]),
     )
-    job.fitted = fitted
-    if not pso:
-        job.history = list(fitted.summary()["history"])
+    core.finish_fit(job, fitted, req.optimizer in core.PSO_OPTIMIZERS)
 
 
 def _pairs_of(records: list[dict] | None, label: str) -> PointPairs | None:
