@@ -368,6 +368,7 @@ class Calibration:
                 "the training pairs do not match data_sha256: the file was changed after it was written"
             )
         from .evaluate import stats_from_residuals
+        from .uncertainty import pair_leverage
 
         for label, key, pairs, stats in (
             ("training", "train", self.fitted_pairs, self.train),
@@ -386,7 +387,9 @@ class Calibration:
                 )
             try:
                 with np.errstate(all="ignore"):
-                    again = stats_from_residuals(res, pairs.ids).to_dict()
+                    # the training outliers as calibrate flags them: studentized by the pairs' leverage
+                    lev = pair_leverage(self.model, pairs.uv_px, pairs.xyz_mm) if key == "train" else None
+                    again = stats_from_residuals(res, pairs.ids, leverage=lev).to_dict()
                 _same(again, _stats_dict(stats), key, _rel_tol(REPRODUCE_TOL_MM, relative=False))
             except InputError as exc:
                 raise InputError(
