@@ -259,3 +259,22 @@ def test_random_mutations(files, data, tmp_path):
     if msg is None:
         assert all(_is_free(lbl) for lbl in labels) or m == doc, labels
         assert _fingerprint(Calibration.load(f)) == want, labels
+
+
+def test_studentized_training_outliers_load(tmp_path):
+    """An untampered file whose training outlier flags come from the studentized test (a bumped
+    corner pair: flagged only once its leverage is taken into account, or only without it) loads:
+    loading re-checks the flags by the rule calibrate used, not by the raw errors."""
+    from eyetohand.evaluate import stats_from_residuals
+    from eyetohand.pairs import PointPairs
+
+    base = grid_pairs(make_camera(tilt_deg=8.0), 5, heights=(10.0,), noise_px=0.2, seed=0)
+    for k, bump_mm in ((4, 0.15), (24, 0.3)):
+        xyz = base.xyz_mm.copy()
+        xyz[k, 0] += bump_mm
+        pairs = PointPairs.from_arrays(base.uv_px, xyz)
+        cal = calibrate(pairs, model="homography", loo=False)
+        raw = stats_from_residuals(cal.model.residuals(pairs.uv_px, pairs.xyz_mm), pairs.ids)
+        assert raw.outliers != cal.train.outliers  # the case this test is about
+        path = cal.save(tmp_path / f"bumped-{k}.json")
+        assert Calibration.load(path).train.outliers == cal.train.outliers

@@ -13,6 +13,7 @@ import datetime as _dt
 import json
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -106,8 +107,23 @@ class Calibration:
 
     def local_frame(self, uv_px=None) -> LocalFrame:
         """Scale, rotation, skew and handedness of the map at ``uv_px`` (default: the region's centre)."""
-        uv = self._centre() if uv_px is None else np.asarray(uv_px, float).reshape(1, 2)
+        if uv_px is None:
+            return self._centre_frame
+        uv = np.asarray(uv_px, float).reshape(1, 2)
         return LocalFrame.from_jacobian(local_jacobian(self.xy_map(), uv)[0])
+
+    @cached_property
+    def _centre_jacobian(self) -> np.ndarray:
+        """(2, 2) d(x, y)/d(u, v) at the region's centre and the default height: a constant of the
+        calibration (the tool offset's reference direction, the horizon test's reference scale),
+        computed once rather than on every mapped point that needs it."""
+        J = local_jacobian(self.xy_map(), self._centre())[0]
+        J.flags.writeable = False
+        return J
+
+    @cached_property
+    def _centre_frame(self) -> LocalFrame:
+        return LocalFrame.from_jacobian(self._centre_jacobian)
 
     @property
     def handedness(self) -> str:
@@ -208,8 +224,7 @@ class Calibration:
             if not np.isfinite(ang).all():
                 i = int(np.flatnonzero(~np.isfinite(ang))[0])
                 raise InputError("must be a finite number (deg)", index=i, field="angle", label="points")
-            zq = None if z is None else z
-            J = local_jacobian(self.xy_map(zq), uv)
+            J = local_jacobian(self.xy_map(z), uv)
             rz = image_angle_to_rz(J, ang)
             if tool_rz_offset_deg is not None:
                 if not np.isfinite(tool_rz_offset_deg):
@@ -231,7 +246,7 @@ class Calibration:
         finite number that means nothing."""
         with np.errstate(all="ignore"):
             det = np.linalg.det(local_jacobian(self.xy_map(z), uv))
-            ref = np.linalg.det(local_jacobian(self.xy_map(), self._centre()))[0]
+            ref = np.linalg.det(self._centre_jacobian)
             ratio = np.sqrt(np.abs(det / ref))
         return ~np.isfinite(det) | (np.sign(det) != np.sign(ref)) | ~(ratio < self.HORIZON_SCALE_RATIO)
 
@@ -368,6 +383,7 @@ class Calibration:
                 "the training pairs do not match data_sha256: the file was changed after it was written"
             )
         from .evaluate import stats_from_residuals
+        from .uncertainty import pair_leverage
 
         for label, key, pairs, stats in (
             ("training", "train", self.fitted_pairs, self.train),
@@ -386,7 +402,9 @@ class Calibration:
                 )
             try:
                 with np.errstate(all="ignore"):
-                    again = stats_from_residuals(res, pairs.ids).to_dict()
+                    # the training outliers as calibrate flags them: studentized by the pairs' leverage
+                    lev = pair_leverage(self.model, pairs.uv_px, pairs.xyz_mm) if key == "train" else None
+                    again = stats_from_residuals(res, pairs.ids, leverage=lev).to_dict()
                 _same(again, _stats_dict(stats), key, _rel_tol(REPRODUCE_TOL_MM, relative=False))
             except InputError as exc:
                 raise InputError(

@@ -22,7 +22,7 @@ step that does not settle, other objectives — falls back to refitting.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -34,7 +34,6 @@ from .models import MODELS, HeightRule, Model, get_model
 from .objectives import huber_delta_mm, objective_values
 from .pairs import PointPairs
 from .records import TcpOffset
-from .region import CalibratedRegion
 from .solvers import check_optimizer, get_solver, refine
 from .tcp_offset import correct_pairs, estimate_tcp_offset, has_turns, reference_pairs
 from .uncertainty import Uncertainty, pair_leverage
@@ -402,8 +401,7 @@ def calibrate(
         check_stats = stats_from_residuals(fitted.residuals(check.uv_px, check.xyz_mm), check.ids)
     region = derived_region(fitted, pairs)  # the one rule, which loading re-checks
     uncertainty = Uncertainty.of_fit(fitted, pairs.uv_px, pairs.xyz_mm)
-    warnings = sanity_warnings(fitted, region, original, original_check)
-    return Calibration(
+    cal = Calibration(
         model=fitted,
         fit=info,
         train=train,
@@ -418,31 +416,20 @@ def calibrate(
         uncertainty=uncertainty,
         pairs=original,
         check_pairs=original_check,
-        warnings=tuple(warnings),
     )
+    return replace(cal, warnings=tuple(sanity_warnings(cal)))
 
 
 SCALE_RANGE_MM_PER_PX = (0.001, 10.0)
 
 
-def sanity_warnings(
-    model: Model, region: CalibratedRegion, pairs: PointPairs, check: PointPairs | None
-) -> list[str]:
-    """What no real cell produces: a scale outside 0.001..10 mm per pixel (suspect units), and a
-    check set that repeats training pairs (it then measures nothing)."""
+def sanity_warnings(cal: Calibration) -> list[str]:
+    """What no real cell produces: a scale outside 0.001..10 mm per pixel (suspect units) at the
+    calibrated region's centre, and a check set that repeats training pairs (it then measures nothing)."""
     out = []
-    from .orientation import LocalFrame, local_jacobian
-
-    z = (
-        region.plane_z_mm
-        if region.plane_z_mm is not None
-        else float(np.mean(region.z_range_mm or (0.0, 0.0)))
-    )
-    zq = None if model.height_rule is HeightRule.COMPUTED else z
-    J = local_jacobian(
-        lambda uv: model.image_to_robot(uv, zq)[:, :2], region.hull_px.mean(axis=0, keepdims=True)
-    )
-    scale = LocalFrame.from_jacobian(J[0]).scale_mm_per_px
+    pairs, check = cal.pairs, cal.check_pairs
+    assert pairs is not None  # calibrate records the pairs it was given
+    scale = cal.local_frame().scale_mm_per_px
     lo, hi = SCALE_RANGE_MM_PER_PX
     if not lo <= scale <= hi:
         guess = "metres (use --robot-units m)" if scale < lo else "micrometres or the wrong columns"

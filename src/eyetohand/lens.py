@@ -120,15 +120,7 @@ def undistort(
         x, y = np.broadcast_arrays(x, y)
         x, y = x.copy(), y.copy()
         for _ in range(max_iter):
-            r2 = x * x + y * y
-            g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            dg = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # dg / d(r²)
-            xy = x * y
-            fx = x * g + 2 * p1 * xy + p2 * (r2 + 2 * x * x) - xd
-            fy = y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * xy - yd
-            a = g + 2 * x * x * dg + 2 * p1 * y + 6 * p2 * x
-            b = 2 * xy * dg + 2 * p1 * x + 2 * p2 * y
-            c = g + 2 * y * y * dg + 6 * p1 * y + 2 * p2 * x
+            _, fx, fy, a, b, c = _newton_terms(x, y, xd, yd, k1, k2, k3, p1, p2)
             det = a * c - b * b
             sx = (c * fx - b * fy) / det
             sy = (a * fy - b * fx) / det
@@ -136,16 +128,8 @@ def undistort(
             y -= sy
             if not (np.abs(sx) + np.abs(sy) > tol * (1 + np.abs(x) + np.abs(y))).any():
                 break  # NaN steps compare False: such points are rejected below
-        r2 = x * x + y * y
-        g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dg = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-        xy = x * y
-        res = np.abs(x * g + 2 * p1 * xy + p2 * (r2 + 2 * x * x) - xd) + np.abs(
-            y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * xy - yd
-        )
-        a = g + 2 * x * x * dg + 2 * p1 * y + 6 * p2 * x
-        b = 2 * xy * dg + 2 * p1 * x + 2 * p2 * y
-        c = g + 2 * y * y * dg + 6 * p1 * y + 2 * p2 * x
+        g, fx, fy, a, b, c = _newton_terms(x, y, xd, yd, k1, k2, k3, p1, p2)
+        res = np.abs(fx) + np.abs(fy)
         ok = (res <= ACCEPT_RESIDUAL * (1 + np.abs(xd) + np.abs(yd))) & (a * c - b * b > 0) & (g > 0)
     x[~ok] = np.nan
     y[~ok] = np.nan
@@ -153,10 +137,11 @@ def undistort(
 
 
 def _newton_terms(x, y, xd, yd, k1, k2, k3, p1, p2):
-    """g, the residual (fx, fy) of distort(x, y) − (xd, yd), and its Jacobian [[a, b], [b, c]]."""
+    """g, the residual (fx, fy) of distort(x, y) − (xd, yd), and its Jacobian [[a, b], [b, c]]: on
+    plain floats or arrays (the same expressions for both paths of :func:`undistort`)."""
     r2 = x * x + y * y
     g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    dg = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    dg = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # dg / d(r²)
     xy = x * y
     fx = x * g + 2 * p1 * xy + p2 * (r2 + 2 * x * x) - xd
     fy = y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * xy - yd

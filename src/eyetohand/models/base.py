@@ -305,12 +305,12 @@ def as_uv(uv_px, *, check_finite: bool = True) -> np.ndarray:
     return uv
 
 
+NON_FINITE_UV = "image points must be finite numbers (px)"
+
+
 def refuse_non_finite(uv: np.ndarray) -> None:
     if not np.isfinite(uv).all():
-        raise InputError("image points must be finite numbers (px)")
-
-
-_as_uv = as_uv
+        raise InputError(NON_FINITE_UV)
 
 
 def one_point(uv_px) -> tuple[float, float] | None:
@@ -337,7 +337,7 @@ def one_point(uv_px) -> tuple[float, float] | None:
         return None
     u, v = float(u), float(v)
     if not (math.isfinite(u) and math.isfinite(v)):
-        raise InputError("image points must be finite numbers (px)")
+        raise InputError(NON_FINITE_UV)
     return u, v
 
 

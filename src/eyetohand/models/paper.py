@@ -161,7 +161,8 @@ class PaperB(Model):
                 out = np.empty((len(uv), 3))
                 # z by a second 2 → 2 transform (OpenCV's fast one; its second row is unused)
                 z_rows = np.vstack([self._affine3[2], np.zeros(3)])
-                src = np.ascontiguousarray(uv).reshape(-1, 1, 2)
+                uv = np.ascontiguousarray(uv)  # one copy (if any) for both transforms
+                src = uv.reshape(-1, 1, 2)
                 zbuf = np.empty((min(CV_CHUNK, len(uv)), 1, 2))
 
                 def fill_z(s: int, e: int, xy: np.ndarray) -> None:

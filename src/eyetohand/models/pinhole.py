@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import DegenerateError, InputError
 from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
-from .base import MAP_CHUNK, Choice, HeightRule, Model, _as_uv, batch_jacobian, check_enough, one_point
+from .base import MAP_CHUNK, Choice, HeightRule, Model, as_uv, batch_jacobian, check_enough, one_point
 from .dlt3d import dlt_projection
 
 # The full parameter row, free aspect: fx fy cx cy | k1 k2 p1 p2 (OpenCV's order) | rx ry rz | tx ty tz.
@@ -240,7 +240,7 @@ class PinholeCamera(Model):
                 z,
             )
             return xyz
-        uv = _as_uv(uv_px)
+        uv = as_uv(uv_px)
         z = self._z_for(len(uv), z_mm)
         out = np.empty((len(uv), 3))
         fx, fy, cx, cy = self._intr
