@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from eyetohand.camera import Camera
+from eyetohand.errors import InputError
 from eyetohand.fit import calibrate
 from eyetohand.orientation import wrap_deg
 from eyetohand.pairs import PointPairs
@@ -137,6 +138,22 @@ def test_symmetry_two_folds_into_half_turn(down_single):
     # and the folded answer is the truth modulo 180°
     assert angle_error_deg(2 * folded, 2 * wrap_deg(theta, 2)).max() <= 2 * ANGLE_TOL_DEG
     assert (np.abs(folded - full) > 1).any()  # the fold did something
+
+
+@pytest.mark.parametrize("bad", [0, -2, 361, 2.5, True])
+def test_a_bad_symmetry_is_refused_with_or_without_an_angle(down_single, bad):
+    """One rule on every interface: the library refuses a symmetry outside 1..360 even when no angle
+    asks for rz (it used to ignore it there, while HTTP refused it); the TCP line says the same."""
+    from eyetohand.server.tcp import answer
+
+    sim, cal = down_single
+    uv = cal.pairs.uv_px[:1]
+    for angle in (None, 30.0):
+        with pytest.raises(InputError, match="symmetry must be a whole number from 1 to 360"):
+            cal.map(uv, 150.0, angle_deg=angle, symmetry=bad)
+    if isinstance(bad, int) and not isinstance(bad, bool):
+        line = f"{float(uv[0, 0])!r},{float(uv[0, 1])!r},150,s={bad}".encode()
+        assert answer(cal, line).decode().startswith("ERR symmetry must be a whole number from 1 to 360")
 
 
 def test_tool_rz_offset_as_documented(down_single):

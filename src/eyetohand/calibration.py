@@ -189,6 +189,7 @@ class Calibration:
         """
         from .models.base import as_uv
 
+        s = check_symmetry(symmetry)  # checked with or without an angle: one rule on every interface
         uv = as_uv(uv_px)
         n = len(uv)
         if z is not None:
@@ -219,7 +220,6 @@ class Calibration:
             )
         rz = None
         if angle_deg is not None:
-            s = check_symmetry(symmetry)
             ang = np.broadcast_to(np.asarray(angle_deg, float), (n,))
             if not np.isfinite(ang).all():
                 i = int(np.flatnonzero(~np.isfinite(ang))[0])
