@@ -1,8 +1,10 @@
-"""What several test files share: this tree's paths, a free loopback port, `eyetohand serve` as a child
-process, and a square of robot positions well inside a camera's view. Not tests, not fixtures."""
+"""What several test files share: this tree's paths, a pairs CSV as API records, a free loopback port,
+`eyetohand serve` as a child process, and a square of robot positions well inside a camera's view.
+Not tests, not fixtures."""
 
 from __future__ import annotations
 
+import csv
 import os
 import queue
 import signal
@@ -18,6 +20,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
 ROBOTS = ROOT / "examples" / "robots"  # robot_client.py: the virtual robot and its TCP link
+PAPER = ROOT / "examples" / "paper"
+
+
+def records(path: Path) -> list[dict]:
+    """A pairs CSV as the HTTP API's JSON records: ``id`` kept as text, every other column a float."""
+    with open(path, newline="") as fh:
+        return [{k: (v if k == "id" else float(v)) for k, v in row.items()} for row in csv.DictReader(fh)]
 
 
 def src_env() -> dict[str, str]:
