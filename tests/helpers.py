@@ -1,12 +1,13 @@
 """What several test files share: this tree's paths, a pairs CSV as API records, a free loopback port,
-`eyetohand serve` as a child process, and a square of robot positions well inside a camera's view.
-Not tests, not fixtures."""
+`eyetohand serve` as a child process, a kept screenshot, and where a camera looks (its centre, a square
+well inside its view). Not tests, not fixtures."""
 
 from __future__ import annotations
 
 import csv
 import os
 import queue
+import shutil
 import signal
 import socket
 import subprocess
@@ -123,11 +124,24 @@ class ServeProcess:
             self.proc.wait(timeout=5)
 
 
+def keep_screenshot(shot: Path) -> None:
+    """A copy of a screenshot in out/ (same name) to look at, when that folder exists."""
+    out = ROOT / "out"
+    if out.is_dir():
+        shutil.copy(shot, out / shot.name)
+
+
+def view_centre_mm(camera, z_mm: float) -> np.ndarray:
+    """The robot (x, y, z) mm at ``z_mm`` that ``camera`` sees at its image centre."""
+    w, h = camera.image_size
+    return camera.image_to_robot(np.array([[(w - 1) / 2, (h - 1) / 2]]), z_mm)[0]
+
+
 def view_square_mm(camera, z_mm: float, margin_px: float = 40) -> tuple[float, float, float]:
     """(centre x, centre y, half side) mm of the largest square of robot positions at ``z_mm``, centred
     on the view (whole mm from 5 to 99), whose corners stay ``margin_px`` inside the image."""
     w, h = camera.image_size
-    c = camera.image_to_robot(np.array([[(w - 1) / 2, (h - 1) / 2]]), z_mm)[0]
+    c = view_centre_mm(camera, z_mm)
     best = 0.0
     for s in np.arange(5.0, 100.0, 1.0):
         corners = np.array([[c[0] + a * s, c[1] + b * s, z_mm] for a in (-1, 1) for b in (-1, 1)])
