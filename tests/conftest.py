@@ -6,10 +6,8 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).parent))
-
-PAPER = ROOT / "examples" / "paper"
+from helpers import PAPER  # noqa: E402  (the tests' shared paths; tests import PAPER from here too)
 
 # Debian's Chromium for the browser tests (make test installs it), with the flags this closed network needs
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"

@@ -1,6 +1,6 @@
 """What several test files share: this tree's paths, a pairs CSV as API records, a free loopback port,
 `eyetohand serve` as a child process, a kept screenshot, and where a camera looks (its centre, a square
-well inside its view). Not tests, not fixtures."""
+well inside its view), an OpenCV single-view reference. Not tests, not fixtures."""
 
 from __future__ import annotations
 
@@ -149,3 +149,33 @@ def view_square_mm(camera, z_mm: float, margin_px: float = 40) -> tuple[float, f
         if ((uv >= margin_px) & (uv <= [w - 1 - margin_px, h - 1 - margin_px])).all():
             best = s
     return float(c[0]), float(c[1]), float(best)
+
+
+def opencv_single_view_xy(uv_px, xy_mm, image_size, focal_px: float):
+    """The pipeline a user assembles from OpenCV for one planar view, as a reference: calibrateCamera
+    on the pairs (starting from ``focal_px`` with the principal point fixed at the image centre, square
+    pixels, k1 k2 only), undistortPoints, then a homography to the robot's x, y. Returns the mapping
+    ``uv (N, 2) px -> xy (N, 2) mm``."""
+    import cv2
+
+    uv = np.asarray(uv_px, float)
+    xy = np.asarray(xy_mm, float)
+    w, h = image_size
+    K0 = np.array([[focal_px, 0, (w - 1) / 2], [0, focal_px, (h - 1) / 2], [0, 0, 1.0]])
+    flags = (
+        cv2.CALIB_USE_INTRINSIC_GUESS
+        | cv2.CALIB_FIX_PRINCIPAL_POINT
+        | cv2.CALIB_FIX_ASPECT_RATIO
+        | cv2.CALIB_ZERO_TANGENT_DIST
+        | cv2.CALIB_FIX_K3
+    )
+    objp = np.c_[xy, np.zeros(len(xy))].astype(np.float32)
+    _, K, dist, _, _ = cv2.calibrateCamera([objp], [uv.astype(np.float32)], (w, h), K0, None, flags=flags)
+    und = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
+    Hm, _ = cv2.findHomography(und, xy, 0)
+
+    def image_to_robot_xy(uv_new) -> np.ndarray:
+        u = cv2.undistortPoints(np.asarray(uv_new, float).reshape(-1, 1, 2), K, dist, P=K)
+        return cv2.perspectiveTransform(u, Hm).reshape(-1, 2)
+
+    return image_to_robot_xy
