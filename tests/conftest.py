@@ -1,13 +1,13 @@
+import re
 import shutil
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).parent))
-
-PAPER = ROOT / "examples" / "paper"
+from helpers import PAPER  # noqa: E402  (the tests' shared paths; tests import PAPER from here too)
 
 # Debian's Chromium for the browser tests (make test installs it), with the flags this closed network needs
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -28,6 +28,30 @@ def launch_chromium(pw):
     if not Path(CHROMIUM).exists():
         pytest.fail("Chromium is not installed: run `apt-get install -y chromium` (make test does)")
     return pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+
+
+@contextmanager
+def chromium_page(width: int, height: int, *, allowed_console: str | None = None):
+    """A page of a headless Chromium (:func:`launch_chromium`) whose ``problems`` list collects the
+    page's uncaught errors and its console errors, but those matching the regex ``allowed_console``."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        browser = launch_chromium(pw)
+        try:
+            page = browser.new_page(viewport={"width": width, "height": height})
+            problems: list[str] = []
+            page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+
+            def on_console(m):
+                if m.type == "error" and not (allowed_console and re.search(allowed_console, m.text)):
+                    problems.append(f"console {m.type}: {m.text}")
+
+            page.on("console", on_console)
+            page.problems = problems
+            yield page
+        finally:
+            browser.close()
 
 
 @pytest.fixture(scope="session")

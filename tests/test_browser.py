@@ -9,26 +9,15 @@ never skips — when Chromium is missing (`make test` installs it).
 from __future__ import annotations
 
 import re
-import shutil
-import socket
 import threading
 import time
-from pathlib import Path
 
 import pytest
-from conftest import launch_chromium
+from conftest import chromium_page
+from helpers import PAPER, free_port, keep_screenshot
 
 from eyetohand import InputError, calibrate, load_pairs
 from eyetohand.cli import build_parser, main
-
-ROOT = Path(__file__).resolve().parents[1]
-PAPER = ROOT / "examples" / "paper"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture
@@ -55,22 +44,9 @@ def server(tmp_path, request):
 
 @pytest.fixture
 def page():
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        browser = launch_chromium(pw)
-        pg = browser.new_page(viewport={"width": 1400, "height": 1000})
-        problems: list[str] = []
-        pg.on("pageerror", lambda e: problems.append(f"page error: {e}"))
-
-        def on_console(m):  # the 4xx answers the test provokes on purpose are not problems
-            if m.type == "error" and not re.search(r"status of (409|422)", m.text):
-                problems.append(f"console {m.type}: {m.text}")
-
-        pg.on("console", on_console)
-        pg.problems = problems
+    # the 4xx answers the test provokes on purpose are not problems
+    with chromium_page(1400, 1000, allowed_console=r"status of (409|422)") as pg:
         yield pg
-        browser.close()
 
 
 # pixels of the curve's colour (#1f5fae) on the convergence canvas: the curve is drawn, not only its axes
@@ -92,13 +68,6 @@ def curve_pixels(page) -> int:
 def section_numbers(page) -> list[str]:
     return page.evaluate("""() => [...document.querySelectorAll('main > section')]
         .filter((s) => !s.hidden).map((s) => s.querySelector('h2 .num').textContent)""")
-
-
-def keep(shot: Path) -> None:
-    """A copy of a screenshot in out/ to look at, when that folder exists."""
-    out = ROOT / "out"
-    if out.is_dir():
-        shutil.copy(shot, out / shot.name)
 
 
 def test_paper_preset_in_the_workbench(server, page, tmp_path):
@@ -192,9 +161,7 @@ def test_paper_preset_in_the_workbench(server, page, tmp_path):
     shot = tmp_path / "workbench.png"
     page.screenshot(path=str(shot), full_page=True)
     assert shot.stat().st_size > 20_000
-    out = ROOT / "out"
-    if out.is_dir():  # keep a copy to look at when the folder exists
-        shutil.copy(shot, out / "workbench.png")
+    keep_screenshot(shot)
     assert not page.problems, page.problems
 
 
@@ -247,7 +214,7 @@ def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     shot = tmp_path / "curve_lm.png"
     page.locator("#curve").screenshot(path=str(shot))
     assert shot.stat().st_size > 5_000
-    keep(shot)
+    keep_screenshot(shot)
 
     # the map box: sigma and inside; refusals replace the previous answer
     page.select_option("#map-source", "job")
@@ -272,7 +239,7 @@ def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     expect(page.locator("#map-u")).to_have_class(re.compile("bad"))
     shot = tmp_path / "map_refused.png"
     page.locator("#sec-map").screenshot(path=str(shot))
-    keep(shot)
+    keep_screenshot(shot)
     page.check("#map-allow")
     page.click("#map-go")
     expect(page.locator("#map-err")).to_be_hidden()
@@ -302,7 +269,7 @@ def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     shot = tmp_path / "curve_pso.png"
     page.locator("#curve").screenshot(path=str(shot))
     assert shot.stat().st_size > 5_000
-    keep(shot)
+    keep_screenshot(shot)
 
     # compare: text headers over text, an explained highlight, an honest status
     page.locator('#train-table tr[data-id="3"] input[type=checkbox]').uncheck()
@@ -329,7 +296,7 @@ def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     shot = tmp_path / "workbench_800px.png"
     page.screenshot(path=str(shot), full_page=True)
     assert shot.stat().st_size > 20_000
-    keep(shot)
+    keep_screenshot(shot)
     assert not page.problems, page.problems
 
 
@@ -378,7 +345,7 @@ def test_two_heights_and_refused_files(server, page, tmp_path, capsys):
             assert not overlap, (a, b)
     shot = tmp_path / "vectors_two_heights.png"
     page.locator("#vectors").screenshot(path=str(shot))
-    keep(shot)
+    keep_screenshot(shot)
 
     # Latin-1 (a German id): refused as the CLI refuses it
     latin = tmp_path / "latin1.csv"
@@ -399,7 +366,7 @@ def test_two_heights_and_refused_files(server, page, tmp_path, capsys):
     assert "save the file as 'CSV UTF-8" in text and text.count("line 1") == 1, text
     shot = tmp_path / "refused_file.png"
     page.locator("#sec-data").screenshot(path=str(shot))
-    keep(shot)
+    keep_screenshot(shot)
     assert not page.problems, page.problems
 
 
@@ -487,11 +454,11 @@ def test_calibrate_from_uploaded_images(server, page, tmp_path, capsys):
     expect(page.locator("#saved-table")).to_contain_text("from images")
     shot = tmp_path / "images_1280.png"
     page.screenshot(path=str(shot), full_page=True)
-    keep(shot)
+    keep_screenshot(shot)
     page.set_viewport_size({"width": 800, "height": 1000})
     wide = page.evaluate("() => document.documentElement.scrollWidth")
     assert wide <= 800, wide
     shot = tmp_path / "images_800.png"
     page.locator("#sec-data").screenshot(path=str(shot))
-    keep(shot)
+    keep_screenshot(shot)
     assert not page.problems, page.problems

@@ -9,23 +9,15 @@ and the fit after CAL END. It fails — never skips — when Chromium is missing
 
 from __future__ import annotations
 
-import os
-import queue
 import re
-import shutil
-import subprocess
 import sys
-import threading
-import time
-from pathlib import Path
 
 import httpx
-import numpy as np
 import pytest
-from conftest import launch_chromium
+from conftest import chromium_page
+from helpers import ROBOTS, ServeProcess, keep_screenshot, view_centre_mm
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "examples" / "robots"))
+sys.path.insert(0, str(ROBOTS))
 from robot_client import TcpLink, VirtualRobot  # noqa: E402
 
 CELL = """[camera]
@@ -40,75 +32,20 @@ Z = 150.0
 def serve(tmp_path):
     cell = tmp_path / "cell.toml"
     cell.write_text(CELL)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "eyetohand.cli",
-            "serve",
-            "--port",
-            "0",
-            "--data",
-            str(tmp_path / "data"),
-            "--tcp",
-            "127.0.0.1:0",
-            "--camera",
-            f"sim:{cell}?seed=1",
-            "--calibration",
-            "bench",
-            "--log-level",
-            "warning",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-    )
-    lines: queue.Queue = queue.Queue()
-    out: list[str] = []
-
-    def pump():
-        for line in proc.stdout:
-            out.append(line)
-            lines.put(line)
-        lines.put(None)
-
-    threading.Thread(target=pump, daemon=True).start()
-    tcp = http = None
-    deadline = time.monotonic() + 30
-    while http is None:
-        line = lines.get(timeout=max(0.01, deadline - time.monotonic()))
-        assert line is not None, "serve exited: " + "".join(out)
-        if line.startswith("TCP: 127.0.0.1:") and tcp is None:
-            tcp = int(line.split(":")[2].split()[0])
-        if line.startswith("workbench: http://"):
-            http = int(line.split("http://127.0.0.1:")[1].split("/")[0])
+    srv = ServeProcess(tmp_path / "data", "--camera", f"sim:{cell}?seed=1", "--calibration", "bench")
     from eyetohand.sim.cell import load_cell
     from eyetohand.sim.simulate import true_camera
 
-    cam = true_camera(load_cell(cell))
-    w, h = cam.image_size
-    c = cam.image_to_robot(np.array([[(w - 1) / 2, (h - 1) / 2]]), Z)[0]
-    rect = (c[0] - 25, c[1] - 25, c[0] + 25, c[1] + 25)
-    yield {"url": f"http://127.0.0.1:{http}", "tcp": tcp, "rect": rect}
-    proc.terminate()
-    proc.wait(20)
+    cx, cy, _ = view_centre_mm(true_camera(load_cell(cell)), Z)
+    rect = (cx - 25, cy - 25, cx + 25, cy + 25)
+    yield {"url": srv.url, "tcp": srv.tcp_port, "rect": rect}
+    srv.stop()
 
 
 @pytest.fixture
 def page():
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        browser = launch_chromium(pw)
-        pg = browser.new_page(viewport={"width": 1300, "height": 1000})
-        problems: list[str] = []
-        pg.on("pageerror", lambda e: problems.append(f"page error: {e}"))
-        pg.on("console", lambda m: problems.append(f"console: {m.text}") if m.type == "error" else None)
-        pg.problems = problems
+    with chromium_page(1300, 1000) as pg:
         yield pg
-        browser.close()
 
 
 def frame_number(page) -> int:
@@ -173,8 +110,6 @@ def test_collection_view_follows_the_robot(serve, page, tmp_path):
     shot = tmp_path / "collect.png"
     page.screenshot(path=str(shot), full_page=True)
     assert shot.stat().st_size > 20_000
-    out_dir = ROOT / "out"
-    if out_dir.is_dir():
-        shutil.copy(shot, out_dir / "collect.png")
-        shutil.copy(tmp_path / "collect-live.png", out_dir / "collect-live.png")
+    keep_screenshot(shot)
+    keep_screenshot(tmp_path / "collect-live.png")
     assert not page.problems, page.problems

@@ -6,18 +6,17 @@ robot_client.py) drives a 5×5 plan through CAL BEGIN / NEXT / POINT / END.
 """
 
 import json
-import os
 import signal
 import socketserver
 import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from helpers import ROBOTS, ServeProcess, src_env, view_square_mm
 
 from eyetohand.calibration import Calibration
 from eyetohand.cli import main
@@ -29,8 +28,7 @@ from eyetohand.sim.images import poses_csv
 from eyetohand.sim.simulate import simulate
 from eyetohand.sources import FolderSource, GrabTimeout, open_source
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "examples" / "robots"))
+sys.path.insert(0, str(ROBOTS))
 from robot_client import FolderCamera, TcpLink, VirtualRobot  # noqa: E402
 
 CELL = """[camera]
@@ -57,17 +55,9 @@ def cell_file(tmp_path_factory):
 @pytest.fixture(scope="module")
 def rect(cell_file):
     """The largest square (robot x, y) centred on the view whose corners stay 40 px inside the image."""
-    cam = CellCamera(load_cell(cell_file)).camera
-    w, h = cam.image_size
-    c = cam.image_to_robot(np.array([[(w - 1) / 2, (h - 1) / 2]]), Z)[0]
-    best = 0.0
-    for s in np.arange(5.0, 100.0, 1.0):
-        corners = np.array([[c[0] + a * s, c[1] + b * s, Z] for a in (-1, 1) for b in (-1, 1)])
-        uv = cam.robot_to_image(corners)
-        if ((uv >= 40) & (uv <= [w - 41, h - 41])).all():
-            best = s
-    assert best > 20
-    return (c[0] - best, c[1] - best, c[0] + best, c[1] + best)
+    cx, cy, half = view_square_mm(CellCamera(load_cell(cell_file)).camera, Z, margin_px=40)
+    assert half > 20
+    return (cx - half, cy - half, cx + half, cy + half)
 
 
 @pytest.fixture(scope="module")
@@ -320,14 +310,13 @@ def test_killed_collection_resumes_to_the_same_calibration(run_sim, tmp_path, ce
     store = tmp_path / "store"
     uri = f"sim:{cell_file}?seed={SEED}"
     script = KILL_SCRIPT.format(
-        robots=str(ROOT / "examples" / "robots"),
+        robots=str(ROBOTS),
         uri=uri,
         store=str(store),
         rect=tuple(float(v) for v in rect),
         z=Z,
     )
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, env=src_env())
     try:
         assert proc.stdout.readline().strip() == "12"
         time.sleep(0.3)
@@ -465,72 +454,14 @@ def test_opencv_source_reads_a_video_file(tmp_path):
 # ---------------------------------------------------------------- through the real server process
 
 
-class Serve:
-    """`eyetohand serve --tcp 127.0.0.1:0 --camera sim:… --calibration cell1` as a child process; the
-    ports it bound are read from what it prints."""
+class Serve(ServeProcess):
+    """`eyetohand serve --tcp 127.0.0.1:0 --camera sim:… --calibration cell1` as a child process."""
 
     def __init__(self, data, cell_file, *extra):
-        import queue
-
-        env = {
-            **os.environ,
-            "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")]),
-        }
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "eyetohand.cli",
-                "serve",
-                "--port",
-                "0",
-                "--data",
-                str(data),
-                "--tcp",
-                "127.0.0.1:0",
-                "--camera",
-                f"sim:{cell_file}?seed={SEED}",
-                "--calibration",
-                "cell1",
-                "--log-level",
-                "warning",
-                *extra,
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env=env,
-        )
-        self.lines: queue.Queue = queue.Queue()
-        self.out: list[str] = []
-        threading.Thread(target=self._pump, daemon=True).start()
-        deadline = time.monotonic() + 30
-        self.tcp_port = self.http_port = None
-        while self.http_port is None:
-            try:
-                line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
-            except queue.Empty:
-                raise AssertionError("serve did not start: " + "".join(self.out)) from None
-            if line is None:
-                raise AssertionError("serve exited: " + "".join(self.out))
-            if line.startswith("TCP: 127.0.0.1:") and self.tcp_port is None:
-                self.tcp_port = int(line.split(":")[2].split()[0])
-            if line.startswith("workbench: http://"):
-                self.http_port = int(line.split("http://127.0.0.1:")[1].split("/")[0])
-
-    def _pump(self):
-        for line in self.proc.stdout:
-            self.out.append(line)
-            self.lines.put(line)
-        self.lines.put(None)
+        super().__init__(data, "--camera", f"sim:{cell_file}?seed={SEED}", "--calibration", "cell1", *extra)
 
     def link(self) -> TcpLink:
         return TcpLink("127.0.0.1", self.tcp_port, timeout_s=60)
-
-    def stop(self, sig=signal.SIGTERM):
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        self.proc.wait(20)
 
 
 def stored(data, name="cell1"):
@@ -558,7 +489,7 @@ def test_serve_collects_over_tcp_with_the_robot_client(
         client = subprocess.run(
             [
                 sys.executable,
-                str(ROOT / "examples" / "robots" / "robot_client.py"),
+                str(ROBOTS / "robot_client.py"),
                 "--tcp",
                 f"127.0.0.1:{srv.tcp_port}",
                 "--name",
@@ -572,7 +503,7 @@ def test_serve_collects_over_tcp_with_the_robot_client(
             capture_output=True,
             text=True,
             timeout=120,
-            env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+            env=src_env(),
         )
         assert client.returncode == 0, client.stdout + client.stderr
         replies = [ln[2:] for ln in client.stdout.splitlines() if ln.startswith("< ")]

@@ -5,8 +5,6 @@ TCP connections, hostile input at the API, and a delete racing cache fills."""
 from __future__ import annotations
 
 import asyncio
-import csv
-import os
 import signal
 import socket
 import subprocess
@@ -18,28 +16,13 @@ from pathlib import Path
 import httpx
 import numpy as np
 from fastapi.testclient import TestClient
+from helpers import PAPER, ServeProcess, records
 
 from eyetohand.server.app import create_app
 from eyetohand.server.storage import DB_NAME, Store
 from eyetohand.server.tcp import LineServer
 
-ROOT = Path(__file__).resolve().parents[1]
-PAPER = ROOT / "examples" / "paper"
-SRC = str(ROOT / "src")
-
-
-def records(path: Path) -> list[dict]:
-    with open(path, newline="") as fh:
-        return [{k: (v if k == "id" else float(v)) for k, v in row.items()} for row in csv.DictReader(fh)]
-
-
 PAIRS = records(PAPER / "calibration_points.csv")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def seed(data: Path, n: int = 1) -> None:
@@ -51,56 +34,9 @@ def seed(data: Path, n: int = 1) -> None:
     app.state.store.close()
 
 
-class Serve:
-    """`eyetohand serve` as a subprocess on free loopback ports (HTTP, and TCP with calibration 1)."""
-
-    def __init__(self, data: Path, *extra: str, preexec=None):
-        self.port, self.tcp_port = free_port(), free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "eyetohand.cli",
-                "serve",
-                "--port",
-                str(self.port),
-                "--data",
-                str(data),
-                "--tcp",
-                f"127.0.0.1:{self.tcp_port}",
-                "--calibration",
-                "cal 0",
-                "--log-level",
-                "error",
-                *extra,
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env=env,
-            preexec_fn=preexec,
-        )
-        deadline = time.monotonic() + 30
-        while True:
-            assert self.proc.poll() is None, self.proc.stdout.read()
-            try:
-                if httpx.get(self.url + "/api/health", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            assert time.monotonic() < deadline, "serve did not start"
-            time.sleep(0.1)
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=5)
+def start_serve(data: Path, *extra: str, preexec=None) -> ServeProcess:
+    """`eyetohand serve` as a subprocess on loopback (HTTP, and TCP with calibration 'cal 0')."""
+    return ServeProcess(data, "--calibration", "cal 0", *extra, log_level="error", preexec=preexec)
 
 
 def test_kill_9_during_writes_loses_no_acknowledged_change(tmp_path):
@@ -108,7 +44,7 @@ def test_kill_9_during_writes_loses_no_acknowledged_change(tmp_path):
     seed(data)
     acked: set[int] = set()
     for cycle in range(3):
-        srv = Serve(data)
+        srv = start_serve(data)
         stop = threading.Event()
 
         def writer(srv=srv, stop=stop) -> None:
@@ -157,7 +93,7 @@ db.execute("COMMIT")
 def test_a_foreign_write_lock_gives_503_while_mapping_keeps_answering(tmp_path):
     data = tmp_path / "data"
     seed(data)
-    srv = Serve(data, "--db-wait", "1")
+    srv = start_serve(data, "--db-wait", "1")
     try:
         with httpx.Client(base_url=srv.url, timeout=10) as c:  # warm the cache of calibration 1
             r = c.post("/api/calibrations/1/image-to-robot", json={"points": [[600, 900]]})
@@ -217,7 +153,7 @@ def test_a_huge_body_is_refused_while_the_robot_keeps_being_served(tmp_path):
     """A 63 MiB body of pairs is refused before it is parsed (413 JSON), and TCP answers meanwhile."""
     data = tmp_path / "data"
     seed(data)
-    srv = Serve(data)
+    srv = start_serve(data)
     try:
         body = b'{"pairs": [' + b",".join([b'{"u": 1.5, "v": 2.5, "x": 3.5, "y": 4.5}'] * 1_620_000) + b"]}"
         assert len(body) > 63 * 2**20
@@ -277,7 +213,7 @@ def test_a_write_past_the_file_size_limit_fails_cleanly(tmp_path):
     want = [(r.name, r.current_version) for r, _ in before.list()]
     before.close()
     size = (data / DB_NAME).stat().st_size
-    srv = Serve(data, preexec=_limit_file_size(size + 4096))
+    srv = start_serve(data, preexec=_limit_file_size(size + 4096))
     try:  # ~100 KB to store (pairs, and the calibration's copy of them): more than the 4 KiB left
         big = [
             {**p, "id": f"{k}-{p['id']}-{'x' * 40}", "u": p["u"] + 0.37 * k, "x": p["x"] + 0.05 * k}

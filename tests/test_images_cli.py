@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers import opencv_single_view_xy
 
 from eyetohand.cli import main
 
@@ -163,20 +164,7 @@ def _opencv_reference(folder):
 
     uv, xy = centres("poses.csv")
     cuv, cxy = centres("check_poses.csv")
-    K0 = np.array([[W, 0, (W - 1) / 2], [0, W, (H - 1) / 2], [0, 0, 1.0]])
-    flags = (
-        cv2.CALIB_USE_INTRINSIC_GUESS
-        | cv2.CALIB_FIX_PRINCIPAL_POINT
-        | cv2.CALIB_FIX_ASPECT_RATIO
-        | cv2.CALIB_ZERO_TANGENT_DIST
-        | cv2.CALIB_FIX_K3
-    )
-    objp = np.c_[xy, np.zeros(len(xy))].astype(np.float32)
-    _, K, dist, _, _ = cv2.calibrateCamera([objp], [uv.astype(np.float32)], (W, H), K0, None, flags=flags)
-    und = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
-    Hm, _ = cv2.findHomography(und, xy, 0)
-    cund = cv2.undistortPoints(cuv.reshape(-1, 1, 2), K, dist, P=K)
-    pred = cv2.perspectiveTransform(cund, Hm).reshape(-1, 2)
+    pred = opencv_single_view_xy(uv, xy, (W, H), focal_px=W)(cuv)
     return float(np.sqrt(np.mean(np.sum((pred - cxy) ** 2, axis=1))))
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers import opencv_single_view_xy
 from synth import grid_pairs, make_camera, project, random_pairs
 
 from eyetohand import DegenerateError, InputError, PointPairs, calibrate, get_model
@@ -83,21 +84,7 @@ def test_radial_matches_opencv_single_view_on_real_photos():
         test = PointPairs.from_arrays(uv[~train], obj[~train])
         ours, _ = _fit(pairs, "homography-radial", "lm", image_size=(w, h))
         hom, _ = _fit(pairs, "homography", "lm")
-        K0 = np.array([[500.0, 0, (w - 1) / 2], [0, 500.0, (h - 1) / 2], [0, 0, 1]])
-        flags = (
-            cv2.CALIB_USE_INTRINSIC_GUESS
-            | cv2.CALIB_FIX_PRINCIPAL_POINT
-            | cv2.CALIB_FIX_ASPECT_RATIO
-            | cv2.CALIB_ZERO_TANGENT_DIST
-            | cv2.CALIB_FIX_K3
-        )
-        objp = np.c_[obj[train], np.zeros(train.sum())].astype(np.float32)
-        _, K, d, _, _ = cv2.calibrateCamera(
-            [objp], [uv[train].astype(np.float32)], (w, h), K0, None, flags=flags
-        )
-        und = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, d, P=K).reshape(-1, 2)
-        H, _ = cv2.findHomography(und[train], obj[train], 0)
-        pred = cv2.perspectiveTransform(und[~train].reshape(-1, 1, 2), H).reshape(-1, 2)
+        pred = opencv_single_view_xy(uv[train], obj[train], (w, h), focal_px=500.0)(uv[~train])
         ref = rms(np.linalg.norm(pred - obj[~train], axis=1))
         ratios.append(rms(errors(ours, test)) / ref)
         gains.append(rms(errors(hom, test)) / rms(errors(ours, test)))
