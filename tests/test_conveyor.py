@@ -287,6 +287,29 @@ def test_cli_simulate_calibrate_apply(tmp_path, capsys):
     assert len(xyz) == 3 and 1000 < xyz[0] < 1400
     assert main([*apply, "--e-now", str((e0 + 10) % (1 << 24))]) == 2
     assert "not reached it yet" in capsys.readouterr().err
+    # orientation as on the BELT line (a=, s=, t=): the camera map's rz, the same number
+    from eyetohand.belt_protocol import BeltProtocol
+    from eyetohand.conveyor import ConveyorCalibration
+
+    belt = BeltProtocol(ConveyorCalibration.load(tmp_path / "belt.json"))
+    for cli_words, line_words in (
+        (["--angle", "30"], "a=30"),
+        (["--angle", "200", "--symmetry", "4"], "a=200,s=4"),
+        (["--angle", "30", "--tool-rz-offset", "12.5"], "a=30,t=12.5"),
+    ):
+        assert main([*apply, "--e-now", str(e1), *cli_words]) == 0
+        got = [float(v) for v in capsys.readouterr().out.split()]
+        line = belt.handle(f"BELT 1224,1024,{e0},{e1},{line_words}")
+        assert line.startswith("OK "), line
+        want = [float(v) for v in line[3:].split(",")]
+        assert len(got) == 4 and np.allclose(got, want, atol=1e-4), (cli_words, got, want)
+    assert main([*apply, "--e-now", str(e1), "--symmetry", "0"]) == 2
+    assert "symmetry must be a whole number from 1 to 360" in capsys.readouterr().err
+    assert belt.handle(f"BELT 1224,1024,{e0},{e1},s=0").startswith(
+        "ERR symmetry must be a whole number from 1 to 360"
+    )
+    assert main([*apply, "--tracking", "--angle", "30"]) == 2
+    assert "the tracking form has no rz" in capsys.readouterr().err
     assert main(["conveyor", "calibrate", str(tmp_path / "nope.csv")]) == 2
     assert "no such file" in capsys.readouterr().err
 

@@ -60,6 +60,7 @@ import numpy as np
 from .collect import NAME_RE, CommandError, _JsonlJournal, _now, _numbers, _reason
 from .conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor
 from .errors import InputError
+from .orientation import check_symmetry
 
 NOISE_COUNTS = 5
 DEFAULT_MODEL = "homography-radial"
@@ -222,19 +223,14 @@ class BeltProtocol:
         symmetry = opts.get("s", 1.0)
         if symmetry != int(symmetry):
             raise CommandError(f"s: {symmetry!r} is not a whole number")
+        check_symmetry(int(symmetry))  # with or without an angle, as the TCP line and the library
         angle = opts.get("a")
         uv = np.array([[u, v]])
         with np.errstate(all="ignore"):
-            p = conv.image_to_robot_at(uv, e_img, e_now)[0]
-        out = [_mm(c) for c in p]
-        if angle is not None:
-            with np.errstate(all="ignore"):
-                m = conv.calibration.map(
-                    uv, None, angle_deg=angle, symmetry=int(symmetry), tool_rz_offset_deg=opts.get("t")
-                )
-            if m.rz_deg is None:
-                raise CommandError("BELT: this calibration gives no orientation")
-            out.append(f"{float(m.rz_deg[0]):.4f}")
+            out = [_mm(c) for c in conv.image_to_robot_at(uv, e_img, e_now)[0]]
+            if angle is not None:
+                rz = conv.rz_deg(uv, angle, symmetry=int(symmetry), tool_rz_offset_deg=opts.get("t"))
+                out.append(f"{float(rz[0]):.4f}")
         return out
 
     def _track(self, args: list[str]) -> list[str]:

@@ -430,6 +430,22 @@ class ConveyorCalibration:
             self.check_window(p)
         return p
 
+    def rz_deg(self, uv_px, angle_deg, *, symmetry: int = 1, tool_rz_offset_deg: float | None = None):
+        """(N,) robot rz (deg) of parts seen at ``uv_px`` with image angles ``angle_deg`` (deg, +u
+        towards +v): the belt translates a part, it does not turn it, so this is the camera map's rz
+        (:meth:`Calibration.map`, folded by ``symmetry``, offset by ``tool_rz_offset_deg``)."""
+        m = self.calibration.map(
+            uv_px,
+            None,
+            angle_deg=angle_deg,
+            allow_outside=True,  # the position's guard (image region, window) is the caller's
+            symmetry=symmetry,
+            tool_rz_offset_deg=tool_rz_offset_deg,
+            with_sigma=False,
+        )
+        assert m.rz_deg is not None  # map answers rz whenever an angle is given
+        return m.rz_deg
+
     def check_window(self, xyz_mm) -> None:
         s = np.asarray(xyz_mm, float) @ np.array(self.belt.direction)
         lo, hi = self.window_mm

@@ -10,6 +10,7 @@ from ..pairs import ROBOT_UNITS, load_image_points, load_pairs
 from .common import (
     CliError,
     add_fit_options,
+    add_orientation_options,
     emit_json,
     parse_image_size,
     print_points,
@@ -155,27 +156,7 @@ def register(sub) -> None:
     )
     p.add_argument("--uv", nargs=2, type=float, metavar=("U", "V"))
     p.add_argument("--z", type=float, default=None, help="object height in mm")
-    p.add_argument(
-        "--angle",
-        type=float,
-        default=None,
-        metavar="DEG",
-        help="the object's image angle (deg from +u towards +v): adds its robot rz (deg)",
-    )
-    p.add_argument(
-        "--symmetry",
-        type=int,
-        default=1,
-        metavar="N",
-        help="fold rz into (-180/N, 180/N] for a part symmetric under 360/N turns",
-    )
-    p.add_argument(
-        "--tool-rz-offset",
-        type=float,
-        default=None,
-        metavar="DEG",
-        help="the gripper's rz when aligned with the image's +u: rz becomes its command",
-    )
+    add_orientation_options(p)
     p.add_argument(
         "--allow-outside",
         action="store_true",

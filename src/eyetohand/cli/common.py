@@ -180,3 +180,29 @@ def run_calibration(args, pairs, check, extra: dict | None = None) -> int:
     else:
         print_calibration(cal, args.output)
     return 0
+
+
+def add_orientation_options(p) -> None:
+    """``--angle``, ``--symmetry``, ``--tool-rz-offset``: the orientation words of the TCP mapping line
+    (``a=``, ``s=``, ``t=``), for every command that maps a part (``apply``, ``conveyor apply``)."""
+    p.add_argument(
+        "--angle",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="the object's image angle (deg from +u towards +v): adds its robot rz (deg)",
+    )
+    p.add_argument(
+        "--symmetry",
+        type=int,
+        default=1,
+        metavar="N",
+        help="fold rz into (-180/N, 180/N] for a part symmetric under 360/N turns",
+    )
+    p.add_argument(
+        "--tool-rz-offset",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="the gripper's rz when aligned with the image's +u: rz becomes its command",
+    )

@@ -12,6 +12,8 @@ import numpy as np
 
 from ..conveyor import ConveyorCalibration, Encoder, calibrate_conveyor, format_report, load_session
 from ..errors import InputError
+from ..orientation import check_symmetry
+from .common import add_orientation_options
 
 
 def _encoder(args) -> Encoder:
@@ -59,7 +61,10 @@ def cmd_calibrate(args) -> int:
 def cmd_apply(args) -> int:
     conv = ConveyorCalibration.load(args.belt)
     uv = np.array([args.uv], float)
+    check_symmetry(args.symmetry)  # refused with or without an angle, as apply and the lines do
     if args.tracking:
+        if args.angle is not None:
+            raise InputError("conveyor apply: --angle gives rz with --e-now; the tracking form has no rz")
         t = conv.tracking_form(uv, args.e_image)
         p, b = t["position_mm"][0], t["belt_mm_per_count"]
         print(" ".join(f"{v:.6f}" for v in p) + f" {args.e_image} " + " ".join(f"{v:.9g}" for v in b))
@@ -67,7 +72,12 @@ def cmd_apply(args) -> int:
     if args.e_now is None:
         raise InputError("conveyor apply: give --e-now M (or --tracking for the position at e_image)")
     p = conv.image_to_robot_at(uv, args.e_image, args.e_now, allow_outside=args.allow_outside)[0]
-    print(" ".join(f"{v:.6f}" for v in p))
+    vals = list(p)
+    if args.angle is not None:  # the belt translates the part: its rz is the camera map's
+        vals += list(
+            conv.rz_deg(uv, args.angle, symmetry=args.symmetry, tool_rz_offset_deg=args.tool_rz_offset)
+        )
+    print(" ".join(f"{v:.6f}" for v in vals))
     return 0
 
 
@@ -142,6 +152,7 @@ def register(sub) -> None:
     p.add_argument(
         "--tracking", action="store_true", help="print x y z at e_image, e_image and the belt vector"
     )
+    add_orientation_options(p)
     p.add_argument("--allow-outside", action="store_true", help="answer outside the robot window too")
     p.set_defaults(func=cmd_apply)
 
