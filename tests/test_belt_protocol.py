@@ -8,22 +8,17 @@ about 1 m downstream, as a robot in its window would.
 """
 
 import math
-import os
 import socket
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ServeProcess, view_square_mm
 
 from eyetohand.belt_protocol import BeltProtocol
 from eyetohand.conveyor import ConveyorCalibration, Encoder
 from eyetohand.detect import detect_target
 from eyetohand.sources import open_source
 
-ROOT = Path(__file__).resolve().parents[1]
 CELL = """[camera]
 width_px = 640
 height_px = 512
@@ -65,16 +60,7 @@ def source(cell_file):
 @pytest.fixture(scope="module")
 def view(source):
     """(centre x, y, half size) mm of a square well inside the camera's view at Z."""
-    cam = source.cell_camera.camera
-    w, h = cam.image_size
-    c = cam.image_to_robot(np.array([[(w - 1) / 2, (h - 1) / 2]]), Z)[0]
-    best = 0.0
-    for s in np.arange(5.0, 100.0, 1.0):
-        corners = np.array([[c[0] + a * s, c[1] + b * s, Z] for a in (-1, 1) for b in (-1, 1)])
-        uv = cam.robot_to_image(corners)
-        if ((uv >= 40) & (uv <= [w - 41, h - 41])).all():
-            best = s
-    return c[0], c[1], best
+    return view_square_mm(source.cell_camera.camera, Z)
 
 
 def events(parts: np.ndarray):
@@ -240,49 +226,15 @@ def test_serve_conveyor_answers_belt_lines(tmp_path, collected):
     """`eyetohand serve --tcp … --conveyor belt.json`: BELT lines through the real server process give
     what the protocol gives in-process."""
     conv = collected["store"] / "line1.conveyor.json"
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        tcp_port = s.getsockname()[1]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "eyetohand.cli",
-            "serve",
-            "--port",
-            "0",
-            "--data",
-            str(tmp_path / "data"),
-            "--tcp",
-            f"127.0.0.1:{tcp_port}",
-            "--conveyor",
-            str(conv),
-            "--log-level",
-            "warning",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=env,
-    )
+    lines = [
+        f"BELT 320.5,250.25,{2**24 - 100},{100_000}",
+        "BELT TRACK 320.5,250.25,7",
+        f"BELT 320.5,250.25,0,{200_000}",
+        "600,400",
+    ]
+    srv = ServeProcess(tmp_path / "data", "--conveyor", str(conv))
     try:
-        lines = [
-            f"BELT 320.5,250.25,{2**24 - 100},{100_000}",
-            "BELT TRACK 320.5,250.25,7",
-            f"BELT 320.5,250.25,0,{200_000}",
-            "600,400",
-        ]
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                sock = socket.create_connection(("127.0.0.1", tcp_port), timeout=10)
-                break
-            except OSError:
-                assert proc.poll() is None, proc.stdout.read()
-                assert time.monotonic() < deadline, "serve did not start"
-                time.sleep(0.1)
-        with sock:
+        with socket.create_connection(("127.0.0.1", srv.tcp_port), timeout=10) as sock:
             f = sock.makefile("rwb")
             got = []
             for line in lines:
@@ -290,8 +242,7 @@ def test_serve_conveyor_answers_belt_lines(tmp_path, collected):
                 f.flush()
                 got.append(f.readline().decode().rstrip("\n"))
     finally:
-        proc.terminate()
-        proc.wait(20)
+        srv.stop()
     local = BeltProtocol(conv)
     assert got[:3] == [local.handle(x) for x in lines[:3]]
     assert got[0].startswith("OK ") and got[1].startswith("OK ") and got[2].startswith("ERR the part is ")

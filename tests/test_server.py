@@ -16,6 +16,7 @@ import orjson
 import pytest
 import schemathesis
 from fastapi.testclient import TestClient
+from helpers import PAPER, ServeProcess, records
 from hypothesis import HealthCheck, settings
 
 from eyetohand import InputError, load_pairs
@@ -26,15 +27,6 @@ from eyetohand.server.schemas import MAX_PAIRS
 from eyetohand.server.storage import Store
 from eyetohand.server.tcp import MAX_LINE, LineServer
 from eyetohand.server.tcp import answer as tcp_answer
-
-ROOT = Path(__file__).resolve().parents[1]
-PAPER = ROOT / "examples" / "paper"
-
-
-def records(path: Path) -> list[dict]:
-    with open(path, newline="") as fh:
-        return [{k: (v if k == "id" else float(v)) for k, v in row.items()} for row in csv.DictReader(fh)]
-
 
 PAIRS = records(PAPER / "calibration_points.csv")
 CHECK = records(PAPER / "check_points.csv")
@@ -507,8 +499,6 @@ def test_fuzz_no_server_errors(case, fuzz_data):
 def test_eyetohand_serve_http_and_tcp(tmp_path):
     """`eyetohand serve --tcp … --calibration NAME` as a subprocess: the page, the API and TCP agree."""
     import socket
-    import subprocess
-    import sys
 
     import httpx
 
@@ -517,45 +507,9 @@ def test_eyetohand_serve_http_and_tcp(tmp_path):
     create(TestClient(app), "cell 3")
     app.state.store.close()
 
-    def free_port() -> int:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            return s.getsockname()[1]
-
-    port, tcp_port = free_port(), free_port()
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "eyetohand.cli",
-            "serve",
-            "--port",
-            str(port),
-            "--data",
-            str(data),
-            "--tcp",
-            f"127.0.0.1:{tcp_port}",
-            "--calibration",
-            "cell 3",
-            "--log-level",
-            "warning",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    srv = ServeProcess(data, "--calibration", "cell 3")
     try:
-        url = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 30
-        while True:
-            assert proc.poll() is None, proc.stdout.read()
-            try:
-                if httpx.get(url + "/api/health", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            assert time.monotonic() < deadline, "serve did not start"
-            time.sleep(0.1)
+        url, tcp_port = srv.url, srv.tcp_port
         assert "eyetohand workbench" in httpx.get(url + "/").text
         api = httpx.post(
             url + "/api/calibrations/1/image-to-robot", json={"points": [[600.5, 900.25]]}
@@ -567,9 +521,8 @@ def test_eyetohand_serve_http_and_tcp(tmp_path):
         r = httpx.get(url + "/api/calibrations", headers={"Host": "attacker.example"})
         assert r.status_code == 400  # loopback binding answers loopback Host names only
     finally:
-        proc.terminate()
-        proc.wait(timeout=20)
-    assert "TCP: 127.0.0.1" in proc.stdout.read()
+        srv.stop()
+    assert any(line.startswith("TCP: 127.0.0.1") for line in srv.out)
 
 
 # ---------------------------------------------------------------------- hostile input, races, small items
