@@ -45,32 +45,30 @@ def opencv():
     return cv2
 
 
-def opencv_xy_into(
-    cv2, uv: np.ndarray, matrix: np.ndarray, out: np.ndarray, *, perspective: bool, fill_z
-) -> None:
-    """Many pixels through OpenCV's float64 ``transform`` (2 × 3 ``matrix``) or
-    ``perspectiveTransform`` (3 × 3) into ``out[:, :2]`` of the (N, 3) C-ordered output, in chunks of
-    ``CV_CHUNK`` points: each chunk goes into one reused buffer and is copied to its rows as 16-byte
-    items (a complex128 view with a 24-byte stride — one strided copy, not a 2-column one), then
-    ``fill_z(s, e, xy)`` writes ``out[s:e, 2]`` (and may repair ``xy``, the chunk's (n, 2) result,
-    before it is copied) while the rows are in cache. Pass ``uv`` from ``as_uv(..., check_finite=False)``:
-    each chunk's finiteness is checked here, on its L1 norm (one cheap pass that brings it into cache
-    for the transform), with the exact check and message of :func:`as_uv` where that is not finite."""
+def opencv_xy_into(cv2, uv: np.ndarray, out: np.ndarray, xy_into, fill_z) -> None:
+    """Many pixels through OpenCV into the (N, 3) C-ordered ``out``, in chunks of ``CV_CHUNK``
+    points: ``xy_into(src, buf)`` writes a chunk's (x, y) mm into the reused (n, 1, 2) buffer (one
+    or a few OpenCV calls), which is copied to its rows as 16-byte items (a complex128 view with a
+    24-byte stride — one strided copy, not a 2-column one); then ``fill_z(s, e)`` writes
+    ``out[s:e, 2]`` while those rows are in cache. Pass ``uv`` from ``as_uv(..., check_finite=False)``:
+    a NaN or ±inf pixel makes its chunk's result non-finite (every map here is a sum of products of
+    it), so finiteness is checked per chunk on the result's L1 norm (a pass over a buffer in cache),
+    and where that is not finite on the pixels with the exact check and message of :func:`as_uv` (a
+    finite pixel on a homography's horizon maps to ±inf, as the NumPy path does)."""
     n = len(uv)
     src = np.ascontiguousarray(uv).reshape(-1, 1, 2)
     finite_l1 = cv2.NORM_L1
     rows = np.ndarray((n,), dtype=np.complex128, buffer=out, strides=(out.strides[0],))
     buf = np.empty((min(CV_CHUNK, n), 1, 2))
     buf_c = buf.reshape(-1, 2).view(np.complex128).reshape(-1)
-    fn = cv2.perspectiveTransform if perspective else cv2.transform
     for s in range(0, n, CV_CHUNK):
         e = min(s + CV_CHUNK, n)
         b = buf[: e - s]
-        if not math.isfinite(cv2.norm(src[s:e], finite_l1)):  # NaN or ±inf in the chunk (or overflow)
+        xy_into(src[s:e], b)
+        if not math.isfinite(cv2.norm(b, finite_l1)):  # NaN or ±inf in the chunk's pixels (or w = 0)
             refuse_non_finite(uv[s:e])
-        fn(src[s:e], matrix, dst=b)
-        fill_z(s, e, b.reshape(-1, 2))
         rows[s:e] = buf_c[: e - s]
+        fill_z(s, e)
 
 
 class HeightRule(StrEnum):

@@ -160,17 +160,20 @@ class PaperB(Model):
             if cv2 is not None:  # equation (13) is affine in (u, v): x, y by OpenCV's 2 → 2 transform
                 out = np.empty((len(uv), 3))
                 # z by a second 2 → 2 transform (OpenCV's fast one; its second row is unused)
-                z_rows = np.vstack([self._affine3[2], np.zeros(3)])
+                xy_rows, z_rows = self._affine3[:2], np.vstack([self._affine3[2], np.zeros(3)])
                 uv = np.ascontiguousarray(uv)  # one copy (if any) for both transforms
                 src = uv.reshape(-1, 1, 2)
                 zbuf = np.empty((min(CV_CHUNK, len(uv)), 1, 2))
 
-                def fill_z(s: int, e: int, xy: np.ndarray) -> None:
+                def xy_into(chunk: np.ndarray, b: np.ndarray) -> None:
+                    cv2.transform(chunk, xy_rows, dst=b)
+
+                def fill_z(s: int, e: int) -> None:
                     zb = zbuf[: e - s]
                     cv2.transform(src[s:e], z_rows, dst=zb)
                     out[s:e, 2] = zb[:, 0, 0]
 
-                opencv_xy_into(cv2, uv, self._affine3[:2], out, perspective=False, fill_z=fill_z)
+                opencv_xy_into(cv2, uv, out, xy_into, fill_z)
                 return out
         refuse_non_finite(uv)
         out = np.empty((len(uv), 3))
