@@ -76,6 +76,64 @@ def project_plane(p: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> np.nd
     return centre + p[0] * distort(n, np.array([p[1], p[2], 0.0, 0.0]))
 
 
+def project_plane_rows(P: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """:func:`project_plane` for each row of P (S, 9) → (S, N, 2) px, equal to it bit for bit: the
+    same matrix product per distinct rotation and the same elementwise arithmetic as
+    :func:`eyetohand.lens.distort` (k1, k2 only), on all rows at once."""
+    XY0 = np.column_stack([xy_mm, np.zeros(len(xy_mm))])
+    rvecs, which = np.unique(P[:, 3:6], axis=0, return_inverse=True)
+    M = np.stack([XY0 @ rodrigues_to_matrix(r).T for r in rvecs])
+    Xc = M[which.reshape(-1)] + P[:, None, 6:9]
+    n = Xc[..., :2] / Xc[..., 2:3]
+    x, y = n[..., 0], n[..., 1]
+    k1, k2 = P[:, 1, None], P[:, 2, None]
+    p1 = p2 = k3 = 0.0
+    r2 = x * x + y * y
+    g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xy = x * y
+    xd = x * g + 2 * p1 * xy + p2 * (r2 + 2 * x * x)
+    yd = y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * xy
+    return centre + P[:, 0, None, None] * np.stack([xd, yd], axis=-1)
+
+
+_FD_STEP = float(np.finfo(float).eps ** 0.5)  # SciPy's forward-difference step, relative
+
+
+def _lens_least_squares(p0: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, centre, free: np.ndarray):
+    """SciPy's Levenberg–Marquardt on the image-space residuals over the parameters ``free`` (the
+    rest held at ``p0``), with its own forward differences (``approx_derivative``'s steps and
+    arithmetic) computed in one :func:`project_plane_rows` call: the same iterates as its default
+    Jacobian, 9 projections fewer per step."""
+    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
+
+    p_all = np.asarray(p0, float).copy()
+    target = uv_px.ravel()
+
+    def rows(q: np.ndarray, dq: np.ndarray | None) -> np.ndarray:
+        P = np.tile(p_all, (1 if dq is None else len(q) + 1, 1))
+        P[:, free] = q
+        if dq is not None:
+            P[1 + np.arange(len(q)), free] += dq
+        return project_plane_rows(P, xy_mm, centre).reshape(len(P), -1) - target
+
+    def jacobian(q: np.ndarray) -> np.ndarray:
+        h = _FD_STEP * ((q >= 0).astype(float) * 2 - 1) * np.maximum(1.0, np.abs(q))
+        out = rows(q, h)
+        dx = (q + h) - q
+        return ((out[1:] - out[0]) / dx[:, None]).T
+
+    return least_squares(
+        lambda q: rows(q, None)[0],
+        p_all[free],
+        jac=jacobian,
+        method="lm",
+        x_scale="jac",
+        ftol=LENS_FIT_TOL,
+        xtol=LENS_FIT_TOL,
+        gtol=LENS_FIT_TOL,
+    )
+
+
 LENS_FIT_TOL = 1e-8  # least_squares' ftol, xtol, gtol for the lens fit (SciPy's defaults)
 _LENS_CACHE: dict[tuple, tuple[np.ndarray, float]] = {}  # the last few fits (auto repeats them)
 _LENS_CACHE_SIZE = 4
@@ -110,17 +168,7 @@ def fit_lens(uv_px, xy_mm, centre, f_default):
     if hit is not None:
         return hit[0].copy(), hit[1]
     p0, _ = lens_start(uv_px, xy_mm, centre, f_default)
-    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
-
-    sol = least_squares(
-        lambda p: (project_plane(p, xy_mm, centre) - uv_px).ravel(),
-        p0,
-        method="lm",
-        x_scale="jac",
-        ftol=LENS_FIT_TOL,
-        xtol=LENS_FIT_TOL,
-        gtol=LENS_FIT_TOL,
-    )
+    sol = _lens_least_squares(p0, uv_px, xy_mm, centre, np.arange(len(p0)))
     rms = float(np.sqrt(np.mean(sol.fun**2) * 2))
     while len(_LENS_CACHE) >= _LENS_CACHE_SIZE:  # oldest first; tolerant of another thread's pop
         try:
@@ -182,6 +230,15 @@ def lens_leave_one_out(p_full: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray,
     return None
 
 
+def lens_refit_holding_focal(p_full: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, centre) -> np.ndarray:
+    """One held-out lens fit for a view that does not tell f: k1, k2 and the pose by the lens fit's
+    Levenberg–Marquardt from the full fit, f held at the full fit's. Where f is not told, a refit
+    from its own start ends wherever that start puts it along the valley of equal (f, k1, k2);
+    this one is the full fit refined on the held-out subset, as every other model's leave-one-out is."""
+    sol = _lens_least_squares(p_full, uv_px, xy_mm, centre, np.arange(1, len(p_full)))
+    return np.r_[p_full[0], sol.x]
+
+
 class HomographyRadial(Homography):
     """The homography, seen through a radial lens: pixels are undistorted (f, k1, k2 about the
     distortion centre, fixed by the lens fit) before the same planar matrix map; the solvers refine
@@ -230,14 +287,18 @@ class HomographyRadial(Homography):
         if n - 1 < cls.min_pairs:
             return None
         centre, f_default, _ = _centre(uv, image_size)
-        if not lens_start(uv, xyz[:, :2], centre, f_default)[1]:
-            # seen straight on, the lens fits wander along a valley of equal (f, k1, k2): where each
-            # refit stops depends on its own start, so the caller refits
-            return None
         p_full, _ = fit_lens(uv, xyz[:, :2], centre, f_default)
-        lenses = lens_leave_one_out(p_full, uv, xyz[:, :2], centre)
-        if lenses is None:
-            return None
+        if lens_start(uv, xyz[:, :2], centre, f_default)[1]:
+            lenses = lens_leave_one_out(p_full, uv, xyz[:, :2], centre)
+            if lenses is None:
+                return None
+        else:  # seen too straight on to tell f: the held-out fits keep the full fit's f
+            lenses = np.array(
+                [
+                    lens_refit_holding_focal(p_full, uv[keep], xyz[keep, :2], centre)
+                    for keep in (np.r_[0:i, i + 1 : n] for i in range(n))
+                ]
+            )
         res = np.empty((n, 3))
         for i in range(n):
             keep = np.r_[0:i, i + 1 : n]
