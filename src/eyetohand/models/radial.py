@@ -20,7 +20,8 @@ with few points a physically constrained fit of the lens generalises better than
 Distortion centre c: the image centre ((W−1)/2, (H−1)/2) when the image size is known, otherwise the
 centre of the training points' bounding box (``diagnostics["centre_source"]`` says which). Seen straight on,
 f and the camera's distance cannot be told apart; the lens fit then settles on one of the equivalent
-(f, k1, k2) and the mapping is the same.
+(f, k1, k2) and the mapping is the same. Leave-one-out there keeps the full fit's f in each held-out
+lens fit (a fit from the subset's own start would end wherever that start put it along the valley).
 """
 
 from __future__ import annotations
@@ -278,10 +279,12 @@ class HomographyRadial(Homography):
 
     @classmethod
     def leave_one_out(cls, uv_px, xyz_mm, *, image_size=None) -> np.ndarray | None:
-        """Held-out residuals (N, 3) mm of the least-squares (``lm``) refits without each pair, the
-        lens fits warm-started from the full one (:func:`lens_leave_one_out`), each held-out
+        """Held-out residuals (N, 3) mm of the least-squares (``lm``) fits without each pair: the
+        lens fits warm-started from the full one (:func:`lens_leave_one_out`; where the view does
+        not tell f, :func:`lens_refit_holding_focal` with the full fit's f), each held-out
         homography by Gauss–Newton on its own pairs from its DLT; None where that cannot be trusted
-        (the caller then refits). Checked against refits in tests/test_speed_paths.py."""
+        (the caller then refits). Checked against refits, and against SciPy's own fits with f
+        held, in tests/test_speed_paths.py."""
         uv, xyz, z0, *_ = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
         n = len(uv)
         if n - 1 < cls.min_pairs:
