@@ -82,9 +82,11 @@ def project_plane_rows(P: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> 
     same matrix product per distinct rotation and the same elementwise arithmetic as
     :func:`eyetohand.lens.distort` (k1, k2 only), on all rows at once."""
     XY0 = np.column_stack([xy_mm, np.zeros(len(xy_mm))])
-    rvecs, which = np.unique(P[:, 3:6], axis=0, return_inverse=True)
-    M = np.stack([XY0 @ rodrigues_to_matrix(r).T for r in rvecs])
-    Xc = M[which.reshape(-1)] + P[:, None, 6:9]
+    M = np.empty((len(P), len(XY0), 3))
+    M[:] = XY0 @ rodrigues_to_matrix(P[0, 3:6]).T
+    for i in np.flatnonzero((P[1:, 3:6] != P[0, 3:6]).any(axis=1)) + 1:  # rows turned (a few)
+        M[i] = XY0 @ rodrigues_to_matrix(P[i, 3:6]).T
+    Xc = M + P[:, None, 6:9]
     n = Xc[..., :2] / Xc[..., 2:3]
     x, y = n[..., 0], n[..., 1]
     k1, k2 = P[:, 1, None], P[:, 2, None]
