@@ -86,6 +86,23 @@ def main() -> None:
             print(f"{'':32s} {what:34s} {t:9.2f} {t / peer:8.0f}")
         chosen = calibrate(pairs, "auto", image_size=size).model_name
         print(f"{'':32s} auto chose {chosen}")
+    _first_calls(rep)
+
+
+def _first_calls(rep: int) -> None:
+    """``auto``'s first call (goal ≤ 100 ms) on 16, 25 and 36 pairs of cells without image size."""
+    print(f"\nauto, first call, no image size, median of {rep} (ms)")
+    worst = 0.0
+    for tilt, k1 in ((0.0, -0.1), (0.0, 0.0), (12.0, 0.0), (6.0, -0.06)):
+        cam = make_camera(tilt_deg=tilt, dist=[k1, -0.3 * k1, 0, 0, 0], seed=1)
+        times = []
+        for side in (4, 5, 6):
+            pairs = grid_pairs(cam, side, heights=(100.0,), noise_px=0.2, seed=3, span_mm=160)
+            t = _ms(lambda p=pairs: _first_call(p, None), rep)
+            worst = max(worst, t)
+            times.append(f"{side * side} pairs {t:6.1f}")
+        print(f"  tilt {tilt:4.1f}° k1 {k1:+.2f}: " + "  ".join(times))
+    print(f"  slowest {worst:.1f} ms (goal ≤ 100 ms)")
 
 
 if __name__ == "__main__":

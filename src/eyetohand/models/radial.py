@@ -90,13 +90,11 @@ def project_plane_rows(P: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> 
     n = Xc[..., :2] / Xc[..., 2:3]
     x, y = n[..., 0], n[..., 1]
     k1, k2 = P[:, 1, None], P[:, 2, None]
-    p1 = p2 = k3 = 0.0
     r2 = x * x + y * y
-    g = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xy = x * y
-    xd = x * g + 2 * p1 * xy + p2 * (r2 + 2 * x * x)
-    yd = y * g + p1 * (r2 + 2 * y * y) + 2 * p2 * xy
-    return centre + P[:, 0, None, None] * np.stack([xd, yd], axis=-1)
+    g = 1 + r2 * (k1 + r2 * (k2 + r2 * 0.0))  # distort's k3 = 0 term: NaN where r² is not finite
+    # distort's tangential terms (p1 = p2 = 0) add ±0 where all is finite, where x·g + ±0 = x·g but
+    # for the sign of a zero, which centre + f·(±0) does not keep; elsewhere g is NaN already
+    return centre + P[:, 0, None, None] * np.stack([x * g, y * g], axis=-1)
 
 
 _FD_STEP = float(np.finfo(float).eps ** 0.5)  # SciPy's forward-difference step, relative
@@ -314,21 +312,15 @@ class HomographyRadial(Homography):
             T_uv, ideal_n = hartley(ideal)
             T_xy, xy_n = hartley(xyz[keep, :2])
             H, _ = dlt_homography(ideal_n, xy_n, cls.name)
-            z_i = float(xyz[keep, 2].mean())
-            constants = {
-                "T_uv": T_uv.tolist(),
-                "T_xy": T_xy.tolist(),
-                "plane_z_mm": z_i,
-                "centre_px": centre.tolist(),
-                "focal_px": f,
-                "k1": k1,
-                "k2": k2,
-            }
-            m = cls(H.reshape(-1)[:8], constants, {})
-            fitted = _gauss_newton(m, uv[keep], xyz[keep])
+            plane = {"T_uv": T_uv.tolist(), "T_xy": T_xy.tolist(), "plane_z_mm": float(xyz[keep, 2].mean())}
+            # the homography's Gauss–Newton on the subset's ideal pixels, undistorted once: the same
+            # steps as on the radial model, which undistorts them again at every step
+            fitted = _gauss_newton(Homography(H.reshape(-1)[:8], plane, {}), ideal, xyz[keep])
             if fitted is None:
                 return None
-            res[i] = fitted.image_to_robot(uv[i : i + 1], None)[0] - xyz[i]
+            lens = {"centre_px": centre.tolist(), "focal_px": f, "k1": k1, "k2": k2}
+            m = cls(fitted.params, {**plane, **lens}, {})
+            res[i] = m.image_to_robot(uv[i : i + 1], None)[0] - xyz[i]
         return res if np.isfinite(res).all() else None
 
     def _prepare(self) -> None:
