@@ -71,6 +71,29 @@ def opencv_xy_into(cv2, uv: np.ndarray, out: np.ndarray, xy_into, fill_z) -> Non
         fill_z(s, e)
 
 
+def opencv_affine_rows_into(cv2, uv: np.ndarray, affine3: np.ndarray, out: np.ndarray) -> None:
+    """Many pixels through a map affine in (u, v) — ``out[i] = affine3 @ (u, v, 1)`` for a 3 × 3
+    ``affine3`` — into the (N, 3) C-ordered ``out`` by OpenCV's float64 3 → 3 ``cv2.transform``
+    written straight into ``out``'s rows, in chunks of ``CV_CHUNK``: each chunk's pixels are copied
+    as 16-byte items into a reused (n, 3) buffer whose third column is 1 (one strided copy in cache,
+    in place of a second transform and a strided z). Pass ``uv`` from ``as_uv(..., check_finite=False)``:
+    finiteness is checked per chunk on the result's L1 norm, as :func:`opencv_xy_into` does."""
+    n = len(uv)
+    uv_c = np.ascontiguousarray(uv).view(np.complex128).reshape(-1)
+    m = np.zeros((3, 4))
+    m[:, :2], m[:, 3] = affine3[:, :2], affine3[:, 2]  # the 1 column times 0, the offset last
+    buf = np.ones((min(CV_CHUNK, n), 3))
+    buf_c = np.ndarray((len(buf),), dtype=np.complex128, buffer=buf, strides=(buf.strides[0],))
+    src, dst = buf.reshape(-1, 1, 3), out.reshape(-1, 1, 3)
+    finite_l1 = cv2.NORM_L1
+    for s in range(0, n, CV_CHUNK):
+        e = min(s + CV_CHUNK, n)
+        buf_c[: e - s] = uv_c[s:e]
+        cv2.transform(src[: e - s], m, dst=dst[s:e])
+        if not math.isfinite(cv2.norm(dst[s:e], finite_l1)):
+            refuse_non_finite(uv[s:e])
+
+
 class HeightRule(StrEnum):
     """How a model treats the object's height z."""
 

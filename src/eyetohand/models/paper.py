@@ -21,7 +21,6 @@ import numpy as np
 from ..errors import DegenerateError
 from ..normalize import hartley, spread_ratio
 from .base import (
-    CV_CHUNK,
     CV_MIN_POINTS,
     MAP_CHUNK,
     HeightRule,
@@ -32,7 +31,7 @@ from .base import (
     check_not_collinear,
     one_point,
     opencv,
-    opencv_xy_into,
+    opencv_affine_rows_into,
     refuse_non_finite,
 )
 from .dlt3d import COPLANAR_RATIO, dlt_projection
@@ -157,23 +156,9 @@ class PaperB(Model):
         uv = as_uv(uv_px, check_finite=False)
         if len(uv) >= CV_MIN_POINTS:
             cv2 = opencv()
-            if cv2 is not None:  # equation (13) is affine in (u, v): x, y by OpenCV's 2 → 2 transform
+            if cv2 is not None:  # equation (13) is affine in (u, v): one 3 → 3 transform into the rows
                 out = np.empty((len(uv), 3))
-                # z by a second 2 → 2 transform (OpenCV's fast one; its second row is unused)
-                xy_rows, z_rows = self._affine3[:2], np.vstack([self._affine3[2], np.zeros(3)])
-                uv = np.ascontiguousarray(uv)  # one copy (if any) for both transforms
-                src = uv.reshape(-1, 1, 2)
-                zbuf = np.empty((min(CV_CHUNK, len(uv)), 1, 2))
-
-                def xy_into(chunk: np.ndarray, b: np.ndarray) -> None:
-                    cv2.transform(chunk, xy_rows, dst=b)
-
-                def fill_z(s: int, e: int) -> None:
-                    zb = zbuf[: e - s]
-                    cv2.transform(src[s:e], z_rows, dst=zb)
-                    out[s:e, 2] = zb[:, 0, 0]
-
-                opencv_xy_into(cv2, uv, out, xy_into, fill_z)
+                opencv_affine_rows_into(cv2, uv, self._affine3, out)
                 return out
         refuse_non_finite(uv)
         out = np.empty((len(uv), 3))
