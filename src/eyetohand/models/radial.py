@@ -296,12 +296,17 @@ class HomographyRadial(Homography):
             if lenses is None:
                 return None
         else:  # seen too straight on to tell f: the held-out fits keep the full fit's f
-            lenses = np.array(
-                [
-                    lens_refit_holding_focal(p_full, uv[keep], xyz[keep, :2], centre)
-                    for keep in (np.r_[0:i, i + 1 : n] for i in range(n))
-                ]
-            )
+            try:
+                lenses = np.array(
+                    [
+                        lens_refit_holding_focal(p_full, uv[keep], xyz[keep, :2], centre)
+                        for keep in (np.r_[0:i, i + 1 : n] for i in range(n))
+                    ]
+                )
+            except ValueError:  # SciPy refuses a start whose residuals are not finite: refits say why
+                return None
+            if not np.isfinite(lenses).all():
+                return None
         res = np.empty((n, 3))
         for i in range(n):
             keep = np.r_[0:i, i + 1 : n]
