@@ -33,6 +33,7 @@ then refine all parameters on the robot-space residuals (the paper's equation 16
 
 from __future__ import annotations
 
+import math
 from types import MappingProxyType
 
 import numpy as np
@@ -232,14 +233,10 @@ class PinholeCamera(Model):
         many in cache-sized chunks; the same arithmetic as ``batch_image_to_robot``."""
         pt = one_point(uv_px)
         if pt is not None:
-            z = self._z_for(1, z_mm)
-            xyz = self._backproject(
-                np.array(
-                    [[(pt[0] - self._intr[2]) / self._intr[0], (pt[1] - self._intr[3]) / self._intr[1]]]
-                ),
-                z,
-            )
-            return xyz
+            plain = isinstance(z_mm, (int, float)) and not isinstance(z_mm, bool) and math.isfinite(z_mm)
+            z = np.array([float(z_mm)]) if plain else self._z_for(1, z_mm)
+            d = np.array([[(pt[0] - self._intr[2]) / self._intr[0], (pt[1] - self._intr[3]) / self._intr[1]]])
+            return self._backproject_one(d, z)
         uv = as_uv(uv_px)
         z = self._z_for(len(uv), z_mm)
         out = np.empty((len(uv), 3))
@@ -252,6 +249,22 @@ class PinholeCamera(Model):
                 np.divide(chunk[:, 1] - cy, fy, out=d[:, 1])
             out[s : s + MAP_CHUNK] = self._backproject(d, z[s : s + MAP_CHUNK])
         return out
+
+    def _backproject_one(self, d: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """:meth:`_backproject` of one point on plain floats (the same operations in the same order:
+        the same result); the array path where the ray runs parallel to the plane (w2 = 0)."""
+        n, _ = undistort(d, self._lens_k)  # plain floats inside for one point
+        x, y = n[0].tolist()
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._Rt
+        C0, C1, C2 = self._C
+        w2 = r02 * x + r12 * y + r22
+        if w2 == 0.0:
+            return self._backproject(d, z)
+        zf = float(z[0])
+        s = ((zf - self._x0f[2]) - C2) / w2
+        X = (C0 + s * (r00 * x + r10 * y + r20)) + self._x0f[0]
+        Y = (C1 + s * (r01 * x + r11 * y + r21)) + self._x0f[1]
+        return np.array([[X, Y, math.nan if math.isnan(C2 + s * w2) else zf]])
 
     def _backproject(self, d: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Robot points (n, 3) on the planes ``z`` (n,) of distorted normalised points ``d`` (n, 2)."""
