@@ -278,3 +278,36 @@ def test_studentized_training_outliers_load(tmp_path):
         assert raw.outliers != cal.train.outliers  # the case this test is about
         path = cal.save(tmp_path / f"bumped-{k}.json")
         assert Calibration.load(path).train.outliers == cal.train.outliers
+
+
+@pytest.mark.parametrize("where", [("uncertainty", "noise_mm"), ("train", "rms_mm"), ("region", "margin_px")])
+def test_an_intact_file_this_version_does_not_reproduce_is_not_called_changed(files, where, tmp_path, capsys):
+    """A file whose content still matches its content_sha256 is as it was written. If this eyetohand
+    then does not reproduce what it records (an older one computed it otherwise), the refusal says so
+    — with the version that wrote it — instead of "changed after it was written"; an edit that leaves
+    the hash stale is still called a change. The command line says the same words."""
+    from eyetohand.calibration import content_sha256
+
+    doc = json.loads(files["homography"].read_text())
+    assert isinstance(doc[where[0]][where[1]], float), where
+    doc[where[0]][where[1]] *= 1.001
+    stale = tmp_path / "edited.json"
+    stale.write_text(json.dumps(doc))
+    doc["content_sha256"] = content_sha256(doc)
+    doc["eyetohand_version"] = "0.0.9"
+    sealed = tmp_path / "older.json"
+    sealed.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as edited:
+        Calibration.load(stale)
+    assert str(edited.value).endswith(
+        ("the file was changed after it was written", "changed or damaged after it was written")
+    ), edited.value
+    with pytest.raises(InputError) as older:
+        Calibration.load(sealed)
+    words = str(older.value)
+    assert f"'{where[0]}.{where[1]}'" in words or where[0] == "train", words
+    assert "the file is as written (its content_sha256 checks)" in words
+    assert "the eyetohand that wrote it (0.0.9) computed this differently" in words
+    assert "changed after it was written" not in words and "\n" not in words
+    assert main(["apply", str(sealed), "--uv", "1", "2"]) == 2
+    assert capsys.readouterr().err.strip() == f"error: {words}"

@@ -330,7 +330,7 @@ class Calibration:
             if ver >= 2:
                 cal = cal._proven(d)
         except InputError as exc:
-            raise InputError(f"{source}: {exc}") from None
+            raise InputError(f"{source}: {_as_written(str(exc), d)}") from None
         except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as exc:
             what = (
                 f"field {exc.args[0]!r} missing"
@@ -379,9 +379,7 @@ class Calibration:
         if self.pairs is None:
             raise InputError("the file carries no training pairs, so it cannot prove it is intact")
         if self.pairs.sha256() != self.data_sha256:
-            raise InputError(
-                "the training pairs do not match data_sha256: the file was changed after it was written"
-            )
+            raise InputError(f"the training pairs do not match data_sha256: {CHANGED}")
         from .evaluate import stats_from_residuals
         from .uncertainty import pair_leverage
 
@@ -397,8 +395,7 @@ class Calibration:
                 res = self.model.residuals(pairs.uv_px, pairs.xyz_mm)
             if not np.isfinite(res).all():
                 raise InputError(
-                    f"the model maps its own {label} pairs to no finite point: "
-                    "the file was changed or damaged after it was written"
+                    f"the model maps its own {label} pairs to no finite point: {CHANGED_OR_DAMAGED}"
                 )
             try:
                 with np.errstate(all="ignore"):
@@ -409,7 +406,7 @@ class Calibration:
             except InputError as exc:
                 raise InputError(
                     f"the model does not reproduce its recorded {label} errors (to {REPRODUCE_TOL_MM:g} mm; "
-                    f"{exc.reason}): the file was changed or damaged after it was written"
+                    f"{exc.reason.removesuffix(': ' + CHANGED)}): {CHANGED_OR_DAMAGED}"
                 ) from None
 
     @classmethod
@@ -428,6 +425,32 @@ class Calibration:
         except ValueError as exc:
             raise InputError(f"{path}: not a calibration file ({exc})") from None
         return cls.from_dict(d, str(path))
+
+
+CHANGED = "the file was changed after it was written"
+CHANGED_OR_DAMAGED = "the file was changed or damaged after it was written"
+
+
+def _as_written(message: str, d: dict) -> str:
+    """A refusal's words. A file whose content still matches its content_sha256 is as it was
+    written: where this eyetohand then does not reproduce what it records, the file was written by
+    an eyetohand that computed it differently (or edited and re-sealed) — say that, not "changed"."""
+    tail = next((t for t in (CHANGED_OR_DAMAGED, CHANGED) if message.endswith(t)), None)
+    if tail is None:
+        return message
+    try:
+        sealed = isinstance(d.get("content_sha256"), str) and d["content_sha256"] == content_sha256(d)
+    except (TypeError, ValueError, OverflowError):
+        sealed = False
+    if not sealed:
+        return message
+    by = d.get("eyetohand_version")
+    by = f" ({by})" if isinstance(by, str) else ""
+    return (
+        f"{message[: -len(tail)]}the file is as written (its content_sha256 checks), so the eyetohand "
+        f"that wrote it{by} computed this differently from this one ({__version__}), or the file was "
+        "edited and re-sealed; calibrate its pairs again with this version"
+    )
 
 
 FREE_FIELDS = ("created_utc", "eyetohand_version", "notes", "warnings")
@@ -530,10 +553,7 @@ def _same(want, given, path: str, tol) -> None:
         if isinstance(given, bool) or not isinstance(given, number):
             raise InputError(f"{where} must be a number, got {_kind(given)}")
         if not abs(float(given) - float(want)) <= tol(path, float(want)):
-            raise InputError(
-                f"{where} is {given!r}, but the calibration gives {want!r}: "
-                "the file was changed after it was written"
-            )
+            raise InputError(f"{where} is {given!r}, but the calibration gives {want!r}: {CHANGED}")
         return
     if type(given) is not type(want):
         raise InputError(f"{where} must be {_kind(want)}, got {_kind(given)}")
@@ -568,7 +588,7 @@ def _same_uncertainty(
     if not (diff <= REPRODUCE_TOL_MM).all():
         raise InputError(
             "field 'uncertainty' does not reproduce sigma_mm from the training pairs "
-            f"(to {REPRODUCE_TOL_MM:g} mm): the file was changed after it was written"
+            f"(to {REPRODUCE_TOL_MM:g} mm): {CHANGED}"
         )
 
 
