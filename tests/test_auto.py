@@ -47,3 +47,31 @@ def test_auto_with_few_pairs_never_takes_more_unknowns_than_supported():
     cal5 = calibrate(pairs.subset(range(5)), "auto", loo=False)
     assert cal5.model_name == "affine"
     assert np.isfinite(cal.train.rms_mm)
+
+
+def test_a_lens_that_folds_inside_the_pairs_is_refused_not_a_traceback(capsys, tmp_path):
+    """25 pairs on a 5 mm patch, 2 px noise, no image size: the lens fit wanders to a k1 whose
+    undistortion folds back inside the pairs. homography-radial refuses with one line saying so
+    (it used to reach an SVD of NaNs: LinAlgError), the command line exits 2, and auto records
+    why it did not consider it and takes another model."""
+    import pytest
+
+    from eyetohand import InputError
+    from eyetohand.cli import main
+
+    cam = make_camera(tilt_deg=0.5, dist=[-0.376490097286175, 0, 0, 0, 0], seed=85)
+    pairs = random_pairs(cam, 25, heights=(100.0,), noise_px=2.0, seed=846, span_mm=5.0)
+    words = r"folds back inside them \(\d+ of 25 pixels cannot be undistorted\)"
+    with pytest.raises(InputError, match=words):
+        calibrate(pairs, "homography-radial", loo=False)
+    path = tmp_path / "pairs.csv"
+    table = np.hstack([pairs.uv_px, pairs.xyz_mm])
+    rows = [",".join(repr(float(v)) for v in row) for row in table]
+    path.write_text("u,v,x,y,z\n" + "\n".join(rows) + "\n")
+    assert main(["calibrate", str(path), "--model", "homography-radial"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "folds back" in err and "\n" not in err
+    auto = calibrate(pairs, "auto")
+    row = {r["model"]: r for r in auto.selection["candidates"]}["homography-radial"]
+    assert auto.model_name != "homography-radial"
+    assert row["considered"] is False and "folds back" in row["why"]

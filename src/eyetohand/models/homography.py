@@ -17,7 +17,10 @@ def dlt_homography(src_n: np.ndarray, dst_n: np.ndarray, model_name: str):
     zeros, ones = np.zeros(n), np.ones(n)
     rows1 = np.column_stack([x, y, ones, zeros, zeros, zeros, -X * x, -X * y, -X])
     rows2 = np.column_stack([zeros, zeros, zeros, x, y, ones, -Y * x, -Y * y, -Y])
-    vt, s = null_space_rows(np.vstack([rows1, rows2]))
+    A = np.vstack([rows1, rows2])
+    if not np.isfinite(A).all():  # a caller's undistorted pixel beyond its lens's fold
+        raise DegenerateError(f"model '{model_name}': a point is not finite, so no homography can be solved")
+    vt, s = null_space_rows(A)
     if s[-2] < 1e-9 * s[0]:
         raise DegenerateError(
             f"model '{model_name}': the pairs do not determine a homography "

@@ -30,6 +30,7 @@ from types import MappingProxyType
 
 import numpy as np
 
+from ..errors import DegenerateError
 from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
 from ..normalize import hartley
 from .homography import Homography, dlt_homography
@@ -262,6 +263,14 @@ class HomographyRadial(Homography):
         lens, rms_px = fit_lens(uv, xyz[:, :2], centre, f_default)
         f, k1, k2 = (float(v) for v in lens[:3])
         ideal = undistort_px(uv, centre, f, k1, k2)
+        folded = ~np.isfinite(ideal).all(axis=1)
+        if folded.any():
+            raise DegenerateError(
+                f"model '{cls.name}': the lens fitted to these pairs (k1 {k1:.3g}, k2 {k2:.3g}) folds back "
+                f"inside them ({int(folded.sum())} of {len(uv)} pixels cannot be undistorted): the pairs do "
+                "not determine a radial lens (give more pairs across the image, the image size, or use "
+                "the homography)"
+            )
         T_uv, ideal_n = hartley(ideal)
         T_xy, xy_n = hartley(xyz[:, :2])
         H, cond = dlt_homography(ideal_n, xy_n, cls.name)
