@@ -75,3 +75,20 @@ def test_a_lens_that_folds_inside_the_pairs_is_refused_not_a_traceback(capsys, t
     row = {r["model"]: r for r in auto.selection["candidates"]}["homography-radial"]
     assert auto.model_name != "homography-radial"
     assert row["considered"] is False and "folds back" in row["why"]
+
+
+def test_a_start_that_maps_pairs_nowhere_is_refused_not_a_traceback():
+    """32 pairs at three heights on a 50 mm patch with 20 px noise: the camera model's linear start
+    maps two pairs to no finite point. It is refused in one line by name (SciPy's "Residuals are not
+    finite in the initial point" used to escape calibrate and auto), and auto records why."""
+    import pytest
+
+    from eyetohand import InputError
+
+    cam = make_camera(tilt_deg=2.0, dist=[-0.09856038571007558, 0.017359714287628142, 0, 0, 0], seed=17)
+    pairs = random_pairs(cam, 32, heights=(0.0, 40.0, 80.0), noise_px=20.0, seed=786, span_mm=50.0)
+    with pytest.raises(InputError, match=r"model 'camera': its starting estimate maps \d+ of 32 pairs"):
+        calibrate(pairs, "camera", loo=False)
+    auto = calibrate(pairs, "auto")
+    row = {r["model"]: r for r in auto.selection["candidates"]}["camera"]
+    assert row["considered"] is False and "to no finite point" in row["why"]

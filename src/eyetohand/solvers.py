@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import DegenerateError, InputError
 from .models import Model
 from .numdiff import batch_jacobian
 from .objectives import OBJECTIVES, SMOOTH_OBJECTIVES, check_objective, huber_delta_mm, objective_values
@@ -225,7 +225,14 @@ def refine(
     solver = check_optimizer(optimizer, objective, options)
     uv = np.asarray(uv_px, float)
     xyz = np.asarray(xyz_mm, float)
-    start = model.batch_image_to_robot(model.params[None], uv, xyz[:, 2])[0] - xyz
+    with np.errstate(all="ignore"):
+        start = model.batch_image_to_robot(model.params[None], uv, xyz[:, 2])[0] - xyz
+    lost = ~np.isfinite(start).all(axis=1)
+    if lost.any():
+        raise DegenerateError(
+            f"model '{model.name}': its starting estimate maps {int(lost.sum())} of {len(uv)} pairs to no "
+            "finite point (beyond its lens's fold or its horizon): the pairs do not determine it"
+        )
     problem = Problem(model, uv, xyz, objective, huber_delta_mm(np.linalg.norm(start, axis=1)))
     own = {k: v for k, v in options.items() if k in solver.options}
     return solver.run(problem, seed=seed, callback=callback, **own)

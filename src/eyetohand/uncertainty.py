@@ -24,7 +24,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .errors import InputError
+from .errors import DegenerateError, InputError
 from .models import HeightRule, Model
 
 _CHUNK = 1 << 15
@@ -58,6 +58,11 @@ def _scaled_svd(model: Model, uv: np.ndarray, xyz: np.ndarray):
     """SVD of the training pairs' parameter Jacobian (N c, D), columns scaled first (the paper's B
     spans six orders of magnitude): ``(norms, U, s, Vt, keep)``."""
     J = param_jacobian(model, uv, xyz[:, 2]).reshape(-1, model.n_params)
+    if not np.isfinite(J).all():
+        raise DegenerateError(
+            f"model '{model.name}': its parameter Jacobian at the training pairs is not finite (a pair "
+            "sits at its lens's fold or its horizon): the pairs do not determine it"
+        )
     norms = np.linalg.norm(J, axis=0)
     norms = np.where(norms > 0, norms, 1.0)
     U, s, Vt = np.linalg.svd(J / norms, full_matrices=False)
