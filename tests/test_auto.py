@@ -92,3 +92,25 @@ def test_a_start_that_maps_pairs_nowhere_is_refused_not_a_traceback():
     auto = calibrate(pairs, "auto")
     row = {r["model"]: r for r in auto.selection["candidates"]}["camera"]
     assert row["considered"] is False and "to no finite point" in row["why"]
+
+
+def test_a_held_out_pair_mapped_nowhere_is_named_and_the_file_still_saves(tmp_path):
+    """18 pairs at two heights, 2 px noise, no image size: the camera fitted without pair 16 maps it
+    to no finite point. Its leave-one-out is skipped with a note naming the pair (NaN statistics used
+    to reach the file, whose writer then raised ValueError), auto records the same words for the
+    candidate, and both calibrations save and load."""
+    from eyetohand import Calibration
+
+    cam = make_camera(tilt_deg=0.0, dist=[-0.1267269764735966, -0.00043192942179437477, 0, 0, 0], seed=13)
+    pairs = random_pairs(cam, 18, heights=(100.0, 150.0), noise_px=2.0, seed=605, span_mm=160.0)
+    words = "model 'camera': the fit without pair 16 maps it to no finite point"
+    cal = calibrate(pairs, "camera")
+    assert cal.loo is None and any(n.startswith("leave-one-out skipped: ") and words in n for n in cal.notes)
+    auto = calibrate(pairs, "auto")
+    row = {r["model"]: r for r in auto.selection["candidates"]}["camera"]
+    assert row["considered"] is False and words in row["why"]
+    for c, name in ((cal, "camera"), (auto, "auto")):
+        back = Calibration.load(c.save(tmp_path / f"{name}.json"))
+        np.testing.assert_array_equal(
+            back.image_to_robot(pairs.uv_px[:3], 100.0), c.image_to_robot(pairs.uv_px[:3], 100.0)
+        )

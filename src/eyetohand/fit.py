@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from .calibration import Calibration, derived_region
-from .errors import InputError
+from .errors import DegenerateError, InputError
 from .evaluate import stats_from_residuals
 from .models import MODELS, HeightRule, Model, get_model
 from .objectives import huber_delta_mm, objective_values
@@ -168,7 +168,21 @@ def cross_validate(
 ):
     """Held-out residuals (N, 3) mm: leave-one-out up to 40 pairs, else 10 seeded folds.
     Leave-one-out takes Gauss–Newton from the full fit where it can (:func:`loo_gauss_newton`;
-    ``full``: that fit, when the caller has it), unless ``refit``."""
+    ``full``: that fit, when the caller has it), unless ``refit``. A held-out pair that its fit maps
+    to no finite point is refused by id (:class:`DegenerateError`): no score can be made of it."""
+    res = _held_out(pairs, model, optimizer, objective, image_size, seed, full, refit)
+    lost = ~np.isfinite(res).all(axis=1)
+    if lost.any():
+        i = int(np.argmax(lost))
+        raise DegenerateError(
+            f"model '{model}': the fit without pair {pairs.ids[i]} maps it to no finite point (beyond that "
+            f"fit's lens fold or horizon; {int(lost.sum())} of {len(res)} held-out pairs): it cannot be "
+            "cross-validated on these pairs"
+        )
+    return res
+
+
+def _held_out(pairs, model, optimizer, objective, image_size, seed, full, refit) -> np.ndarray:
     n = len(pairs)
     if (
         not refit
