@@ -114,3 +114,27 @@ def test_a_held_out_pair_mapped_nowhere_is_named_and_the_file_still_saves(tmp_pa
         np.testing.assert_array_equal(
             back.image_to_robot(pairs.uv_px[:3], 100.0), c.image_to_robot(pairs.uv_px[:3], 100.0)
         )
+
+
+def test_a_check_pair_mapped_nowhere_is_refused_by_id():
+    """A check pair beyond the lens's fold (the paper's homography-radial, a pixel 10⁵ px away): the
+    check statistics and ``evaluate`` refuse it by id in one line instead of NaN statistics (which the
+    file writer then refused with a ValueError)."""
+    import pytest
+    from helpers import PAPER
+
+    from eyetohand import InputError
+    from eyetohand.evaluate import evaluate
+    from eyetohand.pairs import PointPairs, load_pairs
+
+    pairs = load_pairs(PAPER / "calibration_points.csv")
+    check = load_pairs(PAPER / "check_points.csv")
+    far = PointPairs.from_arrays(
+        np.vstack([check.uv_px, [99999.0, -5000.0]]), np.vstack([check.xyz_mm, check.xyz_mm[:1] + 1.0])
+    )
+    words = r"check pair 9: the calibration maps it to no finite point .*1 of 10 check pairs"
+    with pytest.raises(InputError, match=words):
+        calibrate(pairs, "homography-radial", check=far, loo=False)
+    cal = calibrate(pairs, "homography-radial", check=check, loo=False)
+    with pytest.raises(InputError, match=r"pair 9: the calibration maps it to no finite point"):
+        evaluate(cal, far)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import InputError
 from .records import PointError, Stats
 
 OUTLIER_ALPHA = 1e-4
@@ -96,7 +97,22 @@ def stats_from_residuals(residuals_mm: np.ndarray, ids, *, leverage=None, held_o
     )
 
 
+def mapped_residuals(model, pairs, what: str = "pair") -> np.ndarray:
+    """(N, 3) residuals of ``model`` on ``pairs``; a pair it maps to no finite point is refused by id
+    (no statistic can be made of it) with :class:`InputError`."""
+    with np.errstate(all="ignore"):
+        res = model.residuals(pairs.uv_px, pairs.xyz_mm)
+    lost = ~np.isfinite(res).all(axis=1)
+    if lost.any():
+        raise InputError(
+            f"{pairs.source}: {what} {pairs.ids[int(np.argmax(lost))]}: the calibration maps it to no "
+            f"finite point (beyond its lens's fold or its horizon; {int(lost.sum())} of {len(res)} "
+            f"{what}s): check where it was calibrated, or leave such pairs out"
+        )
+    return res
+
+
 def evaluate(calibration, pairs) -> Stats:
     """Stats of ``calibration`` (a Calibration or a model) on ``pairs``, each mapped at its own z."""
     model = getattr(calibration, "model", calibration)
-    return stats_from_residuals(model.residuals(pairs.uv_px, pairs.xyz_mm), pairs.ids)
+    return stats_from_residuals(mapped_residuals(model, pairs), pairs.ids)

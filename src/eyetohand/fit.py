@@ -29,7 +29,7 @@ import numpy as np
 
 from .calibration import Calibration, derived_region
 from .errors import DegenerateError, InputError
-from .evaluate import stats_from_residuals
+from .evaluate import mapped_residuals, stats_from_residuals
 from .models import MODELS, HeightRule, Model, get_model
 from .objectives import huber_delta_mm, objective_values
 from .pairs import PointPairs
@@ -412,7 +412,8 @@ def calibrate(
             notes.append(f"leave-one-out skipped: {exc}")
     check_stats = None
     if check is not None:
-        check_stats = stats_from_residuals(fitted.residuals(check.uv_px, check.xyz_mm), check.ids)
+        check_res = mapped_residuals(fitted, check, "check pair")
+        check_stats = stats_from_residuals(check_res, check.ids)
     region = derived_region(fitted, pairs)  # the one rule, which loading re-checks
     uncertainty = Uncertainty.of_fit(fitted, pairs.uv_px, pairs.xyz_mm)
     cal = Calibration(
