@@ -208,9 +208,10 @@ class PlanarMatrixModel(Model):
         px → mm matrix (``opencv_xy_into``: no BLAS, no 16 MB intermediates; a one-pass 2 → 3
         channel ``cv2.transform`` measured 2.3× slower). A homography takes two: its numerators
         and its w (in both channels), and ``cv2.divide`` — IEEE division, so a point on the horizon
-        maps to ±inf as in the NumPy path (``perspectiveTransform`` writes (0, 0) there), and 1.4×
-        faster than ``perspectiveTransform``'s own division loop. ``zs``: one height (a number) or
-        (N,). None when OpenCV is not importable."""
+        maps to ±inf as in the NumPy path (``perspectiveTransform`` writes (0, 0) there and needed a
+        ``countNonZero`` pass and a re-map of those points); the three calls take about what
+        ``perspectiveTransform`` does (1.6 against 1.5 ms per 10⁶, docs/performance.md). ``zs``: one
+        height (a number) or (N,). None when OpenCV is not importable."""
         cv2 = opencv()
         if cv2 is None:
             return None

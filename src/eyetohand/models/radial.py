@@ -104,8 +104,8 @@ _FD_STEP = float(np.finfo(float).eps ** 0.5)  # SciPy's forward-difference step,
 def _lens_least_squares(p0: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, centre, free: np.ndarray):
     """SciPy's Levenberg–Marquardt on the image-space residuals over the parameters ``free`` (the
     rest held at ``p0``), with its own forward differences (``approx_derivative``'s steps and
-    arithmetic) computed in one :func:`project_plane_rows` call: the same iterates as its default
-    Jacobian, 9 projections fewer per step."""
+    arithmetic) computed in one :func:`project_plane_rows` call instead of one projection per
+    parameter: the same iterates as its default Jacobian."""
     from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
 
     p_all = np.asarray(p0, float).copy()
