@@ -5,7 +5,8 @@ STAMP := $(VENV)/.installed
 
 .PHONY: setup demo test lint format bench clean browser
 
-$(STAMP): pyproject.toml
+# setup.py builds the one compiled part (src/eyetohand/_rows.c) into the source tree
+$(STAMP): pyproject.toml setup.py src/eyetohand/_rows.c
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'
@@ -31,10 +32,10 @@ lint: $(STAMP)
 	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/mypy
 
-# every benchmark, each printing its ratios against the peer measured in the same run (~5 minutes)
 format: $(STAMP)
 	$(BIN)/ruff format src tests benchmarks
 
+# every benchmark, each printing its ratios against the peer measured in the same run (~5 minutes)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_pso.py --quick
 	$(BIN)/python benchmarks/bench_detect.py --quick
@@ -49,4 +50,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_outliers.py --sets 100
 
 clean:
-	rm -rf $(VENV) build dist demo-out src/*.egg-info
+	rm -rf $(VENV) build dist demo-out src/*.egg-info src/eyetohand/*.so

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from eyetohand.fit import calibrate
+from eyetohand.models import base
 from eyetohand.pairs import PointPairs
 
 BLAS_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -113,6 +114,8 @@ def main() -> None:
         )
 
     print(f"2. 10⁶ points (ms, median of {rep}); ratio = eyetohand / OpenCV, goal ≤ 1.5")
+    if base.rows_kernel() is None:
+        print("   (the compiled loop eyetohand._rows was not built: lens-free maps by NumPy and OpenCV)")
     for threads in (1, 2):
         env = {**os.environ, **{v: str(threads) for v in BLAS_VARS}}
         cmd = [sys.executable, __file__, "--big-only", str(threads)] + (["--quick"] if args.quick else [])
@@ -166,12 +169,21 @@ def _big(args, cals, plane, K, H, threads: int) -> None:
         "homography-radial": cv_radial,
         "camera": cv_camera,
     }
+    compiled = base.rows_kernel()
     for name, cal in cals.items():
         m = cal.model
         z = 20.0 if name == "camera" else None
         ours = _ms(lambda m=m, z=z: m.image_to_robot(big, z), rep)
         peer = _ms(peers[name], rep)
-        print(f"   BLAS {threads}: {name:18s} {ours:7.1f} ms  OpenCV {peer:6.1f} ms  ratio {ours / peer:.2f}")
+        line = f"   BLAS {threads}: {name:18s} {ours:7.1f} ms  OpenCV {peer:6.1f} ms  ratio {ours / peer:.2f}"
+        if compiled is not None and name in ("affine", "homography", "paper"):
+            base._ROWS = None  # what a machine that could not build the compiled loop runs
+            try:
+                alone = _ms(lambda m=m: m.image_to_robot(big), rep)
+            finally:
+                base._ROWS = compiled
+            line += f"   (without the compiled loop {alone:.1f} ms, ratio {alone / peer:.2f})"
+        print(line)
 
 
 if __name__ == "__main__":

@@ -96,10 +96,89 @@ def test_closed_form_params_jacobian_matches_differences(name):
     np.testing.assert_allclose(one, closed, rtol=1e-12, atol=1e-15 * scale)
 
 
+@pytest.fixture(params=["compiled", "fallback"])
+def rows_path(request, monkeypatch):
+    """The lens-free planar maps of many pixels, by the compiled loop (eyetohand._rows) or, as where
+    it could not be built, by NumPy and OpenCV."""
+    from eyetohand.models import base
+
+    if request.param == "fallback":
+        monkeypatch.setattr(base, "_ROWS", None)
+    else:
+        assert base.rows_kernel() is not None
+    return request.param
+
+
+def test_compiled_loop_is_built():
+    """The install builds the compiled loop (setup.py; optional only for machines without a C
+    compiler): CI's machine has one, so its figures and tests are of the loop users get."""
+    from eyetohand import _rows
+    from eyetohand.models.base import rows_kernel
+
+    assert rows_kernel() is _rows
+
+
 @pytest.mark.parametrize("name", ["affine", "homography", "paper"])
-def test_opencv_path_for_many_points_equals_the_numpy_map(name):
-    """From CV_MIN_POINTS points the affine-family maps go through OpenCV; they must equal the
-    elementwise NumPy path (and the batch map) to 1e-9 mm, the horizon included for a homography."""
+def test_compiled_loop_equals_the_numpy_chunks_bit_for_bit(name, monkeypatch):
+    """The compiled loop does the NumPy chunks' arithmetic in their order (no fused multiply-add):
+    the same bits for every point — a horizon point's ±inf or NaN too — whatever the input's
+    layout (a strided view, Fortran order, integers) or z (the plane's, one number, one per point)."""
+    from eyetohand.models import base
+
+    pairs = load_pairs(PAPER)
+    model, _ = fit_model(pairs, name, "lm")
+    rng = np.random.default_rng(11)
+    n = 3 * base.MAP_CHUNK + 17  # several NumPy chunks
+    uv = rng.uniform(pairs.uv_px.min(0) - 900, pairs.uv_px.max(0) + 900, size=(n, 2))
+    if name == "homography":  # the horizon w = 0 (and points beside it)
+        h = model.matrix_image_to_robot
+        uv[:4, 1] = -(h[2, 0] * uv[:4, 0] + h[2, 2]) / h[2, 1]
+    z_each = rng.uniform(-50, 150, n)
+    inputs = [uv, np.asfortranarray(uv), np.column_stack([uv, uv])[:, ::2], np.rint(uv).astype(np.int64)]
+    zs = [None, 42.5, z_each] if name != "paper" else [None]
+    fast = [model.image_to_robot(u, z) for u in inputs for z in zs]
+    monkeypatch.setattr(base, "_ROWS", None)
+    slow = [model.image_to_robot(u, z) for u in inputs for z in zs]
+    for a, b in zip(fast, slow, strict=True):
+        assert a.shape == (n, 3) and a.flags.c_contiguous
+        np.testing.assert_array_equal(a.view(np.int64), b.view(np.int64))
+    if name == "homography":
+        assert not np.isfinite(fast[0][:4, :2]).all() or np.abs(fast[0][:4, :2]).max() > 1e6
+
+
+def test_compiled_loop_refuses_what_it_cannot_read():
+    """The compiled functions check their buffers (type, layout, size) and raise, never read past one."""
+    from eyetohand import _rows
+
+    uv = np.zeros((5, 2))
+    h = np.eye(3).ravel()
+    out = np.empty((5, 3))
+    assert _rows.planar_rows(uv, h, True, 1.0, out) is True
+    with pytest.raises(ValueError, match="out: expected 15 float64 values"):
+        _rows.planar_rows(uv, h, True, 1.0, np.empty((4, 3)))
+    with pytest.raises(ValueError, match="z: expected 5 float64 values"):
+        _rows.planar_rows(uv, h, True, np.zeros(4), out)
+    with pytest.raises(ValueError, match="h: expected 9"):
+        _rows.planar_rows(uv, h[:6], False, 1.0, out)
+    with pytest.raises(ValueError, match="uv: expected float64 values in groups of 2"):
+        _rows.planar_rows(np.zeros(3), h, True, 1.0, out)
+    with pytest.raises(ValueError, match="uv: expected float64"):
+        _rows.planar_rows(uv.astype(np.float32), h, True, 1.0, out)
+    with pytest.raises(TypeError, match="uv: expected a C-contiguous float64"):
+        _rows.planar_rows(np.asfortranarray(np.zeros((5, 2))), h, True, 1.0, out)
+    with pytest.raises(TypeError, match="out: expected a C-contiguous writable"):
+        ro = np.empty((5, 3))
+        ro.flags.writeable = False
+        _rows.affine3_rows(uv, h, 0.0, 0.0, ro)
+    uv[2, 1] = np.nan
+    assert _rows.affine3_rows(uv, h, 0.0, 0.0, out) is False
+
+
+@pytest.mark.parametrize("name", ["affine", "homography", "paper"])
+def test_many_points_equal_the_numpy_map(name, rows_path):
+    """From CV_MIN_POINTS points the affine-family maps go through the compiled loop or, without
+    it, OpenCV; either must equal the elementwise NumPy path of smaller batches (and the batch map)
+    to 1e-9 mm, the horizon included for a homography."""
     from eyetohand.models.base import CV_CHUNK, CV_MIN_POINTS
 
     pairs = load_pairs(PAPER)
@@ -276,10 +355,10 @@ def test_lens_leave_one_out_holds_f_where_the_view_does_not_tell_it(case, monkey
 
 @pytest.mark.parametrize("name", ["affine", "homography", "paper"])
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
-def test_opencv_path_refuses_a_non_finite_pixel_in_any_chunk(name, bad):
-    """The OpenCV path checks finiteness chunk by chunk (an L1 norm): a NaN or ±inf anywhere — the
-    first chunk, a middle one, the short last one — is refused with as_uv's words, and nothing is
-    returned; the small-array path refuses it the same."""
+def test_many_points_refuse_a_non_finite_pixel_anywhere(name, bad, rows_path):
+    """The compiled loop tests every pixel's exponent bits, the OpenCV path each chunk's L1 norm: a
+    NaN or ±inf anywhere — the first chunk, a middle one, the short last one — is refused with
+    as_uv's words, and nothing is returned; the small-array path refuses it the same."""
     from eyetohand.models.base import CV_CHUNK, CV_MIN_POINTS
 
     pairs = load_pairs(PAPER)

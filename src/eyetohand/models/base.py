@@ -21,7 +21,7 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from enum import StrEnum
-from types import MappingProxyType
+from types import MappingProxyType, ModuleType
 from typing import Any, ClassVar
 
 import numpy as np
@@ -30,10 +30,23 @@ from ..errors import DegenerateError, InputError
 from ..normalize import spread_ratio
 from ..numdiff import batch_jacobian  # noqa: F401  (models' own estimation steps use it)
 
+_ROWS: ModuleType | None
+try:  # the optional compiled loop (setup.py); see rows_kernel
+    from .. import _rows as _ROWS
+except ImportError:
+    _ROWS = None
+
 COLLINEAR_RATIO = 1e-6
 MAP_CHUNK = 1 << 13  # points per elementwise pass of the models' one-parameter-set maps (stays in cache)
 CV_MIN_POINTS = 1 << 16  # from this many points, the affine maps go through OpenCV's one-pass loops
 CV_CHUNK = 1 << 16  # points per OpenCV call there (1 MB buffers, reused: no 16 MB intermediates)
+
+
+def rows_kernel():
+    """``eyetohand._rows``, the compiled one-pass loop for the lens-free planar maps of many pixels
+    (src/eyetohand/_rows.c, built at install), or None where it could not be built: the maps then
+    go through NumPy and, from ``CV_MIN_POINTS`` points, OpenCV — the same numbers, slower."""
+    return _ROWS
 
 
 def opencv():

@@ -33,6 +33,7 @@ from .base import (
     opencv,
     opencv_affine_rows_into,
     refuse_non_finite,
+    rows_kernel,
 )
 from .dlt3d import COPLANAR_RATIO, dlt_projection
 
@@ -138,12 +139,15 @@ class PaperB(Model):
         self._t = tuple(B[0, :, 3].tolist())
         # the same map as a 3×3 affine matrix on (u, v, 1): M⁻¹ (u − b14, v − b24, 1 − b34)
         G = Minv[0]
+        # the chunks' arithmetic as rows of (g0, g1, g2 (1 − b34)) for the compiled loop
+        dw = 1.0 - self._t[2]
+        self._rows_m = np.array([[g0, g1, g2 * dw] for g0, g1, g2 in self._Minv])
         self._affine3 = np.column_stack([G[:, :2], G @ (np.array([0.0, 0.0, 1.0]) - B[0, :, 3])])
 
     def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
-        """Equation (13) with the precomputed M⁻¹: one point on plain floats, many elementwise in
-        cache-sized chunks; the same arithmetic as ``batch_image_to_robot`` (z is computed, ``z_mm``
-        ignored)."""
+        """Equation (13) with the precomputed M⁻¹: one point on plain floats, many in one pass of the
+        compiled loop (``rows_kernel``) or, without it, elementwise in cache-sized chunks; the same
+        arithmetic as ``batch_image_to_robot`` (z is computed, ``z_mm`` ignored)."""
         (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = self._Minv
         t0, t1, t2 = self._t
         dw = 1.0 - t2
@@ -154,6 +158,12 @@ class PaperB(Model):
                 [[a0 * du + a1 * dv + a2 * dw, b0 * du + b1 * dv + b2 * dw, c0 * du + c1 * dv + c2 * dw]]
             )
         uv = as_uv(uv_px, check_finite=False)
+        rows = rows_kernel()
+        if rows is not None:  # one compiled pass, equal to the chunks below bit for bit
+            out = np.empty((len(uv), 3))
+            if not rows.affine3_rows(np.ascontiguousarray(uv), self._rows_m, t0, t1, out):
+                refuse_non_finite(uv)
+            return out
         if len(uv) >= CV_MIN_POINTS:
             cv2 = opencv()
             if cv2 is not None:  # equation (13) is affine in (u, v): one 3 → 3 transform into the rows

@@ -31,6 +31,7 @@ from .base import (
     opencv,
     opencv_xy_into,
     refuse_non_finite,
+    rows_kernel,
 )
 
 PLANAR_CONSTANTS = MappingProxyType({"T_uv": (3, 3), "T_xy": (3, 3), "plane_z_mm": ()})
@@ -72,6 +73,7 @@ class PlanarMatrixModel(Model):
             )
         self._H_px = H / H[2, 2]
         self._h = tuple(self._H_px.ravel().tolist())
+        self._h_flat = np.ascontiguousarray(self._H_px.ravel())
         self._M = tuple(self.batch_matrices(self.params[None])[0].ravel().tolist())
         self._affine = self._h[6] == 0.0 and self._h[7] == 0.0
         self._z0 = float(self.constants["plane_z_mm"])
@@ -135,7 +137,8 @@ class PlanarMatrixModel(Model):
 
     def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
         """As :meth:`Model.image_to_robot`, through the precomputed px → mm matrix: one point on plain
-        floats, many elementwise in cache-sized chunks (no BLAS, no (P, N, ·) temporaries). Equal to
+        floats; many, without a lens, in one pass of the compiled loop (``rows_kernel``), else — and
+        with a lens — elementwise in cache-sized chunks (no BLAS, no (P, N, ·) temporaries). Equal to
         ``batch_image_to_robot`` to rounding (tests/test_speed_paths.py)."""
         pt = one_point(uv_px)
         if pt is not None:
@@ -149,11 +152,19 @@ class PlanarMatrixModel(Model):
             with np.errstate(divide="ignore", invalid="ignore"):
                 return np.array([[(h0 * u + h1 * v + h2) / w, (h3 * u + h4 * v + h5) / w, z]])
         uv = as_uv(uv_px, check_finite=False)
-        if len(uv) >= CV_MIN_POINTS and type(self)._ideal_px is PlanarMatrixModel._ideal_px:
+        if type(self)._ideal_px is PlanarMatrixModel._ideal_px:  # no lens: one matrix on the pixels
             zq = self._z_for(1, z_mm)[0] if z_mm is None or np.ndim(z_mm) == 0 else self._z_for(len(uv), z_mm)
-            fast = self._map_opencv(uv, zq)
-            if fast is not None:
-                return fast
+            rows = rows_kernel()
+            if rows is not None:  # one compiled pass, equal to the chunks below bit for bit
+                out = np.empty((len(uv), 3))
+                zc = float(zq) if np.ndim(zq) == 0 else np.ascontiguousarray(zq)
+                if not rows.planar_rows(np.ascontiguousarray(uv), self._h_flat, not self._affine, zc, out):
+                    refuse_non_finite(uv)
+                return out
+            if len(uv) >= CV_MIN_POINTS:
+                fast = self._map_opencv(uv, zq)
+                if fast is not None:
+                    return fast
         refuse_non_finite(uv)
         zs = self._z_for(len(uv), z_mm)
         out = np.empty((len(uv), 3))
@@ -204,7 +215,8 @@ class PlanarMatrixModel(Model):
         )
 
     def _map_opencv(self, uv: np.ndarray, zs) -> np.ndarray | None:
-        """Many pixels (no lens) through OpenCV's float64 2 → 2 ``transform`` with the precomputed
+        """Where the compiled loop was not built (``rows_kernel()`` is None): many pixels (no lens)
+        through OpenCV's float64 2 → 2 ``transform`` with the precomputed
         px → mm matrix (``opencv_xy_into``: no BLAS, no 16 MB intermediates; a one-pass 2 → 3
         channel ``cv2.transform`` measured 2.3× slower). A homography takes two: its numerators
         and its w (in both channels), and ``cv2.divide`` — IEEE division, so a point on the horizon
