@@ -25,6 +25,48 @@ def test_import_does_not_pull_heavy_packages(module):
     assert json.loads(out.stdout) == []
 
 
+@pytest.mark.parametrize("name", ["affine", "homography", "homography-radial", "paper", "dlt3d", "camera"])
+def test_loading_a_calibration_and_mapping_a_point_pulls_no_heavy_package(name, tmp_path):
+    """What ``eyetohand apply CAL --uv U V`` does — load a file (which re-proves its statistics, its
+    outlier flags included) and map one guarded point with sigma — imports none of SciPy, OpenCV,
+    matplotlib, FastAPI (SciPy alone costs ~0.2 s of start-up)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from synth import grid_pairs, make_camera
+
+    from eyetohand.fit import calibrate
+
+    if name in ("dlt3d", "camera"):
+        pairs = grid_pairs(make_camera(dist=[-0.05, 0.01, 0, 0, 0], seed=3), 4, heights=(0.0, 40.0), seed=6)
+        z = "20.0"
+    else:
+        pairs = load_pairs(PAPER)
+        z = "None"
+    path = tmp_path / "cal.json"
+    calibrate(pairs, name, "lm").save(path)
+    u, v = pairs.uv_px.mean(axis=0).tolist()
+    code = (
+        "import json, sys; from eyetohand.calibration import Calibration; "
+        f"r = Calibration.load({str(path)!r}).map([{u}, {v}], {z}); "
+        f"print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))"
+    )
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout) == []
+
+
+def test_chi2_quantile_without_scipy_equals_scipys():
+    """The outlier test's χ² quantile, in closed form (no SciPy on a calibration's load), against
+    SciPy's ``2 gammainccinv(dof/2, q)``."""
+    from scipy.special import gammainccinv
+
+    from eyetohand.evaluate import _chi2_isf
+
+    for dof in range(1, 9):
+        for q in (0.999, 0.9, 0.5, 0.1, 1e-2, 1e-4, 1e-4 / 7, 1e-8, 1e-4 / 10**6, 1e-12, 1e-15):
+            assert _chi2_isf(q, dof) == pytest.approx(2.0 * gammainccinv(dof / 2.0, q), rel=1e-12, abs=0)
+
+
 # ---------------------------------------------------------------- one-parameter-set fast paths
 
 import numpy as np  # noqa: E402

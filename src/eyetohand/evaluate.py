@@ -26,6 +26,8 @@ left-out corner pair is an extrapolation whose error the model's structure, not 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .errors import InputError
@@ -36,10 +38,53 @@ OUTLIER_MIN_PAIRS = 8
 _FLOOR_MM = 1e-9
 
 
-def _chi2_isf(q: float, c: int) -> float:
-    from scipy.special import gammainccinv
+def _chi2_sf(x: float, dof: int) -> float:
+    """P(χ² > x) for an integer number of degrees of freedom, in closed form (all terms positive):
+    e^(−x/2) Σ_{j<dof/2} (x/2)^j / j! for even dof; erfc(√(x/2)) + e^(−x/2) Σ_{j=1}^{(dof−1)/2}
+    (x/2)^(j−½) / Γ(j+½) for odd."""
+    h = 0.5 * x
+    if dof % 2 == 0:
+        term, total = 1.0, 1.0
+        for j in range(1, dof // 2):
+            term *= h / j
+            total += term
+        return math.exp(-h) * total
+    total = 0.0
+    if dof > 1:
+        term = math.sqrt(h) / math.gamma(1.5)
+        total = term
+        for j in range(2, (dof + 1) // 2):
+            term *= h / (j - 0.5)
+            total += term
+    return math.erfc(math.sqrt(h)) + math.exp(-h) * total
 
-    return float(2.0 * gammainccinv(c / 2.0, q))
+
+def _chi2_isf(q: float, dof: int) -> float:
+    """x with P(χ²_dof > x) = q (0 < q < 1, integer dof ≥ 1): Newton on log P, kept inside a
+    bracket. SciPy's ``2 gammainccinv(dof/2, q)`` to ~1e-14 (tests/test_calibration.py), without
+    importing SciPy (~0.2 s) on every calibration load."""
+    if dof == 2:
+        return -2.0 * math.log(q)
+    lo, hi = 0.0, 2.0 * dof + 2.0
+    while _chi2_sf(hi, dof) > q:
+        lo, hi = hi, 2.0 * hi
+    log_q = math.log(q)
+    log_norm = 0.5 * dof * math.log(2.0) + math.lgamma(0.5 * dof)  # of the density
+    x = 0.5 * (lo + hi)
+    for _ in range(100):
+        s = _chi2_sf(x, dof)
+        if s > q:
+            lo = x
+        else:
+            hi = x
+        pdf = math.exp((0.5 * dof - 1.0) * math.log(x) - 0.5 * x - log_norm)
+        new = x + (math.log(s) - log_q) * s / pdf if s > 0.0 and pdf > 0.0 else 0.5 * (lo + hi)
+        if not lo < new < hi:
+            new = 0.5 * (lo + hi)
+        if abs(new - x) <= 4e-16 * x:
+            return new
+        x = new
+    return x
 
 
 def outlier_threshold_mm(errors_mm: np.ndarray, n_coords: int = 2, alpha: float = OUTLIER_ALPHA) -> float:

@@ -1,0 +1,78 @@
+"""Start-up of the command line against ``python -c "import numpy"``, in the same run (ratios).
+
+Three commands, each a fresh process, interleaved round by round so the machine's load falls on all
+of them alike: the peer ``python -c "import numpy"`` (the floor of any NumPy program), ``eyetohand
+--help`` and ``eyetohand apply CAL --uv U V`` on a saved homography calibration of the paper's pairs
+(one guarded point, the question a robot program asks). Wall time per process (median of the rounds)
+and the children's CPU time; goal ≤ 2× the peer for both commands.
+``python benchmarks/bench_startup.py [--rounds N]`` (~10 s at the default 15 rounds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from eyetohand.fit import calibrate
+from eyetohand.pairs import load_pairs
+
+PAPER = Path(__file__).resolve().parents[1] / "src" / "eyetohand" / "data" / "paper" / "calibration_points.csv"
+
+
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _run(cmd: list[str]) -> tuple[float, float]:
+    """(wall s, CPU s) of one process; it must succeed."""
+    c0, t0 = _children_cpu(), time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t0, _children_cpu() - c0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds (default 15)")
+    args = ap.parse_args()
+    exe = Path(sys.executable).with_name("eyetohand")
+    if not exe.exists():
+        sys.exit(f"error: {exe} not found: run from the project's venv (make setup)")
+    with tempfile.TemporaryDirectory() as tmp:
+        pairs = load_pairs(PAPER)
+        cal_path = Path(tmp) / "cal.json"
+        calibrate(pairs, "homography", "lm").save(cal_path)
+        u, v = (str(c) for c in pairs.uv_px.mean(axis=0).round(1))
+        commands = {
+            'python -c "import numpy"': [sys.executable, "-c", "import numpy"],
+            "eyetohand --help": [str(exe), "--help"],
+            "eyetohand apply CAL --uv U V": [str(exe), "apply", str(cal_path), "--uv", u, v],
+        }
+        for cmd in commands.values():  # warm the file cache
+            _run(cmd)
+        wall: dict[str, list[float]] = {k: [] for k in commands}
+        cpu: dict[str, list[float]] = {k: [] for k in commands}
+        for _ in range(args.rounds):
+            for name, cmd in commands.items():
+                w, c = _run(cmd)
+                wall[name].append(w)
+                cpu[name].append(c)
+    peer = next(iter(commands))
+    pw, pc = statistics.median(wall[peer]), statistics.median(cpu[peer])
+    print(f"Start-up, {args.rounds} interleaved rounds, median per process")
+    for name in commands:
+        w, c = statistics.median(wall[name]), statistics.median(cpu[name])
+        print(f"   {name:30s} wall {w * 1e3:6.0f} ms  CPU {c * 1e3:6.0f} ms")
+    for name in list(commands)[1:]:
+        w, c = statistics.median(wall[name]), statistics.median(cpu[name])
+        print(f"RATIO {name} / {peer}: {w / pw:.2f} wall, {c / pc:.2f} CPU (goal ≤ 2)")
+
+
+if __name__ == "__main__":
+    main()
