@@ -22,7 +22,7 @@ from pathlib import Path
 from eyetohand.fit import calibrate
 from eyetohand.pairs import load_pairs
 
-PAPER = Path(__file__).resolve().parents[1] / "src" / "eyetohand" / "data" / "paper" / "calibration_points.csv"
+PAPER = Path(__file__).resolve().parents[1] / "src/eyetohand/data/paper/calibration_points.csv"
 
 
 def _children_cpu() -> float:
