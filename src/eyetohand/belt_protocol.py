@@ -57,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .collect import NAME_RE, CommandError, _JsonlJournal, _now, _numbers, _reason
+from .collect import NAME_RE, CommandError, _JsonlJournal, _now, _reason, line_numbers
 from .conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor
 from .errors import InputError
 from .orientation import check_symmetry
@@ -211,7 +211,7 @@ class BeltProtocol:
         if args[: len(nums)] != nums or len(nums) != 4:
             raise CommandError(f"BELT: {len(nums)} numbers; expected u,v,e_image,e_now[,a=DEG][,s=N][,t=DEG]")
         conv = self._served()
-        u, v = _numbers(nums[:2], ("u", "v"), None)  # refused in the TCP mapping line's words
+        u, v = line_numbers(nums[:2], ("u", "v"), None)  # refused in the TCP mapping line's words
         e_img = _count(nums[2], "e_image", conv.encoder)
         e_now = _count(nums[3], "e_now", conv.encoder)
         opts: dict[str, float] = {}
@@ -219,7 +219,7 @@ class BeltProtocol:
             key, sep, text = w.partition("=")
             if not sep or key not in ORIENTATION_WORDS:
                 raise CommandError(f"BELT: unknown word {w[:20]!r}; expected a=DEG, s=N or t=DEG")
-            opts[key] = _numbers([text], (key,), None)[0]
+            opts[key] = line_numbers([text], (key,), None)[0]
         symmetry = opts.get("s", 1.0)
         if symmetry != int(symmetry):
             raise CommandError(f"s: {symmetry!r} is not a whole number")
@@ -237,7 +237,7 @@ class BeltProtocol:
         if len(args) != 3:
             raise CommandError(f"BELT TRACK: {len(args)} fields; expected u,v,e_image")
         conv = self._served()
-        u, v = _numbers(args[:2], ("u", "v"), "BELT TRACK")
+        u, v = line_numbers(args[:2], ("u", "v"), "BELT TRACK")
         e_img = _count(args[2], "e_image", conv.encoder)
         with np.errstate(all="ignore"):
             t = conv.tracking_form(np.array([[u, v]]), e_img)
@@ -333,7 +333,7 @@ class BeltProtocol:
         s = self._open()
         if len(args) != 5 or not args[0]:
             raise CommandError(f"BELT TOUCH: {len(args)} fields; expected <id>,<x>,<y>,<z>,<e>")
-        xyz = _numbers(args[1:4], ("x", "y", "z"), "BELT TOUCH")
+        xyz = line_numbers(args[1:4], ("x", "y", "z"), "BELT TOUCH")
         e = _count(args[4], "e", self.encoder)
         self._check_count(s, e, "BELT TOUCH")
         self._record({"op": "touch", "id": args[0], "xyz_mm": xyz, "e": e})

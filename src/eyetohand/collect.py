@@ -186,9 +186,10 @@ def _reason(text: str) -> str:
     return s if len(s) <= MAX_REASON else s[: MAX_REASON - 3] + "..."
 
 
-def _numbers(fields: list[str], names: str | tuple[str, ...], what: str | None) -> list[float]:
-    """Finite plain decimals, refused in the TCP mapping line's words (``u: 'abc' is not a number``,
-    after ``what: `` when given); ``6_00`` is not one, as in the library's loaders and on the TCP line."""
+def line_numbers(fields: list[str], names: str | tuple[str, ...], what: str | None) -> list[float]:
+    """Finite plain decimals of a line protocol (CAL, BELT and the TCP mapping line), refused as
+    ``u: 'abc' is not a number`` (after ``what: `` when given); ``6_00`` is not one, as in the
+    library's loaders."""
     out = []
     prefix = f"{what}: " if what else ""
     for name, text in zip(names, fields, strict=False):
@@ -502,7 +503,7 @@ class Collector:
         rest = args[1:]
         if len(rest) in (6, 7):
             plan = rest[0]
-            x0, y0, x1, y1, z = _numbers(rest[1:6], ("x0", "y0", "x1", "y1", "z"), "CAL BEGIN")
+            x0, y0, x1, y1, z = line_numbers(rest[1:6], ("x0", "y0", "x1", "y1", "z"), "CAL BEGIN")
             if x0 == x1 and y0 == y1:
                 raise CommandError("CAL BEGIN: the plan's rectangle has no area (x0 = x1 and y0 = y1)")
             try:
@@ -600,7 +601,7 @@ class Collector:
     def _point(self, args: list[str]) -> list:
         if len(args) not in (3, 4):
             raise CommandError(f"CAL POINT: {len(args)} fields; expected <x>,<y>,<z>[,<angle>]")
-        vals = _numbers(args, ("x", "y", "z", "angle"), "CAL POINT")
+        vals = line_numbers(args, ("x", "y", "z", "angle"), "CAL POINT")
         s = self._open()
         xyz, angle = vals[:3], (vals[3] if len(vals) == 4 else 0.0)
         for k, p in enumerate(s.points):
@@ -720,7 +721,7 @@ class Collector:
     def _check(self, args: list[str]) -> list:
         if len(args) != 3:
             raise CommandError(f"CAL CHECK: {len(args)} fields; expected <x>,<y>,<z>")
-        xyz = _numbers(args, ("x", "y", "z"), "CAL CHECK")
+        xyz = line_numbers(args, ("x", "y", "z"), "CAL CHECK")
         name = self.calibration_name
         cal = self.load_fn(name) if name else None
         if cal is None:

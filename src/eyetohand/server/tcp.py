@@ -26,6 +26,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..calibration import Calibration
+from ..collect import CommandError, line_numbers
 from ..errors import InputError
 
 MAX_LINE = 256
@@ -183,16 +184,12 @@ _WORDS = {"a": "angle_deg", "s": "symmetry", "t": "tool_rz_offset_deg"}
 
 
 def _number(name: str, text: str) -> tuple[float, bytes | None]:
-    """A finite plain decimal, or the ERR line that refuses it."""
+    """A finite plain decimal, or the ERR line that refuses it: the rule and words of every line
+    protocol's numbers (:func:`eyetohand.collect.line_numbers`)."""
     try:
-        if "_" in text:
-            raise ValueError(text)
-        x = float(text)
-    except ValueError:
-        return 0.0, f"ERR {name}: {text[:20]!r} is not a number\n".encode()
-    if not math.isfinite(x):
-        return 0.0, f"ERR {name}: {text[:20]!r} is not a finite number\n".encode()
-    return x, None
+        return line_numbers([text], (name,), None)[0], None
+    except CommandError as exc:
+        return 0.0, f"ERR {exc}\n".encode()
 
 
 def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
