@@ -248,11 +248,11 @@ def fit_progress(job: Job, model: str, optimizer: str, iterations: int):
     return progress
 
 
-def finish_fit(job: Job, fitted: Fitted, pso: bool) -> None:
-    """The fit's result on its job; a solver without progress (not ``pso``) gives its whole
-    history at once."""
+def finish_fit(job: Job, fitted: Fitted, optimizer: str) -> None:
+    """The fit's result on its job; a solver without progress (not a swarm, see
+    :func:`fit_progress`) gives its whole history at once."""
     job.fitted = fitted
-    if not pso:
+    if optimizer not in PSO_OPTIMIZERS:
         job.history = [_finite(h) for h in fitted.calibration.fit.history]
 
 
@@ -379,7 +379,8 @@ class Jobs:
         pso = self.check_pso_work(opts.optimizer, opts.particles, opts.iterations)
 
         def work(job: Job) -> None:
-            finish_fit(job, fit(opts, fit_progress(job, opts.model, opts.optimizer, opts.iterations)), pso)
+            fitted = fit(opts, fit_progress(job, opts.model, opts.optimizer, opts.iterations))
+            finish_fit(job, fitted, opts.optimizer)
 
         return self.submit("fit", work, opts.iterations if pso else 0)
 

@@ -378,7 +378,7 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
         diameter_px=req.diameter_px,
         left_out=list(run["left_out"]),
     )
-    core.finish_fit(job, fitted, req.optimizer in core.PSO_OPTIMIZERS)
+    core.finish_fit(job, fitted, req.optimizer)
 
 
 def _pairs_of(records: list[dict] | None, label: str) -> PointPairs | None:
