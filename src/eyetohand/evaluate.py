@@ -61,8 +61,8 @@ def _chi2_sf(x: float, dof: int) -> float:
 
 def _chi2_isf(q: float, dof: int) -> float:
     """x with P(χ²_dof > x) = q (0 < q < 1, integer dof ≥ 1): Newton on log P, kept inside a
-    bracket. SciPy's ``2 gammainccinv(dof/2, q)`` to ~1e-14 (tests/test_calibration.py), without
-    importing SciPy (~0.2 s) on every calibration load."""
+    bracket. SciPy's ``2 gammainccinv(dof/2, q)`` to 1e-12 relative (tests/test_speed_paths.py),
+    without importing SciPy (~0.2 s) on every calibration load."""
     if dof == 2:
         return -2.0 * math.log(q)
     lo, hi = 0.0, 2.0 * dof + 2.0

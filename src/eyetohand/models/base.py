@@ -38,7 +38,7 @@ except ImportError:
 
 COLLINEAR_RATIO = 1e-6
 MAP_CHUNK = 1 << 13  # points per elementwise pass of the models' one-parameter-set maps (stays in cache)
-CV_MIN_POINTS = 1 << 16  # from this many points, the affine maps go through OpenCV's one-pass loops
+CV_MIN_POINTS = 1 << 16  # without the compiled loop: from this many points, OpenCV's one-pass loops
 CV_CHUNK = 1 << 16  # points per OpenCV call there (1 MB buffers, reused: no 16 MB intermediates)
 
 
