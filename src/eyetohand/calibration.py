@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -594,14 +595,43 @@ def _same_uncertainty(
 
 def _check_numbers(obj, path: str) -> None:
     """Every number in the parsed file finite and within the float range (JSON allows 1e400)."""
+    if not _numbers_fine(obj):
+        _refuse_numbers(obj, path)
+
+
+def _numbers_fine(obj) -> bool:
+    """True when every number in ``obj`` (as ``json.loads`` gives it) is finite and within range;
+    False when one is not or a value is of another type: then :func:`_refuse_numbers` walks it with
+    the field names (building them for every value costs more than the whole check)."""
+    todo = [obj]
+    pop, extend = todo.pop, todo.extend
+    while todo:
+        o = pop()
+        t = type(o)
+        if t is float:
+            if not math.isfinite(o):
+                return False
+        elif t is dict:
+            extend(o.values())
+        elif t is list:
+            extend(o)
+        elif t is int:
+            if abs(o) > 2**63:
+                return False
+        elif t is not str and t is not bool and o is not None:
+            return False
+    return True
+
+
+def _refuse_numbers(obj, path: str) -> None:
     if isinstance(obj, dict):
         for k, v in obj.items():
-            _check_numbers(v, _join(path, k))
+            _refuse_numbers(v, _join(path, k))
     elif isinstance(obj, list):
         for i, v in enumerate(obj):
-            _check_numbers(v, _join(path, i))
+            _refuse_numbers(v, _join(path, i))
     elif isinstance(obj, float) and not np.isfinite(obj):
-        raise InputError(f"field '{path}': {obj!r} is not a finite number")
+        raise InputError(f"field '{path}': {float(obj)!r} is not a finite number")
     elif isinstance(obj, int) and not isinstance(obj, bool) and abs(obj) > 2**63:
         raise InputError(f"field '{path}': {obj} is too large a number")
 
