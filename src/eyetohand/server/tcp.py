@@ -329,7 +329,10 @@ class LineServer:
                 return
             while True:
                 try:
-                    line = await asyncio.wait_for(reader.readuntil(b"\n"), self.idle_s)
+                    # asyncio.timeout, not wait_for: wait_for runs the read as a task of its own, two
+                    # more turns of the event loop for every line
+                    async with asyncio.timeout(self.idle_s):
+                        line = await reader.readuntil(b"\n")
                 except (asyncio.LimitOverrunError, ValueError):
                     writer.write(f"ERR line longer than {MAX_LINE} bytes; closing\n".encode())
                     break
