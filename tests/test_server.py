@@ -692,6 +692,36 @@ def test_tcp_cut_last_line_and_auth_timeout(paper_pairs):
     asyncio.run(run())
 
 
+def test_tcp_idle_timeout_counts_from_the_last_line(paper_pairs):
+    """A connection is closed after ``idle_s`` without a line (with one ERR line saying so); every
+    line starts the count again, so a client sending more often than that is never cut off."""
+    from eyetohand import calibrate
+
+    cal = calibrate(paper_pairs[0], model="homography", optimizer="lm", loo=False)
+
+    async def run() -> None:
+        srv = LineServer(cal, "127.0.0.1", 0, idle_s=0.4)
+        await srv.start()
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+            t0 = time.monotonic()
+            for _ in range(6):  # 1.2 s in all, three times the idle limit
+                writer.write(b"600,900\n")
+                assert (await asyncio.wait_for(reader.readline(), 5)).count(b",") == 2
+                await asyncio.sleep(0.2)
+            assert time.monotonic() - t0 > 1.0
+            t1 = time.monotonic()
+            assert await asyncio.wait_for(reader.readline(), 5) == b"ERR idle for 0.4 s; closing\n"
+            assert 0.1 < time.monotonic() - t1 < 2.0
+            assert await asyncio.wait_for(reader.read(), 5) == b""
+            writer.close()
+            assert srv.clients == 0
+        finally:
+            srv.close()
+
+    asyncio.run(run())
+
+
 def test_serve_port_errors_are_one_line(capsys, tmp_path):
     import socket
     import subprocess
