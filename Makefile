@@ -5,8 +5,8 @@ STAMP := $(VENV)/.installed
 
 .PHONY: setup demo test lint format bench clean browser
 
-# setup.py builds the one compiled part (src/eyetohand/_rows.c) into the source tree
-$(STAMP): pyproject.toml setup.py src/eyetohand/_rows.c
+# setup.py builds the compiled parts (src/eyetohand/_rows.c, _swarm.c) into the source tree
+$(STAMP): pyproject.toml setup.py src/eyetohand/_rows.c src/eyetohand/_swarm.c src/eyetohand/_buffers.h
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'

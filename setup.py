@@ -1,19 +1,22 @@
-"""The one compiled part: a C loop for the lens-free planar maps of many pixels (src/eyetohand/_rows.c).
+"""The compiled parts: two small C extensions (src/eyetohand/_rows.c, a loop for the lens-free planar
+maps of many pixels; src/eyetohand/_swarm.c, the hybrid PSO's swarm steps).
 
-Optional — where it cannot be built (no C compiler) the package maps through NumPy and OpenCV: the
-same numbers, slower (docs/performance.md). Everything else is in pyproject.toml.
+Optional — where they cannot be built (no C compiler) the package runs the same steps in NumPy and
+OpenCV: the same numbers, slower (docs/performance.md). Everything else is in pyproject.toml.
 """
 
 from setuptools import Extension, setup
 
-setup(
-    ext_modules=[
-        Extension(
-            "eyetohand._rows",
-            sources=["src/eyetohand/_rows.c"],
-            # -ffp-contract=off: no fused multiply-add, so the loop equals the NumPy paths bit for bit
-            extra_compile_args=["-O3", "-ffp-contract=off"],
-            optional=True,
-        )
-    ]
-)
+
+def _extension(name: str) -> Extension:
+    return Extension(
+        f"eyetohand.{name}",
+        sources=[f"src/eyetohand/{name}.c"],
+        depends=["src/eyetohand/_buffers.h"],
+        # -ffp-contract=off: no fused multiply-add, so the loops equal the NumPy paths bit for bit
+        extra_compile_args=["-O3", "-ffp-contract=off"],
+        optional=True,
+    )
+
+
+setup(ext_modules=[_extension("_rows"), _extension("_swarm")])

@@ -25,7 +25,9 @@ model's batch_image_to_robot minus the robot points, exactly what calibrate(...,
 
 Then the same comparison on cheap vectorised 6-parameter fitnesses (sphere, Rosenbrock,
 Rastrigin), where the fitness costs almost nothing and the optimisers' own overhead is what is
-measured: hybrid 200 x 150 against pyswarms GlobalBestPSO 200 x 466, 93,200 evaluations each.
+measured: hybrid 200 x 150 against pyswarms GlobalBestPSO 200 x 466, 93,200 evaluations each;
+"hyb NumPy" is the hybrid without its compiled swarm steps (eyetohand._swarm), as on an install
+without a C compiler: the same numbers, its time beside the other two.
 
 sigma (the initial spread, per element of B): each element alone moves the mapped calibration
 points by 1/sqrt(12) mm RMS, so the whole 12-element perturbation moves them by ~1 mm RMS.
@@ -47,6 +49,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
+from eyetohand import optimize
 from eyetohand.objectives import objective_values
 from eyetohand.optimize import hybrid_pso, pso
 
@@ -324,13 +327,19 @@ def cheap_fitness(seeds, new_pyswarms, ps_iters) -> dict[str, tuple]:
     print("-" * len(head))
     out = {}
     for label, fn, x0, sig in cases:
-        rec = {m: {"t": [], "wall": [], "f": []} for m in ("hybrid", "pyswarms")}
+        rec = {m: {"t": [], "wall": [], "f": []} for m in ("hybrid", "hyb NumPy", "pyswarms")}
         for seed in seeds:
             for method in rec:
                 rng = np.random.default_rng(seed)
                 c0, t0 = time.process_time(), time.perf_counter()
                 if method == "hybrid":
                     f = hybrid_pso(fn, x0, sig, seed=rng).fun
+                elif method == "hyb NumPy":  # as where eyetohand._swarm could not be built
+                    kernel, optimize._SWARM = optimize._SWARM, None
+                    try:
+                        f = hybrid_pso(fn, x0, sig, seed=rng).fun
+                    finally:
+                        optimize._SWARM = kernel
                 else:
                     np.random.seed(seed)  # pyswarms draws from NumPy's global generator
                     opt = new_pyswarms(x0 + sig * rng.standard_normal((N_PARTICLES, x0.size)))

@@ -357,6 +357,62 @@ def test_pso_rejects_operator_switches():
 # ------------------------------------------------------------------ in-place implementation
 
 
+@pytest.fixture(params=["compiled", "numpy"])
+def swarm_path(request, monkeypatch):
+    """The iteration's swarm steps by the compiled module (eyetohand._swarm) or, as where it could
+    not be built, by NumPy."""
+    from eyetohand import optimize
+
+    if request.param == "numpy":
+        monkeypatch.setattr(optimize, "_SWARM", None)
+    else:
+        assert optimize.swarm_kernel() is not None
+    return request.param
+
+
+def test_compiled_swarm_steps_are_built():
+    """The install builds the compiled swarm steps (setup.py; optional only for machines without a
+    C compiler): CI's machine has one, so the benchmark's figures are of the steps users get."""
+    from eyetohand import _swarm, optimize
+
+    assert optimize.swarm_kernel() is _swarm
+
+
+def test_compiled_swarm_steps_refuse_what_they_cannot_read():
+    """Each compiled step checks its buffers (type, layout, size) and raises, never reads past one."""
+    from eyetohand import _swarm
+
+    n, d = 5, 3
+    x, v, r, partner = np.zeros((n, d)), np.zeros((n, d)), np.zeros((2, n, d)), np.zeros((2, n, d))
+    _swarm.move(x, v, partner, r, 0.7, 1.5, 1.5, None, None)
+    with pytest.raises(ValueError, match="r: expected 30 float64 values"):
+        _swarm.move(x, v, partner, np.zeros((2, 4, d)), 0.7, 1.5, 1.5, None, None)
+    with pytest.raises(ValueError, match="both or neither"):
+        _swarm.move(x, v, partner, r, 0.7, 1.5, 1.5, np.zeros(d), None)
+    with pytest.raises(ValueError, match="upper: expected 3 float64 values"):
+        _swarm.move(x, v, partner, r, 0.7, 1.5, 1.5, np.zeros(d), np.ones(2))
+    with pytest.raises(TypeError, match="x: expected a C-contiguous writable float64"):
+        _swarm.move(np.asfortranarray(np.zeros((n, d))), v, partner, r, 0.7, 1.5, 1.5, None, None)
+    children = np.empty((2, n, d))
+    ends = np.zeros((2, n, 2), dtype=np.int64)
+    _swarm.children(children, x, partner, ends)
+    with pytest.raises(ValueError, match="ends: expected int64"):
+        _swarm.children(children, x, partner, ends.astype(np.int32))
+    with pytest.raises(ValueError, match="children: expected 30 float64 values"):
+        _swarm.children(np.empty((2, 4, d)), x, partner, ends)
+    mc, fx, f = np.zeros((3, n, d)), np.zeros((3, n)), np.zeros(n)
+    _swarm.select(mc, fx, f)
+    with pytest.raises(ValueError, match="fx: expected 15 float64 values"):
+        _swarm.select(mc, fx[:2], f)
+    with pytest.raises(TypeError, match="f: expected a C-contiguous writable"):
+        ro = np.zeros(n)
+        ro.flags.writeable = False
+        _swarm.select(mc, fx, ro)
+    assert _swarm.bests(np.zeros((n, d)), np.full(n, 2.0), x, np.array([3.0, 1.0, 0.5, 0.5, 9.0])) == 2
+    with pytest.raises(ValueError, match="pbest_x: expected 15 float64 values"):
+        _swarm.bests(np.zeros((n, 2)), np.zeros(n), x, f)
+
+
 def _reference_hybrid(fitness, x0, sigma, n, iterations, seed, crossover=True, mutation=True, bounds=None):
     """The algorithm written plainly (fresh arrays everywhere), as it was before the in-place
     rewrite: the optimised hybrid_pso must give exactly these numbers."""
@@ -430,7 +486,7 @@ w_, c_ = 0.7153, 1.4801
         (rosenbrock, np.zeros(70), 0.5, {}),  # above the crossover mask table's dimension
     ],
 )
-def test_same_result_as_a_straightforward_implementation(fn, x0, sigma, kw):
+def test_same_result_as_a_straightforward_implementation(fn, x0, sigma, kw, swarm_path):
     res = hybrid_pso(fn, x0, sigma, n_particles=40, iterations=60, seed=11, **kw)
     x, fun, hist = _reference_hybrid(fn, x0, sigma, 40, 60, 11, **kw)
     assert res.x.tobytes() == x.tobytes() and res.fun == fun

@@ -17,6 +17,8 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "_buffers.h"
+
 /* 1 when x is NaN or ±inf: its 11 exponent bits are all ones. */
 #define NOT_FINITE_BITS(b) (((((b) >> 52) & 0x7ffu) + 1u) >> 11)
 
@@ -65,38 +67,6 @@ affine3_loop(const double *restrict uv, double *restrict out, const double *rest
         out[3 * i + 2] = (du * c0 + dv * c1) + c2;
     }
     return bad == 0;
-}
-
-/* A C-contiguous buffer of float64 with `count` items (count < 0: any multiple of -count). */
-static int
-get_doubles(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t count, const char *what)
-{
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, view, flags) < 0) {
-        PyErr_Clear();
-        PyErr_Format(PyExc_TypeError, "%s: expected a C-contiguous%s float64 array", what,
-                     writable ? " writable" : "");
-        return -1;
-    }
-    const char *f = view->format ? view->format : "B";
-    if (f[0] == '<' || f[0] == '=' || f[0] == '@') {
-        f++;
-    }
-    Py_ssize_t items = view->len / 8;
-    int ok = view->itemsize == 8 && strcmp(f, "d") == 0 && view->len % 8 == 0;
-    if (ok) {
-        ok = count >= 0 ? items == count : items % (-count) == 0;
-    }
-    if (!ok) {
-        PyBuffer_Release(view);
-        if (count >= 0) {
-            PyErr_Format(PyExc_ValueError, "%s: expected %zd float64 values", what, count);
-        } else {
-            PyErr_Format(PyExc_ValueError, "%s: expected float64 values in groups of %zd", what, -count);
-        }
-        return -1;
-    }
-    return 0;
 }
 
 PyDoc_STRVAR(planar_rows_doc,

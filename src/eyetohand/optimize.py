@@ -16,7 +16,10 @@ positions and returns ``(n,)`` fitness values. Random numbers are drawn in bulk 
 :class:`numpy.random.Generator`, so the same seed gives a bit-identical result. The swarm, its
 candidates and the random numbers live in buffers allocated once per run and updated in place
 (no per-iteration allocation of swarm-sized arrays); the operations and their order are those of
-the straightforward formulas, so results are the same, bit for bit.
+the straightforward formulas, so results are the same, bit for bit. Four steps of an iteration
+(the move, the crossover children, the elitist choice, the bests) run compiled where the install
+built ``eyetohand._swarm`` (:func:`swarm_kernel`), one pass each instead of several NumPy calls:
+the same draws and the same numbers, a third less time on a cheap fitness (docs/pso.md).
 
 Units: positions, ``x0``, ``sigma``, ``bounds`` and velocities are in the units of the
 optimisation parameters (for the paper's calibration matrix ``B``: pixels/mm for ``b11``..``b23``,
@@ -61,8 +64,15 @@ from __future__ import annotations
 import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from types import ModuleType
 
 import numpy as np
+
+_SWARM: ModuleType | None
+try:  # the optional compiled swarm steps (setup.py); see swarm_kernel
+    from . import _swarm as _SWARM
+except ImportError:
+    _SWARM = None
 
 __all__ = ["OptimizeResult", "hybrid_pso", "pso"]
 
@@ -106,6 +116,15 @@ class OptimizeResult:
     seed: object = field(default=None, repr=False)
     n_particles: int = 0
     nfev_per_iteration: int = 0
+
+
+def swarm_kernel() -> ModuleType | None:
+    """``eyetohand._swarm``, four steps of an iteration compiled (src/eyetohand/_swarm.c, built at
+    install): the move, the crossover children, the elitist choice and the bests, each one pass
+    instead of several NumPy calls. None where it could not be built: :func:`hybrid_pso` then runs
+    them in NumPy, with the same random draws and the same numbers (positions and bests bit for
+    bit), slower on a cheap fitness."""
+    return _SWARM
 
 
 def _int_option(name: str, value: object, minimum: int) -> int:
@@ -308,16 +327,61 @@ def hybrid_pso(
         np.fmin(values, np.inf, out=out)  # copies into our buffer; NaN -> +inf
         return out
 
-    def segment_masks() -> np.ndarray:
-        """(2, n, D) masks of random inclusive segments, both ends uniform in 0 .. D-1 per row
-        (the same draws, in the same order, as one (n, 2) draw per crossover)."""
-        ends = rng.integers(0, dim, size=(2, n, 2))
+    def segment_masks(ends: np.ndarray) -> np.ndarray:
+        """(2, n, D) masks of the inclusive segments between the (2, n, 2) ``ends``."""
         if mask_table is not None:
             return mask_table.take(ends @ end_weights, axis=0)
         lo = ends.min(axis=2, keepdims=True)
         hi = ends.max(axis=2, keepdims=True)
         cols = np.arange(dim)
         return (cols >= lo) & (cols <= hi)
+
+    # ---- the steps of an iteration: compiled (eyetohand._swarm) or NumPy, the same numbers --------
+    kernel = _SWARM
+
+    def move() -> None:
+        """Eqs (14) and (15) in place, with ``r`` drawn: v = w v + (c1 r1) (pbest - x) +
+        (c2 r2) (gbest - x); x = x + v; then clipped into the bounds."""
+        if kernel is not None:
+            kernel.move(x, v, partner, r, w, c1, c2, lower, upper)
+            return
+        np.multiply(r, coef, out=r)
+        np.multiply(r, np.subtract(partner, x, out=scratch), out=r)  # (children written after this)
+        np.multiply(v, w, out=v)
+        np.add(v, r[0], out=v)
+        np.add(v, r[1], out=v)
+        np.add(x, v, out=x)
+        if lower is not None:
+            np.clip(x, lower, upper, out=x)
+
+    def make_children(ends: np.ndarray) -> None:
+        """Each moved particle crossed with its personal best and, separately, with the global best,
+        over the segments between ``ends`` ((2, n, 2), both ends uniform in 0 .. D-1 per row: the
+        same draws, in the same order, as one (n, 2) draw per crossover)."""
+        if kernel is not None:
+            kernel.children(children, x, partner, ends)
+            return
+        children[...] = x
+        np.copyto(children, partner, where=segment_masks(ends))
+
+    def select() -> None:
+        """Elitist: each particle becomes the best of (particle, child with pbest, child with
+        gbest); ties keep the particle (argmin takes the first)."""
+        if kernel is not None:
+            kernel.select(moved_and_children, fx, f)
+            return
+        pick = fx.argmin(axis=0)
+        x[...] = moved_and_children[pick, rows]  # the gather copies before x is written
+        fx.min(axis=0, out=f)
+
+    def update_bests() -> int:
+        """Personal bests where improved; the index of the least."""
+        if kernel is not None:
+            return kernel.bests(pbest_x, pbest_f, x, f)
+        improved = f < pbest_f
+        np.copyto(pbest_x, x, where=improved[:, None])
+        np.copyto(pbest_f, f, where=improved)
+        return int(pbest_f.argmin())
 
     # ---- initial swarm ----------------------------------------------------------------------
     rng.standard_normal((n, dim), out=x)
@@ -339,19 +403,11 @@ def hybrid_pso(
         # 1. velocity and position update, eqs (14) and (15), in place:
         #    v = w v + (c1 r1) (pbest - x) + (c2 r2) (gbest - x);  x = x + v
         rng.random((2, n, dim), out=r)
-        r *= coef
-        r *= np.subtract(partner, x, out=scratch)  # (children are written after this)
-        v *= w
-        v += r[0]
-        v += r[1]
-        x += v
-        if lower is not None:
-            np.clip(x, lower, upper, out=x)
+        move()
         if crossover:
             # 2./3. segment crossover of the moved particle with its personal best and,
             # separately, with the global best
-            children[...] = x
-            np.copyto(children, partner, where=segment_masks())
+            make_children(rng.integers(0, dim, size=(2, n, 2)))
         if mutation:
             # 4. mutants: normally distributed around the global best, log-uniform step scale,
             # each aimed at one randomly chosen particle
@@ -365,11 +421,7 @@ def hybrid_pso(
         # one vectorised evaluation of the moved swarm and all candidates
         evaluate(n_rows)
         if crossover:
-            # elitist: keep the best of (particle, child with pbest, child with gbest);
-            # ties keep the particle (argmin takes the first)
-            pick = fx.argmin(axis=0)
-            x[...] = moved_and_children[pick, rows]  # the gather copies before x is written
-            fx.min(axis=0, out=f)
+            select()
         else:
             f[:] = fc[:n]
         if mutation:
@@ -379,10 +431,7 @@ def hybrid_pso(
                 won = idx[better]
                 x[won], f[won] = mutants[better], f_mut[better]
         # 5. personal and global best
-        improved = f < pbest_f
-        np.copyto(pbest_x, x, where=improved[:, None])
-        np.copyto(pbest_f, f, where=improved)
-        g = int(pbest_f.argmin())
+        g = update_bests()
         previous = gbest_f
         if pbest_f[g] < gbest_f:
             gbest_x, gbest_f = pbest_x[g].copy(), float(pbest_f[g])
