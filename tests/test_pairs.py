@@ -64,6 +64,8 @@ BAD = [
     ("bin.csv", b"\x00\x01\x02\x03u,v", r"binary file"),
     ("latin.csv", "u,v,x,y\n1,2,3,4 \xe9\n".encode("latin-1"), r"line 2: not UTF-8"),
     ("bool.json", '{"pairs": [{"u": true, "v": 2, "x": 3, "y": 4}]}', r"field 'u': True is not a number"),
+    ("far.csv", "u,v,x,y\n1,2,3,4\n2,1e200,3,5\n", r"line 3, field 'v': 1e\+200 is beyond ±1e\+09 px"),
+    ("farz.csv", "u,v,x,y,z\n1,2,3,4,5\n2,3,3,5,-2e9\n", r"line 3, field 'z': -2e\+09 is beyond ±1e\+09 mm"),
 ]
 
 
@@ -145,3 +147,56 @@ def test_input_error_carries_its_location_as_attributes(tmp_path):
 def test_underscore_literals_are_not_numbers(text):
     with pytest.raises(InputError, match="is not a number"):
         pairs_from_records([{"u": text, "v": 2, "x": 3, "y": 4}])
+
+
+def test_values_too_far_out_for_the_fits_are_refused_by_every_interface(tmp_path, capsys):
+    """A pixel or robot coordinate beyond ±1e9 is a typing or unit mistake, and the fits' products
+    overflow on it (1e200 gave 'internal error: Singular matrix' on the command line): the pairs are
+    refused where they are read, naming the point and field, in the library, the CLI and the API."""
+    from fastapi.testclient import TestClient
+
+    from eyetohand.cli import main
+    from eyetohand.pairs import MAX_ABS_VALUE, PointPairs
+    from eyetohand.server.app import create_app
+
+    uv = np.array([[1.0, 2.0], [300.0, 400.0], [500.0, 60.0], [70.0, 800.0]])
+    xyz = np.array([[1.0, 2.0, 0.0], [30.0, 40.0, 0.0], [50.0, 6.0, 0.0], [7.0, 80.0, 0.0]])
+    PointPairs.from_arrays(uv * (MAX_ABS_VALUE / 800), xyz)  # at the limit: read
+    far = xyz.copy()
+    far[2, 1] = 1e200
+    with pytest.raises(InputError, match=r"^<arrays> pairs\[2\], field 'y': 1e\+200 is beyond ±1e\+09 mm"):
+        PointPairs.from_arrays(uv, far)
+    path = write(
+        tmp_path,
+        "far.csv",
+        "u,v,x,y\n" + "\n".join(f"{a},{b},{c},{d}" for (a, b), (c, d, _) in zip(uv, far, strict=True)),
+    )
+    assert main(["calibrate", str(path), "--model", "affine", "-o", str(tmp_path / "c.json")]) == 2
+    err = capsys.readouterr().err
+    assert (
+        err
+        == f"error: {path} line 4, field 'y': 1e+200 is beyond ±1e+09 mm: no robot position is this far out\n"
+    )
+    records = [dict(zip("uvxyz", map(float, (*a, *b)), strict=True)) for a, b in zip(uv, far, strict=True)]
+    r = TestClient(create_app(tmp_path / "data")).post(
+        "/api/calibrations", json={"name": "far", "pairs": records, "model": "affine"}
+    )
+    assert r.status_code == 422 and r.json()["field"] == "pairs[2].y", r.text
+    assert "1e+200 is beyond ±1e+09 mm" in r.json()["error"]
+
+
+def test_a_singular_system_in_a_fit_is_one_input_error(monkeypatch, paper_pairs):
+    """A singular linear system inside a model's estimation that its own checks did not foresee is
+    refused as degenerate pairs (one line naming the pairs and the model), not an internal error."""
+    from eyetohand.errors import DegenerateError
+    from eyetohand.fit import fit_model
+    from eyetohand.models import get_model
+
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(get_model("homography"), "from_pairs", classmethod(singular))
+    with pytest.raises(DegenerateError) as err:
+        fit_model(paper_pairs[0], "homography")
+    assert str(err.value).endswith("model 'homography' cannot be solved on these pairs (Singular matrix)")
+    assert str(err.value).startswith(str(paper_pairs[0].source))

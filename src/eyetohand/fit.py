@@ -60,16 +60,25 @@ def fit_model(
         base = cls.from_pairs(pairs.uv_px, pairs.xyz_mm, image_size=image_size)
     except InputError as exc:
         raise type(exc)(f"{pairs.source}: {exc}") from None
-    return refine(
-        base,
-        pairs.uv_px,
-        pairs.xyz_mm,
-        optimizer=optimizer,
-        objective=objective,
-        seed=seed,
-        callback=callback,
-        **solver_options,
-    )
+    except np.linalg.LinAlgError as exc:  # a singular system the model's own checks did not foresee
+        raise _unsolvable(pairs, model, exc) from None
+    try:
+        return refine(
+            base,
+            pairs.uv_px,
+            pairs.xyz_mm,
+            optimizer=optimizer,
+            objective=objective,
+            seed=seed,
+            callback=callback,
+            **solver_options,
+        )
+    except np.linalg.LinAlgError as exc:
+        raise _unsolvable(pairs, model, exc) from None
+
+
+def _unsolvable(pairs: PointPairs, model: str, exc: np.linalg.LinAlgError) -> DegenerateError:
+    return DegenerateError(f"{pairs.source}: model {model!r} cannot be solved on these pairs ({exc})")
 
 
 def folds_for(n: int, seed=0) -> list[np.ndarray]:

@@ -27,6 +27,11 @@ OPTIONAL = ("z", "id", "angle")
 MAX_FILE_BYTES = 200 * 1024 * 1024
 
 
+MAX_ABS_VALUE = 1e9
+"""The largest |u|, |v| (px) and |x|, |y|, |z| (mm) a pair may have: no image has a pixel, and no robot
+a position (1000 km), this far out; past it the fits' squares and products overflow (a value of 1e200
+was 'internal error: Singular matrix', or a fit that had lost its digits)."""
+
 ROBOT_UNITS = {"mm": 1.0, "m": 1000.0, "in": 25.4}
 """Robot coordinate units :meth:`PointPairs.scaled_to_mm` converts, and their size in mm."""
 
@@ -373,6 +378,14 @@ def _check_values(pairs: PointPairs, wheres: list[_Where]) -> None:
     if not np.isfinite(pairs.uv_px).all() or not np.isfinite(pairs.xyz_mm).all():
         bad = int(np.flatnonzero(~np.isfinite(np.c_[pairs.uv_px, pairs.xyz_mm]).all(1))[0])
         raise wheres[bad].error("values must be finite numbers")
+    values = np.c_[pairs.uv_px, pairs.xyz_mm]
+    if (np.abs(values) > MAX_ABS_VALUE).any():
+        i, j = (int(k) for k in np.argwhere(np.abs(values) > MAX_ABS_VALUE)[0])
+        raise wheres[i].error(
+            f"{values[i, j]:g} is beyond ±{MAX_ABS_VALUE:g} {'px' if j < 2 else 'mm'}: no "
+            f"{'pixel' if j < 2 else 'robot position'} is this far out",
+            "uvxyz"[j],
+        )
     first_seen: dict[str, int] = {}
     for i, pid in enumerate(pairs.ids):
         if pid in first_seen:

@@ -108,8 +108,6 @@ def fit(opts: FitOptions, callback=None) -> Fitted:
         )
     except InputError as exc:
         raise input_error(exc, "pairs") from None
-    except np.linalg.LinAlgError as exc:
-        raise ApiError(422, f"pairs: the model cannot be solved on these pairs ({exc})", "pairs") from None
     try:  # what is stored and answered must be finite: a fit that is not is the pairs' fault
         json.dumps(cal.to_dict(), allow_nan=False)
     except ValueError:
