@@ -1295,3 +1295,23 @@ def test_tcp_takes_the_orientation_words_apply_and_http_take(client):
     assert tcp_answer(cal, b"600,900,a=30,s=1.5").startswith(b"ERR s: 1.5 is not a whole number")
     assert tcp_answer(cal, b"600,900,a=30,s=0").startswith(b"ERR symmetry must be a whole number")
     assert tcp_answer(cal, b"600,900,q=1").startswith(b"ERR unknown word 'q=1'")
+
+
+def test_the_mapping_routes_are_matched_first_and_shadow_no_other_route(tmp_path):
+    """Requests are matched against the routes in order; the mapping routes (the robot's hot path)
+    come first, which is only harmless because no other route matches their paths."""
+    from starlette.routing import Match
+
+    from eyetohand.server.routes import calibrations, collect, images, jobs, mapping, meta, page, pairs
+
+    app = create_app(tmp_path / "data")
+    first = app.router.routes[1]  # after /openapi.json: an included router (FastAPI 0.165) or its first route
+    tried_first = first.original_router.routes if hasattr(first, "original_router") else [first]
+    assert str(getattr(tried_first[0], "path", "")).endswith("/image-to-robot"), first
+    for path in ("/api/calibrations/1/image-to-robot", "/api/jobs/abc/image-to-robot"):
+        scope = {"type": "http", "path": path, "method": "POST", "root_path": ""}
+        assert any(r.matches(scope)[0] == Match.FULL for r in mapping.router.routes)
+        for mod in (page, meta, pairs, calibrations, jobs, collect, images):
+            for r in mod.router.routes:
+                assert r.matches(scope)[0] == Match.NONE, (mod.__name__, r.path)
+    app.state.store.close()

@@ -103,7 +103,9 @@ def create_app(
     app.state.store = service.store  # kept for callers that close the store themselves
     app.state.jobs = service.jobs
     install_handlers(app)
-    for r in (page, meta, pairs, calibrations, mapping, jobs, collect, images):
+    # mapping first: a request is matched against the routes in order, and the robot's mapping calls
+    # are the hot path (no other route matches their paths; tested)
+    for r in (mapping, page, meta, pairs, calibrations, jobs, collect, images):
         app.include_router(r.router)
     page.mount_static(app)
 
