@@ -242,19 +242,25 @@ async def tcp_clients(port: int, lines: list[list[bytes]]) -> list[float]:
 
 
 def on_one_core(server_pid: int, port: int, lines: list[list[bytes]]) -> list[float]:
-    """``tcp_clients(port, lines)`` with this client and the server's event-loop thread on CPU 0,
-    then both back on every CPU. One client's round trip is two wake-ups: across cores on a VM
-    each can cost 0.1–0.5 ms, and which core a server lands on follows from its threads, not its
-    code; on one core both servers are measured alike (an unpinned and a pinned line are printed)."""
+    """``tcp_clients(port, lines)`` with this client and every thread of the server on CPU 0, then all
+    back on every CPU. One client's round trip is two wake-ups: across cores on a VM each can cost
+    0.1-0.5 ms, and which core a server lands on follows from its threads, not only its code; on one
+    core both servers are measured alike (an unpinned and a pinned line are printed)."""
     cpus = os.sched_getaffinity(0)
     if 0 not in cpus:
         return asyncio.run(tcp_clients(port, lines))
+    threads = [int(t) for t in os.listdir(f"/proc/{server_pid}/task")]
     try:
         os.sched_setaffinity(0, {0})
-        os.sched_setaffinity(server_pid, {0})
+        for tid in threads:
+            os.sched_setaffinity(tid, {0})
         return asyncio.run(tcp_clients(port, lines))
     finally:
-        os.sched_setaffinity(server_pid, cpus)
+        for tid in threads:
+            try:
+                os.sched_setaffinity(tid, cpus)
+            except ProcessLookupError:  # a pool thread that ended meanwhile
+                pass
         os.sched_setaffinity(0, cpus)
 
 
