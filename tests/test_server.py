@@ -1315,3 +1315,32 @@ def test_the_mapping_routes_are_matched_first_and_shadow_no_other_route(tmp_path
             for r in mod.router.routes:
                 assert r.matches(scope)[0] == Match.NONE, (mod.__name__, r.path)
     app.state.store.close()
+
+
+def test_the_line_service_on_a_loop_thread_answers_and_stops_cleanly(paper_pairs):
+    """``serve`` runs the line service on an event loop of its own (a thread): it answers from there,
+    and stopping it cancels its connections, ends the thread and closes the loop, with a client
+    still connected."""
+    import socket
+
+    from eyetohand import calibrate
+    from eyetohand.server.tcp import LoopThread
+
+    cal = calibrate(paper_pairs[0], model="homography", optimizer="lm", loo=False)
+    t = LoopThread(name="test-tcp")
+    srv = LineServer(cal, "127.0.0.1", 0)
+
+    async def start() -> None:
+        await t.call(srv.start())
+
+    asyncio.run(start())
+    with socket.create_connection(("127.0.0.1", srv.port), timeout=5) as s:
+        f = s.makefile("rb")
+        s.sendall(b"600,900\n")
+        assert f.readline() == tcp_answer(cal, b"600,900")
+        assert srv.clients == 1
+        t.loop.call_soon_threadsafe(srv.close)
+        t.stop()
+        assert not t._thread.is_alive() and t.loop.is_closed()
+        assert f.readline() == b""  # the connection was closed by the stop
+    t.stop()  # a second stop does nothing

@@ -1,5 +1,7 @@
 """What ``eyetohand serve`` runs: the workbench page and JSON API (uvicorn), and optionally the TCP line
-service. The command itself (its options) is :mod:`eyetohand.cli.serve`."""
+service, on an event loop of its own in a thread (:class:`~eyetohand.server.tcp.LoopThread`: one robot
+client's p50 went from 1.7-3.2x a minimal asyncio line server to 1.2-1.4x, benchmarks/bench_server.py).
+The command itself (its options) is :mod:`eyetohand.cli.serve`."""
 
 from __future__ import annotations
 
@@ -136,14 +138,24 @@ def store_load_fn(store):
 
 
 async def _serve(args, data_dir) -> None:
+    loops: list = []  # the line service's loop thread, stopped however _run_serve ends
+    try:
+        await _run_serve(args, data_dir, loops)
+    finally:
+        for t in loops:
+            t.stop()
+
+
+async def _run_serve(args, data_dir, loops: list) -> None:
     import uvicorn
 
     from .app import LOOPBACK_HOSTS, create_app
     from .storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
-    from .tcp import LineServer, PendingCalibration, StoredCalibration
+    from .tcp import LineServer, LoopThread, PendingCalibration, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     line_server = None
+    tcp_loop: LoopThread | None = None
     collector = source = belt = app = None
     data_dir = Path(data_dir)
     camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
@@ -183,7 +195,10 @@ async def _serve(args, data_dir) -> None:
         else:
             what = f"the file {served.label} (sha256 {served.sha256[:12]}…)"
         commands: dict[str, Callable[[str], str]] = {}
-        loop = asyncio.get_running_loop()
+        # the line service runs on a loop of its own: the robot's lines never wait behind HTTP work
+        tcp_loop = LoopThread()
+        loops.append(tcp_loop)
+        loop = tcp_loop.loop  # follow() is called on it from a collection's thread
         try:
             if camera:
                 from ..collect import Collector
@@ -229,7 +244,7 @@ async def _serve(args, data_dir) -> None:
             raise ServeError(str(exc).splitlines()[0]) from None
         line_server = LineServer(served, host, port, token=args.token, commands=commands)
         try:
-            await line_server.start()
+            await tcp_loop.call(line_server.start())
         except OSError as exc:
             http_sock.close()
             raise ServeError(f"--tcp {args.tcp}: cannot listen there ({exc.strerror or exc})") from None
@@ -260,8 +275,9 @@ async def _serve(args, data_dir) -> None:
     try:
         await server.serve(sockets=[http_sock])
     finally:
-        if line_server is not None:
-            line_server.close()
+        if line_server is not None and tcp_loop is not None:
+            tcp_loop.loop.call_soon_threadsafe(line_server.close)
+            tcp_loop.stop()  # before the collector and the store it uses are closed
         if collector is not None:
             collector.close()
         if source is not None:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import hmac
 import math
+import threading
 from collections.abc import Callable
 
 import numpy as np
@@ -379,3 +380,37 @@ async def _close(writer: asyncio.StreamWriter) -> None:
         await writer.wait_closed()
     except (ConnectionError, asyncio.CancelledError):
         pass
+
+
+class LoopThread:
+    """An event loop of its own, run by a daemon thread: ``eyetohand serve`` puts the line service on
+    one, so that the robot's lines never wait behind the workbench's HTTP work (or its server's
+    periodic wake-ups) on the main loop. :meth:`call` runs a coroutine there from any thread;
+    :meth:`stop` cancels what still runs there, then ends the thread."""
+
+    def __init__(self, name: str = "eyetohand-tcp"):
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, name=name, daemon=True)
+        self._thread.start()
+
+    async def call(self, coro):
+        """Await ``coro`` run on this loop (from a coroutine on another loop)."""
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, self.loop))
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        async def cancel_rest() -> None:
+            rest = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+            for t in rest:
+                t.cancel()
+            await asyncio.gather(*rest, return_exceptions=True)
+
+        if self.loop.is_closed():
+            return
+        try:
+            asyncio.run_coroutine_threadsafe(cancel_rest(), self.loop).result(timeout_s)
+        except (TimeoutError, RuntimeError):
+            pass
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(timeout_s)
+        if not self._thread.is_alive():
+            self.loop.close()
