@@ -1,6 +1,7 @@
 """What ``eyetohand serve`` runs: the workbench page and JSON API (uvicorn), and optionally the TCP line
 service, on an event loop of its own in a thread (:class:`~eyetohand.server.tcp.LoopThread`: one robot
-client's p50 went from 1.7-3.2x a minimal asyncio line server to 1.2-1.4x, benchmarks/bench_server.py).
+client's p50 went from 1.7-3.2x a minimal asyncio line server to 1.2-1.4x in five of six runs,
+benchmarks/bench_server.py).
 The command itself (its options) is :mod:`eyetohand.cli.serve`."""
 
 from __future__ import annotations
