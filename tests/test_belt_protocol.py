@@ -213,6 +213,8 @@ def test_belt_refusals_one_err_each(tmp_path, source, collected):
     assert nothing.handle("BELT SIGHT p2").startswith("ERR BELT SIGHT: no count given")
     assert nothing.handle("BELT TOUCH p1,1,2,3,900").startswith("ERR BELT TOUCH: count 900 is 200 counts")
     assert nothing.handle("BELT TOUCH p1,1,2,3,1098") == "OK 1"  # back by 2: within the noise allowance
+    far = "BELT TOUCH: y: 2e+10 is more than 1e+09 mm from 0: no robot position is this far out"
+    assert nothing.handle("BELT TOUCH p1,1,2e10,3,1098") == f"ERR {far}"  # the pairs loaders' words
     assert nothing.handle("BELT END").startswith("ERR fit failed: ")
     assert nothing.handle("BELT STATUS") == "OK b1,2,1,collecting"  # the session stays open
     nothing.close()

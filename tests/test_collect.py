@@ -558,3 +558,18 @@ def test_serve_killed_after_12_points_resumes(tmp_path, cell_file, rect, run_sim
     assert len(vers) == 1
     ref = Calibration.load(run_sim["store"] / "cell1.json").to_dict()
     assert cal.to_dict()["model"] == ref["model"] and cal.data_sha256 == ref["data_sha256"]
+
+
+def test_robot_positions_beyond_the_pairs_limit_are_refused_where_they_come_in(tmp_path):
+    """A robot position beyond ±1e9 mm is refused by CAL BEGIN and CAL POINT before anything is
+    grabbed or recorded, in the words the pairs loaders use for it (and BELT TOUCH and session files
+    alike: tests/test_belt_protocol.py, tests/test_conveyor.py)."""
+    (tmp_path / "shots").mkdir()
+    col = Collector(tmp_path / "store", open_source(f"folder:{tmp_path / 'shots'}?timeout=0.2"))
+    far = "1e+200 is more than 1e+09 mm from 0: no robot position is this far out"
+    assert col.handle("CAL BEGIN t1,grid:3x3,0,0,1e200,100,150") == f"ERR CAL BEGIN: x1: {far}"
+    assert col.handle("CAL BEGIN t1") == "OK"
+    assert col.handle("CAL POINT 1,1e200,150") == f"ERR CAL POINT: y: {far}"
+    assert col.handle("CAL POINT 1,2,150,1e200").startswith("ERR timeout")  # an angle is no position
+    assert col.handle("CAL STATUS") == "OK t1,0,collecting"
+    col.close()

@@ -247,6 +247,15 @@ def test_session_format_errors_name_line_and_field():
         session_from_text(HEAD + "sight,a,1_0,2,,,,3\n", "s.csv")
     with pytest.raises(InputError, match=r"s.csv line 2, field 'e': '1_000' is not a number"):
         session_from_text(HEAD + "sight,a,1,2,,,,1_000\n", "s.csv")
+    # coordinates beyond the pairs' limit, in the pairs loaders' words
+    with pytest.raises(
+        InputError, match=r"s.csv line 2, field 'v': 1e\+200 is more than 1e\+09 px from 0: no pixel"
+    ):
+        session_from_text(HEAD + "sight,a,1,1e200,,,,3\n", "s.csv")
+    with pytest.raises(
+        InputError, match=r"s.csv line 2, field 'z': -2e\+09 is more than 1e\+09 mm from 0: no robot"
+    ):
+        session_from_text(HEAD + "touch,a,,,1,2,-2e9,3\n", "s.csv")
 
 
 def test_session_files_are_read_bounded(tmp_path):

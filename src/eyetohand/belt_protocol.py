@@ -333,7 +333,7 @@ class BeltProtocol:
         s = self._open()
         if len(args) != 5 or not args[0]:
             raise CommandError(f"BELT TOUCH: {len(args)} fields; expected <id>,<x>,<y>,<z>,<e>")
-        xyz = line_numbers(args[1:4], ("x", "y", "z"), "BELT TOUCH")
+        xyz = line_numbers(args[1:4], ("x", "y", "z"), "BELT TOUCH", "mm")
         e = _count(args[4], "e", self.encoder)
         self._check_count(s, e, "BELT TOUCH")
         self._record({"op": "touch", "id": args[0], "xyz_mm": xyz, "e": e})

@@ -74,6 +74,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .pairs import beyond_limit
 
 STILL_TOL_PX = 0.2
 POSE_MATCH_MM = 0.01
@@ -186,10 +187,13 @@ def _reason(text: str) -> str:
     return s if len(s) <= MAX_REASON else s[: MAX_REASON - 3] + "..."
 
 
-def line_numbers(fields: list[str], names: str | tuple[str, ...], what: str | None) -> list[float]:
+def line_numbers(
+    fields: list[str], names: str | tuple[str, ...], what: str | None, unit: str | None = None
+) -> list[float]:
     """Finite plain decimals of a line protocol (CAL, BELT and the TCP mapping line), refused as
     ``u: 'abc' is not a number`` (after ``what: `` when given); ``6_00`` is not one, as in the
-    library's loaders."""
+    library's loaders. With ``unit`` ("mm" or "px") they are coordinates of pairs, refused beyond
+    ±1e9 as the loaders refuse them (:func:`eyetohand.pairs.beyond_limit`)."""
     out = []
     prefix = f"{what}: " if what else ""
     for name, text in zip(names, fields, strict=False):
@@ -201,6 +205,9 @@ def line_numbers(fields: list[str], names: str | tuple[str, ...], what: str | No
             raise CommandError(f"{prefix}{name}: {text[:20]!r} is not a number") from None
         if not math.isfinite(v):
             raise CommandError(f"{prefix}{name}: {text[:20]!r} is not a finite number")
+        far = beyond_limit(v, unit) if unit else None
+        if far:
+            raise CommandError(f"{prefix}{name}: {far}")
         out.append(v)
     return out
 
@@ -503,7 +510,7 @@ class Collector:
         rest = args[1:]
         if len(rest) in (6, 7):
             plan = rest[0]
-            x0, y0, x1, y1, z = line_numbers(rest[1:6], ("x0", "y0", "x1", "y1", "z"), "CAL BEGIN")
+            x0, y0, x1, y1, z = line_numbers(rest[1:6], ("x0", "y0", "x1", "y1", "z"), "CAL BEGIN", "mm")
             if x0 == x1 and y0 == y1:
                 raise CommandError("CAL BEGIN: the plan's rectangle has no area (x0 = x1 and y0 = y1)")
             try:
@@ -601,7 +608,8 @@ class Collector:
     def _point(self, args: list[str]) -> list:
         if len(args) not in (3, 4):
             raise CommandError(f"CAL POINT: {len(args)} fields; expected <x>,<y>,<z>[,<angle>]")
-        vals = line_numbers(args, ("x", "y", "z", "angle"), "CAL POINT")
+        vals = line_numbers(args[:3], ("x", "y", "z"), "CAL POINT", "mm")
+        vals += line_numbers(args[3:], ("angle",), "CAL POINT")
         s = self._open()
         xyz, angle = vals[:3], (vals[3] if len(vals) == 4 else 0.0)
         for k, p in enumerate(s.points):

@@ -51,7 +51,7 @@ from .errors import DegenerateError, InputError
 from .fit import calibrate
 from .io import atomic_write_text, read_bounded_text
 from .models import get_model
-from .pairs import PointPairs, _csv_rows, _Where
+from .pairs import PointPairs, _csv_rows, _Where, beyond_limit
 from .pairs import _number as _pairs_number
 
 SCHEMA = "eyetohand.conveyor"
@@ -287,6 +287,10 @@ class Session:
                 raise InputError(f"{where}, field 'id': empty, expected the part's id")
             cols = ("u", "v") if k == "sight" else ("x", "y", "z")
             vals = [_number(r.get(c), where, c) for c in cols]
+            for c, x in zip(cols, vals, strict=True):
+                far = beyond_limit(x, "px" if k == "sight" else "mm")
+                if far:
+                    raise InputError(f"{where}, field '{c}': {far}")
             if k == "sight":
                 uv[i] = vals
                 mv = r.get("moving")

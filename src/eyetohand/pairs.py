@@ -32,6 +32,16 @@ MAX_ABS_VALUE = 1e9
 a position (1000 km), this far out; past it the fits' squares and products overflow (a value of 1e200
 was 'internal error: Singular matrix', or a fit that had lost its digits)."""
 
+
+def beyond_limit(value: float, unit: str) -> str | None:
+    """Why a pixel (``unit`` "px") or robot coordinate ("mm") of a pair is refused when it is beyond
+    ±:data:`MAX_ABS_VALUE`, else None: the one rule of every loader and line protocol that takes them."""
+    if abs(value) <= MAX_ABS_VALUE:
+        return None
+    what = "pixel" if unit == "px" else "robot position"
+    return f"{value:g} is more than {MAX_ABS_VALUE:g} {unit} from 0: no {what} is this far out"
+
+
 ROBOT_UNITS = {"mm": 1.0, "m": 1000.0, "in": 25.4}
 """Robot coordinate units :meth:`PointPairs.scaled_to_mm` converts, and their size in mm."""
 
@@ -375,17 +385,14 @@ def _number(value, where: _Where, field_name: str) -> float:
 
 def _check_values(pairs: PointPairs, wheres: list[_Where]) -> None:
     name = pairs.source
-    if not np.isfinite(pairs.uv_px).all() or not np.isfinite(pairs.xyz_mm).all():
-        bad = int(np.flatnonzero(~np.isfinite(np.c_[pairs.uv_px, pairs.xyz_mm]).all(1))[0])
-        raise wheres[bad].error("values must be finite numbers")
     values = np.c_[pairs.uv_px, pairs.xyz_mm]
-    if (np.abs(values) > MAX_ABS_VALUE).any():
-        i, j = (int(k) for k in np.argwhere(np.abs(values) > MAX_ABS_VALUE)[0])
-        raise wheres[i].error(
-            f"{values[i, j]:g} is beyond ±{MAX_ABS_VALUE:g} {'px' if j < 2 else 'mm'}: no "
-            f"{'pixel' if j < 2 else 'robot position'} is this far out",
-            "uvxyz"[j],
-        )
+    if not np.isfinite(values).all():
+        bad = int(np.flatnonzero(~np.isfinite(values).all(1))[0])
+        raise wheres[bad].error("values must be finite numbers")
+    far = np.abs(values) > MAX_ABS_VALUE
+    if far.any():
+        i, j = (int(k) for k in np.argwhere(far)[0])
+        raise wheres[i].error(str(beyond_limit(values[i, j], "px" if j < 2 else "mm")), "uvxyz"[j])
     first_seen: dict[str, int] = {}
     for i, pid in enumerate(pairs.ids):
         if pid in first_seen:
