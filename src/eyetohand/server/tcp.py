@@ -385,8 +385,9 @@ async def _close(writer: asyncio.StreamWriter) -> None:
 class LoopThread:
     """An event loop of its own, run by a daemon thread: ``eyetohand serve`` puts the line service on
     one, so that the robot's lines never wait behind the workbench's HTTP work (or its server's
-    periodic wake-ups) on the main loop. :meth:`call` runs a coroutine there from any thread;
-    :meth:`stop` cancels what still runs there, then ends the thread."""
+    periodic wake-ups) on the main loop. :meth:`call` runs a coroutine there and awaits it from
+    another loop; :meth:`stop` (from any thread but its own) cancels what still runs there, then ends
+    the thread."""
 
     def __init__(self, name: str = "eyetohand-tcp"):
         self.loop = asyncio.new_event_loop()
