@@ -1,11 +1,11 @@
 """Solvers refine a model's flat parameter vector against a robot-space objective.
 
 A registry, name → :class:`Solver`: ``linear`` keeps the model's closed-form estimate; ``lm`` is
-Levenberg–Marquardt (SciPy ``least_squares``) on the residuals of equation (16); ``hybrid-pso`` and
-``pso`` are the paper's hybrid particle swarm (section IV) and its plain ablation, from
-:mod:`eyetohand.optimize`. Each solver declares the objectives it can minimise and its options, which
-are validated before any work starts. Solvers know nothing about cameras: they see
-``model.batch_image_to_robot``.
+Levenberg–Marquardt (MINPACK, as SciPy's ``least_squares`` runs it: :mod:`eyetohand.lm`) on the
+residuals of equation (16); ``hybrid-pso`` and ``pso`` are the paper's hybrid particle swarm (section
+IV) and its plain ablation, from :mod:`eyetohand.optimize`. Each solver declares the objectives it can
+minimise and its options, which are validated before any work starts. Solvers know nothing about
+cameras: they see ``model.batch_image_to_robot``.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import DegenerateError, InputError
+from .lm import levenberg_marquardt
 from .models import Model
 from .numdiff import batch_jacobian
 from .objectives import OBJECTIVES, SMOOTH_OBJECTIVES, check_objective, huber_delta_mm, objective_values
@@ -88,8 +89,8 @@ def _lm(problem: Problem, **_):
         return batch_jacobian(fun_batch, p)
 
     extra: dict[str, float] = {}
-    if objective == "l2":
-        sol = least_squares(fun, model.params, jac=jac, method="lm", x_scale="jac")
+    if objective == "l2":  # least_squares(method="lm", x_scale="jac")'s own routine and iterates
+        sol = levenberg_marquardt(fun, model.params, jac)
     else:
         # the starting fit's errors are inflated by the very pairs Huber should discount, so the
         # threshold is re-estimated from the robust fit's own errors until it settles

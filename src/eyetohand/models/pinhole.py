@@ -40,6 +40,7 @@ import numpy as np
 
 from ..errors import DegenerateError, InputError
 from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
+from ..lm import levenberg_marquardt
 from .base import MAP_CHUNK, Choice, HeightRule, Model, as_uv, batch_jacobian, check_enough, one_point
 from .dlt3d import dlt_projection
 
@@ -307,8 +308,6 @@ ASPECT_Z = 3.0  # "auto": fy/fx − 1 must exceed this many standard errors for 
 def _fit_reprojection(uv, rel, starts, square: bool):
     """Levenberg–Marquardt on the image reprojection error from each start; the best as
     (mean squared residual, start label, parameters) or None."""
-    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
-
     best = None
     for label, full0 in starts:
         full0 = np.array(full0, float)
@@ -317,13 +316,9 @@ def _fit_reprojection(uv, rel, starts, square: bool):
         def fun_batch(p):
             return (project_full(expand(p, square), rel) - uv).reshape(len(p), -1)
 
-        try:
-            sol = least_squares(
-                lambda p: fun_batch(p[None])[0],
-                p0,
-                method="lm",
-                jac=lambda p: batch_jacobian(fun_batch, p),
-                x_scale="jac",
+        try:  # least_squares(method="lm", x_scale="jac"): its routine and iterates (eyetohand.lm)
+            sol = levenberg_marquardt(
+                lambda p: fun_batch(p[None])[0], p0, lambda p: batch_jacobian(fun_batch, p)
             )
         except ValueError:
             continue

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..errors import DegenerateError
 from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
+from ..lm import levenberg_marquardt
 from ..normalize import hartley
 from .homography import Homography, dlt_homography
 from .planar import PLANAR_CONSTANTS, planar_setup
@@ -105,9 +106,8 @@ def _lens_least_squares(p0: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, ce
     """SciPy's Levenberg–Marquardt on the image-space residuals over the parameters ``free`` (the
     rest held at ``p0``), with its own forward differences (``approx_derivative``'s steps and
     arithmetic) computed in one :func:`project_plane_rows` call instead of one projection per
-    parameter: the same iterates as its default Jacobian."""
-    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
-
+    parameter: the same iterates as its default Jacobian (run by :func:`levenberg_marquardt`, the
+    routine least_squares calls)."""
     p_all = np.asarray(p0, float).copy()
     target = uv_px.ravel()
 
@@ -124,16 +124,7 @@ def _lens_least_squares(p0: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, ce
         dx = (q + h) - q
         return ((out[1:] - out[0]) / dx[:, None]).T
 
-    return least_squares(
-        lambda q: rows(q, None)[0],
-        p_all[free],
-        jac=jacobian,
-        method="lm",
-        x_scale="jac",
-        ftol=LENS_FIT_TOL,
-        xtol=LENS_FIT_TOL,
-        gtol=LENS_FIT_TOL,
-    )
+    return levenberg_marquardt(lambda q: rows(q, None)[0], p_all[free], jacobian, tol=LENS_FIT_TOL)
 
 
 LENS_FIT_TOL = 1e-8  # least_squares' ftol, xtol, gtol for the lens fit (SciPy's defaults)

@@ -1,0 +1,80 @@
+"""eyetohand.lm: MINPACK's Levenberg–Marquardt without least_squares' set-up must be least_squares(
+method="lm", x_scale="jac") itself — the same iterates, evaluation count, answer and words."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from eyetohand.fit import fit_model
+from eyetohand.lm import levenberg_marquardt
+from eyetohand.numdiff import batch_jacobian
+from eyetohand.pairs import load_pairs
+
+sys.path.insert(0, str(Path(__file__).parent))
+from synth import grid_pairs, make_camera  # noqa: E402
+
+PAPER = Path(__file__).resolve().parents[1] / "src/eyetohand/data/paper/calibration_points.csv"
+
+
+def _problems():
+    cam = make_camera(tilt_deg=8, dist=[-0.22, 0.05, 0, 0, 0])
+    lens_cell = grid_pairs(cam, 5, heights=(100.0,), noise_px=0.3, span_mm=160)
+    two_heights = grid_pairs(make_camera(tilt_deg=10, seed=2), 4, heights=(0.0, 40.0), noise_px=0.2, seed=6)
+    return [
+        (load_pairs(PAPER), "homography"),
+        (lens_cell, "homography"),
+        (lens_cell, "homography-radial"),
+        (two_heights, "dlt3d"),
+        (two_heights, "camera"),
+    ]
+
+
+@pytest.mark.parametrize("case", range(5))
+def test_levenberg_marquardt_is_least_squares_lm_bit_for_bit(case):
+    """Not the paper model: on its ill-conditioned B (a scale freedom) MINPACK itself is not
+    reproducible from process to process — two least_squares runs can differ (docs/performance.md)."""
+    pairs, name = _problems()[case]
+    start, _ = fit_model(pairs, name, "linear")
+    uv, xyz = pairs.uv_px, pairs.xyz_mm
+
+    def fun_batch(P):
+        return (start.batch_image_to_robot(P, uv, xyz[:, 2]) - xyz).reshape(len(P), -1)
+
+    def fun(p):
+        return fun_batch(p[None])[0]
+
+    def jac(p):
+        return batch_jacobian(fun_batch, p)
+
+    theirs = least_squares(fun, start.params, jac=jac, method="lm", x_scale="jac")
+    ours = levenberg_marquardt(fun, start.params, jac)
+    assert ours.nfev == theirs.nfev
+    assert ours.message == theirs.message
+    np.testing.assert_array_equal(ours.x.view(np.int64), theirs.x.view(np.int64))
+    np.testing.assert_array_equal(ours.fun, theirs.fun)
+    assert np.abs(ours.x - start.params).max() > 0  # it moved: a fit, not the start handed back
+    # and the lm solver is that fit
+    fitted, info = fit_model(pairs, name, "lm")
+    np.testing.assert_array_equal(fitted.params, theirs.x)
+    assert info.message == theirs.message and info.nfev == theirs.nfev
+
+
+def test_levenberg_marquardt_refuses_a_start_it_cannot_evaluate():
+    with pytest.raises(ValueError, match="Residuals are not finite in the initial point"):
+        levenberg_marquardt(lambda p: np.array([np.nan, p[0]]), np.zeros(1), lambda p: np.ones((2, 1)))
+
+
+def test_levenberg_marquardt_words_are_least_squares_words_for_every_minpack_code():
+    """Fits record why they stopped; the words must stay those least_squares gives (its tables)."""
+    from scipy.optimize._lsq.least_squares import FROM_MINPACK_TO_COMMON, TERMINATION_MESSAGES
+
+    from eyetohand.lm import _MESSAGES
+
+    assert set(_MESSAGES) == set(FROM_MINPACK_TO_COMMON)
+    for code, words in _MESSAGES.items():
+        assert words == TERMINATION_MESSAGES[FROM_MINPACK_TO_COMMON[code]]
