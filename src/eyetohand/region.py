@@ -179,24 +179,26 @@ class CalibratedRegion:
 def convex_hull(points: np.ndarray) -> np.ndarray:
     """Counter-clockwise (in the u-right, v-down image, as drawn: the usual orientation of the
     cross product) convex hull of (N, 2) points, Andrew's monotone chain."""
-    pts = np.unique(np.asarray(points, float), axis=0)
-    if len(pts) < 3:
-        return pts
+    # the distinct points in (u, v) order, as np.unique(axis=0) gives them, on Python floats: the
+    # same double arithmetic as NumPy's scalars at a tenth of the cost
+    seq = sorted(set(map(tuple, np.asarray(points, float).reshape(-1, 2).tolist())))
+    if len(seq) < 3:
+        return np.array(seq, dtype=float).reshape(-1, 2)
 
     def half(seq):
-        out: list[np.ndarray] = []
+        out: list[tuple[float, float]] = []
         for p in seq:
             while len(out) >= 2 and _cross(out[-2], out[-1], p) <= 0:
                 out.pop()
             out.append(p)
         return out
 
-    lower, upper = half(pts), half(pts[::-1])
-    return np.array(lower[:-1] + upper[:-1])
+    lower, upper = half(seq), half(seq[::-1])
+    return np.array(lower[:-1] + upper[:-1], dtype=float)
 
 
 def _cross(o, a, b) -> float:
-    return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
 
 
 def _outside_distance(hull: np.ndarray, uv: np.ndarray) -> np.ndarray:
