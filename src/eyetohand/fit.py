@@ -105,7 +105,7 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
     P = np.tile(full.params, (n, 1))
     steps = 3 if full.linear_in_params else LOO_GN_MAX_STEPS  # linear: one step, then rounding
     with np.errstate(all="ignore"):
-        for _ in range(steps):
+        for step in range(steps):
             R, J = _map_and_jacobian(full, P, uv, z)  # (n, N, 3), (n, N, 3, D)
             R -= xyz
             Jk = (J * keep[:, :, None, None]).reshape(n, -1, D)
@@ -115,12 +115,20 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
             if not (np.isfinite(A).all() and np.isfinite(g).all() and (s > 0).all()):
                 return None
             As = A / (s[:, :, None] * s[:, None, :])
-            ev = np.linalg.eigvalsh(As)  # As is symmetric: its condition number from its eigenvalues
-            if not (ev[:, 0] > 1e-12 * ev[:, -1]).all():
-                return None  # a held-out subset that does not determine the model: refit says why
-            scaled = -np.linalg.solve(As, (g / s)[..., None])[..., 0]  # ≈ mm the step moves the pairs
+            try:
+                scaled = -np.linalg.solve(As, (g / s)[..., None])[..., 0]  # ≈ mm the step moves the pairs
+            except np.linalg.LinAlgError:
+                return None
+            settled = bool((np.abs(scaled) <= LOO_GN_TOL_MM).all())
+            # conditioned where the steps start and where they end (between, a step that an
+            # ill-conditioned subset throws far does not settle); As is symmetric: its condition
+            # number from its eigenvalues
+            if step == 0 or settled:
+                ev = np.linalg.eigvalsh(As)
+                if not (ev[:, 0] > 1e-12 * ev[:, -1]).all():
+                    return None  # a held-out subset that does not determine the model: refit says why
             P = P + scaled / s
-            if (np.abs(scaled) <= LOO_GN_TOL_MM).all():
+            if settled:
                 break
         else:
             return None
