@@ -36,8 +36,9 @@ def _problems():
 
 @pytest.mark.parametrize("case", range(5))
 def test_levenberg_marquardt_is_least_squares_lm_bit_for_bit(case):
-    """Not the paper model: on its ill-conditioned B (a scale freedom) MINPACK itself is not
-    reproducible from process to process — two least_squares runs can differ (docs/performance.md)."""
+    """Not the paper model: on its ill-conditioned B (a scale freedom) SciPy's MINPACK reads past the
+    end of the Jacobian and is not reproducible — two least_squares runs can differ
+    (docs/performance.md)."""
     pairs, name = _problems()[case]
     start, _ = fit_model(pairs, name, "linear")
     uv, xyz = pairs.uv_px, pairs.xyz_mm
