@@ -526,3 +526,21 @@ def test_paper_model_forward_matches_equation_13():
     singular = b0.copy()
     singular[8:11] = 0.0  # third row of M zero: no inverse, no exception
     assert not np.isfinite(model.batch_image_to_robot(singular[None], pix, np.zeros(1))).all()
+
+
+def test_a_swarm_too_big_to_evaluate_is_refused_with_the_size_that_fits():
+    """One iteration evaluates every candidate on every pair at once: a swarm that would need more
+    than SWARM_MAX_BYTES is refused up front (not a MemoryError), and the size it names fits."""
+    from eyetohand.errors import InputError
+    from eyetohand.solvers import SWARM_MAX_BYTES, _swarm_rows, check_swarm_size
+
+    for kind in ("hybrid-pso", "pso"):
+        for n_pairs in (16, 25, 2000):
+            with pytest.raises(
+                InputError, match=r"too many for \d+ pairs.*at most (\d+) particles fit"
+            ) as exc:
+                check_swarm_size(kind, 10**8, n_pairs)
+            most = int(str(exc.value).rsplit("at most ", 1)[1].split()[0])
+            check_swarm_size(kind, most, n_pairs)  # fits
+            assert _swarm_rows(kind, most + 1) * n_pairs * 96 > SWARM_MAX_BYTES  # and one more would not
+    check_swarm_size("hybrid-pso", 200, 16)  # the paper's swarm

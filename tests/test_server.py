@@ -1344,3 +1344,70 @@ def test_the_line_service_on_a_loop_thread_answers_and_stops_cleanly(paper_pairs
         assert not t._thread.is_alive() and t.loop.is_closed()
         assert f.readline() == b""  # the connection was closed by the stop
     t.stop()  # a second stop does nothing
+
+
+@pytest.mark.parametrize(
+    "options, argv, field, words",
+    [
+        ({"seed": -1}, ["--seed", "-1"], "seed", "must be a whole number from 0 to 4294967295, got -1"),
+        ({"seed": 2**32}, ["--seed", str(2**32)], "seed", "from 0 to 4294967295, got 4294967296"),
+        (
+            {"particles": 1},
+            ["--particles", "1"],
+            "particles",
+            "solver option 'n_particles' must be at least 2",
+        ),
+        (
+            {"iterations": 0},
+            ["--iterations", "0"],
+            "iterations",
+            "solver option 'iterations' must be a positive whole number, got 0",
+        ),
+        (
+            {"model": "nope"},
+            ["--model", "nope"],
+            "model",
+            "unknown model 'nope'; choose one of: auto, affine",
+        ),
+        (
+            {"optimizer": "x"},
+            ["--optimizer", "x"],
+            "optimizer",
+            "unknown optimizer 'x'; choose one of: linear",
+        ),
+        (
+            {"objective": "l3"},
+            ["--objective", "l3"],
+            "objective",
+            "unknown objective 'l3'; choose one of: l2",
+        ),
+    ],
+)
+def test_fit_options_are_refused_in_the_librarys_words_on_the_cli_and_http(
+    client, tmp_path, capsys, options, argv, field, words
+):
+    """One rule, one set of words: a seed, swarm size or name the library refuses is refused by the
+    command line (exit 2, one line) and by the API (422 naming the field) in the library's words, not
+    pydantic's ("Input should be ...") and not as an internal error (a negative seed was one)."""
+    body = {"name": "t", "pairs": PAIRS, "model": "homography", "optimizer": "hybrid-pso", **options}
+    r = client.post("/api/calibrations", json=body)
+    assert r.status_code == 422, r.text
+    assert r.json()["field"] == field and words in r.json()["error"], r.json()
+    assert "Input should" not in r.json()["error"] and "Value error" not in r.json()["error"]
+    base = ["calibrate", str(PAPER / "calibration_points.csv"), "--model", "homography"]
+    base += ["--optimizer", "hybrid-pso", "-o", str(tmp_path / "c.json")]
+    code = cli_main(base + argv)
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and words in err and "\n" not in err, err
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_server_limits_say_they_are_the_servers(client):
+    r = client.post(
+        "/api/calibrations", json={"name": "t", "pairs": PAIRS, "optimizer": "pso", "particles": 5000}
+    )
+    assert r.status_code == 422
+    assert r.json() == {
+        "error": "particles: 5000 particles is more than this server's limit of 1000",
+        "field": "particles",
+    }

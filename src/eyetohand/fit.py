@@ -34,7 +34,7 @@ from .models import MODELS, HeightRule, Model, get_model
 from .objectives import huber_delta_mm, objective_values
 from .pairs import PointPairs
 from .records import TcpOffset
-from .solvers import check_optimizer, get_solver, refine
+from .solvers import check_optimizer, check_seed, get_solver, refine
 from .tcp_offset import correct_pairs, estimate_tcp_offset, has_turns, reference_pairs
 from .uncertainty import Uncertainty, pair_leverage
 
@@ -371,6 +371,7 @@ def calibrate(
     refits use ``lm`` — or ``linear`` for a non-smooth objective — to keep it fast, and say so).
     """
     solver = check_optimizer(optimizer, objective, solver_options)
+    seed = check_seed(seed)
     if model != "auto":
         get_model(model)
     if image_size is not None:

@@ -124,6 +124,7 @@ def _swarm(kind: str):
         from . import optimize
 
         model = problem.model
+        check_swarm_size(kind, n_particles, len(problem.uv_px))
         t0 = time.perf_counter()
         # each element alone moves the mapped points by 1/sqrt(D) mm RMS, the swarm ~1 mm (docs/pso.md)
         sigma = param_scale(
@@ -188,6 +189,49 @@ def get_solver(name: str) -> Solver:
         return SOLVERS[name]
     except (KeyError, TypeError):
         raise InputError(f"unknown optimizer {name!r}; choose one of: {', '.join(OPTIMIZERS)}") from None
+
+
+SEED_MAX = 2**32 - 1
+"""Largest seed: what every interface carries (the HTTP API, the service's database) and the
+calibration file records."""
+
+
+def check_seed(seed):
+    """The seed rule of every fit: None (fresh entropy), a :class:`numpy.random.Generator`, or a whole
+    number from 0 to :data:`SEED_MAX`; anything else is an :class:`InputError` naming field 'seed'."""
+    if seed is None or isinstance(seed, np.random.Generator):
+        return seed
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= SEED_MAX:
+        raise InputError(f"must be a whole number from 0 to {SEED_MAX}, got {seed!r}", field="seed")
+    return int(seed)
+
+
+SWARM_MAX_BYTES = 4 * 2**30
+"""Most memory a swarm's evaluation may take: one iteration evaluates every candidate on every pair
+at once, ~``4 × candidates × pairs × 3 × 8`` bytes of arrays."""
+
+
+def check_swarm_size(kind: str, n_particles: int, n_pairs: int) -> None:
+    """Refuses (:class:`InputError`) a swarm whose one iteration would need more than
+    :data:`SWARM_MAX_BYTES` — with how many particles would fit — instead of a MemoryError."""
+    per_row = 4 * n_pairs * 3 * 8
+    rows = _swarm_rows(kind, n_particles)
+    need = rows * per_row
+    if need <= SWARM_MAX_BYTES:
+        return
+    most = int(SWARM_MAX_BYTES // per_row / (3.1 if kind == "hybrid-pso" else 1.0))
+    while most > 2 and _swarm_rows(kind, most) * per_row > SWARM_MAX_BYTES:
+        most -= 1
+    raise InputError(
+        f"solver option 'n_particles' = {n_particles} is too many for {n_pairs} pairs: each iteration "
+        f"evaluates {rows} candidates on every pair at once (~{need / 2**30:.3g} GiB of arrays, more than "
+        f"the {SWARM_MAX_BYTES / 2**30:g} GiB a fit may take); at most {most} particles fit"
+    )
+
+
+def _swarm_rows(kind: str, n: int) -> int:
+    """Candidates per iteration: the hybrid's moved swarm, both crossover children and its mutants."""
+    return n + 2 * n + max(1, round(0.1 * n)) if kind == "hybrid-pso" else n
 
 
 def check_optimizer(name: str, objective: str = "l2", options: dict | None = None) -> Solver:

@@ -63,6 +63,8 @@ def _message(e: dict) -> str:
     if e.get("type") == "missing":
         return "required field missing"
     msg = e.get("msg", "invalid")
+    if e.get("type") == "value_error" and (e.get("ctx") or {}).get("error") is not None:
+        msg = str(e["ctx"]["error"])  # our validators' own words, without pydantic's "Value error, "
     if e.get("type") in ("float_type", "int_type") and "input" in e:
         got = _TYPE_NAMES.get(type(e["input"]))
         if got:

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool, WithJsonSchema
 from pydantic import Strict as StrictType
 
-from ..models import MODEL_CHOICES
-from ..objectives import OBJECTIVES
-from ..solvers import OPTIMIZERS
+from ..errors import InputError
+from ..models import MODEL_CHOICES, get_model
+from ..objectives import OBJECTIVES, check_objective
+from ..solvers import OPTIMIZERS, SEED_MAX, check_optimizer, check_seed, get_solver
 from .storage import clean_text, is_id_like
 
 MAX_BODY_BYTES = 64 * 1024 * 1024
@@ -70,9 +71,63 @@ Name = Annotated[
 PairId = Annotated[str, Field(min_length=1, max_length=64), AfterValidator(_pair_id)]
 Note = Annotated[str, Field(max_length=200), AfterValidator(_label)]
 Px = Annotated[int, StrictType(), Field(ge=1, le=100_000)]
-ModelName = Literal[MODEL_CHOICES]  # type: ignore[valid-type]
-OptimizerName = Literal[OPTIMIZERS]  # type: ignore[valid-type]
-ObjectiveName = Literal[OBJECTIVES]  # type: ignore[valid-type]
+
+
+def _library_rule(check):
+    """The library's own rule for a field (the one the CLI and the TCP service apply): a request
+    that breaks it hears the library's words, not pydantic's."""
+
+    def validate(value):
+        try:
+            check(value)
+        except InputError as exc:
+            raise ValueError(exc.reason) from None
+        return value
+
+    return AfterValidator(validate)
+
+
+def _server_limit(limit: int, what: str):
+    """A limit of this service (not of the library): it says so."""
+
+    def validate(value: int) -> int:
+        if value > limit:
+            raise ValueError(f"{value} {what} is more than this server's limit of {limit}")
+        return value
+
+    return AfterValidator(validate)
+
+
+def _choice(values, check):
+    """A name among ``values`` checked by the library (its words) and listed as an enum in the schema."""
+    return Annotated[
+        str, StrictType(), _library_rule(check), WithJsonSchema({"type": "string", "enum": list(values)})
+    ]
+
+
+ModelName = _choice(MODEL_CHOICES, lambda v: v == "auto" or get_model(v))
+OptimizerName = _choice(OPTIMIZERS, get_solver)
+ObjectiveName = _choice(OBJECTIVES, check_objective)
+Seed = Annotated[
+    int,
+    StrictType(),
+    _library_rule(check_seed),
+    WithJsonSchema({"type": "integer", "minimum": 0, "maximum": SEED_MAX}),
+]
+Particles = Annotated[
+    int,
+    StrictType(),
+    _library_rule(lambda v: check_optimizer("pso", "l2", {"n_particles": v})),
+    _server_limit(MAX_PARTICLES, "particles"),
+    WithJsonSchema({"type": "integer", "minimum": 2, "maximum": MAX_PARTICLES}),
+]
+Iterations = Annotated[
+    int,
+    StrictType(),
+    _library_rule(lambda v: check_optimizer("pso", "l2", {"iterations": v})),
+    _server_limit(MAX_ITERATIONS, "iterations"),
+    WithJsonSchema({"type": "integer", "minimum": 1, "maximum": MAX_ITERATIONS}),
+]
 
 
 class Strict(BaseModel):
@@ -98,14 +153,14 @@ class FitOptions(Strict):
     model: ModelName = Field("auto", description="transform model; 'auto' picks by cross-validation")
     optimizer: OptimizerName = Field("lm", description="solver refining the model")
     objective: ObjectiveName = Field("l2", description="robot-space objective (mm)")
-    seed: Int | None = Field(None, ge=0, le=2**32 - 1, description="seed of the stochastic solvers")
+    seed: Seed | None = Field(None, description="seed of the stochastic solvers")
     exclude: list[Annotated[str, Field(max_length=64), AfterValidator(_pair_id)]] = Field(
         default_factory=list,
         max_length=MAX_PAIRS,
         description="ids of pairs left out of the fit (their errors are still reported)",
     )
-    particles: Int = Field(200, ge=2, le=MAX_PARTICLES, description="swarm size (pso, hybrid-pso)")
-    iterations: Int = Field(150, ge=1, le=MAX_ITERATIONS, description="iterations (pso, hybrid-pso)")
+    particles: Particles = Field(200, description="swarm size (pso, hybrid-pso)")
+    iterations: Iterations = Field(150, description="iterations (pso, hybrid-pso)")
     image_size: tuple[Px, Px] | None = Field(
         None, description="image width and height, px (sets the distortion centre)"
     )
@@ -315,7 +370,7 @@ class EvaluateRequest(Strict):
 class CompareRequest(Strict):
     pairs: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
     check: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
-    seed: Int = Field(0, ge=0, le=2**32 - 1)
+    seed: Seed = 0
 
 
 class JobCreated(BaseModel):
@@ -394,9 +449,9 @@ class ImagesCalibrate(Strict):
     model: ModelName = Field("auto", description="transform model; 'auto' picks by cross-validation")
     optimizer: OptimizerName = Field("lm", description="solver refining the model")
     objective: ObjectiveName = Field("l2", description="robot-space objective (mm)")
-    seed: Int | None = Field(None, ge=0, le=2**32 - 1, description="seed of the stochastic solvers")
-    particles: Int = Field(200, ge=2, le=MAX_PARTICLES, description="swarm size (pso, hybrid-pso)")
-    iterations: Int = Field(150, ge=1, le=MAX_ITERATIONS, description="iterations (pso, hybrid-pso)")
+    seed: Seed | None = Field(None, description="seed of the stochastic solvers")
+    particles: Particles = Field(200, description="swarm size (pso, hybrid-pso)")
+    iterations: Iterations = Field(150, description="iterations (pso, hybrid-pso)")
     image_size: tuple[Px, Px] | None = Field(
         None, description="image width and height, px (sets the distortion centre)"
     )
