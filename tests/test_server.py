@@ -1295,6 +1295,21 @@ def test_tcp_takes_the_orientation_words_apply_and_http_take(client):
     assert tcp_answer(cal, b"600,900,a=30,s=1.5").startswith(b"ERR s: 1.5 is not a whole number")
     assert tcp_answer(cal, b"600,900,a=30,s=0").startswith(b"ERR symmetry must be a whole number")
     assert tcp_answer(cal, b"600,900,q=1").startswith(b"ERR unknown word 'q=1'")
+    # the library's words in ASCII: a controller reads bytes (the library says "2: 180° symmetric")
+    with pytest.raises(InputError, match="180° symmetric"):
+        cal.map([[600, 900]], angle_deg=[30.0], symmetry=0)
+    assert b"(1: no fold, 2: 180 deg symmetric), got 0\n" in tcp_answer(cal, b"600,900,a=30,s=0")
+
+
+def test_line_protocol_reasons_are_ascii_with_the_symbols_spelt_out():
+    from eyetohand.collect import MAX_REASON, ascii_reason
+
+    assert ascii_reason("k1 ± 0.2 — 180° · 3×4 ≤ 5 µm, σ²") == "k1 +/- 0.2 - 180 deg * 3x4 <= 5 um, sigma^2"
+    assert ascii_reason("two\nlines  here") == "two lines here"
+    assert ascii_reason("中") == "?"
+    long = ascii_reason("x" * 500)
+    assert len(long) == MAX_REASON and long.endswith("...")
+    assert all(ord(c) < 128 for c in ascii_reason("".join(chr(c) for c in range(0x80, 0x3000))))
 
 
 def test_the_mapping_routes_are_matched_first_and_shadow_no_other_route(tmp_path):

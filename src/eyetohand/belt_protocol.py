@@ -57,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .collect import NAME_RE, CommandError, _JsonlJournal, _now, _reason, line_numbers
+from .collect import NAME_RE, CommandError, _JsonlJournal, _now, ascii_reason, line_numbers
 from .conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor
 from .errors import InputError
 from .orientation import check_symmetry
@@ -163,12 +163,12 @@ class BeltProtocol:
             try:
                 fields = self._dispatch(text)
             except CommandError as exc:
-                return f"ERR {_reason(str(exc))}"
+                return f"ERR {ascii_reason(str(exc))}"
             except InputError as exc:  # one part per line: its index says nothing (as on the TCP line)
                 reason = exc.reason if exc.index is not None else str(exc)
-                return f"ERR {_reason(reason.splitlines()[0])}"
+                return f"ERR {ascii_reason(reason.splitlines()[0])}"
             except Exception as exc:  # a camera or a fit that breaks: still one ERR line
-                return f"ERR {_reason(f'internal error: {type(exc).__name__}: {exc}')}"
+                return f"ERR {ascii_reason(f'internal error: {type(exc).__name__}: {exc}')}"
         return "OK" + (" " + ",".join(fields) if fields else "")
 
     def _dispatch(self, text: str) -> list[str]:

@@ -180,11 +180,25 @@ def _f(x: float) -> str:
     return f"{float(x):.4f}"
 
 
-def _reason(text: str) -> str:
-    """One ASCII line, no longer than MAX_REASON characters."""
-    s = " ".join(str(text).split())
+# the library's words in ASCII for the line protocols (a robot controller reads bytes): the symbols
+# its messages use, spelt out; anything else becomes '?'
+_ASCII = str.maketrans(
+    {
+        "°": " deg", "±": "+/-", "×": "x", "·": "*", "−": "-", "–": "-", "—": "-", "…": "...",
+        "→": "->", "←": "<-", "≤": "<=", "≥": ">=", "≈": "~", "≠": "!=", "²": "^2", "³": "^3",
+        "⁴": "^4", "⁶": "^6", "¹": "1", "⁻": "^-", "⁺": "^+", "µ": "u", "μ": "u", "σ": "sigma",
+        "θ": "theta", "φ": "phi", "ρ": "rho", "χ": "chi", "Δ": "d", "Σ": "sum", "√": "sqrt",
+        "½": "1/2", "∈": " in ", "‖": "|", "ᵀ": "^T", "’": "'", "‘": "'", "“": '"', "”": '"',
+    }
+)  # fmt: skip
+
+
+def ascii_reason(text: str, limit: int = MAX_REASON) -> str:
+    """A reason as the line protocols send it: one line of ASCII (the library's symbols spelt out:
+    ``180°`` → ``180 deg``, ``±`` → ``+/-``), no longer than ``limit`` characters."""
+    s = " ".join(str(text).split()).translate(_ASCII)
     s = s.encode("ascii", "replace").decode("ascii")
-    return s if len(s) <= MAX_REASON else s[: MAX_REASON - 3] + "..."
+    return s if len(s) <= limit else s[: limit - 3] + "..."
 
 
 def line_numbers(
@@ -635,7 +649,7 @@ class Collector:
                         "pose_index": idx,
                         "xyz_mm": xyz,
                         "angle_deg": angle,
-                        "reason": _reason(str(exc)),
+                        "reason": ascii_reason(str(exc)),
                     }
                 )
             raise
@@ -786,7 +800,7 @@ class Collector:
         return "(" + ",".join(_ur_number(v) for v in nums) + ")"
 
     def _format_err(self, reason: str) -> str:
-        reason = _reason(reason)
+        reason = ascii_reason(reason)
         if self.reply_format == "plain":
             return f"ERR {reason}"
         code = next((c for p, c in UR_ERROR_CODES.items() if reason.startswith(p)), UR_ERROR_OTHER)

@@ -27,10 +27,11 @@ from collections.abc import Callable
 import numpy as np
 
 from ..calibration import Calibration
-from ..collect import CommandError, line_numbers
+from ..collect import CommandError, ascii_reason, line_numbers
 from ..errors import InputError
 
 MAX_LINE = 256
+MAX_REASON = 200  # characters of an ERR reason on a mapping line (ASCII: collect.ascii_reason)
 MAX_CLIENTS = 256
 MAX_PER_PEER = 64
 IDLE_S = 300.0
@@ -212,7 +213,7 @@ def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
             )
     except InputError as exc:
         reason = exc.reason if exc.index is not None else str(exc)
-        return f"ERR {reason.splitlines()[0][:200]}\n".encode()
+        return f"ERR {ascii_reason(reason.splitlines()[0], MAX_REASON)}\n".encode()
     x, y, zz = (float(v) for v in m.xyz_mm[0])
     out = f"{x!r},{y!r},{zz!r}"
     if m.rz_deg is not None:
@@ -295,10 +296,11 @@ class LineServer:
         """The answer to one line with the calibration in force (``VERSION`` names it)."""
         src = self.source
         if line.strip().upper() == b"VERSION":
-            return (src.version_line() if src.error is None else f"ERR {src.error}").encode() + b"\n"
+            text = src.version_line() if src.error is None else f"ERR {ascii_reason(src.error, MAX_REASON)}"
+            return text.encode("ascii", "replace") + b"\n"
         cal = src.cal
         if cal is None or src.error is not None:
-            return f"ERR {src.error}\n".encode()
+            return f"ERR {ascii_reason(str(src.error), MAX_REASON)}\n".encode()
         return answer(cal, line)
 
     async def serve_forever(self) -> None:
