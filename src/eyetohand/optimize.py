@@ -65,6 +65,7 @@ import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 
@@ -164,7 +165,7 @@ def _make_rng(seed: object) -> np.random.Generator:
     if seed is None or (isinstance(seed, numbers.Integral) and not isinstance(seed, bool)):
         if seed is not None and seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed}")
-        return np.random.default_rng(seed)
+        return np.random.default_rng(None if seed is None else int(seed))
     raise ValueError(f"seed must be an int, None or a numpy.random.Generator, got {type(seed).__name__}")
 
 
@@ -467,7 +468,7 @@ def hybrid_pso(
     )
 
 
-def pso(fitness: Fitness, x0: np.ndarray, sigma: float | np.ndarray, **kwargs: object) -> OptimizeResult:
+def pso(fitness: Fitness, x0: np.ndarray, sigma: float | np.ndarray, **kwargs: Any) -> OptimizeResult:
     """Plain global-best PSO (eqs 14, 15): :func:`hybrid_pso` with crossover and mutation off.
 
     Accepts the same keyword arguments as :func:`hybrid_pso` except ``crossover`` and

@@ -98,16 +98,16 @@ def _server_limit(limit: int, what: str):
     return AfterValidator(validate)
 
 
-def _choice(values, check):
-    """A name among ``values`` checked by the library (its words) and listed as an enum in the schema."""
-    return Annotated[
-        str, StrictType(), _library_rule(check), WithJsonSchema({"type": "string", "enum": list(values)})
-    ]
+def _enum(values) -> WithJsonSchema:
+    return WithJsonSchema({"type": "string", "enum": list(values)})
 
 
-ModelName = _choice(MODEL_CHOICES, lambda v: v == "auto" or get_model(v))
-OptimizerName = _choice(OPTIMIZERS, get_solver)
-ObjectiveName = _choice(OBJECTIVES, check_objective)
+# names checked by the library (its words) and listed as an enum in the schema
+ModelName = Annotated[
+    str, StrictType(), _library_rule(lambda v: v == "auto" or get_model(v)), _enum(MODEL_CHOICES)
+]
+OptimizerName = Annotated[str, StrictType(), _library_rule(get_solver), _enum(OPTIMIZERS)]
+ObjectiveName = Annotated[str, StrictType(), _library_rule(check_objective), _enum(OBJECTIVES)]
 Seed = Annotated[
     int,
     StrictType(),
