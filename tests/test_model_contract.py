@@ -103,6 +103,21 @@ def test_batch_forward_equals_single(name):
 
 
 @pytest.mark.parametrize("name", ALL)
+def test_one_point_equals_its_row_of_many(name):
+    """The one-point paths (plain floats, no batch machinery) answer what the many-point path
+    answers for that point, to rounding: the planar models take the precomputed px -> mm matrix,
+    the lens models undistort a few points each to its own Newton stop (many points stop together)."""
+    model, pairs = fitted(name)
+    z = z_of(model, pairs)
+    many = model.image_to_robot(pairs.uv_px, z)
+    for i in range(len(pairs)):
+        zi = None if z is None else float(np.asarray(z)[i])
+        one = model.image_to_robot(pairs.uv_px[i], zi)
+        assert one.shape == (1, 3)
+        np.testing.assert_allclose(one[0], many[i], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ALL)
 def test_recovers_a_known_camera_from_noise_free_pairs(name):
     """Ground truth: a camera that every model can represent exactly (looking straight down, no lens,
     which is affine on each plane) — noise-free pairs must give the truth back on fresh points."""

@@ -231,7 +231,7 @@ class PinholeCamera(Model):
 
     def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
         """Back-projection with the precomputed rotation, centre and lens: one point on plain floats,
-        many in cache-sized chunks; the same arithmetic as ``batch_image_to_robot``."""
+        many in cache-sized chunks; ``batch_image_to_robot``'s answer to rounding."""
         pt = one_point(uv_px)
         if pt is not None:
             plain = isinstance(z_mm, (int, float)) and not isinstance(z_mm, bool) and math.isfinite(z_mm)
@@ -252,39 +252,41 @@ class PinholeCamera(Model):
         return out
 
     def _backproject_one(self, d: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """:meth:`_backproject` of one point on plain floats (the same operations in the same order:
-        the same result); the array path where the ray runs parallel to the plane (w2 = 0)."""
+        """:meth:`_backproject` of one point on plain floats: the same :meth:`_ray` and :meth:`_hit`
+        after the lens's few-point undistortion (equal to rounding: each point stops its own Newton
+        steps); the array path where the ray runs parallel to the plane (w2 = 0)."""
         n, _ = undistort(d, self._lens_k)  # plain floats inside for one point
         x, y = n[0].tolist()
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._Rt
-        C0, C1, C2 = self._C
-        w2 = r02 * x + r12 * y + r22
-        if w2 == 0.0:
+        w = self._ray(x, y)
+        if w[2] == 0.0:
             return self._backproject(d, z)
         zf = float(z[0])
-        s = ((zf - self._x0f[2]) - C2) / w2
-        X = (C0 + s * (r00 * x + r10 * y + r20)) + self._x0f[0]
-        Y = (C1 + s * (r01 * x + r11 * y + r21)) + self._x0f[1]
-        return np.array([[X, Y, math.nan if math.isnan(C2 + s * w2) else zf]])
+        X, Y, zc = self._hit(w, zf)
+        return np.array([[X, Y, math.nan if math.isnan(zc) else zf]])
 
     def _backproject(self, d: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Robot points (n, 3) on the planes ``z`` (n,) of distorted normalised points ``d`` (n, 2)."""
         n, _ = undistort(d, self._lens_k)
-        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._Rt
-        C0, C1, C2 = self._C
-        x, y = n[:, 0], n[:, 1]
-        w0 = r00 * x + r10 * y + r20
-        w1 = r01 * x + r11 * y + r21
-        w2 = r02 * x + r12 * y + r22
         with np.errstate(divide="ignore", invalid="ignore"):
-            s = ((z - self._x0f[2]) - C2) / w2
+            X, Y, zc = self._hit(self._ray(n[:, 0], n[:, 1]), z)
         out = np.empty((len(d), 3))
-        out[:, 0] = C0 + s * w0
-        out[:, 0] += self._x0f[0]
-        out[:, 1] = C1 + s * w1
-        out[:, 1] += self._x0f[1]
-        out[:, 2] = np.where(np.isnan(C2 + s * w2), np.nan, z)
+        out[:, 0] = X
+        out[:, 1] = Y
+        out[:, 2] = np.where(np.isnan(zc), np.nan, z)
         return out
+
+    def _ray(self, x, y):
+        """The ray's direction in the robot frame, Rᵀ (x, y, 1), of undistorted normalised (x, y):
+        floats or arrays, the same operations."""
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._Rt
+        return r00 * x + r10 * y + r20, r01 * x + r11 * y + r21, r02 * x + r12 * y + r22
+
+    def _hit(self, w, z):
+        """Where the ray ``w`` from the camera centre meets the plane z (robot mm): x, y, and the
+        z it reaches (NaN where it does not: the caller then answers NaN)."""
+        C0, C1, C2 = self._C
+        s = ((z - self._x0f[2]) - C2) / w[2]
+        return (C0 + s * w[0]) + self._x0f[0], (C1 + s * w[1]) + self._x0f[1], C2 + s * w[2]
 
     # -------------------------------------------------------------- the camera, for people
     @property
