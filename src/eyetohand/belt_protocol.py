@@ -57,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .collect import NAME_RE, CommandError, _JsonlJournal, _now, ascii_reason, line_numbers
+from .collect import NAME_RE, CommandError, JsonlJournal, ascii_reason, line_numbers, utc_now
 from .conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor
 from .errors import InputError
 from .orientation import check_symmetry
@@ -116,7 +116,7 @@ class BeltProtocol:
         self.encoder = encoder or (conveyor.encoder if conveyor is not None else Encoder())
         self.detect_options = dict(detect_options or {})
         self.dir = Path(store_dir) if store_dir is not None else None
-        self.journal = _JsonlJournal(self.dir / "belt.jsonl") if self.dir is not None else None
+        self.journal = JsonlJournal(self.dir / "belt.jsonl") if self.dir is not None else None
         self._lock = threading.Lock()
         self.session: dict | None = None
         self.image_size: tuple[int, int] | None = None
@@ -130,7 +130,7 @@ class BeltProtocol:
 
     # ---------------------------------------------------------------- journal
     def _record(self, rec: dict) -> None:
-        rec = {**rec, "utc": _now()}
+        rec = {**rec, "utc": utc_now()}
         if self.journal is not None:
             self.journal.append(rec)
         self._apply(rec)

@@ -105,7 +105,7 @@ class CommandError(Exception):
 # ------------------------------------------------------------------ journals
 
 
-class _JsonlJournal:
+class JsonlJournal:
     """Append-only JSON lines with fsync; a torn last line is cut off when opened."""
 
     def __init__(self, path: Path):
@@ -172,7 +172,7 @@ class _SqliteJournal:
 # ------------------------------------------------------------------ helpers
 
 
-def _now() -> str:
+def utc_now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
 
 
@@ -311,7 +311,7 @@ class Collector:
             if store.exists() and not store.is_dir():
                 raise InputError(f"{store}: exists and is not a folder")
             self.dir = store
-            self.journal = _JsonlJournal(store / "collect.jsonl")
+            self.journal = JsonlJournal(store / "collect.jsonl")
         self.source = source
         self.calibrate_fn = calibrate_fn or default_calibrate
         self.save_fn = save_fn or self._save_file
@@ -359,7 +359,7 @@ class Collector:
 
     # ---------------------------------------------------------------- journal replay
     def _record(self, rec: dict) -> None:
-        rec = {**rec, "utc": _now()}
+        rec = {**rec, "utc": utc_now()}
         self.journal.append(rec)
         self._apply(rec)
 
@@ -593,7 +593,7 @@ class Collector:
         except GrabTimeout as exc:
             raise CommandError(f"timeout: {exc}") from None
         d1 = detect_target(img1, name="grab 1", **self.detect_options)
-        self.last_grab = (img1, d1, _now())
+        self.last_grab = (img1, d1, utc_now())
         if not d1.ok:
             raise CommandError(_classify(d1.reason))
         r = 2.0 * d1.diameter_px + 8
@@ -615,7 +615,7 @@ class Collector:
                 f"(tolerance {self.still_tol_px:g} px)"
             )
         self.image_size = (int(w), int(h))
-        self.last_grab = (img1, d1, _now())
+        self.last_grab = (img1, d1, utc_now())
         return (float(d1.u), float(d1.v)), d1, img1, shift
 
     # -- POINT
@@ -759,7 +759,7 @@ class Collector:
         dx, dy = float(got[0] - xyz[0]), float(got[1] - xyz[1])
         err = math.hypot(dx, dy)
         rec = {
-            "utc": _now(),
+            "utc": utc_now(),
             "name": name,
             "calibration_created_utc": cal.created_utc,
             "data_sha256": cal.data_sha256,

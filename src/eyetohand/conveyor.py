@@ -51,8 +51,7 @@ from .errors import DegenerateError, InputError
 from .fit import calibrate
 from .io import atomic_write_text, read_bounded_text
 from .models import get_model
-from .pairs import PointPairs, _csv_rows, _Where, beyond_limit
-from .pairs import _number as _pairs_number
+from .pairs import PointPairs, Where, beyond_limit, csv_rows, record_number
 
 SCHEMA = "eyetohand.conveyor"
 SCHEMA_VERSION = 1
@@ -340,7 +339,7 @@ def session_from_text(text: str, source: str = "<text>") -> Session:
     """Parse a session CSV (header ``kind,id,u,v,x,y,z,e[,moving]``, rows in time order)."""
     if not text.strip():
         raise InputError(f"{source}: empty, expected a header line '{','.join(SESSION_COLUMNS)}' and rows")
-    rows, first = _csv_rows(text, source)
+    rows, first = csv_rows(text, source)
     header = [h.strip().lower() for h in rows[first]]
     missing = [c for c in SESSION_COLUMNS if c not in header]
     if missing:
@@ -369,11 +368,11 @@ def load_session(path: str | os.PathLike) -> Session:
 
 
 def _number(value, where: str, name: str) -> float:
-    """The loaders' number (:func:`eyetohand.pairs._number`: finite, no booleans, no ``6_00``), at a
+    """The loaders' number (:func:`eyetohand.pairs.record_number`: finite, no booleans, no ``6_00``), at a
     row named ``where``."""
     if value is None:
         value = ""
-    return _pairs_number(value, _Where(where), name)
+    return record_number(value, Where(where), name)
 
 
 # ================================================================== the calibrated conveyor

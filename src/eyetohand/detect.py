@@ -111,7 +111,7 @@ class Detection:
 # ------------------------------------------------------------------ reading
 
 
-def _check_complete(data: bytes, name: str) -> None:
+def check_complete(data: bytes, name: str) -> None:
     """Refuse truncated PNG and JPEG files before the decoder prints its own complaints."""
     if data.startswith(b"\x89PNG\r\n\x1a\n"):
         if b"IEND" not in data[-32:]:
@@ -139,7 +139,7 @@ def load_image(image, name: str | None = None) -> tuple[np.ndarray, str, float]:
             raise InputError(f"{name}: cannot read ({exc.strerror or exc})") from None
         if not data:
             raise InputError(f"{name}: empty file, not an image")
-        _check_complete(data, name)
+        check_complete(data, name)
         arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
         if arr is None:
             raise InputError(f"{name}: not an image (PNG, JPEG, BMP or TIFF) or a damaged one")

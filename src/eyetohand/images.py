@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import InputError
-from .pairs import PointPairs, _csv_rows, _number, _read_text, _Where
+from .pairs import PointPairs, Where, csv_rows, read_pairs_text, record_number
 
 if TYPE_CHECKING:  # detect (and OpenCV) load only when an image is read
     from .detect import Detection
@@ -59,7 +59,7 @@ def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = N
     """Read POSES.csv (``image,x,y[,z][,angle]``); image paths are resolved against ``images_dir``."""
     path = Path(path)
     name = str(path)
-    rows, first = _csv_rows(_read_text(path), name)
+    rows, first = csv_rows(read_pairs_text(path), name)
     header = [h.strip().lower() for h in rows[first]]
     missing = [c for c in ("image", "x", "y") if c not in header]
     if missing:
@@ -73,7 +73,7 @@ def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = N
     for k, row in enumerate(rows[first + 1 :], start=first + 2):
         if not row or all(not c.strip() for c in row):
             continue
-        loc = _Where(name, line=k)
+        loc = Where(name, line=k)
         where = str(loc)
         if len(row) != len(header):
             raise loc.error(f"{len(row)} fields, the header has {len(header)}")
@@ -83,8 +83,8 @@ def load_poses(path: str | os.PathLike, images_dir: str | os.PathLike | None = N
         if image in seen:
             raise loc.error(f"{image!r} is listed twice (first at {seen[image]})", "image")
         seen[image] = where
-        x, y, z = (_number(row[col[c]], loc, c) if c in col else 0.0 for c in ("x", "y", "z"))
-        angle = _number(row[col["angle"]], loc, "angle") if "angle" in col else None
+        x, y, z = (record_number(row[col[c]], loc, c) if c in col else 0.0 for c in ("x", "y", "z"))
+        angle = record_number(row[col["angle"]], loc, "angle") if "angle" in col else None
         poses.append(Pose(image, base / image, (x, y, z), where, angle))
     if not poses:
         raise InputError(f"{name}: header only, no poses")

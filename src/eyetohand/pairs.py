@@ -103,7 +103,7 @@ class PointPairs:
         if ids is None:
             ids = [str(i) for i in range(len(uv))]
         pairs = cls(uv, xyz, tuple(ids), source, angle_deg, tuple(notes))
-        _check_values(pairs, [_Where(source, index=i) for i in range(len(uv))])
+        _check_values(pairs, [Where(source, index=i) for i in range(len(uv))])
         return pairs
 
     def __len__(self) -> int:
@@ -188,7 +188,7 @@ def load_pairs(path: str | os.PathLike) -> PointPairs:
     """
     path = Path(path)
     name = str(path)
-    text = _read_text(path)
+    text = read_pairs_text(path)
     if path.suffix.lower() == ".json":
         return _parse_json(text, name)
     return pairs_from_text(text, name)
@@ -214,10 +214,13 @@ def pairs_from_records(records, source: str | None = "<records>", *, label: str 
     return _from_records(records, source, label=label)
 
 
-# ---------------------------------------------------------------- internals
+# ---------------------------------------------------------------- the loaders' pieces
+# read_pairs_text, csv_rows, Where and record_number are also the poses loader's (images) and the
+# conveyor session loader's: one rule and one set of words for every file of numbers
 
 
-def _read_text(path: Path) -> str:
+def read_pairs_text(path: Path) -> str:
+    """A pairs file's text: bounded, UTF-8, not empty, not binary (refused with the path)."""
     data = read_bounded_bytes(path, what="a CSV or JSON file of point pairs", limit=MAX_FILE_BYTES)
     if not data.strip():
         raise InputError(f"{path}: empty file, expected a header line 'u,v,x,y[,z][,id]' and rows")
@@ -226,7 +229,7 @@ def _read_text(path: Path) -> str:
     return decode_utf8(data, str(path))
 
 
-def _csv_rows(text: str, name: str) -> tuple[list[list[str]], int]:
+def csv_rows(text: str, name: str) -> tuple[list[list[str]], int]:
     """Rows of a CSV text split on any line break, and the index of the header (first non-blank)."""
     lines = text.splitlines()
     first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
@@ -240,7 +243,7 @@ def _csv_rows(text: str, name: str) -> tuple[list[list[str]], int]:
 
 
 def _parse_csv(text: str, name: str) -> PointPairs:
-    rows, first = _csv_rows(text, name)
+    rows, first = csv_rows(text, name)
     if len(rows[first]) == 1:  # no comma in the header: another delimiter?
         for delim, label in ((";", "';'"), ("\t", "tab"), ("|", "'|'")):
             if delim in rows[first][0]:
@@ -272,7 +275,7 @@ def _parse_csv(text: str, name: str) -> PointPairs:
         if len(row) != len(header):
             raise InputError(f"{len(row)} fields, the header has {len(header)}", source=name, line=k)
         rec: dict[str, object] = {c: row[seen[c]].strip() for c in REQUIRED + OPTIONAL if c in seen}
-        rec["_where"] = _Where(name, line=k)
+        rec["_where"] = Where(name, line=k)
         records.append(rec)
     if not records:
         raise InputError(f"{name}: header only, no data rows")
@@ -304,16 +307,16 @@ def _from_records(records, name: str | None, label: str | None, z_given: bool | 
     uv = np.empty((n, 2))
     xyz = np.zeros((n, 3))
     ids: list[str] = []
-    wheres: list[_Where] = []
+    wheres: list[Where] = []
     angles = None
     if z_given is None:
         z_given = all(isinstance(r, dict) and "z" in r for r in records)
         if not z_given and any(isinstance(r, dict) and "z" in r for r in records):
             i = next(i for i, r in enumerate(records) if not (isinstance(r, dict) and "z" in r))
-            raise _Where(name, index=i, label=label or "pairs").error("missing (others have it)", "z")
+            raise Where(name, index=i, label=label or "pairs").error("missing (others have it)", "z")
     for i, rec in enumerate(records):
         if label is not None:
-            where = _Where(name, index=i, label=label)
+            where = Where(name, index=i, label=label)
             if not isinstance(rec, dict):
                 raise where.error("expected an object with u, v, x, y")
             for c in REQUIRED:
@@ -323,14 +326,14 @@ def _from_records(records, name: str | None, label: str | None, z_given: bool | 
             where = rec["_where"]
         wheres.append(where)
         for j, c in enumerate(("u", "v")):
-            uv[i, j] = _number(rec[c], where, c)
+            uv[i, j] = record_number(rec[c], where, c)
         for j, c in enumerate(("x", "y", "z")):
             if c in rec:
-                xyz[i, j] = _number(rec[c], where, c)
+                xyz[i, j] = record_number(rec[c], where, c)
         if "angle" in rec and rec["angle"] not in ("", None):
             if angles is None:
                 angles = np.full(n, np.nan)
-            angles[i] = _number(rec["angle"], where, "angle")
+            angles[i] = record_number(rec["angle"], where, "angle")
         pid = rec.get("id")
         ids.append(str(i) if pid in (None, "") else str(pid).strip())
     if angles is not None and np.isnan(angles).any():
@@ -344,7 +347,7 @@ def _from_records(records, name: str | None, label: str | None, z_given: bool | 
 
 
 @dataclass(frozen=True)
-class _Where:
+class Where:
     """Where a record came from: a file's line (CSV) or a list entry ``label[index]`` (JSON, API)."""
 
     source: str | None
@@ -361,7 +364,7 @@ class _Where:
         return self.error("").where
 
 
-def _number(value, where: _Where, field_name: str) -> float:
+def record_number(value, where: Where, field_name: str) -> float:
     """A finite float from a JSON number or a CSV string; booleans and '6_00'-style literals refused."""
     if isinstance(value, bool):
         raise where.error(f"{value!r} is not a number", field_name)
@@ -383,7 +386,7 @@ def _number(value, where: _Where, field_name: str) -> float:
     return x
 
 
-def _check_values(pairs: PointPairs, wheres: list[_Where]) -> None:
+def _check_values(pairs: PointPairs, wheres: list[Where]) -> None:
     name = pairs.source
     values = np.c_[pairs.uv_px, pairs.xyz_mm]
     if not np.isfinite(values).all():
@@ -408,7 +411,7 @@ def _check_values(pairs: PointPairs, wheres: list[_Where]) -> None:
         raise InputError(f"{name}: no pairs")
 
 
-def _check_repeats(values: np.ndarray, label: str, wheres: list[_Where]) -> None:
+def _check_repeats(values: np.ndarray, label: str, wheres: list[Where]) -> None:
     if len(values) < 2:
         return
     _, first, inverse = np.unique(values, axis=0, return_index=True, return_inverse=True)
@@ -454,13 +457,13 @@ def _cell(v) -> str:
 def load_image_points(path: str | os.PathLike) -> ImagePoints:
     """Read a CSV with columns ``u,v`` (and optionally ``z``, mm, and ``angle``, deg) to map."""
     path = Path(path)
-    return image_points_from_text(_read_text(path), str(path))
+    return image_points_from_text(read_pairs_text(path), str(path))
 
 
 def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
     """Image points from CSV text (see :func:`load_image_points`). A column the mapping would add
     (x, y, z when the input has no z, rz, sigma_mm, inside) is refused rather than overwritten."""
-    rows, first = _csv_rows(text, name)
+    rows, first = csv_rows(text, name)
     header = [h.strip() for h in rows[first]]
     lower = [h.lower() for h in header]
     missing = [c for c in ("u", "v") if c not in lower]
@@ -484,12 +487,12 @@ def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
             continue
         if len(row) != len(header):
             raise InputError(f"{len(row)} fields, the header has {len(header)}", source=name, line=k)
-        where = _Where(name, line=k)
-        uv.append((_number(row[ju], where, "u"), _number(row[jv], where, "v")))
+        where = Where(name, line=k)
+        uv.append((record_number(row[ju], where, "u"), record_number(row[jv], where, "v")))
         if jz is not None:
-            z.append(_number(row[jz], where, "z"))
+            z.append(record_number(row[jz], where, "z"))
         if ja is not None:
-            ang.append(_number(row[ja], where, "angle"))
+            ang.append(record_number(row[ja], where, "angle"))
         body.append(tuple(row))
     if not uv:
         raise InputError(f"{name}: header only, no data rows")

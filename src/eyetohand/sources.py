@@ -176,7 +176,7 @@ class FolderSource(Source):
     def _grab(self):
         import cv2
 
-        from .detect import _check_complete
+        from .detect import check_complete
 
         before = {n: (st.st_mtime_ns, st.st_size) for n, st in self._scan().items()}
         sizes: dict[str, int] = {}
@@ -194,7 +194,7 @@ class FolderSource(Source):
                 path = self.folder / name
                 try:
                     data = path.read_bytes()
-                    _check_complete(data, name)  # refuses truncated PNG / JPEG files
+                    check_complete(data, name)  # refuses truncated PNG / JPEG files
                 except (InputError, OSError):
                     continue
                 img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
