@@ -169,8 +169,8 @@ def _grain_tile(seed: int) -> np.ndarray:
 
     if seed not in _TILES:
         t = np.random.default_rng(seed).standard_normal((512, 512)).astype(np.float32)
-        t = cv2.GaussianBlur(np.pad(t, 8, mode="wrap"), (0, 0), 1.5)[8:-8, 8:-8]  # periodic
-        _TILES[seed] = (t / t.std()).astype(np.float32)
+        smooth = cv2.GaussianBlur(np.pad(t, 8, mode="wrap"), (0, 0), 1.5)[8:-8, 8:-8]  # periodic
+        _TILES[seed] = (smooth / smooth.std()).astype(np.float32)
     return _TILES[seed]
 
 

@@ -80,7 +80,7 @@ def validation_response(errors) -> JSONResponse:
     if first.get("type") == "json_invalid":
         ctx = first.get("ctx") or {}
         return error_response(400, f"body: invalid JSON ({ctx.get('error', first.get('msg'))})", "body")
-    listed = []
+    listed: list[dict[str, Any]] = []
     for e in errs[:20]:
         fld = _field_of(e.get("loc", ()))
         msg = _message(e)
@@ -132,4 +132,6 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_req, exc: StarletteHTTPException):
-        return error_response(exc.status_code, str(exc.detail), headers=exc.headers)
+        return error_response(
+            exc.status_code, str(exc.detail), headers=dict(exc.headers) if exc.headers else None
+        )

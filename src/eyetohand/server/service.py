@@ -86,7 +86,7 @@ class Service:
     def out(self, cal_id: int, version: int | None = None, detail: bool = False) -> dict:
         rec = self.store.get(cal_id)
         ver, cal = self.calibration(cal_id, version)
-        pairs = _pairs_of(ver.pairs, "pairs")
+        pairs = core.pairs_from_records(ver.pairs, source="pairs")  # every version has its pairs
         check = _pairs_of(ver.check, "check")
         excluded = ver.request.get("exclude") or []
         d = {
@@ -125,7 +125,7 @@ class Service:
             name,
             fitted.request,
             fitted.calibration.to_dict(),
-            _records(fitted.pairs),
+            fitted.pairs.to_records(),
             _records(fitted.check),
             note=note or "created",
         )
@@ -137,7 +137,7 @@ class Service:
                 cal_id,
                 fitted.request,
                 fitted.calibration.to_dict(),
-                _records(fitted.pairs),
+                fitted.pairs.to_records(),
                 _records(fitted.check),
                 note=note or "refit",
             )
@@ -232,7 +232,7 @@ class Service:
             )
         if name is not None:
             d = self.save_new(fitted, name, note)
-        else:
+        elif calibration_id is not None:
             d = self.save_version(calibration_id, fitted, note)
         self.jobs.get(job_id).saved = {"id": d["id"], "version": d["version"], "name": d["name"]}
         return d

@@ -11,6 +11,7 @@ copy of *n* (so the history still shows what was in force, and when).
 
 from __future__ import annotations
 
+import builtins
 import datetime as _dt
 import json
 import os
@@ -323,7 +324,7 @@ class Store:
             raise NotFound(f"calibration {cal_id} has no version {v} (versions 1..{rec.current_version})")
         return _version(row)
 
-    def versions(self, cal_id: int) -> list[Version]:
+    def versions(self, cal_id: int) -> builtins.list[Version]:
         self.get(cal_id)
         rows = self._read(
             "SELECT calibration_id, version, created_utc, note, request_json, calibration_json, "
@@ -338,8 +339,8 @@ class Store:
         name: str,
         request: dict,
         calibration: dict,
-        pairs: list,
-        check: list | None,
+        pairs: builtins.list,
+        check: builtins.list | None,
         note: str = "created",
     ) -> Record:
         now = _now()
@@ -350,6 +351,7 @@ class Store:
                     "VALUES (?, ?, ?, 1)",
                     (name, now, now),
                 )
+                assert cur.lastrowid is not None  # an INSERT sets it
                 cal_id = int(cur.lastrowid)
                 self._insert_version(db, cal_id, 1, now, note, request, calibration, pairs, check)
         except sqlite3.IntegrityError:
@@ -357,7 +359,13 @@ class Store:
         return self.get(cal_id)
 
     def add_version(
-        self, cal_id: int, request: dict, calibration: dict, pairs: list, check: list | None, note: str
+        self,
+        cal_id: int,
+        request: dict,
+        calibration: dict,
+        pairs: builtins.list,
+        check: builtins.list | None,
+        note: str,
     ) -> Record:
         now = _now()
         with self._tx() as db, _translated(self.path):
@@ -410,7 +418,7 @@ class Store:
                 (cal_id, version, _now(), _dumps(entry)),
             )
 
-    def verifications(self, cal_id: int) -> list[dict]:
+    def verifications(self, cal_id: int) -> builtins.list[dict]:
         """The verification history, oldest first, each entry with the version it checked."""
         self.get(cal_id)
         rows = self._read(

@@ -368,6 +368,7 @@ class LineServer:
         except (asyncio.LimitOverrunError, ValueError, asyncio.IncompleteReadError, TimeoutError):
             line = b""
         given = line.strip()[5:] if line[:5].upper() == b"AUTH " else b""
+        assert self.token is not None  # _auth runs only with a token
         if hmac.compare_digest(given.strip(), self.token):
             writer.write(b"OK\n")
             return True
