@@ -304,6 +304,7 @@ class Collector:
         if not (still_tol_px > 0):
             raise InputError(f"still_tol_px: expected a positive number of px, got {still_tol_px!r}")
         store = Path(store)
+        self.journal: _SqliteJournal | JsonlJournal
         if store.suffix.lower() in SQLITE_SUFFIXES:
             self.dir = store.parent
             self.journal = _SqliteJournal(store)
@@ -596,6 +597,7 @@ class Collector:
         self.last_grab = (img1, d1, utc_now())
         if not d1.ok:
             raise CommandError(_classify(d1.reason))
+        assert d1.u is not None and d1.v is not None and d1.diameter_px is not None  # found: all set
         r = 2.0 * d1.diameter_px + 8
         h, w = img2.shape[:2]
         x = int(max(0, math.floor(d1.u - r)))
@@ -608,6 +610,7 @@ class Collector:
             d2 = None
         if d2 is None or not d2.ok:
             raise CommandError("moving: the target was not found again in the second grab")
+        assert d2.u is not None and d2.v is not None
         shift = math.hypot(d2.u - d1.u, d2.v - d1.v)
         if shift > self.still_tol_px:
             raise CommandError(
@@ -654,6 +657,7 @@ class Collector:
                 )
             raise
         n = len(s.points) + 1
+        assert self.image_size is not None  # _acquire grabbed: the camera's size is known
         digest = hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
         image_file = None
         if self.keep_images:
@@ -736,7 +740,7 @@ class Collector:
         s = self.session
         if s is None:
             return ["-", "0", "none"]
-        n = s.result["n"] if s.state == "calibrated" else len(self._active(s))
+        n = s.result["n"] if s.state == "calibrated" and s.result else len(self._active(s))
         return [s.name, str(n), s.state]
 
     # -- CHECK
@@ -746,7 +750,7 @@ class Collector:
         xyz = line_numbers(args, ("x", "y", "z"), "CAL CHECK")
         name = self.calibration_name
         cal = self.load_fn(name) if name else None
-        if cal is None:
+        if cal is None or not name:
             raise CommandError(
                 "no calibration to check"
                 + (f": '{name}' has none yet" if name else "; send CAL BEGIN … CAL END first")
