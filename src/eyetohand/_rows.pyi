@@ -1,5 +1,5 @@
 # The compiled loop of src/eyetohand/_rows.c (optional: see models.base.rows_kernel).
-from collections.abc import Buffer
+from typing_extensions import Buffer
 
 def planar_rows(uv: Buffer, h: Buffer, projective: bool, z: float | Buffer, out: Buffer, /) -> bool: ...
 def affine3_rows(uv: Buffer, m: Buffer, t0: float, t1: float, out: Buffer, /) -> bool: ...

@@ -1,5 +1,5 @@
 # The compiled swarm steps of src/eyetohand/_swarm.c (optional: see optimize.hybrid_pso).
-from collections.abc import Buffer
+from typing_extensions import Buffer
 
 def move(
     x: Buffer,

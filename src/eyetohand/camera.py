@@ -28,7 +28,8 @@ store it with :meth:`Camera.to_dict` / :meth:`Camera.from_dict`.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -65,6 +66,12 @@ class Camera:
     p2: float = 0.0
     rvec: tuple[float, float, float] = (0.0, 0.0, 0.0)  # robot → camera rotation, Rodrigues (rad)
     tvec_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # Xc = R·X + t
+    if TYPE_CHECKING:  # what __post_init__ derives once; not fields (to_dict, from_dict, eq ignore them)
+        _R: np.ndarray = field(init=False)
+        _dist: np.ndarray = field(init=False)
+        _f: np.ndarray = field(init=False)
+        _c: np.ndarray = field(init=False)
+        _centre: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
         for name in ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2"):
@@ -80,10 +87,10 @@ class Camera:
                 raise InputError(f"camera.{name}: must be a positive whole number of px, got {v!r}")
             object.__setattr__(self, name, int(v))
         for name in ("rvec", "tvec_mm"):
-            v = np.asarray(getattr(self, name), float).reshape(-1)
-            if v.shape != (3,) or not np.isfinite(v).all():
+            vec = np.asarray(getattr(self, name), float).reshape(-1)
+            if vec.shape != (3,) or not np.isfinite(vec).all():
                 raise InputError(f"camera.{name}: expected 3 finite numbers, got {getattr(self, name)!r}")
-            object.__setattr__(self, name, tuple(float(x) for x in v))
+            object.__setattr__(self, name, tuple(float(x) for x in vec))
         object.__setattr__(self, "_R", rodrigues_to_matrix(np.array(self.rvec)))
         object.__setattr__(self, "_dist", np.array([self.k1, self.k2, self.p1, self.p2, self.k3]))
         object.__setattr__(self, "_f", np.array([self.fx_px, self.fy_px]))
@@ -190,7 +197,7 @@ class Camera:
         z /= np.linalg.norm(z)
         u = np.asarray(up, float).reshape(3)
         y = -(u - (u @ z) * z)
-        if np.linalg.norm(y) < 1e-9 * max(np.linalg.norm(u), 1e-300):
+        if np.linalg.norm(y) < 1e-9 * max(float(np.linalg.norm(u)), 1e-300):
             raise InputError("look_at: 'up' is parallel to the optical axis")
         y /= np.linalg.norm(y)
         x = np.cross(y, z)
@@ -252,7 +259,10 @@ class Camera:
         missing = [n for n in ("fx_px", "fy_px", "cx_px", "cy_px", "width_px", "height_px") if n not in d]
         if missing:
             raise InputError(f"camera: missing key {missing[0]!r}")
-        return cls(**{k: (tuple(v) if k in ("rvec", "tvec_mm") else v) for k, v in d.items() if k in names})
+        kwargs: dict[str, Any] = {
+            k: (tuple(v) if k in ("rvec", "tvec_mm") else v) for k, v in d.items() if k in names
+        }
+        return cls(**kwargs)
 
     def to_dict(self) -> dict:
         """Plain JSON-able dict of the fields, plus ``position_mm`` for readers."""

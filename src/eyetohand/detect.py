@@ -164,7 +164,7 @@ def load_image(image, name: str | None = None) -> tuple[np.ndarray, str, float]:
         full = 65535.0
     else:
         full = 1.0
-    grey = arr.astype(np.float32, copy=False)
+    grey: np.ndarray = arr.astype(np.float32, copy=False)
     if grey.ndim == 3:
         grey = cv2.cvtColor(grey, cv2.COLOR_BGRA2GRAY if grey.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     if not np.issubdtype(arr.dtype, np.integer) and not np.isfinite(grey).all():
@@ -398,7 +398,11 @@ def _grouped(coarse, windows, levels, pols, min_d: float, sigma: float, f: int, 
     """The regions of ``coarse`` (in ``windows``) at every level, grouped across levels and examined:
     (candidates, rejected) at full-resolution coordinates. ``loose``: half the contrast and ring
     uniformity (the coarser search of :func:`_windows`)."""
-    labels, label_pol, rows, cents, keys = [], [], [], [], []
+    labels: list[np.ndarray] = []
+    label_pol: list[str] = []
+    row_parts: list[np.ndarray] = []
+    cent_parts: list[np.ndarray] = []
+    key_parts: list[np.ndarray] = []
     for x0, y0, x1, y1 in windows:
         win = coarse[y0:y1, x0:x1]
         for t in levels:
@@ -407,12 +411,12 @@ def _grouped(coarse, windows, levels, pols, min_d: float, sigma: float, f: int, 
                 if len(r):
                     labels.append(lab)
                     label_pol.append(pol)
-                    rows.append(r)
-                    cents.append(c)
-                    keys.append(np.full(len(r), len(labels) - 1))
-    if not rows:
+                    row_parts.append(r)
+                    cent_parts.append(c)
+                    key_parts.append(np.full(len(r), len(labels) - 1))
+    if not row_parts:
         return [], []
-    rows, cents, keys = np.vstack(rows), np.vstack(cents), np.concatenate(keys)
+    rows, cents, keys = np.vstack(row_parts), np.vstack(cent_parts), np.concatenate(key_parts)
     pol_of = np.array(label_pol)[keys]
     diam = 2 * np.sqrt(rows[:, 5] / math.pi)
     # group the same region seen at several levels: smallest first (a region's core at its extreme
@@ -433,7 +437,8 @@ def _grouped(coarse, windows, levels, pols, min_d: float, sigma: float, f: int, 
                 continue
         gx[k], gy[k], gd[k], gp[k] = cents[j, 0], cents[j, 1], diam[j], pol_of[j]
         members.append([j])
-    cands, rejected = [], []
+    cands: list[_Cand] = []
+    rejected: list[_Cand] = []
     for mem in members:
         if len(mem) < 2:
             continue
@@ -818,6 +823,8 @@ def _fit_intensity(img, ellipse, sign: float, sigma: float):
         if W >= 3 * s + 1.5 or W >= 0.6 * R:
             break
         W = min(3 * s + 1.5, 0.6 * R)
+    if result is None:
+        return None
     p = result
     if math.hypot(p[0], p[1]) > max(0.5, 0.02 * R):  # strayed from the edge fit: not trusted
         return None
@@ -888,7 +895,8 @@ def _found(img, sigma, polarity, diameter_px, f, full, refine, everywhere):
     """Refined candidates of the search at 1/``f`` scale: (found, failed, rejected). When the search
     in windows finds nothing it is repeated everywhere, so that every refusal is the whole image's."""
     cands, rejected, everywhere = _candidates(img, sigma, polarity, diameter_px, f, everywhere)
-    found, failed = [], []
+    found: list[Detection] = []
+    failed: list[Detection] = []
     lo, hi = DIAMETER_WINDOW
     for c in cands:
         d = _refine(img, c, sigma, full, refine)
@@ -901,6 +909,7 @@ def _found(img, sigma, polarity, diameter_px, f, full, refine, everywhere):
 
 
 def _shifted(d: Detection, dx: float, dy: float) -> Detection:
+    assert d.ellipse is not None and d.u is not None and d.v is not None  # a found target's
     (cx, cy), axes, ang = d.ellipse
     return replace(d, u=d.u + dx, v=d.v + dy, ellipse=((cx + dx, cy + dy), axes, ang))
 
@@ -1005,6 +1014,7 @@ def annotate(image, detection: Detection | list[Detection]) -> np.ndarray:
                 cv2.LINE_AA,
             )
             continue
+        assert d.ellipse is not None  # found: it has its ellipse
         (cx, cy), (A, B), ang = d.ellipse
         c = (int(round(cx * S)), int(round(cy * S)))
         cv2.ellipse(
