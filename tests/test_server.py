@@ -1292,7 +1292,10 @@ def test_tcp_takes_the_orientation_words_apply_and_http_take(client):
     )
     assert r.json()["rz_deg"][0] == pytest.approx(rz, abs=1e-12)
     assert tcp_answer(cal, b"6_00,900") == b"ERR u: '6_00' is not a number\n"
-    assert tcp_answer(cal, b"600,900,a=30,s=1.5").startswith(b"ERR s: 1.5 is not a whole number")
+    assert tcp_answer(cal, b"600,900,a=30,s=2.0") == tcp_answer(cal, b"600,900,a=30,s=2")  # text "2.0" is 2
+    assert tcp_answer(cal, b"600,900,a=30,s=1.5") == (
+        b"ERR symmetry must be a whole number from 1 to 360 (1: no fold, 2: 180 deg symmetric), got 1.5\n"
+    )
     assert tcp_answer(cal, b"600,900,a=30,s=0").startswith(b"ERR symmetry must be a whole number")
     assert tcp_answer(cal, b"600,900,q=1").startswith(b"ERR unknown word 'q=1'")
     # the library's words in ASCII: a controller reads bytes (the library says "2: 180° symmetric")

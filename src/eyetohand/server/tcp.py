@@ -198,8 +198,8 @@ def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
     z = vals[2] if len(vals) == 3 else None
     want_sigma = bool(opts.get("sigma"))
     symmetry = opts.get("symmetry", 1)
-    if symmetry != int(symmetry):
-        return f"ERR s: {symmetry!r} is not a whole number\n".encode()
+    # the line's text "2.0" is the whole number 2; a fraction hears the library's own refusal
+    symmetry = int(symmetry) if symmetry == int(symmetry) else symmetry
     try:
         with np.errstate(all="ignore"):
             m = cal.map(
@@ -207,7 +207,7 @@ def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
                 z,
                 angle_deg=opts.get("angle_deg"),
                 allow_outside=bool(opts.get("allow")),
-                symmetry=int(symmetry),
+                symmetry=symmetry,
                 tool_rz_offset_deg=opts.get("tool_rz_offset_deg"),
                 with_sigma=want_sigma,
             )
