@@ -142,8 +142,11 @@ def test_belt_maps_a_new_part_downstream_and_refuses_outside(collected, source, 
         a = float(words.split(",")[0][2:])
         want = float(cal.map(uv1, None, angle_deg=a, **kw).rz_deg[0])
         assert abs(got_rz - want) < 1e-4, (words, got_rz, want)
-    assert (
-        belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2.5") == "ERR s: 2.5 is not a whole number"
+    assert belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2.5") == (
+        "ERR symmetry must be a whole number from 1 to 360 (1: no fold, 2: 180 deg symmetric), got 2.5"
+    )  # the library's words, as the TCP mapping line's
+    assert belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2.0") == belt.handle(
+        f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2"
     )
     # its refusals in the TCP line's words (tcp.answer on the same fields), 6_00 not a number on either
     from eyetohand.server.tcp import answer

@@ -220,16 +220,15 @@ class BeltProtocol:
             if not sep or key not in ORIENTATION_WORDS:
                 raise CommandError(f"BELT: unknown word {w[:20]!r}; expected a=DEG, s=N or t=DEG")
             opts[key] = line_numbers([text], (key,), None)[0]
-        symmetry = opts.get("s", 1.0)
-        if symmetry != int(symmetry):
-            raise CommandError(f"s: {symmetry!r} is not a whole number")
-        check_symmetry(int(symmetry))  # with or without an angle, as the TCP line and the library
+        s = opts.get("s", 1.0)
+        # with or without an angle, as the TCP line and the library: text "2.0" is the whole number 2
+        symmetry = check_symmetry(int(s) if s == int(s) else s)
         angle = opts.get("a")
         uv = np.array([[u, v]])
         with np.errstate(all="ignore"):
             out = [_mm(c) for c in conv.image_to_robot_at(uv, e_img, e_now)[0]]
             if angle is not None:
-                rz = conv.rz_deg(uv, angle, symmetry=int(symmetry), tool_rz_offset_deg=opts.get("t"))
+                rz = conv.rz_deg(uv, angle, symmetry=symmetry, tool_rz_offset_deg=opts.get("t"))
                 out.append(f"{float(rz[0]):.4f}")
         return out
 
