@@ -100,14 +100,18 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
     uv = np.asarray(uv_px, float)
     xyz = np.asarray(xyz_mm, float)
     z = xyz[:, 2]
-    n, D = len(uv), full.n_params
+    n = len(uv)
+    free = full.free_params()  # a gauge freedom's parameters stay at the full fit's, as lm holds them
+    D = len(free)
     keep = 1.0 - np.eye(n)  # keep[i, j]: pair j is in held-out fit i
     P = np.tile(full.params, (n, 1))
     steps = 3 if full.linear_in_params else LOO_GN_MAX_STEPS  # linear: one step, then rounding
     with np.errstate(all="ignore"):
         for step in range(steps):
-            R, J = _map_and_jacobian(full, P, uv, z)  # (n, N, 3), (n, N, 3, D)
+            R, J = _map_and_jacobian(full, P, uv, z)  # (n, N, 3), (n, N, 3, all parameters)
             R -= xyz
+            if D < P.shape[1]:
+                J = J[..., free]
             Jk = (J * keep[:, :, None, None]).reshape(n, -1, D)
             A = Jk.transpose(0, 2, 1) @ Jk  # (n, D, D)
             g = (Jk.transpose(0, 2, 1) @ R.reshape(n, -1, 1))[..., 0]
@@ -127,7 +131,10 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
                 ev = np.linalg.eigvalsh(As)
                 if not (ev[:, 0] > 1e-12 * ev[:, -1]).all():
                     return None  # a held-out subset that does not determine the model: refit says why
-            P = P + scaled / s
+            if D < P.shape[1]:
+                P[:, free] += scaled / s
+            else:
+                P = P + scaled / s
             if settled:
                 break
         else:

@@ -78,23 +78,33 @@ def _lm(problem: Problem, **_):
 
     model, objective, delta = problem.model, problem.objective, problem.delta_mm
     t0 = time.perf_counter()
+    free = model.free_params()  # a gauge freedom's parameters stay at the start's values
+    held = len(free) < model.params.size
 
-    def fun_batch(P):
-        return problem.residuals(P).reshape(len(P), -1)
+    def full(Q):
+        if not held:
+            return Q
+        P = np.tile(model.params, (len(Q), 1))
+        P[:, free] = Q
+        return P
 
-    def fun(p):
-        return fun_batch(p[None])[0]
+    def fun_batch(Q):
+        return problem.residuals(full(Q)).reshape(len(Q), -1)
 
-    def jac(p):  # all finite-difference steps in one batched call
-        return batch_jacobian(fun_batch, p)
+    def fun(q):
+        return fun_batch(q[None])[0]
+
+    def jac(q):  # all finite-difference steps in one batched call
+        return batch_jacobian(fun_batch, q)
 
     extra: dict[str, float] = {}
+    start = model.params[free]
     if objective == "l2":  # least_squares(method="lm", x_scale="jac")'s own routine and iterates
-        sol = levenberg_marquardt(fun, model.params, jac)
+        sol = levenberg_marquardt(fun, start, jac)
     else:
         # the starting fit's errors are inflated by the very pairs Huber should discount, so the
         # threshold is re-estimated from the robust fit's own errors until it settles
-        x = model.params
+        x = start
         for _round in range(HUBER_ROUNDS):
             sol = least_squares(fun, x, jac=jac, method="trf", loss="huber", f_scale=delta, x_scale="jac")
             x = sol.x
@@ -103,7 +113,7 @@ def _lm(problem: Problem, **_):
                 break
             delta = new
         extra["huber_delta_mm"] = delta
-    best = model.with_params(sol.x)
+    best = model.with_params(full(np.asarray(sol.x, float)[None])[0])
     f = float(objective_values(fun(sol.x).reshape(1, -1, 3), objective, delta)[0])
     return best, FitInfo(
         "lm",

@@ -138,6 +138,14 @@ class Model(ABC):
     # depend on the pairs only through normalisation), so leave-one-out may start from the full fit
     loo_warm_start: ClassVar[bool] = True
     linear_in_params: ClassVar[bool] = False  # the map is linear in params: least squares in one step
+    # parameters the mapping does not determine once the others are given (a gauge freedom, as the
+    # paper's B has: 12 numbers for a 9-coefficient map): least squares (lm, leave-one-out) holds
+    # them at the start's values, so its problem has full rank; the swarms search all parameters
+    gauge_params: ClassVar[tuple[int, ...]] = ()
+
+    def free_params(self) -> np.ndarray:
+        """Indices of the parameters least squares refines: all but :attr:`gauge_params`."""
+        return np.array([i for i in range(self.params.size) if i not in self.gauge_params], dtype=np.intp)
 
     # ----------------------------------------------------------- class facts
     @classmethod

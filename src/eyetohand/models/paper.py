@@ -65,6 +65,11 @@ class PaperB(Model):
     summary = "12 unknowns: the paper's matrix B, equation (13) (affine on one plane)"
     height_rule = HeightRule.COMPUTED  # equation (13) gives z itself
     auto_candidate = False  # the paper's reference model, compared but never chosen by `auto`
+    # R = M⁻¹ (u − b14, v − b24, 1 − b34) is affine in (u, v): 9 coefficients from 12 numbers. With
+    # (b14, b24, b34) held (b34 ≠ 1), M⁻¹ and the affine map determine each other one to one, so
+    # least squares refines the nine elements of M and keeps the start's last column: a problem of
+    # full rank (refining all twelve, MINPACK's answer was not reproducible from run to run)
+    gauge_params = (3, 7, 11)
 
     @classmethod
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> PaperB:
