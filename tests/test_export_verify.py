@@ -176,3 +176,11 @@ def test_verify_command_exit_codes_and_history(tmp_path, capsys):
     h = read_history(path)
     assert [e["passed"] for e in h] == [True, False]
     assert (tmp_path / "cal.json.history.jsonl").exists()
+
+
+@pytest.mark.parametrize("pitch", ["1e-300", "0.01"])
+def test_a_grid_too_fine_is_refused_not_written_empty(planar, pitch, capsys):
+    """A pitch so fine that the grid's count overflowed an integer wrote a header and no rows."""
+    assert main(["export", str(planar["homography"]), "--format", "csv", "--pitch", pitch]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and "grid points over the region (at most 2000000): use a larger pitch" in err, err

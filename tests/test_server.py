@@ -1429,3 +1429,69 @@ def test_server_limits_say_they_are_the_servers(client):
         "error": "particles: 5000 particles is more than this server's limit of 1000",
         "field": "particles",
     }
+
+
+@pytest.mark.parametrize(
+    "argv, body, line, words",
+    [
+        (
+            ["--angle", "1e308"],
+            {"angles": [1e308]},
+            b"600,900,a=1e308",
+            "1e+308 deg is more than 1e+09 deg from 0",
+        ),
+        (
+            ["--tool-rz-offset", "1e12"],
+            {"tool_rz_offset_deg": 1e12},
+            b"600,900,t=1e12",
+            "1e+12 deg is more than 1e+09",
+        ),
+        (
+            ["--angle", "10", "--symmetry", "0"],
+            {"angles": [10.0], "symmetry": 0},
+            b"600,900,a=10,s=0",
+            "symmetry must be a whole number from 1 to 360",
+        ),
+    ],
+)
+def test_angles_are_refused_alike_on_apply_http_and_tcp(client, tmp_path, capsys, argv, body, line, words):
+    """An angle whose direction is lost to rounding, a tool offset (with or without an angle) and a
+    symmetry are refused by the library's rule in its words on every interface; the API names the field."""
+    create(client, "a", model="homography", optimizer="lm")
+    cal = Calibration.from_dict(client.get("/api/calibrations/1").json()["calibration"])
+    path = cal.save(tmp_path / "a.json")
+    assert cli_main(["apply", str(path), "--uv", "600", "900", *argv]) == 2
+    assert words in capsys.readouterr().err
+    r = client.post("/api/calibrations/1/image-to-robot", json={"points": [[600, 900]], **body})
+    assert r.status_code == 422 and words in r.json()["error"], r.json()
+    assert r.json()["field"] in ("points[0].angle", "tool_rz_offset_deg", "symmetry"), r.json()
+    reply = tcp_answer(cal, line)
+    assert reply.startswith(b"ERR ") and words.encode() in reply, reply
+
+
+def test_image_sizes_are_refused_in_the_librarys_words(client, tmp_path, capsys):
+    words = "image size must be two whole numbers of pixels W x H from 1 to 100000"
+    for size, text in (((0, 5), "0x5"), ((99999999999, 5), "99999999999x5")):
+        code = cli_main(
+            [
+                "calibrate",
+                str(PAPER / "calibration_points.csv"),
+                "--image-size",
+                text,
+                "-o",
+                str(tmp_path / "c.json"),
+            ]
+        )
+        assert code == 2 and words in capsys.readouterr().err
+        r = client.post("/api/calibrations", json={"name": "i", "pairs": PAIRS, "image_size": list(size)})
+        assert r.status_code == 422 and r.json()["field"] == "image_size" and words in r.json()["error"], (
+            r.json()
+        )
+
+
+def test_a_swarm_of_too_many_iterations_is_refused():
+    from eyetohand.solvers import SWARM_MAX_ITERATIONS, check_optimizer
+
+    check_optimizer("pso", "l2", {"iterations": SWARM_MAX_ITERATIONS})
+    with pytest.raises(InputError, match="solver option 'iterations' must be at most 1000000, got 1000001"):
+        check_optimizer("pso", "l2", {"iterations": SWARM_MAX_ITERATIONS + 1})

@@ -25,7 +25,9 @@ from .io import atomic_write_text
 from .models import HeightRule, Model, model_from_dict
 from .orientation import (
     CONVENTIONS,
+    MAX_ABS_ANGLE_DEG,
     LocalFrame,
+    angle_refusal,
     check_symmetry,
     image_angle_to_rz,
     local_jacobian,
@@ -191,6 +193,10 @@ class Calibration:
         from .models.base import as_uv
 
         s = check_symmetry(symmetry)  # checked with or without an angle: one rule on every interface
+        if tool_rz_offset_deg is not None:  # likewise
+            why = angle_refusal(float(tool_rz_offset_deg))
+            if why:
+                raise InputError(why, field="tool_rz_offset_deg")
         uv = as_uv(uv_px)
         n = len(uv)
         if z is not None:
@@ -222,14 +228,14 @@ class Calibration:
         rz = None
         if angle_deg is not None:
             ang = np.broadcast_to(np.asarray(angle_deg, float), (n,))
-            if not np.isfinite(ang).all():
-                i = int(np.flatnonzero(~np.isfinite(ang))[0])
-                raise InputError("must be a finite number (deg)", index=i, field="angle", label="points")
+            bad_angle = ~(np.abs(ang) <= MAX_ABS_ANGLE_DEG)  # NaN too
+            if bad_angle.any():
+                i = int(np.flatnonzero(bad_angle)[0])
+                why = angle_refusal(float(ang[i])) or "is not an angle"
+                raise InputError(why, index=i, field="angle", label="points")
             J = local_jacobian(self.xy_map(z), uv)
             rz = image_angle_to_rz(J, ang)
             if tool_rz_offset_deg is not None:
-                if not np.isfinite(tool_rz_offset_deg):
-                    raise InputError("tool rz offset must be a finite number (deg)")
                 rz = rz + float(tool_rz_offset_deg) - self.local_frame().u_axis_rz_deg
             rz = wrap_deg(rz, s)
         sigma = None

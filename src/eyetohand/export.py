@@ -107,12 +107,13 @@ def grid_points(cal: Calibration, pitch_px: float) -> np.ndarray:
     r = cal.region
     lo = np.floor((r.hull_px.min(axis=0) - r.margin_px) / pitch_px) * pitch_px
     hi = r.hull_px.max(axis=0) + r.margin_px
-    nu, nv = (np.floor((hi - lo) / pitch_px) + 1).astype(int)
-    if nu * nv > MAX_GRID_POINTS:
+    counts = np.floor((hi - lo) / pitch_px) + 1  # floats: a tiny pitch must not overflow an int
+    if not np.isfinite(counts).all() or float(counts[0]) * float(counts[1]) > MAX_GRID_POINTS:
         raise InputError(
-            f"--pitch {pitch_px:g} px gives {nu * nv} grid points over the region "
-            f"(at most {MAX_GRID_POINTS}): use a larger pitch"
+            f"--pitch {pitch_px:g} px gives {float(counts[0]) * float(counts[1]):.4g} grid points over the "
+            f"region (at most {MAX_GRID_POINTS}): use a larger pitch"
         )
+    nu, nv = counts.astype(int)
     uu, vv = np.meshgrid(lo[0] + pitch_px * np.arange(nu), lo[1] + pitch_px * np.arange(nv))
     uv = np.c_[uu.ravel(), vv.ravel()]
     return uv[r.outside_px(uv) <= r.margin_px]

@@ -354,6 +354,30 @@ def tcp_offset_for(pairs: PointPairs, model: str = "auto", *, image_size=None, s
     return estimate_tcp_offset(pairs, fit_linear)  # refuses pairs without turns, saying what they lack
 
 
+MAX_IMAGE_SIDE_PX = 100_000
+"""Largest image width or height (px) a calibration takes: no camera's sensor is wider."""
+
+
+def check_image_size(image_size) -> tuple[int, int] | None:
+    """``(W, H)`` as whole numbers of pixels from 1 to :data:`MAX_IMAGE_SIDE_PX`, or None."""
+    if image_size is None:
+        return None
+    try:
+        w, h = image_size
+        ok = all(
+            not isinstance(x, bool) and float(x) == int(x) and 1 <= int(x) <= MAX_IMAGE_SIDE_PX
+            for x in (w, h)
+        )
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise InputError(
+            f"image size must be two whole numbers of pixels W x H from 1 to {MAX_IMAGE_SIDE_PX}, "
+            f"got {image_size!r}"
+        )
+    return int(w), int(h)
+
+
 def calibrate(
     pairs: PointPairs,
     model: str = "auto",
@@ -381,11 +405,7 @@ def calibrate(
     seed = check_seed(seed)
     if model != "auto":
         get_model(model)
-    if image_size is not None:
-        w, h = image_size
-        if not (int(w) > 0 and int(h) > 0):
-            raise InputError(f"image size must be two positive integers W x H, got {image_size!r}")
-        image_size = (int(w), int(h))
+    image_size = check_image_size(image_size)
     cv_seed = 0 if seed is None else seed
     data_sha = pairs.sha256()
     original, original_check = pairs, check

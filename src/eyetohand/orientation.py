@@ -14,6 +14,7 @@ Conventions (stated once, recorded in every calibration file):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +46,22 @@ def wrap_deg(a, symmetry: int = 1) -> np.ndarray:
     period = 360.0 / symmetry
     a = np.asarray(a, float)
     return period / 2 - np.mod(period / 2 - a, period)
+
+
+MAX_ABS_ANGLE_DEG = 1e9
+"""Largest angle magnitude taken (deg): beyond it, folding into one turn loses more than 1e-7 deg to
+rounding, and no controller counts that many turns."""
+
+
+def angle_refusal(value: float) -> str | None:
+    """Why an angle (deg) is refused, or None: finite and within ±:data:`MAX_ABS_ANGLE_DEG`."""
+    if not math.isfinite(value):
+        return "must be a finite number (deg)"
+    if abs(value) > MAX_ABS_ANGLE_DEG:
+        return (
+            f"{value:g} deg is more than {MAX_ABS_ANGLE_DEG:g} deg from 0: its direction is lost to rounding"
+        )
+    return None
 
 
 def check_symmetry(symmetry) -> int:

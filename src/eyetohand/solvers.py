@@ -216,6 +216,9 @@ def check_seed(seed):
     return int(seed)
 
 
+SWARM_MAX_ITERATIONS = 1_000_000
+"""Most iterations a swarm may be asked for (the paper's is 150; each keeps its best in the history)."""
+
 SWARM_MAX_BYTES = 4 * 2**30
 """Most memory a swarm's evaluation may take: one iteration evaluates every candidate on every pair
 at once, ~``4 × candidates × pairs × 3 × 8`` bytes of arrays."""
@@ -261,6 +264,9 @@ def check_optimizer(name: str, objective: str = "l2", options: dict | None = Non
             raise InputError(f"solver option '{key}' must be a positive whole number, got {value!r}")
     if options and options.get("n_particles", 2) < 2:
         raise InputError("solver option 'n_particles' must be at least 2")
+    if options and options.get("iterations", 1) > SWARM_MAX_ITERATIONS:
+        most, got = SWARM_MAX_ITERATIONS, options["iterations"]
+        raise InputError(f"solver option 'iterations' must be at most {most}, got {got!r}")
     return solver
 
 

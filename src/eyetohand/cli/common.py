@@ -21,10 +21,8 @@ class CliError(InputError):
 def parse_image_size(text: str | None):
     if text is None:
         return None
-    try:
+    try:  # the form here; the sizes the library takes (and its words) in fit.check_image_size
         w, h = (int(p) for p in text.lower().split("x"))
-        if w <= 0 or h <= 0:
-            raise ValueError
     except ValueError:
         raise CliError(f"--image-size: expected WxH in pixels (e.g. 2448x2048), got {text!r}") from None
     return (w, h)

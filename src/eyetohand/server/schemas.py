@@ -8,8 +8,10 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool, W
 from pydantic import Strict as StrictType
 
 from ..errors import InputError
+from ..fit import MAX_IMAGE_SIDE_PX, check_image_size
 from ..models import MODEL_CHOICES, get_model
 from ..objectives import OBJECTIVES, check_objective
+from ..orientation import check_symmetry
 from ..solvers import OPTIMIZERS, SEED_MAX, check_optimizer, check_seed, get_solver
 from .storage import clean_text, is_id_like
 
@@ -70,7 +72,6 @@ Name = Annotated[
 ]
 PairId = Annotated[str, Field(min_length=1, max_length=64), AfterValidator(_pair_id)]
 Note = Annotated[str, Field(max_length=200), AfterValidator(_label)]
-Px = Annotated[int, StrictType(), Field(ge=1, le=100_000)]
 
 
 def _library_rule(check):
@@ -108,6 +109,24 @@ ModelName = Annotated[
 ]
 OptimizerName = Annotated[str, StrictType(), _library_rule(get_solver), _enum(OPTIMIZERS)]
 ObjectiveName = Annotated[str, StrictType(), _library_rule(check_objective), _enum(OBJECTIVES)]
+Symmetry = Annotated[
+    int,
+    StrictType(),
+    _library_rule(check_symmetry),
+    WithJsonSchema({"type": "integer", "minimum": 1, "maximum": 360}),
+]
+ImageSize = Annotated[
+    tuple[Int, Int],
+    _library_rule(check_image_size),
+    WithJsonSchema(
+        {
+            "type": "array",
+            "items": {"type": "integer", "minimum": 1, "maximum": MAX_IMAGE_SIDE_PX},
+            "minItems": 2,
+            "maxItems": 2,
+        }
+    ),
+]
 Seed = Annotated[
     int,
     StrictType(),
@@ -161,7 +180,7 @@ class FitOptions(Strict):
     )
     particles: Particles = Field(200, description="swarm size (pso, hybrid-pso)")
     iterations: Iterations = Field(150, description="iterations (pso, hybrid-pso)")
-    image_size: tuple[Px, Px] | None = Field(
+    image_size: ImageSize | None = Field(
         None, description="image width and height, px (sets the distortion centre)"
     )
 
@@ -216,7 +235,7 @@ class MapRequest(Strict):
     angles: list[Finite] | None = Field(
         None, description="image angles, deg from +u towards +v, one per point: answered as rz (deg)"
     )
-    symmetry: Int = Field(1, ge=1, le=360, description="fold rz into (-180/s, 180/s] (2: 180° symmetric)")
+    symmetry: Symmetry = Field(1, description="fold rz into (-180/s, 180/s] (2: 180° symmetric)")
     tool_rz_offset_deg: Finite | None = Field(
         None, description="the gripper's rz when aligned with the image's +u: rz becomes its command"
     )
@@ -452,7 +471,7 @@ class ImagesCalibrate(Strict):
     seed: Seed | None = Field(None, description="seed of the stochastic solvers")
     particles: Particles = Field(200, description="swarm size (pso, hybrid-pso)")
     iterations: Iterations = Field(150, description="iterations (pso, hybrid-pso)")
-    image_size: tuple[Px, Px] | None = Field(
+    image_size: ImageSize | None = Field(
         None, description="image width and height, px (sets the distortion centre)"
     )
 
