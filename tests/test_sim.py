@@ -247,7 +247,18 @@ def test_plan_without_target_and_bad_options(capsys):
     code, _, err = run(capsys, "plan", "--plan", "grid:4x", "--runs", "2")
     assert code == 2 and "grid:RxC" in err
     code, _, err = run(capsys, "plan", "--runs", "0")
-    assert code == 2 and "--runs" in err
+    assert code == 2 and "runs: expected a whole number from 1 to 10000, got 0" in err
+    for argv, words in (
+        (["plan", "--runs", "100000000"], "runs: expected a whole number from 1 to 10000"),
+        (["plan", "--seed", "-1"], "field 'seed': must be a whole number from 0 to 4294967295, got -1"),
+        (["simulate", "--seed", "-5", "--out", "unused"], "field 'seed': must be a whole number"),
+        (
+            ["simulate", "--check", "99999999", "--out", "unused"],
+            "check points: expected a whole number from 0",
+        ),
+    ):  # seeds were an internal error (exit 1), huge counts ran for ever
+        code, _, err = run(capsys, *argv)
+        assert code == 2 and words in err and "internal error" not in err, (argv, err)
     # too few pairs for any model: reported per plan, not a crash
     row = predict_plan(Cell.default(), "grid:1x2", (150.0,), runs=2, n_check=5)
     assert row["predicted_rms_mm"] is None and "too few pairs" in row["error"]

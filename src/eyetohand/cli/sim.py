@@ -29,8 +29,6 @@ def cmd_simulate(args) -> int:
         return 0
     if not args.out:
         raise InputError("simulate: give --out DIR (or --write-config FILE to write the default cell)")
-    if args.check < 0:
-        raise InputError(f"--check: expected a whole number >= 0, got {args.check}")
     cell = load_cell(args.config)
     heights = parse_numbers(args.heights, "--heights")
     angles = parse_numbers(args.angles, "--angles", example="0,90,180") if args.angles else None
@@ -84,10 +82,6 @@ def cmd_simulate(args) -> int:
 def cmd_plan(args) -> int:
     cell = load_cell(args.config)
     plans = [p for item in (args.plan or DEFAULT_PLANS) for p in item.split(",") if p.strip()]
-    if args.runs < 1:
-        raise InputError(f"--runs: expected a whole number >= 1, got {args.runs}")
-    if args.check < 1:
-        raise InputError(f"--check: expected a whole number >= 1, got {args.check}")
     study = plan_study(
         cell,
         plans,

@@ -16,12 +16,17 @@ import numpy as np
 
 from ..errors import InputError
 from ..fit import calibrate
+from ..solvers import check_seed
 from .cell import Cell
-from .plans import parse_plan
+from .plans import MAX_POINTS, is_whole_in, parse_plan
 from .simulate import simulate
 
 DEFAULT_PLANS = ("grid:3x3", "grid:4x4", "grid:5x5", "radial:17", "random:25", "grid:7x7")
 METRICS = ("max", "rms")
+
+
+MAX_RUNS = 10_000
+"""Most simulated sessions per plan (each is a calibration)."""
 
 
 def predict_plan(
@@ -37,12 +42,14 @@ def predict_plan(
     seed: int = 0,
 ) -> dict:
     """Predicted check RMS and max (mm) of ``plan`` at ``heights_mm`` over ``runs`` simulated sessions."""
-    if not isinstance(runs, (int, np.integer)) or runs < 1:
-        raise InputError(f"runs: expected a whole number >= 1, got {runs!r}")
-    if not isinstance(n_check, (int, np.integer)) or n_check < 1:
+    if not is_whole_in(runs, 1, MAX_RUNS):
+        raise InputError(f"runs: expected a whole number from 1 to {MAX_RUNS}, got {runs!r}")
+    if not is_whole_in(n_check, 1, MAX_POINTS):
         raise InputError(
-            f"n_check: expected a whole number >= 1 (the prediction is the check error), got {n_check!r}"
+            f"check points: expected a whole number from 1 to {MAX_POINTS} per height (the prediction is "
+            f"the check error), got {n_check!r}"
         )
+    seed = check_seed(seed)
     p = parse_plan(plan)
     seeds = np.random.SeedSequence(seed).generate_state(runs)
     rms_runs: list[float] = []

@@ -22,6 +22,14 @@ from ..errors import InputError
 
 VALID_FORMS = "grid:RxC (e.g. grid:5x5), radial:N (e.g. radial:17) or random:N (e.g. random:25)"
 MAX_POINTS = 10_000
+
+
+def is_whole_in(value, lo: int, hi: int) -> bool:
+    """``value`` is a whole number (not a bool) from ``lo`` to ``hi``: the rule of the counts a
+    simulation takes (points, check points, runs)."""
+    return bool(isinstance(value, (int, np.integer)) and not isinstance(value, bool) and lo <= value <= hi)
+
+
 RADIAL_LINES = 8
 
 

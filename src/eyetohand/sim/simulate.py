@@ -31,9 +31,10 @@ from ..camera import Camera
 from ..errors import InputError
 from ..io import atomic_write_text
 from ..pairs import PointPairs
+from ..solvers import check_seed
 from ..tcp_offset import rotations
 from .cell import Cell
-from .plans import Plan, parse_plan
+from .plans import MAX_POINTS, Plan, is_whole_in, parse_plan
 
 SCHEMA = "eyetohand.sim.truth"
 COMMAND_RESOLUTION_MM = 1e-3
@@ -106,8 +107,11 @@ def simulate(
     plan = parse_plan(plan) if isinstance(plan, str) else plan
     heights = _heights(heights_mm, "heights")
     check_heights = heights if check_heights_mm is None else _heights(check_heights_mm, "check heights")
-    if not isinstance(n_check, (int, np.integer)) or n_check < 0:
-        raise InputError(f"check: the number of check points must be a whole number >= 0, got {n_check!r}")
+    if not is_whole_in(n_check, 0, MAX_POINTS):
+        raise InputError(
+            f"check points: expected a whole number from 0 to {MAX_POINTS} per height, got {n_check!r}"
+        )
+    seed = check_seed(seed)
     angles = None
     if angles_deg is not None:
         angles = tuple(float(a) for a in angles_deg)
