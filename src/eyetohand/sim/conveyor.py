@@ -36,7 +36,9 @@ import numpy as np
 from ..conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor, direction_from_angles
 from ..errors import InputError
 from ..io import atomic_write_text
+from ..solvers import check_seed
 from .cell import Cell
+from .plans import MAX_POINTS, is_whole_in
 from .simulate import true_camera
 
 
@@ -81,8 +83,13 @@ class ConveyorSetup:
             raise InputError(
                 f"conveyor sim: sighting_step_mm must be 0 <= lo <= hi, got {self.sighting_step_mm}"
             )
-        if self.n_parts < 1 or self.touches_per_part < 1:
-            raise InputError("conveyor sim: n_parts and touches_per_part must be at least 1")
+        if not (
+            is_whole_in(self.n_parts, 1, MAX_POINTS) and is_whole_in(self.touches_per_part, 1, MAX_POINTS)
+        ):
+            raise InputError(
+                f"conveyor sim: n_parts and touches_per_part must be whole numbers from 1 to {MAX_POINTS}, "
+                f"got {self.n_parts!r} and {self.touches_per_part!r}"
+            )
         if not 0 <= self.stopped_fraction <= 1:
             raise InputError(f"conveyor sim: stopped_fraction must be in 0..1, got {self.stopped_fraction}")
         if self.mm_per_count == 0 or self.speed_mm_s <= 0:
@@ -187,7 +194,7 @@ def simulate_conveyor(
     """A time-ordered session of sightings and touches on the simulated belt, and its truth."""
     setup = setup or ConveyorSetup()
     cell = cell or Cell.default()
-    ss = np.random.SeedSequence(seed)
+    ss = np.random.SeedSequence(check_seed(seed))
     r_layout, r_slip, r_pix, r_touch, r_latch, r_enc = (np.random.default_rng(s) for s in ss.spawn(6))
     lo, hi = setup.window_mm
     session_mm = setup.n_parts * setup.spacing_mm + hi + 200.0
@@ -294,7 +301,7 @@ def pick_check(sim: ConveyorSimulation, n: int = 200, *, at_mm: float | None = N
     belt from the view centre (default 1 mm inside the window's far end) and the part's true
     position then."""
     setup, cell = sim.setup, sim.cell
-    ss = np.random.SeedSequence(seed)
+    ss = np.random.SeedSequence(check_seed(seed))
     r_layout, r_slip, r_latch, r_enc = (np.random.default_rng(s) for s in ss.spawn(4))
     belt = _Belt(setup, cell, r_slip, sim.e_start)
     w, h = cell.image_size
@@ -326,7 +333,7 @@ def static_session(sim: ConveyorSimulation, n_pairs: int | None = None, n_check:
     (z set to the mean: the planar models take one height) and noise-free check ``(uv, xyz)``."""
     setup, cell = sim.setup, sim.cell
     n_pairs = setup.n_parts if n_pairs is None else n_pairs
-    rng = np.random.default_rng(np.random.SeedSequence(seed))
+    rng = np.random.default_rng(np.random.SeedSequence(check_seed(seed)))
     belt = _Belt(setup, cell, rng, sim.e_start)
     w, h = cell.image_size
     m = cell.margin_px()
