@@ -388,3 +388,13 @@ def test_noise_sigma_by_counting_equals_the_median_definition():
         d = np.diff(a[:: max(1, min(16, h // 64))], axis=1).ravel()
         ref = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(2)
         assert noise_sigma(a) == pytest.approx(ref, rel=1e-6)
+
+
+@pytest.mark.parametrize("diameter", [700.0, 1e300])
+def test_a_diameter_larger_than_the_image_is_refused(diameter):
+    """No target is larger than its image; 1e300 was an OverflowError (an internal error)."""
+    img = np.full((480, 640), 200, np.uint8)
+    with pytest.raises(InputError, match=r"diameter_px .* px is larger than the 640x480 image"):
+        detect_target(img, diameter_px=diameter)
+    with pytest.raises(InputError, match="larger than the 640x480 image"):
+        detect_circles(img, diameter_px=diameter)

@@ -847,13 +847,15 @@ def _check_options(polarity, diameter_px, roi, shape, name):
         raise InputError(f"polarity: expected auto, dark or bright, got {polarity!r}")
     if diameter_px is not None and not (np.isfinite(diameter_px) and diameter_px > 0):
         raise InputError(f"diameter_px: expected a positive number of px, got {diameter_px!r}")
+    H, W = shape
+    if diameter_px is not None and diameter_px > max(W, H):
+        raise InputError(f"{name}: diameter_px {diameter_px:g} px is larger than the {W}x{H} image")
     if roi is None:
         return 0, 0
     try:
         x, y, w, h = (int(v) for v in roi)
     except (TypeError, ValueError):
         raise InputError(f"roi: expected (x, y, w, h) in px, got {roi!r}") from None
-    H, W = shape
     if w < MIN_SIZE_PX or h < MIN_SIZE_PX or x < 0 or y < 0 or x + w > W or y + h > H:
         raise InputError(
             f"{name}: roi {roi!r} is not inside the {W}x{H} image (or smaller than {MIN_SIZE_PX} px)"
