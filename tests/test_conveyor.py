@@ -340,3 +340,23 @@ def test_pick_check_and_static_session_see_the_simulation_s_own_cell(tmp_path):
     np.testing.assert_allclose(cam.robot_to_image(xyz_c), uv_c, atol=1e-6)
     conv = sim.calibrate()
     assert conv.calibration.image_size == (640, 512)  # the camera map fitted for that image
+
+
+@pytest.mark.parametrize(
+    "kwargs, words",
+    [
+        (
+            {"stated_counts_per_mm": 0.0},
+            "stated pulses per mm: expected a finite number of counts per mm, not 0",
+        ),
+        ({"stated_counts_per_mm": float("nan")}, "stated pulses per mm"),
+        ({"noise_counts": -1.0}, "noise counts: expected a finite number of counts >= 0, got -1.0"),
+        ({"stated_direction_deg": (1e308, 0.0)}, "stated belt yaw: 1e\\+308 deg is more than 1e\\+09 deg"),
+    ],
+)
+def test_what_the_user_states_about_the_belt_is_checked_first(kwargs, words):
+    """A stated 0 pulses per mm was a ZeroDivisionError and NaN a SciPy ValueError (internal errors);
+    a negative noise allowance and a yaw made of rounding were taken."""
+    sim = simulate_conveyor(ConveyorSetup(n_parts=4), seed=1)
+    with pytest.raises(InputError, match=words):
+        sim.calibrate(**kwargs)

@@ -51,6 +51,7 @@ from .errors import DegenerateError, InputError
 from .fit import calibrate
 from .io import atomic_write_text, read_bounded_text
 from .models import get_model
+from .orientation import angle_refusal
 from .pairs import PointPairs, Where, beyond_limit, csv_rows, record_number
 
 SCHEMA = "eyetohand.conveyor"
@@ -552,6 +553,10 @@ class _Prepared:
 
 
 def _prepare(session: Session, encoder: Encoder, noise_counts: float) -> _Prepared:
+    """The session's rows in the fit's terms, its counts checked (time order, one direction, steps
+    back no larger than ``noise_counts``)."""
+    if not (math.isfinite(float(noise_counts)) and noise_counts >= 0):
+        raise InputError(f"noise counts: expected a finite number of counts >= 0, got {noise_counts!r}")
     src = session.source
     e = encoder.check(session.e, f"{src}: e")
     cont = encoder.unwrap(e)
@@ -924,6 +929,17 @@ def calibrate_conveyor(
     """
     encoder = encoder or Encoder()
     src = session.source
+    if stated_counts_per_mm is not None:
+        c = float(stated_counts_per_mm)
+        if not (math.isfinite(c) and c != 0.0):
+            raise InputError(
+                f"stated pulses per mm: expected a finite number of counts per mm, not 0, got {c!r}"
+            )
+    if stated_direction_deg is not None:
+        for what, a in zip(("yaw", "pitch"), stated_direction_deg, strict=True):
+            why = angle_refusal(float(a))
+            if why:
+                raise InputError(f"stated belt {what}: {why}")
     prep = _prepare(session, encoder, noise_counts)
     cls = get_model(model)
     if cls.needs_heights():
