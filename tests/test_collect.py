@@ -570,6 +570,10 @@ def test_robot_positions_beyond_the_pairs_limit_are_refused_where_they_come_in(t
     assert col.handle("CAL BEGIN t1,grid:3x3,0,0,1e200,100,150") == f"ERR CAL BEGIN: x1: {far}"
     assert col.handle("CAL BEGIN t1") == "OK"
     assert col.handle("CAL POINT 1,1e200,150") == f"ERR CAL POINT: y: {far}"
-    assert col.handle("CAL POINT 1,2,150,1e200").startswith("ERR timeout")  # an angle is no position
+    # an angle is no position: refused by the angle rule (its words), not the positions'
+    assert col.handle("CAL POINT 1,2,150,1e200") == (
+        "ERR CAL POINT: angle: 1e+200 deg is more than 1e+09 deg from 0: its direction is lost to rounding"
+    )
+    assert col.handle("CAL POINT 1,2,150,7200").startswith("ERR timeout")  # 20 turns: an angle
     assert col.handle("CAL STATUS") == "OK t1,0,collecting"
     col.close()

@@ -193,6 +193,20 @@ def test_values_too_far_out_for_the_fits_are_refused_by_every_interface(tmp_path
     assert "1e+200 is more than 1e+09 mm from 0" in r.json()["error"]
 
 
+def test_a_tool_angle_too_far_out_is_refused_where_it_is_read(tmp_path, capsys):
+    """The angle column (tool rotations for the tool-centre offset) takes the angle rule of every
+    interface: beyond ±1e9 deg a direction is lost to rounding."""
+    from eyetohand.cli import main
+
+    path = write(
+        tmp_path, "ang.csv", "u,v,x,y,z,angle\n1,2,3,4,5,0\n10,20,30,40,5,1e300\n100,20,30,400,5,0\n"
+    )
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "c.json")]) == 2
+    err = capsys.readouterr().err
+    words = "1e+300 deg is more than 1e+09 deg from 0: its direction is lost to rounding"
+    assert err == f"error: {path} line 3, field 'angle': {words}\n"
+
+
 def test_a_singular_system_in_a_fit_is_one_input_error(monkeypatch, paper_pairs):
     """A singular linear system inside a model's estimation that its own checks did not foresee is
     refused as degenerate pairs (one line naming the pairs and the model), not an internal error."""

@@ -74,6 +74,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .orientation import angle_refusal
 from .pairs import beyond_limit
 
 STILL_TOL_PX = 0.2
@@ -207,7 +208,8 @@ def line_numbers(
     """Finite plain decimals of a line protocol (CAL, BELT and the TCP mapping line), refused as
     ``u: 'abc' is not a number`` (after ``what: `` when given); ``6_00`` is not one, as in the
     library's loaders. With ``unit`` ("mm" or "px") they are coordinates of pairs, refused beyond
-    ±1e9 as the loaders refuse them (:func:`eyetohand.pairs.beyond_limit`)."""
+    ±1e9 as the loaders refuse them (:func:`eyetohand.pairs.beyond_limit`); "deg": angles, refused
+    beyond ±1e9 deg (:func:`eyetohand.orientation.angle_refusal`)."""
     out = []
     prefix = f"{what}: " if what else ""
     for name, text in zip(names, fields, strict=False):
@@ -219,7 +221,7 @@ def line_numbers(
             raise CommandError(f"{prefix}{name}: {text[:20]!r} is not a number") from None
         if not math.isfinite(v):
             raise CommandError(f"{prefix}{name}: {text[:20]!r} is not a finite number")
-        far = beyond_limit(v, unit) if unit else None
+        far = (angle_refusal(v) if unit == "deg" else beyond_limit(v, unit)) if unit else None
         if far:
             raise CommandError(f"{prefix}{name}: {far}")
         out.append(v)
@@ -626,7 +628,7 @@ class Collector:
         if len(args) not in (3, 4):
             raise CommandError(f"CAL POINT: {len(args)} fields; expected <x>,<y>,<z>[,<angle>]")
         vals = line_numbers(args[:3], ("x", "y", "z"), "CAL POINT", "mm")
-        vals += line_numbers(args[3:], ("angle",), "CAL POINT")
+        vals += line_numbers(args[3:], ("angle",), "CAL POINT", "deg")
         s = self._open()
         xyz, angle = vals[:3], (vals[3] if len(vals) == 4 else 0.0)
         for k, p in enumerate(s.points):

@@ -21,6 +21,7 @@ import numpy as np
 
 from .errors import InputError
 from .io import decode_utf8, read_bounded_bytes
+from .orientation import MAX_ABS_ANGLE_DEG, angle_refusal
 
 REQUIRED = ("u", "v", "x", "y")
 OPTIONAL = ("z", "id", "angle")
@@ -396,6 +397,11 @@ def _check_values(pairs: PointPairs, wheres: list[Where]) -> None:
     if far.any():
         i, j = (int(k) for k in np.argwhere(far)[0])
         raise wheres[i].error(str(beyond_limit(values[i, j], "px" if j < 2 else "mm")), "uvxyz"[j])
+    if pairs.angle_deg is not None:
+        far_angle = ~(np.abs(pairs.angle_deg) <= MAX_ABS_ANGLE_DEG)
+        if far_angle.any():
+            i = int(np.flatnonzero(far_angle)[0])
+            raise wheres[i].error(str(angle_refusal(float(pairs.angle_deg[i]))), "angle")
     first_seen: dict[str, int] = {}
     for i, pid in enumerate(pairs.ids):
         if pid in first_seen:
