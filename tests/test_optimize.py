@@ -544,3 +544,5 @@ def test_a_swarm_too_big_to_evaluate_is_refused_with_the_size_that_fits():
             check_swarm_size(kind, most, n_pairs)  # fits
             assert _swarm_rows(kind, most + 1) * n_pairs * 96 > SWARM_MAX_BYTES  # and one more would not
     check_swarm_size("hybrid-pso", 200, 16)  # the paper's swarm
+    with pytest.raises(InputError, match="no swarm fits: use optimizer lm"):
+        check_swarm_size("hybrid-pso", 200, 10**8)

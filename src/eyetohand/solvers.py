@@ -233,12 +233,13 @@ def check_swarm_size(kind: str, n_particles: int, n_pairs: int) -> None:
     if need <= SWARM_MAX_BYTES:
         return
     most = int(SWARM_MAX_BYTES // per_row / (3.1 if kind == "hybrid-pso" else 1.0))
-    while most > 2 and _swarm_rows(kind, most) * per_row > SWARM_MAX_BYTES:
+    while most >= 2 and _swarm_rows(kind, most) * per_row > SWARM_MAX_BYTES:
         most -= 1
+    advice = f"at most {most} particles fit" if most >= 2 else "no swarm fits: use optimizer lm"
     raise InputError(
         f"solver option 'n_particles' = {n_particles} is too many for {n_pairs} pairs: each iteration "
         f"evaluates {rows} candidates on every pair at once (~{need / 2**30:.3g} GiB of arrays, more than "
-        f"the {SWARM_MAX_BYTES / 2**30:g} GiB a fit may take); at most {most} particles fit"
+        f"the {SWARM_MAX_BYTES / 2**30:g} GiB a fit may take); {advice}"
     )
 
 
