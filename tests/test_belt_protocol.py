@@ -145,6 +145,7 @@ def test_belt_maps_a_new_part_downstream_and_refuses_outside(collected, source, 
     assert belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2.5") == (
         "ERR symmetry must be a whole number from 1 to 360 (1: no fold, 2: 180 deg symmetric), got 2.5"
     )  # the library's words, as the TCP mapping line's
+    assert belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,a=40") == "ERR BELT: a given twice"
     assert belt.handle(f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2.0") == belt.handle(
         f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2"
     )

@@ -1495,3 +1495,13 @@ def test_a_swarm_of_too_many_iterations_is_refused():
     check_optimizer("pso", "l2", {"iterations": SWARM_MAX_ITERATIONS})
     with pytest.raises(InputError, match="solver option 'iterations' must be at most 1000000, got 1000001"):
         check_optimizer("pso", "l2", {"iterations": SWARM_MAX_ITERATIONS + 1})
+
+
+def test_a_word_given_twice_on_a_mapping_line_is_refused(client):
+    """'a=10,a=20' took the last angle without a word; which one the robot meant is not guessed."""
+    create(client, "w", model="homography", optimizer="lm")
+    cal = Calibration.from_dict(client.get("/api/calibrations/1").json()["calibration"])
+    assert tcp_answer(cal, b"600,900,a=10,a=20").startswith(b"ERR a given twice; send u,v")
+    assert tcp_answer(cal, b"600,900,sigma,allow,sigma").startswith(b"ERR sigma given twice")
+    assert tcp_answer(cal, b"600,900,angle_deg=5").startswith(b"ERR unknown word 'angle_deg=5'")
+    assert not tcp_answer(cal, b"600,900,a=10,s=2,t=5,sigma,allow").startswith(b"ERR")

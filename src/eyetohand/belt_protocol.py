@@ -219,6 +219,8 @@ class BeltProtocol:
             key, sep, text = w.partition("=")
             if not sep or key not in ORIENTATION_WORDS:
                 raise CommandError(f"BELT: unknown word {w[:20]!r}; expected a=DEG, s=N or t=DEG")
+            if key in opts:
+                raise CommandError(f"BELT: {key} given twice")  # which one was meant is not guessed
             opts[key] = line_numbers([text], (key,), None)[0]
         s = opts.get("s", 1.0)
         # with or without an angle, as the TCP line and the library: text "2.0" is the whole number 2

@@ -169,12 +169,15 @@ def answer(cal: Calibration, line: bytes) -> bytes:
         vals.append(x)
     opts: dict = {}
     for w in words:
+        key, _, text_value = w.partition("=")
+        option = w if w in ("allow", "sigma") else _WORDS.get(key)
+        if option is None:
+            return f"ERR unknown word {w[:20]!r}; {USAGE}\n".encode()
+        if option in opts:
+            return f"ERR {key} given twice; {USAGE}\n".encode()  # which one was meant is not guessed
         if w in ("allow", "sigma"):
             opts[w] = True
             continue
-        key, _, text_value = w.partition("=")
-        if key not in _WORDS:
-            return f"ERR unknown word {w[:20]!r}; {USAGE}\n".encode()
         x, err = _number(key, text_value)
         if err:
             return err
