@@ -1,7 +1,8 @@
 """Levenberg–Marquardt with a user Jacobian: MINPACK's ``lmder`` as ``scipy.optimize.least_squares(
 method="lm", x_scale="jac")`` runs it — the same call, so the same iterates, evaluations and answer —
-without least_squares' per-call set-up, which costs more than the whole fit on a 25-pair problem
-(its function wrappers, input checks and a Jacobian at the solution only to report the gradient).
+without least_squares' per-call set-up (its function wrappers, input checks and a Jacobian at the
+solution only to report the gradient): a fifth to a third of a 25-pair homography fit's time
+(docs/performance.md).
 
 SciPy's ``leastsq`` is the public door to that routine; it evaluates the function and the Jacobian
 at the start once more to check their shapes, so both are remembered for their last argument here
@@ -39,12 +40,14 @@ class LMResult:
 
 
 def _last(fn: Callable[[np.ndarray], np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
-    """``fn`` remembered for its last argument (a copy of it: MINPACK reuses its buffers)."""
+    """``fn`` remembered for its last argument (a copy of it: MINPACK reuses its buffers). A repeat
+    answers a copy: MINPACK keeps the first array it is given as its residual buffer and writes into
+    it, which must not reach the remembered value."""
     memo: list = [None, None]
 
     def call(x: np.ndarray) -> np.ndarray:
         if memo[0] is not None and np.array_equal(x, memo[0]):
-            return memo[1]
+            return memo[1].copy()
         value = fn(x)
         memo[0], memo[1] = np.array(x, copy=True), value
         return value
