@@ -169,6 +169,18 @@ def _make_rng(seed: object) -> np.random.Generator:
     raise ValueError(f"seed must be an int, None or a numpy.random.Generator, got {type(seed).__name__}")
 
 
+MUTATION_RATE = 0.1  # hybrid_pso's default share of particles given a mutant each iteration
+
+
+def candidates_per_iteration(
+    n_particles: int, *, crossover: bool = True, mutation: bool = True, mutation_rate: float = MUTATION_RATE
+) -> int:
+    """Positions one iteration evaluates: the moved swarm, both crossover children of each particle
+    and ``max(1, round(mutation_rate * n))`` mutants (``pso``: the swarm alone)."""
+    n = n_particles
+    return n + (2 * n if crossover else 0) + (max(1, round(mutation_rate * n)) if mutation else 0)
+
+
 def hybrid_pso(
     fitness: Fitness,
     x0: np.ndarray,
@@ -181,7 +193,7 @@ def hybrid_pso(
     c2: float = 1.4801,
     crossover: bool = True,
     mutation: bool = True,
-    mutation_rate: float = 0.1,
+    mutation_rate: float = MUTATION_RATE,
     mutation_decades: float = 6.0,
     seed: int | np.random.Generator | None = None,
     callback: Callback | None = None,
@@ -272,7 +284,8 @@ def hybrid_pso(
         if np.any(np.isnan(lower)) or np.any(np.isnan(upper)) or np.any(lower > upper):
             raise ValueError("bounds must satisfy lower <= upper in every dimension")
     rng = _make_rng(seed)
-    n_mut = max(1, round(mutation_rate * n)) if mutation else 0
+    n_rows = candidates_per_iteration(n, crossover=crossover, mutation=mutation, mutation_rate=mutation_rate)
+    n_mut = n_rows - n - (2 * n if crossover else 0)
 
     nfev = 0
 
@@ -280,7 +293,6 @@ def hybrid_pso(
     # One candidate array holds, per iteration, the moved swarm (rows 0..n-1, which is also the
     # swarm itself: ``x`` is a view), both crossover children and the mutants; ``fitness`` gets a
     # read-only view of it, so one call evaluates everything and nothing is concatenated.
-    n_rows = n + (2 * n if crossover else 0) + n_mut
     cand = np.empty((n_rows, dim))
     cand_ro = cand.view()
     cand_ro.flags.writeable = False
@@ -464,7 +476,7 @@ def hybrid_pso(
         status=status,
         seed=seed,
         n_particles=n,
-        nfev_per_iteration=n + (2 * n if crossover else 0) + n_mut,
+        nfev_per_iteration=n_rows,
     )
 
 

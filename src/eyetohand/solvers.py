@@ -244,8 +244,11 @@ def check_swarm_size(kind: str, n_particles: int, n_pairs: int) -> None:
 
 
 def _swarm_rows(kind: str, n: int) -> int:
-    """Candidates per iteration: the hybrid's moved swarm, both crossover children and its mutants."""
-    return n + 2 * n + max(1, round(0.1 * n)) if kind == "hybrid-pso" else n
+    """Positions one iteration of the ``kind`` swarm evaluates (the optimiser's own count)."""
+    from .optimize import candidates_per_iteration
+
+    hybrid = kind == "hybrid-pso"
+    return candidates_per_iteration(n, crossover=hybrid, mutation=hybrid)
 
 
 def check_optimizer(name: str, objective: str = "l2", options: dict | None = None) -> Solver:
