@@ -231,8 +231,7 @@ class Calibration:
             bad_angle = ~(np.abs(ang) <= MAX_ABS_ANGLE_DEG)  # NaN too
             if bad_angle.any():
                 i = int(np.flatnonzero(bad_angle)[0])
-                why = angle_refusal(float(ang[i])) or "is not an angle"
-                raise InputError(why, index=i, field="angle", label="points")
+                raise InputError(str(angle_refusal(float(ang[i]))), index=i, field="angle", label="points")
             J = local_jacobian(self.xy_map(z), uv)
             rz = image_angle_to_rz(J, ang)
             if tool_rz_offset_deg is not None:

@@ -106,6 +106,7 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
     keep = 1.0 - np.eye(n)  # keep[i, j]: pair j is in held-out fit i
     P = np.tile(full.params, (n, 1))
     steps = 3 if full.linear_in_params else LOO_GN_MAX_STEPS  # linear: one step, then rounding
+    last = np.inf
     with np.errstate(all="ignore"):
         for step in range(steps):
             R, J = _map_and_jacobian(full, P, uv, z)  # (n, N, 3), (n, N, 3, all parameters)
@@ -123,7 +124,11 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
                 scaled = -np.linalg.solve(As, (g / s)[..., None])[..., 0]  # ≈ mm the step moves the pairs
             except np.linalg.LinAlgError:
                 return None
-            settled = bool((np.abs(scaled) <= LOO_GN_TOL_MM).all())
+            biggest = float(np.abs(scaled).max())
+            settled = biggest <= LOO_GN_TOL_MM
+            if not settled and biggest > 0.5 * last:
+                return None  # the steps stopped shrinking (a rounding floor above the tolerance): refit
+            last = biggest
             # conditioned where the steps start and where they end (between, a step that an
             # ill-conditioned subset throws far does not settle); As is symmetric: its condition
             # number from its eigenvalues
@@ -131,10 +136,7 @@ def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.n
                 ev = np.linalg.eigvalsh(As)
                 if not (ev[:, 0] > 1e-12 * ev[:, -1]).all():
                     return None  # a held-out subset that does not determine the model: refit says why
-            if D < P.shape[1]:
-                P[:, free] += scaled / s
-            else:
-                P = P + scaled / s
+            P[:, free] += scaled / s  # every parameter but a gauge's (the same sums as P + step)
             if settled:
                 break
         else:
