@@ -57,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .collect import NAME_RE, CommandError, JsonlJournal, ascii_reason, line_numbers, utc_now
+from .collect import NAME_RE, CommandError, JsonlJournal, ascii_reason, line_count, line_numbers, utc_now
 from .conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor
 from .errors import InputError
 from .orientation import check_symmetry
@@ -224,7 +224,7 @@ class BeltProtocol:
             opts[key] = line_numbers([text], (key,), None)[0]
         s = opts.get("s", 1.0)
         # with or without an angle, as the TCP line and the library: text "2.0" is the whole number 2
-        symmetry = check_symmetry(int(s) if s == int(s) else s)
+        symmetry = check_symmetry(line_count(s))
         angle = opts.get("a")
         uv = np.array([[u, v]])
         with np.errstate(all="ignore"):

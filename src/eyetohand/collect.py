@@ -228,6 +228,12 @@ def line_numbers(
     return out
 
 
+def line_count(value: float) -> int | float:
+    """A line protocol's number meant as a count (``s=N``): the text ``2.0`` is the whole number 2;
+    a fraction is passed on as it is, for the rule that takes the count to refuse in its words."""
+    return int(value) if value == int(value) else value
+
+
 def plan_poses(plan: str, x0: float, y0: float, x1: float, y1: float, z: float) -> np.ndarray:
     """The poses (n, 3) mm of ``plan`` over the rectangle x0..x1, y0..y1 at height z, in the order
     :meth:`Collector` hands them out (a grid snakes: every other row reversed)."""

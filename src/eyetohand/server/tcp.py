@@ -27,8 +27,9 @@ from collections.abc import Callable
 import numpy as np
 
 from ..calibration import Calibration
-from ..collect import CommandError, ascii_reason, line_numbers
+from ..collect import CommandError, ascii_reason, line_count, line_numbers
 from ..errors import InputError
+from ..orientation import check_symmetry
 
 MAX_LINE = 256
 MAX_REASON = 200  # characters of an ERR reason on a mapping line (ASCII: collect.ascii_reason)
@@ -200,10 +201,8 @@ def _number(name: str, text: str) -> tuple[float, bytes | None]:
 def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
     z = vals[2] if len(vals) == 3 else None
     want_sigma = bool(opts.get("sigma"))
-    symmetry = opts.get("symmetry", 1)
-    # the line's text "2.0" is the whole number 2; a fraction hears the library's own refusal
-    symmetry = int(symmetry) if symmetry == int(symmetry) else symmetry
     try:
+        symmetry = check_symmetry(line_count(opts.get("symmetry", 1)))  # "2.0" is 2, as on BELT lines
         with np.errstate(all="ignore"):
             m = cal.map(
                 np.array([vals[:2]]),
