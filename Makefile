@@ -5,8 +5,8 @@ STAMP := $(VENV)/.installed
 
 .PHONY: setup demo test lint format bench clean browser
 
-# setup.py builds the compiled parts (src/eyetohand/_rows.c, _swarm.c) into the source tree
-$(STAMP): pyproject.toml setup.py src/eyetohand/_rows.c src/eyetohand/_swarm.c src/eyetohand/_buffers.h
+# setup.py builds the compiled parts (src/eyetohand/models/_rows.c, solve/_swarm.c) into the source tree
+$(STAMP): pyproject.toml setup.py src/eyetohand/models/_rows.c src/eyetohand/solve/_swarm.c src/eyetohand/_buffers.h
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'
@@ -54,4 +54,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_outliers.py --sets 100
 
 clean:
-	rm -rf $(VENV) build dist demo-out src/*.egg-info src/eyetohand/*.so
+	rm -rf $(VENV) build dist demo-out src/*.egg-info src/eyetohand/*/*.so

@@ -1,5 +1,5 @@
-"""The compiled parts: two small C extensions (src/eyetohand/_rows.c, a loop for the lens-free planar
-maps of many pixels; src/eyetohand/_swarm.c, the hybrid PSO's swarm steps).
+"""The compiled parts: two small C extensions (src/eyetohand/models/_rows.c, a loop for the lens-free planar
+maps of many pixels; src/eyetohand/solve/_swarm.c, the hybrid PSO's swarm steps).
 
 Optional — where they cannot be built (no C compiler) the package runs the same steps in NumPy and
 OpenCV: the same numbers, slower (docs/performance.md). Everything else is in pyproject.toml.
@@ -8,10 +8,11 @@ OpenCV: the same numbers, slower (docs/performance.md). Everything else is in py
 from setuptools import Extension, setup
 
 
-def _extension(name: str) -> Extension:
+def _extension(package: str, name: str) -> Extension:
     return Extension(
-        f"eyetohand.{name}",
-        sources=[f"src/eyetohand/{name}.c"],
+        f"eyetohand.{package}.{name}",
+        sources=[f"src/eyetohand/{package}/{name}.c"],
+        include_dirs=["src/eyetohand"],  # _buffers.h, shared by both
         depends=["src/eyetohand/_buffers.h"],
         # -ffp-contract=off: no fused multiply-add, so the loops equal the NumPy paths bit for bit
         extra_compile_args=["-O3", "-ffp-contract=off"],
@@ -19,4 +20,4 @@ def _extension(name: str) -> Extension:
     )
 
 
-setup(ext_modules=[_extension("_rows"), _extension("_swarm")])
+setup(ext_modules=[_extension("models", "_rows"), _extension("solve", "_swarm")])

@@ -35,8 +35,8 @@ import argparse
 
 import numpy as np
 
-from eyetohand.fit import calibrate
-from eyetohand.pairs import PointPairs
+from eyetohand.calibration.fit import calibrate
+from eyetohand.core.pairs import PointPairs
 from eyetohand.sim.conveyor import (
     ConveyorSetup,
     pick_check,

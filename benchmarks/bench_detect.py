@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/bench_detect.py --quick    # 6 images
     .venv/bin/python benchmarks/bench_detect.py --stress   # harder scenes, ours only
 
-Each image is rendered by :func:`eyetohand.render.render` through its own tilted camera with lens
+Each image is rendered by :func:`eyetohand.vision.render.render` through its own tilted camera with lens
 distortion (the simulator's default lens: f = 4637.7 px, k1 −0.08, k2 0.12; 300 mm above the target
 plane, tilted 0–20° in a random direction): the 5 mm target circle (≈ 77 px) on its 8 mm strip over
 the textured belt, at a random place in the central 80 % of the view, strip at a random angle,
@@ -51,8 +51,8 @@ def scenes(n: int, seed: int = 0, image_size=(2448, 2048)):
 
     Each image has its own camera pose: 300 mm above the target plane, tilted 0–20° towards a random
     direction, image axes at a random yaw, the simulator's lens (f 4637.7 px, k1 −0.08, k2 0.12)."""
-    from eyetohand.camera import Camera
-    from eyetohand.render import render
+    from eyetohand.geometry.camera import Camera
+    from eyetohand.vision.render import render
 
     rng = np.random.default_rng(seed)
     w, h = image_size
@@ -100,7 +100,7 @@ def _timed(fn, img):
 
 
 def run(n: int, seed: int = 0) -> dict:
-    from eyetohand.detect import detect_target
+    from eyetohand.vision.detect import detect_target
 
     sbd = blob_detector()
     rows = []
@@ -192,9 +192,9 @@ def stress(n: int, seed: int = 5) -> None:
     """Harder scenes than the benchmark's (one row per variant, ``n`` images each): our detector only.
     Unless a variant says otherwise: blur 0.6–1.4 px, noise 1–3 grey levels, vignetting 0.25, a lens
     with k1 −0.2, k2 0.15, tilt 0–25°."""
-    from eyetohand.camera import Camera
-    from eyetohand.detect import detect_target
-    from eyetohand.render import Target, render
+    from eyetohand.geometry.camera import Camera
+    from eyetohand.vision.detect import detect_target
+    from eyetohand.vision.render import Target, render
 
     rng = np.random.default_rng(seed)
     print(f"{'scene':<36} {'found':>7} {'median':>8} {'max':>8}   (px, vs the imaged ellipse's centre)")
@@ -250,7 +250,7 @@ def main(argv=None) -> int:
     )
     print(f"{'detector':<22} {'found':>7} {'median':>8} {'p95':>8} {'max':>8} {'ms/image':>9}")
     for k, label in (
-        ("ours", "eyetohand.detect"),
+        ("ours", "eyetohand.vision.detect"),
         ("sbd", "SimpleBlobDetector"),
         ("edge", "edge points only"),
         ("moments", "moments (ablation)"),

@@ -24,7 +24,7 @@ import cv2
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from synth import grid_pairs, make_camera  # noqa: E402
 
-from eyetohand.fit import calibrate  # noqa: E402
+from eyetohand.calibration.fit import calibrate  # noqa: E402
 from eyetohand.models import radial  # noqa: E402
 
 

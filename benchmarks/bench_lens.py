@@ -1,4 +1,4 @@
-"""Speed of the one lens (eyetohand.lens) through the camera: ``python benchmarks/bench_lens.py``.
+"""Speed of the one lens (eyetohand.geometry.lens) through the camera: ``python benchmarks/bench_lens.py``.
 
 One point and 500 000 points through ``Camera.image_to_robot`` (undistort, ray, plane) and
 ``Camera.robot_to_image``, each as a ratio to OpenCV's ``cv2.undistortPoints`` /
@@ -14,7 +14,7 @@ import timeit
 import cv2
 import numpy as np
 
-from eyetohand.camera import Camera
+from eyetohand.geometry.camera import Camera
 
 LENSES = {
     "strong, tangential + k3": (-0.28, 0.12, 1.5e-3, -8e-4, -0.02),

@@ -25,9 +25,9 @@ import time
 import cv2
 import numpy as np
 
-from eyetohand.fit import calibrate
+from eyetohand.calibration.fit import calibrate
+from eyetohand.core.pairs import PointPairs
 from eyetohand.models import base
-from eyetohand.pairs import PointPairs
 
 BLAS_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -115,7 +115,9 @@ def main() -> None:
 
     print(f"2. 10⁶ points (ms, median of {rep}); ratio = eyetohand / OpenCV, goal ≤ 1.5")
     if base.rows_kernel() is None:
-        print("   (the compiled loop eyetohand._rows was not built: lens-free maps by NumPy and OpenCV)")
+        print(
+            "   (the compiled loop eyetohand.models._rows was not built: lens-free maps by NumPy and OpenCV)"
+        )
     for threads in (1, 2):
         env = {**os.environ, **{v: str(threads) for v in BLAS_VARS}}
         cmd = [sys.executable, __file__, "--big-only", str(threads)] + (["--quick"] if args.quick else [])

@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
-from eyetohand.fit import calibrate
-from eyetohand.pairs import PointPairs
+from eyetohand.calibration.fit import calibrate
+from eyetohand.core.pairs import PointPairs
 from eyetohand.sim import Cell
 from eyetohand.sim.simulate import simulate
 

@@ -19,7 +19,7 @@ Methods, all at the same number of fitness evaluations as the hybrid at the pape
   SciPy LM                 least_squares(method='lm', x_scale='jac') from one random start
                            B0 + sigma * z per seed (it converges long before 93,200 evaluations)
 
-The fitness is the library's own: eyetohand.objectives.objective_values(l2) of the paper
+The fitness is the library's own: eyetohand.solve.objectives.objective_values(l2) of the paper
 model's batch_image_to_robot minus the robot points, exactly what calibrate(..., "paper",
 "hybrid-pso") minimises.
 
@@ -28,7 +28,7 @@ Rastrigin), where the fitness costs almost nothing and the optimisers' own overh
 measured (Rastrigin's many local minima also test the search, where the paper's operators, which
 cross every particle with the global best, end in a local minimum more often than plain PSO:
 docs/pso.md): hybrid 200 x 150 against pyswarms GlobalBestPSO 200 x 466, 93,200 evaluations each;
-"hyb NumPy" is the hybrid without its compiled swarm steps (eyetohand._swarm), as on an install
+"hyb NumPy" is the hybrid without its compiled swarm steps (eyetohand.solve._swarm), as on an install
 without a C compiler: the same numbers, its time beside the other two.
 
 sigma (the initial spread, per element of B): each element alone moves the mapped calibration
@@ -51,9 +51,9 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
-from eyetohand import optimize
-from eyetohand.objectives import objective_values
-from eyetohand.optimize import hybrid_pso, pso
+from eyetohand.solve import optimize
+from eyetohand.solve.objectives import objective_values
+from eyetohand.solve.optimize import hybrid_pso, pso
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "examples" / "paper"
@@ -343,7 +343,7 @@ def cheap_fitness(seeds, new_pyswarms, ps_iters) -> dict[str, tuple]:
                 c0, t0 = time.process_time(), time.perf_counter()
                 if method == "hybrid":
                     f = hybrid_pso(fn, x0, sig, seed=rng).fun
-                elif method == "hyb NumPy":  # as where eyetohand._swarm could not be built
+                elif method == "hyb NumPy":  # as where eyetohand.solve._swarm could not be built
                     kernel, optimize._SWARM = optimize._SWARM, None
                     try:
                         f = hybrid_pso(fn, x0, sig, seed=rng).fun

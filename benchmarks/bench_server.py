@@ -59,7 +59,7 @@ def records(path: Path) -> list[dict]:
 def seed_database(data: Path, cal_file: Path) -> None:
     from fastapi.testclient import TestClient
 
-    from eyetohand.calibration import Calibration
+    from eyetohand.calibration.file import Calibration
     from eyetohand.server.app import create_app
 
     app = create_app(data)
@@ -151,7 +151,7 @@ INSIDE: np.ndarray = np.zeros((0, 2))  # points inside the calibrated region, se
 
 
 def inside_points(cal_file: Path) -> np.ndarray:
-    from eyetohand.calibration import Calibration
+    from eyetohand.calibration.file import Calibration
 
     cal = Calibration.load(cal_file)
     lo, hi = cal.region.hull_px.min(axis=0), cal.region.hull_px.max(axis=0)

@@ -19,8 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from eyetohand.fit import calibrate
-from eyetohand.pairs import load_pairs
+from eyetohand.calibration.fit import calibrate
+from eyetohand.core.pairs import load_pairs
 
 PAPER = Path(__file__).resolve().parents[1] / "src/eyetohand/data/paper/calibration_points.csv"
 

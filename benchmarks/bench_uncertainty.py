@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from eyetohand.fit import calibrate
+from eyetohand.calibration.fit import calibrate
 from eyetohand.sim import Cell
 from eyetohand.sim.simulate import simulate
 

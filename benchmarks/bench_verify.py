@@ -24,9 +24,9 @@ import time
 import numpy as np
 
 from eyetohand import calibrate
+from eyetohand.calibration.verify import verify
 from eyetohand.sim import Cell
 from eyetohand.sim.simulate import simulate
-from eyetohand.verify import verify
 
 WANT = {"shift 2 px": "shift", "scale +0.1 %": "scale"}
 

@@ -16,7 +16,7 @@ import uvicorn
 from fastapi import FastAPI, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from eyetohand.calibration import Calibration
+from eyetohand.calibration.file import Calibration
 
 
 def make_app(cal: Calibration) -> FastAPI:

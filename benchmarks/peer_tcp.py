@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 
-from eyetohand.calibration import Calibration
+from eyetohand.calibration.file import Calibration
 
 
 async def main(cal: Calibration, port: int) -> None:

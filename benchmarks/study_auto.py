@@ -27,7 +27,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from synth import grid_pairs, make_camera, project, random_pairs  # noqa: E402
 
-from eyetohand.fit import AUTO_TOLERANCE, candidate_models, cross_validate, fit_model, held_out_score  # noqa: E402
+from eyetohand.calibration.fit import (  # noqa: E402
+    AUTO_TOLERANCE,
+    candidate_models,
+    cross_validate,
+    fit_model,
+    held_out_score,
+)
 
 
 def _choose(scores: dict[str, float], order: list[str]) -> str:

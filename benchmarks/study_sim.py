@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from eyetohand.fit import calibrate, fit_model
+from eyetohand.calibration.fit import calibrate, fit_model
 from eyetohand.models.pinhole import PinholeCamera
 from eyetohand.sim.cell import Cell
 from eyetohand.sim.simulate import simulate
-from eyetohand.solvers import refine
-from eyetohand.tcp_offset import estimate_tcp_offset
+from eyetohand.solve.solvers import refine
+from eyetohand.solve.tcp_offset import estimate_tcp_offset
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from opencv_baseline import OpenCVCalibration  # noqa: E402  (the tests' oracle)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eyetohand.errors import InputError
+from eyetohand.core.errors import InputError
 
 
 class OpenCVCalibration:

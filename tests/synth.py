@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from eyetohand.pairs import PointPairs
+from eyetohand.core.pairs import PointPairs
 
 
 def make_camera(

@@ -124,8 +124,8 @@ def test_a_check_pair_mapped_nowhere_is_refused_by_id():
     from helpers import PAPER
 
     from eyetohand import InputError
-    from eyetohand.evaluate import evaluate
-    from eyetohand.pairs import PointPairs, load_pairs
+    from eyetohand.core.pairs import PointPairs, load_pairs
+    from eyetohand.solve.evaluate import evaluate
 
     pairs = load_pairs(PAPER / "calibration_points.csv")
     check = load_pairs(PAPER / "check_points.csv")

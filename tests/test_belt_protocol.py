@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from helpers import ServeProcess, view_square_mm
 
-from eyetohand.belt_protocol import BeltProtocol
-from eyetohand.conveyor import ConveyorCalibration, Encoder
-from eyetohand.detect import detect_target
-from eyetohand.sources import open_source
+from eyetohand.cell.belt_protocol import BeltProtocol
+from eyetohand.cell.conveyor import ConveyorCalibration, Encoder
+from eyetohand.vision.detect import detect_target
+from eyetohand.vision.sources import open_source
 
 CELL = """[camera]
 width_px = 640

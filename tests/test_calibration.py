@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from synth import grid_pairs, make_camera
 
-from eyetohand import Calibration, InputError, calibrate, evaluate
+from eyetohand import Calibration, InputError, calibrate
 from eyetohand.models import MODELS
+from eyetohand.solve import evaluate
 
 
 @pytest.mark.parametrize("name", list(MODELS))
@@ -48,7 +49,7 @@ def test_failed_save_keeps_the_earlier_file(tmp_path, paper_pairs, monkeypatch):
     def boom(*a, **k):
         raise OSError("disk full")
 
-    import eyetohand.io as eio
+    import eyetohand.core.io as eio
 
     monkeypatch.setattr(eio.os, "replace", boom)
     with pytest.raises(OSError):
@@ -62,9 +63,9 @@ def test_failed_save_keeps_the_earlier_file(tmp_path, paper_pairs, monkeypatch):
     [
         ('{"a": 1}', "not an eyetohand calibration"),
         ("u,v,x,y\n1,2,3,4\n", "invalid JSON"),
-        ('{"schema": "eyetohand.calibration", "schema_version": 99}', "schema_version 99"),
+        ('{"schema": "eyetohand.calibration.file", "schema_version": 99}', "schema_version 99"),
         (
-            '{"schema": "eyetohand.calibration", "schema_version": 1, "model": {"name": "x"}}',
+            '{"schema": "eyetohand.calibration.file", "schema_version": 1, "model": {"name": "x"}}',
             "malformed|model",
         ),
     ],

@@ -7,8 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from eyetohand.camera import Camera, as_camera
-from eyetohand.errors import InputError
+from eyetohand.core.errors import InputError
+from eyetohand.geometry.camera import Camera, as_camera
 
 STRONG = (-0.28, 0.12, 1.5e-3, -8e-4, -0.02)  # k1 k2 p1 p2 k3: a strongly distorting lens
 

@@ -195,7 +195,7 @@ def test_failed_run_keeps_an_earlier_calibration(tmp_path, capsys, model):
 
 
 def _paper_in(tmp_path, factor: float, name: str):
-    from eyetohand.pairs import PointPairs, load_pairs
+    from eyetohand.core.pairs import PointPairs, load_pairs
 
     p = load_pairs(TRAIN)
     path = tmp_path / name
@@ -235,7 +235,7 @@ def test_metres_data_warns_naming_the_units_and_robot_units_m_fits_cleanly(tmp_p
 def test_check_set_identical_or_overlapping_warns(tmp_path, capsys):
     code, _, err = run(capsys, "calibrate", TRAIN, "--model", "homography", "--check", TRAIN)
     assert code == 0 and "warning: " in err and "the check pairs are the training pairs" in err
-    from eyetohand.pairs import PointPairs, load_pairs
+    from eyetohand.core.pairs import PointPairs, load_pairs
 
     t, c = load_pairs(TRAIN), load_pairs(CHECK)
     mixed = PointPairs.from_arrays(
@@ -248,7 +248,7 @@ def test_check_set_identical_or_overlapping_warns(tmp_path, capsys):
 
 
 def test_outliers_printed_as_ids_with_their_set(tmp_path, capsys):
-    from eyetohand.pairs import PointPairs
+    from eyetohand.core.pairs import PointPairs
     from eyetohand.sim import Cell
     from eyetohand.sim.simulate import simulate
 

@@ -18,15 +18,15 @@ import numpy as np
 import pytest
 from helpers import ROBOTS, ServeProcess, src_env, view_square_mm
 
-from eyetohand.calibration import Calibration
+from eyetohand.calibration.file import Calibration
+from eyetohand.cell.collect import Collector, plan_poses
 from eyetohand.cli import main
-from eyetohand.collect import Collector, plan_poses
-from eyetohand.errors import InputError
+from eyetohand.core.errors import InputError
 from eyetohand.sim.camera_sim import CellCamera
 from eyetohand.sim.cell import load_cell
 from eyetohand.sim.images import poses_csv
 from eyetohand.sim.simulate import simulate
-from eyetohand.sources import FolderSource, GrabTimeout, open_source
+from eyetohand.vision.sources import FolderSource, GrabTimeout, open_source
 
 sys.path.insert(0, str(ROBOTS))
 from robot_client import FolderCamera, TcpLink, VirtualRobot  # noqa: E402
@@ -293,8 +293,9 @@ def test_ur_reply_format(tmp_path, cell_file, rect):
 KILL_SCRIPT = """
 import sys, time
 sys.path.insert(0, {robots!r})
-from eyetohand.collect import Collector
-from eyetohand.sources import open_source
+import eyetohand.sim
+from eyetohand.cell.collect import Collector
+from eyetohand.vision.sources import open_source
 from robot_client import VirtualRobot
 source = open_source({uri!r})
 col = Collector({store!r}, source)
@@ -367,7 +368,7 @@ def test_check_after_camera_bump(run_sim, rect):
 def test_sim_source_places_the_target_with_the_hidden_errors(cell_file):
     cell = load_cell(cell_file).with_values(robot={"tcp_offset_mm": [2.0, 0.0], "repeatability_mm": 0.0})
     cam = CellCamera(cell, seed=1)
-    from eyetohand.detect import detect_target
+    from eyetohand.vision.detect import detect_target
 
     c = np.array([20.0, 600.0, Z])
     found = []
@@ -389,7 +390,7 @@ def test_sim_source_places_the_target_with_the_hidden_errors(cell_file):
 
 
 def test_open_source_errors(tmp_path):
-    with pytest.raises(InputError, match=r"unknown source; valid: opencv:.*folder:.*sim:.*genicam:.*pylon:"):
+    with pytest.raises(InputError, match=r"unknown source; valid: opencv:.*folder:.*genicam:.*pylon:.*sim:"):
         open_source("usb:0")
     with pytest.raises(InputError, match=r"needs the 'pypylon' extra"):
         open_source("pylon:")

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eyetohand.cli import main
-from eyetohand.conveyor import (
+from eyetohand.calibration.fit import calibrate
+from eyetohand.cell.conveyor import (
     ConveyorCalibration,
     Encoder,
     Session,
@@ -17,9 +17,9 @@ from eyetohand.conveyor import (
     load_session,
     session_from_text,
 )
-from eyetohand.errors import InputError
-from eyetohand.fit import calibrate
-from eyetohand.pairs import PointPairs
+from eyetohand.cli import main
+from eyetohand.core.errors import InputError
+from eyetohand.core.pairs import PointPairs
 from eyetohand.sim.conveyor import ConveyorSetup, pick_check, simulate_conveyor, static_session
 
 
@@ -297,8 +297,8 @@ def test_cli_simulate_calibrate_apply(tmp_path, capsys):
     assert main([*apply, "--e-now", str((e0 + 10) % (1 << 24))]) == 2
     assert "not reached it yet" in capsys.readouterr().err
     # orientation as on the BELT line (a=, s=, t=): the camera map's rz, the same number
-    from eyetohand.belt_protocol import BeltProtocol
-    from eyetohand.conveyor import ConveyorCalibration
+    from eyetohand.cell.belt_protocol import BeltProtocol
+    from eyetohand.cell.conveyor import ConveyorCalibration
 
     belt = BeltProtocol(ConveyorCalibration.load(tmp_path / "belt.json"))
     for cli_words, line_words in (

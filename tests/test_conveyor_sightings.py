@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eyetohand.conveyor import calibrate_conveyor, format_report, session_from_text
-from eyetohand.errors import InputError
+from eyetohand.cell.conveyor import calibrate_conveyor, format_report, session_from_text
+from eyetohand.core.errors import InputError
 from eyetohand.sim.conveyor import ConveyorSetup, simulate_conveyor
 
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from eyetohand import InputError, detect_circles, detect_target
-from eyetohand.camera import Camera
-from eyetohand.detect import annotate, fit_ellipse, load_image
-from eyetohand.render import Target, render
+from eyetohand.geometry.camera import Camera
+from eyetohand.vision.detect import annotate, fit_ellipse, load_image
+from eyetohand.vision.render import Target, render
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -80,7 +80,7 @@ def test_intensity_fit_beats_the_edge_points_it_starts_from():
     wrong polarity it refuses (then the edge fit is kept)."""
     from bench_detect import scenes
 
-    from eyetohand.detect import _fit_intensity, noise_sigma
+    from eyetohand.vision.detect import _fit_intensity, noise_sigma
 
     fit_err, edge_err = [], []
     for img, truth, _, _ in scenes(4, seed=5):
@@ -325,7 +325,7 @@ def test_the_windowed_candidate_search_finds_what_the_whole_image_search_finds()
     same candidates as labelling the whole image at every level, without covering the whole image."""
     from bench_detect import scenes
 
-    from eyetohand.detect import _candidates, _search_scale, noise_sigma
+    from eyetohand.vision.detect import _candidates, _search_scale, noise_sigma
 
     two = finish(disc(disc(canvas(1600, 2000), 500.3, 600.7, 40, 30), 1450.2, 960.4, 40, 30))
     images = [img for img, _, _, _ in scenes(3, seed=21)] + [two]
@@ -376,7 +376,7 @@ def test_noise_sigma_by_counting_equals_the_median_definition():
     half-integer medians, 8- and 16-bit ranges), and a non-integer image takes np.median itself."""
     import math
 
-    from eyetohand.detect import noise_sigma
+    from eyetohand.vision.detect import noise_sigma
 
     rng = np.random.default_rng(3)
     for i in range(40):

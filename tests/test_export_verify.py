@@ -9,12 +9,12 @@ import pytest
 from synth import grid_pairs, make_camera
 
 from eyetohand import Calibration, calibrate
+from eyetohand.calibration.export import grid_points
+from eyetohand.calibration.verify import read_history, verify
 from eyetohand.cli import main
-from eyetohand.export import grid_points
-from eyetohand.pairs import PointPairs
+from eyetohand.core.pairs import PointPairs
 from eyetohand.sim import Cell
 from eyetohand.sim.simulate import simulate
-from eyetohand.verify import read_history, verify
 
 
 @pytest.fixture(scope="module")

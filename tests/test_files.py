@@ -76,7 +76,7 @@ def test_a_device_as_input_is_refused(capsys, dev):
 
 
 def test_an_input_larger_than_the_limit_is_refused_without_reading_it_all(tmp_path, monkeypatch, capsys):
-    import eyetohand.pairs as pairs_mod
+    import eyetohand.core.pairs as pairs_mod
 
     monkeypatch.setattr(pairs_mod, "MAX_FILE_BYTES", 1000)
     big = tmp_path / "big.csv"

@@ -11,7 +11,7 @@ import numpy as np
 from synth import make_camera, random_pairs
 
 from eyetohand import Calibration, InputError, calibrate
-from eyetohand.pairs import PointPairs
+from eyetohand.core.pairs import PointPairs
 
 MODELS = ("homography-radial", "camera", "auto")
 

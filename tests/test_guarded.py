@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eyetohand.camera import Camera
-from eyetohand.errors import InputError
-from eyetohand.fit import calibrate
-from eyetohand.orientation import wrap_deg
-from eyetohand.pairs import PointPairs
+from eyetohand.calibration.fit import calibrate
+from eyetohand.core.errors import InputError
+from eyetohand.core.pairs import PointPairs
+from eyetohand.geometry.camera import Camera
+from eyetohand.geometry.orientation import wrap_deg
 from eyetohand.sim import Cell
 from eyetohand.sim.simulate import simulate
 

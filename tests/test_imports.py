@@ -171,10 +171,10 @@ def _describe(cycle: list[str]) -> str:
 
 def test_the_graph_is_read():
     """The parser sees the package: known imports are found (a broken resolver would find none)."""
-    assert f"{PACKAGE}.errors" in GRAPH[f"{PACKAGE}.pairs"]
-    assert f"{PACKAGE}.io" in GRAPH[f"{PACKAGE}.report"]
-    assert f"{PACKAGE}.errors" in GRAPH[f"{PACKAGE}.sim.cell"]  # a two-dot relative import
-    assert f"{PACKAGE}._rows" in GRAPH[f"{PACKAGE}.models.base"]  # the compiled module, by its stub
+    assert f"{PACKAGE}.core.errors" in GRAPH[f"{PACKAGE}.core.pairs"]
+    assert f"{PACKAGE}.core" in GRAPH[f"{PACKAGE}.reports.report"]
+    assert f"{PACKAGE}.core" in GRAPH[f"{PACKAGE}.sim.cell"]
+    assert f"{PACKAGE}.models._rows" in GRAPH[f"{PACKAGE}.models.base"]  # the compiled module, by its stub
     assert CLI in MODULES
 
 

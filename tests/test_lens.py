@@ -1,4 +1,4 @@
-"""The one lens model (eyetohand.lens) against OpenCV, and each of its users on its own mapping.
+"""The one lens model (eyetohand.geometry.lens) against OpenCV, and each of its users on its own mapping.
 
 Reference recipe: ``cv2.projectPoints`` of the points (x, y, 1) with zero pose and K = I gives the
 distorted normalised points; ``cv2.undistortPoints`` with a tight criterion (200 iterations, eps
@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from eyetohand.camera import Camera
-from eyetohand.errors import InputError
-from eyetohand.lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
+from eyetohand.core.errors import InputError
+from eyetohand.geometry.camera import Camera
+from eyetohand.geometry.lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
 from eyetohand.models.pinhole import PinholeCamera
 from eyetohand.models.radial import HomographyRadial
 

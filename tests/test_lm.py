@@ -1,4 +1,4 @@
-"""eyetohand.lm: MINPACK's Levenberg–Marquardt without least_squares' set-up must be least_squares(
+"""eyetohand.geometry.lm: MINPACK's Levenberg–Marquardt without least_squares' set-up must be least_squares(
 method="lm", x_scale="jac") itself — the same iterates, evaluation count, answer and words."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from eyetohand.fit import fit_model
-from eyetohand.lm import levenberg_marquardt
-from eyetohand.numdiff import batch_jacobian
-from eyetohand.pairs import load_pairs
+from eyetohand.calibration.fit import fit_model
+from eyetohand.core.pairs import load_pairs
+from eyetohand.geometry.lm import levenberg_marquardt
+from eyetohand.geometry.numdiff import batch_jacobian
 
 sys.path.insert(0, str(Path(__file__).parent))
 from synth import grid_pairs, make_camera  # noqa: E402
@@ -74,7 +74,7 @@ def test_levenberg_marquardt_words_are_least_squares_words_for_every_minpack_cod
     """Fits record why they stopped; the words must stay those least_squares gives (its tables)."""
     from scipy.optimize._lsq.least_squares import FROM_MINPACK_TO_COMMON, TERMINATION_MESSAGES
 
-    from eyetohand.lm import _MESSAGES
+    from eyetohand.geometry.lm import _MESSAGES
 
     assert set(_MESSAGES) == set(FROM_MINPACK_TO_COMMON)
     for code, words in _MESSAGES.items():
@@ -86,7 +86,7 @@ def test_the_paper_models_lm_fit_holds_its_gauge_and_is_reproducible():
     (b14, b24, b34) held at the start's (full rank), so the fit is the same every time — refining all
     twelve, MINPACK read past its Jacobian and two runs could differ — and its leave-one-out takes
     the batched Gauss-Newton steps (within 1e-7 mm of refits) instead of 16 refits."""
-    from eyetohand.fit import cross_validate, loo_gauss_newton
+    from eyetohand.calibration.fit import cross_validate, loo_gauss_newton
 
     pairs = load_pairs(PAPER)
     start, _ = fit_model(pairs, "paper", "linear")

@@ -10,7 +10,7 @@ import pytest
 from synth import grid_pairs, make_camera, random_pairs
 
 from eyetohand import InputError
-from eyetohand.fit import fit_model
+from eyetohand.calibration.fit import fit_model
 from eyetohand.models import MODELS, HeightRule, Model, RobotToImage, model_from_dict
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "eyetohand"

@@ -54,7 +54,7 @@ def test_homography_matches_opencv_find_homography():
 
 
 def _fit(pairs, name, optimizer="lm", **kw):
-    from eyetohand.fit import fit_model
+    from eyetohand.calibration.fit import fit_model
 
     return fit_model(pairs, name, optimizer, **kw)
 

@@ -8,7 +8,7 @@ from opencv_baseline import OpenCVCalibration
 import eyetohand
 from eyetohand import DegenerateError, calibrate
 from eyetohand.cli import main
-from eyetohand.lens import distort, undistort
+from eyetohand.geometry.lens import distort, undistort
 from eyetohand.models import get_model
 from eyetohand.models.pinhole import PinholeCamera
 from eyetohand.sim.cell import Cell
@@ -54,7 +54,9 @@ def test_auto_maps_other_heights_within_1p5x_of_opencv(two_heights):
         chk = sim.check.subset(sim.check.xyz_mm[:, 2] == h)
         e_auto = rms(cal.model.residuals(chk.uv_px, chk.xyz_mm))
         e_ocv = rms(ocv.residuals(chk.uv_px, chk.xyz_mm))
-        e_dlt = rms(eyetohand.fit.fit_model(sim.pairs, "dlt3d", "lm")[0].residuals(chk.uv_px, chk.xyz_mm))
+        e_dlt = rms(
+            eyetohand.calibration.fit.fit_model(sim.pairs, "dlt3d", "lm")[0].residuals(chk.uv_px, chk.xyz_mm)
+        )
         e_single = rms(single.model.residuals(chk.uv_px, chk.xyz_mm))
         print(
             f"z={h:g}: auto({cal.model_name}) {e_auto:.4f}  opencv {e_ocv:.4f}  dlt3d {e_dlt:.4f}  "
@@ -129,7 +131,7 @@ def test_camera_refuses_coplanar_and_too_few_pairs():
 
 
 def test_auto_considers_only_multi_height_models_for_several_heights(two_heights):
-    names = [c.name for c in eyetohand.fit.candidate_models(two_heights.pairs)]
+    names = [c.name for c in eyetohand.calibration.fit.candidate_models(two_heights.pairs)]
     assert names == ["dlt3d", "camera"]
 
 
@@ -146,7 +148,7 @@ def test_camera_estimates_a_non_square_pixel_aspect_ratio(aspect):
     square = PinholeCamera.from_pairs(
         sim.pairs.uv_px, sim.pairs.xyz_mm, image_size=cell.image_size, aspect="square"
     )
-    square, _ = eyetohand.solvers.refine(square, sim.pairs.uv_px, sim.pairs.xyz_mm, optimizer="lm")
+    square, _ = eyetohand.solve.solvers.refine(square, sim.pairs.uv_px, sim.pairs.xyz_mm, optimizer="lm")
     ocv = OpenCVCalibration(sim.pairs, cell.image_size, cell.focal_px)
     e_cam = rms(cal.model.residuals(sim.check.uv_px, sim.check.xyz_mm))
     e_sq = rms(square.residuals(sim.check.uv_px, sim.check.xyz_mm))

@@ -1,4 +1,4 @@
-"""Tests of the hybrid particle swarm optimiser (eyetohand.optimize).
+"""Tests of the hybrid particle swarm optimiser (eyetohand.solve.optimize).
 
 Tolerances below were measured (see docs/pso.md) with the seeds given; they are not guesses.
 """
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eyetohand.optimize import OptimizeResult, hybrid_pso, pso
+from eyetohand.solve.optimize import OptimizeResult, hybrid_pso, pso
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "paper"
 
@@ -359,9 +359,9 @@ def test_pso_rejects_operator_switches():
 
 @pytest.fixture(params=["compiled", "numpy"])
 def swarm_path(request, monkeypatch):
-    """The iteration's swarm steps by the compiled module (eyetohand._swarm) or, as where it could
+    """The iteration's swarm steps by the compiled module (eyetohand.solve._swarm) or, as where it could
     not be built, by NumPy."""
-    from eyetohand import optimize
+    from eyetohand.solve import optimize
 
     if request.param == "numpy":
         monkeypatch.setattr(optimize, "_SWARM", None)
@@ -373,14 +373,14 @@ def swarm_path(request, monkeypatch):
 def test_compiled_swarm_steps_are_built():
     """The install builds the compiled swarm steps (setup.py; optional only for machines without a
     C compiler): CI's machine has one, so the benchmark's figures are of the steps users get."""
-    from eyetohand import _swarm, optimize
+    from eyetohand.solve import _swarm, optimize
 
     assert optimize.swarm_kernel() is _swarm
 
 
 def test_compiled_swarm_steps_refuse_what_they_cannot_read():
     """Each compiled step checks its buffers (type, layout, size) and raises, never reads past one."""
-    from eyetohand import _swarm
+    from eyetohand.solve import _swarm
 
     n, d = 5, 3
     x, v, r, partner = np.zeros((n, d)), np.zeros((n, d)), np.zeros((2, n, d)), np.zeros((2, n, d))
@@ -531,8 +531,8 @@ def test_paper_model_forward_matches_equation_13():
 def test_a_swarm_too_big_to_evaluate_is_refused_with_the_size_that_fits():
     """One iteration evaluates every candidate on every pair at once: a swarm that would need more
     than SWARM_MAX_BYTES is refused up front (not a MemoryError), and the size it names fits."""
-    from eyetohand.errors import InputError
-    from eyetohand.solvers import SWARM_MAX_BYTES, _swarm_rows, check_swarm_size
+    from eyetohand.core.errors import InputError
+    from eyetohand.solve.solvers import SWARM_MAX_BYTES, _swarm_rows, check_swarm_size
 
     for kind in ("hybrid-pso", "pso"):
         for n_pairs in (16, 25, 2000):

@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from eyetohand import InputError, PointPairs, load_pairs
-from eyetohand.pairs import load_image_points, pairs_from_records
+from eyetohand.core.pairs import load_image_points, pairs_from_records
 
 
 def write(tmp_path, name, content):
@@ -164,7 +164,7 @@ def test_values_too_far_out_for_the_fits_are_refused_by_every_interface(tmp_path
     from fastapi.testclient import TestClient
 
     from eyetohand.cli import main
-    from eyetohand.pairs import MAX_ABS_VALUE, PointPairs
+    from eyetohand.core.pairs import MAX_ABS_VALUE, PointPairs
     from eyetohand.server.app import create_app
 
     uv = np.array([[1.0, 2.0], [300.0, 400.0], [500.0, 60.0], [70.0, 800.0]])
@@ -210,8 +210,8 @@ def test_a_tool_angle_too_far_out_is_refused_where_it_is_read(tmp_path, capsys):
 def test_a_singular_system_in_a_fit_is_one_input_error(monkeypatch, paper_pairs):
     """A singular linear system inside a model's estimation that its own checks did not foresee is
     refused as degenerate pairs (one line naming the pairs and the model), not an internal error."""
-    from eyetohand.errors import DegenerateError
-    from eyetohand.fit import fit_model
+    from eyetohand.calibration.fit import fit_model
+    from eyetohand.core.errors import DegenerateError
     from eyetohand.models import get_model
 
     def singular(*args, **kwargs):

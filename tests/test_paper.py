@@ -3,7 +3,7 @@
 import numpy as np
 
 from eyetohand import calibrate
-from eyetohand.demo import PAPER_STATED_MAX_MM, load_paper
+from eyetohand.reports.demo import PAPER_STATED_MAX_MM, load_paper
 
 
 def test_homography_lm_beats_the_papers_best_by_35_percent(paper_pairs):

@@ -8,7 +8,7 @@ from conftest import PAPER
 
 from eyetohand import calibrate
 from eyetohand.cli import main
-from eyetohand.demo import PAPER_STATED_MAX_MM
+from eyetohand.reports.demo import PAPER_STATED_MAX_MM
 
 LSQ_OPTIMUM_MM = 0.1058335  # the affine least-squares optimum of equation (16) on Table 1
 

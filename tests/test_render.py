@@ -6,8 +6,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from eyetohand.camera import Camera
-from eyetohand.render import Target, circle_truth, exact_conic, render
+from eyetohand.geometry.camera import Camera
+from eyetohand.vision.render import Target, circle_truth, exact_conic, render
 
 
 @pytest.fixture(scope="module")

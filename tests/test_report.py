@@ -5,9 +5,10 @@ import re
 import numpy as np
 import pytest
 
-from eyetohand import InputError, calibrate, plots, report
+from eyetohand import InputError, calibrate
 from eyetohand.cli import main
-from eyetohand.report import write_report
+from eyetohand.reports import plots, report
+from eyetohand.reports.report import write_report
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -331,7 +332,7 @@ def test_a_users_report_does_not_cite_the_paper(tmp_path, paper_cal, monkeypatch
 
 
 def test_demo_says_what_its_ranking_is_on(tmp_path, capsys):
-    from eyetohand.demo import run_demo, write_demo_report
+    from eyetohand.reports.demo import run_demo, write_demo_report
 
     _, results, cals = run_demo(seed=1)
     text = write_demo_report(tmp_path / "d", results, cals).read_text(encoding="utf-8")
@@ -370,7 +371,7 @@ def test_sigma_map_legend_sits_under_the_map():
     """The sigma map's legend is drawn under the axes, never over the calibrated region's outline."""
     import numpy as np
 
-    from eyetohand.plots import plot_sigma_map
+    from eyetohand.reports.plots import plot_sigma_map
 
     u, v = np.arange(0, 800, 20.0), np.arange(0, 600, 20.0)
     hull = np.array([[40.0, 30.0], [760.0, 30.0], [760.0, 570.0], [40.0, 570.0]])

@@ -20,7 +20,7 @@ from helpers import PAPER, ServeProcess, records
 from hypothesis import HealthCheck, settings
 
 from eyetohand import InputError, load_pairs
-from eyetohand.calibration import Calibration
+from eyetohand.calibration.file import Calibration
 from eyetohand.cli import main as cli_main
 from eyetohand.server.app import LOOPBACK_HOSTS, MAX_POINTS, create_app
 from eyetohand.server.schemas import MAX_PAIRS
@@ -61,7 +61,7 @@ def test_create_get_list_and_summary(client):
     assert [(c["id"], c["name"], c["current_version"]) for c in listed] == [(1, "cell 3", 1)]
     full = client.get("/api/calibrations/1").json()
     assert full["pairs"][0]["u"] == PAIRS[0]["u"] and len(full["check"]) == 9
-    assert full["calibration"]["schema"] == "eyetohand.calibration"
+    assert full["calibration"]["schema"] == "eyetohand.calibration.file"
 
 
 def test_versions_exclude_rollback_and_delete(client):
@@ -791,7 +791,7 @@ def test_guarded_mapping_over_http_and_tcp_says_the_same(client):
 
 def _cal_file(tmp_path, model="homography") -> Path:
     from eyetohand import calibrate
-    from eyetohand.pairs import pairs_from_records
+    from eyetohand.core.pairs import pairs_from_records
 
     cal = calibrate(pairs_from_records(PAIRS), model, "lm", check=pairs_from_records(CHECK), loo=False)
     return cal.save(tmp_path / f"{model}.json")
@@ -1305,7 +1305,7 @@ def test_tcp_takes_the_orientation_words_apply_and_http_take(client):
 
 
 def test_line_protocol_reasons_are_ascii_with_the_symbols_spelt_out():
-    from eyetohand.collect import MAX_REASON, ascii_reason
+    from eyetohand.cell.collect import MAX_REASON, ascii_reason
 
     assert ascii_reason("k1 ± 0.2 — 180° · 3×4 ≤ 5 µm, σ²") == "k1 +/- 0.2 - 180 deg * 3x4 <= 5 um, sigma^2"
     assert ascii_reason("two\nlines  here") == "two lines here"
@@ -1490,7 +1490,7 @@ def test_image_sizes_are_refused_in_the_librarys_words(client, tmp_path, capsys)
 
 
 def test_a_swarm_of_too_many_iterations_is_refused():
-    from eyetohand.solvers import SWARM_MAX_ITERATIONS, check_optimizer
+    from eyetohand.solve.solvers import SWARM_MAX_ITERATIONS, check_optimizer
 
     check_optimizer("pso", "l2", {"iterations": SWARM_MAX_ITERATIONS})
     with pytest.raises(InputError, match="solver option 'iterations' must be at most 1000000, got 1000001"):

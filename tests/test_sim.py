@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from eyetohand import InputError, calibrate, load_pairs
+from eyetohand.cell.plans import parse_numbers, parse_plan
 from eyetohand.cli import main
 from eyetohand.sim.cell import SCHEMA, Cell, load_cell
 from eyetohand.sim.planner import plan_study, predict_plan
-from eyetohand.sim.plans import parse_numbers, parse_plan
 from eyetohand.sim.simulate import simulate
 
 
@@ -276,7 +276,7 @@ principal_offset_px = [3.0, -2.0]
 
 def _fallback_detect(path):
     """A plain detector for the simulator's target (a dark circle inside a bright strip), used only
-    while eyetohand.detect is not available: the hole of the largest bright region, then the
+    while eyetohand.vision.detect is not available: the hole of the largest bright region, then the
     centroid of its pixels darker than mid-grey."""
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     _, lab, stats, _ = cv2.connectedComponentsWithStats((img > 150).astype(np.uint8))
@@ -293,7 +293,7 @@ def _fallback_detect(path):
 
 def _detector():
     try:
-        from eyetohand.detect import detect_target
+        from eyetohand.vision.detect import detect_target
     except ImportError:
         return "fallback", _fallback_detect
 
@@ -301,7 +301,7 @@ def _detector():
         d = detect_target(path)
         return (float(d.u), float(d.v)) if d.ok else None
 
-    return "eyetohand.detect", det
+    return "eyetohand.vision.detect", det
 
 
 def _detected_pairs(folder, poses_name, detect):
@@ -371,7 +371,7 @@ def test_images_end_to_end(tmp_path, capsys):
     assert np.sqrt((d_px**2).sum(1).mean()) < 0.3
     assert cal.model_name == "camera" and cal.check.rms_mm < 0.1
 
-    if name == "eyetohand.detect":  # the lead's command, when it and the detector are there
+    if name == "eyetohand.vision.detect":  # the lead's command, when it and the detector are there
         from eyetohand.cli import build_parser
 
         if "calibrate-images" in build_parser().format_help():
@@ -385,12 +385,12 @@ def test_images_end_to_end(tmp_path, capsys):
 
 def test_plan_plot_is_report_sized_explains_its_whiskers_and_uses_the_shared_palette(tmp_path):
     """plan.png: the report plots' size (7 × 4.2 in at 110 dpi), the p90 whiskers named in the legend,
-    the recommended plan marked, bar colours from eyetohand.plots.COLORS."""
+    the recommended plan marked, bar colours from eyetohand.reports.plots.COLORS."""
     import struct
 
     from matplotlib.colors import to_hex
 
-    from eyetohand.plots import COLORS, plot_plan_study
+    from eyetohand.reports.plots import COLORS, plot_plan_study
     from eyetohand.sim.planner import plot_study
 
     def row(plan, n, rms, mx):

@@ -16,10 +16,10 @@ import cv2
 import numpy as np
 import pytest
 
-from eyetohand.belt_protocol import BeltProtocol
-from eyetohand.errors import InputError
-from eyetohand.io import atomic_write_bytes, atomic_write_text
-from eyetohand.sources import open_source
+from eyetohand.cell.belt_protocol import BeltProtocol
+from eyetohand.core.errors import InputError
+from eyetohand.core.io import atomic_write_bytes, atomic_write_text
+from eyetohand.vision.sources import open_source
 
 
 def _disc_png() -> bytes:

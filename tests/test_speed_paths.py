@@ -16,7 +16,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 HEAVY = ("scipy", "cv2", "matplotlib", "fastapi")
 
 
-@pytest.mark.parametrize("module", ["eyetohand.cli", "eyetohand.calibration", "eyetohand"])
+@pytest.mark.parametrize("module", ["eyetohand.cli", "eyetohand.calibration.file", "eyetohand"])
 def test_import_does_not_pull_heavy_packages(module):
     code = f"import json, sys; import {module}; print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))"
     env = {**os.environ, "PYTHONPATH": str(SRC)}
@@ -33,7 +33,7 @@ def test_loading_a_calibration_and_mapping_a_point_pulls_no_heavy_package(name, 
     sys.path.insert(0, str(Path(__file__).parent))
     from synth import grid_pairs, make_camera
 
-    from eyetohand.fit import calibrate
+    from eyetohand.calibration.fit import calibrate
 
     if name in ("dlt3d", "camera"):
         pairs = grid_pairs(make_camera(dist=[-0.05, 0.01, 0, 0, 0], seed=3), 4, heights=(0.0, 40.0), seed=6)
@@ -45,7 +45,7 @@ def test_loading_a_calibration_and_mapping_a_point_pulls_no_heavy_package(name, 
     calibrate(pairs, name, "lm").save(path)
     u, v = pairs.uv_px.mean(axis=0).tolist()
     code = (
-        "import json, sys; from eyetohand.calibration import Calibration; "
+        "import json, sys; from eyetohand.calibration.file import Calibration; "
         f"r = Calibration.load({str(path)!r}).map([{u}, {v}], {z}); "
         f"print(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))"
     )
@@ -60,7 +60,7 @@ def test_chi2_quantile_without_scipy_equals_scipys():
     SciPy's ``2 gammainccinv(dof/2, q)``."""
     from scipy.special import gammainccinv
 
-    from eyetohand.evaluate import _chi2_isf
+    from eyetohand.solve.evaluate import _chi2_isf
 
     for dof in range(1, 9):
         for q in (0.999, 0.9, 0.5, 0.1, 1e-2, 1e-4, 1e-4 / 7, 1e-8, 1e-4 / 10**6, 1e-12, 1e-15):
@@ -71,9 +71,9 @@ def test_chi2_quantile_without_scipy_equals_scipys():
 
 import numpy as np  # noqa: E402
 
-from eyetohand.errors import InputError  # noqa: E402
-from eyetohand.fit import fit_model  # noqa: E402
-from eyetohand.pairs import load_pairs  # noqa: E402
+from eyetohand.calibration.fit import fit_model  # noqa: E402
+from eyetohand.core.errors import InputError  # noqa: E402
+from eyetohand.core.pairs import load_pairs  # noqa: E402
 
 PAPER = SRC / "eyetohand" / "data" / "paper" / "calibration_points.csv"
 
@@ -120,7 +120,7 @@ def test_camera_fast_paths_equal_the_batch_map(name):
 
 @pytest.mark.parametrize("name", ["affine", "homography", "homography-radial"])
 def test_closed_form_params_jacobian_matches_differences(name):
-    from eyetohand.uncertainty import _steps
+    from eyetohand.solve.uncertainty import _steps
 
     pairs = load_pairs(PAPER)
     model, _ = fit_model(pairs, name, "lm")
@@ -140,7 +140,7 @@ def test_closed_form_params_jacobian_matches_differences(name):
 
 @pytest.fixture(params=["compiled", "fallback"])
 def rows_path(request, monkeypatch):
-    """The lens-free planar maps of many pixels, by the compiled loop (eyetohand._rows) or, as where
+    """The lens-free planar maps of many pixels, by the compiled loop (eyetohand.models._rows) or, as where
     it could not be built, by NumPy and OpenCV."""
     from eyetohand.models import base
 
@@ -154,7 +154,7 @@ def rows_path(request, monkeypatch):
 def test_compiled_loop_is_built():
     """The install builds the compiled loop (setup.py; optional only for machines without a C
     compiler): CI's machine has one, so its figures and tests are of the loop users get."""
-    from eyetohand import _rows
+    from eyetohand.models import _rows
     from eyetohand.models.base import rows_kernel
 
     assert rows_kernel() is _rows
@@ -190,7 +190,7 @@ def test_compiled_loop_equals_the_numpy_chunks_bit_for_bit(name, monkeypatch):
 
 def test_compiled_loop_refuses_what_it_cannot_read():
     """The compiled functions check their buffers (type, layout, size) and raise, never read past one."""
-    from eyetohand import _rows
+    from eyetohand.models import _rows
 
     uv = np.zeros((5, 2))
     h = np.eye(3).ravel()
@@ -281,7 +281,7 @@ def _loo_cases():
 
 @pytest.mark.parametrize("case", range(6))
 def test_gauss_newton_leave_one_out_matches_refits(case):
-    from eyetohand.fit import cross_validate, loo_gauss_newton
+    from eyetohand.calibration.fit import cross_validate, loo_gauss_newton
 
     what, pairs, name, opt = _loo_cases()[case]
     full, _ = fit_model(pairs, name, opt)
@@ -294,7 +294,7 @@ def test_gauss_newton_leave_one_out_matches_refits(case):
 
 
 def test_leave_one_out_falls_back_where_the_lens_is_refitted():
-    from eyetohand.fit import _loo_warm
+    from eyetohand.calibration.fit import _loo_warm
 
     assert not _loo_warm("homography-radial", "lm", "l2")
     assert not _loo_warm("homography", "lm", "huber")
@@ -321,7 +321,7 @@ def test_warm_started_lens_leave_one_out_matches_refits(case, monkeypatch):
     """homography-radial's held-out fits warm-started from the full lens fit give the refits'
     held-out residuals: within 1e-6 mm of refits converged tightly, and within MINPACK's own
     stopping error (measured ≤ 1.3e-6 mm) of the refits as calibrate does them."""
-    from eyetohand.fit import cross_validate
+    from eyetohand.calibration.fit import cross_validate
     from eyetohand.models import radial
 
     pairs, size = _radial_cases()[case]
@@ -359,7 +359,7 @@ def test_lens_leave_one_out_holds_f_where_the_view_does_not_tell_it(case, monkey
     keeps the full fit's f and moves k1 or the pose; ``cross_validate`` takes them, no refits."""
     from scipy.optimize import least_squares
 
-    from eyetohand.fit import cross_validate
+    from eyetohand.calibration.fit import cross_validate
     from eyetohand.models import radial
 
     what, pairs, tol_mm = _straight_on_cases()[case]
@@ -458,7 +458,7 @@ def test_held_focal_lens_fits_that_fail_fall_back_to_refits(failure, monkeypatch
     """A held-out lens fit SciPy refuses (residuals not finite at its start) or that ends non-finite
     is not used: leave-one-out says None and ``cross_validate`` refits, as it does where the batched
     fits of a view that tells f cannot be trusted."""
-    from eyetohand.fit import cross_validate
+    from eyetohand.calibration.fit import cross_validate
     from eyetohand.models import radial
 
     pairs = load_pairs(PAPER)

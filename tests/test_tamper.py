@@ -276,8 +276,8 @@ def test_studentized_training_outliers_load(tmp_path):
     """An untampered file whose training outlier flags come from the studentized test (a bumped
     corner pair: flagged only once its leverage is taken into account, or only without it) loads:
     loading re-checks the flags by the rule calibrate used, not by the raw errors."""
-    from eyetohand.evaluate import stats_from_residuals
-    from eyetohand.pairs import PointPairs
+    from eyetohand.core.pairs import PointPairs
+    from eyetohand.solve.evaluate import stats_from_residuals
 
     base = grid_pairs(make_camera(tilt_deg=8.0), 5, heights=(10.0,), noise_px=0.2, seed=0)
     for k, bump_mm in ((4, 0.15), (24, 0.3)):
@@ -297,7 +297,7 @@ def test_an_intact_file_this_version_does_not_reproduce_is_not_called_changed(fi
     then does not reproduce what it records (an older one computed it otherwise), the refusal says so
     — with the version that wrote it — instead of "changed after it was written"; an edit that leaves
     the hash stale is still called a change. The command line says the same words."""
-    from eyetohand.calibration import content_sha256
+    from eyetohand.calibration.file import content_sha256
 
     doc = json.loads(files["homography"].read_text())
     assert isinstance(doc[where[0]][where[1]], float), where
@@ -336,7 +336,7 @@ def test_a_number_json_allows_but_a_float_cannot_hold_is_named(tmp_path, text, w
     """The file's numbers are checked in one pass without field names; the one that fails is then
     named by its path (each of these fails on that check, before anything else is read)."""
     f = tmp_path / "n.json"
-    f.write_text('{"schema": "eyetohand.calibration", "schema_version": 2, ' + text + "}")
+    f.write_text('{"schema": "eyetohand.calibration.file", "schema_version": 2, ' + text + "}")
     with pytest.raises(InputError) as err:
         Calibration.load(f)
     assert str(err.value) == f"{f}: {words}", err.value
@@ -345,7 +345,7 @@ def test_a_number_json_allows_but_a_float_cannot_hold_is_named(tmp_path, text, w
 def test_numbers_of_other_types_are_checked_with_their_names():
     """Values that are not what ``json.loads`` gives (a dict built in code with NumPy numbers) take
     the walk with names, so a NumPy infinity is refused like a parsed one."""
-    from eyetohand.calibration import _check_numbers
+    from eyetohand.calibration.file import _check_numbers
 
     _check_numbers({"a": [np.float64(1.5), 2, "x", None, True]}, "")
     with pytest.raises(InputError, match=r"^field 'a\[1\]': inf is not a finite number$"):

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from eyetohand import InputError, calibrate, load_pairs
+from eyetohand.calibration.fit import tcp_offset_for as estimate_tcp_offset
 from eyetohand.cli import main
-from eyetohand.fit import tcp_offset_for as estimate_tcp_offset
 from eyetohand.sim.cell import Cell
 from eyetohand.sim.simulate import simulate
-from eyetohand.tcp_offset import correct_pairs, has_turns, rotations
+from eyetohand.solve.tcp_offset import correct_pairs, has_turns, rotations
 
 
 def calibrate_with_tcp(pairs, **options):

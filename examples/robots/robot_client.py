@@ -2,7 +2,7 @@
 """The reference virtual robot: runs a calibration collection (CAL BEGIN / NEXT / POINT / END).
 
 It speaks the collection protocol of ``docs/collection.md`` over TCP (lines ended CR LF, as most
-controllers send them), or drives an :class:`eyetohand.collect.Collector` in-process (``send`` is any
+controllers send them), or drives an :class:`eyetohand.cell.collect.Collector` in-process (``send`` is any
 function from a command line to its reply line: ``collector.handle``). It is what the tests run; the
 robot programs beside it do the same on real controllers.
 
@@ -70,7 +70,7 @@ class FolderCamera:
         ``gap_s`` apart, each written (atomically) into the folder as soon as it is taken."""
         import cv2
 
-        from eyetohand.io import atomic_write_bytes
+        from eyetohand.core.io import atomic_write_bytes
 
         self.camera.set_robot_pose(x, y, z, angle)
         names = []

@@ -6,15 +6,15 @@
 >>> xyz_mm = cal.image_to_robot([[600.0, 900.0]])
 """
 
-from ._version import __version__
-from .calibration import Calibration
-from .detect import Detection, detect_circles, detect_target
-from .errors import DegenerateError, InputError
-from .evaluate import Stats, evaluate
-from .fit import calibrate, select_model
-from .models import MODEL_CHOICES, MODELS, get_model
-from .pairs import PointPairs, load_pairs
-from .solvers import OPTIMIZERS
+from eyetohand._version import __version__
+from eyetohand.calibration.file import Calibration
+from eyetohand.calibration.fit import calibrate, select_model
+from eyetohand.core.errors import DegenerateError, InputError
+from eyetohand.core.pairs import PointPairs, load_pairs
+from eyetohand.models import MODEL_CHOICES, MODELS, get_model
+from eyetohand.solve.evaluate import Stats, evaluate
+from eyetohand.solve.solvers import OPTIMIZERS
+from eyetohand.vision.detect import Detection, detect_circles, detect_target
 
 __all__ = [
     "Calibration",

@@ -14,9 +14,9 @@ import importlib
 import os
 import sys
 
-from .._version import __version__
-from ..errors import InputError
-from .common import CliError
+from eyetohand._version import __version__
+from eyetohand.cli.common import CliError
+from eyetohand.core import InputError
 
 # Modules that add subcommands; each has register(subparsers).
 COMMAND_MODULES = (

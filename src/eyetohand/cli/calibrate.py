@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..calibration import Calibration
-from ..evaluate import evaluate
-from ..pairs import ROBOT_UNITS, load_image_points, load_pairs
-from .common import (
+from eyetohand.calibration import Calibration
+from eyetohand.cli.common import (
     CliError,
     add_fit_options,
     add_orientation_options,
@@ -17,11 +15,13 @@ from .common import (
     run_calibration,
     stats_line,
 )
+from eyetohand.core import ROBOT_UNITS, load_image_points, load_pairs
+from eyetohand.solve import evaluate
 
 
 def cmd_calibrate(args) -> int:
     if args.output:  # before any work: a fit must not be lost to an output that cannot be written
-        from ..io import check_output_path
+        from eyetohand.core import check_output_path
 
         check_output_path(args.output)
     pairs = load_pairs(args.pairs).scaled_to_mm(args.robot_units)
@@ -46,8 +46,7 @@ def cmd_apply(args) -> int:
     import json
     import sys
 
-    from ..io import atomic_write_text, check_output_path
-    from ..pairs import image_points_from_text
+    from eyetohand.core import atomic_write_text, check_output_path, image_points_from_text
 
     if args.output:
         check_output_path(args.output)
@@ -115,7 +114,7 @@ def _warn_outside(m) -> None:
 
 
 def cmd_compare(args) -> int:
-    from ..compare import compare, format_compare
+    from eyetohand.calibration import compare, format_compare
 
     pairs = load_pairs(args.pairs)
     check = load_pairs(args.check)

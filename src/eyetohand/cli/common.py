@@ -6,12 +6,10 @@ import argparse
 import json
 import sys
 
-from ..calibration import Calibration
-from ..errors import InputError
-from ..fit import calibrate
-from ..models import MODEL_CHOICES
-from ..objectives import OBJECTIVES
-from ..solvers import OPTIMIZERS
+from eyetohand.calibration import Calibration, calibrate
+from eyetohand.core import InputError
+from eyetohand.models import MODEL_CHOICES
+from eyetohand.solve import OBJECTIVES, OPTIMIZERS
 
 
 class CliError(InputError):

@@ -10,10 +10,16 @@ import json
 
 import numpy as np
 
-from ..conveyor import ConveyorCalibration, Encoder, calibrate_conveyor, format_report, load_session
-from ..errors import InputError
-from ..orientation import check_symmetry
-from .common import add_orientation_options
+from eyetohand.cell import (
+    ConveyorCalibration,
+    Encoder,
+    calibrate_conveyor,
+    format_report,
+    load_session,
+)
+from eyetohand.cli.common import add_orientation_options
+from eyetohand.core import InputError
+from eyetohand.geometry import check_symmetry
 
 
 def _encoder(args) -> Encoder:
@@ -82,7 +88,7 @@ def cmd_apply(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from ..sim.conveyor import (
+    from eyetohand.sim import (
         ConveyorSetup,
         sightings_from_text,
         simulate_conveyor,

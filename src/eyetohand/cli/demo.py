@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from ..demo import run_demo, write_demo_report
+from eyetohand.reports import run_demo, write_demo_report
 
 
 def cmd_demo(args) -> int:

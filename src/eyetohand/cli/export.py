@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import sys
 
-from ..calibration import Calibration
-from ..export import FORMATS, export_text
-from ..io import atomic_write_text, check_output_path, read_bounded_text
+from eyetohand.calibration import FORMATS, Calibration, export_text
+from eyetohand.core import atomic_write_text, check_output_path, read_bounded_text
 
 
 def cmd_export(args) -> int:

@@ -6,10 +6,9 @@ import json
 import sys
 from pathlib import Path
 
-from ..errors import InputError
-from ..images import detect_images, detect_poses, load_poses, pairs_from_detections
-from ..io import atomic_write_text, check_output_path
-from .common import add_fit_options, run_calibration
+from eyetohand.cli.common import add_fit_options, run_calibration
+from eyetohand.core import InputError, atomic_write_text, check_output_path
+from eyetohand.vision import detect_images, detect_poses, load_poses, pairs_from_detections
 
 
 def _detect_options(args) -> dict:

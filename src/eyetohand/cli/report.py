@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from ..calibration import Calibration
-from ..pairs import load_pairs
-from ..report import write_report
+from eyetohand.calibration import Calibration
+from eyetohand.core import load_pairs
+from eyetohand.reports import write_report
 
 
 def cmd_report(args) -> int:

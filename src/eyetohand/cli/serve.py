@@ -10,8 +10,7 @@ import sys
 
 
 def cmd_serve(args) -> int:
-    from ..server.cli import check_options, serve
-    from ..server.storage import default_data_dir
+    from eyetohand.server import check_options, default_data_dir, serve
 
     args.token = args.token or os.environ.get("EYETOHAND_TOKEN") or None
     check_options(args)

@@ -5,12 +5,18 @@ from __future__ import annotations
 import json
 import sys
 
-from ..errors import InputError
-from ..io import atomic_write_text
-from ..sim.cell import Cell, load_cell
-from ..sim.planner import DEFAULT_PLANS, METRICS, plan_study, plot_study
-from ..sim.plans import VALID_FORMS, parse_numbers, parse_plan
-from ..sim.simulate import simulate, write_simulation
+from eyetohand.cell import VALID_FORMS, parse_numbers, parse_plan
+from eyetohand.core import InputError, atomic_write_text
+from eyetohand.sim import (
+    DEFAULT_PLANS,
+    METRICS,
+    Cell,
+    load_cell,
+    plan_study,
+    plot_study,
+    simulate,
+    write_simulation,
+)
 
 CONFIG_HELP = "cell config (TOML or YAML); default: the built-in cell"
 

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import sys
 
-from ..calibration import Calibration
-from ..pairs import load_pairs
-from ..verify import append_history, check_tolerance, verify
-from .common import emit_json
+from eyetohand.calibration import Calibration, append_history, check_tolerance, verify
+from eyetohand.cli.common import emit_json
+from eyetohand.core import load_pairs
 
 
 def cmd_verify(args) -> int:

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-from ..errors import InputError
-from .affine import Affine
-from .base import HeightRule, Model, RobotToImage
-from .dlt3d import DLT3D
-from .homography import Homography
-from .paper import PaperB
-from .pinhole import PinholeCamera
-from .radial import HomographyRadial
+from eyetohand.core import InputError
+from eyetohand.models.affine import Affine
+from eyetohand.models.base import HeightRule, Model, RobotToImage, as_uv
+from eyetohand.models.dlt3d import DLT3D
+from eyetohand.models.homography import Homography
+from eyetohand.models.paper import PaperB
+from eyetohand.models.pinhole import PinholeCamera
+from eyetohand.models.planar import PlanarMatrixModel
+from eyetohand.models.radial import HomographyRadial
 
 MODELS: dict[str, type[Model]] = {
     cls.name: cls for cls in (Affine, PaperB, Homography, HomographyRadial, DLT3D, PinholeCamera)
@@ -45,4 +46,14 @@ def model_from_dict(d: dict) -> Model:
     return cls(params, d["meta"])
 
 
-__all__ = ["MODELS", "MODEL_CHOICES", "HeightRule", "Model", "RobotToImage", "get_model", "model_from_dict"]
+__all__ = [
+    "HeightRule",
+    "MODELS",
+    "MODEL_CHOICES",
+    "Model",
+    "PlanarMatrixModel",
+    "RobotToImage",
+    "as_uv",
+    "get_model",
+    "model_from_dict",
+]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .planar import PlanarMatrixModel, planar_setup
+from eyetohand.models.planar import PlanarMatrixModel, planar_setup
 
 
 class Affine(PlanarMatrixModel):

@@ -26,13 +26,15 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..errors import DegenerateError, InputError
-from ..normalize import spread_ratio
-from ..numdiff import batch_jacobian  # noqa: F401  (models' own estimation steps use it)
+from eyetohand.core import DegenerateError, InputError
+from eyetohand.geometry import (
+    batch_jacobian,  # noqa: F401  (models' own estimation steps use it)
+    spread_ratio,
+)
 
 _ROWS: ModuleType | None
 try:  # the optional compiled loop (setup.py); see rows_kernel
-    from .. import _rows as _ROWS
+    from eyetohand.models import _rows as _ROWS
 except ImportError:
     _ROWS = None
 
@@ -43,8 +45,8 @@ CV_CHUNK = 1 << 16  # points per OpenCV call there (1 MB buffers, reused: no 16 
 
 
 def rows_kernel():
-    """``eyetohand._rows``, the compiled one-pass loop for the lens-free planar maps of many pixels
-    (src/eyetohand/_rows.c, built at install), or None where it could not be built: the maps then
+    """``eyetohand.models._rows``, the compiled one-pass loop for the lens-free planar maps of many pixels
+    (src/eyetohand/models/_rows.c, built at install), or None where it could not be built: the maps then
     go through NumPy and, from ``CV_MIN_POINTS`` points, OpenCV — the same numbers, slower."""
     return _ROWS
 
@@ -243,7 +245,7 @@ class Model(ABC):
 
     def params_jacobian(self, uv_px: np.ndarray, z_mm: np.ndarray) -> np.ndarray | None:
         """(N, c, D) derivative of the mapped coordinates by the parameters, in closed form, for the
-        models that have one; None otherwise (:mod:`eyetohand.uncertainty` then differentiates)."""
+        models that have one; None otherwise (:mod:`eyetohand.solve.uncertainty` then differentiates)."""
         return None
 
     def __call__(self, uv_px, z_mm=None) -> np.ndarray:

@@ -11,10 +11,10 @@ from types import MappingProxyType
 
 import numpy as np
 
-from ..errors import DegenerateError
-from ..normalize import apply_h, hartley, spread_ratio
-from .base import HeightRule, Model, check_enough
-from .homography import null_space_rows
+from eyetohand.core import DegenerateError
+from eyetohand.geometry import apply_h, hartley, spread_ratio
+from eyetohand.models.base import HeightRule, Model, check_enough
+from eyetohand.models.homography import null_space_rows
 
 COPLANAR_RATIO = 1e-4
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import DegenerateError
-from .planar import PlanarMatrixModel, planar_setup
+from eyetohand.core import DegenerateError
+from eyetohand.models.planar import PlanarMatrixModel, planar_setup
 
 
 def dlt_homography(src_n: np.ndarray, dst_n: np.ndarray, model_name: str):

@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import DegenerateError
-from ..normalize import hartley, spread_ratio
-from .base import (
+from eyetohand.core import DegenerateError
+from eyetohand.geometry import hartley, spread_ratio
+from eyetohand.models.base import (
     CV_MIN_POINTS,
     MAP_CHUNK,
     HeightRule,
@@ -35,7 +35,7 @@ from .base import (
     refuse_non_finite,
     rows_kernel,
 )
-from .dlt3d import COPLANAR_RATIO, dlt_projection
+from eyetohand.models.dlt3d import COPLANAR_RATIO, dlt_projection
 
 
 def equation5_rank(uv_px: np.ndarray, xyz_mm: np.ndarray) -> tuple[int, float]:

@@ -4,10 +4,10 @@ The mapping, robot → image (OpenCV's conventions)::
 
     Xc = R·(X − X0) + t                          camera frame; X0 = the training points' centroid
     n  = Xc[:2] / Xc[2]                          ideal normalised point
-    d  = distort(n; k1, k2, p1, p2)              OpenCV's lens (eyetohand.lens), r² = |n|²
+    d  = distort(n; k1, k2, p1, p2)              OpenCV's lens (eyetohand.geometry.lens), r² = |n|²
     uv = (fx·d_x + cx, fy·d_y + cy)
 
-and image → robot at a known height z: undistort (:func:`eyetohand.lens.undistort`: fixed-point
+and image → robot at a known height z: undistort (:func:`eyetohand.geometry.lens.undistort`: fixed-point
 start, Newton on the 2×2 Jacobian, each point to its tolerance, NaN where the lens cannot be
 inverted; a whole swarm of parameter vectors at once), cast the ray from the camera centre, and
 intersect it with the plane z. Parameters (class ``PinholeCamera``, name ``camera``):
@@ -38,11 +38,25 @@ from types import MappingProxyType
 
 import numpy as np
 
-from ..errors import DegenerateError, InputError
-from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
-from ..lm import levenberg_marquardt
-from .base import MAP_CHUNK, Choice, HeightRule, Model, as_uv, batch_jacobian, check_enough, one_point
-from .dlt3d import dlt_projection
+from eyetohand.core import DegenerateError, InputError
+from eyetohand.geometry import (
+    distort,
+    levenberg_marquardt,
+    matrix_to_rodrigues,
+    rodrigues_to_matrix,
+    undistort,
+)
+from eyetohand.models.base import (
+    MAP_CHUNK,
+    Choice,
+    HeightRule,
+    Model,
+    as_uv,
+    batch_jacobian,
+    check_enough,
+    one_point,
+)
+from eyetohand.models.dlt3d import dlt_projection
 
 # The full parameter row, free aspect: fx fy cx cy | k1 k2 p1 p2 (OpenCV's order) | rx ry rz | tx ty tz.
 # Square pixels drop fy (fy = fx): 13 parameters.
@@ -65,7 +79,7 @@ def project_full(full: np.ndarray, xyz_rel: np.ndarray) -> np.ndarray:
 
 def backproject_full(full: np.ndarray, uv_px: np.ndarray, z_rel: np.ndarray) -> np.ndarray:
     """Points (P, N, 3) (relative to X0) on the planes z = ``z_rel`` (N,) seen at pixels (N, 2);
-    NaN where the lens cannot be inverted (:func:`eyetohand.lens.undistort`)."""
+    NaN where the lens cannot be inverted (:func:`eyetohand.geometry.lens.undistort`)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         d = (uv_px[None] - full[:, None, 2:4]) / full[:, None, 0:2]
     # one parameter row: a single lens (plain-float path for a few points)
@@ -318,7 +332,7 @@ def _fit_reprojection(uv, rel, starts, square: bool):
         def fun_batch(p):
             return (project_full(expand(p, square), rel) - uv).reshape(len(p), -1)
 
-        try:  # least_squares(method="lm", x_scale="jac"): its routine and iterates (eyetohand.lm)
+        try:  # least_squares(method="lm", x_scale="jac"): its routine and iterates (eyetohand.geometry.lm)
             sol = levenberg_marquardt(
                 lambda p: fun_batch(p[None])[0], p0, lambda p: batch_jacobian(fun_batch, p)
             )

@@ -15,9 +15,9 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..errors import DegenerateError
-from ..normalize import apply_h, hartley
-from .base import (
+from eyetohand.core import DegenerateError
+from eyetohand.geometry import apply_h, hartley
+from eyetohand.models.base import (
     CV_CHUNK,
     CV_MIN_POINTS,
     MAP_CHUNK,

@@ -30,12 +30,17 @@ from types import MappingProxyType
 
 import numpy as np
 
-from ..errors import DegenerateError
-from ..lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
-from ..lm import levenberg_marquardt
-from ..normalize import hartley
-from .homography import Homography, dlt_homography
-from .planar import PLANAR_CONSTANTS, planar_setup
+from eyetohand.core import DegenerateError
+from eyetohand.geometry import (
+    distort,
+    hartley,
+    levenberg_marquardt,
+    matrix_to_rodrigues,
+    rodrigues_to_matrix,
+    undistort,
+)
+from eyetohand.models.homography import Homography, dlt_homography
+from eyetohand.models.planar import PLANAR_CONSTANTS, planar_setup
 
 
 def focal_from_homography(H_plane_to_image: np.ndarray, centre: np.ndarray) -> float | None:
@@ -82,7 +87,7 @@ def project_plane(p: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> np.nd
 def project_plane_rows(P: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """:func:`project_plane` for each row of P (S, 9) → (S, N, 2) px, equal to it bit for bit: the
     same matrix product per distinct rotation and the same elementwise arithmetic as
-    :func:`eyetohand.lens.distort` (k1, k2 only), on all rows at once."""
+    :func:`eyetohand.geometry.lens.distort` (k1, k2 only), on all rows at once."""
     XY0 = np.column_stack([xy_mm, np.zeros(len(xy_mm))])
     M = np.empty((len(P), len(XY0), 3))
     M[:] = XY0 @ rodrigues_to_matrix(P[0, 3:6]).T
@@ -384,7 +389,7 @@ def _centre(uv: np.ndarray, image_size):
 
 
 def undistort_px(uv_px: np.ndarray, centre, f: float, k1: float, k2: float) -> np.ndarray:
-    """Ideal pixels from distorted ones for one lens (N, 2) (:func:`eyetohand.lens.undistort`); NaN
+    """Ideal pixels from distorted ones for one lens (N, 2) (:func:`eyetohand.geometry.lens.undistort`); NaN
     where the lens cannot be inverted (beyond its fold)."""
     d = (np.asarray(uv_px, float) - centre) / f
     return centre + f * undistort(d, np.array([k1, k2, 0.0, 0.0]))[0]

@@ -6,12 +6,15 @@ Needs the ``fastapi`` and ``uvicorn`` packages. ``create_app(data_dir, token=Non
 
 from __future__ import annotations
 
+from eyetohand.server.cli import check_options, serve
+from eyetohand.server.storage import default_data_dir
+
 
 def create_app(*args, **kwargs):
     """See :func:`eyetohand.server.app.create_app` (imported lazily: FastAPI loads only when used)."""
-    from .app import create_app as _create_app
+    from eyetohand.server.app import create_app as _create_app
 
     return _create_app(*args, **kwargs)
 
 
-__all__ = ["create_app"]
+__all__ = ["check_options", "create_app", "default_data_dir", "serve"]

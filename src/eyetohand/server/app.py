@@ -18,13 +18,13 @@ from typing import Any
 
 from fastapi import FastAPI
 
-from .. import __version__
-from .core import Jobs
-from .middleware import BodyLimit, HostGuard, TokenGuard
-from .responses import install_handlers
-from .routes import calibrations, collect, images, jobs, mapping, meta, page, pairs
-from .routes.meta import PAPER_PRESET
-from .schemas import (
+from eyetohand._version import __version__
+from eyetohand.server.core import Jobs
+from eyetohand.server.middleware import BodyLimit, HostGuard, TokenGuard
+from eyetohand.server.responses import install_handlers
+from eyetohand.server.routes import calibrations, collect, images, jobs, mapping, meta, page, pairs
+from eyetohand.server.routes.meta import PAPER_PRESET
+from eyetohand.server.schemas import (
     MAX_BODY_BYTES,
     MAX_FIT_BODY_BYTES,
     MAX_PARSE_BODY_BYTES,
@@ -32,8 +32,8 @@ from .schemas import (
     MAX_PSO_WORK,
     ErrorOut,
 )
-from .service import Limits, Service
-from .storage import WAIT_S, Store
+from eyetohand.server.service import Limits, Service
+from eyetohand.server.storage import WAIT_S, Store
 
 LOOPBACK_HOSTS = ["127.0.0.1", "localhost", "::1", "[::1]"]
 

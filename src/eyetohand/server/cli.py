@@ -12,7 +12,7 @@ import socket
 from collections.abc import Callable
 from pathlib import Path
 
-from ..errors import InputError
+from eyetohand.core import InputError
 
 
 class ServeError(InputError):
@@ -75,7 +75,7 @@ def check_options(args) -> None:
     if args.calibration:
         path = calibration_path(args.calibration)
         if path is not None:
-            from .tcp import FixedCalibration
+            from eyetohand.server.tcp import FixedCalibration
 
             try:
                 args.calibration_file = FixedCalibration.from_file(path)
@@ -126,7 +126,7 @@ def store_save_fn(store, on_saved=None):
 
 def store_load_fn(store):
     """``load_fn(name) -> Calibration | None`` for the Collector: the current stored version."""
-    from ..calibration import Calibration
+    from eyetohand.calibration import Calibration
 
     def load(name: str):
         rec = store.by_name(name)
@@ -150,9 +150,9 @@ async def _serve(args, data_dir) -> None:
 async def _run_serve(args, data_dir, loops: list) -> None:
     import uvicorn
 
-    from .app import LOOPBACK_HOSTS, create_app
-    from .storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
-    from .tcp import LineServer, LoopThread, PendingCalibration, StoredCalibration
+    from eyetohand.server.app import LOOPBACK_HOSTS, create_app
+    from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
+    from eyetohand.server.tcp import LineServer, LoopThread, PendingCalibration, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     line_server = None
@@ -202,8 +202,9 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         loop = tcp_loop.loop  # follow() is called on it from a collection's thread
         try:
             if camera:
-                from ..collect import Collector
-                from ..sources import open_source
+                import eyetohand.sim  # noqa: F401  (the interfaces offer the virtual cell's sim: camera)
+                from eyetohand.cell import Collector
+                from eyetohand.vision import open_source
 
                 source = open_source(camera)
 
@@ -232,7 +233,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                 )
                 commands["CAL"] = collector.handle
             if conveyor:
-                from ..belt_protocol import BeltProtocol
+                from eyetohand.cell import BeltProtocol
 
                 belt = BeltProtocol(
                     conveyor, source=source, store_dir=args.collect_dir or (data_dir / "collect")
@@ -266,7 +267,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None,
     )
     if collector is not None:
-        from .routes.collect import CameraView
+        from eyetohand.server.routes.collect import CameraView
 
         app.state.collect = CameraView(collector, source)
     port = http_sock.getsockname()[1]

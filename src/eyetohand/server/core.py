@@ -13,12 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..calibration import Calibration
-from ..errors import InputError
-from ..evaluate import Stats, stats_from_residuals
-from ..fit import calibrate
-from ..pairs import PointPairs, pairs_from_records
-from .schemas import FitOptions
+from eyetohand.calibration import Calibration, calibrate
+from eyetohand.core import InputError, PointPairs, pairs_from_records
+from eyetohand.server.schemas import FitOptions
+from eyetohand.solve import Stats, stats_from_residuals
 
 
 class ApiError(Exception):
@@ -52,7 +50,7 @@ def to_pairs(records, label: str) -> PointPairs:
 
 def parse_text(text: str, source: str) -> PointPairs:
     """Pairs from CSV or JSON text, with the same rules and messages as ``eyetohand calibrate``."""
-    from ..pairs import pairs_from_text
+    from eyetohand.core import pairs_from_text
 
     name = source.strip() or "pasted"
     try:
@@ -190,7 +188,7 @@ def map_points(
     allow_outside: bool = False,
     sigma: bool = True,
 ):
-    """(N, 2) px → the calibration's guarded :class:`~eyetohand.calibration.Mapped`, with the
+    """(N, 2) px → the calibration's guarded :class:`~eyetohand.calibration.file.Mapped`, with the
     request's ``z`` (None, a number, or one per point) and ``angles`` (one per point)."""
     if isinstance(z, list):
         if len(z) != len(points):
@@ -383,7 +381,7 @@ class Jobs:
         return self.submit("fit", work, opts.iterations if pso else 0)
 
     def compare_job(self, pairs: PointPairs, check: PointPairs, seed: int) -> Job:
-        from ..compare import compare
+        from eyetohand.calibration import compare
 
         def work(job: Job) -> None:
             job.phase = "fitting every model with every solver, then scoring on the check points"

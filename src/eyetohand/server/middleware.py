@@ -6,7 +6,7 @@ from __future__ import annotations
 import hmac
 from collections.abc import Callable
 
-from .responses import error_response, send_response
+from eyetohand.server.responses import error_response, send_response
 
 JSON_TYPES = (b"application/json",)
 

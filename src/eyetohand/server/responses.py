@@ -11,9 +11,9 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from ..errors import InputError
-from .core import ApiError, input_error
-from .storage import Ambiguous, NameTaken, NotFound, StorageError
+from eyetohand.core import InputError
+from eyetohand.server.core import ApiError, input_error
+from eyetohand.server.storage import Ambiguous, NameTaken, NotFound, StorageError
 
 
 def error_response(

@@ -7,13 +7,20 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool, WithJsonSchema
 from pydantic import Strict as StrictType
 
-from ..errors import InputError
-from ..fit import MAX_IMAGE_SIDE_PX, check_image_size
-from ..models import MODEL_CHOICES, get_model
-from ..objectives import OBJECTIVES, check_objective
-from ..orientation import check_symmetry
-from ..solvers import OPTIMIZERS, SEED_MAX, check_optimizer, check_seed, get_solver
-from .storage import clean_text, is_id_like
+from eyetohand.calibration import MAX_IMAGE_SIDE_PX, check_image_size
+from eyetohand.core import InputError
+from eyetohand.geometry import check_symmetry
+from eyetohand.models import MODEL_CHOICES, get_model
+from eyetohand.server.storage import clean_text, is_id_like
+from eyetohand.solve import (
+    OBJECTIVES,
+    OPTIMIZERS,
+    SEED_MAX,
+    check_objective,
+    check_optimizer,
+    check_seed,
+    get_solver,
+)
 
 MAX_BODY_BYTES = 64 * 1024 * 1024
 """Largest request body (bytes); a larger one gets 413."""

@@ -13,12 +13,12 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
-from ..calibration import Calibration
-from ..pairs import PointPairs
-from . import core
-from .core import ApiError, Fitted, Job, Jobs
-from .schemas import FitOptions, ImagesCalibrate
-from .storage import Record, Store, Version
+from eyetohand.calibration import Calibration
+from eyetohand.core import PointPairs
+from eyetohand.server import core
+from eyetohand.server.core import ApiError, Fitted, Job, Jobs
+from eyetohand.server.schemas import FitOptions, ImagesCalibrate
+from eyetohand.server.storage import Record, Store, Version
 
 
 @dataclass(frozen=True)
@@ -171,7 +171,7 @@ class Service:
         """Store a calibration file's JSON (proved intact first: 422 naming what is wrong) as a new
         calibration called ``name``, or as a new version of the one that has that name. Returns the
         stored calibration's view and whether it was created."""
-        from ..errors import InputError
+        from eyetohand.core import InputError
 
         try:
             cal = Calibration.from_dict(calibration, "calibration")
@@ -197,7 +197,7 @@ class Service:
 
     def verify(self, cal_id: int, pairs: PointPairs, tolerance_mm: float, version: int | None = None) -> dict:
         """Verify freshly measured pairs against a stored calibration and keep the entry in its history."""
-        from ..verify import verify
+        from eyetohand.calibration import verify
 
         ver, cal = self.calibration(cal_id, version)
         v = verify(cal, pairs, tolerance_mm)
@@ -302,9 +302,9 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
     import tempfile
     from pathlib import Path
 
-    from ..errors import InputError
-    from ..images import ImageResult, detect_poses, load_poses, pairs_from_detections
-    from .schemas import PairIn
+    from eyetohand.core import InputError
+    from eyetohand.server.schemas import PairIn
+    from eyetohand.vision import ImageResult, detect_poses, load_poses, pairs_from_detections
 
     opts: dict = {"polarity": req.polarity}
     if req.diameter_px is not None:

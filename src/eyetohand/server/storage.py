@@ -409,7 +409,8 @@ class Store:
         return None if not rows else (str(rows[0][0]), int(rows[0][1]))
 
     def add_verification(self, cal_id: int, version: int, entry: dict) -> None:
-        """Append one verification entry (see :mod:`eyetohand.verify`) to a calibration's history."""
+        """Append one verification entry (see :mod:`eyetohand.calibration.verify`) to a calibration's
+        history."""
         with self._tx() as db, _translated(self.path):
             if db.execute("SELECT 1 FROM calibrations WHERE id = ?", (cal_id,)).fetchone() is None:
                 raise NotFound(f"no calibration with id {cal_id}")

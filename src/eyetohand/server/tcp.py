@@ -26,10 +26,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..calibration import Calibration
-from ..collect import CommandError, ascii_reason, line_count, line_numbers
-from ..errors import InputError
-from ..orientation import check_symmetry
+from eyetohand.calibration import Calibration
+from eyetohand.cell import CommandError, ascii_reason, line_count, line_numbers
+from eyetohand.core import InputError
+from eyetohand.geometry import check_symmetry
 
 MAX_LINE = 256
 MAX_REASON = 200  # characters of an ERR reason on a mapping line (ASCII: collect.ascii_reason)
@@ -103,7 +103,7 @@ class StoredCalibration:
         return f"OK {self.name},{self.version},{self.created_utc}"
 
     def poll(self) -> None:
-        from .storage import NotFound, StorageError
+        from eyetohand.server.storage import NotFound, StorageError
 
         try:
             now = self.store.current(self.cal_id)
@@ -191,7 +191,7 @@ _WORDS = {"a": "angle_deg", "s": "symmetry", "t": "tool_rz_offset_deg"}
 
 def _number(name: str, text: str) -> tuple[float, bytes | None]:
     """A finite plain decimal, or the ERR line that refuses it: the rule and words of every line
-    protocol's numbers (:func:`eyetohand.collect.line_numbers`)."""
+    protocol's numbers (:func:`eyetohand.cell.collect.line_numbers`)."""
     try:
         return line_numbers([text], (name,), None)[0], None
     except CommandError as exc:

@@ -3,7 +3,32 @@ with exact truth, and a Monte Carlo planner that predicts how accurate a calibra
 
 from __future__ import annotations
 
-from .cell import Cell, load_cell
-from .plans import Plan, parse_plan
+from eyetohand.cell import Plan, parse_plan
+from eyetohand.sim.cell import Cell, load_cell
+from eyetohand.sim.conveyor import (
+    ConveyorSetup,
+    sightings_from_text,
+    simulate_conveyor,
+    write_conveyor_simulation,
+)
+from eyetohand.sim.planner import DEFAULT_PLANS, METRICS, plan_study, plot_study
+from eyetohand.sim.simulate import simulate, write_simulation
+from eyetohand.sim.source import SimSource  # registers the sim: camera source
 
-__all__ = ["Cell", "Plan", "load_cell", "parse_plan"]
+__all__ = [
+    "Cell",
+    "ConveyorSetup",
+    "DEFAULT_PLANS",
+    "METRICS",
+    "Plan",
+    "SimSource",
+    "load_cell",
+    "parse_plan",
+    "plan_study",
+    "plot_study",
+    "sightings_from_text",
+    "simulate",
+    "simulate_conveyor",
+    "write_conveyor_simulation",
+    "write_simulation",
+]

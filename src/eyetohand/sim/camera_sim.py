@@ -20,11 +20,11 @@ import hashlib
 
 import numpy as np
 
-from ..errors import InputError
-from ..tcp_offset import rotations
-from .cell import Cell
-from .images import render_target
-from .simulate import true_camera
+from eyetohand.core import InputError
+from eyetohand.sim.cell import Cell
+from eyetohand.sim.images import render_target
+from eyetohand.sim.simulate import true_camera
+from eyetohand.solve import rotations
 
 HIDDEN_OFFSET_MM = 1.0e5  # a target this far away is outside any cell's view: an image of the bare belt
 

@@ -22,7 +22,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from ..errors import InputError
+from eyetohand.core import InputError
 
 # section -> key -> (default, kind, comment). kind: "float", "pos" (> 0), "nonneg", "int", "pair"
 SCHEMA: dict[str, dict[str, tuple]] = {

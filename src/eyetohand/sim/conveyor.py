@@ -33,13 +33,19 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor, direction_from_angles
-from ..errors import InputError
-from ..io import atomic_write_text
-from ..solvers import check_seed
-from .cell import Cell
-from .plans import MAX_POINTS, is_whole_in
-from .simulate import true_camera
+from eyetohand.cell import (
+    MAX_POINTS,
+    ConveyorCalibration,
+    Encoder,
+    Session,
+    calibrate_conveyor,
+    direction_from_angles,
+    is_whole_in,
+)
+from eyetohand.core import InputError, atomic_write_text
+from eyetohand.sim.cell import Cell
+from eyetohand.sim.simulate import true_camera
+from eyetohand.solve import check_seed
 
 
 @dataclass(frozen=True)
@@ -119,7 +125,7 @@ class ConveyorSimulation:
     cell: Cell = field(default_factory=Cell.default)  # the camera's cell: pick_check, static_session see it
 
     def calibrate(self, session: Session | None = None, **options) -> ConveyorCalibration:
-        """:func:`~eyetohand.conveyor.calibrate_conveyor` on this session (or ``session``) as its user
+        """:func:`~eyetohand.cell.conveyor.calibrate_conveyor` on this session (or ``session``) as its user
         would run it: the simulated counter, the stated pulses per mm, the true window and the camera's
         image size; ``options`` (``model``, ``stated_direction_deg``, …) passed on."""
         kw: dict = {

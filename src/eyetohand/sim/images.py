@@ -1,6 +1,6 @@
 """Images of the simulated sessions: the target seen by the cell's hidden camera.
 
-Rendered by :func:`eyetohand.render.render` (the project's one renderer) exactly through the hidden
+Rendered by :func:`eyetohand.vision.render.render` (the project's one renderer) exactly through the hidden
 camera: every pixel is cast back (lens distortion included) onto the target's plane z and shaded by
 what lies there — a dark solid circle (``target.diameter_mm``) on a bright metal strip
 (``strip_width_mm`` × ``strip_length_mm``, along the tool's x axis, turning with the tool angle) over a
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_write_bytes, atomic_write_text
-from ..render import Target, render
+from eyetohand.core import atomic_write_bytes, atomic_write_text
+from eyetohand.vision import Target, render
 
 
 def poses_csv(names, xyz_mm, angle_deg=None) -> str:

@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
-from ..fit import calibrate
-from ..solvers import check_seed
-from .cell import Cell
-from .plans import MAX_POINTS, is_whole_in, parse_plan
-from .simulate import simulate
+from eyetohand.calibration import calibrate
+from eyetohand.cell import MAX_POINTS, is_whole_in, parse_plan
+from eyetohand.core import InputError
+from eyetohand.sim.cell import Cell
+from eyetohand.sim.simulate import simulate
+from eyetohand.solve import check_seed
 
 DEFAULT_PLANS = ("grid:3x3", "grid:4x4", "grid:5x5", "radial:17", "random:25", "grid:7x7")
 METRICS = ("max", "rms")
@@ -153,11 +153,11 @@ def plan_study(
 
 def plot_study(study: dict, path) -> None:
     """Bar chart of predicted RMS and max per plan (fewest pairs first), the target as a line (PNG):
-    :func:`eyetohand.plots.plot_plan_study`, same size and palette as the report's plots."""
+    :func:`eyetohand.reports.plots.plot_plan_study`, same size and palette as the report's plots."""
     import io
 
-    from ..io import atomic_write_bytes
-    from ..plots import plot_plan_study
+    from eyetohand.core import atomic_write_bytes
+    from eyetohand.reports import plot_plan_study
 
     ax = plot_plan_study(study)
     buf = io.BytesIO()

@@ -27,21 +27,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
-from ..errors import InputError
-from ..io import atomic_write_text
-from ..pairs import PointPairs
-from ..solvers import check_seed
-from ..tcp_offset import rotations
-from .cell import Cell
-from .plans import MAX_POINTS, Plan, is_whole_in, parse_plan
+from eyetohand.cell import MAX_POINTS, Plan, is_whole_in, parse_plan
+from eyetohand.core import InputError, PointPairs, atomic_write_text
+from eyetohand.geometry import Camera
+from eyetohand.sim.cell import Cell
+from eyetohand.solve import check_seed, rotations
 
 SCHEMA = "eyetohand.sim.truth"
 COMMAND_RESOLUTION_MM = 1e-3
 
 
 def true_camera(cell: Cell) -> Camera:
-    """The hidden camera of a cell (OpenCV's model, as :class:`eyetohand.camera.Camera`)."""
+    """The hidden camera of a cell (OpenCV's model, as :class:`eyetohand.geometry.camera.Camera`)."""
     R, t = cell.pose
     return Camera.from_opencv(cell.K, cell.dist, R, t, cell.image_size)
 
@@ -228,7 +225,7 @@ def write_simulation(sim: Simulation, out_dir: str | os.PathLike, *, images: boo
         written.append(atomic_write_text(out / "check.csv", sim.check.to_csv_text()))
     written.append(atomic_write_text(out / "truth.json", json.dumps(sim.truth(), indent=2) + "\n"))
     if images:
-        from .images import write_images
+        from eyetohand.sim.images import write_images
 
         written += write_images(sim, out)
     return written

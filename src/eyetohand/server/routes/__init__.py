@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import Depends, Query, Request
 from fastapi import Path as PathParam
 
-from ..service import Service
+from eyetohand.server.service import Service
 
 
 def get_service(request: Request) -> Service:

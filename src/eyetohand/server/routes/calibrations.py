@@ -7,9 +7,9 @@ import re
 
 from fastapi import APIRouter, Response
 
-from ...evaluate import evaluate
-from .. import core
-from ..schemas import (
+from eyetohand.server import core
+from eyetohand.server.routes import CalId, Svc, VersionQ
+from eyetohand.server.schemas import (
     CalibrationBrief,
     CalibrationDetail,
     CalibrationOut,
@@ -23,7 +23,7 @@ from ..schemas import (
     VerifyRequest,
     VersionList,
 )
-from . import CalId, Svc, VersionQ
+from eyetohand.solve import evaluate
 
 router = APIRouter(tags=["calibrations"])
 

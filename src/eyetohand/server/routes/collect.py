@@ -21,8 +21,8 @@ from fastapi import APIRouter, Request
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 
-from ..core import ApiError
-from .page import STATIC_DIR
+from eyetohand.server.core import ApiError
+from eyetohand.server.routes.page import STATIC_DIR
 
 router = APIRouter(tags=["collection"])
 PointN = Annotated[int, PathParam(ge=1, le=10**6, description="point number (n of CAL POINT's reply)")]
@@ -32,7 +32,7 @@ class CameraView:
     """The live camera and the collection behind the routes (thread-safe)."""
 
     def __init__(self, collector, source):
-        from ...sources import FolderSource
+        from eyetohand.vision import FolderSource
 
         self.collector = collector
         self.source = source
@@ -42,7 +42,7 @@ class CameraView:
 
     def _grab(self):
         """(image or None, detection or None, where it came from)."""
-        from ...detect import detect_target
+        from eyetohand.vision import detect_target
 
         col = self.collector
         if self.live and col._lock.acquire(blocking=False):
@@ -65,7 +65,7 @@ class CameraView:
     def frame_png(self) -> tuple[bytes, dict]:
         import cv2
 
-        from ...detect import annotate
+        from eyetohand.vision import annotate
 
         with self._lock:
             img, det, where = self._grab()
@@ -157,7 +157,7 @@ def collect_status(request: Request) -> dict:
 
 
 def _drop(request: Request, n: int, keep: bool) -> dict:
-    from ...collect import CommandError
+    from eyetohand.cell import CommandError
 
     try:
         p = _view(request).collector.drop(n, keep=keep)

@@ -6,8 +6,8 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from ..schemas import ImagesCalibrate, ImagesJobOut, JobCreated
-from . import JobId, Svc
+from eyetohand.server.routes import JobId, Svc
+from eyetohand.server.schemas import ImagesCalibrate, ImagesJobOut, JobCreated
 
 router = APIRouter(tags=["images"])
 

@@ -6,9 +6,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from .. import core
-from ..schemas import CalibrationOut, CompareRequest, FitOptions, JobCreated, JobOut, SaveJob
-from . import JobId, Svc
+from eyetohand.server import core
+from eyetohand.server.routes import JobId, Svc
+from eyetohand.server.schemas import CalibrationOut, CompareRequest, FitOptions, JobCreated, JobOut, SaveJob
 
 router = APIRouter(tags=["jobs"])
 

@@ -24,12 +24,12 @@ from fastapi.responses import StreamingResponse
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from ...calibration import Calibration, Mapped
-from .. import core
-from ..core import ApiError
-from ..responses import api_error_of_validation
-from ..schemas import MAX_POINTS, MapRequest, MapResponse
-from . import CalId, JobId, VersionQ
+from eyetohand.calibration import Calibration, Mapped
+from eyetohand.server import core
+from eyetohand.server.core import ApiError
+from eyetohand.server.responses import api_error_of_validation
+from eyetohand.server.routes import CalId, JobId, VersionQ
+from eyetohand.server.schemas import MAX_POINTS, MapRequest, MapResponse
 
 INLINE_BYTES = 64 * 1024
 INLINE_POINTS = 2000

@@ -4,12 +4,19 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from ... import __version__
-from ...models import MODEL_CHOICES
-from ...objectives import OBJECTIVES
-from ...solvers import OPTIMIZERS
-from ..schemas import MAX_ITERATIONS, MAX_NAME, MAX_PAIRS, MAX_PARTICLES, MAX_POINTS, MAX_TEXT_CHARS, Meta
-from . import Svc
+from eyetohand._version import __version__
+from eyetohand.models import MODEL_CHOICES
+from eyetohand.server.routes import Svc
+from eyetohand.server.schemas import (
+    MAX_ITERATIONS,
+    MAX_NAME,
+    MAX_PAIRS,
+    MAX_PARTICLES,
+    MAX_POINTS,
+    MAX_TEXT_CHARS,
+    Meta,
+)
+from eyetohand.solve import OBJECTIVES, OPTIMIZERS
 
 PAPER_PRESET = {
     "model": "paper",

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from .. import core
-from ..schemas import ParseRequest, ParseResponse
+from eyetohand.server import core
+from eyetohand.server.schemas import ParseRequest, ParseResponse
 
 router = APIRouter(tags=["pairs"])
 

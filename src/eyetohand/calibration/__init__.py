@@ -1,0 +1,24 @@
+"""Rank 4: the self-proving calibration file, the fit (and ``auto``), compare, verify, export."""
+
+from __future__ import annotations
+
+from eyetohand.calibration.compare import compare, format_compare
+from eyetohand.calibration.export import FORMATS, export_text
+from eyetohand.calibration.file import Calibration, Mapped
+from eyetohand.calibration.fit import MAX_IMAGE_SIDE_PX, calibrate, check_image_size
+from eyetohand.calibration.verify import append_history, check_tolerance, verify
+
+__all__ = [
+    "Calibration",
+    "FORMATS",
+    "MAX_IMAGE_SIDE_PX",
+    "Mapped",
+    "append_history",
+    "calibrate",
+    "check_image_size",
+    "check_tolerance",
+    "compare",
+    "export_text",
+    "format_compare",
+    "verify",
+]

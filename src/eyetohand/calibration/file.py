@@ -1,0 +1,818 @@
+"""A fitted model with its provenance: what a user deploys. Saves to and loads from JSON.
+
+A calibration answers only where it was calibrated (:mod:`eyetohand.geometry.region`), with each point's
+predicted error (:mod:`eyetohand.solve.uncertainty`) and, for a given image angle, the robot's rz
+(:mod:`eyetohand.geometry.orientation`). Its file carries the training (and check) pairs and proves it is
+intact when loaded: every field is validated, the pairs' SHA-256 must match ``data_sha256``, and the
+model must reproduce the recorded training (and check) statistics to 1e-9 mm.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from eyetohand._version import __version__
+from eyetohand.core import (
+    MAX_ABS_ANGLE_DEG,
+    FitInfo,
+    InputError,
+    PointPairs,
+    Stats,
+    TcpOffset,
+    angle_refusal,
+    atomic_write_text,
+    pairs_from_records,
+)
+from eyetohand.geometry import (
+    CONVENTIONS,
+    CalibratedRegion,
+    LocalFrame,
+    check_symmetry,
+    image_angle_to_rz,
+    local_jacobian,
+    wrap_deg,
+)
+from eyetohand.models import HeightRule, Model, model_from_dict
+from eyetohand.solve import Uncertainty
+
+SCHEMA = "eyetohand.calibration.file"
+SCHEMA_VERSION = 2
+READS_VERSIONS = (1, 2)
+REPRODUCE_TOL_MM = 1e-9
+
+
+@dataclass(frozen=True)
+class Mapped:
+    """Image points mapped by a calibration: per point the pixel, the robot point (mm), the robot
+    angle (deg, when image angles were given), the predicted error ``sigma_mm``, whether it lies in
+    the calibrated region and how far outside it is (px)."""
+
+    uv_px: np.ndarray
+    xyz_mm: np.ndarray
+    rz_deg: np.ndarray | None
+    sigma_mm: np.ndarray | None
+    inside: np.ndarray
+    outside_px: np.ndarray
+
+    def records(self) -> list[dict]:
+        """One dict per point, full precision: u, v, x, y, z, [rz], sigma_mm, inside."""
+        out = []
+        for i in range(len(self.uv_px)):
+            rec = {
+                "u": float(self.uv_px[i, 0]),
+                "v": float(self.uv_px[i, 1]),
+                "x": float(self.xyz_mm[i, 0]),
+                "y": float(self.xyz_mm[i, 1]),
+                "z": float(self.xyz_mm[i, 2]),
+            }
+            if self.rz_deg is not None:
+                rec["rz"] = float(self.rz_deg[i])
+            rec["sigma_mm"] = None if self.sigma_mm is None else float(self.sigma_mm[i])  # type: ignore[assignment]
+            rec["inside"] = bool(self.inside[i])
+            out.append(rec)
+        return out
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """``model`` maps image → robot; the rest says where it may, how well, and how it was made."""
+
+    model: Model
+    fit: FitInfo
+    train: Stats
+    check: Stats | None = None
+    loo: Stats | None = None
+    data_sha256: str = ""
+    image_size: tuple[int, int] | None = None
+    notes: tuple[str, ...] = ()
+    selection: dict | None = None
+    tcp_offset: TcpOffset | None = None
+    created_utc: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"))
+    version: str = __version__
+    region: CalibratedRegion | None = None
+    uncertainty: Uncertainty | None = None
+    pairs: PointPairs | None = None  # the training pairs as given (before a tool offset is removed)
+    check_pairs: PointPairs | None = None
+    warnings: tuple[str, ...] = ()
+
+    # ------------------------------------------------------------ facts
+    @property
+    def model_name(self) -> str:
+        return self.model.name
+
+    @property
+    def fitted_pairs(self) -> PointPairs | None:
+        """The pairs the model was fitted on: the training pairs moved to their tool points."""
+        return _corrected(self.pairs, self.tcp_offset)
+
+    def local_frame(self, uv_px=None) -> LocalFrame:
+        """Scale, rotation, skew and handedness of the map at ``uv_px`` (default: the region's centre)."""
+        if uv_px is None:
+            return self._centre_frame
+        uv = np.asarray(uv_px, float).reshape(1, 2)
+        return LocalFrame.from_jacobian(local_jacobian(self.xy_map(), uv)[0])
+
+    @cached_property
+    def _centre_jacobian(self) -> np.ndarray:
+        """(2, 2) d(x, y)/d(u, v) at the region's centre and the default height: a constant of the
+        calibration (the tool offset's reference direction, the horizon test's reference scale),
+        computed once rather than on every mapped point that needs it."""
+        J = local_jacobian(self.xy_map(), self._centre())[0]
+        J.flags.writeable = False
+        return J
+
+    @cached_property
+    def _centre_frame(self) -> LocalFrame:
+        return LocalFrame.from_jacobian(self._centre_jacobian)
+
+    @property
+    def handedness(self) -> str:
+        return self.local_frame().handedness
+
+    def _centre(self) -> np.ndarray:
+        if self.region is not None:
+            return self.region.hull_px.mean(axis=0, keepdims=True)
+        if self.pairs is not None:
+            return self.pairs.uv_px.mean(axis=0, keepdims=True)
+        raise InputError("this calibration records no calibrated region (a pre-0.2 file): recalibrate it")
+
+    def _default_z(self) -> float | None:
+        """The height a point is mapped at when none is given: the plane, or the middle of the z range."""
+        if self.region is None:
+            return None
+        if self.region.plane_z_mm is not None:
+            return self.region.plane_z_mm
+        return float(np.mean(self.region.z_range_mm)) if self.region.z_range_mm else None
+
+    def xy_map(self, z=None):
+        """(M, 2) px → (M, 2) mm for :func:`~eyetohand.geometry.orientation.local_jacobian`, at ``z``:
+        None (the calibration's own height), a number, or one per point of the N points whose M = k·N stencil
+        points are mapped (k blocks of N, each block at the N points' own heights)."""
+        zz: np.ndarray | None = None
+        if self.model.height_rule is not HeightRule.COMPUTED:
+            given = self._default_z() if z is None else z
+            zz = None if given is None else np.atleast_1d(np.asarray(given, float))
+
+        def f(uv):
+            zq = None if zz is None else np.tile(zz, len(uv) // len(zz)) if len(zz) > 1 else float(zz[0])
+            return self.model.image_to_robot(uv, zq)[:, :2]
+
+        return f
+
+    # ------------------------------------------------------------ mapping
+    def image_to_robot(self, uv_px, z=None, *, allow_outside: bool = False) -> np.ndarray:
+        """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
+        return self.map(uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm
+
+    def map(
+        self,
+        uv_px,
+        z=None,
+        *,
+        angle_deg=None,
+        allow_outside: bool = False,
+        symmetry: int = 1,
+        tool_rz_offset_deg: float | None = None,
+        with_sigma: bool = True,
+    ) -> Mapped:
+        """Map pixels (and image angles) to robot points (and rz), guarded.
+
+        ``z``: the object's height (mm), scalar or (N,): required by models of several heights; a
+        single-height model refuses a z off its plane (``region.PLANE_TOLERANCE_MM``). A point beyond
+        the region's margin, a height beyond the calibrated range, or a non-finite result is refused
+        with :class:`~eyetohand.geometry.region.OutsideError` / :class:`InputError` naming the point, unless
+        ``allow_outside`` (then ``inside`` is False for it; a non-finite result, or one on or beyond
+        the model's horizon, is always refused).
+        ``angle_deg``: image angles (deg, from +u towards +v) → ``rz_deg`` (see
+        :mod:`eyetohand.geometry.orientation`), folded by ``symmetry``; ``tool_rz_offset_deg`` makes rz the
+        gripper's command.
+        """
+        from eyetohand.models import as_uv
+
+        s = check_symmetry(symmetry)  # checked with or without an angle: one rule on every interface
+        if tool_rz_offset_deg is not None:  # likewise
+            why = angle_refusal(float(tool_rz_offset_deg))
+            if why:
+                raise InputError(why, field="tool_rz_offset_deg")
+        uv = as_uv(uv_px)
+        n = len(uv)
+        if z is not None:
+            z = np.broadcast_to(np.asarray(z, float), (n,))
+            if not np.isfinite(z).all():
+                i = int(np.flatnonzero(~np.isfinite(z))[0])
+                raise InputError("must be a finite number (mm)", index=i, field="z", label="points")
+        if self.region is None:
+            if not allow_outside:
+                raise InputError(
+                    "this calibration file records no calibrated region (written by eyetohand 0.1): "
+                    "recalibrate it with this version, or allow_outside to map without the guard"
+                )
+            inside, outside = np.zeros(n, bool), np.full(n, np.nan)
+        else:
+            inside, outside = self.region.check(uv, z, allow_outside=allow_outside)
+        xyz = np.ascontiguousarray(self.model.image_to_robot(uv, z))
+        bad = ~np.isfinite(xyz).all(axis=1)
+        if not bad.any() and self.region is not None and (outside > 0).any():
+            bad[outside > 0] = self._beyond_horizon(uv[outside > 0], None if z is None else z[outside > 0])
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(
+                f"(u, v) = ({uv[i, 0]:g}, {uv[i, 1]:g}) px maps to no finite robot point "
+                "(on or beyond the model's horizon)",
+                index=i,
+                label="points",
+            )
+        rz = None
+        if angle_deg is not None:
+            ang = np.broadcast_to(np.asarray(angle_deg, float), (n,))
+            bad_angle = ~(np.abs(ang) <= MAX_ABS_ANGLE_DEG)  # NaN too
+            if bad_angle.any():
+                i = int(np.flatnonzero(bad_angle)[0])
+                raise InputError(str(angle_refusal(float(ang[i]))), index=i, field="angle", label="points")
+            J = local_jacobian(self.xy_map(z), uv)
+            rz = image_angle_to_rz(J, ang)
+            if tool_rz_offset_deg is not None:
+                rz = rz + float(tool_rz_offset_deg) - self.local_frame().u_axis_rz_deg
+            rz = wrap_deg(rz, s)
+        sigma = None
+        if with_sigma and self.uncertainty is not None:
+            zs = xyz[:, 2] if self.model.height_rule is not HeightRule.COMPUTED else np.zeros(n)
+            sigma = self.uncertainty.sigma_mm(self.model, uv, zs)
+        return Mapped(uv, xyz, rz, sigma, inside, outside)
+
+    HORIZON_SCALE_RATIO = 1e3
+
+    def _beyond_horizon(self, uv: np.ndarray, z) -> np.ndarray:
+        """(N,) True for points (outside the region) on or beyond the model's horizon: the local
+        map flips handedness there (a homography's det J = det H / w³ changes sign with w) or its
+        scale explodes (beyond ``HORIZON_SCALE_RATIO`` × the region centre's), where the answer is a
+        finite number that means nothing."""
+        with np.errstate(all="ignore"):
+            det = np.linalg.det(local_jacobian(self.xy_map(z), uv))
+            ref = np.linalg.det(self._centre_jacobian)
+            ratio = np.sqrt(np.abs(det / ref))
+        return ~np.isfinite(det) | (np.sign(det) != np.sign(ref)) | ~(ratio < self.HORIZON_SCALE_RATIO)
+
+    def robot_to_image(self, xyz_mm) -> np.ndarray:
+        """(N, 3) robot mm → (N, 2) pixels."""
+        return self.model.robot_to_image(xyz_mm)
+
+    # ------------------------------------------------------------ persistence
+    def _content(self) -> dict:
+        frame = None
+        if self.region is not None:
+            try:
+                frame = self.local_frame().to_dict()
+            except InputError:
+                frame = None
+        return {
+            "schema": SCHEMA,
+            "schema_version": SCHEMA_VERSION,
+            "eyetohand_version": self.version,
+            "created_utc": self.created_utc,
+            "units": {"image": "px", "robot": "mm"},
+            "conventions": CONVENTIONS,
+            "model": self.model.to_dict(),
+            "plane_z_mm": self.model.plane_z_mm,
+            "heights_mm": self.model.diagnostics.get("heights_mm"),
+            "image_size": list(self.image_size) if self.image_size else None,
+            "region": self.region.to_dict() if self.region else None,
+            "local_frame": frame,
+            "uncertainty": self.uncertainty.to_dict() if self.uncertainty else None,
+            "fit": self.fit.to_dict(),
+            "train": self.train.to_dict(),
+            "check": self.check.to_dict() if self.check else None,
+            "loo": self.loo.to_dict() if self.loo else None,
+            "data_sha256": self.data_sha256,
+            "pairs": self.pairs.to_records() if self.pairs is not None else None,
+            "check_pairs": self.check_pairs.to_records() if self.check_pairs is not None else None,
+            "notes": list(self.notes),
+            "warnings": list(self.warnings),
+            "selection": self.selection,
+            "tcp_offset": self.tcp_offset.to_dict() if self.tcp_offset else None,
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n"
+
+    def to_dict(self) -> dict:
+        """The file's content (JSON-able), sealed by ``content_sha256`` (see :func:`content_sha256`)."""
+        d = self._content()
+        d["content_sha256"] = content_sha256(d)
+        return d
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the calibration as JSON, atomically (a failure leaves any earlier file intact)."""
+        return atomic_write_text(path, self.to_json())
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "<dict>") -> Calibration:
+        """Rebuild a calibration from :meth:`to_dict` output, proving it intact (schema version 2):
+        every field typed and shaped as this version writes it, the training pairs hashing to
+        ``data_sha256``, the recorded statistics reproduced (1e-9 mm), and the derived fields — the
+        calibrated region, the uncertainty, the local frame — recomputed from the stored pairs and
+        compared (the recomputed ones are used). Anything else is refused with one line naming the
+        field (:class:`InputError`). Only free text (notes, warnings, created_utc,
+        eyetohand_version) and the model's diagnostics are not checked: they never change a mapping."""
+        if not isinstance(d, dict) or d.get("schema") != SCHEMA:
+            raise InputError(f"{source}: not an eyetohand calibration file (no schema {SCHEMA!r})")
+        ver = d.get("schema_version")
+        if isinstance(ver, bool) or ver not in READS_VERSIONS:
+            newer = isinstance(ver, int) and not isinstance(ver, bool) and ver > SCHEMA_VERSION
+            raise InputError(
+                f"{source}: calibration schema_version {ver!r}"
+                + (
+                    f" is newer than this eyetohand {__version__} reads ({SCHEMA_VERSION}): upgrade eyetohand"
+                    if newer
+                    else f", this eyetohand reads {', '.join(map(str, READS_VERSIONS))}"
+                )
+            )
+        try:
+            _check_numbers(d, "")
+            cal = _from_dict(cls, d, ver)
+            if ver >= 2:
+                cal = cal._proven(d)
+        except InputError as exc:
+            raise InputError(f"{source}: {_as_written(str(exc), d)}") from None
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as exc:
+            what = (
+                f"field {exc.args[0]!r} missing"
+                if isinstance(exc, KeyError)
+                else f"{type(exc).__name__}: {exc}"
+            )
+            raise InputError(f"{source}: malformed calibration file ({what})") from None
+        return cal
+
+    def _proven(self, d: dict) -> Calibration:
+        """``self`` (parsed from ``d``) with its region and uncertainty recomputed from its pairs,
+        after proving that ``d`` is what this calibration writes (see :meth:`from_dict`)."""
+        self.verify()
+        fitted = self.fitted_pairs
+        assert fitted is not None  # verify() refuses a file without pairs
+        region = derived_region(self.model, fitted)
+        _same(region.to_dict(), d.get("region", _MISSING), "region", _rel_tol(REPRODUCE_TOL_MM))
+        unc = Uncertainty.of_fit(self.model, fitted.uv_px, fitted.xyz_mm)
+        _same_uncertainty(unc, d.get("uncertainty", _MISSING), self.model, fitted, region)
+        out = _replace(self, region=region, uncertainty=unc)
+        want = out._content()
+        for key in FREE_FIELDS:
+            want.pop(key, None)
+        given = {k: v for k, v in d.items() if k not in FREE_FIELDS}
+        want["model"] = dict(want["model"], diagnostics=given.get("model", {}).get("diagnostics"))
+        want["uncertainty"] = given.get("uncertainty")  # compared above, with its own tolerance
+        want["region"] = given.get("region")  # compared above
+        local = want.pop("local_frame")
+        _same(local, given.pop("local_frame", _MISSING), "local_frame", _rel_tol(REPRODUCE_TOL_MM))
+        given.pop("content_sha256", None)
+        _same(want, given, "", _rel_tol(0.0))
+        sha = d.get("content_sha256", _MISSING)
+        if sha is _MISSING:
+            raise InputError("field 'content_sha256' missing: this file cannot prove its records intact")
+        if sha != content_sha256(d):
+            raise InputError(
+                "the file's content does not match content_sha256 (a record such as fit, loo, selection "
+                "or the model's diagnostics was changed after it was written)"
+            )
+        return out
+
+    def verify(self) -> None:
+        """Prove the calibration intact: the stored pairs hash to ``data_sha256`` and the model
+        reproduces the recorded statistics (every per-point residual, the summaries and the outlier
+        flags, to 1e-9 mm) and maps its own pairs finitely."""
+        if self.pairs is None:
+            raise InputError("the file carries no training pairs, so it cannot prove it is intact")
+        if self.pairs.sha256() != self.data_sha256:
+            raise InputError(f"the training pairs do not match data_sha256: {CHANGED}")
+        from eyetohand.solve import pair_leverage, stats_from_residuals
+
+        for label, key, pairs, stats in (
+            ("training", "train", self.fitted_pairs, self.train),
+            ("check", "check", _corrected_check(self.check_pairs, self.tcp_offset), self.check),
+        ):
+            if pairs is None and stats is None:
+                continue
+            if pairs is None or stats is None:
+                raise InputError(f"the {label} statistics and the {label} pairs must come together")
+            with np.errstate(all="ignore"):
+                res = self.model.residuals(pairs.uv_px, pairs.xyz_mm)
+            if not np.isfinite(res).all():
+                raise InputError(
+                    f"the model maps its own {label} pairs to no finite point: {CHANGED_OR_DAMAGED}"
+                )
+            try:
+                with np.errstate(all="ignore"):
+                    # the training outliers as calibrate flags them: studentized by the pairs' leverage
+                    lev = pair_leverage(self.model, pairs.uv_px, pairs.xyz_mm) if key == "train" else None
+                    again = stats_from_residuals(res, pairs.ids, leverage=lev).to_dict()
+                _same(again, _stats_dict(stats), key, _rel_tol(REPRODUCE_TOL_MM, relative=False))
+            except InputError as exc:
+                raise InputError(
+                    f"the model does not reproduce its recorded {label} errors (to {REPRODUCE_TOL_MM:g} mm; "
+                    f"{exc.reason.removesuffix(': ' + CHANGED)}): {CHANGED_OR_DAMAGED}"
+                ) from None
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Calibration:
+        """Read a calibration saved by :meth:`save`; mappings are bit-identical to the original."""
+        from eyetohand.core import read_bounded_text
+
+        path = Path(path)
+        text = read_bounded_text(path, what="a calibration file")
+        try:
+            d = json.loads(text, parse_constant=_refuse_constant)
+        except json.JSONDecodeError as exc:
+            raise InputError(
+                f"{path} line {exc.lineno}: not a calibration file (invalid JSON: {exc.msg})"
+            ) from None
+        except ValueError as exc:
+            raise InputError(f"{path}: not a calibration file ({exc})") from None
+        return cls.from_dict(d, str(path))
+
+
+CHANGED = "the file was changed after it was written"
+CHANGED_OR_DAMAGED = "the file was changed or damaged after it was written"
+
+
+def _as_written(message: str, d: dict) -> str:
+    """A refusal's words. A file whose content still matches its content_sha256 is as it was
+    written: where this eyetohand then does not reproduce what it records, the file was written by
+    an eyetohand that computed it differently (or edited and re-sealed) — say that, not "changed"."""
+    tail = next((t for t in (CHANGED_OR_DAMAGED, CHANGED) if message.endswith(t)), None)
+    if tail is None:
+        return message
+    try:
+        sealed = isinstance(d.get("content_sha256"), str) and d["content_sha256"] == content_sha256(d)
+    except (TypeError, ValueError, OverflowError):
+        sealed = False
+    if not sealed:
+        return message
+    by = d.get("eyetohand_version")
+    by = f" ({by})" if isinstance(by, str) else ""
+    return (
+        f"{message[: -len(tail)]}the file is as written (its content_sha256 checks), so the eyetohand "
+        f"that wrote it{by} computed this differently from this one ({__version__}), or the file was "
+        "edited and re-sealed; calibrate its pairs again with this version"
+    )
+
+
+FREE_FIELDS = ("created_utc", "eyetohand_version", "notes", "warnings")
+"""Top-level fields of the file that are free text: checked for type only, never for value."""
+COVARIANCE_TOL = 1e-6
+"""A stored covariance entry may differ from the recomputed one by this fraction of
+sqrt(C_ii C_jj) (room for another machine's linear algebra; the recomputed one is used)."""
+_MISSING = object()
+
+
+def content_sha256(d: dict) -> str:
+    """SHA-256 of a calibration file's content as canonical JSON (sorted keys, no spaces), leaving
+    out the free text (``FREE_FIELDS``) and the hash itself: any change of a number, however small,
+    or of a record (fit, statistics, selection, diagnostics) changes it."""
+    import hashlib
+
+    body = {k: v for k, v in d.items() if k not in FREE_FIELDS and k != "content_sha256"}
+    canon = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canon.encode()).hexdigest()
+
+
+def derived_region(model: Model, fitted: PointPairs) -> CalibratedRegion:
+    """The calibrated region of a model fitted on ``fitted`` (as
+    :func:`eyetohand.calibration.fit.calibrate` makes it)."""
+    plane = None if model.height_rule is HeightRule.GIVEN else float(np.mean(fitted.xyz_mm[:, 2]))
+    return CalibratedRegion.from_pairs(fitted.uv_px, fitted.xyz_mm, plane_z_mm=plane)
+
+
+def _replace(cal: Calibration, **changes) -> Calibration:
+    import dataclasses
+
+    return dataclasses.replace(cal, **changes)
+
+
+def _stats_dict(s: Stats) -> dict:
+    try:
+        return s.to_dict()
+    except (TypeError, AttributeError):  # points of the wrong type: compared (and refused) as given
+        return {"n": s.n, "rms_mm": s.rms_mm, "points": list(s.points)}
+
+
+def _rel_tol(tol: float, relative: bool = True):
+    """Numbers equal within ``tol`` (times max(1, |expected|) when ``relative``)."""
+
+    def f(path: str, want: float) -> float:
+        return tol * max(1.0, abs(want)) if relative else tol
+
+    return f
+
+
+_KIND = {
+    bool: "true or false",
+    int: "a number",
+    float: "a number",
+    str: "a string",
+    list: "a list",
+    dict: "an object",
+    type(None): "null",
+}
+
+
+def _kind(v) -> str:
+    return _KIND.get(type(v), type(v).__name__)
+
+
+def _join(path: str, key) -> str:
+    if isinstance(key, int):
+        return f"{path}[{key}]"
+    return f"{path}.{key}" if path else str(key)
+
+
+def _same(want, given, path: str, tol) -> None:
+    """Refuse (one line naming the field) unless ``given`` (from the file) is ``want`` (what this
+    version writes for it): same keys, types (true/false is not a number), lengths, and numbers
+    within ``tol(path, want)``."""
+    where = f"field '{path}'" if path else "the file"
+    if given is _MISSING:
+        raise InputError(f"{where} missing")
+    if isinstance(want, dict):
+        if not isinstance(given, dict):
+            raise InputError(f"{where} must be an object, got {_kind(given)}")
+        for key in want:
+            if key not in given:
+                raise InputError(f"field '{_join(path, key)}' missing")
+        for key in given:
+            if key not in want:
+                raise InputError(f"unexpected field '{_join(path, key)}'")
+        for key in want:
+            _same(want[key], given[key], _join(path, key), tol)
+        return
+    if isinstance(want, (list, tuple)):
+        if not isinstance(given, list):
+            raise InputError(f"{where} must be a list, got {_kind(given)}")
+        if len(given) != len(want):
+            raise InputError(f"{where} must have {len(want)} entries, got {len(given)}")
+        for i, (w, g) in enumerate(zip(want, given, strict=True)):
+            _same(w, g, _join(path, i), tol)
+        return
+    number = (int, float)
+    if isinstance(want, number) and not isinstance(want, bool):
+        if isinstance(given, bool) or not isinstance(given, number):
+            raise InputError(f"{where} must be a number, got {_kind(given)}")
+        if not abs(float(given) - float(want)) <= tol(path, float(want)):
+            raise InputError(f"{where} is {given!r}, but the calibration gives {want!r}: {CHANGED}")
+        return
+    if type(given) is not type(want):
+        raise InputError(f"{where} must be {_kind(want)}, got {_kind(given)}")
+    if given != want:
+        raise InputError(f"{where} is {given!r}, expected {want!r}")
+
+
+def _same_uncertainty(
+    unc: Uncertainty, given, model: Model, fitted: PointPairs, region: CalibratedRegion
+) -> None:
+    """The stored uncertainty against the one recomputed from the pairs: same shape and types,
+    noise and sigma_mm (at the pairs and the hull) within 1e-9 mm, covariance within
+    ``COVARIANCE_TOL`` of its scale."""
+    want = unc.to_dict()
+    sd = np.sqrt(np.abs(np.diag(unc.covariance)))
+
+    def tol(path: str, w: float) -> float:
+        if path.startswith("uncertainty.covariance["):
+            i, j = (int(k) for k in path[len("uncertainty.covariance[") : -1].split("]["))
+            return COVARIANCE_TOL * float(sd[i] * sd[j])
+        return REPRODUCE_TOL_MM
+
+    _same(want, given, "uncertainty", tol)
+    stored = Uncertainty.from_dict(given, model.n_params)
+    uv = np.vstack([fitted.uv_px, region.hull_px])
+    z_mid = float(np.mean(fitted.xyz_mm[:, 2]))
+    z = np.concatenate([fitted.xyz_mm[:, 2], np.full(len(region.hull_px), z_mid)])
+    if model.height_rule is HeightRule.COMPUTED:
+        z = np.zeros(len(uv))
+    with np.errstate(all="ignore"):
+        diff = np.abs(stored.sigma_mm(model, uv, z) - unc.sigma_mm(model, uv, z))
+    if not (diff <= REPRODUCE_TOL_MM).all():
+        raise InputError(
+            "field 'uncertainty' does not reproduce sigma_mm from the training pairs "
+            f"(to {REPRODUCE_TOL_MM:g} mm): {CHANGED}"
+        )
+
+
+def _check_numbers(obj, path: str) -> None:
+    """Every number in the parsed file finite and within the float range (JSON allows 1e400)."""
+    if not _numbers_fine(obj):
+        _refuse_numbers(obj, path)
+
+
+def _numbers_fine(obj) -> bool:
+    """True when every number in ``obj`` (as ``json.loads`` gives it) is finite and within range;
+    False when one is not or a value is of another type: then :func:`_refuse_numbers` walks it with
+    the field names (building them for every value costs more than the whole check)."""
+    todo = [obj]
+    pop, extend = todo.pop, todo.extend
+    while todo:
+        o = pop()
+        t = type(o)
+        if t is float:
+            if not math.isfinite(o):
+                return False
+        elif t is dict:
+            extend(o.values())
+        elif t is list:
+            extend(o)
+        elif t is int:
+            if abs(o) > 2**63:
+                return False
+        elif t is not str and t is not bool and o is not None:
+            return False
+    return True
+
+
+def _refuse_numbers(obj, path: str) -> None:
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            _refuse_numbers(v, _join(path, k))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            _refuse_numbers(v, _join(path, i))
+    elif isinstance(obj, float) and not np.isfinite(obj):
+        raise InputError(f"field '{path}': {float(obj)!r} is not a finite number")
+    elif isinstance(obj, int) and not isinstance(obj, bool) and abs(obj) > 2**63:
+        raise InputError(f"field '{path}': {obj} is too large a number")
+
+
+def _refuse_constant(name: str):
+    raise ValueError(f"{name} is not a number JSON allows")
+
+
+def _corrected(pairs: PointPairs | None, tcp: TcpOffset | None) -> PointPairs | None:
+    if pairs is None or tcp is None:
+        return pairs
+    from eyetohand.solve import correct_pairs
+
+    return correct_pairs(pairs, tcp.offset_mm)
+
+
+def _corrected_check(pairs: PointPairs | None, tcp: TcpOffset | None) -> PointPairs | None:
+    if pairs is None or tcp is None or pairs.angle_deg is None:
+        return pairs
+    return _corrected(pairs, tcp)
+
+
+def _stats(d) -> Stats | None:
+    if d is None:
+        return None
+    if not isinstance(d, dict):
+        raise InputError("statistics must be an object")
+    return Stats.from_dict(d)
+
+
+def _from_dict(cls, d: dict, ver: int) -> Calibration:
+    model = model_from_dict(d["model"])
+    f = d["fit"]
+    if not isinstance(f, dict):
+        raise InputError("'fit' must be an object")
+    _typed(f, "fit", FIT_TYPES)
+    f = dict(f)
+    known = {k: f.pop(k) for k in list(f) if k in FitInfo.__dataclass_fields__}
+    known["history"] = tuple(float(v) for v in known.get("history", ()))
+    fit = FitInfo(**known, extra=f)
+    size = d.get("image_size")
+    if size is not None and (
+        not isinstance(size, list)
+        or len(size) != 2
+        or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)
+    ):
+        raise InputError("'image_size' must be [width, height] in whole pixels")
+    for key in ("notes", "warnings"):
+        if not isinstance(d.get(key, []), list) or not all(isinstance(s, str) for s in d.get(key, [])):
+            raise InputError(f"'{key}' must be a list of strings")
+    sha = d.get("data_sha256", "")
+    if not isinstance(sha, str):
+        raise InputError("'data_sha256' must be a string")
+    for key in ("train", "check", "loo"):
+        if d.get(key) is not None or key == "train":
+            _typed_stats(d.get(key, _MISSING), key)
+    if d.get("tcp_offset") is not None:
+        _typed(d["tcp_offset"], "tcp_offset", TCP_TYPES)
+    sel = d.get("selection")
+    if sel is not None:
+        _typed(sel, "selection", {"chosen": str, "reason": str, "candidates": list})
+        for i, c in enumerate(sel["candidates"]):
+            _typed(c, f"selection.candidates[{i}]", {"model": str, "unknowns": int})
+    for key in ("created_utc", "eyetohand_version"):
+        if not isinstance(d.get(key, ""), str):
+            raise InputError(f"field '{key}' must be a string")
+    extra = {}
+    if ver >= 2:
+        extra = {
+            "region": CalibratedRegion.from_dict(d["region"]) if d.get("region") is not None else None,
+            "uncertainty": (
+                Uncertainty.from_dict(d["uncertainty"], model.n_params)
+                if d.get("uncertainty") is not None
+                else None
+            ),
+            "pairs": (
+                pairs_from_records(d["pairs"], "pairs", label="pairs") if d.get("pairs") is not None else None
+            ),
+            "check_pairs": (
+                pairs_from_records(d["check_pairs"], "check_pairs", label="check_pairs")
+                if d.get("check_pairs") is not None
+                else None
+            ),
+            "warnings": tuple(d.get("warnings", ())),
+        }
+        if extra["region"] is None:
+            raise InputError("field 'region' missing: a calibration must record where it was calibrated")
+    return cls(
+        model=model,
+        fit=fit,
+        train=Stats.from_dict(d["train"]),
+        check=_stats(d.get("check")),
+        loo=_stats(d.get("loo")),
+        data_sha256=sha,
+        image_size=tuple(size) if size else None,
+        notes=tuple(d.get("notes", ())),
+        selection=d.get("selection"),
+        tcp_offset=TcpOffset.from_dict(d["tcp_offset"]) if d.get("tcp_offset") else None,
+        created_utc=str(d.get("created_utc", "")),
+        version=str(d.get("eyetohand_version", "")),
+        **extra,
+    )
+
+
+_NUM = (int, float)
+FIT_TYPES: dict = {
+    "optimizer": str,
+    "objective": str,
+    "fitness": _NUM,
+    "history": list,
+    "nfev": int,
+    "nit": int,
+    "seconds": _NUM,
+    "seed": (int, type(None)),
+    "message": str,
+}
+TCP_TYPES: dict = {
+    "offset_mm": list,
+    "std_mm": list,
+    "model": str,
+    "reference_angle_deg": _NUM,
+    "n_turned": int,
+    "n_pairs": int,
+    "rms_mm": _NUM,
+}
+STATS_TYPES: dict = {
+    "n": int,
+    "rms_mm": _NUM,
+    "mean_mm": _NUM,
+    "max_mm": _NUM,
+    "p95_mm": _NUM,
+    "outliers": list,
+    "points": list,
+}
+POINT_TYPES: dict = {
+    "id": str,
+    "dx_mm": _NUM,
+    "dy_mm": _NUM,
+    "dz_mm": _NUM,
+    "error_mm": _NUM,
+    "outlier": bool,
+}
+
+
+def _typed(d, path: str, types: dict) -> None:
+    """Refuse unless ``d`` is an object with every key of ``types`` of its type (a bool is no number)."""
+    if not isinstance(d, dict):
+        raise InputError(f"field '{path}' must be an object, got {_kind(d)}")
+    for key, t in types.items():
+        if key not in d:
+            raise InputError(f"field '{path}.{key}' missing")
+        v = d[key]
+        ok = isinstance(v, t) and not (isinstance(v, bool) and t is not bool)
+        if not ok:
+            want = "a number" if t in (_NUM, int) else _KIND.get(t, "null or a number")
+            raise InputError(f"field '{path}.{key}' must be {want}, got {_kind(v)}")
+    for key in ("history", "offset_mm", "std_mm"):
+        if key in types and not all(isinstance(x, _NUM) and not isinstance(x, bool) for x in d[key]):
+            raise InputError(f"field '{path}.{key}' must be a list of numbers")
+    for key in ("offset_mm", "std_mm"):
+        if key in types and len(d[key]) != 2:
+            raise InputError(f"field '{path}.{key}' must be two numbers")
+
+
+def _typed_stats(d, path: str) -> None:
+    if d is _MISSING:
+        raise InputError(f"field '{path}' missing")
+    _typed(d, path, STATS_TYPES)
+    for i, p in enumerate(d["points"]):
+        _typed(p, f"{path}.points[{i}]", POINT_TYPES)
+    if not all(isinstance(x, str) for x in d["outliers"]):
+        raise InputError(f"field '{path}.outliers' must be a list of strings")
+    if d["n"] != len(d["points"]):
+        raise InputError(f"field '{path}.n' is {d['n']}, but '{path}.points' has {len(d['points'])} entries")

@@ -1,0 +1,529 @@
+"""calibrate(): point pairs × model × solver → Calibration, with automatic model choice.
+
+``model="auto"`` scores every candidate the pairs can support by cross-validation (leave-one-out up
+to 40 pairs, else 10 folds) on the user's objective (held-out RMS for ``l2``, the largest held-out
+error for ``linf``, the Huber loss for ``huber``) and keeps the simplest whose score is within 2 % of
+the best. A candidate is considered only when the pairs give at least 8 more equations than it has
+unknowns (2n ≥ unknowns + 8), so that its held-out score means something; the report says why each
+candidate was or was not taken. The chosen model's held-out residuals are reused as the
+calibration's leave-one-out statistics (not computed twice).
+
+Leave-one-out without n refits (:func:`loo_gauss_newton`), for the least-squares objective (``l2``)
+with ``lm`` — or ``linear`` on a model linear in its parameters (affine) — on models whose subset
+fit refines the same parameter family (``Model.loo_warm_start``; not homography-radial, whose lens is
+re-fitted on every subset): all n held-out fits start from the full fit's parameters and take
+Gauss–Newton steps together (one batched Jacobian per step, (n, D, D) normal equations) until the
+steps vanish. On a model linear in its parameters the first step is exact (it is the hat-matrix
+formula e_i / (1 − h_ii) written as a refit); on the others it converges to the refit's minimum from
+a start one pair away. tests/test_speed_paths.py checks it against full refits (held-out residuals
+within 1e-6 mm on the paper's data and on simulated cells). Anything else — a degenerate subset, a
+step that does not settle, other objectives — falls back to refitting.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from eyetohand.calibration.file import Calibration, derived_region
+from eyetohand.core import DegenerateError, InputError, PointPairs, TcpOffset
+from eyetohand.models import MODELS, HeightRule, Model, get_model
+from eyetohand.solve import (
+    Uncertainty,
+    check_optimizer,
+    check_seed,
+    correct_pairs,
+    estimate_tcp_offset,
+    get_solver,
+    has_turns,
+    huber_delta_mm,
+    mapped_residuals,
+    objective_values,
+    pair_leverage,
+    reference_pairs,
+    refine,
+    stats_from_residuals,
+)
+
+AUTO_TOLERANCE = 0.02
+SPARE_EQUATIONS = 8
+LOO_MAX_PAIRS = 40
+
+
+def fit_model(
+    pairs: PointPairs,
+    model: str,
+    optimizer: str = "lm",
+    objective: str = "l2",
+    *,
+    image_size=None,
+    seed=None,
+    callback=None,
+    **solver_options,
+):
+    """Estimate ``model`` on ``pairs`` and refine it: returns ``(Model, FitInfo)``."""
+    cls = get_model(model)
+    try:
+        base = cls.from_pairs(pairs.uv_px, pairs.xyz_mm, image_size=image_size)
+    except InputError as exc:
+        raise type(exc)(f"{pairs.source}: {exc}") from None
+    except np.linalg.LinAlgError as exc:  # a singular system the model's own checks did not foresee
+        raise _unsolvable(pairs, model, exc) from None
+    try:
+        return refine(
+            base,
+            pairs.uv_px,
+            pairs.xyz_mm,
+            optimizer=optimizer,
+            objective=objective,
+            seed=seed,
+            callback=callback,
+            **solver_options,
+        )
+    except np.linalg.LinAlgError as exc:
+        raise _unsolvable(pairs, model, exc) from None
+
+
+def _unsolvable(pairs: PointPairs, model: str, exc: np.linalg.LinAlgError) -> DegenerateError:
+    return DegenerateError(f"{pairs.source}: model {model!r} cannot be solved on these pairs ({exc})")
+
+
+def folds_for(n: int, seed=0) -> list[np.ndarray]:
+    """Held-out index sets: one per pair up to 40 pairs, else 10 seeded folds."""
+    if n <= LOO_MAX_PAIRS:
+        return [np.array([i]) for i in range(n)]
+    perm = np.random.default_rng(seed).permutation(n)
+    return np.array_split(perm, 10)
+
+
+LOO_GN_MAX_STEPS = 12
+LOO_GN_TOL_MM = 1e-7  # Gauss–Newton stops when no step moves the mapped pairs by more than this
+
+
+def loo_gauss_newton(full: Model, uv_px: np.ndarray, xyz_mm: np.ndarray) -> np.ndarray | None:
+    """Leave-one-out residuals (N, 3) mm by Gauss–Newton from the full least-squares fit ``full``,
+    all N held-out fits at once (see the module docstring); None when a held-out fit is degenerate
+    or does not settle (the caller then refits)."""
+    uv = np.asarray(uv_px, float)
+    xyz = np.asarray(xyz_mm, float)
+    z = xyz[:, 2]
+    n = len(uv)
+    free = full.free_params()  # a gauge freedom's parameters stay at the full fit's, as lm holds them
+    D = len(free)
+    keep = 1.0 - np.eye(n)  # keep[i, j]: pair j is in held-out fit i
+    P = np.tile(full.params, (n, 1))
+    steps = 3 if full.linear_in_params else LOO_GN_MAX_STEPS  # linear: one step, then rounding
+    last = np.inf
+    with np.errstate(all="ignore"):
+        for step in range(steps):
+            R, J = _map_and_jacobian(full, P, uv, z)  # (n, N, 3), (n, N, 3, all parameters)
+            R -= xyz
+            if D < P.shape[1]:
+                J = J[..., free]
+            Jk = (J * keep[:, :, None, None]).reshape(n, -1, D)
+            A = Jk.transpose(0, 2, 1) @ Jk  # (n, D, D)
+            g = (Jk.transpose(0, 2, 1) @ R.reshape(n, -1, 1))[..., 0]
+            s = np.sqrt(np.einsum("idd->id", A))
+            if not (np.isfinite(A).all() and np.isfinite(g).all() and (s > 0).all()):
+                return None
+            As = A / (s[:, :, None] * s[:, None, :])
+            try:
+                scaled = -np.linalg.solve(As, (g / s)[..., None])[..., 0]  # ≈ mm the step moves the pairs
+            except np.linalg.LinAlgError:
+                return None
+            biggest = float(np.abs(scaled).max())
+            settled = biggest <= LOO_GN_TOL_MM
+            if not settled and biggest > 0.5 * last:
+                return None  # the steps stopped shrinking (a rounding floor above the tolerance): refit
+            last = biggest
+            # conditioned where the steps start and where they end (between, a step that an
+            # ill-conditioned subset throws far does not settle); As is symmetric: its condition
+            # number from its eigenvalues
+            if step == 0 or settled:
+                ev = np.linalg.eigvalsh(As)
+                if not (ev[:, 0] > 1e-12 * ev[:, -1]).all():
+                    return None  # a held-out subset that does not determine the model: refit says why
+            P[:, free] += scaled / s  # every parameter but a gauge's (the same sums as P + step)
+            if settled:
+                break
+        else:
+            return None
+        held = full.batch_image_to_robot(P, uv, z)  # (n, N, 3)
+    res = held[np.arange(n), np.arange(n)] - xyz
+    if full.height_rule is not HeightRule.COMPUTED:
+        res[:, 2] = _held_out_plane_z(full, z)
+    return res if np.isfinite(res).all() else None
+
+
+def _map_and_jacobian(model: Model, P: np.ndarray, uv: np.ndarray, z: np.ndarray):
+    """(P, N, 3) mapped pairs and (P, N, 3, D) their parameter derivative: the model's closed form
+    when it has one, else central differences (all rows in one batched call)."""
+    closed = model.batch_map_and_jacobian(P, uv, z)
+    if closed is not None:
+        return closed
+    n, D = P.shape
+    h = 1e-5 * np.maximum(np.abs(P), 1e-2)  # (n, D) central-difference steps
+    rows = np.concatenate(
+        [P[:, None, :] + h[:, :, None] * np.eye(D), P[:, None, :] - h[:, :, None] * np.eye(D)], axis=1
+    )  # (n, 2D, D)
+    out = model.batch_image_to_robot(np.vstack([P, rows.reshape(-1, D)]), uv, z)
+    F = out[n:].reshape(n, 2 * D, len(uv), 3)
+    J = (F[:, :D] - F[:, D:]) / (2 * h)[:, :, None, None]  # (n, D, N, 3)
+    return out[:n], J.transpose(0, 2, 3, 1)
+
+
+def _held_out_plane_z(model: Model, z: np.ndarray) -> np.ndarray:
+    """z residuals of the held-out pairs as the refits give them: a single-height model's plane is
+    the mean of its training heights (0 for models that take z as given)."""
+    if model.height_rule is not HeightRule.PLANE:
+        return np.zeros(len(z))
+    n = len(z)
+    return (z.sum() - z) / (n - 1) - z
+
+
+def _loo_warm(model: str, optimizer: str, objective: str) -> bool:
+    cls = get_model(model)
+    if objective != "l2" or not cls.loo_warm_start:
+        return False
+    return optimizer == "lm" or (optimizer == "linear" and cls.linear_in_params)
+
+
+def cross_validate(
+    pairs: PointPairs,
+    model: str,
+    optimizer: str = "lm",
+    objective: str = "l2",
+    *,
+    image_size=None,
+    seed=0,
+    full: Model | None = None,
+    refit: bool = False,
+):
+    """Held-out residuals (N, 3) mm: leave-one-out up to 40 pairs, else 10 seeded folds.
+    Leave-one-out takes Gauss–Newton from the full fit where it can (:func:`loo_gauss_newton`;
+    ``full``: that fit, when the caller has it), unless ``refit``. A held-out pair that its fit maps
+    to no finite point is refused by id (:class:`DegenerateError`): no score can be made of it."""
+    res = _held_out(pairs, model, optimizer, objective, image_size, seed, full, refit)
+    lost = ~np.isfinite(res).all(axis=1)
+    if lost.any():
+        i = int(np.argmax(lost))
+        raise DegenerateError(
+            f"model '{model}': the fit without pair {pairs.ids[i]} maps it to no finite point (beyond that "
+            f"fit's lens fold or horizon; {int(lost.sum())} of {len(res)} held-out pairs): it cannot be "
+            "cross-validated on these pairs"
+        )
+    return res
+
+
+def _held_out(pairs, model, optimizer, objective, image_size, seed, full, refit) -> np.ndarray:
+    n = len(pairs)
+    if (
+        not refit
+        and n <= LOO_MAX_PAIRS
+        and n - 1 >= get_model(model).min_pairs
+        and _loo_warm(model, optimizer, objective)
+    ):
+        try:
+            base = (
+                full
+                if full is not None
+                else fit_model(pairs, model, optimizer, objective, image_size=image_size, seed=seed)[0]
+            )
+            fast = loo_gauss_newton(base, pairs.uv_px, pairs.xyz_mm)
+        except InputError:
+            fast = None
+        if fast is not None:
+            return fast
+    if not refit and n <= LOO_MAX_PAIRS and objective == "l2" and optimizer == "lm":
+        own = getattr(get_model(model), "leave_one_out", None)  # a model's own warm-started refits
+        if own is not None:
+            try:
+                fast = own(pairs.uv_px, pairs.xyz_mm, image_size=image_size)
+            except InputError:
+                fast = None
+            if fast is not None:
+                return fast
+    res = np.full((n, 3), np.nan)
+    for held in folds_for(n, seed):
+        keep = np.setdiff1d(np.arange(n), held)
+        m, _ = fit_model(pairs.subset(keep), model, optimizer, objective, image_size=image_size, seed=seed)
+        test = pairs.subset(held)
+        res[held] = m.residuals(test.uv_px, test.xyz_mm)
+    return res
+
+
+def candidate_models(pairs: PointPairs) -> list[type[Model]]:
+    """Models ``auto`` may choose for the pairs' geometry (one height or several), simplest first."""
+    multi = len(pairs.z_levels_mm) > 1
+    cands = [c for c in MODELS.values() if c.auto_candidate and c.needs_heights() == multi]
+    return sorted(cands, key=lambda c: c.n_unknowns())
+
+
+def held_out_score(residuals_mm: np.ndarray, objective: str, delta_mm: float) -> float:
+    """A held-out residual set scored on the objective, per pair: RMS (l2), max (linf), Huber loss."""
+    r = np.asarray(residuals_mm, float)
+    if objective == "l2":
+        return float(np.sqrt(np.mean((r * r).sum(axis=1))))
+    return float(objective_values(r[None], objective, delta_mm)[0] / (len(r) if objective == "huber" else 1))
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What ``auto`` chose and why: ``report`` is the JSON-able record kept in the calibration;
+    ``residuals_mm`` the chosen model's held-out residuals (reused as its leave-one-out)."""
+
+    model: str
+    report: dict
+    residuals_mm: np.ndarray | None
+    optimizer: str
+
+
+def select_model(
+    pairs: PointPairs, *, optimizer: str = "lm", objective: str = "l2", image_size=None, seed=0
+) -> tuple[str, dict]:
+    """Choose a model by cross-validated score on ``objective``; returns ``(name, report)``."""
+    sel = _select(pairs, optimizer, objective, image_size=image_size, seed=seed)
+    return sel.model, sel.report
+
+
+def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=None, seed=0) -> Selection:
+    n = len(pairs)
+    cv_opt = get_solver(optimizer).for_cross_validation(objective)
+    rows: list[dict[str, Any]] = []
+    held: dict[str, np.ndarray] = {}
+    delta = None
+    for cls in candidate_models(pairs):
+        k = cls.n_unknowns()
+        row: dict[str, Any] = {"model": cls.name, "unknowns": k}
+        if 2 * n < k + SPARE_EQUATIONS:
+            need = -(-(k + SPARE_EQUATIONS) // 2)
+            row.update(cv_rms_mm=None, considered=False, why=f"needs at least {need} pairs, have {n}")
+        else:
+            try:
+                res = cross_validate(pairs, cls.name, cv_opt, objective, image_size=image_size, seed=seed)
+                e = np.linalg.norm(res, axis=1)
+                if delta is None:  # one Huber threshold for every candidate, from the simplest's errors
+                    delta = huber_delta_mm(e[np.isfinite(e)]) if np.isfinite(e).any() else 1.0
+                score = held_out_score(res, objective, delta)
+                row.update(
+                    cv_rms_mm=float(np.sqrt(np.mean(e**2))),
+                    cv_max_mm=float(e.max()),
+                    cv_score_mm=score,
+                    considered=True,
+                )
+                held[cls.name] = res
+            except InputError as exc:
+                row.update(cv_rms_mm=None, considered=False, why=str(exc))
+        rows.append(row)
+    scored = [r for r in rows if r.get("cv_score_mm") is not None and np.isfinite(r["cv_score_mm"])]
+    method = "leave-one-out" if n <= LOO_MAX_PAIRS else "10-fold"
+    if not scored:
+        fallback = next((c for c in candidate_models(pairs) if n >= c.min_pairs), None)
+        if fallback is None:
+            kind = "several heights" if len(pairs.z_levels_mm) > 1 else "one height"
+            raise InputError(f"{pairs.source}: too few pairs ({n}) for any model of pairs at {kind}")
+        reason = (
+            f"too few pairs ({n}) to cross-validate any model; took '{fallback.name}', "
+            "the one with the fewest unknowns"
+        )
+        report: dict[str, Any] = {"chosen": fallback.name, "reason": reason, "candidates": rows}
+        return Selection(fallback.name, report, None, cv_opt)
+    what = {"l2": "held-out RMS", "linf": "largest held-out error", "huber": "held-out Huber loss"}[objective]
+    best = min(r["cv_score_mm"] for r in scored)
+    chosen = next(r for r in scored if r["cv_score_mm"] <= best * (1 + AUTO_TOLERANCE))
+    if chosen["cv_score_mm"] == best:
+        reason = f"lowest {what} ({best:.4f} mm)"
+    else:
+        reason = (
+            f"simplest model within {AUTO_TOLERANCE:.0%} of the lowest {what} "
+            f"({chosen['cv_score_mm']:.4f} vs {best:.4f} mm)"
+        )
+    report = {
+        "chosen": chosen["model"],
+        "reason": reason,
+        "method": method,
+        "objective": objective,
+        "scored_with": cv_opt,
+        "candidates": rows,
+    }
+    return Selection(chosen["model"], report, held[chosen["model"]], cv_opt)
+
+
+def tcp_offset_for(pairs: PointPairs, model: str = "auto", *, image_size=None, seed=0) -> TcpOffset:
+    """The tool-centre offset of pairs with turns, estimated with ``model`` ("auto": chosen by
+    cross-validation on the pairs at the most common angle, as :func:`calibrate` does)."""
+    if model == "auto" and has_turns(pairs):
+        model, _ = select_model(reference_pairs(pairs), image_size=image_size, seed=seed)
+    elif model != "auto":
+        get_model(model)
+
+    def fit_linear(p: PointPairs) -> Model:
+        return fit_model(p, model, "linear", image_size=image_size)[0]
+
+    return estimate_tcp_offset(pairs, fit_linear)  # refuses pairs without turns, saying what they lack
+
+
+MAX_IMAGE_SIDE_PX = 100_000
+"""Largest image width or height (px) a calibration takes: no camera's sensor is wider."""
+
+
+def check_image_size(image_size) -> tuple[int, int] | None:
+    """``(W, H)`` as whole numbers of pixels from 1 to :data:`MAX_IMAGE_SIDE_PX`, or None."""
+    if image_size is None:
+        return None
+    try:
+        w, h = image_size
+        ok = all(
+            not isinstance(x, bool) and float(x) == int(x) and 1 <= int(x) <= MAX_IMAGE_SIDE_PX
+            for x in (w, h)
+        )
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise InputError(
+            f"image size must be two whole numbers of pixels W x H from 1 to {MAX_IMAGE_SIDE_PX}, "
+            f"got {image_size!r}"
+        )
+    return int(w), int(h)
+
+
+def calibrate(
+    pairs: PointPairs,
+    model: str = "auto",
+    optimizer: str = "lm",
+    objective: str = "l2",
+    *,
+    check: PointPairs | None = None,
+    image_size: tuple[int, int] | None = None,
+    seed=None,
+    callback=None,
+    loo: bool = True,
+    **solver_options,
+) -> Calibration:
+    """Fit a calibration: ``model`` (a name or "auto") refined by ``optimizer`` on ``objective``.
+
+    Pairs with an ``angle`` column whose angles differ ("9 + 2") first give the tool-centre offset
+    (:mod:`eyetohand.solve.tcp_offset`); the pairs are moved to their tool points and the offset is kept in
+    ``Calibration.tcp_offset``.
+
+    ``check``: pairs not used for fitting, to measure accuracy. ``loo``: also report leave-one-out
+    errors on the training pairs (refit without each pair; for the PSO solvers the leave-one-out
+    refits use ``lm`` — or ``linear`` for a non-smooth objective — to keep it fast, and say so).
+    """
+    solver = check_optimizer(optimizer, objective, solver_options)
+    seed = check_seed(seed)
+    if model != "auto":
+        get_model(model)
+    image_size = check_image_size(image_size)
+    cv_seed = 0 if seed is None else seed
+    data_sha = pairs.sha256()
+    original, original_check = pairs, check
+    tcp = None
+    if has_turns(pairs):  # "9 + 2": pairs at other tool angles reveal the tool-centre offset
+        tcp = tcp_offset_for(pairs, model, image_size=image_size, seed=cv_seed)
+        pairs = correct_pairs(pairs, tcp.offset_mm)
+        if check is not None and check.angle_deg is not None:
+            check = correct_pairs(check, tcp.offset_mm)
+    selection = None
+    if model == "auto":
+        selection = _select(pairs, optimizer, objective, image_size=image_size, seed=cv_seed)
+        model = selection.model
+    fitted, info = fit_model(
+        pairs,
+        model,
+        optimizer,
+        objective,
+        image_size=image_size,
+        seed=seed,
+        callback=callback,
+        **solver_options,
+    )
+    notes = list(pairs.notes)
+    if fitted.init_note is not None:
+        notes.append(f"{model}: {fitted.init_note}")
+    if fitted.height_rule is HeightRule.PLANE:
+        notes.append(f"single-height model: x, y are mapped on the plane z = {fitted.plane_z_mm:g} mm")
+    lev = pair_leverage(fitted, pairs.uv_px, pairs.xyz_mm)
+    train = stats_from_residuals(fitted.residuals(pairs.uv_px, pairs.xyz_mm), pairs.ids, leverage=lev)
+    loo_stats = None
+    if loo and len(pairs) > fitted.min_pairs:
+        loo_opt = solver.for_cross_validation(objective)
+        try:
+            reused = (
+                selection.residuals_mm if selection is not None and selection.optimizer == loo_opt else None
+            )
+            if reused is not None:
+                res = reused
+            else:
+                full = fitted if loo_opt == optimizer else None
+                res = cross_validate(
+                    pairs, model, loo_opt, objective, image_size=image_size, seed=cv_seed, full=full
+                )
+            loo_stats = stats_from_residuals(res, pairs.ids, leverage=lev, held_out=True)
+            if loo_opt != optimizer:
+                notes.append(f"leave-one-out refits used optimizer '{loo_opt}'")
+        except InputError as exc:
+            notes.append(f"leave-one-out skipped: {exc}")
+    check_stats = None
+    if check is not None:
+        check_res = mapped_residuals(fitted, check, "check pair")
+        check_stats = stats_from_residuals(check_res, check.ids)
+    region = derived_region(fitted, pairs)  # the one rule, which loading re-checks
+    uncertainty = Uncertainty.of_fit(fitted, pairs.uv_px, pairs.xyz_mm)
+    cal = Calibration(
+        model=fitted,
+        fit=info,
+        train=train,
+        check=check_stats,
+        loo=loo_stats,
+        data_sha256=data_sha,
+        image_size=image_size,
+        notes=tuple(notes),
+        selection=None if selection is None else selection.report,
+        tcp_offset=tcp,
+        region=region,
+        uncertainty=uncertainty,
+        pairs=original,
+        check_pairs=original_check,
+    )
+    return replace(cal, warnings=tuple(sanity_warnings(cal)))
+
+
+SCALE_RANGE_MM_PER_PX = (0.001, 10.0)
+
+
+def sanity_warnings(cal: Calibration) -> list[str]:
+    """What no real cell produces: a scale outside 0.001..10 mm per pixel (suspect units) at the
+    calibrated region's centre, and a check set that repeats training pairs (it then measures nothing)."""
+    out = []
+    pairs, check = cal.pairs, cal.check_pairs
+    assert pairs is not None  # calibrate records the pairs it was given
+    scale = cal.local_frame().scale_mm_per_px
+    lo, hi = SCALE_RANGE_MM_PER_PX
+    if not lo <= scale <= hi:
+        guess = "metres (use --robot-units m)" if scale < lo else "micrometres or the wrong columns"
+        out.append(
+            f"{pairs.source}: the scale is {scale:.3g} mm per pixel, outside the {lo:g}..{hi:g} mm/px "
+            f"of any real cell: are the robot coordinates in {guess}? They are read as millimetres"
+        )
+    if check is not None:
+        train_uv = {tuple(r) for r in np.round(pairs.uv_px, 6)}
+        train_xyz = {tuple(r) for r in np.round(pairs.xyz_mm, 6)}
+        same = [
+            cid
+            for cid, uv, xyz in zip(
+                check.ids, np.round(check.uv_px, 6), np.round(check.xyz_mm, 6), strict=True
+            )
+            if tuple(uv) in train_uv or tuple(xyz) in train_xyz
+        ]
+        if len(same) == len(check):
+            out.append(f"{check.source}: the check pairs are the training pairs: the check measures nothing")
+        elif same:
+            shown = ", ".join(same[:8]) + (" …" if len(same) > 8 else "")
+            out.append(
+                f"{check.source}: {len(same)} check pair(s) repeat training pairs (ids {shown}): "
+                "those say nothing about accuracy"
+            )
+    return out

@@ -1,0 +1,51 @@
+"""Rank 0, the foundation: typed errors, records, atomic file I/O and point pairs with their loaders
+(and the limits every loader and line protocol shares). Imports nothing of the package."""
+
+from __future__ import annotations
+
+from eyetohand.core.errors import DegenerateError, InputError
+from eyetohand.core.io import atomic_write_bytes, atomic_write_text, check_output_path, read_bounded_text
+from eyetohand.core.pairs import (
+    MAX_ABS_ANGLE_DEG,
+    ROBOT_UNITS,
+    PointPairs,
+    Where,
+    angle_refusal,
+    beyond_limit,
+    csv_rows,
+    image_points_from_text,
+    load_image_points,
+    load_pairs,
+    pairs_from_records,
+    pairs_from_text,
+    read_pairs_text,
+    record_number,
+)
+from eyetohand.core.records import FitInfo, PointError, Stats, TcpOffset
+
+__all__ = [
+    "DegenerateError",
+    "FitInfo",
+    "InputError",
+    "MAX_ABS_ANGLE_DEG",
+    "PointError",
+    "PointPairs",
+    "ROBOT_UNITS",
+    "Stats",
+    "TcpOffset",
+    "Where",
+    "angle_refusal",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "beyond_limit",
+    "check_output_path",
+    "csv_rows",
+    "image_points_from_text",
+    "load_image_points",
+    "load_pairs",
+    "pairs_from_records",
+    "pairs_from_text",
+    "read_bounded_text",
+    "read_pairs_text",
+    "record_number",
+]

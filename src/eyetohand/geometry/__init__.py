@@ -1,0 +1,40 @@
+"""Rank 1: Hartley normalisation, numerical derivatives, Levenberg-Marquardt, the lens, the camera,
+orientation (image angles to robot rz) and the calibrated region. Imports only :mod:`eyetohand.core`."""
+
+from __future__ import annotations
+
+from eyetohand.geometry.camera import Camera, as_camera
+from eyetohand.geometry.lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
+from eyetohand.geometry.lm import levenberg_marquardt
+from eyetohand.geometry.normalize import apply_h, hartley, spread_ratio
+from eyetohand.geometry.numdiff import batch_jacobian
+from eyetohand.geometry.orientation import (
+    CONVENTIONS,
+    LocalFrame,
+    check_symmetry,
+    image_angle_to_rz,
+    local_jacobian,
+    wrap_deg,
+)
+from eyetohand.geometry.region import CalibratedRegion
+
+__all__ = [
+    "CONVENTIONS",
+    "CalibratedRegion",
+    "Camera",
+    "LocalFrame",
+    "apply_h",
+    "as_camera",
+    "batch_jacobian",
+    "check_symmetry",
+    "distort",
+    "hartley",
+    "image_angle_to_rz",
+    "levenberg_marquardt",
+    "local_jacobian",
+    "matrix_to_rodrigues",
+    "rodrigues_to_matrix",
+    "spread_ratio",
+    "undistort",
+    "wrap_deg",
+]

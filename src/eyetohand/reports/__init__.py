@@ -1,0 +1,9 @@
+"""Rank 5: plots, the HTML report and the demo."""
+
+from __future__ import annotations
+
+from eyetohand.reports.demo import run_demo, write_demo_report
+from eyetohand.reports.plots import plot_plan_study
+from eyetohand.reports.report import write_report
+
+__all__ = ["plot_plan_study", "run_demo", "write_demo_report", "write_report"]

@@ -1,0 +1,41 @@
+"""Rank 3: objectives, the hybrid PSO, the solver registry, evaluation, uncertainty and the tool
+offset: how a model's parameters are found and judged."""
+
+from __future__ import annotations
+
+from eyetohand.solve.evaluate import Stats, evaluate, mapped_residuals, stats_from_residuals
+from eyetohand.solve.objectives import OBJECTIVES, check_objective, huber_delta_mm, objective_values
+from eyetohand.solve.solvers import OPTIMIZERS, SEED_MAX, check_optimizer, check_seed, get_solver, refine
+from eyetohand.solve.tcp_offset import (
+    correct_pairs,
+    estimate_tcp_offset,
+    has_turns,
+    reference_pairs,
+    rotations,
+)
+from eyetohand.solve.uncertainty import Uncertainty, pair_leverage, param_jacobian
+
+__all__ = [
+    "OBJECTIVES",
+    "OPTIMIZERS",
+    "SEED_MAX",
+    "Stats",
+    "Uncertainty",
+    "check_objective",
+    "check_optimizer",
+    "check_seed",
+    "correct_pairs",
+    "estimate_tcp_offset",
+    "evaluate",
+    "get_solver",
+    "has_turns",
+    "huber_delta_mm",
+    "mapped_residuals",
+    "objective_values",
+    "pair_leverage",
+    "param_jacobian",
+    "reference_pairs",
+    "refine",
+    "rotations",
+    "stats_from_residuals",
+]

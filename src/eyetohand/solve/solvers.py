@@ -1,0 +1,325 @@
+"""Solvers refine a model's flat parameter vector against a robot-space objective.
+
+A registry, name → :class:`Solver`: ``linear`` keeps the model's closed-form estimate; ``lm`` is
+Levenberg–Marquardt (MINPACK, as SciPy's ``least_squares`` runs it: :mod:`eyetohand.geometry.lm`) on the
+residuals of equation (16); ``hybrid-pso`` and ``pso`` are the paper's hybrid particle swarm (section
+IV) and its plain ablation, from :mod:`eyetohand.solve.optimize`. Each solver declares the objectives it can
+minimise and its options, which are validated before any work starts. Solvers know nothing about
+cameras: they see ``model.batch_image_to_robot``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from eyetohand.core import DegenerateError, FitInfo, InputError
+from eyetohand.geometry import batch_jacobian, levenberg_marquardt
+from eyetohand.models import Model
+from eyetohand.solve.objectives import (
+    OBJECTIVES,
+    SMOOTH_OBJECTIVES,
+    check_objective,
+    huber_delta_mm,
+    objective_values,
+)
+
+PSO_SPREAD_MM = 1.0
+HUBER_ROUNDS = 5
+
+
+@dataclass(frozen=True)
+class Problem:
+    """What a solver minimises: the model, its training pairs, the objective and the Huber threshold."""
+
+    model: Model
+    uv_px: np.ndarray
+    xyz_mm: np.ndarray
+    objective: str
+    delta_mm: float
+
+    def residuals(self, batch: np.ndarray) -> np.ndarray:
+        """(P, N, 3) residuals of (P, D) parameter rows."""
+        return self.model.batch_image_to_robot(batch, self.uv_px, self.xyz_mm[:, 2]) - self.xyz_mm[None]
+
+    def fitness(self, batch: np.ndarray) -> np.ndarray:
+        return objective_values(self.residuals(batch), self.objective, self.delta_mm)
+
+
+@dataclass(frozen=True)
+class Solver:
+    """A refinement method: ``run(problem, seed=, callback=, **options) -> (model, FitInfo)``."""
+
+    name: str
+    run: Callable[..., tuple[Model, FitInfo]]
+    objectives: tuple[str, ...]
+    options: tuple[str, ...] = ()
+    summary: str = ""
+    cv_solver: str | None = None  # cheaper solver used for cross-validation refits (None: itself)
+
+    def for_cross_validation(self, objective: str) -> str:
+        """The solver whose refits score held-out pairs: the swarms' are too slow to repeat n times,
+        so they use ``lm`` (smooth objectives) or ``linear``."""
+        if self.cv_solver is None:
+            return self.name
+        return self.cv_solver if objective in SOLVERS[self.cv_solver].objectives else "linear"
+
+
+# ---------------------------------------------------------------- the solvers
+
+
+def _linear(problem: Problem, **_):
+    f = float(problem.fitness(problem.model.params[None])[0])
+    extra = {"huber_delta_mm": problem.delta_mm} if problem.objective == "huber" else {}
+    return problem.model, FitInfo("linear", problem.objective, f, (f,), 1, 0, 0.0, None, "closed form", extra)
+
+
+def _lm(problem: Problem, **_):
+    from scipy.optimize import least_squares
+
+    model, objective, delta = problem.model, problem.objective, problem.delta_mm
+    t0 = time.perf_counter()
+    free = model.free_params()  # a gauge freedom's parameters stay at the start's values
+    held = len(free) < model.params.size
+
+    def full(Q):
+        if not held:
+            return Q
+        P = np.tile(model.params, (len(Q), 1))
+        P[:, free] = Q
+        return P
+
+    def fun_batch(Q):
+        return problem.residuals(full(Q)).reshape(len(Q), -1)
+
+    def fun(q):
+        return fun_batch(q[None])[0]
+
+    def jac(q):  # all finite-difference steps in one batched call
+        return batch_jacobian(fun_batch, q)
+
+    extra: dict[str, float] = {}
+    start = model.params[free]
+    if objective == "l2":  # least_squares(method="lm", x_scale="jac")'s own routine and iterates
+        sol = levenberg_marquardt(fun, start, jac)
+    else:
+        # the starting fit's errors are inflated by the very pairs Huber should discount, so the
+        # threshold is re-estimated from the robust fit's own errors until it settles
+        x = start
+        for _round in range(HUBER_ROUNDS):
+            sol = least_squares(fun, x, jac=jac, method="trf", loss="huber", f_scale=delta, x_scale="jac")
+            x = sol.x
+            new = huber_delta_mm(np.linalg.norm(fun(x).reshape(-1, 3), axis=1))
+            if abs(new - delta) <= 0.01 * delta:
+                break
+            delta = new
+        extra["huber_delta_mm"] = delta
+    best = model.with_params(full(np.asarray(sol.x, float)[None])[0])
+    f = float(objective_values(fun(sol.x).reshape(1, -1, 3), objective, delta)[0])
+    return best, FitInfo(
+        "lm",
+        objective,
+        f,
+        (f,),
+        int(sol.nfev),
+        int(sol.nfev),
+        time.perf_counter() - t0,
+        None,
+        str(sol.message),
+        extra,
+    )
+
+
+def _swarm(kind: str):
+    def run(problem: Problem, *, seed=None, callback=None, n_particles: int = 200, iterations: int = 150):
+        from eyetohand.solve import optimize
+
+        model = problem.model
+        check_swarm_size(kind, n_particles, len(problem.uv_px))
+        t0 = time.perf_counter()
+        # each element alone moves the mapped points by 1/sqrt(D) mm RMS, the swarm ~1 mm (docs/pso.md)
+        sigma = param_scale(
+            model, problem.uv_px, problem.xyz_mm[:, 2], step_mm=PSO_SPREAD_MM / np.sqrt(model.n_params)
+        )
+        fn = optimize.hybrid_pso if kind == "hybrid-pso" else optimize.pso
+        res = fn(
+            problem.fitness,
+            model.params,
+            sigma,
+            n_particles=n_particles,
+            iterations=iterations,
+            seed=seed,
+            callback=callback,
+        )
+        extra = {"huber_delta_mm": problem.delta_mm} if problem.objective == "huber" else {}
+        return model.with_params(res.x), FitInfo(
+            kind,
+            problem.objective,
+            float(res.fun),
+            tuple(float(v) for v in res.history),
+            int(res.nfev),
+            int(res.nit),
+            time.perf_counter() - t0,
+            int(seed) if isinstance(seed, (int, np.integer)) else None,
+            str(res.message),
+            extra,
+        )
+
+    return run
+
+
+SOLVERS: dict[str, Solver] = {
+    s.name: s
+    for s in (
+        Solver("linear", _linear, OBJECTIVES, summary="the model's closed-form (normalised linear) estimate"),
+        Solver("lm", _lm, SMOOTH_OBJECTIVES, summary="Levenberg–Marquardt on the robot-space residuals"),
+        Solver(
+            "hybrid-pso",
+            _swarm("hybrid-pso"),
+            OBJECTIVES,
+            ("n_particles", "iterations"),
+            "the paper's hybrid particle swarm (PSO + crossover + mutation)",
+            cv_solver="lm",
+        ),
+        Solver(
+            "pso",
+            _swarm("pso"),
+            OBJECTIVES,
+            ("n_particles", "iterations"),
+            "plain particle swarm (the ablation)",
+            cv_solver="lm",
+        ),
+    )
+}
+OPTIMIZERS = tuple(SOLVERS)
+ALL_OPTIONS = tuple(sorted({o for s in SOLVERS.values() for o in s.options}))
+
+
+def get_solver(name: str) -> Solver:
+    try:
+        return SOLVERS[name]
+    except (KeyError, TypeError):
+        raise InputError(f"unknown optimizer {name!r}; choose one of: {', '.join(OPTIMIZERS)}") from None
+
+
+SEED_MAX = 2**32 - 1
+"""Largest seed: what every interface carries (the HTTP API, the service's database) and the
+calibration file records."""
+
+
+def check_seed(seed):
+    """The seed rule of every fit: None (fresh entropy), a :class:`numpy.random.Generator`, or a whole
+    number from 0 to :data:`SEED_MAX`; anything else is an :class:`InputError` naming field 'seed'."""
+    if seed is None or isinstance(seed, np.random.Generator):
+        return seed
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= SEED_MAX:
+        raise InputError(f"must be a whole number from 0 to {SEED_MAX}, got {seed!r}", field="seed")
+    return int(seed)
+
+
+SWARM_MAX_ITERATIONS = 1_000_000
+"""Most iterations a swarm may be asked for (the paper's is 150; each keeps its best in the history)."""
+
+SWARM_MAX_BYTES = 4 * 2**30
+"""Most memory a swarm's evaluation may take: one iteration evaluates every candidate on every pair
+at once, ~``4 × candidates × pairs × 3 × 8`` bytes of arrays."""
+
+
+def check_swarm_size(kind: str, n_particles: int, n_pairs: int) -> None:
+    """Refuses (:class:`InputError`) a swarm whose one iteration would need more than
+    :data:`SWARM_MAX_BYTES` — with how many particles would fit — instead of a MemoryError."""
+    per_row = 4 * n_pairs * 3 * 8
+    rows = _swarm_rows(kind, n_particles)
+    need = rows * per_row
+    if need <= SWARM_MAX_BYTES:
+        return
+    most = int(SWARM_MAX_BYTES // per_row / (3.1 if kind == "hybrid-pso" else 1.0))
+    while most >= 2 and _swarm_rows(kind, most) * per_row > SWARM_MAX_BYTES:
+        most -= 1
+    advice = f"at most {most} particles fit" if most >= 2 else "no swarm fits: use optimizer lm"
+    raise InputError(
+        f"solver option 'n_particles' = {n_particles} is too many for {n_pairs} pairs: each iteration "
+        f"evaluates {rows} candidates on every pair at once (~{need / 2**30:.3g} GiB of arrays, more than "
+        f"the {SWARM_MAX_BYTES / 2**30:g} GiB a fit may take); {advice}"
+    )
+
+
+def _swarm_rows(kind: str, n: int) -> int:
+    """Positions one iteration of the ``kind`` swarm evaluates (the optimiser's own count)."""
+    from eyetohand.solve.optimize import candidates_per_iteration
+
+    hybrid = kind == "hybrid-pso"
+    return candidates_per_iteration(n, crossover=hybrid, mutation=hybrid)
+
+
+def check_optimizer(name: str, objective: str = "l2", options: dict | None = None) -> Solver:
+    """The solver called ``name``, checked against the objective and the options before any work."""
+    solver = get_solver(name)
+    check_objective(objective)
+    if objective not in solver.objectives:
+        able = [s.name for s in SOLVERS.values() if objective in s.objectives and s.name != "linear"]
+        raise InputError(
+            f"optimizer '{name}' needs a smooth objective ({', '.join(solver.objectives)}); "
+            f"'{objective}' works with {' or '.join(able)}"
+        )
+    for key, value in (options or {}).items():
+        if key not in ALL_OPTIONS:
+            raise InputError(f"unknown solver option {key!r}; valid options: {', '.join(ALL_OPTIONS)}")
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise InputError(f"solver option '{key}' must be a positive whole number, got {value!r}")
+    if options and options.get("n_particles", 2) < 2:
+        raise InputError("solver option 'n_particles' must be at least 2")
+    if options and options.get("iterations", 1) > SWARM_MAX_ITERATIONS:
+        most, got = SWARM_MAX_ITERATIONS, options["iterations"]
+        raise InputError(f"solver option 'iterations' must be at most {most}, got {got!r}")
+    return solver
+
+
+def refine(
+    model,
+    uv_px: np.ndarray,
+    xyz_mm: np.ndarray,
+    *,
+    optimizer: str = "linear",
+    objective: str = "l2",
+    seed=None,
+    callback=None,
+    **options,
+):
+    """Refine ``model`` on the pairs; returns ``(model, FitInfo)``. Options another solver takes
+    (``n_particles``, ``iterations`` for the swarms) are accepted and unused by ``linear``/``lm``."""
+    solver = check_optimizer(optimizer, objective, options)
+    uv = np.asarray(uv_px, float)
+    xyz = np.asarray(xyz_mm, float)
+    with np.errstate(all="ignore"):
+        start = model.batch_image_to_robot(model.params[None], uv, xyz[:, 2])[0] - xyz
+    lost = ~np.isfinite(start).all(axis=1)
+    if lost.any():
+        raise DegenerateError(
+            f"model '{model.name}': its starting estimate maps {int(lost.sum())} of {len(uv)} pairs to no "
+            "finite point (beyond its lens's fold or its horizon): the pairs do not determine it"
+        )
+    problem = Problem(model, uv, xyz, objective, huber_delta_mm(np.linalg.norm(start, axis=1)))
+    own = {k: v for k, v in options.items() if k in solver.options}
+    return solver.run(problem, seed=seed, callback=callback, **own)
+
+
+def param_scale(model, uv_px, z_mm, step_mm: float = 1.0) -> np.ndarray:
+    """Per-parameter change that moves the mapped training points by about ``step_mm`` (RMS).
+
+    Computed from a finite-difference Jacobian at the current parameters; used as the PSO's initial
+    spread so that every element of a badly scaled vector (like the paper's B, whose elements range
+    over 6 orders of magnitude) is explored on the same footing in mm.
+    """
+    p = model.params
+    uv, z = np.asarray(uv_px, float), np.asarray(z_mm, float)
+    J = batch_jacobian(
+        lambda P: model.batch_image_to_robot(P, uv, z).reshape(len(P), -1),
+        p,
+        step=1e-6 * np.maximum(np.abs(p), 1e-3),
+    )  # (N*3, D) mm per unit
+    sens = np.sqrt((J**2).sum(axis=0) / len(uv))  # RMS over points of the 3-D displacement
+    return step_mm / np.maximum(sens, 1e-12)

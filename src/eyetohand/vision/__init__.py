@@ -1,0 +1,40 @@
+"""Rank 2: images in, pixel centres out: detection, rendering, image sets and camera sources (a
+registry that higher layers, e.g. :mod:`eyetohand.sim`, add to)."""
+
+from __future__ import annotations
+
+from eyetohand.vision.detect import annotate, detect_target
+from eyetohand.vision.images import (
+    ImageResult,
+    detect_images,
+    detect_poses,
+    load_poses,
+    pairs_from_detections,
+)
+from eyetohand.vision.render import Target, render
+from eyetohand.vision.sources import (
+    FolderSource,
+    GrabTimeout,
+    Source,
+    SourceScheme,
+    open_source,
+    register_source,
+)
+
+__all__ = [
+    "FolderSource",
+    "GrabTimeout",
+    "ImageResult",
+    "Source",
+    "SourceScheme",
+    "Target",
+    "annotate",
+    "detect_images",
+    "detect_poses",
+    "detect_target",
+    "load_poses",
+    "open_source",
+    "pairs_from_detections",
+    "register_source",
+    "render",
+]
