@@ -24,6 +24,7 @@ Example (a server started with ``eyetohand serve --tcp 127.0.0.1:5000 --camera s
 from __future__ import annotations
 
 import argparse
+import re
 import socket
 import sys
 import threading
@@ -144,6 +145,21 @@ class VirtualRobot:
         return out
 
 
+def _join_negative_values(argv: list[str], options: tuple[str, ...]) -> list[str]:
+    """``--rect -40,570,60,650`` as ``--rect=-40,570,60,650``: argparse takes a value that starts
+    with ``-`` and is not a plain number (``-40,570,...``) for an option, and refuses it."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        if argv[i] in options and i + 1 < len(argv) and re.match(r"-[0-9.]", argv[i + 1]):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tcp", required=True, metavar="HOST:PORT")
@@ -156,7 +172,7 @@ def main(argv=None) -> int:
     p.add_argument("--cell", metavar="CELL.toml", help="the virtual cell (with --folder)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--timeout", type=float, default=30.0, help="socket timeout (s)")
-    args = p.parse_args(argv)
+    args = p.parse_args(_join_negative_values(sys.argv[1:] if argv is None else list(argv), ("--rect",)))
     host, _, port = args.tcp.rpartition(":")
     rect = [float(v) for v in args.rect.split(",")]
     if len(rect) != 4:
@@ -176,4 +192,8 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # Ctrl-C: one line, the shell's code for SIGINT, no traceback
+        print("robot_client: interrupted", file=sys.stderr)
+        sys.exit(130)

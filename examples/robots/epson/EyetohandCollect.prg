@@ -1,10 +1,15 @@
 ' eyetohand calibration collection for Epson robots (SPEL+, RC700/RC90 with EPSON RC+ 7).
-' UNTESTED: no Epson controller here. Read examples/robots/README.md first.
+' UNTESTED on a controller: no Epson controller here (its exchange with the real server is replayed
+' by tests/test_robot_programs.py). Read examples/robots/README.md first.
 '
 ' Vision side: eyetohand serve --tcp 0.0.0.0:5000 --camera URI
 ' Controller set-up (EPSON RC+: Setup > System Configuration > Controller > TCP/IP), port #201:
 '   IP address = the vision PC, TCP/IP port = 5000, Terminate = LF, Protocol = TCP
 '   (the SetNet line below sets the same from the program).
+'
+' Manual references: "EPSON RC+ 7.0 SPEL+ Language Reference", by statement/function name
+' (SetNet, OpenNet, WaitNet, TW, ChkNet, Print #, Line Input #, CloseNet, CP, Move, Here, point
+' expressions with :X :Y :Z, Wait, ParseStr, Val, FmtStr$, InStr, Left$, Right$, Mid$, Len).
 '
 ' Traps handled here:
 ' * Print # ends every line with the port's terminator; Line Input # reads up to it. The server
@@ -12,18 +17,22 @@
 '   for a CR LF that never comes. A CR left at the end of a reply (a server answering CR LF) is
 '   stripped below.
 ' * Line Input # has no timeout of its own: ChkNet polls the bytes waiting, with our own 30 s limit.
-' * Str$ gives about 7 significant digits (0.001 mm at 612.345 mm). Never send Print # a number list
-'   with "," separators between items: SPEL+ inserts spaces; we build one string.
-' * Go/Move end on the point (CP off) and Wait settles before the two grabs.
+' * Never send Print # a number list with "," separators between items: SPEL+ inserts spaces; we
+'   build one string, the numbers by FmtStr$ (4 decimals, "." decimal point).
+' * CP is a motion option, not a statement parameter with On/Off ("Move P1 CP" = continuous path):
+'   "CP Off" once, as a statement, and Move without CP, so every Move ends on the point; Wait then
+'   settles before the two grabs.
+' * XY(x, y, z, u) sets V and W to 0 (a 6-axis robot would turn its tool): the target is Here with
+'   only X, Y, Z replaced (Here :X(x) :Y(y) :Z(z)), which keeps U, V, W, the hand and the local.
+' * One statement per line: ":" is kept for point expressions (Here :X(x)).
 
 Global String gReply$
 Global Real gVal(10)
 Global Integer gCount
 
 Function CalCollect
-    String fields$(10)
     Real x, y, z
-    Integer n
+    String cmd$
 
     SetNet #201, "192.168.0.10", 5000, LF, NONE, 0
     OpenNet #201 As Client
@@ -32,6 +41,7 @@ Function CalCollect
         Print "eyetohand: cannot connect to the vision PC"
         Exit Function
     EndIf
+    CP Off
 
     If Not Cmd("CAL BEGIN cell1,grid:5x5,-40,570,60,650,150") Then GoTo Fail
 
@@ -39,13 +49,16 @@ Function CalCollect
         If Not Cmd("CAL NEXT") Then GoTo Fail
         If gReply$ = "OK DONE" Then Exit Do
         If gCount <> 3 Then GoTo Fail
-        x = gVal(0): y = gVal(1): z = gVal(2)
-        Move XY(x, y, z, CU(Here)) CP Off   ' keep the current tool angle U
+        x = gVal(0)
+        y = gVal(1)
+        z = gVal(2)
+        Move Here :X(x) :Y(y) :Z(z)   ' U, V, W kept; ends on the point (CP Off)
         Wait 0.5
-        If Not Cmd("CAL POINT " + Fmt$(x) + "," + Fmt$(y) + "," + Fmt$(z)) Then
+        cmd$ = "CAL POINT " + Fmt$(x) + "," + Fmt$(y) + "," + Fmt$(z)
+        If Not Cmd(cmd$) Then
             If InStr(gReply$, "ERR moving") = 1 Then
                 Wait 1.0
-                If Not Cmd("CAL POINT " + Fmt$(x) + "," + Fmt$(y) + "," + Fmt$(z)) Then
+                If Not Cmd(cmd$) Then
                     Print "eyetohand: point skipped: ", gReply$
                 EndIf
             Else
@@ -91,7 +104,7 @@ Function Cmd(line$ As String) As Boolean
         Exit Function
     EndIf
     If Len(gReply$) > 3 And gReply$ <> "OK DONE" Then
-        gCount = ParseStr(Mid$(gReply$, 4), tok$(), ",")
+        gCount = ParseStr(Mid$(gReply$, 4, Len(gReply$) - 3), tok$(), ",")
         For i = 0 To gCount - 1
             gVal(i) = Val(tok$(i))
         Next i

@@ -1,0 +1,567 @@
+"""The robot programs of examples/robots/ against the real server process, byte for byte.
+
+No controller runs here, so each program's exchange is replayed: the bytes its send primitive puts
+on the wire (line ends / end strings included) go to ``eyetohand serve`` (``sim:`` camera), and the
+replies are read back with the controller's documented rules, emulated by one small function each
+below (the manual's rule in its docstring). What each program sends — the BEGIN line, the port,
+the line end, the number format — is read out of the program's own text, so a program that drifts
+fails here. The plan is cut from grid:5x5 to grid:3x3 (the same exchange, shorter).
+
+Also: robot_client.py's documented ``--rect -40,...`` form and a clean Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from helpers import ROBOTS, ServeProcess, src_env
+
+CELL = """[camera]
+width_px = 640
+height_px = 512
+pixel_size_um = 13.8
+principal_offset_px = [3.0, -2.0]
+
+[robot]
+scale_error = [1e-4, -5e-5]
+skew_deg = 0.01
+"""
+SEED = 5
+PLAN = "grid:3x3"
+# The programs' rectangle (-40,570)-(60,650) at z 150 in this cell: 8 of the 9 poses are seen, the
+# corner (-40,650) is cut by the image border, so every run also takes the skip path with the
+# server's real ERR reply ("ERR outside the image: ...", longer than 80 characters).
+N_RECORDED, N_SKIPPED = 8, 1
+
+
+@pytest.fixture(scope="module")
+def cell_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("cell") / "cell.toml"
+    path.write_text(CELL)
+    return path
+
+
+def serve(tmp_path: Path, cell_file: Path, *extra: str) -> ServeProcess:
+    return ServeProcess(
+        tmp_path / "data", "--camera", f"sim:{cell_file}?seed={SEED}", "--calibration", "cell1", *extra
+    )
+
+
+def program(rel: str) -> str:
+    return (ROBOTS / rel).read_text()
+
+
+def one(pattern: str, text: str, flags: int = 0) -> re.Match:
+    """The single match of ``pattern`` in a program's text (the test's hold on what the program does)."""
+    found = list(re.finditer(pattern, text, flags))
+    assert len(found) == 1, f"expected one match of {pattern!r}, found {len(found)}"
+    return found[0]
+
+
+def code(text: str, comment: str) -> str:
+    """A program's text without its comments (``comment`` to the end of a line; no string here holds it)."""
+    return "\n".join(line.split(comment, 1)[0] for line in text.splitlines())
+
+
+def short_plan(begin: str) -> str:
+    assert ",grid:5x5," in begin, begin
+    return begin.replace(",grid:5x5,", f",{PLAN},")
+
+
+class Wire:
+    """The TCP connection as the controller sees it: bytes out, a byte stream in; ``sent`` keeps
+    every send, exactly as it went on the wire."""
+
+    def __init__(self, port: int, timeout_s: float = 60.0):
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=timeout_s)
+        self.buf = b""
+        self.sent: list[bytes] = []
+
+    def send(self, data: bytes) -> None:
+        self.sent.append(data)
+        self.sock.sendall(data)
+
+    def read_until(self, end: bytes) -> bytes:
+        """Everything up to and including the first ``end``."""
+        while end not in self.buf:
+            chunk = self.sock.recv(4096)
+            assert chunk, "the server closed the connection"
+            self.buf += chunk
+        i = self.buf.index(end) + len(end)
+        out, self.buf = self.buf[:i], self.buf[i:]
+        return out
+
+    def read_byte(self) -> bytes:
+        if not self.buf:
+            chunk = self.sock.recv(4096)
+            assert chunk, "the server closed the connection"
+            self.buf += chunk
+        out, self.buf = self.buf[:1], self.buf[1:]
+        return out
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+# ---- the controllers' documented rules -------------------------------------------------------------
+
+NUM_LITERAL = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
+
+
+def ur_socket_read_ascii_float(wire: Wire, n: int) -> list[float]:
+    """URScript Manual, "Interfaces", socket_read_ascii_float(number, socket_name, timeout): reads
+    ``number`` floats sent as ASCII in brackets, ``(1.414, 3.14159, 1.616, 0.0)``; returns
+    ``[number, v1, ..., vn]``, or ``[0, nan, ...]`` when it cannot read exactly that many. Anything
+    before the ``(`` (the previous reply's line end) is skipped."""
+    text = wire.read_until(b")").decode("ascii")
+    inner = text[text.index("(") + 1 : -1] if "(" in text else ""
+    fields = [f.strip() for f in inner.split(",")]
+    if len(fields) != n or not all(re.fullmatch(NUM_LITERAL, f) for f in fields):
+        return [0.0] + [math.nan] * n
+    return [float(n)] + [float(f) for f in fields]
+
+
+def ur_str_of_float(v: float) -> str:
+    """URScript str_cat/to_str of a float: about 6 significant digits (as the script's header
+    assumes; the server reads any decimal form)."""
+    return f"{v:.6g}"
+
+
+def rapid_string(s: str) -> str:
+    """RAPID data type string: at most 80 characters; a longer one (e.g. from "+") is a run-time
+    error, ERR_STRTOOLONG."""
+    assert len(s) <= 80, f"RAPID ERR_STRTOOLONG: {len(s)} characters: {s!r}"
+    return s
+
+
+def rapid_strtoval(s: str) -> float | None:
+    """RAPID StrToVal(Str, Val): TRUE and the value when Str is a num literal (integer, decimal or
+    exponential form), FALSE otherwise (here: None)."""
+    return float(s) if re.fullmatch(NUM_LITERAL, s) else None
+
+
+def rapid_numtostr(v: float, dec: int) -> str:
+    """RAPID NumToStr(Val, Dec): Dec decimals, "." decimal point."""
+    return f"{v:.{dec}f}"
+
+
+def karel_cnv_str_real(s: str) -> float | None:
+    """KAREL CNV_STR_REAL(source, target): target is the REAL that source spells, and is set
+    UNINIT (here: None) when source is not a valid REAL."""
+    return float(s) if re.fullmatch(r"\s*" + NUM_LITERAL + r"\s*", s) else None
+
+
+def karel_cnv_real_str(v: float, length: int, num_digits: int) -> str:
+    """KAREL CNV_REAL_STR(source, length, num_digits, target): num_digits decimals, right-aligned
+    in at least ``length`` characters."""
+    return f"{v:{length}.{num_digits}f}"
+
+
+def eki_send(data: bytes, eos: bytes) -> bytes:
+    """EthernetKRL, "Sending data", binary data record with end string sent directly as a string:
+    the CHAR array up to its first NUL, followed by the configured end string (EOS)."""
+    return data.split(b"\0", 1)[0] + eos
+
+
+def eki_receive(wire: Wire, eos: bytes, size: int) -> str:
+    """EthernetKRL RAW STREAM element: the received stream is cut at the end string (EOS) into
+    records of at most Size bytes, stored FIFO; EKI_GetString hands out the oldest, here without
+    its EOS."""
+    rec = wire.read_until(eos)[: -len(eos)]
+    assert len(rec) <= size, f"a reply of {len(rec)} bytes does not fit Size={size}"
+    return rec.decode("ascii")
+
+
+def krl_sread_reals(text: str, offset: int, fmt: str) -> list[float]:
+    """KRL SREAD(string, state, offset, format, ...): CREAD's formats; %f reads a REAL; the state's
+    HITS is the number of values read (the program checks HITS = 3)."""
+    pattern = "".join(f"({NUM_LITERAL})" if p == "%f" else re.escape(p) for p in re.split(r"(%f)", fmt))
+    m = re.match(pattern, text[offset:])
+    return [float(v) for v in m.groups()] if m else []
+
+
+def spel_line_input(wire: Wire, terminator: bytes) -> str:
+    """SPEL+ Line Input #: one line up to the port's terminator (SetNet), without it."""
+    return wire.read_until(terminator)[: -len(terminator)].decode("ascii")
+
+
+def spel_fmtstr(v: float, fmt: str) -> str:
+    """SPEL+ FmtStr$(number, format$): "0.0000" gives 4 decimals, "." decimal point."""
+    decimals = len(fmt.split(".", 1)[1]) if "." in fmt else 0
+    return f"{v:.{decimals}f}"
+
+
+def spel_val(s: str) -> float:
+    """SPEL+ Val(string$): the number at the start of the string, 0 when there is none."""
+    m = re.match(r"\s*" + NUM_LITERAL, s)
+    return float(m.group()) if m else 0.0
+
+
+# ---- the programs, replayed --------------------------------------------------------------------------
+
+
+def test_ur_script(tmp_path, cell_file):
+    """UR: socket_send_string sends no line end (the script sends bytes 13, 10 itself), replies in the
+    ur format are read by socket_read_ascii_float(4) and must give its count 4 every time."""
+    text = program("ur/eyetohand_collect.script")
+    begin = short_plan(one(r'BEGIN = "(CAL BEGIN [^"]+)"', text).group(1))
+    assert int(one(r"^\s*PORT = (\d+)", text, re.M).group(1)) == 5000
+    cmd_def = one(r"def cmd\(line\):(.*?)\n  end", text, re.S).group(1)
+    line_end = bytes(int(b) for b in re.findall(r'socket_send_byte\((\d+), "cam"\)', cmd_def))
+    assert line_end == b"\r\n"
+    n_read = int(one(r'socket_read_ascii_float\((\d+), "cam"', cmd_def).group(1))
+    srv = serve(tmp_path, cell_file, "--reply-format", "ur")
+    wire = Wire(srv.tcp_port)
+    try:
+
+        def cmd(line: str) -> list[float]:
+            wire.send(line.encode("ascii"))  # socket_send_string: no line end
+            for b in line_end:
+                wire.send(bytes([b]))  # socket_send_byte
+            r = ur_socket_read_ascii_float(wire, n_read)
+            assert r[0] == n_read, f"{line!r}: socket_read_ascii_float gave {r}"
+            return r
+
+        assert cmd(begin)[1] == 1
+        recorded, skipped = 0, []
+        while True:
+            r = cmd("CAL NEXT")
+            if r[1] == 0:
+                break
+            assert r[1] == 1
+            xyz = ",".join(ur_str_of_float(v) for v in r[2:5])
+            r = cmd("CAL POINT " + xyz)
+            if r[1] == -4:  # moving: once more
+                r = cmd("CAL POINT " + xyz)
+            if r[1] != 1:
+                skipped.append(r[1])
+            else:
+                recorded += 1
+                assert r[2] == recorded
+        r = cmd("CAL END")
+        assert r[1] == 1 and r[2] == N_RECORDED and 0 < r[3] < 0.5, r
+        assert skipped == [-5] * N_SKIPPED  # -5: outside the image
+        assert wire.sent[:3] == [begin.encode(), b"\r", b"\n"]
+    finally:
+        wire.close()
+        srv.stop()
+
+
+def abb_run(wire: Wire, begin: str, line_end: bytes, dec: int) -> dict:
+    """EyetohandCollect.mod's main loop on the wire, with RAPID's string rules."""
+    messages: list[str] = []
+
+    def read_line() -> str:  # ReadLine: SocketReceive \ReadNoOfBytes:=1 up to LF, CR dropped, 80 kept
+        line = ""
+        while (ch := wire.read_byte()) != b"\n":
+            if ch != b"\r" and len(line) < 80:
+                line = rapid_string(line + ch.decode("ascii"))
+        return line
+
+    def clip(s: str, n: int) -> str:
+        return s if len(s) <= n else s[:n]
+
+    def command(c: str) -> tuple[bool, str]:
+        wire.send(rapid_string(c + line_end.decode("ascii")).encode("ascii"))  # SocketSend \Str
+        reply = read_line()
+        return clip(reply, 2) == "OK", reply
+
+    def parse_xyz(reply: str) -> list[float] | None:
+        if clip(reply, 3) != "OK ":
+            return None
+        vals = [rapid_strtoval(f) for f in reply[3:].split(",")]
+        return vals if len(vals) == 3 and None not in vals else None  # type: ignore[return-value]
+
+    ok, reply = command(begin)
+    assert ok, reply
+    while True:
+        ok, reply = command("CAL NEXT")
+        assert ok, reply
+        if reply == "OK DONE":
+            break
+        vals = parse_xyz(reply)
+        assert vals is not None, rapid_string("CAL NEXT: no x,y,z in " + clip(reply, 52))
+        c = rapid_string("CAL POINT " + ",".join(rapid_numtostr(v, dec) for v in vals))
+        ok, reply = command(c)
+        if not ok:
+            if clip(reply, 10) == "ERR moving":
+                ok, reply = command(c)
+            if not ok:
+                messages.append(rapid_string("eyetohand: point skipped: " + clip(reply, 54)))
+    ok, end = command("CAL END")
+    messages.append(
+        rapid_string(("eyetohand: calibrated: " if ok else "eyetohand: stopped: ") + clip(end, 57))
+    )
+    return {"ok": ok, "end": end, "messages": messages}
+
+
+def test_abb_rapid(tmp_path, cell_file):
+    """ABB: commands sent with CR LF by SocketSend; replies read byte by byte; END's reply, with the
+    model's name first, is not put through StrToVal (it stopped the program after the calibration
+    was saved); every message quoting a real server ERR stays within RAPID's 80 characters."""
+    text = program("abb/EyetohandCollect.mod")
+    begin = short_plan(one(r'CONST string BEGIN_CMD := "([^"]+)";', text).group(1))
+    assert int(one(r"CONST num PORT := (\d+);", text).group(1)) == 5000
+    escapes = one(r'SocketSend sock \\Str:=cmd \+ "((?:\\[0-9A-F]{2})+)";', text).group(1)
+    line_end = bytes(int(h, 16) for h in re.findall(r"\\([0-9A-F]{2})", escapes))
+    assert line_end == b"\r\n"
+    dec = {int(d) for d in re.findall(r"NumToStr\(vals\{\d\}, (\d+)\)", text)}
+    assert len(dec) == 1
+    # the END reply as RAPID would have parsed it before: the model's name is not a num
+    assert rapid_strtoval("homography-radial") is None
+    srv = serve(tmp_path, cell_file)
+    wire = Wire(srv.tcp_port)
+    try:
+        out = abb_run(wire, begin, line_end, dec.pop())
+        assert out["ok"], out
+        assert re.fullmatch(rf"OK [a-z-]+,{N_RECORDED},\d+\.\d{{4}},\d+\.\d{{4}}", out["end"]), out
+        skipped = out["messages"][:-1]
+        assert len(skipped) == N_SKIPPED and all(len(m) == 80 for m in skipped), skipped
+        assert skipped[0].startswith("eyetohand: point skipped: ERR outside the image")
+        assert out["messages"][-1] == f"eyetohand: calibrated: {out['end']}"
+        assert wire.sent[0] == begin.encode() + b"\r\n" and all(s.endswith(b"\r\n") for s in wire.sent)
+    finally:
+        wire.close()
+        srv.stop()
+
+
+def test_fanuc_karel(tmp_path, cell_file):
+    """FANUC: WRITE (line, CR) sends the line with the CR item's line end (CR LF); replies are read
+    byte by byte to LF into STRING[128]; CNV_STR_REAL reads NEXT's numbers; END's reply is only shown."""
+    text = program("fanuc/eth_cal.kl")
+    begin = short_plan(one(r"BEGIN_CMD = '([^']+)'", text).group(1))
+    assert int(one(r"SERVER_PORT = (\d+)", text).group(1)) == 5000
+    one(r"OPEN FILE sock \('RW', HOST_TAG\)", text)
+    assert one(r"HOST_TAG = '(C\d):'", text).group(1) == "C3"
+    assert "$HOSTC_CFG[3].$SERVER_PORT" in text
+    one(r"WRITE sock \(line, CR\)", text)  # the CR item ends the line and sends the buffer
+    assert not re.search(r"ROUTINE command\b", text, re.I)  # COMMAND is a reserved word
+    assert "$GROUP[1].$UTOOL = " in text and "$GROUP[1].$UFRAME = " in text
+    length, digits = (int(v) for v in one(r"CNV_REAL_STR\(v, (\d+), (\d+), s\)", text).groups())
+    reply_len = int(one(r"reply : STRING\[(\d+)\]", text).group(1))
+    srv = serve(tmp_path, cell_file)
+    wire = Wire(srv.tcp_port)
+    try:
+
+        def send_cmd(line: str) -> tuple[bool, str]:
+            wire.send(line.encode("ascii") + b"\r\n")
+            raw = wire.read_until(b"\n")[:-1].replace(b"\r", b"")
+            reply = raw.decode("ascii")[:reply_len]
+            return reply[:2] == "OK", reply
+
+        assert send_cmd(begin)[0]
+        n, skipped = 0, []
+        while True:
+            ok, reply = send_cmd("CAL NEXT")
+            assert ok, reply
+            if reply == "OK DONE":
+                break
+            vals = [karel_cnv_str_real(f) for f in reply[3:].split(",")]
+            assert len(vals) == 3 and None not in vals, reply
+            cmd = "CAL POINT " + ",".join(karel_cnv_real_str(v, length, digits) for v in vals)
+            assert len(cmd) <= 128
+            ok, reply = send_cmd(cmd)
+            if not ok and reply[:10] == "ERR moving":
+                ok, reply = send_cmd(cmd)
+            if ok:
+                n += 1
+            else:
+                skipped.append(reply[:40])
+        ok, end = send_cmd("CAL END")
+        assert ok and n == N_RECORDED and end.startswith("OK ") and len(end) <= reply_len, end
+        assert len(skipped) == N_SKIPPED and skipped[0].startswith("ERR outside the image")
+        assert karel_cnv_str_real(end[3:].split(",")[0]) is None  # why END's reply is not parsed
+    finally:
+        wire.close()
+        srv.stop()
+
+
+def test_kuka_eki(tmp_path, cell_file):
+    """KUKA: one EKI_Send per command, to which EthernetKRL appends the EOS (LF) itself; replies cut
+    at the EOS. The old program's extra send of a bare LF became an empty line, which the server
+    answers with an ERR: the FIFO would have handed that ERR to the next command."""
+    src = program("kuka/eyetohand_collect.src")
+    xml = program("kuka/EyetohandCal.xml")
+    assert int(one(r"<PORT>(\d+)</PORT>", xml).group(1)) == 5000
+    elem = one(r'<RECEIVE>.*<ELEMENT Tag="Reply" Type="STREAM" EOS="([\d,]+)" Size="(\d+)"', xml, re.S)
+    eos = bytes(int(b) for b in elem.group(1).split(","))
+    size = int(elem.group(2))
+    assert eos == b"\n"
+    command_fn = one(r"DEFFCT BOOL Command(.*?)ENDFCT", src, re.S).group(1)
+    assert len(re.findall(r"EKI_Send\(", command_fn)) == 1, "one EKI_Send per command"
+    assert len(re.findall(r"EKI_Send\(", code(src, ";"))) == 1
+    begin = short_plan(one(r'StrCopy\(cmd\[\], "(CAL BEGIN [^"]+)"\)', src).group(1))
+    point_fmt = one(r'SWRITE\(cmd\[\], st, offset, "([^"]+)"', src).group(1)
+    sread = one(r'offset = (\d+)\s*;[^\n]*\n\s*SREAD\(reply\[\], st, offset, "([^"]+)"', src)
+    srv = serve(tmp_path, cell_file)
+    wire = Wire(srv.tcp_port)
+    try:
+
+        def command(line: str) -> tuple[bool, str]:
+            wire.send(eki_send(line.encode("ascii").ljust(128, b"\0"), eos))  # cmd[128] after StrClear
+            answer = eki_receive(wire, eos, size).rstrip("\r\n")
+            return answer.startswith("OK"), answer
+
+        assert command(begin)[0]
+        n, skipped = 0, []
+        while True:
+            ok, reply = command("CAL NEXT")
+            assert ok, reply
+            if reply.upper() == "OK DONE":
+                break
+            xyz = krl_sread_reals(reply, int(sread.group(1)), sread.group(2))
+            assert len(xyz) == 3, reply  # st.HITS = 3
+            ok, reply = command(point_fmt % tuple(xyz))
+            if not ok and reply.upper().startswith("ERR MOVING"):
+                ok, reply = command(point_fmt % tuple(xyz))
+            n += ok
+            skipped += [] if ok else [reply]
+        ok, end = command("CAL END")
+        assert ok and n == N_RECORDED and len(skipped) == N_SKIPPED, (end, skipped)
+        assert all(s.endswith(b"\n") and s.count(b"\n") == 1 and len(s) > 1 for s in wire.sent)
+        # the trap: what a second, bare-LF send (an empty line) would have got from the server
+        wire.send(eki_send(b"\0", eos))
+        assert eki_receive(wire, eos, size).startswith("ERR")
+    finally:
+        wire.close()
+        srv.stop()
+
+
+def test_epson_spel(tmp_path, cell_file):
+    """Epson: Print # ends each line with the port's terminator (SetNet: LF); Line Input # reads to
+    it; FmtStr$ formats the POINT numbers; Move keeps U, V, W (no XY(), CP only as a bare option)."""
+    text = program("epson/EyetohandCollect.prg")
+    net = one(r'SetNet #201, "[\d.]+", (\d+), (CRLF|CR|LF), NONE, 0', text)
+    assert int(net.group(1)) == 5000
+    terminator = {"CR": b"\r", "LF": b"\n", "CRLF": b"\r\n"}[net.group(2)]
+    assert terminator == b"\n"
+    begin = short_plan(one(r'Cmd\("(CAL BEGIN [^"]+)"\)', text).group(1))
+    fmt = one(r'FmtStr\$\(v, "([^"]+)"\)', text).group(1)
+    assert not re.search(r"CP (On|Off)\s*(?:'.*)?$", text.split("CP Off\n", 1)[1], re.M)
+    assert not re.search(r"\bXY\(", code(text, "'")) and "Move Here :X(x) :Y(y) :Z(z)" in text
+    srv = serve(tmp_path, cell_file)
+    wire = Wire(srv.tcp_port)
+    try:
+
+        def cmd(line: str) -> tuple[bool, str, list[float]]:
+            wire.send(line.encode("ascii") + terminator)  # Print #201, line$
+            reply = spel_line_input(wire, terminator)
+            if reply.endswith("\r"):
+                reply = reply[:-1]
+            vals = (
+                [spel_val(t) for t in reply[3:].split(",")]
+                if reply[:2] == "OK" and len(reply) > 3 and reply != "OK DONE"
+                else []
+            )
+            return reply[:2] == "OK", reply, vals
+
+        assert cmd(begin)[0]
+        n, skipped = 0, []
+        while True:
+            ok, reply, vals = cmd("CAL NEXT")
+            assert ok, reply
+            if reply == "OK DONE":
+                break
+            assert len(vals) == 3, reply
+            point = "CAL POINT " + ",".join(spel_fmtstr(v, fmt) for v in vals)
+            ok, reply, _ = cmd(point)
+            if not ok and reply.find("ERR moving") == 0:  # InStr(...) = 1
+                ok, reply, _ = cmd(point)
+            n += ok
+            skipped += [] if ok else [reply]
+        ok, end, _ = cmd("CAL END")
+        assert ok and n == N_RECORDED and len(skipped) == N_SKIPPED, (end, skipped)
+        assert all(s.endswith(b"\n") and not s.endswith(b"\r\n") for s in wire.sent)
+    finally:
+        wire.close()
+        srv.stop()
+
+
+# ---- robot_client.py ---------------------------------------------------------------------------------
+
+
+def test_robot_client_documented_negative_rect(tmp_path, cell_file):
+    """README's form, ``--rect -40,570,60,650`` (a value that starts with '-'), is accepted."""
+    srv = serve(tmp_path, cell_file)
+    try:
+        client = subprocess.run(
+            [
+                sys.executable,
+                str(ROBOTS / "robot_client.py"),
+                "--tcp",
+                f"127.0.0.1:{srv.tcp_port}",
+                "--name",
+                "cell1",
+                "--plan",
+                PLAN,
+                "--rect",
+                "-40,570,60,650",
+                "--z",
+                "150",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env=src_env(),
+        )
+        assert client.returncode == 0, client.stdout + client.stderr
+        replies = [ln[2:] for ln in client.stdout.splitlines() if ln.startswith("< ")]
+        assert replies[-1].startswith("OK ") and f",{N_RECORDED}," in replies[-1], replies
+        sent = [ln[2:] for ln in client.stdout.splitlines() if ln.startswith("> ")]
+        assert sent[0] == f"CAL BEGIN cell1,{PLAN},-40.0000,570.0000,60.0000,650.0000,150.0000"
+    finally:
+        srv.stop()
+
+
+def test_robot_client_ctrl_c_is_one_line_and_130():
+    """SIGINT while the robot waits for a reply: one line on stderr, exit status 130, no traceback."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    accepted = threading.Event()
+    conns: list[socket.socket] = []
+
+    def accept():
+        conns.append(listener.accept()[0])  # never answers
+        accepted.set()
+
+    threading.Thread(target=accept, daemon=True).start()
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            str(ROBOTS / "robot_client.py"),
+            "--tcp",
+            f"127.0.0.1:{listener.getsockname()[1]}",
+            "--name",
+            "cell1",
+            "--rect",
+            "-40,570,60,650",
+            "--z",
+            "150",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=src_env(),
+    )
+    try:
+        assert accepted.wait(20), "robot_client did not connect"
+        time.sleep(0.3)  # in recv, waiting for BEGIN's reply
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for c in conns:
+            c.close()
+        listener.close()
+    assert proc.returncode == 130, (proc.returncode, err)
+    assert "Traceback" not in err
+    assert err.strip().count("\n") == 0 and "interrupted" in err, err
