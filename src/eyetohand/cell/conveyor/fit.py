@@ -416,6 +416,63 @@ def _subset(session: Session, rows, unseen: bool = False) -> Session:
     )
 
 
+def _check_stated(
+    stated_counts_per_mm: float | None, stated_direction_deg: tuple[float, float] | None
+) -> None:
+    """Refuse a stated pulses per mm that is 0 or not finite, and a stated direction's angles out of
+    bounds."""
+    if stated_counts_per_mm is not None:
+        c = float(stated_counts_per_mm)
+        if not (math.isfinite(c) and c != 0.0):
+            raise InputError(
+                f"stated pulses per mm: expected a finite number of counts per mm, not 0, got {c!r}"
+            )
+    if stated_direction_deg is not None:
+        for what, a in zip(("yaw", "pitch"), stated_direction_deg, strict=True):
+            why = angle_refusal(float(a))
+            if why:
+                raise InputError(f"stated belt {what}: {why}")
+
+
+def _belt_corrected_pairs(
+    prep: Prepared, b: np.ndarray, latch: float, z_plane: float, source: str
+) -> PointPairs:
+    """The sighted, touched parts' pixels with their positions at exposure (the touches carried back
+    by the fitted belt vector ``b`` and latch delay, averaged per part, at ``z_plane``), and every
+    further sighting of them with the belt carrying the part on to it: the pairs of the deployed
+    camera map."""
+    sighted = prep.t_sight >= 0
+    idx = prep.t_sight[sighted]
+    n_s = len(prep.s_uv)
+    cnt = np.bincount(idx, minlength=n_s)
+    used = cnt > 0
+    shift = prep.t_de[sighted] + latch * prep.s_moving[idx]
+    back = prep.t_xyz[sighted] - shift[:, None] * b
+    mean_back = (
+        np.stack([np.bincount(idx, back[:, c], minlength=n_s) for c in range(3)], 1)[used] / cnt[used, None]
+    )
+    uv_pairs, at_exposure = prep.s_uv[used], mean_back
+    labels = [prep.s_ids[j] for j in np.flatnonzero(used)]
+    further = used[prep.q_a]  # further sightings of touched parts: the belt carries them to their images
+    if further.any():
+        full = np.full((n_s, 3), np.nan)
+        full[used] = mean_back
+        qa, qb = prep.q_a[further], prep.q_b[further]
+        moved = prep.q_de[further] + latch * (prep.s_moving[qa].astype(float) - prep.s_moving[qb])
+        uv_pairs = np.vstack([uv_pairs, prep.s_uv[qb]])
+        at_exposure = np.vstack([at_exposure, full[qa] + moved[:, None] * b])
+        nth: dict[int, int] = {}
+        for a, j in zip(qa, qb, strict=True):  # labels: "p7#2" for the second sighting of p7
+            nth[int(a)] = nth.get(int(a), 1) + 1
+            labels.append(f"{prep.s_ids[j]}#{nth[int(a)]}")
+    return PointPairs.from_arrays(
+        uv_pairs,
+        np.column_stack([at_exposure[:, :2], np.full(len(at_exposure), z_plane)]),
+        labels,
+        source=f"{source} (belt-corrected)",
+    )
+
+
 def calibrate_conveyor(
     session: Session,
     *,
@@ -439,17 +496,7 @@ def calibrate_conveyor(
     """
     encoder = encoder or Encoder()
     src = session.source
-    if stated_counts_per_mm is not None:
-        c = float(stated_counts_per_mm)
-        if not (math.isfinite(c) and c != 0.0):
-            raise InputError(
-                f"stated pulses per mm: expected a finite number of counts per mm, not 0, got {c!r}"
-            )
-    if stated_direction_deg is not None:
-        for what, a in zip(("yaw", "pitch"), stated_direction_deg, strict=True):
-            why = angle_refusal(float(a))
-            if why:
-                raise InputError(f"stated belt {what}: {why}")
+    _check_stated(stated_counts_per_mm, stated_direction_deg)
     prep = _prepare(session, encoder, noise_counts)
     cls = get_model(model)
     if cls.needs_heights():
@@ -513,31 +560,7 @@ def calibrate_conveyor(
     latch = float(fit.x[lay.latch][0]) if fit_latch else 0.0
     sig_latch = float(math.sqrt(fit.cov[lay.latch, lay.latch][0, 0])) if fit_latch else None
     # the deployed camera map: an ordinary Calibration on the sighted parts at their exposure positions
-    shift = prep.t_de[sighted] + latch * prep.s_moving[idx]
-    back = prep.t_xyz[sighted] - shift[:, None] * b
-    mean_back = (
-        np.stack([np.bincount(idx, back[:, c], minlength=n_s) for c in range(3)], 1)[used] / cnt[used, None]
-    )
-    uv_pairs, at_exposure = prep.s_uv[used], mean_back
-    labels = [prep.s_ids[j] for j in np.flatnonzero(used)]
-    further = used[prep.q_a]  # further sightings of touched parts: the belt carries them to their images
-    if further.any():
-        full = np.full((n_s, 3), np.nan)
-        full[used] = mean_back
-        qa, qb = prep.q_a[further], prep.q_b[further]
-        moved = prep.q_de[further] + latch * (prep.s_moving[qa].astype(float) - prep.s_moving[qb])
-        uv_pairs = np.vstack([uv_pairs, prep.s_uv[qb]])
-        at_exposure = np.vstack([at_exposure, full[qa] + moved[:, None] * b])
-        nth: dict[int, int] = {}
-        for a, j in zip(qa, qb, strict=True):  # labels: "p7#2" for the second sighting of p7
-            nth[int(a)] = nth.get(int(a), 1) + 1
-            labels.append(f"{prep.s_ids[j]}#{nth[int(a)]}")
-    pairs = PointPairs.from_arrays(
-        uv_pairs,
-        np.column_stack([at_exposure[:, :2], np.full(len(at_exposure), z_plane)]),
-        labels,
-        source=f"{src} (belt-corrected)",
-    )
+    pairs = _belt_corrected_pairs(prep, b, latch, z_plane, src)
     cal = calibrate(pairs, model=model, image_size=image_size, loo=False)
     c0, c1, c2 = (float(v) for v in fit.x[lay.surface])
     surface = (c0, c1, c2, float(xy0[0]), float(xy0[1]))
