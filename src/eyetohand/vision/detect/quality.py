@@ -14,7 +14,7 @@ from eyetohand.vision.detect.search import MIN_CONTRAST_SIGMA, _Cand
 DIAMETER_WINDOW = (0.7, 1.4)  # an expected diameter keeps circles within these multiples of it
 AMBIGUOUS_RATIO = 0.8  # a runner-up scoring this fraction of the best makes the choice ambiguous
 MAX_RMS_REL = 0.02  # edge points' rms distance from the ellipse, as a fraction of its mean radius
-MIN_VALID_RAYS = 0.85
+MIN_VALID_RAYS = 0.85  # share of the profiles that must lie inside the image, and fit the ellipse
 
 
 @dataclass(frozen=True)
