@@ -80,7 +80,8 @@ def test_intensity_fit_beats_the_edge_points_it_starts_from():
     wrong polarity it refuses (then the edge fit is kept)."""
     from bench_detect import scenes
 
-    from eyetohand.vision.detect import _fit_intensity, noise_sigma
+    from eyetohand.vision.detect import noise_sigma
+    from eyetohand.vision.detect.refine import _fit_intensity
 
     fit_err, edge_err = [], []
     for img, truth, _, _ in scenes(4, seed=5):
@@ -325,7 +326,8 @@ def test_the_windowed_candidate_search_finds_what_the_whole_image_search_finds()
     same candidates as labelling the whole image at every level, without covering the whole image."""
     from bench_detect import scenes
 
-    from eyetohand.vision.detect import _candidates, _search_scale, noise_sigma
+    from eyetohand.vision.detect import noise_sigma
+    from eyetohand.vision.detect.search import _candidates, _search_scale
 
     two = finish(disc(disc(canvas(1600, 2000), 500.3, 600.7, 40, 30), 1450.2, 960.4, 40, 30))
     images = [img for img, _, _, _ in scenes(3, seed=21)] + [two]
