@@ -21,20 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from eyetohand.calibration import Calibration, calibrate
-from eyetohand.core import InputError, load_pairs
-from eyetohand.reports.report import (
-    _cards,
-    _Doc,
-    _e,
-    _fit_table,
-    _jacobian,
-    _notes,
-    _params_section,
-    _points_table,
-    _stats_table,
-    _write_all,
-    mm,
-)
+from eyetohand.core import InputError, PointPairs, load_pairs
+from eyetohand.reports.html import Document, mm, write_folder
+from eyetohand.reports.sections import fit_table, image_jacobian, params_section, points_table, stats_table
 from eyetohand.solve import Stats
 
 PAPER_STATED_MAX_MM = 0.0898
@@ -216,20 +205,32 @@ def _demo_cals(cals: Mapping[str, Calibration]) -> dict[str, Calibration]:
 
 def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tuple[str, dict[str, bytes]]:
     """The demo report in memory: ``(index.html text, {png name: bytes})``; see :func:`write_demo_report`."""
-    from eyetohand.reports import plots
-
     if not isinstance(results, Mapping) or "table3" not in results:
         raise InputError("write_demo_report: results must come from eyetohand.reports.demo.run_demo")
     t3, t4 = results["table3"], results.get("table4")
-    shown = _demo_cals(cals)
+    with_check = {k: c for k, c in _demo_cals(cals).items() if c.check is not None}
+    checks = {k: _check_of(c) for k, c in with_check.items()}
     train, check, _ = load_paper()
-    doc = _Doc("eyetohand — the paper reproduced on its own data")
+    doc = Document("eyetohand — the paper reproduced on its own data")
     doc.add(
         '<nav><a href="#summary">summary</a><a href="#fig4">Fig. 4</a><a href="#fig5">Fig. 5</a>'
         '<a href="#vectors">residual vectors</a><a href="#tables">Tables 3 and 4</a>'
         '<a href="#models">all models</a><a href="#details">details</a></nav>'
     )
+    _summary(doc, t3, t4, train, checks)
+    _convergence(doc, cals)
+    _point_errors(doc, check, t3, t4, checks)
+    _residual_vectors(doc, train, check, with_check, checks)
+    _published_tables(doc, check, t3, t4)
+    _all_calibrations(doc, cals)
+    _details(doc, cals, check)
+    return doc.render("eyetohand demo"), doc.files
 
+
+def _summary(
+    doc: Document, t3: Mapping, t4: Mapping | None, train: PointPairs, checks: Mapping[str, Stats]
+) -> None:
+    """The data, the published and our errors side by side, the fit of lowest check RMS."""
     doc.h2("Summary", "summary")
     doc.p(
         "Fit on the paper's Table 1 (16 pairs, all on the plane z = "
@@ -246,14 +247,12 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
             ("Table 4 published: RMS / max*", f"{mm(t4['paper_rms_mm'])} / {mm(t4['paper_max_mm'])}", "mm"),
             ("ours, hybrid PSO: RMS / max", f"{mm(t4['ours_rms_mm'])} / {mm(t4['ours_max_mm'])}", "mm"),
         ]
-    with_check = {k: c for k, c in shown.items() if c.check is not None}
-    checks = {k: _check_of(c) for k, c in with_check.items()}
-    if with_check:
+    if checks:
         best_key = min(checks, key=lambda k: checks[k].rms_mm)
         b = checks[best_key]
         cards.append((f"lowest check RMS: {best_key} (RMS / max)", f"{mm(b.rms_mm)} / {mm(b.max_mm)}", "mm"))
-    _cards(doc, cards)
-    if with_check:
+    doc.cards(cards)
+    if checks:
         by_max = min(checks, key=lambda k: checks[k].max_mm)
         ranking = (
             f"'lowest check RMS' ranks the fits on one figure, the RMS over the {b.n} check points; "
@@ -272,35 +271,45 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
             "muted",
         )
 
-    # Fig. 4
+
+def _convergence(doc: Document, cals: Mapping[str, Calibration]) -> None:
+    """The paper's Fig. 4: the swarms' best fitness per iteration."""
+    from eyetohand.reports import plots
+
     doc.h2("Convergence of the hybrid PSO (the paper's Fig. 4)", "fig4")
     hist = {
         _demo_label(k).removeprefix("ours: "): c.fit.history
         for k, c in cals.items()
         if len(c.fit.history) > 1
     }
-    if hist:
-        ref = {}
-        if "paper+linear" in cals:  # the least-squares optimum of the paper's affine family
-            ref["least-squares optimum (linear solve)"] = cals["paper+linear"].fit.fitness
-        ax = plots.plot_convergence(
-            hist, reference_lines=ref, title="Hybrid PSO convergence on Table 1 (cf. the paper's Fig. 4)"
-        )
-        doc.figure(
-            "convergence.png",
-            ax,
-            "Best fitness (equation 16: 2-norm of the robot-space residuals of "
-            "the 16 training pairs) per iteration. The paper's curve levels off near 0.1 mm; the "
-            "least-squares optimum of its affine family on these pairs is about 0.1058 mm.",
-        )
-    else:
+    if not hist:
         doc.p(
             "No convergence plot: no calibration in this run used a particle swarm (the optimizer may be "
             "unavailable in this installation).",
             "warn",
         )
+        return
+    ref = {}
+    if "paper+linear" in cals:  # the least-squares optimum of the paper's affine family
+        ref["least-squares optimum (linear solve)"] = cals["paper+linear"].fit.fitness
+    ax = plots.plot_convergence(
+        hist, reference_lines=ref, title="Hybrid PSO convergence on Table 1 (cf. the paper's Fig. 4)"
+    )
+    doc.figure(
+        "convergence.png",
+        ax,
+        "Best fitness (equation 16: 2-norm of the robot-space residuals of "
+        "the 16 training pairs) per iteration. The paper's curve levels off near 0.1 mm; the "
+        "least-squares optimum of its affine family on these pairs is about 0.1058 mm.",
+    )
 
-    # Fig. 5
+
+def _point_errors(
+    doc: Document, check: PointPairs, t3: Mapping, t4: Mapping | None, checks: Mapping[str, Stats]
+) -> None:
+    """The paper's Fig. 5: each check point's error, published and ours."""
+    from eyetohand.reports import plots
+
     doc.h2("Error per check point (the paper's Fig. 5)", "fig5")
     ids = list(check.ids)
     methods: dict[str, list] = {"published Table 3 (unoptimised)": t3["paper_errors_mm"]}
@@ -322,55 +331,74 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
         "n/a: the value is illegible in the paper.",
     )
 
-    # residual vectors
+
+def _residual_vectors(
+    doc: Document,
+    train: PointPairs,
+    check: PointPairs,
+    with_check: Mapping[str, Calibration],
+    checks: Mapping[str, Stats],
+) -> None:
+    """Side by side, at the same scale: the first swarm's residual vectors and those of the fit of
+    lowest check RMS (when fitted on the bundled data)."""
     doc.h2("Residual vectors", "vectors")
     picks = []
     pso_keys = [k for k, c in with_check.items() if len(c.fit.history) > 1]
     if pso_keys:
         picks.append(pso_keys[0])
-    if with_check:
+    if checks:
         best_key = min(checks, key=lambda k: checks[k].rms_mm)
         if best_key not in picks:
             picks.append(best_key)
     picks = [k for k in picks if with_check[k].data_sha256 == train.sha256()]
-    if picks:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=(5.4 * len(picks), 6.0), dpi=110, layout="constrained")
-        FigureCanvasAgg(fig)
-        axes = fig.subplots(1, len(picks), squeeze=False)[0]
-        all_res = [with_check[k].model.residuals(p.uv_px, p.xyz_mm) for k in picks for p in (train, check)]
-        top = max(float(np.linalg.norm(r[:, :2], axis=1).max()) for r in all_res)
-        extent = float(np.ptp(np.vstack([train.uv_px, check.uv_px]), axis=0).max())
-        scale = 0.1 * extent / top if top > 0 else 1.0
-        for axi, key in zip(axes, picks, strict=True):
-            c = with_check[key]
-            for j, (label, p) in enumerate((("training", train), ("check", check))):
-                res = c.model.residuals(p.uv_px, p.xyz_mm)
-                jac = _jacobian(c.model, p.uv_px, p.xyz_mm[:, 2])
-                plots.plot_residual_vectors(
-                    p.uv_px,
-                    res,
-                    axi,
-                    None,
-                    scale,
-                    jacobian_mm_per_px=jac,
-                    ids=p.ids,
-                    label=f"{label} ({len(p)})",
-                    color=plots.COLORS[j],
-                    title=_demo_label(key).removeprefix("ours: "),
-                )
-        doc.figure(
-            "residual_vectors.png",
-            axes[0],
-            f"Predicted − actual robot position at each pair's image position, both panels magnified "
-            f"{scale:.3g} px per mm (see the key); arrows point in the image direction of the error.",
-        )
-    else:
+    if not picks:
         doc.p("Residual vectors: not drawn (no calibration fitted on the bundled paper data).", "muted")
+        return
+    ax, scale = _residual_panels(train, check, {k: with_check[k] for k in picks})
+    doc.figure(
+        "residual_vectors.png",
+        ax,
+        f"Predicted − actual robot position at each pair's image position, both panels magnified "
+        f"{scale:.3g} px per mm (see the key); arrows point in the image direction of the error.",
+    )
 
-    # Tables 3 and 4
+
+def _residual_panels(train: PointPairs, check: PointPairs, shown: Mapping[str, Calibration]):
+    """One panel of training and check residual vectors per calibration, all at one scale (px per
+    mm): ``(the first panel's axes, the scale)``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from eyetohand.reports import plots
+
+    fig = Figure(figsize=(5.4 * len(shown), 6.0), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(shown), squeeze=False)[0]
+    all_res = [c.model.residuals(p.uv_px, p.xyz_mm) for c in shown.values() for p in (train, check)]
+    top = max(float(np.linalg.norm(r[:, :2], axis=1).max()) for r in all_res)
+    extent = float(np.ptp(np.vstack([train.uv_px, check.uv_px]), axis=0).max())
+    scale = 0.1 * extent / top if top > 0 else 1.0
+    for axi, (key, c) in zip(axes, shown.items(), strict=True):
+        for j, (label, p) in enumerate((("training", train), ("check", check))):
+            res = c.model.residuals(p.uv_px, p.xyz_mm)
+            jac = image_jacobian(c.model, p.uv_px, p.xyz_mm[:, 2])
+            plots.plot_residual_vectors(
+                p.uv_px,
+                res,
+                axi,
+                None,
+                scale,
+                jacobian_mm_per_px=jac,
+                ids=p.ids,
+                label=f"{label} ({len(p)})",
+                color=plots.COLORS[j],
+                title=_demo_label(key).removeprefix("ours: "),
+            )
+    return axes[0], scale
+
+
+def _published_tables(doc: Document, check: PointPairs, t3: Mapping, t4: Mapping | None) -> None:
+    """Tables 3 and 4: each check point's published error beside ours."""
     doc.h2("Tables 3 and 4: published against ours", "tables")
     actual = check.xyz_mm
     for title, s in (
@@ -380,9 +408,9 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
         if not s:
             doc.p(f"{title}: not computed (optimizer unavailable).", "warn")
             continue
-        doc.add(f"<h3>{_e(title)}</h3>")
+        doc.h3(title)
         rows = []
-        for i, pid in enumerate(ids):
+        for i, pid in enumerate(check.ids):
             rows.append(
                 [
                     pid,
@@ -403,7 +431,9 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
         )
     doc.p("Published RMS and max are over the legible rows.", "muted")
 
-    # all models
+
+def _all_calibrations(doc: Document, cals: Mapping[str, Calibration]) -> None:
+    """One row per calibration of the run: fitness, training and check errors against the paper's."""
     doc.h2("All calibrations of this run", "models")
     rows = []
     for key, c in cals.items():
@@ -436,27 +466,28 @@ def build_demo_report(results: Mapping, cals: Mapping[str, Calibration]) -> tupl
     )
     doc.p("Fitness (eq. 16) is the 2-norm of all 16 training residuals: √16 = 4 × the training RMS.", "muted")
 
+
+def _details(doc: Document, cals: Mapping[str, Calibration], check: PointPairs) -> None:
+    """Each calibration folded away: its statistics, check points, notes, fit and parameters."""
     doc.h2("Details of each calibration", "details")
     for key, c in cals.items():
-        doc.add(f"<details><summary>{_e(key)} — {_e(c.model_name)} + {_e(c.fit.optimizer)}</summary>")
-        _stats_table(
-            doc,
-            [
-                ("train", c.train, "fit residuals"),
-                ("leave-one-out", c.loo, "held out"),
-                ("check", c.check, "check points"),
-            ],
-        )
-        if c.check is not None:
-            _points_table(doc, c.check, check)
-        doc.add("<h3>Notes</h3>")
-        _notes(doc, list(c.notes))
-        doc.add("<h3>Fit</h3>")
-        _fit_table(doc, c)
-        doc.add("<h3>Parameters</h3>")
-        _params_section(doc, c)
-        doc.add("</details>")
-    return doc.render("eyetohand demo"), doc.files
+        with doc.details(f"{key} — {c.model_name} + {c.fit.optimizer}"):
+            stats_table(
+                doc,
+                [
+                    ("train", c.train, "fit residuals"),
+                    ("leave-one-out", c.loo, "held out"),
+                    ("check", c.check, "check points"),
+                ],
+            )
+            if c.check is not None:
+                points_table(doc, c.check, check)
+            doc.h3("Notes")
+            doc.notes(list(c.notes))
+            doc.h3("Fit")
+            fit_table(doc, c)
+            doc.h3("Parameters")
+            params_section(doc, c)
 
 
 def write_demo_report(out_dir: str | os.PathLike, results: Mapping, cals: Mapping[str, Calibration]) -> Path:
@@ -470,4 +501,4 @@ def write_demo_report(out_dir: str | os.PathLike, results: Mapping, cals: Mappin
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
     text, files = build_demo_report(results, cals)
-    return _write_all(out, text, files)
+    return write_folder(out, text, files)

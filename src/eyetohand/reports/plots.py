@@ -285,35 +285,10 @@ def plot_residual_vectors(
         raise InputError("plot_residual_vectors: no points")
     d = res[:, :2]
     mag = np.linalg.norm(d, axis=1)
-    if jacobian_mm_per_px is not None:
-        J = np.broadcast_to(np.asarray(jacobian_mm_per_px, dtype=float), (len(uv), 2, 2))
-        try:
-            duv = np.linalg.solve(J, d[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            raise InputError("plot_residual_vectors: singular Jacobian") from None
-        nrm = np.linalg.norm(duv, axis=1)
-        direction = np.divide(duv, nrm[:, None], out=np.zeros_like(duv), where=nrm[:, None] > 0)
-    else:
-        direction = np.divide(d, mag[:, None], out=np.zeros_like(d), where=mag[:, None] > 0)
+    direction = _arrow_directions(d, mag, jacobian_mm_per_px)
     if ax is None:
         ax = _new_axes((7.0, 6.4))
-    # limits and the auto scale come from every set drawn on this axes so far
-    all_uv = np.vstack([getattr(ax, "_eyetohand_uv", np.empty((0, 2))), uv])
-    ax._eyetohand_uv = all_uv
-    if image_size is not None:
-        w, h = (float(image_size[0]), float(image_size[1]))
-        extent = max(w, h)
-    else:
-        extent = float(max(np.ptp(all_uv, axis=0).max(), 1.0))
-    if scale is None:
-        scale = getattr(ax, "_eyetohand_scale_px_per_mm", None)
-    if scale is None:
-        biggest = float(mag.max())
-        scale = 0.1 * extent / biggest if biggest > 0 else 1.0
-    scale = float(scale)
-    if not (scale > 0 and math.isfinite(scale)):
-        raise InputError(f"scale must be a positive number of px per mm, got {scale!r}")
-    ax._eyetohand_scale_px_per_mm = scale
+    all_uv, extent, scale = _extent_and_scale(ax, uv, mag, image_size, scale)
     vec = direction * mag[:, None] * scale  # px on the image axes
     n_sets = getattr(ax, "_eyetohand_sets", 0)
     ax._eyetohand_sets = n_sets + 1
@@ -334,27 +309,10 @@ def plot_residual_vectors(
         zorder=4,
     )
     if ids is not None:
-        if len(ids) != len(uv):
-            raise InputError(f"plot_residual_vectors: {len(ids)} ids for {len(uv)} points")
-        shown = (
-            np.arange(len(uv))
-            if len(uv) <= MAX_ID_LABELS
-            else np.argsort(-mag, kind="stable")[: max(0, label_largest)]
-        )
-        for (u, v), name in zip(uv[shown], np.asarray(ids, dtype=object)[shown], strict=True):
-            ax.annotate(
-                str(name),
-                (u, v),
-                xytext=(3, -3),
-                textcoords="offset points",
-                fontsize=7,
-                color=color,
-                ha="left",
-                va="top",
-            )
+        _label_points(ax, uv, mag, ids, color, label_largest)
     if image_size is not None:
-        ax.set_xlim(0, w)
-        ax.set_ylim(h, 0)
+        ax.set_xlim(0, float(image_size[0]))
+        ax.set_ylim(float(image_size[1]), 0)
     else:
         pad = 0.12 * extent
         ax.set_xlim(all_uv[:, 0].min() - pad, all_uv[:, 0].max() + pad)
@@ -364,24 +322,88 @@ def plot_residual_vectors(
     ax.set_ylabel("v [px] (down)")
     ax.grid(True, alpha=0.25)
     if key and not getattr(ax, "_eyetohand_key", False):
-        ref_mm = nice_step(0.1 * extent / scale)
-        ax.quiverkey(
-            q,
-            0.93,
-            1.025,
-            ref_mm * scale,
-            f"key: {_fmt_mm(ref_mm).rstrip('0').rstrip('.')} mm",
-            labelpos="W",
-            coordinates="axes",
-            color="0.2",
-            fontproperties={"size": 8},
-        )
-        ax._eyetohand_key = True
+        _scale_key(ax, q, extent, scale)
     if label:
         ax.legend(fontsize=8, loc="best", framealpha=0.9)
     if title:
         ax.set_title(title, loc="left", fontsize=10.5)
     return ax
+
+
+def _extent_and_scale(
+    ax, uv: np.ndarray, mag: np.ndarray, image_size: tuple[int, int] | None, scale: float | None
+) -> tuple[np.ndarray, float, float]:
+    """``(all_uv, extent px, scale px per mm)`` of a set of arrows drawn on ``ax``: the positions of
+    every set drawn there so far (kept on the axes), the image's or their spread's larger side, and
+    the scale given, else the one of the axes' earlier sets, else a tenth of the extent for the
+    largest error (kept on the axes too)."""
+    all_uv = np.vstack([getattr(ax, "_eyetohand_uv", np.empty((0, 2))), uv])
+    ax._eyetohand_uv = all_uv
+    if image_size is not None:
+        extent = max(float(image_size[0]), float(image_size[1]))
+    else:
+        extent = float(max(np.ptp(all_uv, axis=0).max(), 1.0))
+    if scale is None:
+        scale = getattr(ax, "_eyetohand_scale_px_per_mm", None)
+    if scale is None:
+        biggest = float(mag.max())
+        scale = 0.1 * extent / biggest if biggest > 0 else 1.0
+    scale = float(scale)
+    if not (scale > 0 and math.isfinite(scale)):
+        raise InputError(f"scale must be a positive number of px per mm, got {scale!r}")
+    ax._eyetohand_scale_px_per_mm = scale
+    return all_uv, extent, scale
+
+
+def _arrow_directions(d: np.ndarray, mag: np.ndarray, jacobian_mm_per_px) -> np.ndarray:
+    """(N, 2) unit image directions of the residuals ``d`` (N, 2) mm of norms ``mag``: through the
+    Jacobian when given (``d`` turned into pixels), else dx along +u and dy along +v; 0 for no error."""
+    if jacobian_mm_per_px is None:
+        return np.divide(d, mag[:, None], out=np.zeros_like(d), where=mag[:, None] > 0)
+    J = np.broadcast_to(np.asarray(jacobian_mm_per_px, dtype=float), (len(d), 2, 2))
+    try:
+        duv = np.linalg.solve(J, d[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        raise InputError("plot_residual_vectors: singular Jacobian") from None
+    nrm = np.linalg.norm(duv, axis=1)
+    return np.divide(duv, nrm[:, None], out=np.zeros_like(duv), where=nrm[:, None] > 0)
+
+
+def _label_points(ax, uv: np.ndarray, mag: np.ndarray, ids: Sequence[str], color: str, largest: int) -> None:
+    """Each point's id beside it; beyond :data:`MAX_ID_LABELS` points, only the ``largest`` errors'."""
+    if len(ids) != len(uv):
+        raise InputError(f"plot_residual_vectors: {len(ids)} ids for {len(uv)} points")
+    shown = (
+        np.arange(len(uv)) if len(uv) <= MAX_ID_LABELS else np.argsort(-mag, kind="stable")[: max(0, largest)]
+    )
+    for (u, v), name in zip(uv[shown], np.asarray(ids, dtype=object)[shown], strict=True):
+        ax.annotate(
+            str(name),
+            (u, v),
+            xytext=(3, -3),
+            textcoords="offset points",
+            fontsize=7,
+            color=color,
+            ha="left",
+            va="top",
+        )
+
+
+def _scale_key(ax, q, extent: float, scale: float) -> None:
+    """The arrows' key above the axes: a round number of mm near a tenth of ``extent`` px."""
+    ref_mm = nice_step(0.1 * extent / scale)
+    ax.quiverkey(
+        q,
+        0.93,
+        1.025,
+        ref_mm * scale,
+        f"key: {_fmt_mm(ref_mm).rstrip('0').rstrip('.')} mm",
+        labelpos="W",
+        coordinates="axes",
+        color="0.2",
+        fontproperties={"size": 8},
+    )
+    ax._eyetohand_key = True
 
 
 # ------------------------------------------------------------------ compare rows

@@ -1,79 +1,40 @@
-"""The HTML report of a calibration (``eyetohand report``); its building blocks also make the paper
-reproduction's page (:func:`eyetohand.reports.demo.write_demo_report`).
+"""The HTML report of a calibration (``eyetohand report``).
 
 A report is a folder with ``index.html`` and the PNG plots. ``index.html`` is self-contained: inline
 CSS, the plots embedded as base64, so the one file can be mailed or archived alone; the PNGs are
 written beside it for reuse. Everything is computed in memory first and then written file by file
 atomically, ``index.html`` last: a run that fails leaves an earlier report as it was.
 
+The page is built with :mod:`eyetohand.reports.html`; its calibration parts (statistics, per-point
+residuals, fit, parameters) are those of :mod:`eyetohand.reports.sections`, which the paper
+reproduction's page (:func:`eyetohand.reports.demo.write_demo_report`) shows too.
+
 Units everywhere: robot errors, fitness and statistics in mm, image positions in px.
 """
 
 from __future__ import annotations
 
-import base64
-import datetime as _dt
-import html
-import io
-import json
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from eyetohand._version import __version__
 from eyetohand.calibration import Calibration
-from eyetohand.core import InputError, PointPairs, atomic_write_bytes, atomic_write_text
+from eyetohand.core import InputError, PointPairs
+from eyetohand.reports.html import Document, mm, write_folder
+from eyetohand.reports.sections import (
+    fit_table,
+    image_jacobian,
+    params_section,
+    points_table,
+    selection_table,
+    stats_table,
+)
 from eyetohand.solve import Stats, evaluate
 
 __all__ = ["build_report", "write_report"]
-
-PNG_NAMES = (
-    "convergence.png",
-    "check_errors.png",
-    "train_errors.png",
-    "residual_vectors.png",
-    "point_errors.png",
-)
-
-
-# ------------------------------------------------------------------ small helpers
-
-
-def _e(text) -> str:
-    return html.escape(str(text), quote=True)
-
-
-def mm(value, digits: int = 4) -> str:
-    """A millimetre value as the tables print it (4 decimals: 0.1 µm); '—' for a missing value."""
-    if value is None:
-        return "—"
-    v = float(value)
-    if not np.isfinite(v):
-        return "—"
-    text = f"{v:.{digits}f}"
-    return text[1:] if text.startswith("-") and float(text) == 0 else text  # no "-0.0000"
-
-
-_PLACEHOLDERS = ("", "—", "n/a", "illegible")
-
-
-def _is_numeric(cell: str) -> bool:
-    """True for a formatted number such as '0.0269', '-3', '+12 %', '16'."""
-    text = str(cell).strip().removesuffix("%").strip()
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
-def _png(ax) -> bytes:
-    """The figure of ``ax`` as PNG bytes (rendered in memory)."""
-    buf = io.BytesIO()
-    ax.figure.savefig(buf, format="png", dpi=110)
-    return buf.getvalue()
 
 
 def _fitness_label(objective: str) -> str:
@@ -84,306 +45,28 @@ def _fitness_label(objective: str) -> str:
     }.get(objective, "best fitness [mm]")
 
 
-def _jacobian(model, uv_px: np.ndarray, z_mm: np.ndarray, step_px: float = 0.5) -> np.ndarray:
-    """(N, 2, 2) derivative of robot (x, y) [mm] with respect to image (u, v) [px], central differences."""
-    cols = []
-    for k in range(2):
-        dv = np.zeros(2)
-        dv[k] = step_px
-        plus = model.image_to_robot(uv_px + dv, z_mm)[:, :2]
-        minus = model.image_to_robot(uv_px - dv, z_mm)[:, :2]
-        cols.append((plus - minus) / (2 * step_px))
-    return np.stack(cols, axis=2)
-
-
-class _Doc:
-    """An HTML document being assembled, with the PNGs it embeds."""
-
-    def __init__(self, title: str):
-        self.title = title
-        self.parts: list[str] = []
-        self.files: dict[str, bytes] = {}
-
-    def add(self, fragment: str) -> None:
-        self.parts.append(fragment)
-
-    def h2(self, text: str, anchor: str) -> None:
-        self.add(f'<h2 id="{_e(anchor)}">{_e(text)}</h2>')
-
-    def p(self, text: str, cls: str = "") -> None:
-        c = f' class="{cls}"' if cls else ""
-        self.add(f"<p{c}>{_e(text)}</p>")
-
-    def figure(self, name: str, ax, caption: str) -> None:
-        data = _png(ax)
-        self.files[name] = data
-        b64 = base64.b64encode(data).decode("ascii")
-        self.add(
-            f'<figure><img src="data:image/png;base64,{b64}" alt="{_e(caption)}">'
-            f'<figcaption>{_e(caption)} <span class="muted">(also saved as {_e(name)})</span>'
-            "</figcaption></figure>"
-        )
-
-    def table(
-        self, header: list[str] | None, rows: list[list[str]], *, row_classes: list[str] | None = None
-    ) -> None:
-        """A table of already formatted cells. Numeric cells (and their columns' headers) are right
-        aligned in tabular figures; ``header=None`` gives a key–value table without a header row."""
-        ncol = max([len(header or [])] + [len(r) for r in rows])
-        numeric_col = [
-            all(_is_numeric(r[i]) for r in rows if i < len(r) and r[i] not in _PLACEHOLDERS)
-            and any(i < len(r) and r[i] not in _PLACEHOLDERS for r in rows)
-            for i in range(ncol)
-        ]
-        out = ['<div class="scroll"><table>']
-        if header:
-            out.append("<thead><tr>")
-            for i, h in enumerate(header):
-                out.append(f'<th class="{"num" if numeric_col[i] else ""}">{_e(h)}</th>')
-            out.append("</tr></thead>")
-        out.append("<tbody>")
-        for r_i, row in enumerate(rows):
-            rc = row_classes[r_i] if row_classes else ""
-            out.append(f'<tr class="{rc}">' if rc else "<tr>")
-            for i, cell in enumerate(row):
-                cls = "num" if numeric_col[i] else ("key" if header is None and i == 0 else "")
-                out.append(f'<td class="{cls}">{_e(cell)}</td>' if cls else f"<td>{_e(cell)}</td>")
-            out.append("</tr>")
-        out.append("</tbody></table></div>")
-        self.add("".join(out))
-
-    def render(self, subtitle: str = "") -> str:
-        now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-        return (
-            '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-            f'<meta name="generator" content="eyetohand {_e(__version__)}">'
-            '<meta name="viewport" content="width=device-width, initial-scale=1">'
-            f"<title>{_e(self.title)}</title><style>{CSS}</style></head><body><main>"
-            f'<header><h1>{_e(self.title)}</h1><p class="muted">{_e(subtitle)}'
-            f"{' · ' if subtitle else ''}generated {_e(now)} by eyetohand {_e(__version__)} · "
-            "units: robot mm, image px</p></header>\n" + "\n".join(self.parts) + "\n</main></body></html>\n"
-        )
-
-
-CSS = """
-:root { --fg:#1b1f24; --muted:#5b6570; --line:#d6dbe1; --zebra:#f5f7f9; --accent:#0072B2; --warn:#b35900; }
-* { box-sizing: border-box; }
-body { margin:0; color:var(--fg); background:#fff;
-  font: 14px/1.45 system-ui, -apple-system, "Segoe UI", Roboto, "Helvetica Neue", Arial, sans-serif; }
-main { max-width: 1080px; margin: 0 auto; padding: 24px 28px 60px; }
-header { border-bottom: 2px solid var(--accent); margin-bottom: 18px; }
-h1 { font-size: 22px; margin: 0 0 4px; }
-h2 { font-size: 17px; margin: 30px 0 8px; padding-bottom: 3px; border-bottom: 1px solid var(--line); }
-h3 { font-size: 14.5px; margin: 18px 0 6px; }
-p { margin: 6px 0; }
-.muted { color: var(--muted); font-size: 12.5px; }
-.warn { color: var(--warn); }
-.cards { display: flex; flex-wrap: wrap; gap: 12px; margin: 10px 0 4px; }
-.card { border: 1px solid var(--line); border-radius: 6px; padding: 8px 14px; min-width: 150px; }
-.card .k { color: var(--muted); font-size: 12px; }
-.card .v { font-size: 20px; font-weight: 600; font-variant-numeric: tabular-nums; }
-.card .u { font-size: 12px; color: var(--muted); margin-left: 3px; }
-table { border-collapse: collapse; margin: 8px 0 12px; font-size: 13px; }
-th, td { padding: 3px 10px; border-bottom: 1px solid var(--line); text-align: left; vertical-align: top; }
-th { background: #eef1f4; font-weight: 600; vertical-align: bottom; }
-th.num { text-align: right; }
-td.num { text-align: right; font-variant-numeric: tabular-nums;
-  font-family: ui-monospace, "SFMono-Regular", Menlo, Consolas, monospace; }
-.scroll { overflow-x: auto; max-width: 100%; }
-tbody tr:nth-child(even) { background: var(--zebra); }
-td.key { color: var(--muted); white-space: nowrap; padding-right: 18px; }
-tr.outlier td { background: #fff1e0; }
-tr.summary td { font-weight: 600; border-top: 2px solid var(--line); }
-figure { margin: 12px 0 18px; }
-figure img { max-width: 100%; height: auto; border: 1px solid var(--line); }
-figcaption { font-size: 12.5px; color: var(--muted); margin-top: 3px; }
-ul.notes { margin: 4px 0; padding-left: 20px; }
-pre { background: var(--zebra); padding: 6px 8px; overflow-x: auto; font-size: 12px; margin: 2px 0; }
-details { margin: 8px 0; }
-summary { cursor: pointer; font-weight: 600; }
-nav a { margin-right: 12px; font-size: 13px; }
-@media print { details { display: block; } main { padding: 0; } }
-"""
-
-
-def _cards(doc: _Doc, items: list[tuple[str, str, str]]) -> None:
-    parts = ['<div class="cards">']
-    for k, v, u in items:
-        parts.append(
-            f'<div class="card"><div class="k">{_e(k)}</div><div class="v">{_e(v)}'
-            f'<span class="u">{_e(u)}</span></div></div>'
-        )
-    parts.append("</div>")
-    doc.add("".join(parts))
-
-
-def _stats_table(doc: _Doc, sets: list[tuple[str, Stats | None, str]]) -> None:
-    rows, classes = [], []
-    for label, s, what in sets:
-        if s is None:
-            continue
-        outl = ("id " + ", ".join(s.outliers)) if s.outliers else "none"
-        rows.append([label, str(s.n), mm(s.rms_mm), mm(s.mean_mm), mm(s.p95_mm), mm(s.max_mm), outl, what])
-        classes.append("")
-    if rows:
-        doc.table(
-            ["set", "n", "RMS [mm]", "mean [mm]", "p95 [mm]", "max [mm]", "outliers", "what it is"],
-            rows,
-            row_classes=classes,
-        )
-        doc.p(
-            "Error of a point = ‖predicted − actual‖ in robot space. Outlier: error above median + "
-            "3 robust σ (1.4826 × MAD) of the set's errors.",
-            "muted",
-        )
-
-
-def _positions_by_id(pairs: PointPairs | None) -> dict[str, tuple[float, float, float]]:
-    """id → (u px, v px, z mm) of the pairs, empty without pairs."""
-    if pairs is None:
-        return {}
-    return {
-        i: (float(uv[0]), float(uv[1]), float(xyz[2]))
-        for i, uv, xyz in zip(pairs.ids, pairs.uv_px, pairs.xyz_mm, strict=True)
-    }
-
-
-LONG_TABLE_ROWS = 50
-
-
-def _points_table(doc: _Doc, s: Stats, pairs: PointPairs | None, loo: Stats | None = None) -> None:
-    """Per point residuals; positions from ``pairs`` when given (z only when it varies)."""
-    pos = _positions_by_id(pairs)
-    show_z = pairs is not None and bool(pos) and len(pairs.z_levels_mm) > 1
-    loo_e = {p.id: p.error_mm for p in loo.points} if loo else {}
-    show_dz = any(abs(p.dz_mm) > 0 for p in s.points)
-    header = ["id"] + (["u [px]", "v [px]"] if pos else []) + (["z [mm]"] if show_z else [])
-    header += ["dx [mm]", "dy [mm]"] + (["dz [mm]"] if show_dz else []) + ["‖Δ‖ [mm]"]
-    header += (["leave-one-out ‖Δ‖ [mm]"] if loo else []) + ["flag"]
-    rows, classes = [], []
-    for p in s.points:
-        row = [p.id]
-        if pos:
-            u, v, z = pos.get(p.id, (float("nan"),) * 3)
-            row += [f"{u:.2f}" if np.isfinite(u) else "—", f"{v:.2f}" if np.isfinite(v) else "—"]
-            if show_z:
-                row.append(f"{z:g}" if np.isfinite(z) else "—")
-        row += [mm(p.dx_mm), mm(p.dy_mm)] + ([mm(p.dz_mm)] if show_dz else []) + [mm(p.error_mm)]
-        if loo:
-            row.append(mm(loo_e.get(p.id)))
-        row.append("outlier" if p.outlier else "")
-        rows.append(row)
-        classes.append("outlier" if p.outlier else "")
-    long = len(rows) > LONG_TABLE_ROWS
-    if long:
-        n_out = sum(1 for p in s.points if p.outlier)
-        doc.add(
-            f"<details><summary>{len(rows)} points ({n_out} flagged as outliers): show the table</summary>"
-        )
-    doc.table(header, rows, row_classes=classes)
-    if long:
-        doc.add("</details>")
-
-
-def _params_section(doc: _Doc, cal: Calibration) -> None:
-    m = cal.model
-    d = m.to_dict()
-    doc.p(f"model '{m.name}': {type(m).summary}" if type(m).summary else f"model '{m.name}'")
-    rows = [[f"p[{i}]", f"{v:.12g}"] for i, v in enumerate(d["params"])]
-    doc.table(["parameter", "value"], rows)
-    meta = d.get("meta") or {}
-    if meta:
-        doc.add("<h3>Model constants</h3>")
-        parts = ["<table><thead><tr><th>name</th><th>value</th></tr></thead><tbody>"]
-        for k, v in meta.items():
-            text = json.dumps(v, indent=None) if isinstance(v, (list, dict)) else str(v)
-            if isinstance(v, list) and v and isinstance(v[0], list):
-                text = "\n".join(json.dumps(r) for r in v)
-            parts.append(f"<tr><td>{_e(k)}</td><td><pre>{_e(text)}</pre></td></tr>")
-        parts.append("</tbody></table>")
-        doc.add("".join(parts))
-    doc.p(
-        "Parameters are in the model's normalised coordinates (see the constants); the calibration "
-        "JSON holds them bit-exact.",
-        "muted",
-    )
-
-
-def _fit_table(doc: _Doc, cal: Calibration) -> None:
-    f = cal.fit
-    unit = "mm²" if f.objective == "huber" else "mm"
-    rows = [
-        ["model", cal.model_name],
-        ["optimizer", f.optimizer],
-        ["objective", f.objective],
-        ["fitness (training, objective value)", f"{f.fitness:.6f} {unit}"],
-        ["iterations / function evaluations", f"{f.nit} / {f.nfev}"],
-        ["solver time", f"{f.seconds:.2f} s"],
-        ["seed", "—" if f.seed is None else str(f.seed)],
-        ["solver message", f.message or "—"],
-        ["image size", f"{cal.image_size[0]} × {cal.image_size[1]} px" if cal.image_size else "not given"],
-        ["training data SHA-256", cal.data_sha256 or "—"],
-        ["created (UTC)", cal.created_utc or "—"],
-        ["eyetohand version", cal.version or "—"],
-    ]
-    for k, v in f.extra.items():
-        rows.append([k, f"{v:.6g}" if isinstance(v, float) else str(v)])
-    doc.table(None, rows)
-
-
-def _selection_section(doc: _Doc, sel: Mapping) -> None:
-    doc.p(
-        f"auto selection chose '{sel.get('chosen')}': {sel.get('reason', '')}"
-        + (f" ({sel['method']} cross-validation)" if sel.get("method") else "")
-    )
-    rows = []
-    for r in sel.get("candidates", []):
-        rows.append(
-            [
-                str(r.get("model")),
-                str(r.get("unknowns", "")),
-                mm(r.get("cv_rms_mm")),
-                mm(r.get("cv_max_mm")),
-                "chosen" if r.get("model") == sel.get("chosen") else ("yes" if r.get("considered") else "no"),
-                r.get("why", ""),
-            ]
-        )
-    doc.table(
-        ["candidate", "unknowns", "held-out RMS [mm]", "held-out max [mm]", "considered", "why not"], rows
-    )
-
-
-def _notes(doc: _Doc, notes: list[str], warn: bool = False) -> None:
-    if not notes:
-        doc.p("none", "muted")
-        return
-    cls = ' class="warn"' if warn else ""
-    doc.add('<ul class="notes">' + "".join(f"<li{cls}>{_e(n)}</li>" for n in notes) + "</ul>")
-
-
 # ------------------------------------------------------------------ one calibration
 
 
-def build_report(
-    calibration: Calibration,
-    check_pairs: PointPairs | None = None,
-    train_pairs: PointPairs | None = None,
-    extra: Mapping | None = None,
-    *,
-    title: str | None = None,
-) -> tuple[str, dict[str, bytes]]:
-    """The report of one calibration, in memory: ``(index.html text, {png name: bytes})``.
+@dataclass
+class _Evaluated:
+    """The statistics a report shows, recomputed on the pairs it was given."""
 
-    ``check_pairs``: pairs not used for fitting; the check statistics are recomputed on them (and
-    replace any stored ones). ``train_pairs``: the pairs the calibration was fitted on, for the image
-    positions of the residual-vector plot; if their SHA-256 differs from the calibration's, they
-    are shown as "given pairs" with a warning. ``extra``: more name → value rows for the header.
-    """
-    from eyetohand.reports import plots
+    check: Stats | None
+    train: Stats
+    #: "train", or "given pairs" when the pairs given are not the ones the calibration was fitted on
+    train_label: str
+    train_what: str
+    notes: list[str]
+    warnings: list[str]
 
-    cal = calibration
-    if not isinstance(cal, Calibration):
-        raise InputError(f"write_report needs a Calibration, got {type(cal).__name__}")
+    @property
+    def fitted(self) -> bool:
+        """True when ``train`` is the calibration's own training residuals."""
+        return self.train_label == "train"
+
+
+def _evaluate(cal: Calibration, check_pairs: PointPairs | None, train_pairs: PointPairs | None) -> _Evaluated:
     notes = list(cal.notes)
     warnings: list[str] = []
     check = cal.check
@@ -402,55 +85,106 @@ def build_report(
                 f"(SHA-256 differs{'' if cal.data_sha256 else ': the calibration records none'}): "
                 "its statistics are shown as 'given pairs', not as training residuals"
             )
-    doc = _Doc(title or f"Calibration report — {cal.model_name} + {cal.fit.optimizer}")
+    return _Evaluated(check, train, train_label, train_what, notes, warnings)
+
+
+def build_report(
+    calibration: Calibration,
+    check_pairs: PointPairs | None = None,
+    train_pairs: PointPairs | None = None,
+    extra: Mapping | None = None,
+    *,
+    title: str | None = None,
+) -> tuple[str, dict[str, bytes]]:
+    """The report of one calibration, in memory: ``(index.html text, {png name: bytes})``.
+
+    ``check_pairs``: pairs not used for fitting; the check statistics are recomputed on them (and
+    replace any stored ones). ``train_pairs``: the pairs the calibration was fitted on, for the image
+    positions of the residual-vector plot; if their SHA-256 differs from the calibration's, they
+    are shown as "given pairs" with a warning. ``extra``: more name → value rows for the header.
+    """
+    cal = calibration
+    if not isinstance(cal, Calibration):
+        raise InputError(f"write_report needs a Calibration, got {type(cal).__name__}")
+    ev = _evaluate(cal, check_pairs, train_pairs)
+    doc = Document(title or f"Calibration report — {cal.model_name} + {cal.fit.optimizer}")
     doc.add(
         '<nav><a href="#summary">summary</a><a href="#accuracy">accuracy</a><a href="#plots">plots</a>'
         '<a href="#points">per point</a><a href="#fit">fit</a><a href="#params">parameters</a></nav>'
     )
+    _summary(doc, cal, ev, extra)
+    _accuracy(doc, cal, ev)
+    _plots(doc, cal, ev, check_pairs, train_pairs)
+    doc.h2("Per point residuals", "points")
+    if ev.check is not None:
+        doc.h3("Check points")
+        points_table(doc, ev.check, check_pairs)
+    doc.h3("Training points" if ev.fitted else "Given pairs")
+    points_table(doc, ev.train, train_pairs, cal.loo if ev.fitted else None)
+    doc.h2("Fit", "fit")
+    fit_table(doc, cal)
+    doc.h2("Parameters", "params")
+    params_section(doc, cal)
+    return doc.render(), doc.files
 
-    # summary
+
+def _summary(doc: Document, cal: Calibration, ev: _Evaluated, extra: Mapping | None) -> None:
+    """Key figures, the caller's extra rows, the warnings."""
     doc.h2("Summary", "summary")
     cards = [
         ("model", cal.model_name, ""),
         ("optimizer", cal.fit.optimizer, ""),
         ("training fitness", f"{cal.fit.fitness:.5f}", "mm²" if cal.fit.objective == "huber" else "mm"),
     ]
-    if check is not None:
-        cards += [("check RMS", mm(check.rms_mm), "mm"), ("check max", mm(check.max_mm), "mm")]
+    if ev.check is not None:
+        cards += [("check RMS", mm(ev.check.rms_mm), "mm"), ("check max", mm(ev.check.max_mm), "mm")]
     elif cal.loo is not None:
         cards += [
             ("leave-one-out RMS", mm(cal.loo.rms_mm), "mm"),
             ("leave-one-out max", mm(cal.loo.max_mm), "mm"),
         ]
-    cards.append((f"{train_label} RMS", mm(train.rms_mm), "mm"))
-    _cards(doc, cards)
+    cards.append((f"{ev.train_label} RMS", mm(ev.train.rms_mm), "mm"))
+    doc.cards(cards)
     if extra:
         doc.table(None, [[str(k), str(v)] for k, v in extra.items()])
-    if check is None:
+    if ev.check is None:
         doc.p(
             "No check pairs: accuracy on unseen points is estimated by leave-one-out only. "
             "Give check pairs (--check) to measure it.",
             "warn",
         )
-    if warnings:
-        _notes(doc, warnings, warn=True)
+    if ev.warnings:
+        doc.notes(ev.warnings, warn=True)
 
+
+def _accuracy(doc: Document, cal: Calibration, ev: _Evaluated) -> None:
+    """The statistics of each set, the model selection, the notes."""
     doc.h2("Accuracy", "accuracy")
-    _stats_table(
+    stats_table(
         doc,
         [
-            (train_label, train, train_what),
+            (ev.train_label, ev.train, ev.train_what),
             ("leave-one-out", cal.loo, "each training pair predicted by a fit without it"),
-            ("check", check, "pairs not used for fitting"),
+            ("check", ev.check, "pairs not used for fitting"),
         ],
     )
     if cal.selection:
-        doc.add("<h3>Model selection</h3>")
-        _selection_section(doc, cal.selection)
-    doc.add("<h3>Notes</h3>")
-    _notes(doc, notes)
+        doc.h3("Model selection")
+        selection_table(doc, cal.selection)
+    doc.h3("Notes")
+    doc.notes(ev.notes)
 
-    # plots
+
+def _plots(
+    doc: Document,
+    cal: Calibration,
+    ev: _Evaluated,
+    check_pairs: PointPairs | None,
+    train_pairs: PointPairs | None,
+) -> None:
+    """Convergence, the errors per check and per training point, residual vectors, the sigma map."""
+    from eyetohand.reports import plots
+
     doc.h2("Plots", "plots")
     hist = cal.fit.history
     if len(hist) > 1:
@@ -466,19 +200,19 @@ def build_report(
             "(only hybrid-pso and pso do).",
             "muted",
         )
-    if check is not None:
+    if ev.check is not None:
         label = f"{cal.model_name} + {cal.fit.optimizer}"
         ax = plots.plot_point_errors(
-            {label: [p.error_mm for p in check.points]},
-            [p.id for p in check.points],
+            {label: [p.error_mm for p in ev.check.points]},
+            [p.id for p in ev.check.points],
             title="Error per check point",
         )
         doc.figure("check_errors.png", ax, "Error norm of each check point, robot space.")
-    tr = {f"{train_label} (fit residual)": [p.error_mm for p in train.points]}
-    if cal.loo is not None and train_label == "train":
+    tr = {f"{ev.train_label} (fit residual)": [p.error_mm for p in ev.train.points]}
+    if cal.loo is not None and ev.fitted:
         tr["leave-one-out"] = [p.error_mm for p in cal.loo.points]
     ax = plots.plot_point_errors(
-        tr, [p.id for p in train.points], xlabel="training point id", title="Error per training point"
+        tr, [p.id for p in ev.train.points], xlabel="training point id", title="Error per training point"
     )
     doc.figure(
         "train_errors.png",
@@ -486,25 +220,15 @@ def build_report(
         "Fit residual of each training point and, when computed, its "
         "leave-one-out error (the point predicted by a fit without it).",
     )
-    _residual_plot(doc, cal, [(train_label, train_pairs), ("check", check_pairs)])
+    _residual_plot(doc, cal, [(ev.train_label, train_pairs), ("check", check_pairs)])
     _sigma_map(doc, cal)
-
-    doc.h2("Per point residuals", "points")
-    if check is not None:
-        doc.add("<h3>Check points</h3>")
-        _points_table(doc, check, check_pairs)
-    doc.add(f"<h3>{_e('Training points' if train_label == 'train' else 'Given pairs')}</h3>")
-    _points_table(doc, train, train_pairs, cal.loo if train_label == "train" else None)
-
-    doc.h2("Fit", "fit")
-    _fit_table(doc, cal)
-    doc.h2("Parameters", "params")
-    _params_section(doc, cal)
-    return doc.render(), doc.files
 
 
 def _residual_plot(
-    doc: _Doc, cal: Calibration, sets: list[tuple[str, PointPairs | None]], name: str = "residual_vectors.png"
+    doc: Document,
+    cal: Calibration,
+    sets: list[tuple[str, PointPairs | None]],
+    name: str = "residual_vectors.png",
 ) -> None:
     """One quiver plot of the given pair sets (same scale); a note when no positions are known."""
     from eyetohand.reports import plots
@@ -522,7 +246,7 @@ def _residual_plot(
         res = cal.model.residuals(pairs.uv_px, pairs.xyz_mm)
         jac: np.ndarray | None
         try:
-            jac = _jacobian(cal.model, pairs.uv_px, pairs.xyz_mm[:, 2])
+            jac = image_jacobian(cal.model, pairs.uv_px, pairs.xyz_mm[:, 2])
             if not np.isfinite(jac).all() or (np.abs(np.linalg.det(jac)) < 1e-15).any():
                 jac = None
         except (InputError, ValueError, FloatingPointError):
@@ -562,7 +286,7 @@ def _residual_plot(
 SIGMA_GRID = 120
 
 
-def _sigma_map(doc: _Doc, cal: Calibration) -> None:
+def _sigma_map(doc: Document, cal: Calibration) -> None:
     """sigma_mm over the image with the calibrated region outlined: where it can be trusted."""
     from eyetohand.models import HeightRule
     from eyetohand.reports import plots
@@ -620,24 +344,6 @@ def _grown(hull: np.ndarray, margin_px: float) -> np.ndarray:
     return hull + margin_px * d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
 
 
-def _write_all(out_dir: str | os.PathLike, html_text: str, files: Mapping[str, bytes]) -> Path:
-    """Write the PNGs, then index.html, each atomically; drop our stale PNGs of an earlier run."""
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        for name, data in files.items():
-            atomic_write_bytes(out / name, data)
-        index = atomic_write_text(out / "index.html", html_text)
-        for name in PNG_NAMES:
-            if name not in files and (out / name).is_file():
-                (out / name).unlink()
-    except OSError as exc:
-        raise InputError(f"{out}: cannot write the report ({exc.strerror or exc})") from None
-    return index
-
-
 def write_report(
     out_dir: str | os.PathLike,
     calibration: Calibration,
@@ -654,4 +360,4 @@ def write_report(
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
     text, files = build_report(calibration, check_pairs, train_pairs, extra)
-    return _write_all(out, text, files)
+    return write_folder(out, text, files)
