@@ -187,7 +187,8 @@ def _loo_warm(model: str, optimizer: str, objective: str) -> bool:
     cls = get_model(model)
     if objective != "l2" or not cls.loo_warm_start:
         return False
-    return optimizer == "lm" or (optimizer == "linear" and cls.linear_in_params)
+    solver = get_solver(optimizer)
+    return solver.is_least_squares or (solver.is_linear and cls.linear_in_params)
 
 
 def cross_validate(
@@ -236,7 +237,7 @@ def _held_out(pairs, model, optimizer, objective, image_size, seed, full, refit)
             fast = None
         if fast is not None:
             return fast
-    if not refit and n <= LOO_MAX_PAIRS and objective == "l2" and optimizer == "lm":
+    if not refit and n <= LOO_MAX_PAIRS and objective == "l2" and get_solver(optimizer).is_least_squares:
         own = getattr(get_model(model), "leave_one_out", None)  # a model's own warm-started refits
         if own is not None:
             try:

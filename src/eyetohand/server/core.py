@@ -16,7 +16,7 @@ import numpy as np
 from eyetohand.calibration import Calibration, calibrate
 from eyetohand.core import InputError, PointPairs, pairs_from_records
 from eyetohand.server.schemas import FitOptions
-from eyetohand.solve import Stats, stats_from_residuals
+from eyetohand.solve import Stats, get_solver, stats_from_residuals
 
 
 class ApiError(Exception):
@@ -217,8 +217,6 @@ def map_points(
 
 # ---------------------------------------------------------------------- background jobs
 
-PSO_OPTIMIZERS = ("pso", "hybrid-pso")  # the solvers that report progress per iteration
-
 
 def fit_progress(job: Job, model: str, optimizer: str, iterations: int):
     """Set a fit job's phase; the swarm's progress callback (records the best fitness per
@@ -228,7 +226,7 @@ def fit_progress(job: Job, model: str, optimizer: str, iterations: int):
         if model == "auto"
         else f"fitting {model} with {optimizer}"
     )
-    if optimizer not in PSO_OPTIMIZERS:
+    if not get_solver(optimizer).is_swarm:  # only a swarm reports progress per iteration
         return None
 
     def progress(_iteration, best, *_):
@@ -248,7 +246,7 @@ def finish_fit(job: Job, fitted: Fitted, optimizer: str) -> None:
     """The fit's result on its job; a solver without progress (not a swarm, see
     :func:`fit_progress`) gives its whole history at once."""
     job.fitted = fitted
-    if optimizer not in PSO_OPTIMIZERS:
+    if not get_solver(optimizer).is_swarm:
         job.history = [_finite(h) for h in fitted.calibration.fit.history]
 
 
@@ -361,7 +359,7 @@ class Jobs:
     def check_pso_work(self, optimizer: str, particles: int, iterations: int) -> bool:
         """Whether ``optimizer`` is a swarm; refuses (422) a swarm of more particles × iterations
         than this server's limit."""
-        pso = optimizer in PSO_OPTIMIZERS
+        pso = get_solver(optimizer).is_swarm
         if pso and particles * iterations > self.max_pso_work:
             raise ApiError(
                 422,
