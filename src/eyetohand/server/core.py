@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from eyetohand.calibration import Calibration, calibrate
+from eyetohand.calibration import Calibration, FitRequest, calibrate_request
 from eyetohand.core import InputError, PointPairs, pairs_from_records
 from eyetohand.server.schemas import FitOptions
 from eyetohand.solve import Stats, get_solver, stats_from_residuals
@@ -92,18 +92,16 @@ def fit(opts: FitOptions, callback=None) -> Fitted:
     check = to_pairs(opts.check, "check") if opts.check else None
     kept, _ = split_excluded(pairs, opts.exclude)
     try:
-        cal = calibrate(
-            kept,
+        asked = FitRequest(
             model=opts.model,
             optimizer=opts.optimizer,
             objective=opts.objective,
-            check=check,
-            image_size=opts.image_size,
             seed=opts.seed,
-            callback=callback,
             n_particles=opts.particles,
             iterations=opts.iterations,
+            image_size=opts.image_size,
         )
+        cal = calibrate_request(asked, kept, check=check, callback=callback)
     except InputError as exc:
         raise input_error(exc, "pairs") from None
     try:  # what is stored and answered must be finite: a fit that is not is the pairs' fault
