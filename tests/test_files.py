@@ -42,7 +42,7 @@ def test_an_output_that_cannot_be_a_regular_file_is_refused_before_the_fit(
     import eyetohand.cli.common as common
 
     fitted = []
-    monkeypatch.setattr(common, "calibrate", lambda *a, **k: fitted.append(1))
+    monkeypatch.setattr(common, "calibrate_request", lambda *a, **k: fitted.append(1))
     code, out, err = run(capsys, "calibrate", TRAIN, "--model", "affine", "-o", str(target))
     assert code == 2 and not fitted, "refused before the fit"
     assert err.startswith("error: ") and err.count("\n") == 1 and str(target) in err

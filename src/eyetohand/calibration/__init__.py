@@ -6,15 +6,18 @@ from eyetohand.calibration.compare import compare, format_compare
 from eyetohand.calibration.export import FORMATS, export_text
 from eyetohand.calibration.file import Calibration, Mapped
 from eyetohand.calibration.fit import MAX_IMAGE_SIDE_PX, calibrate, check_image_size
+from eyetohand.calibration.request import FitRequest, calibrate_request
 from eyetohand.calibration.verify import append_history, check_tolerance, verify
 
 __all__ = [
     "Calibration",
     "FORMATS",
+    "FitRequest",
     "MAX_IMAGE_SIDE_PX",
     "Mapped",
     "append_history",
     "calibrate",
+    "calibrate_request",
     "check_image_size",
     "check_tolerance",
     "compare",

@@ -88,7 +88,7 @@ def _no_matrix_reason(cal: Calibration) -> str | None:
         )
     if not isinstance(model, PlanarMatrixModel):
         return f"model '{model.name}' is not a matrix model; export --format csv or json"
-    if type(model)._ideal_px is not PlanarMatrixModel._ideal_px:
+    if model.corrects_lens:
         return (
             f"model '{model.name}' corrects lens distortion before its matrix, so no matrix maps the "
             "camera's pixels; export --format csv (a grid), json, or calibrate with homography"

@@ -187,7 +187,8 @@ def _loo_warm(model: str, optimizer: str, objective: str) -> bool:
     cls = get_model(model)
     if objective != "l2" or not cls.loo_warm_start:
         return False
-    return optimizer == "lm" or (optimizer == "linear" and cls.linear_in_params)
+    solver = get_solver(optimizer)
+    return solver.is_least_squares or (solver.is_linear and cls.linear_in_params)
 
 
 def cross_validate(
@@ -236,7 +237,7 @@ def _held_out(pairs, model, optimizer, objective, image_size, seed, full, refit)
             fast = None
         if fast is not None:
             return fast
-    if not refit and n <= LOO_MAX_PAIRS and objective == "l2" and optimizer == "lm":
+    if not refit and n <= LOO_MAX_PAIRS and objective == "l2" and get_solver(optimizer).is_least_squares:
         own = getattr(get_model(model), "leave_one_out", None)  # a model's own warm-started refits
         if own is not None:
             try:
@@ -270,6 +271,45 @@ def held_out_score(residuals_mm: np.ndarray, objective: str, delta_mm: float) ->
 
 
 @dataclass(frozen=True)
+class Candidate:
+    """One model ``auto`` weighed: its held-out errors (mm) when the pairs could score it, else ``why``
+    not. :meth:`to_dict` is its row of the selection report (the calibration file's JSON)."""
+
+    model: str
+    unknowns: int
+    cv_rms_mm: float | None = None
+    cv_max_mm: float | None = None
+    cv_score_mm: float | None = None  # held-out score on the objective (held_out_score)
+    why: str | None = None  # why it was not considered
+
+    @property
+    def considered(self) -> bool:
+        return self.why is None
+
+    @property
+    def score(self) -> float:
+        """The held-out score; +inf for a candidate not considered."""
+        return np.inf if self.cv_score_mm is None else self.cv_score_mm
+
+    @property
+    def scored(self) -> bool:
+        """Considered, with a finite score to compare."""
+        return bool(np.isfinite(self.score))
+
+    def to_dict(self) -> dict[str, Any]:
+        head: dict[str, Any] = {"model": self.model, "unknowns": self.unknowns}
+        if not self.considered:
+            return {**head, "cv_rms_mm": None, "considered": False, "why": self.why}
+        return {
+            **head,
+            "cv_rms_mm": self.cv_rms_mm,
+            "cv_max_mm": self.cv_max_mm,
+            "cv_score_mm": self.cv_score_mm,
+            "considered": True,
+        }
+
+
+@dataclass(frozen=True)
 class Selection:
     """What ``auto`` chose and why: ``report`` is the JSON-able record kept in the calibration;
     ``residuals_mm`` the chosen model's held-out residuals (reused as its leave-one-out)."""
@@ -291,33 +331,28 @@ def select_model(
 def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=None, seed=0) -> Selection:
     n = len(pairs)
     cv_opt = get_solver(optimizer).for_cross_validation(objective)
-    rows: list[dict[str, Any]] = []
+    cands: list[Candidate] = []
     held: dict[str, np.ndarray] = {}
     delta = None
     for cls in candidate_models(pairs):
         k = cls.n_unknowns()
-        row: dict[str, Any] = {"model": cls.name, "unknowns": k}
         if 2 * n < k + SPARE_EQUATIONS:
             need = -(-(k + SPARE_EQUATIONS) // 2)
-            row.update(cv_rms_mm=None, considered=False, why=f"needs at least {need} pairs, have {n}")
-        else:
-            try:
-                res = cross_validate(pairs, cls.name, cv_opt, objective, image_size=image_size, seed=seed)
-                e = np.linalg.norm(res, axis=1)
-                if delta is None:  # one Huber threshold for every candidate, from the simplest's errors
-                    delta = huber_delta_mm(e[np.isfinite(e)]) if np.isfinite(e).any() else 1.0
-                score = held_out_score(res, objective, delta)
-                row.update(
-                    cv_rms_mm=float(np.sqrt(np.mean(e**2))),
-                    cv_max_mm=float(e.max()),
-                    cv_score_mm=score,
-                    considered=True,
-                )
-                held[cls.name] = res
-            except InputError as exc:
-                row.update(cv_rms_mm=None, considered=False, why=str(exc))
-        rows.append(row)
-    scored = [r for r in rows if r.get("cv_score_mm") is not None and np.isfinite(r["cv_score_mm"])]
+            cands.append(Candidate(cls.name, k, why=f"needs at least {need} pairs, have {n}"))
+            continue
+        try:
+            res = cross_validate(pairs, cls.name, cv_opt, objective, image_size=image_size, seed=seed)
+        except InputError as exc:
+            cands.append(Candidate(cls.name, k, why=str(exc)))
+            continue
+        e = np.linalg.norm(res, axis=1)
+        if delta is None:  # one Huber threshold for every candidate, from the simplest's errors
+            delta = huber_delta_mm(e[np.isfinite(e)]) if np.isfinite(e).any() else 1.0
+        score = held_out_score(res, objective, delta)
+        cands.append(Candidate(cls.name, k, float(np.sqrt(np.mean(e**2))), float(e.max()), score))
+        held[cls.name] = res
+    rows = [c.to_dict() for c in cands]
+    scored = [c for c in cands if c.scored]
     method = "leave-one-out" if n <= LOO_MAX_PAIRS else "10-fold"
     if not scored:
         fallback = next((c for c in candidate_models(pairs) if n >= c.min_pairs), None)
@@ -331,24 +366,24 @@ def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=Non
         report: dict[str, Any] = {"chosen": fallback.name, "reason": reason, "candidates": rows}
         return Selection(fallback.name, report, None, cv_opt)
     what = {"l2": "held-out RMS", "linf": "largest held-out error", "huber": "held-out Huber loss"}[objective]
-    best = min(r["cv_score_mm"] for r in scored)
-    chosen = next(r for r in scored if r["cv_score_mm"] <= best * (1 + AUTO_TOLERANCE))
-    if chosen["cv_score_mm"] == best:
+    best = min(c.score for c in scored)
+    chosen = next(c for c in scored if c.score <= best * (1 + AUTO_TOLERANCE))
+    if chosen.score == best:
         reason = f"lowest {what} ({best:.4f} mm)"
     else:
         reason = (
             f"simplest model within {AUTO_TOLERANCE:.0%} of the lowest {what} "
-            f"({chosen['cv_score_mm']:.4f} vs {best:.4f} mm)"
+            f"({chosen.score:.4f} vs {best:.4f} mm)"
         )
     report = {
-        "chosen": chosen["model"],
+        "chosen": chosen.model,
         "reason": reason,
         "method": method,
         "objective": objective,
         "scored_with": cv_opt,
         "candidates": rows,
     }
-    return Selection(chosen["model"], report, held[chosen["model"]], cv_opt)
+    return Selection(chosen.model, report, held[chosen.model], cv_opt)
 
 
 def tcp_offset_for(pairs: PointPairs, model: str = "auto", *, image_size=None, seed=0) -> TcpOffset:

@@ -10,6 +10,7 @@ from eyetohand.cli.common import (
     add_fit_options,
     add_orientation_options,
     emit_json,
+    fit_request,
     parse_image_size,
     print_points,
     run_calibration,
@@ -24,9 +25,10 @@ def cmd_calibrate(args) -> int:
         from eyetohand.core import check_output_path
 
         check_output_path(args.output)
+    request = fit_request(args)  # the options before the files: a bad one is refused first
     pairs = load_pairs(args.pairs).scaled_to_mm(args.robot_units)
     check = load_pairs(args.check).scaled_to_mm(args.robot_units) if args.check else None
-    return run_calibration(args, pairs, check)
+    return run_calibration(args, pairs, check, request=request)
 
 
 def cmd_evaluate(args) -> int:

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from eyetohand.calibration import Calibration, calibrate
+from eyetohand.calibration import Calibration, FitRequest, calibrate_request
 from eyetohand.core import InputError
 from eyetohand.models import MODEL_CHOICES
 from eyetohand.solve import OBJECTIVES, OPTIMIZERS
@@ -144,23 +144,26 @@ def emit_json(obj) -> None:
     print(json.dumps(obj, allow_nan=False))
 
 
-def run_calibration(args, pairs, check, extra: dict | None = None) -> int:
-    """Shared end of calibrate and calibrate-images: fit, save, print (``extra`` joins the JSON)."""
-    swarm = {"n_particles": args.particles, "iterations": args.iterations}  # as the HTTP fit takes them
-    swarm = {k: v for k, v in swarm.items() if v is not None}  # absent: the solver's defaults
-    cal = calibrate(
-        pairs,
+def fit_request(args) -> FitRequest:
+    """The fit options of :func:`add_fit_options` as one checked request (as the HTTP fit takes them;
+    absent swarm options: the solver's defaults): made before any pairs are read or detected."""
+    return FitRequest(
         model=args.model,
         optimizer=args.optimizer,
         objective=args.objective,
-        check=check,
-        image_size=parse_image_size(args.image_size),
         seed=args.seed,
-        callback=progress_callback(args.optimizer, args.iterations or 150)
-        if "pso" in args.optimizer
-        else None,
-        **swarm,
+        n_particles=args.particles,
+        iterations=args.iterations,
+        image_size=parse_image_size(args.image_size),
     )
+
+
+def run_calibration(args, pairs, check, extra: dict | None = None, request: FitRequest | None = None) -> int:
+    """Shared end of calibrate and calibrate-images: fit, save, print (``extra`` joins the JSON);
+    ``request``: :func:`fit_request` of ``args``, when the command made it up front."""
+    request = fit_request(args) if request is None else request
+    progress = progress_callback(args.optimizer, args.iterations or 150) if request.is_swarm else None
+    cal = calibrate_request(request, pairs, check=check, callback=progress)
     if args.output:
         cal.save(args.output)
     for note in cal.notes:

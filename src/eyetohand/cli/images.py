@@ -6,7 +6,7 @@ import json
 import sys
 from pathlib import Path
 
-from eyetohand.cli.common import add_fit_options, run_calibration
+from eyetohand.cli.common import add_fit_options, fit_request, run_calibration
 from eyetohand.core import InputError, atomic_write_text, check_output_path
 from eyetohand.vision import detect_images, detect_poses, load_poses, pairs_from_detections
 
@@ -82,6 +82,7 @@ def cmd_calibrate_images(args) -> int:
     for out in (args.output, args.pairs_out):
         if out:
             check_output_path(out)
+    request = fit_request(args)  # and the fit options, before detecting
     poses = load_poses(args.poses, args.images)
     progress = _progress_bar if sys.stderr.isatty() else _progress_lines
     opts = _detect_options(args)
@@ -103,7 +104,7 @@ def cmd_calibrate_images(args) -> int:
     if args.check:
         extra["check_detections"] = [r.to_dict() for r in check_results]
         extra["check_left_out"] = [r.image for r in check_results if not r.ok]
-    return run_calibration(args, pairs, check, extra=extra)
+    return run_calibration(args, pairs, check, extra=extra, request=request)
 
 
 def register(sub) -> None:

@@ -140,6 +140,9 @@ class Model(ABC):
     # depend on the pairs only through normalisation), so leave-one-out may start from the full fit
     loo_warm_start: ClassVar[bool] = True
     linear_in_params: ClassVar[bool] = False  # the map is linear in params: least squares in one step
+    # the map corrects lens distortion: the pixels are undistorted before they are mapped, so no
+    # matrix on the camera's own pixels represents it (export refuses a matrix)
+    corrects_lens: ClassVar[bool] = False
     # parameters the mapping does not determine once the others are given (a gauge freedom, as the
     # paper's B has: 12 numbers for a 9-coefficient map): least squares (lm, leave-one-out) holds
     # them at the start's values, so its problem has full rank; the swarms search all parameters

@@ -124,6 +124,7 @@ class PinholeCamera(Model):
     n_params = 14  # free aspect; an instance with square pixels has 13 (``self.n_params``)
     min_pairs = 8
     height_rule = HeightRule.GIVEN
+    corrects_lens = True  # pixels are undistorted (k1, k2, p1, p2) before the ray is cast
     constant_shapes = MappingProxyType({"origin_mm": (3,), "aspect": Choice("free", "square")})
     summary = (
         "14 unknowns: pinhole camera fx fy cx cy, lens k1 k2 p1 p2 and pose; pairs at 2+ heights, "

@@ -248,6 +248,7 @@ class HomographyRadial(Homography):
     min_pairs = 6
     summary = "10 unknowns: homography plus radial lens distortion k1, k2"
     loo_warm_start = False  # the lens (f, k1, k2) is re-fitted on each subset of pairs
+    corrects_lens = True  # _ideal_px undistorts the pixels before the matrix
     constant_shapes = MappingProxyType(
         {**PLANAR_CONSTANTS, "centre_px": (2,), "focal_px": (), "k1": (), "k2": ()}
     )

@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from eyetohand.calibration import Calibration, calibrate
+from eyetohand.calibration import Calibration, FitRequest, calibrate_request
 from eyetohand.core import InputError, PointPairs, pairs_from_records
 from eyetohand.server.schemas import FitOptions
-from eyetohand.solve import Stats, stats_from_residuals
+from eyetohand.solve import Stats, get_solver, stats_from_residuals
 
 
 class ApiError(Exception):
@@ -92,18 +92,16 @@ def fit(opts: FitOptions, callback=None) -> Fitted:
     check = to_pairs(opts.check, "check") if opts.check else None
     kept, _ = split_excluded(pairs, opts.exclude)
     try:
-        cal = calibrate(
-            kept,
+        asked = FitRequest(
             model=opts.model,
             optimizer=opts.optimizer,
             objective=opts.objective,
-            check=check,
-            image_size=opts.image_size,
             seed=opts.seed,
-            callback=callback,
             n_particles=opts.particles,
             iterations=opts.iterations,
+            image_size=opts.image_size,
         )
+        cal = calibrate_request(asked, kept, check=check, callback=callback)
     except InputError as exc:
         raise input_error(exc, "pairs") from None
     try:  # what is stored and answered must be finite: a fit that is not is the pairs' fault
@@ -217,8 +215,6 @@ def map_points(
 
 # ---------------------------------------------------------------------- background jobs
 
-PSO_OPTIMIZERS = ("pso", "hybrid-pso")  # the solvers that report progress per iteration
-
 
 def fit_progress(job: Job, model: str, optimizer: str, iterations: int):
     """Set a fit job's phase; the swarm's progress callback (records the best fitness per
@@ -228,7 +224,7 @@ def fit_progress(job: Job, model: str, optimizer: str, iterations: int):
         if model == "auto"
         else f"fitting {model} with {optimizer}"
     )
-    if optimizer not in PSO_OPTIMIZERS:
+    if not get_solver(optimizer).is_swarm:  # only a swarm reports progress per iteration
         return None
 
     def progress(_iteration, best, *_):
@@ -248,7 +244,7 @@ def finish_fit(job: Job, fitted: Fitted, optimizer: str) -> None:
     """The fit's result on its job; a solver without progress (not a swarm, see
     :func:`fit_progress`) gives its whole history at once."""
     job.fitted = fitted
-    if optimizer not in PSO_OPTIMIZERS:
+    if not get_solver(optimizer).is_swarm:
         job.history = [_finite(h) for h in fitted.calibration.fit.history]
 
 
@@ -361,7 +357,7 @@ class Jobs:
     def check_pso_work(self, optimizer: str, particles: int, iterations: int) -> bool:
         """Whether ``optimizer`` is a swarm; refuses (422) a swarm of more particles × iterations
         than this server's limit."""
-        pso = optimizer in PSO_OPTIMIZERS
+        pso = get_solver(optimizer).is_swarm
         if pso and particles * iterations > self.max_pso_work:
             raise ApiError(
                 422,

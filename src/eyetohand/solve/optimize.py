@@ -246,238 +246,388 @@ def hybrid_pso(
     Raises:
         ValueError: an option is invalid, or ``fitness`` returns a wrong shape.
     """
-    # ---- validation -------------------------------------------------------------------------
     if not callable(fitness):
         raise ValueError(f"fitness must be callable, got {type(fitness).__name__}")
-    try:
-        x0 = np.asarray(x0, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"x0 must be a 1-D array of numbers, got {x0!r}") from None
-    if x0.ndim != 1 or x0.size == 0:
-        raise ValueError(f"x0 must be a non-empty 1-D array, got shape {x0.shape}")
-    if not np.all(np.isfinite(x0)):
-        raise ValueError("x0 must be finite")
-    dim = x0.size
-    sigma_v = _per_dimension("sigma", sigma, dim)
-    if not np.all(np.isfinite(sigma_v)) or np.any(sigma_v <= 0):
-        raise ValueError(f"sigma must be finite and > 0, got {np.asarray(sigma)!r}")
-    n = _int_option("n_particles", n_particles, 2)
-    iterations = _int_option("iterations", iterations, 1)
-    w = _float_option("w", w)
-    c1 = _float_option("c1", c1, 0.0)
-    c2 = _float_option("c2", c2, 0.0)
-    mutation_rate = _float_option("mutation_rate", mutation_rate)
-    if mutation and not 0.0 < mutation_rate <= 1.0:
-        raise ValueError(f"mutation_rate must be in (0, 1], got {mutation_rate}")
-    mutation_decades = _float_option("mutation_decades", mutation_decades, 0.0)
-    if stall_iterations is not None:
-        stall_iterations = _int_option("stall_iterations", stall_iterations, 1)
-    stall_tol = _float_option("stall_tol", stall_tol, 0.0)
-    if callback is not None and not callable(callback):
-        raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
-    lower = upper = None
-    if bounds is not None:
-        if len(bounds) != 2:
-            raise ValueError(f"bounds must be (lower, upper), got {len(bounds)} items")
-        lower = _per_dimension("bounds[0]", bounds[0], dim)
-        upper = _per_dimension("bounds[1]", bounds[1], dim)
-        if np.any(np.isnan(lower)) or np.any(np.isnan(upper)) or np.any(lower > upper):
-            raise ValueError("bounds must satisfy lower <= upper in every dimension")
-    rng = _make_rng(seed)
-    n_rows = candidates_per_iteration(n, crossover=crossover, mutation=mutation, mutation_rate=mutation_rate)
-    n_mut = n_rows - n - (2 * n if crossover else 0)
-
-    nfev = 0
-
-    # ---- buffers, allocated once ----------------------------------------------------------
-    # One candidate array holds, per iteration, the moved swarm (rows 0..n-1, which is also the
-    # swarm itself: ``x`` is a view), both crossover children and the mutants; ``fitness`` gets a
-    # read-only view of it, so one call evaluates everything and nothing is concatenated.
-    cand = np.empty((n_rows, dim))
-    cand_ro = cand.view()
-    cand_ro.flags.writeable = False
-    x = cand[:n]
-    fc = np.empty(n_rows)
-    f = np.empty(n)
-    v = np.zeros((n, dim))
-    # the two attractors stacked: partner[0] IS the personal bests, partner[1] the global best in
-    # every row, so the velocity update and both crossovers each take one operation for both
-    partner = np.empty((2, n, dim))
-    pbest_x = partner[0]
-    coef = np.array([c1, c2]).reshape(2, 1, 1)
-    r = np.empty((2, n, dim))
-    scratch = cand[n : 3 * n].reshape(2, n, dim) if crossover else np.empty((2, n, dim))
-    if crossover:
-        children = cand[n : 3 * n].reshape(2, n, dim)  # with the personal, the global best
-        moved_and_children = cand[: 3 * n].reshape(3, n, dim)
-        rows = np.arange(n)
-        fx = fc[: 3 * n].reshape(3, n)
-        if dim <= _MASK_TABLE_MAX_DIM:
-            # segment masks by lookup: row lo*D + hi (either order) marks columns min..max
-            cols = np.arange(dim)
-            ends = np.arange(dim * dim)
-            lo_t = np.minimum(ends // dim, ends % dim)[:, None]
-            hi_t = np.maximum(ends // dim, ends % dim)[:, None]
-            mask_table = (cols >= lo_t) & (cols <= hi_t)
-            end_weights = np.array([dim, 1])
-        else:
-            mask_table = None
-    if mutation:
-        mutants = cand[n_rows - n_mut :]
-        f_mut = fc[n_rows - n_mut :]
-
-    def evaluate(rows: int) -> np.ndarray:
-        nonlocal nfev
-        pos = cand_ro if rows == n_rows else cand_ro[:rows]
-        values = np.asarray(fitness(pos), dtype=float)
-        if values.shape != (rows,):
-            raise ValueError(
-                f"fitness must return shape ({rows},) for an input of shape "
-                f"{pos.shape}, got shape {values.shape}"
-            )
-        nfev += rows
-        out = fc[:rows]
-        np.fmin(values, np.inf, out=out)  # copies into our buffer; NaN -> +inf
-        return out
-
-    def segment_masks(ends: np.ndarray) -> np.ndarray:
-        """(2, n, D) masks of the inclusive segments between the (2, n, 2) ``ends``."""
-        if mask_table is not None:
-            return mask_table.take(ends @ end_weights, axis=0)
-        lo = ends.min(axis=2, keepdims=True)
-        hi = ends.max(axis=2, keepdims=True)
-        cols = np.arange(dim)
-        return (cols >= lo) & (cols <= hi)
-
-    # ---- the steps of an iteration: compiled (eyetohand.solve._swarm) or NumPy, the same numbers --------
-    kernel = _SWARM
-
-    def move() -> None:
-        """Eqs (14) and (15) in place, with ``r`` drawn: v = w v + (c1 r1) (pbest - x) +
-        (c2 r2) (gbest - x); x = x + v; then clipped into the bounds."""
-        if kernel is not None:
-            kernel.move(x, v, partner, r, w, c1, c2, lower, upper)
-            return
-        np.multiply(r, coef, out=r)
-        np.multiply(r, np.subtract(partner, x, out=scratch), out=r)  # (children written after this)
-        np.multiply(v, w, out=v)
-        np.add(v, r[0], out=v)
-        np.add(v, r[1], out=v)
-        np.add(x, v, out=x)
-        if lower is not None:
-            np.clip(x, lower, upper, out=x)
-
-    def make_children(ends: np.ndarray) -> None:
-        """Each moved particle crossed with its personal best and, separately, with the global best,
-        over the segments between ``ends`` ((2, n, 2), both ends uniform in 0 .. D-1 per row: the
-        same draws, in the same order, as one (n, 2) draw per crossover)."""
-        if kernel is not None:
-            kernel.children(children, x, partner, ends)
-            return
-        children[...] = x
-        np.copyto(children, partner, where=segment_masks(ends))
-
-    def select() -> None:
-        """Elitist: each particle becomes the best of (particle, child with pbest, child with
-        gbest); ties keep the particle (argmin takes the first)."""
-        if kernel is not None:
-            kernel.select(moved_and_children, fx, f)
-            return
-        pick = fx.argmin(axis=0)
-        x[...] = moved_and_children[pick, rows]  # the gather copies before x is written
-        fx.min(axis=0, out=f)
-
-    def update_bests() -> int:
-        """Personal bests where improved; the index of the least."""
-        if kernel is not None:
-            return kernel.bests(pbest_x, pbest_f, x, f)
-        improved = f < pbest_f
-        np.copyto(pbest_x, x, where=improved[:, None])
-        np.copyto(pbest_f, f, where=improved)
-        return int(pbest_f.argmin())
-
-    # ---- initial swarm ----------------------------------------------------------------------
-    rng.standard_normal((n, dim), out=x)
-    x *= sigma_v
-    x += x0
-    if lower is not None:
-        np.clip(x, lower, upper, out=x)
-    f[:] = evaluate(n)
-    pbest_x[...] = x
-    pbest_f = f.copy()
-    g = int(pbest_f.argmin())
-    gbest_x, gbest_f = pbest_x[g].copy(), float(pbest_f[g])
-    partner[1] = gbest_x
+    opts = _Settings.checked(
+        x0,
+        sigma,
+        n_particles=n_particles,
+        iterations=iterations,
+        w=w,
+        c1=c1,
+        c2=c2,
+        crossover=crossover,
+        mutation=mutation,
+        mutation_rate=mutation_rate,
+        mutation_decades=mutation_decades,
+        stall_iterations=stall_iterations,
+        stall_tol=stall_tol,
+        callback=callback,
+        bounds=bounds,
+    )
+    swarm = _init(fitness, opts, _make_rng(seed))
 
     history: list[float] = []
-    status, message = STATUS_MAX_ITERATIONS, f"maximum number of iterations ({iterations}) reached"
+    status, message = STATUS_MAX_ITERATIONS, f"maximum number of iterations ({opts.iterations}) reached"
     stall_count = 0
-    for k in range(1, iterations + 1):
-        # 1. velocity and position update, eqs (14) and (15), in place:
-        #    v = w v + (c1 r1) (pbest - x) + (c2 r2) (gbest - x);  x = x + v
-        rng.random((2, n, dim), out=r)
-        move()
-        if crossover:
-            # 2./3. segment crossover of the moved particle with its personal best and,
-            # separately, with the global best
-            make_children(rng.integers(0, dim, size=(2, n, 2)))
-        if mutation:
-            # 4. mutants: normally distributed around the global best, log-uniform step scale,
-            # each aimed at one randomly chosen particle
-            idx = rng.choice(n, size=n_mut, replace=False)
-            scale = sigma_v * 10.0 ** (-mutation_decades * rng.random((n_mut, 1)))
-            rng.standard_normal((n_mut, dim), out=mutants)
-            mutants *= scale
-            mutants += gbest_x
-            if lower is not None:
-                np.clip(mutants, lower, upper, out=mutants)
-        # one vectorised evaluation of the moved swarm and all candidates
-        evaluate(n_rows)
-        if crossover:
-            select()
-        else:
-            f[:] = fc[:n]
-        if mutation:
-            # elitist: a mutant replaces its particle only if better
-            better = f_mut < f[idx]
-            if better.any():
-                won = idx[better]
-                x[won], f[won] = mutants[better], f_mut[better]
-        # 5. personal and global best
-        g = update_bests()
-        previous = gbest_f
-        if pbest_f[g] < gbest_f:
-            gbest_x, gbest_f = pbest_x[g].copy(), float(pbest_f[g])
-            partner[1] = gbest_x
-        history.append(gbest_f)
-
-        if callback is not None and callback(k, gbest_f, gbest_x.copy()):
+    for k in range(1, opts.iterations + 1):
+        previous = swarm.gbest_f
+        _step(swarm)
+        history.append(swarm.gbest_f)
+        if callback is not None and callback(k, swarm.gbest_f, swarm.gbest_x.copy()):
             status, message = STATUS_CALLBACK, f"stopped by callback after iteration {k}"
             break
-        if stall_iterations is not None:
-            gain = previous - gbest_f if gbest_f < previous else 0.0
-            stall_count = 0 if gain > stall_tol else stall_count + 1
-            if stall_count >= stall_iterations:
+        if opts.stall_iterations is not None:
+            gain = previous - swarm.gbest_f if swarm.gbest_f < previous else 0.0
+            stall_count = 0 if gain > opts.stall_tol else stall_count + 1
+            if stall_count >= opts.stall_iterations:
                 status = STATUS_STALLED
                 message = (
-                    f"best fitness improved by no more than {stall_tol:g} for "
-                    f"{stall_iterations} iterations (stopped after iteration {k})"
+                    f"best fitness improved by no more than {opts.stall_tol:g} for "
+                    f"{opts.stall_iterations} iterations (stopped after iteration {k})"
                 )
                 break
 
     return OptimizeResult(
-        x=gbest_x,
-        fun=gbest_f,
+        x=swarm.gbest_x,
+        fun=swarm.gbest_f,
         history=np.asarray(history, dtype=float),
-        nfev=nfev,
+        nfev=swarm.nfev,
         nit=len(history),
-        success=bool(np.isfinite(gbest_f)),
+        success=bool(np.isfinite(swarm.gbest_f)),
         message=message,
         status=status,
         seed=seed,
-        n_particles=n,
-        nfev_per_iteration=n_rows,
+        n_particles=opts.n,
+        nfev_per_iteration=swarm.n_rows,
     )
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """:func:`hybrid_pso`'s options, checked (units as there)."""
+
+    x0: np.ndarray
+    sigma: np.ndarray  # (D,)
+    n: int
+    iterations: int
+    w: float
+    c1: float
+    c2: float
+    crossover: bool
+    mutation: bool
+    mutation_rate: float
+    mutation_decades: float
+    stall_iterations: int | None
+    stall_tol: float
+    lower: np.ndarray | None  # (D,) or None: no bounds
+    upper: np.ndarray | None
+
+    @classmethod
+    def checked(cls, x0: object, sigma: object, *, bounds: Any, **kw: Any) -> _Settings:
+        """The options, or the ValueError that names the first bad one."""
+        try:
+            x0_v = np.asarray(x0, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"x0 must be a 1-D array of numbers, got {x0!r}") from None
+        if x0_v.ndim != 1 or x0_v.size == 0:
+            raise ValueError(f"x0 must be a non-empty 1-D array, got shape {x0_v.shape}")
+        if not np.all(np.isfinite(x0_v)):
+            raise ValueError("x0 must be finite")
+        dim = x0_v.size
+        sigma_v = _per_dimension("sigma", sigma, dim)
+        if not np.all(np.isfinite(sigma_v)) or np.any(sigma_v <= 0):
+            raise ValueError(f"sigma must be finite and > 0, got {np.asarray(sigma)!r}")
+        n = _int_option("n_particles", kw["n_particles"], 2)
+        iterations = _int_option("iterations", kw["iterations"], 1)
+        w = _float_option("w", kw["w"])
+        c1 = _float_option("c1", kw["c1"], 0.0)
+        c2 = _float_option("c2", kw["c2"], 0.0)
+        mutation_rate = _float_option("mutation_rate", kw["mutation_rate"])
+        if kw["mutation"] and not 0.0 < mutation_rate <= 1.0:
+            raise ValueError(f"mutation_rate must be in (0, 1], got {mutation_rate}")
+        mutation_decades = _float_option("mutation_decades", kw["mutation_decades"], 0.0)
+        stall_iterations = kw["stall_iterations"]
+        if stall_iterations is not None:
+            stall_iterations = _int_option("stall_iterations", stall_iterations, 1)
+        stall_tol = _float_option("stall_tol", kw["stall_tol"], 0.0)
+        callback = kw["callback"]
+        if callback is not None and not callable(callback):
+            raise ValueError(f"callback must be callable or None, got {type(callback).__name__}")
+        lower = upper = None
+        if bounds is not None:
+            if len(bounds) != 2:
+                raise ValueError(f"bounds must be (lower, upper), got {len(bounds)} items")
+            lower = _per_dimension("bounds[0]", bounds[0], dim)
+            upper = _per_dimension("bounds[1]", bounds[1], dim)
+            if np.any(np.isnan(lower)) or np.any(np.isnan(upper)) or np.any(lower > upper):
+                raise ValueError("bounds must satisfy lower <= upper in every dimension")
+        return cls(
+            x0=x0_v,
+            sigma=sigma_v,
+            n=n,
+            iterations=iterations,
+            w=w,
+            c1=c1,
+            c2=c2,
+            crossover=bool(kw["crossover"]),
+            mutation=bool(kw["mutation"]),
+            mutation_rate=mutation_rate,
+            mutation_decades=mutation_decades,
+            stall_iterations=stall_iterations,
+            stall_tol=stall_tol,
+            lower=lower,
+            upper=upper,
+        )
+
+
+@dataclass(frozen=True)
+class _Crossover:
+    """The crossover's views of the candidate buffer: ``children[0]`` the particles crossed with their
+    personal bests, ``children[1]`` with the global best; the segment-mask lookup table."""
+
+    children: np.ndarray  # (2, n, D) = candidate rows n .. 3n-1
+    moved_and_children: np.ndarray  # (3, n, D) = candidate rows 0 .. 3n-1
+    fx: np.ndarray  # (3, n): their fitness
+    rows: np.ndarray  # 0 .. n-1
+    mask_table: np.ndarray | None  # (D*D, D): row lo*D + hi (either order) marks columns min..max
+    end_weights: np.ndarray  # (2,): [D, 1], a pair of ends -> its row of mask_table
+
+
+@dataclass(frozen=True)
+class _Mutation:
+    """The mutants' views of the candidate buffer (its last ``n_mut`` rows) and of their fitness."""
+
+    n_mut: int
+    mutants: np.ndarray  # (n_mut, D)
+    f_mut: np.ndarray  # (n_mut,)
+
+
+@dataclass(eq=False)
+class _Swarm:
+    """One run's state: the swarm, its bests, the random generator and the buffers every iteration
+    reuses (allocated once by :func:`_init`, updated in place by :func:`_step`).
+
+    One candidate array ``cand`` holds, per iteration, the moved swarm (rows 0..n-1, which is also
+    the swarm itself: ``x`` is a view), both crossover children and the mutants; ``fitness`` gets a
+    read-only view of it, so one call evaluates everything and nothing is concatenated. The two
+    attractors are stacked in ``partner``: ``partner[0]`` IS the personal bests, ``partner[1]`` the
+    global best in every row, so the move and both crossovers each take one operation for both."""
+
+    opts: _Settings
+    fitness: Fitness
+    rng: np.random.Generator
+    kernel: ModuleType | None  # the compiled steps (swarm_kernel()), or None: NumPy
+    n_rows: int  # candidates per iteration
+    cand: np.ndarray  # (n_rows, D)
+    cand_ro: np.ndarray  # read-only view of cand, what fitness sees
+    fc: np.ndarray  # (n_rows,) candidates' fitness
+    x: np.ndarray  # (n, D) = cand[:n]: positions
+    f: np.ndarray  # (n,) their fitness
+    v: np.ndarray  # (n, D) velocities
+    partner: np.ndarray  # (2, n, D): personal bests, global best
+    pbest_f: np.ndarray  # (n,) personal bests' fitness
+    coef: np.ndarray  # (2, 1, 1): c1, c2
+    r: np.ndarray  # (2, n, D): r1, r2 of the move
+    scratch: np.ndarray  # (2, n, D): attractor - x (the children's rows, before they are written)
+    xover: _Crossover | None
+    mut: _Mutation | None
+    gbest_x: np.ndarray
+    gbest_f: float
+    nfev: int = 0
+
+    @property
+    def pbest_x(self) -> np.ndarray:
+        return self.partner[0]
+
+
+def _init(fitness: Fitness, opts: _Settings, rng: np.random.Generator) -> _Swarm:
+    """The buffers and the evaluated initial swarm ``x0 + sigma * z`` (zero velocity, iteration 0)."""
+    n, dim = opts.n, opts.x0.size
+    n_rows = candidates_per_iteration(
+        n, crossover=opts.crossover, mutation=opts.mutation, mutation_rate=opts.mutation_rate
+    )
+    cand = np.empty((n_rows, dim))
+    cand_ro = cand.view()
+    cand_ro.flags.writeable = False
+    fc = np.empty(n_rows)
+    xover: _Crossover | None = None
+    mut: _Mutation | None = None
+    if opts.crossover:
+        scratch = cand[n : 3 * n].reshape(2, n, dim)
+        xover = _Crossover(
+            scratch,
+            cand[: 3 * n].reshape(3, n, dim),
+            fc[: 3 * n].reshape(3, n),
+            np.arange(n),
+            _mask_table(dim),
+            np.array([dim, 1]),
+        )
+    else:
+        scratch = np.empty((2, n, dim))
+    if opts.mutation:
+        n_mut = n_rows - n - (2 * n if opts.crossover else 0)
+        mut = _Mutation(n_mut, cand[n_rows - n_mut :], fc[n_rows - n_mut :])
+    s = _Swarm(
+        opts,
+        fitness,
+        rng,
+        _SWARM,
+        n_rows,
+        cand,
+        cand_ro,
+        fc,
+        x=cand[:n],
+        f=np.empty(n),
+        v=np.zeros((n, dim)),
+        partner=np.empty((2, n, dim)),
+        pbest_f=np.empty(n),
+        coef=np.array([opts.c1, opts.c2]).reshape(2, 1, 1),
+        r=np.empty((2, n, dim)),
+        scratch=scratch,
+        xover=xover,
+        mut=mut,
+        gbest_x=np.empty(dim),
+        gbest_f=np.inf,
+    )
+    rng.standard_normal((n, dim), out=s.x)
+    s.x *= opts.sigma
+    s.x += opts.x0
+    if opts.lower is not None:
+        np.clip(s.x, opts.lower, opts.upper, out=s.x)
+    s.f[:] = _evaluate(s, n)
+    s.pbest_x[...] = s.x
+    s.pbest_f = s.f.copy()
+    g = int(s.pbest_f.argmin())
+    s.gbest_x, s.gbest_f = s.pbest_x[g].copy(), float(s.pbest_f[g])
+    s.partner[1] = s.gbest_x
+    return s
+
+
+def _mask_table(dim: int) -> np.ndarray | None:
+    """Crossover segment masks by lookup, up to :data:`_MASK_TABLE_MAX_DIM`: row ``lo*D + hi`` (either
+    order) marks columns ``min .. max``; None above (the masks are then computed per draw)."""
+    if dim > _MASK_TABLE_MAX_DIM:
+        return None
+    cols = np.arange(dim)
+    ends = np.arange(dim * dim)
+    lo_t = np.minimum(ends // dim, ends % dim)[:, None]
+    hi_t = np.maximum(ends // dim, ends % dim)[:, None]
+    return (cols >= lo_t) & (cols <= hi_t)
+
+
+def _step(s: _Swarm) -> None:
+    """One iteration (module docstring, steps 1 to 5): move, cross over, mutate, evaluate every
+    candidate in one call, keep the best of each particle's, update the bests. Random numbers are
+    drawn in this order: ``r``, the crossover ends, the mutants' particles, scales and directions."""
+    n, dim = s.opts.n, s.opts.x0.size
+    s.rng.random((2, n, dim), out=s.r)
+    _move(s)
+    if s.xover is not None:
+        _crossover(s, s.xover)
+    idx = _mutate(s, s.mut) if s.mut is not None else None
+    _evaluate(s, s.n_rows)
+    if s.xover is not None:
+        _select(s, s.xover)
+    else:
+        s.f[:] = s.fc[:n]
+    if s.mut is not None and idx is not None:
+        # elitist: a mutant replaces its particle only if better
+        better = s.mut.f_mut < s.f[idx]
+        if better.any():
+            won = idx[better]
+            s.x[won], s.f[won] = s.mut.mutants[better], s.mut.f_mut[better]
+    _update_bests(s)
+
+
+def _evaluate(s: _Swarm, rows: int) -> np.ndarray:
+    """Fitness of the first ``rows`` candidates, into ``fc`` (NaN -> +inf); counted in ``nfev``."""
+    pos = s.cand_ro if rows == s.n_rows else s.cand_ro[:rows]
+    values = np.asarray(s.fitness(pos), dtype=float)
+    if values.shape != (rows,):
+        raise ValueError(
+            f"fitness must return shape ({rows},) for an input of shape {pos.shape}, got shape {values.shape}"
+        )
+    s.nfev += rows
+    out = s.fc[:rows]
+    np.fmin(values, np.inf, out=out)  # copies into our buffer; NaN -> +inf
+    return out
+
+
+def _move(s: _Swarm) -> None:
+    """Eqs (14) and (15) in place, with ``r`` drawn: v = w v + (c1 r1) (pbest - x) +
+    (c2 r2) (gbest - x); x = x + v; then clipped into the bounds."""
+    o, x, v, r = s.opts, s.x, s.v, s.r
+    if s.kernel is not None:
+        s.kernel.move(x, v, s.partner, r, o.w, o.c1, o.c2, o.lower, o.upper)
+        return
+    np.multiply(r, s.coef, out=r)
+    np.multiply(r, np.subtract(s.partner, x, out=s.scratch), out=r)  # (children written after this)
+    np.multiply(v, o.w, out=v)
+    np.add(v, r[0], out=v)
+    np.add(v, r[1], out=v)
+    np.add(x, v, out=x)
+    if o.lower is not None:
+        np.clip(x, o.lower, o.upper, out=x)
+
+
+def _crossover(s: _Swarm, xo: _Crossover) -> None:
+    """Steps 2 and 3: each moved particle crossed with its personal best and, separately, with the
+    global best, over segments whose ends are uniform in 0 .. D-1 (one (2, n, 2) draw: the same
+    draws, in the same order, as one (n, 2) draw per crossover)."""
+    ends = s.rng.integers(0, s.opts.x0.size, size=(2, s.opts.n, 2))
+    if s.kernel is not None:
+        s.kernel.children(xo.children, s.x, s.partner, ends)
+        return
+    xo.children[...] = s.x
+    if xo.mask_table is not None:
+        masks = xo.mask_table.take(ends @ xo.end_weights, axis=0)
+    else:
+        lo = ends.min(axis=2, keepdims=True)
+        hi = ends.max(axis=2, keepdims=True)
+        cols = np.arange(s.opts.x0.size)
+        masks = (cols >= lo) & (cols <= hi)
+    np.copyto(xo.children, s.partner, where=masks)
+
+
+def _mutate(s: _Swarm, mu: _Mutation) -> np.ndarray:
+    """Step 4: mutants normally distributed around the global best with a log-uniform step scale,
+    each aimed at one particle drawn without replacement; returns those particles' indices."""
+    o = s.opts
+    idx = s.rng.choice(o.n, size=mu.n_mut, replace=False)
+    scale = o.sigma * 10.0 ** (-o.mutation_decades * s.rng.random((mu.n_mut, 1)))
+    mutants = mu.mutants
+    s.rng.standard_normal((mu.n_mut, o.x0.size), out=mutants)
+    mutants *= scale
+    mutants += s.gbest_x
+    if o.lower is not None:
+        np.clip(mutants, o.lower, o.upper, out=mutants)
+    return idx
+
+
+def _select(s: _Swarm, xo: _Crossover) -> None:
+    """Elitist: each particle becomes the best of (particle, child with pbest, child with gbest);
+    ties keep the particle (argmin takes the first)."""
+    if s.kernel is not None:
+        s.kernel.select(xo.moved_and_children, xo.fx, s.f)
+        return
+    pick = xo.fx.argmin(axis=0)
+    s.x[...] = xo.moved_and_children[pick, xo.rows]  # the gather copies before x is written
+    xo.fx.min(axis=0, out=s.f)
+
+
+def _update_bests(s: _Swarm) -> None:
+    """Step 5: personal bests where improved; the global best where the least of them is lower."""
+    if s.kernel is not None:
+        g = s.kernel.bests(s.pbest_x, s.pbest_f, s.x, s.f)
+    else:
+        improved = s.f < s.pbest_f
+        np.copyto(s.pbest_x, s.x, where=improved[:, None])
+        np.copyto(s.pbest_f, s.f, where=improved)
+        g = int(s.pbest_f.argmin())
+    if s.pbest_f[g] < s.gbest_f:
+        s.gbest_x, s.gbest_f = s.pbest_x[g].copy(), float(s.pbest_f[g])
+        s.partner[1] = s.gbest_x
 
 
 def pso(fitness: Fitness, x0: np.ndarray, sigma: float | np.ndarray, **kwargs: Any) -> OptimizeResult:

@@ -26,6 +26,7 @@ from eyetohand.solve.objectives import (
     huber_delta_mm,
     objective_values,
 )
+from eyetohand.solve.optimize import MUTATION_RATE, candidates_per_iteration, hybrid_pso, pso
 
 PSO_SPREAD_MM = 1.0
 HUBER_ROUNDS = 5
@@ -51,7 +52,8 @@ class Problem:
 
 @dataclass(frozen=True)
 class Solver:
-    """A refinement method: ``run(problem, seed=, callback=, **options) -> (model, FitInfo)``."""
+    """A refinement method: ``run(problem, seed=, callback=, **options) -> (model, FitInfo)``, with the
+    facts its callers act on (they ask the solver, never compare its name)."""
 
     name: str
     run: Callable[..., tuple[Model, FitInfo]]
@@ -59,6 +61,29 @@ class Solver:
     options: tuple[str, ...] = ()
     summary: str = ""
     cv_solver: str | None = None  # cheaper solver used for cross-validation refits (None: itself)
+    is_swarm: bool = False
+    """A particle swarm: calls ``callback(iteration, best, x)`` after every iteration (progress, cancel)
+    and evaluates a swarm of candidates per iteration (:meth:`candidates`, :func:`check_swarm_size`)."""
+    hybrid: bool = False
+    """The swarm crosses over and mutates (the paper's hybrid), else the plain PSO."""
+    is_least_squares: bool = False
+    """The least-squares refiner (Levenberg–Marquardt): its leave-one-out can start from the full fit."""
+    is_linear: bool = False
+    """The closed-form linear solve: the model's own estimate, no refinement."""
+
+    @property
+    def memory_factor(self) -> float:
+        """Candidate positions one iteration evaluates per particle, hence memory per particle and pair:
+        the hybrid's candidate buffer (optimize._init) holds the moved particle, its two crossover
+        children (with its personal and with the global best) and ``MUTATION_RATE`` of a mutant:
+        1 + 2 + 0.1 = 3.1; the plain swarm only the moved particle (1); 0 for solvers without a swarm."""
+        if not self.is_swarm:
+            return 0.0
+        return 1 + 2 + MUTATION_RATE if self.hybrid else 1.0
+
+    def candidates(self, n_particles: int) -> int:
+        """Positions one iteration of this swarm evaluates (the optimiser's own count)."""
+        return candidates_per_iteration(n_particles, crossover=self.hybrid, mutation=self.hybrid)
 
     def for_cross_validation(self, objective: str) -> str:
         """The solver whose refits score held-out pairs: the swarms' are too slow to repeat n times,
@@ -135,8 +160,6 @@ def _lm(problem: Problem, **_):
 
 def _swarm(kind: str):
     def run(problem: Problem, *, seed=None, callback=None, n_particles: int = 200, iterations: int = 150):
-        from eyetohand.solve import optimize
-
         model = problem.model
         check_swarm_size(kind, n_particles, len(problem.uv_px))
         t0 = time.perf_counter()
@@ -144,7 +167,7 @@ def _swarm(kind: str):
         sigma = param_scale(
             model, problem.uv_px, problem.xyz_mm[:, 2], step_mm=PSO_SPREAD_MM / np.sqrt(model.n_params)
         )
-        fn = optimize.hybrid_pso if kind == "hybrid-pso" else optimize.pso
+        fn = hybrid_pso if SOLVERS[kind].hybrid else pso
         res = fn(
             problem.fitness,
             model.params,
@@ -174,8 +197,20 @@ def _swarm(kind: str):
 SOLVERS: dict[str, Solver] = {
     s.name: s
     for s in (
-        Solver("linear", _linear, OBJECTIVES, summary="the model's closed-form (normalised linear) estimate"),
-        Solver("lm", _lm, SMOOTH_OBJECTIVES, summary="Levenberg–Marquardt on the robot-space residuals"),
+        Solver(
+            "linear",
+            _linear,
+            OBJECTIVES,
+            summary="the model's closed-form (normalised linear) estimate",
+            is_linear=True,
+        ),
+        Solver(
+            "lm",
+            _lm,
+            SMOOTH_OBJECTIVES,
+            summary="Levenberg–Marquardt on the robot-space residuals",
+            is_least_squares=True,
+        ),
         Solver(
             "hybrid-pso",
             _swarm("hybrid-pso"),
@@ -183,6 +218,8 @@ SOLVERS: dict[str, Solver] = {
             ("n_particles", "iterations"),
             "the paper's hybrid particle swarm (PSO + crossover + mutation)",
             cv_solver="lm",
+            is_swarm=True,
+            hybrid=True,
         ),
         Solver(
             "pso",
@@ -191,6 +228,7 @@ SOLVERS: dict[str, Solver] = {
             ("n_particles", "iterations"),
             "plain particle swarm (the ablation)",
             cv_solver="lm",
+            is_swarm=True,
         ),
     )
 }
@@ -229,15 +267,17 @@ at once, ~``4 × candidates × pairs × 3 × 8`` bytes of arrays."""
 
 
 def check_swarm_size(kind: str, n_particles: int, n_pairs: int) -> None:
-    """Refuses (:class:`InputError`) a swarm whose one iteration would need more than
-    :data:`SWARM_MAX_BYTES` — with how many particles would fit — instead of a MemoryError."""
+    """Refuses (:class:`InputError`) a swarm (the solver called ``kind``) whose one iteration would need
+    more than :data:`SWARM_MAX_BYTES` — with how many particles would fit — instead of a MemoryError."""
+    solver = get_solver(kind)
     per_row = 4 * n_pairs * 3 * 8
-    rows = _swarm_rows(kind, n_particles)
+    rows = solver.candidates(n_particles)
     need = rows * per_row
     if need <= SWARM_MAX_BYTES:
         return
-    most = int(SWARM_MAX_BYTES // per_row / (3.1 if kind == "hybrid-pso" else 1.0))
-    while most >= 2 and _swarm_rows(kind, most) * per_row > SWARM_MAX_BYTES:
+    # the rows that fit over the rows per particle, then down to the exact count (its rounding)
+    most = int(SWARM_MAX_BYTES // per_row / solver.memory_factor)
+    while most >= 2 and solver.candidates(most) * per_row > SWARM_MAX_BYTES:
         most -= 1
     advice = f"at most {most} particles fit" if most >= 2 else "no swarm fits: use optimizer lm"
     raise InputError(
@@ -249,10 +289,7 @@ def check_swarm_size(kind: str, n_particles: int, n_pairs: int) -> None:
 
 def _swarm_rows(kind: str, n: int) -> int:
     """Positions one iteration of the ``kind`` swarm evaluates (the optimiser's own count)."""
-    from eyetohand.solve.optimize import candidates_per_iteration
-
-    hybrid = kind == "hybrid-pso"
-    return candidates_per_iteration(n, crossover=hybrid, mutation=hybrid)
+    return get_solver(kind).candidates(n)
 
 
 def check_optimizer(name: str, objective: str = "l2", options: dict | None = None) -> Solver:
@@ -260,7 +297,7 @@ def check_optimizer(name: str, objective: str = "l2", options: dict | None = Non
     solver = get_solver(name)
     check_objective(objective)
     if objective not in solver.objectives:
-        able = [s.name for s in SOLVERS.values() if objective in s.objectives and s.name != "linear"]
+        able = [s.name for s in SOLVERS.values() if objective in s.objectives and not s.is_linear]
         raise InputError(
             f"optimizer '{name}' needs a smooth objective ({', '.join(solver.objectives)}); "
             f"'{objective}' works with {' or '.join(able)}"
