@@ -57,16 +57,9 @@ from pathlib import Path
 
 import numpy as np
 
-from eyetohand.cell.collect import (
-    NAME_RE,
-    CommandError,
-    JsonlJournal,
-    ascii_reason,
-    line_count,
-    line_numbers,
-    utc_now,
-)
+from eyetohand.cell.collect import NAME_RE, JsonlJournal, utc_now
 from eyetohand.cell.conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor
+from eyetohand.cell.line import CommandError, ascii_reason, line_count, line_numbers
 from eyetohand.core import InputError
 from eyetohand.geometry import check_symmetry
 

@@ -73,12 +73,12 @@ from pathlib import Path
 
 import numpy as np
 
-from eyetohand.core import InputError, angle_refusal, beyond_limit
+from eyetohand.cell.line import CommandError, ascii_reason, line_numbers
+from eyetohand.core import InputError
 
 STILL_TOL_PX = 0.2
 POSE_MATCH_MM = 0.01
 REPEAT_MATCH_MM = 1e-3
-MAX_REASON = 160
 NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 REPLY_FORMATS = ("plain", "ur")
 UR_STATES = {"none": 0, "collecting": 1, "calibrated": 2, "aborted": 3}
@@ -95,10 +95,6 @@ UR_ERROR_CODES = {  # reason prefix -> code (ur reply format)
 }
 UR_ERROR_OTHER = -1  # a malformed command, or anything else
 SQLITE_SUFFIXES = (".db", ".sqlite", ".sqlite3")
-
-
-class CommandError(Exception):
-    """A command answered with ``ERR``: the message is the reason."""
 
 
 # ------------------------------------------------------------------ journals
@@ -177,59 +173,6 @@ def utc_now() -> str:
 
 def _f(x: float) -> str:
     return f"{float(x):.4f}"
-
-
-# the library's words in ASCII for the line protocols (a robot controller reads bytes): the symbols
-# its messages use, spelt out; anything else becomes '?'
-_ASCII = str.maketrans(
-    {
-        "°": " deg", "±": "+/-", "×": "x", "·": "*", "−": "-", "–": "-", "—": "-", "…": "...",
-        "→": "->", "←": "<-", "≤": "<=", "≥": ">=", "≈": "~", "≠": "!=", "²": "^2", "³": "^3",
-        "⁴": "^4", "⁶": "^6", "¹": "1", "⁻": "^-", "⁺": "^+", "µ": "u", "μ": "u", "σ": "sigma",
-        "θ": "theta", "φ": "phi", "ρ": "rho", "χ": "chi", "Δ": "d", "Σ": "sum", "√": "sqrt",
-        "½": "1/2", "∈": " in ", "‖": "|", "ᵀ": "^T", "’": "'", "‘": "'", "“": '"', "”": '"',
-    }
-)  # fmt: skip
-
-
-def ascii_reason(text: str, limit: int = MAX_REASON) -> str:
-    """A reason as the line protocols send it: one line of ASCII (the library's symbols spelt out:
-    ``180°`` → ``180 deg``, ``±`` → ``+/-``), no longer than ``limit`` characters."""
-    s = " ".join(str(text).split()).translate(_ASCII)
-    s = s.encode("ascii", "replace").decode("ascii")
-    return s if len(s) <= limit else s[: limit - 3] + "..."
-
-
-def line_numbers(
-    fields: list[str], names: str | tuple[str, ...], what: str | None, unit: str | None = None
-) -> list[float]:
-    """Finite plain decimals of a line protocol (CAL, BELT and the TCP mapping line), refused as
-    ``u: 'abc' is not a number`` (after ``what: `` when given); ``6_00`` is not one, as in the
-    library's loaders. With ``unit`` ("mm" or "px") they are coordinates of pairs, refused beyond
-    ±1e9 as the loaders refuse them (:func:`eyetohand.core.pairs.beyond_limit`); "deg": angles, refused
-    beyond ±1e9 deg (:func:`eyetohand.core.pairs.angle_refusal`)."""
-    out = []
-    prefix = f"{what}: " if what else ""
-    for name, text in zip(names, fields, strict=False):
-        try:
-            if "_" in text:
-                raise ValueError(text)
-            v = float(text)
-        except ValueError:
-            raise CommandError(f"{prefix}{name}: {text[:20]!r} is not a number") from None
-        if not math.isfinite(v):
-            raise CommandError(f"{prefix}{name}: {text[:20]!r} is not a finite number")
-        far = (angle_refusal(v) if unit == "deg" else beyond_limit(v, unit)) if unit else None
-        if far:
-            raise CommandError(f"{prefix}{name}: {far}")
-        out.append(v)
-    return out
-
-
-def line_count(value: float) -> int | float:
-    """A line protocol's number meant as a count (``s=N``): the text ``2.0`` is the whole number 2;
-    a fraction is passed on as it is, for the rule that takes the count to refuse in its words."""
-    return int(value) if value == int(value) else value
 
 
 def plan_poses(plan: str, x0: float, y0: float, x1: float, y1: float, z: float) -> np.ndarray:
