@@ -45,10 +45,11 @@ Numbers in replies are fixed-point, 4 decimals (mm and px), never locale-formatt
 
 **Reply formats.** ``plain`` (above) or ``ur``: for URScript's ``socket_read_ascii_float(4)`` every
 reply becomes exactly four numbers in brackets ``(status,a,b,c)``: status 1 for OK, 0 for ``OK DONE``,
-a negative code for ERR (:data:`UR_ERROR_CODES`), fields padded with 0 — NEXT ``(1,x,y,z)``, POINT
-``(1,n,u,v)``, END ``(1,n,loo_rms,loo_max)`` (the model's name is in the journal), STATUS
-``(1,n,state,planned)`` with the state as :data:`UR_STATES`, CHECK ``(1,dx,dy,error)``. A fixed count
-matters: ``socket_read_ascii_float`` answers ``[0, nan…]`` when it cannot read the count it asked for.
+a negative code for ERR (the refusal's kind, ``CommandError.code``, numbered by :data:`UR_ERROR_CODES`),
+fields padded with 0 — NEXT ``(1,x,y,z)``, POINT ``(1,n,u,v)``, END ``(1,n,loo_rms,loo_max)`` (the
+model's name is in the journal), STATUS ``(1,n,state,planned)`` with the state as :data:`UR_STATES`,
+CHECK ``(1,dx,dy,error)``. A fixed count matters: ``socket_read_ascii_float`` answers ``[0, nan…]`` when
+it cannot read the count it asked for.
 
 **Persistence.** Every state change is appended to a journal *before* the reply is sent and
 ``fsync``-ed: a JSONL file ``<store>/collect.jsonl`` (store a folder), or a table in an SQLite file
@@ -73,7 +74,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eyetohand.cell.line import CommandError, ascii_reason, line_numbers
+from eyetohand.cell.line import CommandError, ErrorCode, ascii_reason, line_numbers
 from eyetohand.core import InputError
 
 STILL_TOL_PX = 0.2
@@ -82,18 +83,19 @@ REPEAT_MATCH_MM = 1e-3
 NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 REPLY_FORMATS = ("plain", "ur")
 UR_STATES = {"none": 0, "collecting": 1, "calibrated": 2, "aborted": 3}
-UR_ERROR_CODES = {  # reason prefix -> code (ur reply format)
-    "target not found": -2,
-    "ambiguous": -3,
-    "moving": -4,
-    "outside the image": -5,
-    "timeout": -6,
-    "no collection": -7,
-    "fit failed": -8,
-    "no calibration": -9,
-    "busy": -10,
+UR_ERROR_CODES = {  # the kind of a refusal (CommandError.code) -> the ur reply format's status
+    ErrorCode.OTHER: -1,  # a malformed command, or anything else
+    ErrorCode.TARGET_NOT_FOUND: -2,
+    ErrorCode.AMBIGUOUS: -3,
+    ErrorCode.MOVING: -4,
+    ErrorCode.OUTSIDE_IMAGE: -5,
+    ErrorCode.TIMEOUT: -6,
+    ErrorCode.NO_COLLECTION: -7,
+    ErrorCode.FIT_FAILED: -8,
+    ErrorCode.NO_CALIBRATION: -9,
+    ErrorCode.BUSY: -10,
 }
-UR_ERROR_OTHER = -1  # a malformed command, or anything else
+UR_ERROR_OTHER = UR_ERROR_CODES[ErrorCode.OTHER]
 SQLITE_SUFFIXES = (".db", ".sqlite", ".sqlite3")
 
 
@@ -197,13 +199,14 @@ def default_calibrate(pairs, model: str, image_size):
     return calibrate(pairs, model=model, image_size=image_size, seed=0)
 
 
-def _classify(reason: str) -> str:
+def _classify(reason: str) -> CommandError:
+    """The refusal of a detection that found no target, from its reason."""
     r = reason.removeprefix("no target found: ")
     if reason.startswith("ambiguous"):
-        return reason
+        return CommandError(reason, ErrorCode.AMBIGUOUS)
     if "cut by the image border" in reason:
-        return f"outside the image: {r}"
-    return f"target not found: {r}"
+        return CommandError(f"outside the image: {r}", ErrorCode.OUTSIDE_IMAGE)
+    return CommandError(f"target not found: {r}", ErrorCode.TARGET_NOT_FOUND)
 
 
 class _Session:
@@ -425,17 +428,17 @@ class Collector:
             try:
                 line = line.decode("ascii")
             except UnicodeDecodeError:
-                return self._format_err("not ASCII text")
+                return self._format_err(CommandError("not ASCII text"))
         text = line.rstrip("\r\n").strip()
         with self._lock:
             try:
                 fields = self._dispatch(text)
             except CommandError as exc:
-                return self._format_err(str(exc))
+                return self._format_err(exc)
             except InputError as exc:
-                return self._format_err(str(exc).splitlines()[0])
+                return self._format_err(CommandError(str(exc).splitlines()[0]))
             except Exception as exc:  # a camera or a fit that breaks: still one ERR line, state intact
-                return self._format_err(f"internal error: {type(exc).__name__}: {exc}")
+                return self._format_err(CommandError(f"internal error: {type(exc).__name__}: {exc}"))
         return self._format_ok(text, fields)
 
     def _dispatch(self, text: str) -> list:
@@ -507,7 +510,8 @@ class Collector:
                 return []  # resume
             raise CommandError(
                 f"busy: collection '{s.name}' is open with {len(s.points)} points; "
-                "send CAL END or CAL ABORT first"
+                "send CAL END or CAL ABORT first",
+                ErrorCode.BUSY,
             )
         self._record(
             {"op": "begin", "name": name, "plan": plan, "rect": rect, "model": model, "poses": poses}
@@ -517,14 +521,17 @@ class Collector:
     def _open(self) -> _Session:
         s = self.session
         if s is None or s.state != "collecting":
-            raise CommandError("no collection open; send CAL BEGIN <name> first")
+            raise CommandError("no collection open; send CAL BEGIN <name> first", ErrorCode.NO_COLLECTION)
         return s
 
     # -- NEXT
     def _next(self, args) -> list:
         s = self._open()
         if not len(s.poses):
-            raise CommandError("no collection plan: CAL BEGIN was given no plan; send your own POINTs")
+            raise CommandError(  # the code the ur replies have always sent for it
+                "no collection plan: CAL BEGIN was given no plan; send your own POINTs",
+                ErrorCode.NO_COLLECTION,
+            )
         left = np.flatnonzero(~(s.done | s.failed))
         if not len(left):
             return ["DONE"]
@@ -540,11 +547,11 @@ class Collector:
             img1, _ = self.source.grab()
             img2, _ = self.source.grab()
         except GrabTimeout as exc:
-            raise CommandError(f"timeout: {exc}") from None
+            raise CommandError(f"timeout: {exc}", ErrorCode.TIMEOUT) from None
         d1 = detect_target(img1, name="grab 1", **self.detect_options)
         self.last_grab = (img1, d1, utc_now())
         if not d1.ok:
-            raise CommandError(_classify(d1.reason))
+            raise _classify(d1.reason)
         assert d1.u is not None and d1.v is not None and d1.diameter_px is not None  # found: all set
         r = 2.0 * d1.diameter_px + 8
         h, w = img2.shape[:2]
@@ -557,13 +564,14 @@ class Collector:
         except InputError:
             d2 = None
         if d2 is None or not d2.ok:
-            raise CommandError("moving: the target was not found again in the second grab")
+            raise CommandError("moving: the target was not found again in the second grab", ErrorCode.MOVING)
         assert d2.u is not None and d2.v is not None
         shift = math.hypot(d2.u - d1.u, d2.v - d1.v)
         if shift > self.still_tol_px:
             raise CommandError(
                 f"moving: the target moved {shift:.2f} px between two grabs "
-                f"(tolerance {self.still_tol_px:g} px)"
+                f"(tolerance {self.still_tol_px:g} px)",
+                ErrorCode.MOVING,
             )
         self.image_size = (int(w), int(h))
         self.last_grab = (img1, d1, utc_now())
@@ -644,7 +652,7 @@ class Collector:
         s = self._open()
         pts = self._active(s)
         if not pts:
-            raise CommandError("fit failed: no points recorded")
+            raise CommandError("fit failed: no points recorded", ErrorCode.FIT_FAILED)
         uv = np.array([[p["u"], p["v"]] for p in pts])
         xyz = np.array([p["xyz_mm"] for p in pts])
         angles = None
@@ -660,10 +668,11 @@ class Collector:
         try:
             cal = self.calibrate_fn(pairs, s.model, self.image_size)
         except InputError as exc:
-            raise CommandError(f"fit failed: {len(pairs)} points: {exc}") from None
+            raise CommandError(f"fit failed: {len(pairs)} points: {exc}", ErrorCode.FIT_FAILED) from None
         if cal.loo is None:
             raise CommandError(
-                f"fit failed: {len(pairs)} points are too few to fit and cross-check model {cal.model_name}"
+                f"fit failed: {len(pairs)} points are too few to fit and cross-check model {cal.model_name}",
+                ErrorCode.FIT_FAILED,
             )
         self.save_fn(s.name, cal)
         self._record(
@@ -701,13 +710,16 @@ class Collector:
         if cal is None or not name:
             raise CommandError(
                 "no calibration to check"
-                + (f": '{name}' has none yet" if name else "; send CAL BEGIN … CAL END first")
+                + (f": '{name}' has none yet" if name else "; send CAL BEGIN … CAL END first"),
+                ErrorCode.NO_CALIBRATION,
             )
         uv, det, img, _ = self._acquire(xyz, 0.0)
         with np.errstate(all="ignore"):
             got = cal.image_to_robot(np.array([uv]), xyz[2])[0]
         if not np.isfinite(got).all():
-            raise CommandError("target not found: the centre maps to no finite robot point")
+            raise CommandError(
+                "target not found: the centre maps to no finite robot point", ErrorCode.TARGET_NOT_FOUND
+            )
         dx, dy = float(got[0] - xyz[0]), float(got[1] - xyz[1])
         err = math.hypot(dx, dy)
         rec = {
@@ -751,12 +763,10 @@ class Collector:
         nums += [0.0] * (4 - len(nums))
         return "(" + ",".join(_ur_number(v) for v in nums) + ")"
 
-    def _format_err(self, reason: str) -> str:
-        reason = ascii_reason(reason)
+    def _format_err(self, exc: CommandError) -> str:
         if self.reply_format == "plain":
-            return f"ERR {reason}"
-        code = next((c for p, c in UR_ERROR_CODES.items() if reason.startswith(p)), UR_ERROR_OTHER)
-        return f"({code},0,0,0)"
+            return f"ERR {ascii_reason(str(exc))}"
+        return f"({UR_ERROR_CODES[exc.code]},0,0,0)"
 
 
 def _ur_number(v: float) -> str:

@@ -26,9 +26,10 @@ MAX_REASON = 200
 
 
 class ErrorCode(enum.Enum):
-    """What kind of refusal a :class:`CommandError` is (its value: the words its reason starts with).
-    A reply format that cannot send the reason sends this instead (the CAL ``ur`` format: a negative
-    number per kind, ``eyetohand.cell.collect.UR_ERROR_CODES``)."""
+    """What kind of refusal a :class:`CommandError` is, set where it is raised (its value names the kind
+    in words; CAL's reasons of a kind start with them). A reply format that cannot send the reason sends
+    this instead: the CAL ``ur`` format a negative number per kind
+    (``eyetohand.cell.collect.UR_ERROR_CODES``)."""
 
     OTHER = "other"  # a malformed command, or anything else
     TARGET_NOT_FOUND = "target not found"
