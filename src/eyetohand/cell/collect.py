@@ -69,8 +69,9 @@ import os
 import re
 import sqlite3
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -81,7 +82,6 @@ STILL_TOL_PX = 0.2
 POSE_MATCH_MM = 0.01
 REPEAT_MATCH_MM = 1e-3
 NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
-REPLY_FORMATS = ("plain", "ur")
 UR_STATES = {"none": 0, "collecting": 1, "calibrated": 2, "aborted": 3}
 UR_ERROR_CODES = {  # the kind of a refusal (CommandError.code) -> the ur reply format's status
     ErrorCode.OTHER: -1,  # a malformed command, or anything else
@@ -97,6 +97,78 @@ UR_ERROR_CODES = {  # the kind of a refusal (CommandError.code) -> the ur reply 
 }
 UR_ERROR_OTHER = UR_ERROR_CODES[ErrorCode.OTHER]
 SQLITE_SUFFIXES = (".db", ".sqlite", ".sqlite3")
+
+
+# ------------------------------------------------------------------ reply formats
+
+
+class ReplyFormat(Protocol):
+    """How a :class:`Collector` words its replies (one line each, no line end)."""
+
+    name: str
+
+    def ok(self, command: str, fields: Sequence[str], planned: int) -> str:
+        """A command done: ``command`` the CAL word (``POINT``, ``STATUS``, ...), ``fields`` its reply
+        fields as the plain format sends them, ``planned`` the open collection's planned poses."""
+        ...
+
+    def done(self) -> str:
+        """``CAL NEXT`` with every planned pose recorded or failed."""
+        ...
+
+    def error(self, exc: CommandError) -> str:
+        """A command refused."""
+        ...
+
+
+class PlainReplies:
+    """``OK [fields]``, ``OK DONE`` and ``ERR <reason>`` (the reason in ASCII: :func:`ascii_reason`)."""
+
+    name = "plain"
+
+    def ok(self, command: str, fields: Sequence[str], planned: int) -> str:
+        return "OK" + (" " + ",".join(fields) if fields else "")
+
+    def done(self) -> str:
+        return "OK DONE"
+
+    def error(self, exc: CommandError) -> str:
+        return f"ERR {ascii_reason(str(exc))}"
+
+
+class URReplies:
+    """Four numbers ``(status,a,b,c)`` for URScript's ``socket_read_ascii_float(4)`` (module docstring):
+    status 1 and the fields for OK, 0 for DONE, the refusal's :data:`UR_ERROR_CODES` number for ERR."""
+
+    name = "ur"
+
+    def ok(self, command: str, fields: Sequence[str], planned: int) -> str:
+        if command == "END":  # the model's name is not a number: it is in the journal
+            nums = [float(f) for f in fields[1:]]
+        elif command == "STATUS":  # name,n,state -> n,state number,planned poses
+            nums = [float(fields[1]), UR_STATES[fields[2]], planned]
+        else:
+            nums = [float(f) for f in fields]
+        return self._line([1, *nums])
+
+    def done(self) -> str:
+        return self._line([0])
+
+    def error(self, exc: CommandError) -> str:
+        return self._line([UR_ERROR_CODES[exc.code]])
+
+    @staticmethod
+    def _line(nums: list[float]) -> str:
+        nums = nums + [0] * (4 - len(nums))
+        return "(" + ",".join(_ur_number(v) for v in nums) + ")"
+
+
+def _ur_number(v: float) -> str:
+    return str(int(v)) if float(v).is_integer() and abs(v) < 1e9 else f"{v:.4f}"
+
+
+#: the reply formats by name (``Collector(reply_format=...)``, ``serve --reply-format``)
+REPLY_FORMATS: dict[str, type[ReplyFormat]] = {"plain": PlainReplies, "ur": URReplies}
 
 
 # ------------------------------------------------------------------ journals
@@ -269,7 +341,7 @@ class Collector:
         self.calibrate_fn = calibrate_fn or default_calibrate
         self.save_fn = save_fn or self._save_file
         self.load_fn = load_fn or self._load_file
-        self.reply_format = reply_format
+        self.replies: ReplyFormat = REPLY_FORMATS[reply_format]()
         self.still_tol_px = float(still_tol_px)
         self.detect_options = dict(detect_options or {})
         self.keep_images = keep_images
@@ -340,6 +412,11 @@ class Collector:
                     p["dropped"] = op == "drop"
                     if p.get("pose_index") is not None:
                         s.done[p["pose_index"]] = op == "keep"
+
+    @property
+    def reply_format(self) -> str:
+        """The name of the reply format (:data:`REPLY_FORMATS`)."""
+        return self.replies.name
 
     @property
     def state(self) -> str:
@@ -428,20 +505,24 @@ class Collector:
             try:
                 line = line.decode("ascii")
             except UnicodeDecodeError:
-                return self._format_err(CommandError("not ASCII text"))
+                return self.replies.error(CommandError("not ASCII text"))
         text = line.rstrip("\r\n").strip()
         with self._lock:
             try:
-                fields = self._dispatch(text)
+                cmd, fields = self._dispatch(text)
             except CommandError as exc:
-                return self._format_err(exc)
+                return self.replies.error(exc)
             except InputError as exc:
-                return self._format_err(CommandError(str(exc).splitlines()[0]))
+                return self.replies.error(CommandError(str(exc).splitlines()[0]))
             except Exception as exc:  # a camera or a fit that breaks: still one ERR line, state intact
-                return self._format_err(CommandError(f"internal error: {type(exc).__name__}: {exc}"))
-        return self._format_ok(text, fields)
+                return self.replies.error(CommandError(f"internal error: {type(exc).__name__}: {exc}"))
+            planned = 0 if self.session is None else len(self.session.poses)
+        if fields is None:
+            return self.replies.done()
+        return self.replies.ok(cmd, fields, planned)
 
-    def _dispatch(self, text: str) -> list:
+    def _dispatch(self, text: str) -> tuple[str, list[str] | None]:
+        """The command word and its reply fields (None: NEXT has no pose left)."""
         words = text.split(None, 2)
         if len(words) < 2 or words[0].upper() != "CAL":
             raise CommandError("unknown command; expected CAL BEGIN|NEXT|POINT|END|ABORT|STATUS|CHECK")
@@ -462,7 +543,7 @@ class Collector:
             )
         if cmd in ("NEXT", "END", "ABORT", "STATUS") and args:
             raise CommandError(f"CAL {cmd} takes no fields")
-        return handler(args)
+        return cmd, handler(args)
 
     # -- BEGIN
     def _begin(self, args: list[str]) -> list:
@@ -525,7 +606,7 @@ class Collector:
         return s
 
     # -- NEXT
-    def _next(self, args) -> list:
+    def _next(self, args) -> list[str] | None:
         s = self._open()
         if not len(s.poses):
             raise CommandError(  # the code the ur replies have always sent for it
@@ -534,7 +615,7 @@ class Collector:
             )
         left = np.flatnonzero(~(s.done | s.failed))
         if not len(left):
-            return ["DONE"]
+            return None
         return [_f(v) for v in s.poses[left[0]]]
 
     # -- acquisition
@@ -744,42 +825,17 @@ class Collector:
             os.fsync(fh.fileno())
         return [_f(dx), _f(dy), _f(err)]
 
-    # ---------------------------------------------------------------- replies
-    def _format_ok(self, text: str, fields: list) -> str:
-        if self.reply_format == "plain":
-            return "OK" + (" " + ",".join(fields) if fields else "")
-        if fields == ["DONE"]:
-            nums = [0.0]
-        else:
-            nums = [1.0]
-            words = text.split()
-            cmd = words[1].upper() if len(words) > 1 else ""
-            if cmd == "END":
-                fields = fields[1:]
-            elif cmd == "STATUS":
-                s = self.session
-                fields = [fields[1], str(UR_STATES[fields[2]]), str(0 if s is None else len(s.poses))]
-            nums += [float(f) for f in fields]
-        nums += [0.0] * (4 - len(nums))
-        return "(" + ",".join(_ur_number(v) for v in nums) + ")"
-
-    def _format_err(self, exc: CommandError) -> str:
-        if self.reply_format == "plain":
-            return f"ERR {ascii_reason(str(exc))}"
-        return f"({UR_ERROR_CODES[exc.code]},0,0,0)"
-
-
-def _ur_number(v: float) -> str:
-    return str(int(v)) if float(v).is_integer() and abs(v) < 1e9 else f"{v:.4f}"
-
 
 __all__ = [
-    "Collector",
-    "CommandError",
     "REPLY_FORMATS",
     "STILL_TOL_PX",
     "UR_ERROR_CODES",
+    "UR_ERROR_OTHER",
     "UR_STATES",
+    "Collector",
+    "PlainReplies",
+    "ReplyFormat",
+    "URReplies",
     "default_calibrate",
     "plan_poses",
 ]
