@@ -307,6 +307,7 @@ class Collector:
     (default: ``<name>.json`` written atomically); ``load_fn(name) -> Calibration | None`` the current one,
     for CHECK (default: that file). ``calibration``: the name CHECK uses before any BEGIN (the server's
     ``--calibration``). ``detect_options`` go to :func:`eyetohand.vision.detect.detect_target`.
+    ``reply_format``: a name of :data:`REPLY_FORMATS` (``plain`` or ``ur``), held as :attr:`replies`.
     """
 
     def __init__(

@@ -18,10 +18,11 @@ import math
 from eyetohand.core import angle_refusal, beyond_limit
 
 #: Characters of an ``ERR`` reason on every line protocol (CAL, BELT, the mapping line and VERSION);
-#: longer ones end in ``...``. 200: the longest refusals the library words for one line (a height off a
-#: single-height calibration's plane, 182; a belt fit with too few touches, 164) arrive whole, and a reply
-#: ``ERR <reason>\n`` (205 bytes) stays within the 256 bytes a request line may have
-#: (:data:`eyetohand.server.tcp.MAX_LINE`), so a client that sized its buffer by that reads every reply.
+#: longer ones end in ``...``. 200 (CAL and BELT had 160): the library's long one-line refusals arrive
+#: whole with their advice (a height off a single-height calibration's plane is ~180 characters, a belt fit
+#: with too few touches ~165), and a reply ``ERR <reason>\n`` (at most 205 bytes) stays within the 256
+#: bytes a request line may have (``eyetohand.server.tcp.MAX_LINE``): a client that sized its buffer by
+#: that reads every reply. The ``ur`` CAL replies send no reason: their length does not depend on it.
 MAX_REASON = 200
 
 
