@@ -1305,7 +1305,7 @@ def test_tcp_takes_the_orientation_words_apply_and_http_take(client):
 
 
 def test_line_protocol_reasons_are_ascii_with_the_symbols_spelt_out():
-    from eyetohand.cell.collect import MAX_REASON, ascii_reason
+    from eyetohand.cell import MAX_REASON, ascii_reason
 
     assert ascii_reason("k1 ± 0.2 — 180° · 3×4 ≤ 5 µm, σ²") == "k1 +/- 0.2 - 180 deg * 3x4 <= 5 um, sigma^2"
     assert ascii_reason("two\nlines  here") == "two lines here"

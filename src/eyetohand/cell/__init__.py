@@ -4,7 +4,7 @@ conveyor."""
 from __future__ import annotations
 
 from eyetohand.cell.belt_protocol import BeltProtocol
-from eyetohand.cell.collect import Collector, CommandError, ascii_reason, line_count, line_numbers
+from eyetohand.cell.collect import Collector
 from eyetohand.cell.conveyor import (
     ConveyorCalibration,
     Encoder,
@@ -14,6 +14,7 @@ from eyetohand.cell.conveyor import (
     format_report,
     load_session,
 )
+from eyetohand.cell.line import MAX_REASON, CommandError, ErrorCode, ascii_reason, line_count, line_numbers
 from eyetohand.cell.plans import MAX_POINTS, VALID_FORMS, Plan, is_whole_in, parse_numbers, parse_plan
 
 __all__ = [
@@ -22,7 +23,9 @@ __all__ = [
     "CommandError",
     "ConveyorCalibration",
     "Encoder",
+    "ErrorCode",
     "MAX_POINTS",
+    "MAX_REASON",
     "Plan",
     "Session",
     "VALID_FORMS",

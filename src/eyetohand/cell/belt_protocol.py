@@ -57,16 +57,9 @@ from pathlib import Path
 
 import numpy as np
 
-from eyetohand.cell.collect import (
-    NAME_RE,
-    CommandError,
-    JsonlJournal,
-    ascii_reason,
-    line_count,
-    line_numbers,
-    utc_now,
-)
+from eyetohand.cell.collect import NAME_RE, JsonlJournal, utc_now
 from eyetohand.cell.conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor
+from eyetohand.cell.line import CommandError, ErrorCode, ascii_reason, line_count, line_numbers
 from eyetohand.core import InputError
 from eyetohand.geometry import check_symmetry
 
@@ -208,7 +201,8 @@ class BeltProtocol:
         if self.conveyor is None:
             raise CommandError(
                 "no conveyor calibration: start serve with --conveyor FILE, or collect one "
-                "(BELT BEGIN … BELT END)"
+                "(BELT BEGIN … BELT END)",
+                ErrorCode.NO_CALIBRATION,
             )
         return self.conveyor
 
@@ -257,7 +251,7 @@ class BeltProtocol:
     def _open(self) -> dict:
         s = self.session
         if s is None or s["state"] != "collecting":
-            raise CommandError("no belt session open; send BELT BEGIN <name> first")
+            raise CommandError("no belt session open; send BELT BEGIN <name> first", ErrorCode.NO_COLLECTION)
         return s
 
     def _begin(self, args: list[str]) -> list[str]:
@@ -281,7 +275,8 @@ class BeltProtocol:
                 return []
             raise CommandError(
                 f"busy: belt session '{s['name']}' is open with {len(s['rows'])} rows; "
-                "send BELT END or BELT ABORT first"
+                "send BELT END or BELT ABORT first",
+                ErrorCode.BUSY,
             )
         self._record({"op": "begin", "name": name, "model": model})
         return []
@@ -310,7 +305,7 @@ class BeltProtocol:
         try:
             img, _ = self.source.grab()
         except GrabTimeout as exc:
-            raise CommandError(f"timeout: {exc}") from None
+            raise CommandError(f"timeout: {exc}", ErrorCode.TIMEOUT) from None
         latched = getattr(self.source, "encoder_count", None)
         if rest:
             e = _count(rest[0], "e", self.encoder)
@@ -321,7 +316,7 @@ class BeltProtocol:
         self._check_count(s, e, "BELT SIGHT")
         d = detect_target(img, name=f"sighting {pid}", **self.detect_options)
         if not d.ok or d.u is None or d.v is None:
-            raise CommandError(f"target not found: {d.reason}")
+            raise CommandError(f"target not found: {d.reason}", ErrorCode.TARGET_NOT_FOUND)
         h, w = img.shape[:2]
         self._record(
             {
@@ -376,7 +371,7 @@ class BeltProtocol:
         s = self._open()
         rows = self.session_rows()
         if not rows:
-            raise CommandError("fit failed: no rows recorded")
+            raise CommandError("fit failed: no rows recorded", ErrorCode.FIT_FAILED)
         try:
             session = Session.from_rows(rows, f"belt session {s['name']}")
             conv = calibrate_conveyor(
@@ -387,7 +382,7 @@ class BeltProtocol:
                 noise_counts=NOISE_COUNTS,
             )
         except InputError as exc:
-            raise CommandError(f"fit failed: {str(exc).splitlines()[0]}") from None
+            raise CommandError(f"fit failed: {str(exc).splitlines()[0]}", ErrorCode.FIT_FAILED) from None
         assert self.dir is not None
         path = conv.save(self.dir / f"{s['name']}.conveyor.json")
         rep = conv.report or {}

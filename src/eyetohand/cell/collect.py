@@ -45,10 +45,11 @@ Numbers in replies are fixed-point, 4 decimals (mm and px), never locale-formatt
 
 **Reply formats.** ``plain`` (above) or ``ur``: for URScript's ``socket_read_ascii_float(4)`` every
 reply becomes exactly four numbers in brackets ``(status,a,b,c)``: status 1 for OK, 0 for ``OK DONE``,
-a negative code for ERR (:data:`UR_ERROR_CODES`), fields padded with 0 — NEXT ``(1,x,y,z)``, POINT
-``(1,n,u,v)``, END ``(1,n,loo_rms,loo_max)`` (the model's name is in the journal), STATUS
-``(1,n,state,planned)`` with the state as :data:`UR_STATES`, CHECK ``(1,dx,dy,error)``. A fixed count
-matters: ``socket_read_ascii_float`` answers ``[0, nan…]`` when it cannot read the count it asked for.
+a negative code for ERR (the refusal's kind, ``CommandError.code``, numbered by :data:`UR_ERROR_CODES`),
+fields padded with 0 — NEXT ``(1,x,y,z)``, POINT ``(1,n,u,v)``, END ``(1,n,loo_rms,loo_max)`` (the
+model's name is in the journal), STATUS ``(1,n,state,planned)`` with the state as :data:`UR_STATES`,
+CHECK ``(1,dx,dy,error)``. A fixed count matters: ``socket_read_ascii_float`` answers ``[0, nan…]`` when
+it cannot read the count it asked for.
 
 **Persistence.** Every state change is appended to a journal *before* the reply is sent and
 ``fsync``-ed: a JSONL file ``<store>/collect.jsonl`` (store a folder), or a table in an SQLite file
@@ -68,37 +69,106 @@ import os
 import re
 import sqlite3
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
-from eyetohand.core import InputError, angle_refusal, beyond_limit
+from eyetohand.cell.line import CommandError, ErrorCode, ascii_reason, line_numbers
+from eyetohand.core import InputError
 
 STILL_TOL_PX = 0.2
 POSE_MATCH_MM = 0.01
 REPEAT_MATCH_MM = 1e-3
-MAX_REASON = 160
 NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
-REPLY_FORMATS = ("plain", "ur")
 UR_STATES = {"none": 0, "collecting": 1, "calibrated": 2, "aborted": 3}
-UR_ERROR_CODES = {  # reason prefix -> code (ur reply format)
-    "target not found": -2,
-    "ambiguous": -3,
-    "moving": -4,
-    "outside the image": -5,
-    "timeout": -6,
-    "no collection": -7,
-    "fit failed": -8,
-    "no calibration": -9,
-    "busy": -10,
+UR_ERROR_CODES = {  # the kind of a refusal (CommandError.code) -> the ur reply format's status
+    ErrorCode.OTHER: -1,  # a malformed command, or anything else
+    ErrorCode.TARGET_NOT_FOUND: -2,
+    ErrorCode.AMBIGUOUS: -3,
+    ErrorCode.MOVING: -4,
+    ErrorCode.OUTSIDE_IMAGE: -5,
+    ErrorCode.TIMEOUT: -6,
+    ErrorCode.NO_COLLECTION: -7,
+    ErrorCode.FIT_FAILED: -8,
+    ErrorCode.NO_CALIBRATION: -9,
+    ErrorCode.BUSY: -10,
 }
-UR_ERROR_OTHER = -1  # a malformed command, or anything else
+UR_ERROR_OTHER = UR_ERROR_CODES[ErrorCode.OTHER]
 SQLITE_SUFFIXES = (".db", ".sqlite", ".sqlite3")
 
 
-class CommandError(Exception):
-    """A command answered with ``ERR``: the message is the reason."""
+# ------------------------------------------------------------------ reply formats
+
+
+class ReplyFormat(Protocol):
+    """How a :class:`Collector` words its replies (one line each, no line end)."""
+
+    name: str
+
+    def ok(self, command: str, fields: Sequence[str], planned: int) -> str:
+        """A command done: ``command`` the CAL word (``POINT``, ``STATUS``, ...), ``fields`` its reply
+        fields as the plain format sends them, ``planned`` the open collection's planned poses."""
+        ...
+
+    def done(self) -> str:
+        """``CAL NEXT`` with every planned pose recorded or failed."""
+        ...
+
+    def error(self, exc: CommandError) -> str:
+        """A command refused."""
+        ...
+
+
+class PlainReplies:
+    """``OK [fields]``, ``OK DONE`` and ``ERR <reason>`` (the reason in ASCII: :func:`ascii_reason`)."""
+
+    name = "plain"
+
+    def ok(self, command: str, fields: Sequence[str], planned: int) -> str:
+        return "OK" + (" " + ",".join(fields) if fields else "")
+
+    def done(self) -> str:
+        return "OK DONE"
+
+    def error(self, exc: CommandError) -> str:
+        return f"ERR {ascii_reason(str(exc))}"
+
+
+class URReplies:
+    """Four numbers ``(status,a,b,c)`` for URScript's ``socket_read_ascii_float(4)`` (module docstring):
+    status 1 and the fields for OK, 0 for DONE, the refusal's :data:`UR_ERROR_CODES` number for ERR."""
+
+    name = "ur"
+
+    def ok(self, command: str, fields: Sequence[str], planned: int) -> str:
+        if command == "END":  # the model's name is not a number: it is in the journal
+            nums = [float(f) for f in fields[1:]]
+        elif command == "STATUS":  # name,n,state -> n,state number,planned poses
+            nums = [float(fields[1]), UR_STATES[fields[2]], planned]
+        else:
+            nums = [float(f) for f in fields]
+        return self._line([1, *nums])
+
+    def done(self) -> str:
+        return self._line([0])
+
+    def error(self, exc: CommandError) -> str:
+        return self._line([UR_ERROR_CODES[exc.code]])
+
+    @staticmethod
+    def _line(nums: list[float]) -> str:
+        nums = nums + [0] * (4 - len(nums))
+        return "(" + ",".join(_ur_number(v) for v in nums) + ")"
+
+
+def _ur_number(v: float) -> str:
+    return str(int(v)) if float(v).is_integer() and abs(v) < 1e9 else f"{v:.4f}"
+
+
+#: the reply formats by name (``Collector(reply_format=...)``, ``serve --reply-format``)
+REPLY_FORMATS: dict[str, type[ReplyFormat]] = {"plain": PlainReplies, "ur": URReplies}
 
 
 # ------------------------------------------------------------------ journals
@@ -179,59 +249,6 @@ def _f(x: float) -> str:
     return f"{float(x):.4f}"
 
 
-# the library's words in ASCII for the line protocols (a robot controller reads bytes): the symbols
-# its messages use, spelt out; anything else becomes '?'
-_ASCII = str.maketrans(
-    {
-        "°": " deg", "±": "+/-", "×": "x", "·": "*", "−": "-", "–": "-", "—": "-", "…": "...",
-        "→": "->", "←": "<-", "≤": "<=", "≥": ">=", "≈": "~", "≠": "!=", "²": "^2", "³": "^3",
-        "⁴": "^4", "⁶": "^6", "¹": "1", "⁻": "^-", "⁺": "^+", "µ": "u", "μ": "u", "σ": "sigma",
-        "θ": "theta", "φ": "phi", "ρ": "rho", "χ": "chi", "Δ": "d", "Σ": "sum", "√": "sqrt",
-        "½": "1/2", "∈": " in ", "‖": "|", "ᵀ": "^T", "’": "'", "‘": "'", "“": '"', "”": '"',
-    }
-)  # fmt: skip
-
-
-def ascii_reason(text: str, limit: int = MAX_REASON) -> str:
-    """A reason as the line protocols send it: one line of ASCII (the library's symbols spelt out:
-    ``180°`` → ``180 deg``, ``±`` → ``+/-``), no longer than ``limit`` characters."""
-    s = " ".join(str(text).split()).translate(_ASCII)
-    s = s.encode("ascii", "replace").decode("ascii")
-    return s if len(s) <= limit else s[: limit - 3] + "..."
-
-
-def line_numbers(
-    fields: list[str], names: str | tuple[str, ...], what: str | None, unit: str | None = None
-) -> list[float]:
-    """Finite plain decimals of a line protocol (CAL, BELT and the TCP mapping line), refused as
-    ``u: 'abc' is not a number`` (after ``what: `` when given); ``6_00`` is not one, as in the
-    library's loaders. With ``unit`` ("mm" or "px") they are coordinates of pairs, refused beyond
-    ±1e9 as the loaders refuse them (:func:`eyetohand.core.pairs.beyond_limit`); "deg": angles, refused
-    beyond ±1e9 deg (:func:`eyetohand.core.pairs.angle_refusal`)."""
-    out = []
-    prefix = f"{what}: " if what else ""
-    for name, text in zip(names, fields, strict=False):
-        try:
-            if "_" in text:
-                raise ValueError(text)
-            v = float(text)
-        except ValueError:
-            raise CommandError(f"{prefix}{name}: {text[:20]!r} is not a number") from None
-        if not math.isfinite(v):
-            raise CommandError(f"{prefix}{name}: {text[:20]!r} is not a finite number")
-        far = (angle_refusal(v) if unit == "deg" else beyond_limit(v, unit)) if unit else None
-        if far:
-            raise CommandError(f"{prefix}{name}: {far}")
-        out.append(v)
-    return out
-
-
-def line_count(value: float) -> int | float:
-    """A line protocol's number meant as a count (``s=N``): the text ``2.0`` is the whole number 2;
-    a fraction is passed on as it is, for the rule that takes the count to refuse in its words."""
-    return int(value) if value == int(value) else value
-
-
 def plan_poses(plan: str, x0: float, y0: float, x1: float, y1: float, z: float) -> np.ndarray:
     """The poses (n, 3) mm of ``plan`` over the rectangle x0..x1, y0..y1 at height z, in the order
     :meth:`Collector` hands them out (a grid snakes: every other row reversed)."""
@@ -254,13 +271,14 @@ def default_calibrate(pairs, model: str, image_size):
     return calibrate(pairs, model=model, image_size=image_size, seed=0)
 
 
-def _classify(reason: str) -> str:
+def _classify(reason: str) -> CommandError:
+    """The refusal of a detection that found no target, from its reason."""
     r = reason.removeprefix("no target found: ")
     if reason.startswith("ambiguous"):
-        return reason
+        return CommandError(reason, ErrorCode.AMBIGUOUS)
     if "cut by the image border" in reason:
-        return f"outside the image: {r}"
-    return f"target not found: {r}"
+        return CommandError(f"outside the image: {r}", ErrorCode.OUTSIDE_IMAGE)
+    return CommandError(f"target not found: {r}", ErrorCode.TARGET_NOT_FOUND)
 
 
 class _Session:
@@ -289,6 +307,7 @@ class Collector:
     (default: ``<name>.json`` written atomically); ``load_fn(name) -> Calibration | None`` the current one,
     for CHECK (default: that file). ``calibration``: the name CHECK uses before any BEGIN (the server's
     ``--calibration``). ``detect_options`` go to :func:`eyetohand.vision.detect.detect_target`.
+    ``reply_format``: a name of :data:`REPLY_FORMATS` (``plain`` or ``ur``), held as :attr:`replies`.
     """
 
     def __init__(
@@ -323,7 +342,7 @@ class Collector:
         self.calibrate_fn = calibrate_fn or default_calibrate
         self.save_fn = save_fn or self._save_file
         self.load_fn = load_fn or self._load_file
-        self.reply_format = reply_format
+        self.replies: ReplyFormat = REPLY_FORMATS[reply_format]()
         self.still_tol_px = float(still_tol_px)
         self.detect_options = dict(detect_options or {})
         self.keep_images = keep_images
@@ -394,6 +413,11 @@ class Collector:
                     p["dropped"] = op == "drop"
                     if p.get("pose_index") is not None:
                         s.done[p["pose_index"]] = op == "keep"
+
+    @property
+    def reply_format(self) -> str:
+        """The name of the reply format (:data:`REPLY_FORMATS`)."""
+        return self.replies.name
 
     @property
     def state(self) -> str:
@@ -482,20 +506,24 @@ class Collector:
             try:
                 line = line.decode("ascii")
             except UnicodeDecodeError:
-                return self._format_err("not ASCII text")
+                return self.replies.error(CommandError("not ASCII text"))
         text = line.rstrip("\r\n").strip()
         with self._lock:
             try:
-                fields = self._dispatch(text)
+                cmd, fields = self._dispatch(text)
             except CommandError as exc:
-                return self._format_err(str(exc))
+                return self.replies.error(exc)
             except InputError as exc:
-                return self._format_err(str(exc).splitlines()[0])
+                return self.replies.error(CommandError(str(exc).splitlines()[0]))
             except Exception as exc:  # a camera or a fit that breaks: still one ERR line, state intact
-                return self._format_err(f"internal error: {type(exc).__name__}: {exc}")
-        return self._format_ok(text, fields)
+                return self.replies.error(CommandError(f"internal error: {type(exc).__name__}: {exc}"))
+            planned = 0 if self.session is None else len(self.session.poses)
+        if fields is None:
+            return self.replies.done()
+        return self.replies.ok(cmd, fields, planned)
 
-    def _dispatch(self, text: str) -> list:
+    def _dispatch(self, text: str) -> tuple[str, list[str] | None]:
+        """The command word and its reply fields (None: NEXT has no pose left)."""
         words = text.split(None, 2)
         if len(words) < 2 or words[0].upper() != "CAL":
             raise CommandError("unknown command; expected CAL BEGIN|NEXT|POINT|END|ABORT|STATUS|CHECK")
@@ -516,7 +544,7 @@ class Collector:
             )
         if cmd in ("NEXT", "END", "ABORT", "STATUS") and args:
             raise CommandError(f"CAL {cmd} takes no fields")
-        return handler(args)
+        return cmd, handler(args)
 
     # -- BEGIN
     def _begin(self, args: list[str]) -> list:
@@ -564,7 +592,8 @@ class Collector:
                 return []  # resume
             raise CommandError(
                 f"busy: collection '{s.name}' is open with {len(s.points)} points; "
-                "send CAL END or CAL ABORT first"
+                "send CAL END or CAL ABORT first",
+                ErrorCode.BUSY,
             )
         self._record(
             {"op": "begin", "name": name, "plan": plan, "rect": rect, "model": model, "poses": poses}
@@ -574,17 +603,20 @@ class Collector:
     def _open(self) -> _Session:
         s = self.session
         if s is None or s.state != "collecting":
-            raise CommandError("no collection open; send CAL BEGIN <name> first")
+            raise CommandError("no collection open; send CAL BEGIN <name> first", ErrorCode.NO_COLLECTION)
         return s
 
     # -- NEXT
-    def _next(self, args) -> list:
+    def _next(self, args) -> list[str] | None:
         s = self._open()
         if not len(s.poses):
-            raise CommandError("no collection plan: CAL BEGIN was given no plan; send your own POINTs")
+            raise CommandError(  # the code the ur replies have always sent for it
+                "no collection plan: CAL BEGIN was given no plan; send your own POINTs",
+                ErrorCode.NO_COLLECTION,
+            )
         left = np.flatnonzero(~(s.done | s.failed))
         if not len(left):
-            return ["DONE"]
+            return None
         return [_f(v) for v in s.poses[left[0]]]
 
     # -- acquisition
@@ -597,11 +629,11 @@ class Collector:
             img1, _ = self.source.grab()
             img2, _ = self.source.grab()
         except GrabTimeout as exc:
-            raise CommandError(f"timeout: {exc}") from None
+            raise CommandError(f"timeout: {exc}", ErrorCode.TIMEOUT) from None
         d1 = detect_target(img1, name="grab 1", **self.detect_options)
         self.last_grab = (img1, d1, utc_now())
         if not d1.ok:
-            raise CommandError(_classify(d1.reason))
+            raise _classify(d1.reason)
         assert d1.u is not None and d1.v is not None and d1.diameter_px is not None  # found: all set
         r = 2.0 * d1.diameter_px + 8
         h, w = img2.shape[:2]
@@ -614,13 +646,14 @@ class Collector:
         except InputError:
             d2 = None
         if d2 is None or not d2.ok:
-            raise CommandError("moving: the target was not found again in the second grab")
+            raise CommandError("moving: the target was not found again in the second grab", ErrorCode.MOVING)
         assert d2.u is not None and d2.v is not None
         shift = math.hypot(d2.u - d1.u, d2.v - d1.v)
         if shift > self.still_tol_px:
             raise CommandError(
                 f"moving: the target moved {shift:.2f} px between two grabs "
-                f"(tolerance {self.still_tol_px:g} px)"
+                f"(tolerance {self.still_tol_px:g} px)",
+                ErrorCode.MOVING,
             )
         self.image_size = (int(w), int(h))
         self.last_grab = (img1, d1, utc_now())
@@ -701,7 +734,7 @@ class Collector:
         s = self._open()
         pts = self._active(s)
         if not pts:
-            raise CommandError("fit failed: no points recorded")
+            raise CommandError("fit failed: no points recorded", ErrorCode.FIT_FAILED)
         uv = np.array([[p["u"], p["v"]] for p in pts])
         xyz = np.array([p["xyz_mm"] for p in pts])
         angles = None
@@ -717,10 +750,11 @@ class Collector:
         try:
             cal = self.calibrate_fn(pairs, s.model, self.image_size)
         except InputError as exc:
-            raise CommandError(f"fit failed: {len(pairs)} points: {exc}") from None
+            raise CommandError(f"fit failed: {len(pairs)} points: {exc}", ErrorCode.FIT_FAILED) from None
         if cal.loo is None:
             raise CommandError(
-                f"fit failed: {len(pairs)} points are too few to fit and cross-check model {cal.model_name}"
+                f"fit failed: {len(pairs)} points are too few to fit and cross-check model {cal.model_name}",
+                ErrorCode.FIT_FAILED,
             )
         self.save_fn(s.name, cal)
         self._record(
@@ -758,13 +792,16 @@ class Collector:
         if cal is None or not name:
             raise CommandError(
                 "no calibration to check"
-                + (f": '{name}' has none yet" if name else "; send CAL BEGIN … CAL END first")
+                + (f": '{name}' has none yet" if name else "; send CAL BEGIN … CAL END first"),
+                ErrorCode.NO_CALIBRATION,
             )
         uv, det, img, _ = self._acquire(xyz, 0.0)
         with np.errstate(all="ignore"):
             got = cal.image_to_robot(np.array([uv]), xyz[2])[0]
         if not np.isfinite(got).all():
-            raise CommandError("target not found: the centre maps to no finite robot point")
+            raise CommandError(
+                "target not found: the centre maps to no finite robot point", ErrorCode.TARGET_NOT_FOUND
+            )
         dx, dy = float(got[0] - xyz[0]), float(got[1] - xyz[1])
         err = math.hypot(dx, dy)
         rec = {
@@ -789,44 +826,17 @@ class Collector:
             os.fsync(fh.fileno())
         return [_f(dx), _f(dy), _f(err)]
 
-    # ---------------------------------------------------------------- replies
-    def _format_ok(self, text: str, fields: list) -> str:
-        if self.reply_format == "plain":
-            return "OK" + (" " + ",".join(fields) if fields else "")
-        if fields == ["DONE"]:
-            nums = [0.0]
-        else:
-            nums = [1.0]
-            words = text.split()
-            cmd = words[1].upper() if len(words) > 1 else ""
-            if cmd == "END":
-                fields = fields[1:]
-            elif cmd == "STATUS":
-                s = self.session
-                fields = [fields[1], str(UR_STATES[fields[2]]), str(0 if s is None else len(s.poses))]
-            nums += [float(f) for f in fields]
-        nums += [0.0] * (4 - len(nums))
-        return "(" + ",".join(_ur_number(v) for v in nums) + ")"
-
-    def _format_err(self, reason: str) -> str:
-        reason = ascii_reason(reason)
-        if self.reply_format == "plain":
-            return f"ERR {reason}"
-        code = next((c for p, c in UR_ERROR_CODES.items() if reason.startswith(p)), UR_ERROR_OTHER)
-        return f"({code},0,0,0)"
-
-
-def _ur_number(v: float) -> str:
-    return str(int(v)) if float(v).is_integer() and abs(v) < 1e9 else f"{v:.4f}"
-
 
 __all__ = [
-    "Collector",
-    "CommandError",
     "REPLY_FORMATS",
     "STILL_TOL_PX",
     "UR_ERROR_CODES",
+    "UR_ERROR_OTHER",
     "UR_STATES",
+    "Collector",
+    "PlainReplies",
+    "ReplyFormat",
+    "URReplies",
     "default_calibrate",
     "plan_poses",
 ]

@@ -27,12 +27,11 @@ from collections.abc import Callable
 import numpy as np
 
 from eyetohand.calibration import Calibration
-from eyetohand.cell import CommandError, ascii_reason, line_count, line_numbers
+from eyetohand.cell import MAX_REASON, CommandError, ascii_reason, line_count, line_numbers
 from eyetohand.core import InputError
 from eyetohand.geometry import check_symmetry
 
 MAX_LINE = 256
-MAX_REASON = 200  # characters of an ERR reason on a mapping line (ASCII: collect.ascii_reason)
 MAX_CLIENTS = 256
 MAX_PER_PEER = 64
 IDLE_S = 300.0
@@ -124,7 +123,7 @@ class StoredCalibration:
         except StorageError:
             return  # keep what is in force; the next poll tries again
         except InputError as exc:
-            self.error = f"calibration '{self.name}' version {version} cannot be used: {exc}"[:200]
+            self.error = f"calibration '{self.name}' version {version} cannot be used: {exc}"[:MAX_REASON]
             self.cal = None
             return
         # one assignment each, read by the event loop between lines (the GIL makes them atomic)
@@ -191,7 +190,7 @@ _WORDS = {"a": "angle_deg", "s": "symmetry", "t": "tool_rz_offset_deg"}
 
 def _number(name: str, text: str) -> tuple[float, bytes | None]:
     """A finite plain decimal, or the ERR line that refuses it: the rule and words of every line
-    protocol's numbers (:func:`eyetohand.cell.collect.line_numbers`)."""
+    protocol's numbers (:func:`eyetohand.cell.line_numbers`)."""
     try:
         return line_numbers([text], (name,), None)[0], None
     except CommandError as exc:
@@ -215,7 +214,7 @@ def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
             )
     except InputError as exc:
         reason = exc.reason if exc.index is not None else str(exc)
-        return f"ERR {ascii_reason(reason.splitlines()[0], MAX_REASON)}\n".encode()
+        return f"ERR {ascii_reason(reason.splitlines()[0])}\n".encode()
     x, y, zz = (float(v) for v in m.xyz_mm[0])
     out = f"{x!r},{y!r},{zz!r}"
     if m.rz_deg is not None:
@@ -298,11 +297,11 @@ class LineServer:
         """The answer to one line with the calibration in force (``VERSION`` names it)."""
         src = self.source
         if line.strip().upper() == b"VERSION":
-            text = src.version_line() if src.error is None else f"ERR {ascii_reason(src.error, MAX_REASON)}"
+            text = src.version_line() if src.error is None else f"ERR {ascii_reason(src.error)}"
             return text.encode("ascii", "replace") + b"\n"
         cal = src.cal
         if cal is None or src.error is not None:
-            return f"ERR {ascii_reason(str(src.error), MAX_REASON)}\n".encode()
+            return f"ERR {ascii_reason(str(src.error))}\n".encode()
         return answer(cal, line)
 
     async def serve_forever(self) -> None:
