@@ -1,5 +1,5 @@
-"""Rank 5: the robot cell: line-protocol helpers, the collection, the belt protocol, plans and the
-conveyor."""
+"""Rank 5: the robot cell: line-protocol helpers, the collection, the belt protocol, plans, the
+conveyor and the PLC adapters (Modbus TCP, OPC UA: :mod:`eyetohand.cell.plc`)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from eyetohand.cell.conveyor import (
     load_session,
 )
 from eyetohand.cell.plans import MAX_POINTS, VALID_FORMS, Plan, is_whole_in, parse_numbers, parse_plan
+from eyetohand.cell.plc import ModbusService, OpcUaService, PointResult, Status, map_point
 
 __all__ = [
     "BeltProtocol",
@@ -23,8 +24,12 @@ __all__ = [
     "ConveyorCalibration",
     "Encoder",
     "MAX_POINTS",
+    "ModbusService",
+    "OpcUaService",
     "Plan",
+    "PointResult",
     "Session",
+    "Status",
     "VALID_FORMS",
     "ascii_reason",
     "calibrate_conveyor",
@@ -34,6 +39,7 @@ __all__ = [
     "line_count",
     "line_numbers",
     "load_session",
+    "map_point",
     "parse_numbers",
     "parse_plan",
 ]
