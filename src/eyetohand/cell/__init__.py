@@ -15,7 +15,7 @@ from eyetohand.cell.conveyor import (
     load_session,
 )
 from eyetohand.cell.plans import MAX_POINTS, VALID_FORMS, Plan, is_whole_in, parse_numbers, parse_plan
-from eyetohand.cell.plc import ModbusService, OpcUaService, PointResult, Status, map_point
+from eyetohand.cell.plc import ModbusService, OpcUaService, PointResult, Status, map_point, parse_allow
 
 __all__ = [
     "BeltProtocol",
@@ -40,6 +40,7 @@ __all__ = [
     "line_numbers",
     "load_session",
     "map_point",
+    "parse_allow",
     "parse_numbers",
     "parse_plan",
 ]

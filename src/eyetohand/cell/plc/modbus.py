@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from eyetohand.cell.plc import registers as R
-from eyetohand.cell.plc.mapping import map_point, served_identity
+from eyetohand.cell.plc.mapping import PointResult, Status, map_point, served_identity
 
 WRITE_CODES = (6, 16, 23)  # write single, write multiple, read/write multiple registers
 
@@ -139,7 +139,10 @@ class ModbusService:
             return False  # a stale id is never answered twice: the result block keeps its answer
         req = R.decode_request(block, self.word_order)
         src = self.source()
-        res = map_point(src, req.u_px, req.v_px, req.z_mm, req.angle_deg, allow_outside=req.allow_outside)
+        if block[R.FLAGS] & ~R.FLAGS_KNOWN:
+            res = PointResult(Status.BAD_INPUT, reason=R.RESERVED_FLAGS)
+        else:
+            res = map_point(src, req.u_px, req.v_px, req.z_mm, req.angle_deg, allow_outside=req.allow_outside)
         name, version = served_identity(src)
         out = R.encode_result(res, name, version, self.word_order)
         at = R.STATUS - start_address

@@ -28,6 +28,8 @@ STATUS, X, Y, ZZ, RZ, SIGMA, VERSION, NAME = 101, 102, 104, 106, 108, 110, 112, 
 NAME_REGISTERS = 18  # 113..130: 36 characters
 RESULT_END = NAME + NAME_REGISTERS  # 131
 FLAG_Z, FLAG_ANGLE, FLAG_ALLOW = 1, 2, 4
+FLAGS_KNOWN = FLAG_Z | FLAG_ANGLE | FLAG_ALLOW
+RESERVED_FLAGS = "flags: bits 3..15 are reserved and must be 0"  # status 3: a newer map's request?
 SCALE = 1000  # 0.001 px, µm, 0.001 deg
 WORD_ORDERS = ("big", "little")
 
