@@ -7,6 +7,7 @@ The command itself (its options) is :mod:`eyetohand.cli.serve`."""
 from __future__ import annotations
 
 import asyncio
+import importlib.util
 import ipaddress
 import socket
 from collections.abc import Callable
@@ -96,6 +97,9 @@ def check_plc_options(args) -> None:
     args.modbus_allow = None  # None: every client (a loopback address); else the parsed networks
     if allow and not modbus:
         raise ServeError("--allow-modbus-from is for the Modbus server: give --modbus HOST:PORT too")
+    for flag, given, package in (("--modbus", modbus, "pymodbus"), ("--opcua", opcua, "asyncua")):
+        if given and importlib.util.find_spec(package) is None:
+            raise ServeError(f"{flag} needs the {package} package: pip install 'eyetohand[plc]'")
     if modbus:
         from eyetohand.cell import parse_allow
 
