@@ -502,3 +502,42 @@ def test_result_encoding_never_wraps():
     assert regs[0] == Status.BAD_INPUT and R.words_int32(regs[1:3]) == 0
     assert R.words_name(R.name_words("a" * 50)) == "a" * 36
     assert np.isfinite(R.decode_result([0] * 31)["x"])
+
+
+def test_modbus_alone_follows_new_versions(tmp_path, points):
+    """`serve --modbus` without `--tcp`: no line service polls the stored calibration, server/plc.py
+    does (the same StoredCalibration object): a new version answers within a second."""
+    import subprocess
+    import sys
+
+    from helpers import src_env
+
+    data = tmp_path / "data"
+    _store(data, _fit())
+    cmd = [sys.executable, "-m", "eyetohand.cli", "serve", "--port", "0", "--data", str(data)]
+    cmd += ["--calibration", "cell", "--modbus", "127.0.0.1:0", "--log-level", "warning"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=src_env())
+    try:
+        assert proc.stdout is not None
+        out = []
+        for line in proc.stdout:
+            out.append(line)
+            if line.startswith("workbench:"):
+                break
+        (modbus,) = [x for x in out if x.startswith("Modbus:")]
+        assert not any(x.startswith("TCP:") for x in out), out
+        c = Pymodbus(int(modbus.split()[1].rsplit(":", 1)[1]))
+        try:
+            u, v = points[0]
+            assert ask(c, u=u, v=v)["version"] == 1
+            _store(data, _fit("affine"))
+            t0 = time.monotonic()
+            while (res := ask(c, u=u, v=v))["version"] != 2:
+                assert time.monotonic() - t0 < 1.0, res
+                time.sleep(0.05)
+            assert res["status"] == 0 and res["name"] == "cell"
+        finally:
+            c.close()
+    finally:
+        proc.terminate()
+        proc.wait(20)
