@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint format bench clean browser
+.PHONY: setup demo test lint format bench clean browser systemd-analyze
 
 # setup.py builds the compiled parts (src/eyetohand/models/_rows.c, solve/_swarm.c) into the source tree
 $(STAMP): pyproject.toml setup.py src/eyetohand/models/_rows.c src/eyetohand/solve/_swarm.c src/eyetohand/_buffers.h
@@ -24,7 +24,12 @@ demo: $(STAMP)
 browser:
 	command -v chromium >/dev/null || (apt-get update && apt-get install -y chromium)
 
-test: $(STAMP) browser
+# systemd-analyze verifies the shipped unit (tests/test_deploy.py, examples/deploy/eyetohand.service); it
+# works in a container without systemd running. Debian's systemd package brings it (~10 MB, no daemon).
+systemd-analyze:
+	command -v systemd-analyze >/dev/null || (apt-get update && apt-get install -y --no-install-recommends systemd)
+
+test: $(STAMP) browser systemd-analyze
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/mypy

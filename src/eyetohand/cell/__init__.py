@@ -1,5 +1,5 @@
-"""Rank 5: the robot cell: line-protocol helpers, the collection, the belt protocol, plans and the
-conveyor."""
+"""Rank 5: the robot cell: line-protocol helpers, the collection, the belt protocol, plans, the
+conveyor and the PLC adapters (Modbus TCP, OPC UA: :mod:`eyetohand.cell.plc`)."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from eyetohand.cell.conveyor import (
 )
 from eyetohand.cell.line import MAX_REASON, CommandError, ErrorCode, ascii_reason, line_count, line_numbers
 from eyetohand.cell.plans import MAX_POINTS, VALID_FORMS, Plan, is_whole_in, parse_numbers, parse_plan
+from eyetohand.cell.plc import ModbusService, OpcUaService, PointResult, Status, map_point, parse_allow
 
 __all__ = [
     "BeltProtocol",
@@ -26,8 +27,12 @@ __all__ = [
     "ErrorCode",
     "MAX_POINTS",
     "MAX_REASON",
+    "ModbusService",
+    "OpcUaService",
     "Plan",
+    "PointResult",
     "Session",
+    "Status",
     "VALID_FORMS",
     "ascii_reason",
     "calibrate_conveyor",
@@ -37,6 +42,8 @@ __all__ = [
     "line_count",
     "line_numbers",
     "load_session",
+    "map_point",
+    "parse_allow",
     "parse_numbers",
     "parse_plan",
 ]

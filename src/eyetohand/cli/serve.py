@@ -1,4 +1,5 @@
-"""``eyetohand serve``: the calibration workbench (web page + JSON API) and the TCP positioning service.
+"""``eyetohand serve``: the calibration workbench (web page + JSON API) and the positioning service (TCP
+lines, Modbus TCP, OPC UA).
 
 Parses the options and calls :func:`eyetohand.server.cli.serve`; the server is imported only when
 the command runs (its dependencies are the heaviest of the package)."""
@@ -53,10 +54,38 @@ def register(sub) -> None:
         help="also answer 'u,v[,z]' lines with 'x,y,z' on this TCP address",
     )
     p.add_argument(
+        "--modbus",
+        metavar="HOST:PORT",
+        default=None,
+        help="also serve the Modbus TCP register map on this address (docs/plc.md); Modbus has no "
+        "authentication: a non-loopback address needs --allow-modbus-from",
+    )
+    p.add_argument(
+        "--modbus-word-order",
+        choices=["big", "little"],
+        default="big",
+        help="order of an int32's two registers: big = high word first (default), little = low word "
+        "first (e.g. Rockwell COP of a DINT)",
+    )
+    p.add_argument(
+        "--allow-modbus-from",
+        metavar="ADDR,...",
+        default=None,
+        help="the only clients the Modbus server answers (addresses or networks, e.g. "
+        "10.0.0.5,10.0.1.0/24; this machine's loopback always)",
+    )
+    p.add_argument(
+        "--opcua",
+        metavar="HOST:PORT",
+        default=None,
+        help="also serve OPC UA on opc.tcp://HOST:PORT/eyetohand/ (docs/plc.md); anonymous on "
+        "loopback, else user 'eyetohand' with --token as password",
+    )
+    p.add_argument(
         "--calibration",
         metavar="REF",
         default=None,
-        help="what the TCP service maps with: a stored calibration's name (or name:NAME), "
+        help="what the TCP, Modbus and OPC UA services map with: a stored calibration's name (or name:NAME), "
         "id:N (followed: its current version, within 1 s), or a calibration file "
         "(FILE.json, a path, or file:PATH; proved intact before anything binds); with --camera "
         "a new name is created by CAL BEGIN … CAL END",

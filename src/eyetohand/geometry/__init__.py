@@ -16,13 +16,14 @@ from eyetohand.geometry.orientation import (
     local_jacobian,
     wrap_deg,
 )
-from eyetohand.geometry.region import CalibratedRegion
+from eyetohand.geometry.region import CalibratedRegion, OutsideError
 
 __all__ = [
     "CONVENTIONS",
     "CalibratedRegion",
     "Camera",
     "LocalFrame",
+    "OutsideError",
     "apply_h",
     "as_camera",
     "batch_jacobian",

@@ -7,6 +7,7 @@ The command itself (its options) is :mod:`eyetohand.cli.serve`."""
 from __future__ import annotations
 
 import asyncio
+import importlib.util
 import ipaddress
 import socket
 from collections.abc import Callable
@@ -28,10 +29,10 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def parse_hostport(text: str) -> tuple[str, int]:
+def parse_hostport(text: str, flag: str = "--tcp") -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ServeError(f"--tcp: expected HOST:PORT (e.g. 127.0.0.1:7001), got {text!r}")
+        raise ServeError(f"{flag}: expected HOST:PORT (e.g. 127.0.0.1:7001), got {text!r}")
     return host.strip("[]"), int(port)
 
 
@@ -61,13 +62,19 @@ def check_options(args) -> None:
             )
     else:
         for flag, given in (
-            ("--calibration", args.calibration),
+            ("--calibration", None if _plc_wanted(args) else args.calibration),
             ("--camera", camera),
             ("--conveyor", conveyor),
             ("--collect-dir", getattr(args, "collect_dir", None)),
         ):
+            if given and flag == "--calibration":
+                raise ServeError(
+                    "--calibration is for the TCP, Modbus and OPC UA services: give --tcp, --modbus "
+                    "or --opcua HOST:PORT too"
+                )
             if given:
                 raise ServeError(f"{flag} is for the TCP service: give --tcp HOST:PORT too")
+    check_plc_options(args)
     if getattr(args, "reply_format", "plain") != "plain" and not camera:
         raise ServeError("--reply-format is for the collection's CAL replies: give --camera URI too")
 
@@ -81,6 +88,45 @@ def check_options(args) -> None:
                 args.calibration_file = FixedCalibration.from_file(path)
             except InputError as exc:
                 raise ServeError(f"--calibration: {exc}") from None
+
+
+def check_plc_options(args) -> None:
+    """``--modbus`` and ``--opcua``: addresses, who may connect, and something to map with."""
+    modbus, opcua = getattr(args, "modbus", None), getattr(args, "opcua", None)
+    allow = getattr(args, "allow_modbus_from", None)
+    args.modbus_allow = None  # None: every client (a loopback address); else the parsed networks
+    if allow and not modbus:
+        raise ServeError("--allow-modbus-from is for the Modbus server: give --modbus HOST:PORT too")
+    for flag, given, package in (("--modbus", modbus, "pymodbus"), ("--opcua", opcua, "asyncua")):
+        if given and importlib.util.find_spec(package) is None:
+            raise ServeError(f"{flag} needs the {package} package: pip install 'eyetohand[plc]'")
+    if modbus:
+        from eyetohand.cell import parse_allow
+
+        host, _ = parse_hostport(modbus, "--modbus")
+        try:
+            nets = parse_allow(allow.split(",")) if allow else []
+        except ValueError as exc:
+            raise ServeError(f"--allow-modbus-from: {exc}") from None
+        if not is_loopback(host) and not nets:
+            raise ServeError(
+                f"--modbus {modbus}: Modbus has no authentication, so a non-loopback address needs "
+                "--allow-modbus-from ADDR,... (the PLCs' addresses or networks); refusing to start"
+            )
+        args.modbus_allow = nets or None
+    if opcua:
+        host, _ = parse_hostport(opcua, "--opcua")
+        if not is_loopback(host) and not args.token:
+            raise ServeError(
+                f"--opcua {opcua}: a non-loopback address needs --token T (OPC UA user "
+                "'eyetohand', the token as password); refusing to start"
+            )
+    for flag, given in (("--modbus", modbus), ("--opcua", opcua)):
+        if given and not args.calibration and not (args.tcp and getattr(args, "camera", None)):
+            raise ServeError(
+                f"{flag} needs --calibration NAME, id:N or FILE.json (the calibration to serve), or "
+                "--tcp with --camera (a collection creates it)"
+            )
 
 
 def calibration_path(ref: str):
@@ -151,8 +197,8 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     import uvicorn
 
     from eyetohand.server.app import LOOPBACK_HOSTS, create_app
-    from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
-    from eyetohand.server.tcp import LineServer, LoopThread, PendingCalibration, StoredCalibration
+    from eyetohand.server.storage import Store
+    from eyetohand.server.tcp import LineServer, LoopThread, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     line_server = None
@@ -160,41 +206,12 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     collector = source = belt = app = None
     data_dir = Path(data_dir)
     camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
-    store = None
+    store = served = None
+    if args.tcp or _plc_wanted(args):
+        served, store = _served_calibration(args, data_dir, camera, http_sock)
     if args.tcp:
         host, port = parse_hostport(args.tcp)
-        served = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
-        if served is None:
-            # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
-            if args.calibration and not camera and not (data_dir / DB_NAME).is_file():
-                http_sock.close()
-                raise ServeError(
-                    f"--calibration: {args.calibration!r} not found: no calibrations are stored "
-                    f"in {data_dir} yet (no {DB_NAME}); save one in the workbench first"
-                )
-            store = Store(data_dir, wait_s=args.db_wait)
-            served = PendingCalibration(args.calibration)
-            try:
-                if args.calibration:
-                    try:
-                        rec = store.find(args.calibration)
-                        served = StoredCalibration(store, rec.id)
-                    except NotFound:
-                        if not camera:  # with a camera, CAL BEGIN <name> … CAL END creates it
-                            raise
-            except (NotFound, Ambiguous, StorageError, InputError) as exc:
-                http_sock.close()
-                store.close()
-                raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
-        if isinstance(served, StoredCalibration):
-            what = (
-                f"calibration {served.name!r} (id {served.cal_id}, version {served.version}, followed: a "
-                "new version or a rollback takes effect within a second)"
-            )
-        elif isinstance(served, PendingCalibration):
-            what = "no calibration yet (a collection creates it)"
-        else:
-            what = f"the file {served.label} (sha256 {served.sha256[:12]}…)"
+        what = describe(served)
         commands: dict[str, Callable[[str], str]] = {}
         # the line service runs on a loop of its own: the robot's lines never wait behind HTTP work
         tcp_loop = LoopThread()
@@ -244,6 +261,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             if store is not None:
                 store.close()
             raise ServeError(str(exc).splitlines()[0]) from None
+        assert served is not None  # _served_calibration ran for --tcp
         line_server = LineServer(served, host, port, token=args.token, commands=commands)
         try:
             await tcp_loop.call(line_server.start())
@@ -259,6 +277,28 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             )
         if belt is not None:
             print(f"TCP: 'BELT …' lines map with conveyor {conveyor}", flush=True)
+
+    plc = plc_loop = None
+    if _plc_wanted(args):
+        from eyetohand.server.plc import PlcServices
+
+        plc = PlcServices(
+            lambda: line_server.source if line_server is not None else served,
+            modbus=parse_hostport(args.modbus, "--modbus") if getattr(args, "modbus", None) else None,
+            word_order=getattr(args, "modbus_word_order", None) or "big",
+            allow_from=getattr(args, "modbus_allow", None),
+            opcua=parse_hostport(args.opcua, "--opcua") if getattr(args, "opcua", None) else None,
+            token=args.token,
+        )
+        plc_loop = LoopThread("eyetohand-plc")
+        loops.append(plc_loop)
+        try:
+            await plc_loop.call(plc.start(poll=line_server is None))
+        except OSError as exc:
+            http_sock.close()
+            raise ServeError(f"{plc.starting}: cannot listen there ({exc.strerror or exc})") from None
+        for line in plc.lines(describe(served)):
+            print(line, flush=True)
 
     app = create_app(
         data_dir,
@@ -277,6 +317,8 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     try:
         await server.serve(sockets=[http_sock])
     finally:
+        if plc is not None and plc_loop is not None:
+            await plc_loop.call(plc.close())
         if line_server is not None and tcp_loop is not None:
             tcp_loop.loop.call_soon_threadsafe(line_server.close)
             tcp_loop.stop()  # before the collector and the store it uses are closed
@@ -286,6 +328,58 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             source.close()
         if store is not None:
             store.close()
+
+
+def _plc_wanted(args) -> bool:
+    return bool(getattr(args, "modbus", None) or getattr(args, "opcua", None))
+
+
+def _served_calibration(args, data_dir: Path, camera, http_sock):
+    """(the served-calibration object, the store or None) for ``--calibration``: a file (proved by
+    check_options), a stored calibration (followed), or none yet (with a camera, a collection creates
+    it). A refusal closes ``http_sock`` and raises :class:`ServeError`."""
+    from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
+    from eyetohand.server.tcp import PendingCalibration, StoredCalibration
+
+    served = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
+    if served is not None:
+        return served, None
+    # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
+    if args.calibration and not camera and not (data_dir / DB_NAME).is_file():
+        http_sock.close()
+        raise ServeError(
+            f"--calibration: {args.calibration!r} not found: no calibrations are stored "
+            f"in {data_dir} yet (no {DB_NAME}); save one in the workbench first"
+        )
+    store = Store(data_dir, wait_s=args.db_wait)
+    served = PendingCalibration(args.calibration)
+    try:
+        if args.calibration:
+            try:
+                rec = store.find(args.calibration)
+                served = StoredCalibration(store, rec.id)
+            except NotFound:
+                if not camera:  # with a camera, CAL BEGIN <name> … CAL END creates it
+                    raise
+    except (NotFound, Ambiguous, StorageError, InputError) as exc:
+        http_sock.close()
+        store.close()
+        raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
+    return served, store
+
+
+def describe(served) -> str:
+    """What a service maps with, for its start-up line."""
+    from eyetohand.server.tcp import PendingCalibration, StoredCalibration
+
+    if isinstance(served, StoredCalibration):
+        return (
+            f"calibration {served.name!r} (id {served.cal_id}, version {served.version}, followed: a "
+            "new version or a rollback takes effect within a second)"
+        )
+    if isinstance(served, PendingCalibration):
+        return "no calibration yet (a collection creates it)"
+    return f"the file {served.label} (sha256 {served.sha256[:12]}…)"
 
 
 def bind_http(host: str, port: int) -> socket.socket:

@@ -1,0 +1,117 @@
+"""One request of a PLC protocol → one result record with a status: the protocol-independent part of
+the Modbus and OPC UA adapters (:mod:`.modbus`, :mod:`.opcua`).
+
+The mapping is the TCP line service's call (:func:`eyetohand.server.tcp.answer`): ``Calibration.map``
+of one point, guarded by region, height and angle, with the uncertainty; a refusal keeps the library's
+words, as one ASCII line (:func:`eyetohand.cell.collect.ascii_reason`, at most :data:`MAX_REASON`
+characters), the text the line service sends after ``ERR``. The calibration in force is whatever the
+server serves (a file, a followed stored calibration, or none yet): any object with ``cal`` (a
+:class:`~eyetohand.calibration.Calibration` or None) and ``error`` (None or why there is none), as the
+served-calibration objects of :mod:`eyetohand.server.tcp` are.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from eyetohand.cell.collect import ascii_reason
+from eyetohand.core import InputError
+from eyetohand.geometry import OutsideError
+
+MAX_REASON = 200  # as the TCP line service's ERR reasons
+
+
+class Status(IntEnum):
+    """The result's status: register 101 of the Modbus map, a Bad status code in OPC UA."""
+
+    OK = 0
+    OUTSIDE = 1  # outside the calibrated region (or on/beyond the model's horizon)
+    HEIGHT = 2  # the height is outside the calibrated heights (or off a single-height plane)
+    BAD_INPUT = 3  # an input the library refuses (an angle beyond its limit, a non-finite number)
+    NO_CALIBRATION = 4  # nothing to map with: none served yet, deleted, or unusable
+    INTERNAL = 5  # anything else (a bug): the reason names the exception
+
+
+@dataclass(frozen=True)
+class PointResult:
+    """One mapped point (mm, deg) or a refusal (``status`` not OK, ``reason`` the library's words)."""
+
+    status: Status
+    xyz_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rz_deg: float | None = None
+    sigma_mm: float | None = None
+    inside: bool = True
+    reason: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status is Status.OK
+
+
+def served_identity(source: Any) -> tuple[str, int]:
+    """(name, version) of what ``source`` serves: a stored calibration's name and version; a file's
+    name without its folder and ``.json``, version 0 (a file has no versions); ('', 0) for none."""
+    version = int(getattr(source, "version", 0) or 0)
+    name = getattr(source, "name", None)
+    if not name:
+        label = getattr(source, "label", "")
+        name = Path(label).stem if label else ""
+    return str(name or ""), version
+
+
+def map_point(
+    source: Any,
+    u_px: float,
+    v_px: float,
+    z_mm: float | None = None,
+    angle_deg: float | None = None,
+    *,
+    allow_outside: bool = False,
+) -> PointResult:
+    """Map one image point (and image angle) with the calibration ``source`` serves now.
+
+    Never raises: every refusal is a :class:`PointResult` with its :class:`Status` and the library's
+    reason."""
+    cal = source.cal
+    if cal is None or source.error is not None:
+        why = source.error or "no calibration to map with"
+        return PointResult(Status.NO_CALIBRATION, reason=ascii_reason(str(why), MAX_REASON))
+    try:
+        for name, x in (("u", u_px), ("v", v_px), ("z", z_mm), ("angle", angle_deg)):
+            if x is not None and not math.isfinite(x):
+                raise InputError("must be a finite number", field=name)
+        with np.errstate(all="ignore"):
+            m = cal.map(
+                np.array([[u_px, v_px]], float),
+                z_mm,
+                angle_deg=angle_deg,
+                allow_outside=allow_outside,
+                with_sigma=True,
+            )
+    except InputError as exc:
+        reason = exc.reason if exc.index is not None else str(exc)
+        return PointResult(_status_of(exc), reason=ascii_reason(reason.splitlines()[0], MAX_REASON))
+    except Exception as exc:  # noqa: BLE001  (a PLC gets a status, never a dropped connection)
+        return PointResult(Status.INTERNAL, reason=ascii_reason(f"internal error: {exc!r}", MAX_REASON))
+    x, y, z = (float(v) for v in m.xyz_mm[0])
+    return PointResult(
+        Status.OK,
+        (x, y, z),
+        None if m.rz_deg is None else float(m.rz_deg[0]),
+        None if m.sigma_mm is None else float(m.sigma_mm[0]),
+        bool(m.inside[0]),
+    )
+
+
+def _status_of(exc: InputError) -> Status:
+    if isinstance(exc, OutsideError):
+        return Status.HEIGHT if exc.field == "z" else Status.OUTSIDE
+    if exc.index is not None and exc.field is None:
+        return Status.OUTSIDE  # a point that maps to no finite robot point: on or beyond the horizon
+    return Status.BAD_INPUT

@@ -1,0 +1,194 @@
+"""OPC UA server of the positioning service (asyncua): a subset shaped after OPC 40100-1 (Machine
+Vision). Endpoint ``opc.tcp://HOST:PORT/eyetohand/``, namespace ``urn:eyetohand``; under Objects the
+object ``Calibration`` with
+
+- variables ``Name`` (String), ``Version`` (UInt32), ``CheckRmsMm`` (Double, NaN without check
+  points), ``State`` (String: ``Ready``, ``NoCalibration``, ``Error``), refreshed every
+  :data:`REFRESH_S` seconds from the served calibration (a new version shows within a second);
+- the method ``ImageToRobot(u_px, v_px, z_mm) → (x_mm, y_mm, z_mm, sigma_mm)`` (all Double; ``z_mm``
+  NaN: the calibration's own height; ``sigma_mm`` NaN when it carries no uncertainty), the mapping
+  call of :func:`.mapping.map_point`. A refusal is a Bad status code — ``BadOutOfRange`` outside the
+  calibrated region or heights, ``BadInvalidArgument`` for bad input, ``BadInvalidState`` with no
+  calibration, ``BadInternalError`` otherwise — with the library's reason, the words the TCP line
+  service sends after ``ERR``, as ``AdditionalInfo`` of every ``InputArgumentDiagnosticInfos`` entry.
+
+Without ``token`` the server takes anonymous sessions (for loopback; ``eyetohand serve`` refuses
+another address without one); with it, only user :data:`USER` with the token as password. Security
+policy None: the password crosses the network as the client sends it (docs/plc.md).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import logging
+import math
+from collections.abc import Callable
+from typing import Any
+
+from eyetohand.cell.plc.mapping import Status, map_point, served_identity
+
+NAMESPACE = "urn:eyetohand"
+PATH = "/eyetohand/"
+USER = "eyetohand"
+REFRESH_S = 0.25
+INPUTS = (
+    ("u_px", "image column (px)"),
+    ("v_px", "image row (px)"),
+    ("z_mm", "object height (mm); NaN: none"),
+)
+OUTPUTS = (("x_mm", "robot x"), ("y_mm", "robot y"), ("z_mm", "robot z"), ("sigma_mm", "predicted error"))
+CODES = {
+    Status.OUTSIDE: "BadOutOfRange",
+    Status.HEIGHT: "BadOutOfRange",
+    Status.BAD_INPUT: "BadInvalidArgument",
+    Status.NO_CALIBRATION: "BadInvalidState",
+    Status.INTERNAL: "BadInternalError",
+}
+
+
+def state_of(source: Any) -> str:
+    """``Ready`` (a calibration maps), ``Error`` (the version in force cannot be used) or
+    ``NoCalibration`` (none served yet, or deleted)."""
+    if source.cal is not None and source.error is None:
+        return "Ready"
+    return "Error" if "cannot be used" in str(source.error or "") else "NoCalibration"
+
+
+class OpcUaService:
+    """The ``Calibration`` object served on ``host:port``; ``source()`` returns the served calibration in
+    force. ``await start()`` on the loop that is to run it, then ``await close()``."""
+
+    def __init__(self, source: Callable[[], Any], host: str, port: int, *, token: str | None = None):
+        self.source = source
+        self.host = host
+        self.port = port
+        self.token = token
+        self.server: Any = None
+        self.nodes: dict[str, Any] = {}
+        self._shown: tuple | None = None
+        self._task: asyncio.Task | None = None
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"opc.tcp://{host}:{self.port}{PATH}"
+
+    async def start(self) -> None:
+        from asyncua import Server, ua
+
+        logging.getLogger("asyncua").setLevel(logging.ERROR)  # its per-call INFO lines, and the
+        # warning that policy None sends passwords in plain text (said in docs/plc.md)
+        server = Server(user_manager=_user_manager(self.token) if self.token else None)
+        await server.init()
+        server.set_endpoint(self.url)
+        server.set_server_name("eyetohand")
+        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        server.set_identity_tokens([ua.UserNameIdentityToken] if self.token else [ua.AnonymousIdentityToken])
+        idx = await server.register_namespace(NAMESPACE)
+        obj = await server.nodes.objects.add_object(idx, "Calibration")
+        for name, value, kind in (
+            ("Name", "", ua.VariantType.String),
+            ("Version", 0, ua.VariantType.UInt32),
+            ("CheckRmsMm", math.nan, ua.VariantType.Double),
+            ("State", "NoCalibration", ua.VariantType.String),
+        ):
+            self.nodes[name] = await obj.add_variable(idx, name, ua.Variant(value, kind))
+        await obj.add_method(
+            idx, "ImageToRobot", self._image_to_robot, _arguments(INPUTS), _arguments(OUTPUTS)
+        )
+        self.server = server
+        await self.refresh()
+        await server.start()
+        assert server.bserver is not None  # started
+        self.port = server.bserver.port
+        self._task = asyncio.get_running_loop().create_task(self._refresh_loop())
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+        if self.server is not None:
+            await self.server.stop()
+
+    async def refresh(self) -> None:
+        """Write the variables when what they show has changed."""
+        from asyncua import ua
+
+        src = self.source()
+        name, version = served_identity(src)
+        cal = src.cal
+        rms = float(cal.check.rms_mm) if cal is not None and cal.check is not None else math.nan
+        shown = (name, version, rms, state_of(src))
+        if shown == self._shown:
+            return
+        kinds = (ua.VariantType.String, ua.VariantType.UInt32, ua.VariantType.Double, ua.VariantType.String)
+        for key, value, kind in zip(("Name", "Version", "CheckRmsMm", "State"), shown, kinds, strict=True):
+            await self.nodes[key].write_value(ua.Variant(value, kind))
+        self._shown = shown
+
+    async def _refresh_loop(self) -> None:
+        while True:
+            await asyncio.sleep(REFRESH_S)
+            try:
+                await self.refresh()
+            except Exception:  # noqa: BLE001  (the next turn tries again)
+                logging.getLogger(__name__).exception("OPC UA: refreshing the variables failed")
+
+    async def _image_to_robot(self, parent, *args):
+        from asyncua import ua
+
+        values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
+        if len(values) != 3 or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in values
+        ):
+            return _refusal(Status.BAD_INPUT, "expected u_px, v_px, z_mm: three Double numbers", len(args))
+        u, v, z = (float(x) for x in values)
+        res = map_point(self.source(), u, v, None if math.isnan(z) else z)
+        if not res.ok:
+            return _refusal(res.status, res.reason, 3)
+        sigma = math.nan if res.sigma_mm is None else res.sigma_mm
+        return [ua.Variant(float(x), ua.VariantType.Double) for x in (*res.xyz_mm, sigma)]
+
+
+def _refusal(status: Status, reason: str, n_args: int):
+    from asyncua import ua
+
+    code = ua.StatusCode(getattr(ua.StatusCodes, CODES[status]))
+    why = ua.String(reason)
+    return ua.CallMethodResult(
+        StatusCode=code,
+        InputArgumentResults=[ua.StatusCode() for _ in range(n_args)],
+        InputArgumentDiagnosticInfos=[ua.DiagnosticInfo(AdditionalInfo=why) for _ in range(n_args)],
+    )
+
+
+def _arguments(spec) -> list:
+    from asyncua import ua
+
+    out = []
+    for name, text in spec:
+        arg = ua.Argument()
+        arg.Name = name
+        arg.DataType = ua.NodeId(ua.Int32(ua.ObjectIds.Double))
+        arg.ValueRank = -1
+        arg.ArrayDimensions = []
+        arg.Description = ua.LocalizedText(text)
+        out.append(arg)
+    return out
+
+
+def _user_manager(token: str):
+    """asyncua's user manager: the one user :data:`USER` with the token as password."""
+    from asyncua.crypto.permission_rules import User, UserRole
+    from asyncua.server.user_managers import UserManager
+
+    secret = token.encode()
+
+    class Users(UserManager):
+        def get_user(self, iserver, username=None, password=None, certificate=None):
+            given = password.encode() if isinstance(password, str) else (password or b"")
+            if username == USER and hmac.compare_digest(given, secret):
+                return User(role=UserRole.User, name=username)
+            return None
+
+    return Users()

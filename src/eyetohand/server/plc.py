@@ -1,0 +1,88 @@
+"""What ``eyetohand serve --modbus / --opcua`` runs: the PLC adapters of :mod:`eyetohand.cell.plc`
+(they hold no server state) wired to the calibration the server serves, on an event loop of their own
+(:class:`~eyetohand.server.tcp.LoopThread`, as the TCP line service's: a PLC's requests never wait
+behind HTTP work).
+
+The served calibration is the line service's object (``StoredCalibration``, ``FixedCalibration``,
+``PendingCalibration`` of :mod:`eyetohand.server.tcp`), read through ``source()`` at every request:
+with ``--tcp`` the line service follows new versions (and a collection's ``follow``) and the PLC
+adapters see the same object; without it, this module polls the same ``StoredCalibration`` every
+:data:`~eyetohand.server.tcp.POLL_S` seconds (off the loop), so a new version is in force within a
+second on every interface."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from typing import Any
+
+from eyetohand.cell import ModbusService, OpcUaService
+
+
+class PlcServices:
+    """The Modbus server on ``modbus`` and/or the OPC UA server on ``opcua`` ((host, port) each, or
+    None), as ``eyetohand serve`` parsed and checked them."""
+
+    def __init__(
+        self,
+        source: Callable[[], Any],
+        *,
+        modbus: tuple[str, int] | None = None,
+        word_order: str = "big",
+        allow_from: list | None = None,
+        opcua: tuple[str, int] | None = None,
+        token: str | None = None,
+    ):
+        self.source = source
+        self.modbus = (
+            None
+            if modbus is None
+            else ModbusService(source, *modbus, word_order=word_order, allow_from=allow_from)
+        )
+        self.opcua = None if opcua is None else OpcUaService(source, *opcua, token=token)
+        self.starting = ""  # the server being started (an OSError names it)
+        self._poller: asyncio.Task | None = None
+
+    async def start(self, *, poll: bool) -> None:
+        """Start the servers on the running loop; ``poll``: follow a stored calibration here (no line
+        service does)."""
+        from eyetohand.server.tcp import POLL_S, StoredCalibration
+
+        if self.modbus is not None:
+            self.starting = f"--modbus {self.modbus.host}:{self.modbus.port}"
+            await self.modbus.start()
+        if self.opcua is not None:
+            self.starting = f"--opcua {self.opcua.host}:{self.opcua.port}"
+            await self.opcua.start()
+        served = self.source()
+        if poll and isinstance(served, StoredCalibration):
+            self._poller = asyncio.get_running_loop().create_task(_follow(served, POLL_S))
+
+    async def close(self) -> None:
+        if self._poller is not None:
+            self._poller.cancel()
+        if self.modbus is not None:
+            await self.modbus.close()
+        if self.opcua is not None:
+            await self.opcua.close()
+
+    def lines(self, what: str) -> list[str]:
+        """The start-up lines (``Modbus: HOST:PORT …``, ``OPC UA: opc.tcp://…``)."""
+        out = []
+        if self.modbus is not None:
+            m = self.modbus
+            who = "any local client" if m.allow_from is None else ", ".join(map(str, m.allow_from)) + " only"
+            out.append(
+                f"Modbus: {m.host}:{m.port} maps requests (holding registers 0..9 -> 100..130, "
+                f"{m.word_order} word order, {who}) with {what}"
+            )
+        if self.opcua is not None:
+            auth = "user 'eyetohand' + token" if self.opcua.token else "anonymous (loopback)"
+            out.append(f"OPC UA: {self.opcua.url} Calibration.ImageToRobot ({auth}) with {what}")
+        return out
+
+
+async def _follow(src, poll_s: float) -> None:
+    while True:
+        await asyncio.sleep(poll_s)
+        await asyncio.to_thread(src.poll)
