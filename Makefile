@@ -3,13 +3,13 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint format bench clean browser
+.PHONY: setup demo test lint format bench clean browser aravis
 
 # setup.py builds the compiled parts (src/eyetohand/models/_rows.c, solve/_swarm.c) into the source tree
-$(STAMP): pyproject.toml setup.py src/eyetohand/models/_rows.c src/eyetohand/solve/_swarm.c src/eyetohand/_buffers.h
+$(STAMP): pyproject.toml setup.py src/eyetohand/models/_rows.c src/eyetohand/solve/_swarm.c src/eyetohand/_buffers.h | aravis
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/pip install --quiet -e '.[dev,aravis]'
 	# bytecode now, as pip does for a regular install: an editable one compiles each module on its
 	# first import, on every start where PYTHONDONTWRITEBYTECODE is set (~0.1 s of every command)
 	$(BIN)/python -m compileall -q src/eyetohand
@@ -19,6 +19,15 @@ setup: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/eyetohand demo --out demo-out
+
+# The aravis: camera source (tests/test_aravis.py talks to Aravis's GigE Vision fake camera): Debian's
+# Aravis 0.8 and its introspection data, and what the aravis extra (PyGObject) builds against; CI runs
+# as root. Order-only for the venv: checked every time, reinstalls nothing when present.
+ARAVIS_DEBS := gir1.2-aravis-0.8 aravis-tools-cli libgirepository1.0-dev libcairo2-dev pkg-config
+aravis:
+	@missing=$$(for p in $(ARAVIS_DEBS); do \
+		dpkg-query -W -f='$${db:Status-Status}' $$p 2>/dev/null | grep -qx installed || echo $$p; done); \
+	test -z "$$missing" || (apt-get update && apt-get install -y $$missing)
 
 # Debian's Chromium drives the workbench's browser test (tests/test_browser.py); CI runs as root.
 browser:
