@@ -1,4 +1,4 @@
-"""The ``aravis:`` source against Aravis's own GigE Vision fake camera
+"""The ``aravis:`` source, and ``eyetohand grab``, against Aravis's own GigE Vision fake camera
 (``Aravis.GvFakeCamera``, listed as ``Aravis-Fake-<serial>``): a real GVCP control session and GVSP
 stream over UDP on the loopback interface.
 
@@ -24,9 +24,11 @@ import struct
 import threading
 import time
 
+import cv2
 import numpy as np
 import pytest
 
+from eyetohand.cli import main
 from eyetohand.core import InputError
 from eyetohand.vision import GrabTimeout, open_source
 from eyetohand.vision.aravis import PIXEL_FORMATS, frame_to_array
@@ -277,6 +279,72 @@ def test_a_camera_that_sends_no_frame_times_out_on_time():
         message, seconds = net.run(scenario)
     assert message == "no frame within 0.5 s (aravis:127.0.0.1?timeout=0.5, software-trigger; none arrived)"
     assert 0.5 <= seconds < 1.0
+
+
+# ------------------------------------------------------------------ eyetohand grab
+
+
+def test_grab_command_on_the_fake_camera(camera, tmp_path, capsys):
+    out = tmp_path / "frame.png"
+
+    def scenario():
+        _set_region(640, 480)
+        return main(["grab", f"aravis:{DEVICE}?timeout=2", "-o", str(out), "--detect"])
+
+    code = camera.run(scenario)
+    printed = capsys.readouterr()
+    assert printed.out.startswith("frame 640x480 px grey uint8\ntimestamp ")
+    assert f"wrote {out} (target drawn)" in printed.out
+    # the fake camera's test pattern holds no solid circle: the refusal, and exit 2 as eyetohand detect
+    assert "target not found — " in printed.out and code == 2
+    assert printed.err == "error: no target in the frame\n"
+    assert cv2.imread(str(out)).shape == (480, 640, 3)
+    assert camera.run(main, ["grab", "aravis:Aravis-Fake-NOPE"]) == 2
+    assert (
+        f"error: aravis:Aravis-Fake-NOPE: no camera 'Aravis-Fake-NOPE' found; found: {DEVICE}"
+        in capsys.readouterr().err
+    )
+
+
+def test_grab_command_on_a_folder(tmp_path, capsys):
+    shots = tmp_path / "shots"
+    shots.mkdir()
+    grey = np.full((48, 64), 200, np.uint8)
+    cv2.circle(grey, (30, 20), 9, 30, -1)
+    png = cv2.imencode(".png", grey)[1].tobytes()
+    (shots / "old.png").write_bytes(png)  # there before the grab: never taken
+    threading.Timer(0.3, lambda: (shots / "new.png").write_bytes(png)).start()
+    out = tmp_path / "grabbed.png"
+    assert main(["grab", f"folder:{shots}", "-o", str(out), "--timeout", "5"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0] == "frame 64x48 px grey uint8" and printed[2] == f"wrote {out}"
+    assert np.array_equal(cv2.imread(str(out), cv2.IMREAD_UNCHANGED), grey)
+    assert main(["grab", f"folder:{shots}?timeout=0.2"]) == 2
+    assert "error: no new image within 0.2 s" in capsys.readouterr().err
+    for argv, words in [
+        (["grab", f"folder:{shots}", "-o", str(tmp_path / "frame.txt")], "expected an image file name"),
+        (["grab", f"folder:{shots}", "--timeout", "0"], "--timeout: expected positive seconds"),
+        (["grab", f"folder:{tmp_path / 'nope'}"], "is not a folder"),
+        (["grab", "usb:0"], "unknown source; valid: "),
+    ]:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and words in err, err
+
+
+def test_grab_command_on_the_simulated_cell(tmp_path, capsys):
+    out = tmp_path / "sim.png"
+    assert main(["grab", "sim:", "--pose", "20", "600", "0", "-o", str(out), "--detect"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0] == "frame 2448x2048 px grey uint8"
+    assert printed[2] == f"wrote {out} (target drawn)"
+    u, v = (float(w) for w in printed[3].split()[2:5:2])  # "target u U v V px  diameter ..."
+    assert abs(u - 1098.6) < 1 and abs(v - 1065.4) < 1  # where the cell's hidden camera sees the target
+    assert cv2.imread(str(out)).shape == (2048, 2448, 3)
+    assert main(["grab", "sim:"]) == 2  # no pose: the simulated camera cannot know where the target is
+    assert "no robot pose yet" in capsys.readouterr().err
+    assert main(["grab", "sim:", "--pose", "1", "2"]) == 2
+    assert "--pose: expected X Y Z [ANGLE]" in capsys.readouterr().err
 
 
 def test_every_converted_format_has_an_aravis_constant():
