@@ -157,10 +157,12 @@ def _choose_device(Aravis, wanted: str, uri: str) -> str:
     for d in devices:
         if not wanted or wanted in (d["id"], d["physical_id"], d["address"], d["serial"]):
             return d["id"]
-    found = ", ".join(f"{d['id']} ({d['protocol']} {d['address']})" for d in devices) or "none"
-    what = f"no camera {wanted!r}" if wanted else "no camera"
+    if not devices:
+        raise InputError(f"{uri}: no camera found (Aravis found no GigE Vision or USB3 Vision device)")
+    found = ", ".join(f"{d['id']} ({d['protocol']} {d['address']})" for d in devices)
     raise InputError(
-        f"{uri}: {what} found; found: {found} (aravis:<device id>, or its serial, MAC or IP address)"
+        f"{uri}: no camera {wanted!r} found; found: {found} (aravis:<device id>, or its serial, MAC or "
+        "IP address)"
     )
 
 
@@ -183,7 +185,8 @@ class AravisSource(Source):
     ):
         self.uri, self.timeout_s = uri, timeout_s
         self._camera = self._stream = None
-        self._lost = False  # the camera stopped answering: close() does not wait for it again
+        self._control_lost = False  # Aravis's heartbeat says another host took the camera, or it is gone
+        self._unanswered = False  # the last command went unanswered: close() does not wait on it again
         Aravis, self._GLib = _load_aravis(uri)
         self._Aravis = Aravis
         self.device_id = _choose_device(Aravis, device_id.strip(), uri)
@@ -205,7 +208,7 @@ class AravisSource(Source):
             raise
 
     def _on_control_lost(self, *_args) -> None:  # Aravis's heartbeat thread
-        self._lost = True
+        self._control_lost = True
 
     def _configure(self, pixel_format: str | None, continuous: bool) -> None:
         cam, Aravis = self._camera, self._Aravis
@@ -231,7 +234,8 @@ class AravisSource(Source):
             cam.set_trigger("Software")
             self.mode = "software-trigger"
         else:
-            cam.clear_triggers()
+            if cam.is_feature_available("TriggerMode"):  # free-running; a camera without triggers is
+                cam.clear_triggers()
             self.mode = "continuous"
 
     def _drain(self) -> None:
@@ -242,8 +246,8 @@ class AravisSource(Source):
 
     def _grab(self):
         assert self._camera is not None and self._stream is not None
-        if self._lost:
-            raise GrabTimeout(f"{self.uri}: control of the camera was lost (no heartbeat answer)")
+        if self._control_lost:
+            raise GrabTimeout(f"{self.uri}: control of the camera was lost (open the source again)")
         deadline = time.monotonic() + self.timeout_s
         self._drain()
         requested_ns = time.time_ns()
@@ -251,8 +255,9 @@ class AravisSource(Source):
         if self.mode == "software-trigger":
             try:
                 self._camera.software_trigger()
+                self._unanswered = False
             except self._GLib.Error as exc:
-                self._lost = True
+                self._unanswered = True
                 raise GrabTimeout(
                     f"{self.uri}: the camera did not take the trigger ({exc.message})"
                 ) from None
@@ -297,7 +302,7 @@ class AravisSource(Source):
 
     def close(self) -> None:
         camera, self._camera, self._stream = self._camera, None, None
-        if camera is not None and not self._lost:
+        if camera is not None and not (self._unanswered or self._control_lost):
             try:
                 camera.stop_acquisition()
             except self._GLib.Error:
