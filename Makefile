@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint format bench clean browser systemd-analyze
+.PHONY: setup demo test lint format bench clean browser systemd-analyze aravis
 
 # setup.py builds the compiled parts (src/eyetohand/models/_rows.c, solve/_swarm.c) into the source tree
 $(STAMP): pyproject.toml setup.py src/eyetohand/models/_rows.c src/eyetohand/solve/_swarm.c src/eyetohand/_buffers.h
@@ -20,6 +20,20 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/eyetohand demo --out demo-out
 
+# The aravis: camera source (tests/test_aravis.py talks to Aravis's GigE Vision fake camera): Debian's
+# Aravis 0.8 and its introspection data, and what the aravis extra (PyGObject) builds against; CI runs
+# as root. Only `make test` (and `make aravis`) need it: `make demo` installs nothing from apt.
+ARAVIS_DEBS := gir1.2-aravis-0.8 aravis-tools-cli libgirepository1.0-dev libcairo2-dev pkg-config
+ARAVIS_STAMP := $(VENV)/.aravis
+$(ARAVIS_STAMP): $(STAMP)
+	@missing=$$(for p in $(ARAVIS_DEBS); do \
+		dpkg-query -W -f='$${db:Status-Status}' $$p 2>/dev/null | grep -qx installed || echo $$p; done); \
+	test -z "$$missing" || (apt-get update && apt-get install -y $$missing)
+	$(BIN)/pip install --quiet -e '.[dev,aravis]'
+	touch $@
+
+aravis: $(ARAVIS_STAMP)
+
 # Debian's Chromium drives the workbench's browser test (tests/test_browser.py); CI runs as root.
 browser:
 	command -v chromium >/dev/null || (apt-get update && apt-get install -y chromium)
@@ -29,7 +43,7 @@ browser:
 systemd-analyze:
 	command -v systemd-analyze >/dev/null || (apt-get update && apt-get install -y --no-install-recommends systemd)
 
-test: $(STAMP) browser systemd-analyze
+test: $(STAMP) aravis browser systemd-analyze
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/mypy

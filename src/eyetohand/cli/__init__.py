@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "eyetohand.cli.serve",
     "eyetohand.cli.sim",
     "eyetohand.cli.images",
+    "eyetohand.cli.grab",
     "eyetohand.cli.conveyor",
     "eyetohand.cli.export",
     "eyetohand.cli.verify",

@@ -3,6 +3,7 @@ registry that higher layers, e.g. :mod:`eyetohand.sim`, add to)."""
 
 from __future__ import annotations
 
+from eyetohand.vision.aravis import AravisSource  # registers aravis: (gi is imported only when opened)
 from eyetohand.vision.detect import annotate, detect_target
 from eyetohand.vision.images import (
     ImageResult,
@@ -22,6 +23,7 @@ from eyetohand.vision.sources import (
 )
 
 __all__ = [
+    "AravisSource",
     "FolderSource",
     "GrabTimeout",
     "ImageResult",

@@ -9,6 +9,8 @@ URI                        source
 ``sim:CELL.toml``          the virtual cell's hidden camera looking at the robot's target
 ``genicam:CTI[#N]``        a GenICam camera through a GenTL producer (extra: ``harvesters``)
 ``pylon:[SERIAL]``         a Basler camera (extra: ``pypylon``)
+``aravis:[DEVICE-ID]``     a GigE Vision / USB3 Vision camera through Aravis 0.8 (extra: ``aravis``;
+                           :mod:`eyetohand.vision.aravis`, which registers it)
 =========================  =====================================================================
 
 Options follow a ``?``: ``folder:DIR?timeout=5``, ``sim:cell.toml?seed=3``, ``opencv:0?timeout=2``.
@@ -40,7 +42,8 @@ collection calls it before every grab without knowing which source it has. ``Sim
 exposes test hooks (``bump_px``, ``hide_target``, ``drift_mm_per_grab``): see
 :mod:`eyetohand.sim.camera_sim`.
 
-Only ``folder:`` and ``sim:`` are tested here; ``opencv:`` is exercised on a video file; the
+``folder:`` and ``sim:`` are tested here; ``opencv:`` is exercised on a video file; ``aravis:``
+against Aravis's own GigE Vision fake camera on the loopback interface (tests/test_aravis.py); the
 GenICam and Basler sources need their extras and a camera and are untested on this machine.
 """
 
