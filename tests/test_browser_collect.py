@@ -90,7 +90,9 @@ def test_collection_view_follows_the_robot(serve, page, tmp_path):
     expect(page.locator("#points-count")).to_have_text("3 in the fit, 1 dropped")
     st = httpx.get(url + "/api/collect/status").json()
     assert [p["dropped"] for p in st["points"]] == [False, True, False, False]
-    assert httpx.post(url + "/api/collect/points/99/drop").status_code == 404
+    assert httpx.post(url + "/api/collect/points/99/drop").status_code == 403  # as a cross-site form could
+    xrw = {"X-Requested-With": "t"}
+    assert httpx.post(url + "/api/collect/points/99/drop", headers=xrw).status_code == 404
 
     out = robot.run_plan("bench", "grid:3x3", rect, Z)  # the robot program again: resumes
     link.close()

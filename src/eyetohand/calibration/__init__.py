@@ -7,6 +7,7 @@ from eyetohand.calibration.export import FORMATS, export_text
 from eyetohand.calibration.file import Calibration, Mapped
 from eyetohand.calibration.fit import MAX_IMAGE_SIDE_PX, calibrate, check_image_size
 from eyetohand.calibration.request import FitRequest, calibrate_request
+from eyetohand.calibration.signing import load_sign_key
 from eyetohand.calibration.verify import append_history, check_tolerance, verify
 
 __all__ = [
@@ -23,5 +24,6 @@ __all__ = [
     "compare",
     "export_text",
     "format_compare",
+    "load_sign_key",
     "verify",
 ]

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from eyetohand._version import __version__
+from eyetohand.calibration.signing import check_signature, signature_of
 from eyetohand.core import (
     MAX_ABS_ANGLE_DEG,
     FitInfo,
@@ -45,7 +46,15 @@ from eyetohand.solve import Uncertainty
 
 SCHEMA = "eyetohand.calibration.file"
 SCHEMA_VERSION = 2
-READS_VERSIONS = (1, 2)
+READS_VERSIONS = (2,)
+"""Versions this eyetohand loads. Version 1 (eyetohand 0.1) is recognised only to be refused with its
+reason: its files carry no pairs, so they cannot prove they are intact, and loading one without a
+proof let an edited, relabelled and re-sealed version 2 file map unproven."""
+V1_FIELDS = frozenset(
+    "schema schema_version eyetohand_version created_utc units model plane_z_mm heights_mm image_size "
+    "fit train check loo data_sha256 notes selection tcp_offset".split()
+)
+"""Every field a version 1 file has (eyetohand 0.1 wrote exactly these)."""
 REPRODUCE_TOL_MM = 1e-9
 
 
@@ -300,31 +309,50 @@ class Calibration:
             "tcp_offset": self.tcp_offset.to_dict() if self.tcp_offset else None,
         }
 
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n"
+    def to_json(self, sign_key: bytes | None = None) -> str:
+        return json.dumps(self.to_dict(sign_key), indent=2, allow_nan=False) + "\n"
 
-    def to_dict(self) -> dict:
-        """The file's content (JSON-able), sealed by ``content_sha256`` (see :func:`content_sha256`)."""
+    def to_dict(self, sign_key: bytes | None = None) -> dict:
+        """The file's content (JSON-able), sealed by ``content_sha256`` (see :func:`content_sha256`)
+        and, with ``sign_key``, signed (``signature``: see :func:`signature_of`)."""
         d = self._content()
         d["content_sha256"] = content_sha256(d)
+        if sign_key is not None:
+            d["signature"] = signature_of(d, sign_key)
         return d
 
-    def save(self, path: str | os.PathLike) -> Path:
-        """Write the calibration as JSON, atomically (a failure leaves any earlier file intact)."""
-        return atomic_write_text(path, self.to_json())
+    def save(self, path: str | os.PathLike, sign_key: bytes | None = None) -> Path:
+        """Write the calibration as JSON, atomically (a failure leaves any earlier file intact);
+        signed with ``sign_key`` when given."""
+        return atomic_write_text(path, self.to_json(sign_key))
 
     @classmethod
-    def from_dict(cls, d: dict, source: str = "<dict>") -> Calibration:
+    def from_dict(
+        cls,
+        d: dict,
+        source: str = "<dict>",
+        *,
+        sign_key: bytes | None = None,
+        require_signed: bool = False,
+    ) -> Calibration:
         """Rebuild a calibration from :meth:`to_dict` output, proving it intact (schema version 2):
         every field typed and shaped as this version writes it, the training pairs hashing to
         ``data_sha256``, the recorded statistics reproduced (1e-9 mm), and the derived fields — the
         calibrated region, the uncertainty, the local frame — recomputed from the stored pairs and
         compared (the recomputed ones are used). Anything else is refused with one line naming the
         field (:class:`InputError`). Only free text (notes, warnings, created_utc,
-        eyetohand_version) and the model's diagnostics are not checked: they never change a mapping."""
+        eyetohand_version) and the model's diagnostics are not checked: they never change a mapping.
+
+        ``content_sha256`` catches accidents only (anyone can recompute it after an edit). A
+        deliberate edit is caught by a signature: with ``sign_key`` a signed file's ``signature``
+        must be this key's HMAC-SHA256 of the content; ``require_signed`` refuses a file without one.
+        A schema_version 1 file (eyetohand 0.1) carries no pairs, so it cannot prove itself: it is
+        refused (after its structure is checked, so a relabelled newer file is named as such)."""
         if not isinstance(d, dict) or d.get("schema") != SCHEMA:
             raise InputError(f"{source}: not an eyetohand calibration file (no schema {SCHEMA!r})")
         ver = d.get("schema_version")
+        if ver == 1 and not isinstance(ver, bool):
+            raise InputError(f"{source}: {_v1_refusal(cls, d)}")
         if isinstance(ver, bool) or ver not in READS_VERSIONS:
             newer = isinstance(ver, int) and not isinstance(ver, bool) and ver > SCHEMA_VERSION
             raise InputError(
@@ -336,19 +364,14 @@ class Calibration:
                 )
             )
         try:
+            check_signature(d, sign_key, require_signed)
             _check_numbers(d, "")
             cal = _from_dict(cls, d, ver)
-            if ver >= 2:
-                cal = cal._proven(d)
+            cal = cal._proven(d)
         except InputError as exc:
             raise InputError(f"{source}: {_as_written(str(exc), d)}") from None
         except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as exc:
-            what = (
-                f"field {exc.args[0]!r} missing"
-                if isinstance(exc, KeyError)
-                else f"{type(exc).__name__}: {exc}"
-            )
-            raise InputError(f"{source}: malformed calibration file ({what})") from None
+            raise InputError(f"{source}: {_malformed(exc)}") from None
         return cal
 
     def _proven(self, d: dict) -> Calibration:
@@ -372,6 +395,7 @@ class Calibration:
         local = want.pop("local_frame")
         _same(local, given.pop("local_frame", _MISSING), "local_frame", _rel_tol(REPRODUCE_TOL_MM))
         given.pop("content_sha256", None)
+        given.pop("signature", None)  # checked by check_signature
         _same(want, given, "", _rel_tol(0.0))
         sha = d.get("content_sha256", _MISSING)
         if sha is _MISSING:
@@ -420,8 +444,11 @@ class Calibration:
                 ) from None
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> Calibration:
-        """Read a calibration saved by :meth:`save`; mappings are bit-identical to the original."""
+    def load(
+        cls, path: str | os.PathLike, *, sign_key: bytes | None = None, require_signed: bool = False
+    ) -> Calibration:
+        """Read a calibration saved by :meth:`save`; mappings are bit-identical to the original.
+        ``sign_key``, ``require_signed``: see :meth:`from_dict`."""
         from eyetohand.core import read_bounded_text
 
         path = Path(path)
@@ -434,7 +461,35 @@ class Calibration:
             ) from None
         except ValueError as exc:
             raise InputError(f"{path}: not a calibration file ({exc})") from None
-        return cls.from_dict(d, str(path))
+        return cls.from_dict(d, str(path), sign_key=sign_key, require_signed=require_signed)
+
+
+def _malformed(exc: Exception) -> str:
+    what = f"field {exc.args[0]!r} missing" if isinstance(exc, KeyError) else f"{type(exc).__name__}: {exc}"
+    return f"malformed calibration file ({what})"
+
+
+def _v1_refusal(cls, d: dict) -> str:
+    """Why a schema_version 1 file is refused: a field version 1 never had (a newer file relabelled),
+    a malformed version 1 file, or — an intact-looking one — that it cannot prove itself."""
+    extra = sorted(k for k in d if k not in V1_FIELDS)
+    if extra:
+        return (
+            f"field 'schema_version' is 1, but the file has field '{extra[0]}', which no schema_version 1 "
+            "file has: a newer file relabelled as version 1 (to skip its proof) is refused"
+        )
+    try:
+        _check_numbers(d, "")
+        _from_dict(cls, d, 1)
+    except InputError as exc:
+        return str(exc)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as exc:
+        return _malformed(exc)
+    return (
+        "field 'schema_version': 1 is a file written by eyetohand 0.1, which carries no pairs and so "
+        "cannot prove it is intact (its model reproducing its recorded errors): calibrate its pairs "
+        "again with this eyetohand"
+    )
 
 
 CHANGED = "the file was changed after it was written"
@@ -477,7 +532,7 @@ def content_sha256(d: dict) -> str:
     or of a record (fit, statistics, selection, diagnostics) changes it."""
     import hashlib
 
-    body = {k: v for k, v in d.items() if k not in FREE_FIELDS and k != "content_sha256"}
+    body = {k: v for k, v in d.items() if k not in FREE_FIELDS and k not in ("content_sha256", "signature")}
     canon = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(canon.encode()).hexdigest()
 

@@ -16,11 +16,12 @@ from eyetohand.cli.common import (
     run_calibration,
     stats_line,
 )
-from eyetohand.core import ROBOT_UNITS, load_image_points, load_pairs
+from eyetohand.core import ROBOT_UNITS, InputError, load_image_points, load_pairs
 from eyetohand.solve import evaluate
 
 
 def cmd_calibrate(args) -> int:
+    key = _sign_key(args)
     if args.output:  # before any work: a fit must not be lost to an output that cannot be written
         from eyetohand.core import check_output_path
 
@@ -28,7 +29,25 @@ def cmd_calibrate(args) -> int:
     request = fit_request(args)  # the options before the files: a bad one is refused first
     pairs = load_pairs(args.pairs).scaled_to_mm(args.robot_units)
     check = load_pairs(args.check).scaled_to_mm(args.robot_units) if args.check else None
-    return run_calibration(args, pairs, check, request=request)
+    rc = run_calibration(args, pairs, check, request=request)
+    if rc == 0 and key is not None:
+        # the file as written, proved and signed in place (atomically: never half a file)
+        Calibration.load(args.output).save(args.output, sign_key=key)
+    return rc
+
+
+def _sign_key(args) -> bytes | None:
+    """--sign-key FILE: the key (read before any work), refused without -o."""
+    if getattr(args, "sign_key", None) is None:
+        return None
+    from eyetohand.calibration import load_sign_key
+
+    if not args.output:
+        raise CliError("--sign-key signs the calibration file: give -o FILE too")
+    try:
+        return load_sign_key(args.sign_key)
+    except InputError as exc:
+        raise CliError(f"--sign-key {exc}") from None
 
 
 def cmd_evaluate(args) -> int:
@@ -139,6 +158,13 @@ def register(sub) -> None:
         help="units of the robot x, y, z in the pairs (and --check): converted to mm before fitting",
     )
     add_fit_options(p)
+    p.add_argument(
+        "--sign-key",
+        metavar="FILE",
+        default=None,
+        help="sign the calibration file (-o) with the HMAC-SHA256 key in FILE (>= 16 bytes, e.g. "
+        "head -c 32 /dev/urandom > FILE), for 'serve --sign-key FILE --require-signed'",
+    )
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("evaluate", help="statistics of a calibration on pairs")

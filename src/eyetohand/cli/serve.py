@@ -14,6 +14,10 @@ def cmd_serve(args) -> int:
     from eyetohand.server import check_options, default_data_dir, serve
 
     args.token = args.token or os.environ.get("EYETOHAND_TOKEN") or None
+    # ---- --token-file (http worktree): the token read from a file, so no process listing shows it
+    if getattr(args, "token_file", None) is not None:
+        args.token = read_token_file(args.token_file, given=args.token is not None)
+    # ---- end --token-file
     check_options(args)
     data_dir = args.data or default_data_dir()
     try:
@@ -22,6 +26,25 @@ def cmd_serve(args) -> int:
         print(f"error: cannot serve: {exc}", file=sys.stderr)
         return 2
     return 0
+
+
+def read_token_file(path: str, given: bool) -> str:
+    """The token in ``path`` (its first line, white space left out); refused with --token too."""
+    from eyetohand.cli.common import CliError
+
+    if given:
+        raise CliError("--token-file: give the token once: --token-file, or --token / EYETOHAND_TOKEN")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read(4097)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CliError(
+            f"--token-file {path}: cannot read it ({getattr(exc, 'strerror', None) or exc})"
+        ) from None
+    lines = text.strip().splitlines()
+    if len(text) > 4096 or not lines or len(lines) > 1:
+        raise CliError(f"--token-file {path}: expected one line holding the token")
+    return lines[0].strip()
 
 
 def register(sub) -> None:
@@ -128,4 +151,32 @@ def register(sub) -> None:
         "503 with Retry-After (default 2 s)",
     )
     p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    # ---- --token-file, --allow-host, --sign-key, --require-signed (http worktree)
+    p.add_argument(
+        "--token-file",
+        metavar="FILE",
+        default=None,
+        help="read the token from FILE (one line) instead of --token, so no process listing shows it",
+    )
+    p.add_argument(
+        "--allow-host",
+        metavar="NAME",
+        action="append",
+        default=None,
+        help="also answer HTTP requests whose Host is NAME (e.g. the machine's DNS name); repeatable. "
+        "The loopback names and the --host address are always answered",
+    )
+    p.add_argument(
+        "--sign-key",
+        metavar="FILE",
+        default=None,
+        help="HMAC-SHA256 key (>= 16 bytes) that checks signed calibration files (--calibration FILE, "
+        "imports) and signs exports (eyetohand calibrate --sign-key FILE signs files)",
+    )
+    p.add_argument(
+        "--require-signed",
+        action="store_true",
+        help="refuse calibration files not signed with --sign-key (--calibration FILE and imports)",
+    )
+    # ---- end of the http worktree's options
     p.set_defaults(func=cmd_serve)

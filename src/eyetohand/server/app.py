@@ -20,7 +20,7 @@ from fastapi import FastAPI
 
 from eyetohand._version import __version__
 from eyetohand.server.core import Jobs
-from eyetohand.server.middleware import BodyLimit, HostGuard, TokenGuard
+from eyetohand.server.middleware import BodyLimit, DatabaseGuard, HostGuard, SameOrigin, TokenGuard
 from eyetohand.server.responses import install_handlers
 from eyetohand.server.routes import calibrations, collect, images, jobs, mapping, meta, page, pairs
 from eyetohand.server.routes.meta import PAPER_PRESET
@@ -43,6 +43,8 @@ ERRORS: dict[int | str, dict[str, Any]] = {
         (400, "malformed request"),
         (404, "no such calibration, version or job"),
         (413, "request too large"),
+        (403, "a cross-site request (Origin not this server, or a POST neither JSON nor X-Requested-With)"),
+        (412, "If-Match is not the calibration's current state"),
         (415, "body not sent as application/json"),
         (422, "invalid field (named in 'field')"),
         (503, "database busy (another writer; see Retry-After) or unavailable"),
@@ -60,11 +62,18 @@ def create_app(
     max_pending_jobs: int = 8,
     max_pso_work: int = MAX_PSO_WORK,
     db_wait_s: float = WAIT_S,
+    create_db: bool = True,
+    sign_key: bytes | None = None,
+    require_signed: bool = False,
 ) -> FastAPI:
     """The app over the database in ``data_dir``. ``token``: required on /api/ when set.
     ``allowed_hosts``: accepted Host header names (None: any). ``max_pso_work``: the largest
     particles × iterations a PSO fit may ask for (422 beyond). ``db_wait_s``: how long a write
-    waits for another connection's lock before answering 503."""
+    waits for another connection's lock before answering 503. ``create_db``: create the database
+    when ``data_dir`` has none (``serve`` passes True only at a first start); once open, a database
+    deleted or replaced under the app answers 503 and is never recreated. ``sign_key``: checks
+    signed calibration files on import and signs exports; ``require_signed``: imports must be signed
+    with it."""
     limits = Limits(
         max_body_bytes=max_body_bytes,
         max_fit_body_bytes=min(max_fit_body_bytes, max_body_bytes),
@@ -72,10 +81,12 @@ def create_app(
         max_pso_work=max_pso_work,
     )
     service = Service(
-        Store(data_dir, wait_s=db_wait_s),
+        Store(data_dir, wait_s=db_wait_s, create=create_db),
         Jobs(max_pending=max_pending_jobs, max_pso_work=max_pso_work),
         limits,
         token,
+        sign_key=sign_key,
+        require_signed=require_signed,
     )
 
     @asynccontextmanager
@@ -118,8 +129,11 @@ def create_app(
             return limits.max_body_bytes
         return limits.max_fit_body_bytes
 
+    # the last added runs first: Host, then cross-site refusal, token, database, body
     app.add_middleware(BodyLimit, limit_for=limit_for)
+    app.add_middleware(DatabaseGuard, check=service.store.check_same_file)
     app.add_middleware(TokenGuard, token=token)
+    app.add_middleware(SameOrigin)
     if allowed_hosts is not None:
         app.add_middleware(HostGuard, hosts=allowed_hosts)
     return app

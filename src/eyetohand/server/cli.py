@@ -38,6 +38,7 @@ def parse_hostport(text: str, flag: str = "--tcp") -> tuple[str, int]:
 
 def check_options(args) -> None:
     """Refuse unsafe or incomplete option sets before anything binds."""
+    check_signing_options(args)  # --sign-key, --require-signed: before --calibration FILE is read
     if not 0 <= args.port <= 65535:
         raise ServeError(f"--port: expected 0..65535 (0: any free port), got {args.port}")
     if not 0 < args.db_wait <= 60:
@@ -85,7 +86,7 @@ def check_options(args) -> None:
             from eyetohand.server.tcp import FixedCalibration
 
             try:
-                args.calibration_file = FixedCalibration.from_file(path)
+                args.calibration_file = signed_file(FixedCalibration, path, args)
             except InputError as exc:
                 raise ServeError(f"--calibration: {exc}") from None
 
@@ -127,6 +128,53 @@ def check_plc_options(args) -> None:
                 f"{flag} needs --calibration NAME, id:N or FILE.json (the calibration to serve), or "
                 "--tcp with --camera (a collection creates it)"
             )
+
+
+# ---- --sign-key / --require-signed / --allow-host (the http worktree; one block for easy merges)
+def check_signing_options(args) -> None:
+    """``args.sign_key_bytes``: the key of ``--sign-key FILE`` (None without); ``--require-signed``
+    needs it. Every calibration file served (``--calibration FILE``) or imported over HTTP must then
+    carry this key's signature, and exports are signed with it."""
+    args.sign_key_bytes = None
+    path = getattr(args, "sign_key", None)
+    if path is not None:
+        from eyetohand.calibration import load_sign_key
+
+        try:
+            args.sign_key_bytes = load_sign_key(path)
+        except InputError as exc:
+            raise ServeError(f"--sign-key {exc}") from None
+    if getattr(args, "require_signed", False) and args.sign_key_bytes is None:
+        raise ServeError("--require-signed needs --sign-key FILE (the key the files must be signed with)")
+
+
+def signed_file(fixed_cls, path, args):
+    """``--calibration FILE`` loaded with the signature rules (``fixed_cls``: FixedCalibration)."""
+    import hashlib
+
+    from eyetohand.calibration import Calibration
+
+    p = Path(path)
+    key = getattr(args, "sign_key_bytes", None)
+    cal = Calibration.load(p, sign_key=key, require_signed=bool(getattr(args, "require_signed", False)))
+    return fixed_cls(cal, str(p.resolve()), hashlib.sha256(p.read_bytes()).hexdigest())
+
+
+def allowed_hosts(args) -> list[str] | None:
+    """The Host names HTTP answers: on a loopback address the loopback names, the bound address and
+    every ``--allow-host``; elsewhere any (None) unless ``--allow-host`` names them (then those, the
+    bound address and the loopback names)."""
+    from eyetohand.server.app import LOOPBACK_HOSTS
+
+    extra = [h.strip().lower() for h in getattr(args, "allow_host", None) or () if h.strip()]
+    if not is_loopback(args.host) and not extra:
+        return None
+    host = args.host.lower()
+    bound = [host, f"[{host}]"] if ":" in host and not host.startswith("[") else [host]
+    return [*LOOPBACK_HOSTS, *bound, *extra]
+
+
+# ---- end of the --sign-key / --require-signed / --allow-host block
 
 
 def calibration_path(ref: str):
@@ -196,11 +244,13 @@ async def _serve(args, data_dir) -> None:
 async def _run_serve(args, data_dir, loops: list) -> None:
     import uvicorn
 
-    from eyetohand.server.app import LOOPBACK_HOSTS, create_app
-    from eyetohand.server.storage import Store
+    from eyetohand.server.app import create_app
+    from eyetohand.server.storage import DB_NAME, Store
     from eyetohand.server.tcp import LineServer, LoopThread, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
+    # the database is created only at a first start: later, a missing one is an error, never a new one
+    fresh_db = not (Path(data_dir) / DB_NAME).exists()
     line_server = None
     tcp_loop: LoopThread | None = None
     collector = source = belt = app = None
@@ -208,7 +258,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
     store = served = None
     if args.tcp or _plc_wanted(args):
-        served, store = _served_calibration(args, data_dir, camera, http_sock)
+        served, store = _served_calibration(args, data_dir, camera, http_sock, create=fresh_db)
     if args.tcp:
         host, port = parse_hostport(args.tcp)
         what = describe(served)
@@ -238,7 +288,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                         app.state.service.invalidate(saved_rec.id)
 
                 if store is None:
-                    store = Store(data_dir, wait_s=args.db_wait)
+                    store = Store(data_dir, wait_s=args.db_wait, create=fresh_db)
                 collect_dir = args.collect_dir or (data_dir / "collect")
                 collector = Collector(
                     collect_dir,
@@ -304,7 +354,10 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         data_dir,
         token=args.token,
         db_wait_s=args.db_wait,
-        allowed_hosts=LOOPBACK_HOSTS if is_loopback(args.host) else None,
+        allowed_hosts=allowed_hosts(args),
+        create_db=fresh_db,
+        sign_key=getattr(args, "sign_key_bytes", None),
+        require_signed=bool(getattr(args, "require_signed", False)),
     )
     if collector is not None:
         from eyetohand.server.routes.collect import CameraView
@@ -312,7 +365,11 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         app.state.collect = CameraView(collector, source)
     port = http_sock.getsockname()[1]
     print(f"workbench: http://{args.host}:{port}/  (API docs: /docs; data: {data_dir})", flush=True)
-    config = uvicorn.Config(app, log_level=args.log_level, timeout_graceful_shutdown=5)
+    from eyetohand.server.protocol import GuardedH11Protocol  # head and body deadlines (slowloris)
+
+    config = uvicorn.Config(
+        app, log_level=args.log_level, timeout_graceful_shutdown=5, http=GuardedH11Protocol
+    )
     server = uvicorn.Server(config)
     try:
         await server.serve(sockets=[http_sock])
@@ -334,10 +391,11 @@ def _plc_wanted(args) -> bool:
     return bool(getattr(args, "modbus", None) or getattr(args, "opcua", None))
 
 
-def _served_calibration(args, data_dir: Path, camera, http_sock):
+def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool):
     """(the served-calibration object, the store or None) for ``--calibration``: a file (proved by
     check_options), a stored calibration (followed), or none yet (with a camera, a collection creates
-    it). A refusal closes ``http_sock`` and raises :class:`ServeError`."""
+    it). A refusal closes ``http_sock`` and raises :class:`ServeError`. ``create``: the database may be
+    created (a first start only)."""
     from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
     from eyetohand.server.tcp import PendingCalibration, StoredCalibration
 
@@ -351,7 +409,7 @@ def _served_calibration(args, data_dir: Path, camera, http_sock):
             f"--calibration: {args.calibration!r} not found: no calibrations are stored "
             f"in {data_dir} yet (no {DB_NAME}); save one in the workbench first"
         )
-    store = Store(data_dir, wait_s=args.db_wait)
+    store = Store(data_dir, wait_s=args.db_wait, create=create)
     served = PendingCalibration(args.calibration)
     try:
         if args.calibration:

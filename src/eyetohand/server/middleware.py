@@ -120,3 +120,82 @@ class HostGuard:
                     send, error_response(400, f"Host {host!r} is not served here", "Host")
                 )
         return await self.app(scope, receive, send)
+
+
+SAFE_METHODS = ("GET", "HEAD", "OPTIONS")
+FORGERY_HEADERS = (b"x-requested-with", b"x-eyetohand")
+
+
+class SameOrigin:
+    """Refuse cross-site request forgery: a request that changes state must not be one a page of
+    another site can make the browser send.
+
+    - ``Origin``, when the browser sends one on such a request, must name this server (its
+      host[:port] equal to ``Host``); ``Origin: null`` (a sandboxed or file page) is refused too.
+    - A ``POST`` — the one state-changing method an HTML form or a "simple" cross-site ``fetch`` can
+      send — must carry ``Content-Type: application/json`` or an ``X-Requested-With`` header, which
+      a cross-site page can only send after a CORS preflight this server never grants. (``PUT``,
+      ``PATCH`` and ``DELETE`` always need that preflight.) A body-less one is refused here (403
+      naming the header); one with a body of another type is refused by :class:`BodyLimit` (415)."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["method"] in SAFE_METHODS:
+            return await self.app(scope, receive, send)
+        headers = dict(scope.get("headers") or ())
+        origin = headers.get(b"origin")
+        if origin is not None:
+            host = headers.get(b"host", b"").decode("latin-1").strip().lower()
+            text = origin.decode("latin-1").strip()
+            netloc = text.lower().partition("://")[2].rstrip("/")
+            scheme = text.lower().partition("://")[0]
+            default = {"http": ":80", "https": ":443"}.get(scheme, "")
+            if not netloc or (netloc != host and netloc.removesuffix(default) != host.removesuffix(default)):
+                return await send_response(
+                    send,
+                    error_response(
+                        403,
+                        f"Origin {text!r} is not this server (Host {host!r}): a request from another "
+                        "site's page may not change anything here",
+                        "Origin",
+                    ),
+                )
+        bodyless = headers.get(b"content-length", b"0").strip() in (b"", b"0") and (
+            b"transfer-encoding" not in headers
+        )  # a body must be application/json anyway (BodyLimit: 415)
+        if scope["method"] == "POST" and bodyless:
+            ctype = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
+            if ctype not in JSON_TYPES and not any(h in headers for h in FORGERY_HEADERS):
+                return await send_response(
+                    send,
+                    error_response(
+                        403,
+                        "a POST must be sent as Content-Type: application/json or with the header "
+                        "X-Requested-With (a form on another site can send neither)",
+                        "Content-Type",
+                    ),
+                )
+        return await self.app(scope, receive, send)
+
+
+class DatabaseGuard:
+    """Every /api/ request first proves that the database file is still the one the server opened
+    (``store.check_same_file()``: one stat); while it is missing or replaced, 503 ``database replaced
+    or missing``. The mapping routes answer from memory, so without this they would keep mapping with
+    a database that is no longer the truth."""
+
+    def __init__(self, app, check: Callable[[], None]):
+        self.app = app
+        self.check = check
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] == "http" and scope["path"].startswith("/api/"):
+            from eyetohand.server.storage import DatabaseGone
+
+            try:
+                self.check()
+            except DatabaseGone as exc:
+                return await send_response(send, error_response(503, str(exc), "database"))
+        return await self.app(scope, receive, send)

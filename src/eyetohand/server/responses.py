@@ -13,7 +13,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from eyetohand.core import InputError
 from eyetohand.server.core import ApiError, input_error
-from eyetohand.server.storage import Ambiguous, NameTaken, NotFound, StorageError
+from eyetohand.server.storage import Ambiguous, Conflict, NameTaken, NotFound, StorageError
 
 
 def error_response(
@@ -125,6 +125,16 @@ def install_handlers(app: FastAPI) -> None:
     async def _ambiguous(_req, exc: Ambiguous):
         return error_response(409, str(exc).strip("'\""), "name")
 
+    @app.exception_handler(Conflict)
+    async def _conflict(_req, exc: Conflict):
+        body = {
+            "error": str(exc),
+            "field": "If-Match",
+            "current_version": exc.current_version,
+            "etag": exc.etag,
+        }
+        return JSONResponse(body, status_code=412, headers={"ETag": exc.etag})
+
     @app.exception_handler(StorageError)
     async def _storage(_req, exc: StorageError):
         headers = {"Retry-After": str(exc.retry_after_s)} if exc.retry_after_s else None
@@ -133,5 +143,8 @@ def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(_req, exc: StarletteHTTPException):
         return error_response(
-            exc.status_code, str(exc.detail), headers=dict(exc.headers) if exc.headers else None
+            exc.status_code,
+            str(exc.detail),
+            getattr(exc, "field", None),  # e.g. a duplicate key's path
+            headers=dict(exc.headers) if exc.headers else None,
         )

@@ -346,6 +346,9 @@ class CalibrationOut(BaseModel):
     name: str
     version: int = Field(description="the version shown")
     current_version: int
+    etag: str = Field(
+        description="the ETag of the calibration's current state: send it as If-Match to change it"
+    )
     created_utc: str
     updated_utc: str
     note: str
@@ -363,6 +366,9 @@ class CalibrationBrief(BaseModel):
     id: int
     name: str
     current_version: int
+    etag: str = Field(
+        description="the ETag of the calibration's current state: send it as If-Match to change it"
+    )
     updated_utc: str
     model: str
     optimizer: str
@@ -386,6 +392,9 @@ class VersionList(BaseModel):
     id: int
     name: str
     current_version: int
+    etag: str = Field(
+        description="the ETag of the calibration's current state: send it as If-Match to change it"
+    )
     versions: list[VersionBrief]
 
 

@@ -18,7 +18,7 @@ from eyetohand.core import PointPairs
 from eyetohand.server import core
 from eyetohand.server.core import ApiError, Fitted, Job, Jobs
 from eyetohand.server.schemas import FitOptions, ImagesCalibrate
-from eyetohand.server.storage import Record, Store, Version
+from eyetohand.server.storage import Record, Store, Version, require_match
 
 
 @dataclass(frozen=True)
@@ -34,8 +34,19 @@ class Service:
 
     CACHE_SIZE = 64
 
-    def __init__(self, store: Store, jobs: Jobs, limits: Limits, token: str | None):
+    def __init__(
+        self,
+        store: Store,
+        jobs: Jobs,
+        limits: Limits,
+        token: str | None,
+        *,
+        sign_key: bytes | None = None,
+        require_signed: bool = False,
+    ):
         self.store = store
+        self.sign_key = sign_key  # proves signed calibration files (imports); signs exports
+        self.require_signed = require_signed  # imports must be signed with sign_key
         self.jobs = jobs
         self.limits = limits
         self.auth = token is not None
@@ -83,8 +94,16 @@ class Service:
                     del self._by_version[key]
 
     # ------------------------------------------------------------ views
-    def out(self, cal_id: int, version: int | None = None, detail: bool = False) -> dict:
-        rec = self.store.get(cal_id)
+    def out(
+        self, cal_id: int, version: int | None = None, detail: bool = False, rec: Record | None = None
+    ) -> dict:
+        """The view of a version (default: the current one). ``rec``: the record a write's own
+        transaction left (then ``version`` and ``current_version`` are what that write made, never
+        what a concurrent write made after it); else it is read now."""
+        if rec is None:
+            rec = self.store.get(cal_id)
+        elif version is None:
+            version = rec.current_version
         ver, cal = self.calibration(cal_id, version)
         pairs = core.pairs_from_records(ver.pairs, source="pairs")  # every version has its pairs
         check = _pairs_of(ver.check, "check")
@@ -94,6 +113,7 @@ class Service:
             "name": rec.name,
             "version": ver.version,
             "current_version": rec.current_version,
+            "etag": rec.etag,
             "created_utc": rec.created_utc,
             "updated_utc": rec.updated_utc,
             "note": ver.note,
@@ -113,6 +133,7 @@ class Service:
                     "id": rec.id,
                     "name": rec.name,
                     "current_version": rec.current_version,
+                    "etag": rec.etag,
                     "updated_utc": rec.updated_utc,
                     **{k: b[k] for k in ("model", "optimizer", "fitness_mm", "train_rms_mm", "check_rms_mm")},
                 }
@@ -129,9 +150,9 @@ class Service:
             _records(fitted.check),
             note=note or "created",
         )
-        return self.out(rec.id)
+        return self.out(rec.id, rec=rec)
 
-    def save_version(self, cal_id: int, fitted: Fitted, note: str) -> dict:
+    def save_version(self, cal_id: int, fitted: Fitted, note: str, if_match: str | None = None) -> dict:
         try:
             rec = self.store.add_version(
                 cal_id,
@@ -140,60 +161,78 @@ class Service:
                 fitted.pairs.to_records(),
                 _records(fitted.check),
                 note=note or "refit",
+                if_match=if_match,
             )
         finally:
             self.invalidate(cal_id)
-        return self.out(rec.id)
+        return self.out(rec.id, rec=rec)
 
-    def rollback(self, cal_id: int, version: int) -> dict:
+    def rollback(self, cal_id: int, version: int, if_match: str | None = None) -> dict:
         try:
-            self.store.rollback(cal_id, version)
+            rec = self.store.rollback(cal_id, version, if_match=if_match)
         finally:
             self.invalidate(cal_id)
-        return self.out(cal_id)
+        return self.out(cal_id, rec=rec)
 
-    def rename(self, cal_id: int, name: str) -> dict:
-        self.store.rename(cal_id, name)
-        return self.out(cal_id)
+    def rename(self, cal_id: int, name: str, if_match: str | None = None) -> dict:
+        rec = self.store.rename(cal_id, name, if_match=if_match)
+        return self.out(cal_id, rec=rec)
 
-    def delete(self, cal_id: int) -> None:
+    def delete(self, cal_id: int, if_match: str | None = None) -> None:
         try:
-            self.store.delete(cal_id)
+            self.store.delete(cal_id, if_match=if_match)
         finally:
             self.invalidate(cal_id, versions_too=True)
+
+    def check_if_match(self, cal_id: int, if_match: str | None) -> Record:
+        """The record, or :class:`~eyetohand.server.storage.Conflict` when ``if_match`` is stale (a
+        quick refusal before a fit; the write checks again in its own transaction)."""
+        rec = self.store.get(cal_id)
+        require_match(rec, if_match)
+        return rec
 
     def create(self, opts, name: str) -> dict:
         if self.store.by_name(name) is not None:  # before spending a fit on it
             raise ApiError(409, f"a calibration named {name!r} exists already", "name")
         return self.save_new(self.wait_fit(opts), name, "created")
 
-    def import_calibration(self, name: str, calibration: dict, note: str) -> tuple[dict, bool]:
+    def import_calibration(
+        self, name: str, calibration: dict, note: str, if_match: str | None = None
+    ) -> tuple[dict, bool]:
         """Store a calibration file's JSON (proved intact first: 422 naming what is wrong) as a new
         calibration called ``name``, or as a new version of the one that has that name. Returns the
-        stored calibration's view and whether it was created."""
+        stored calibration's view and whether it was created.
+
+        Atomic: what is stored is proved to decode (exactly as every later read decodes it) before
+        the one transaction that stores it; a refused file changes nothing."""
         from eyetohand.core import InputError
 
         try:
-            cal = Calibration.from_dict(calibration, "calibration")
+            cal = Calibration.from_dict(
+                calibration, "calibration", sign_key=self.sign_key, require_signed=self.require_signed
+            )
+            body = cal.to_dict()
+            Calibration.from_dict(body, "calibration")  # what the store will hand back, proved now
         except InputError as exc:
-            raise ApiError(422, str(exc), "calibration") from None
+            raise ApiError(422, str(exc), _file_field(exc)) from None
         request = {
             "source": "import",
             "model": cal.model_name,
             "optimizer": cal.fit.optimizer,
             "objective": cal.fit.objective,
         }
-        body = cal.to_dict()
         pairs, check = _records(cal.pairs), _records(cal.check_pairs)
         rec = self.store.by_name(name)
         if rec is None:
             rec = self.store.create(name, request, body, pairs or [], check, note=note or "imported")
-            return self.out(rec.id), True
+            return self.out(rec.id, rec=rec), True
         try:
-            self.store.add_version(rec.id, request, body, pairs or [], check, note=note or "imported")
+            rec = self.store.add_version(
+                rec.id, request, body, pairs or [], check, note=note or "imported", if_match=if_match
+            )
         finally:
             self.invalidate(rec.id)
-        return self.out(rec.id), False
+        return self.out(rec.id, rec=rec), False
 
     def verify(self, cal_id: int, pairs: PointPairs, tolerance_mm: float, version: int | None = None) -> dict:
         """Verify freshly measured pairs against a stored calibration and keep the entry in its history."""
@@ -224,7 +263,14 @@ class Service:
             raise ApiError(409, f"job {job_id} is {job.status}, it has no calibration to use", "id")
         return job.fitted
 
-    def save_job(self, job_id: str, name: str | None, calibration_id: int | None, note: str) -> dict:
+    def save_job(
+        self,
+        job_id: str,
+        name: str | None,
+        calibration_id: int | None,
+        note: str,
+        if_match: str | None = None,
+    ) -> dict:
         fitted = self.finished_fit(job_id)
         if (name is None) == (calibration_id is None):
             raise ApiError(
@@ -233,7 +279,7 @@ class Service:
         if name is not None:
             d = self.save_new(fitted, name, note)
         elif calibration_id is not None:
-            d = self.save_version(calibration_id, fitted, note)
+            d = self.save_version(calibration_id, fitted, note, if_match)
         self.jobs.get(job_id).saved = {"id": d["id"], "version": d["version"], "name": d["name"]}
         return d
 
@@ -379,6 +425,15 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
         left_out=list(run["left_out"]),
     )
     core.finish_fit(job, fitted, req.optimizer)
+
+
+def _file_field(exc) -> str:
+    """The request field a calibration file's refusal names: ``calibration.<field>`` when the words
+    name one (``field 'schema_version' …``), else ``calibration``."""
+    import re
+
+    m = re.search(r"field '([^']+)'", str(exc))
+    return f"calibration.{m.group(1)}" if m else "calibration"
 
 
 def _pairs_of(records: list[dict] | None, label: str) -> PointPairs | None:

@@ -7,17 +7,25 @@ versions 1, 2, 3, …; each version keeps the fitted calibration (the JSON that 
 reads), the pairs it was fitted on, the check pairs, the fit request and a note. Versions are never
 changed or removed: a refit adds one, and rolling back to version *n* adds a new version that is a
 copy of *n* (so the history still shows what was in force, and when).
+
+The database file is the truth: the store creates it only when told to (``create=True``, at a first
+start), every connection opens it read-write without ever creating it, and every read and write first
+proves that the path still names the file the store opened (:meth:`Store.check_same_file`), so a
+database deleted or replaced under a running server is refused (:class:`DatabaseGone`, 503), never
+silently recreated empty nor served from the unlinked file.
 """
 
 from __future__ import annotations
 
 import builtins
 import datetime as _dt
+import hashlib
 import json
 import os
 import sqlite3
 import threading
 import unicodedata
+import urllib.parse
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -97,6 +105,45 @@ class NoSpace(StorageError):
     status = 507
 
 
+class DatabaseGone(StorageError):
+    """The database file this store opened was deleted, or its path now names another file (replaced
+    under the running server): nothing is read or written until the path names it again."""
+
+
+class Conflict(Exception):
+    """``If-Match`` named another state of the calibration than the current one (HTTP 412): the
+    change was not applied. ``current_version`` and ``etag`` say what is current now."""
+
+    def __init__(self, message: str, current_version: int, etag: str):
+        super().__init__(message)
+        self.current_version = current_version
+        self.etag = etag
+
+
+def etag_of(cal_id: int, version: int, name: str) -> str:
+    """The entity tag of a calibration's current state: its id, current version and name (a refit,
+    a rollback or a rename changes it), as a quoted strong ETag."""
+    digest = hashlib.sha256(unicodedata.normalize("NFC", name).encode()).hexdigest()[:8]
+    return f'"{cal_id}.{version}.{digest}"'
+
+
+def require_match(rec: Record, if_match: str | None) -> None:
+    """:class:`Conflict` unless ``if_match`` (an ``If-Match`` value: ETags separated by commas, or
+    ``*``; None: no condition) names ``rec``'s current state."""
+    if if_match is None:
+        return
+    given = [t.strip().removeprefix("W/") for t in if_match.split(",")]
+    if "*" in given or rec.etag in given:
+        return
+    raise Conflict(
+        f"If-Match {if_match.strip()!r} is not the current state of calibration {rec.id} ({rec.etag}: "
+        f"version {rec.current_version}, named {rec.name!r}); it was changed meanwhile: reload it, "
+        "then decide again",
+        rec.current_version,
+        rec.etag,
+    )
+
+
 def _storage_error(exc: sqlite3.OperationalError, path: Path) -> StorageError:
     msg = str(exc)
     low = msg.lower()
@@ -141,6 +188,44 @@ def clean_text(text: str, what: str) -> str:
     return text
 
 
+# letters of other scripts drawn like Latin ones (after NFKC and casefold): the common Cyrillic, Greek
+# and Armenian look-alikes of Unicode's confusables list, enough that a name cannot pass for another
+_LOOKALIKES = {
+    "a": "\u0430\u03b1",  # Cyrillic a, Greek alpha
+    "b": "\u044c\u0432\u03b2",
+    "c": "\u0441\u03c2\u0441",
+    "d": "\u0501",
+    "e": "\u0435\u03b5",
+    "g": "\u0581",
+    "h": "\u04bb\u043d\u0570",
+    "i": "\u0456\u03b9\u0131",
+    "j": "\u0458",
+    "k": "\u043a\u03ba",
+    "l": "\u04cf\u2113",
+    "m": "\u043c",
+    "n": "\u0578\u03b7",
+    "o": "\u043e\u03bf\u0585",
+    "p": "\u0440\u03c1",
+    "q": "\u051b\u0566",
+    "s": "\u0455",
+    "t": "\u0442\u03c4",
+    "u": "\u057d\u03c5",
+    "v": "\u0475\u03bd",
+    "w": "\u051d\u03c9",
+    "x": "\u0445\u03c7",
+    "y": "\u0443\u03b3",
+    "-": "\u2010\u2011\u2012\u2013\u2212",
+}
+_CONFUSABLE = str.maketrans({ch: latin for latin, chars in _LOOKALIKES.items() for ch in chars})
+
+
+def name_skeleton(name: str) -> str:
+    """What a name looks like: NFKC, casefolded, and look-alike letters of other scripts read as their
+    Latin twins. Two names with one skeleton read the same on a screen ("Cell 1", "cell 1", "Сеll 1"
+    with Cyrillic С and е), so the store keeps only one of them."""
+    return unicodedata.normalize("NFKC", name).casefold().translate(_CONFUSABLE)
+
+
 @dataclass(frozen=True)
 class Version:
     calibration_id: int
@@ -174,6 +259,11 @@ class Record:
     updated_utc: str
     current_version: int
 
+    @property
+    def etag(self) -> str:
+        """The ETag of this state (id, current version, name): see :func:`etag_of`."""
+        return etag_of(self.id, self.current_version, self.name)
+
 
 class Store:
     """Thread-safe access to the database: one SQLite connection per thread, no Python lock.
@@ -182,15 +272,29 @@ class Store:
     write lock, then raises :class:`Busy`; any other SQLite failure raises :class:`StorageError`
     (the transaction is rolled back). Nothing here holds a lock while SQLite waits."""
 
-    def __init__(self, data_dir: str | os.PathLike, wait_s: float = WAIT_S):
+    def __init__(self, data_dir: str | os.PathLike, wait_s: float = WAIT_S, *, create: bool = False):
+        """Open ``data_dir/calibrations.db``. ``create``: make it (and ``data_dir``) when there is
+        none yet — a first start; without it a missing database is :class:`DatabaseGone`. Either
+        way, once open the store never creates the file again (see :meth:`check_same_file`)."""
         self.data_dir = Path(data_dir)
-        self.data_dir.mkdir(parents=True, exist_ok=True)
         self.path = self.data_dir / DB_NAME
         self.wait_s = float(wait_s)
         self._local = threading.local()
         self._all: list[sqlite3.Connection] = []
         self._all_lock = threading.Lock()  # guards the list only, never held around SQLite
         self._closed = False
+        self._identity: tuple[int, int] | None = None
+        if not self.path.exists():
+            if not create:
+                raise DatabaseGone(
+                    f"database replaced or missing: there is no {self.path} (it is created only at a "
+                    "server's first start, with an empty data folder)"
+                )
+            self.data_dir.mkdir(parents=True, exist_ok=True)
+            with _translated(self.path):
+                sqlite3.connect(self._uri("rwc"), uri=True).close()
+        st = os.stat(self.path)
+        self._identity = (st.st_dev, st.st_ino)
         with _translated(self.path):
             db = self._db
             db.execute("PRAGMA journal_mode=WAL")
@@ -199,16 +303,55 @@ class Store:
                 if stmt.strip():
                     db.execute(stmt)
 
+    def _uri(self, mode: str) -> str:
+        return f"file:{urllib.parse.quote(str(self.path.absolute()))}?mode={mode}"
+
+    def check_same_file(self) -> None:
+        """Prove that the database path still names the file this store opened; raise
+        :class:`DatabaseGone` (a :class:`StorageError`, HTTP 503) when it is missing or another file
+        (deleted, or replaced by a copy, a restore, another cell's database) — until it names the
+        same file again (e.g. moved back), when this returns quietly.
+
+        Contract: one ``os.stat`` of the path compared with the (device, inode) recorded at opening,
+        no SQLite call, no lock: cheap enough to call before every request or robot line, safe from
+        any thread. Every read and write of the store calls it first (inside the write transaction),
+        so no answer comes from, and no acknowledged write goes to, a file that is no longer the
+        database; a caller that answers from memory (a cached calibration: the HTTP mapping routes,
+        the TCP line service) calls it itself and refuses while it raises."""
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            raise DatabaseGone(
+                f"database replaced or missing: {self.path} was deleted under the running server "
+                "(put it back, or restart the server on the database to use)"
+            ) from None
+        except OSError as exc:
+            raise DatabaseGone(f"database replaced or missing: cannot stat {self.path} ({exc})") from None
+        if (st.st_dev, st.st_ino) != self._identity:
+            raise DatabaseGone(
+                f"database replaced or missing: {self.path} is no longer the file this server opened "
+                "(it was replaced under the running server; restart the server to use the new one)"
+            )
+
     @property
     def _db(self) -> sqlite3.Connection:
-        """This thread's connection (opened on first use)."""
+        """This thread's connection (opened on first use, read-write: never creating the file)."""
         db = getattr(self._local, "db", None)
         if db is None:
             if self._closed:
                 raise StorageError(f"the store of {self.path} is closed")
-            db = sqlite3.connect(
-                self.path, check_same_thread=False, isolation_level=None, timeout=self.wait_s
-            )
+            self.check_same_file()
+            try:
+                db = sqlite3.connect(
+                    self._uri("rw"),
+                    uri=True,
+                    check_same_thread=False,
+                    isolation_level=None,
+                    timeout=self.wait_s,
+                )
+            except sqlite3.OperationalError as exc:
+                raise _storage_error(exc, self.path) from None
+            self.check_same_file()  # the path was not swapped while it was being opened
             db.execute("PRAGMA synchronous=FULL")
             db.execute("PRAGMA foreign_keys=ON")
             db.execute(f"PRAGMA busy_timeout={int(self.wait_s * 1000)}")
@@ -239,6 +382,7 @@ class Store:
         with _translated(self.path):
             db.execute("BEGIN IMMEDIATE")
         try:
+            self.check_same_file()  # under the write lock: no acknowledged write to an unlinked file
             yield db
             with _translated(self.path):
                 db.execute("COMMIT")
@@ -251,6 +395,7 @@ class Store:
             raise
 
     def _read(self, sql: str, args: tuple = ()) -> list:
+        self.check_same_file()
         with _translated(self.path):
             return self._db.execute(sql, args).fetchall()
 
@@ -334,6 +479,32 @@ class Store:
         return [_version(r) for r in rows]
 
     # ------------------------------------------------------------------ writes
+    @staticmethod
+    def _refuse_lookalike(db: sqlite3.Connection, name: str, cal_id: int | None) -> None:
+        """NameTaken when another calibration's name looks the same (:func:`name_skeleton`); called
+        inside the write transaction, so two requests cannot both take look-alike names."""
+        want = name_skeleton(name)
+        for other_id, other in db.execute("SELECT id, name FROM calibrations").fetchall():
+            if other_id != cal_id and name_skeleton(other) == want:
+                same = (
+                    "" if other == name else f" ({name!r} looks the same: same letters up to case or script)"
+                )
+                raise NameTaken(f"a calibration named {other!r} exists already{same}")
+
+    @staticmethod
+    def _row(db: sqlite3.Connection, cal_id: int, if_match: str | None = None) -> Record:
+        """The calibration's row inside a transaction; :class:`Conflict` when ``if_match`` (an
+        ``If-Match`` value: one or more ETags, or ``*``) names none of its current state."""
+        row = db.execute(
+            "SELECT id, name, created_utc, updated_utc, current_version FROM calibrations WHERE id = ?",
+            (cal_id,),
+        ).fetchone()
+        if row is None:
+            raise NotFound(f"no calibration with id {cal_id}")
+        rec = Record(*row)
+        require_match(rec, if_match)
+        return rec
+
     def create(
         self,
         name: str,
@@ -346,6 +517,7 @@ class Store:
         now = _now()
         try:
             with self._tx() as db, _translated(self.path):
+                self._refuse_lookalike(db, name, None)
                 cur = db.execute(
                     "INSERT INTO calibrations (name, created_utc, updated_utc, current_version) "
                     "VALUES (?, ?, ?, 1)",
@@ -356,7 +528,7 @@ class Store:
                 self._insert_version(db, cal_id, 1, now, note, request, calibration, pairs, check)
         except sqlite3.IntegrityError:
             raise NameTaken(f"a calibration named {name!r} exists already") from None
-        return self.get(cal_id)
+        return Record(cal_id, name, now, now, 1)
 
     def add_version(
         self,
@@ -366,12 +538,14 @@ class Store:
         pairs: builtins.list,
         check: builtins.list | None,
         note: str,
+        if_match: str | None = None,
     ) -> Record:
+        """Add a version and make it current. Returns the record as this transaction left it: its
+        ``current_version`` is the version this call created (never one a concurrent call added
+        after the commit). ``if_match``: see :meth:`_row` (:class:`Conflict`, nothing written)."""
         now = _now()
         with self._tx() as db, _translated(self.path):
-            row = db.execute("SELECT current_version FROM calibrations WHERE id = ?", (cal_id,)).fetchone()
-            if row is None:
-                raise NotFound(f"no calibration with id {cal_id}")
+            rec = self._row(db, cal_id, if_match)
             latest = db.execute(
                 "SELECT MAX(version) FROM versions WHERE calibration_id = ?", (cal_id,)
             ).fetchone()[0]
@@ -381,26 +555,34 @@ class Store:
                 "UPDATE calibrations SET current_version = ?, updated_utc = ? WHERE id = ?",
                 (new, now, cal_id),
             )
-        return self.get(cal_id)
+        return Record(rec.id, rec.name, rec.created_utc, now, new)
 
-    def rollback(self, cal_id: int, version: int) -> Record:
-        """Make a copy of ``version`` the new current version (the history keeps everything)."""
+    def rollback(self, cal_id: int, version: int, if_match: str | None = None) -> Record:
+        """Make a copy of ``version`` the new current version (the history keeps everything); the
+        record names the version this call created."""
         old = self.version(cal_id, version)
         return self.add_version(
-            cal_id, old.request, old.calibration, old.pairs, old.check, note=f"rollback to version {version}"
+            cal_id,
+            old.request,
+            old.calibration,
+            old.pairs,
+            old.check,
+            note=f"rollback to version {version}",
+            if_match=if_match,
         )
 
-    def rename(self, cal_id: int, name: str) -> Record:
+    def rename(self, cal_id: int, name: str, if_match: str | None = None) -> Record:
+        now = _now()
         try:
             with self._tx() as db, _translated(self.path):
-                cur = db.execute(
-                    "UPDATE calibrations SET name = ?, updated_utc = ? WHERE id = ?", (name, _now(), cal_id)
+                rec = self._row(db, cal_id, if_match)
+                self._refuse_lookalike(db, name, cal_id)
+                db.execute(
+                    "UPDATE calibrations SET name = ?, updated_utc = ? WHERE id = ?", (name, now, cal_id)
                 )
-                if cur.rowcount == 0:
-                    raise NotFound(f"no calibration with id {cal_id}")
         except sqlite3.IntegrityError:
             raise NameTaken(f"a calibration named {name!r} exists already") from None
-        return self.get(cal_id)
+        return Record(rec.id, name, rec.created_utc, now, rec.current_version)
 
     def current(self, cal_id: int) -> tuple[str, int] | None:
         """(name, current version) of a calibration, or None when it is gone: one indexed read, cheap
@@ -428,8 +610,9 @@ class Store:
         )
         return [{**json.loads(e), "version": int(v), "stored_utc": u} for v, u, e in rows]
 
-    def delete(self, cal_id: int) -> None:
+    def delete(self, cal_id: int, if_match: str | None = None) -> None:
         with self._tx() as db, _translated(self.path):
+            self._row(db, cal_id, if_match)
             db.execute("DELETE FROM verifications WHERE calibration_id = ?", (cal_id,))
             db.execute("DELETE FROM versions WHERE calibration_id = ?", (cal_id,))
             cur = db.execute("DELETE FROM calibrations WHERE id = ?", (cal_id,))

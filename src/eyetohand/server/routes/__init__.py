@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+import json
+from typing import Annotated, Any
 
-from fastapi import Depends, Query, Request
+from fastapi import Depends, Header, Query, Request
 from fastapi import Path as PathParam
+from fastapi.routing import APIRoute
+from starlette.exceptions import HTTPException
 
 from eyetohand.server.service import Service
 
@@ -18,3 +21,82 @@ Svc = Annotated[Service, Depends(get_service)]
 CalId = Annotated[int, PathParam(ge=1, le=2**62, description="calibration id")]
 VersionQ = Annotated[int | None, Query(ge=1, le=2**62, description="version (default: current)")]
 JobId = Annotated[str, PathParam(min_length=1, max_length=64, description="job id")]
+IfMatch = Annotated[
+    str | None,
+    Header(
+        alias="If-Match",
+        max_length=1024,
+        description="the ETag of the state this change was decided on (from a GET or a write's "
+        "answer); 412 with the current version when it is not current any more",
+    ),
+]
+
+
+class DuplicateKey(HTTPException):
+    """A JSON body with one key twice in an object (400 naming it): JSON leaves which one counts to
+    the parser, so two readers of one body could act on different values."""
+
+    def __init__(self, field: str, key: str):
+        super().__init__(400, f"{field}: key {key!r} appears twice in one object of the JSON body")
+        self.field = field
+
+
+def strict_json(body: bytes | bytearray | str) -> Any:
+    """``json.loads`` of a request body, refusing a key given twice in one object
+    (:class:`DuplicateKey` naming it as ``pairs[3].u``); syntax errors raise ``JSONDecodeError``."""
+    dups: list[tuple[int, str]] = []
+
+    def hook(pairs: list[tuple[str, Any]]) -> dict:
+        d: dict = {}
+        for k, v in pairs:
+            if k in d and not dups:
+                dups.append((0, k))
+            d[k] = v
+        if dups and dups[-1][0] == 0:
+            dups[-1] = (id(d), dups[-1][1])
+        return d
+
+    doc = json.loads(body, object_pairs_hook=hook)
+    if dups:
+        target, key = dups[0]
+        path = _path_of(doc, target, "")
+        raise DuplicateKey(f"{path}.{key}" if path else key, key)
+    return doc
+
+
+def _path_of(obj: Any, target: int, path: str) -> str | None:
+    """The field path (``pairs[3].u`` style) of the object with ``id`` target, joined with its key."""
+    if isinstance(obj, dict):
+        if id(obj) == target:
+            return path
+        for k, v in obj.items():
+            found = _path_of(v, target, f"{path}.{k}" if path else str(k))
+            if found is not None:
+                return found
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            found = _path_of(v, target, f"{path}[{i}]")
+            if found is not None:
+                return found
+    return None
+
+
+class StrictJsonRequest(Request):
+    """A request whose JSON body is read by :func:`strict_json`."""
+
+    async def json(self) -> Any:
+        if not hasattr(self, "_json"):
+            self._json = strict_json(await self.body())
+        return self._json
+
+
+class StrictJsonRoute(APIRoute):
+    """A route whose body is parsed by :func:`strict_json` (every router of the API uses it)."""
+
+    def get_route_handler(self):
+        handler = super().get_route_handler()
+
+        async def strict_handler(request: Request):
+            return await handler(StrictJsonRequest(request.scope, request.receive))
+
+        return strict_handler

@@ -4,11 +4,12 @@ writes the database)."""
 from __future__ import annotations
 
 import re
+from typing import Any
 
 from fastapi import APIRouter, Response
 
 from eyetohand.server import core
-from eyetohand.server.routes import CalId, Svc, VersionQ
+from eyetohand.server.routes import CalId, IfMatch, StrictJsonRoute, Svc, VersionQ
 from eyetohand.server.schemas import (
     CalibrationBrief,
     CalibrationDetail,
@@ -25,13 +26,21 @@ from eyetohand.server.schemas import (
 )
 from eyetohand.solve import evaluate
 
-router = APIRouter(tags=["calibrations"])
+router = APIRouter(tags=["calibrations"], route_class=StrictJsonRoute)
+CONFLICT: dict[int | str, dict[str, Any]] = {
+    412: {"description": "If-Match is not the calibration's current state (the JSON names it)"}
+}
+
+
+def _tagged(response: Response, out: dict) -> dict:
+    response.headers["ETag"] = out["etag"]
+    return out
 
 
 @router.post("/api/calibrations", response_model=CalibrationOut, status_code=201)
-def create_calibration(req: CreateCalibration, svc: Svc):
+def create_calibration(req: CreateCalibration, svc: Svc, response: Response):
     """Fit a calibration and store it as version 1 of a new named calibration."""
-    return svc.create(req, req.name)
+    return _tagged(response, svc.create(req, req.name))
 
 
 @router.post(
@@ -41,14 +50,16 @@ def create_calibration(req: CreateCalibration, svc: Svc):
     responses={
         200: {"description": "stored as a new version of the calibration with that name"},
         422: {"description": "the file is not a valid, intact calibration (names why)"},
+        **CONFLICT,
     },
 )
-def import_calibration(req: ImportCalibration, svc: Svc, response: Response):
+def import_calibration(req: ImportCalibration, svc: Svc, response: Response, if_match: IfMatch = None):
     """Store a calibration file (``eyetohand calibrate -o``) as a new calibration, or as a new version
-    of the calibration with that name; it must prove itself intact (hash, statistics, region)."""
-    out, created = svc.import_calibration(req.name, req.calibration, req.note)
+    of the calibration with that name; it must prove itself intact (hash, statistics, region, and
+    its signature when the server has a key). A refused file changes nothing."""
+    out, created = svc.import_calibration(req.name, req.calibration, req.note, if_match)
     response.status_code = 201 if created else 200
-    return out
+    return _tagged(response, out)
 
 
 @router.get("/api/calibrations", response_model=list[CalibrationBrief])
@@ -57,43 +68,53 @@ def list_calibrations(svc: Svc):
 
 
 @router.get("/api/calibrations/{cal_id}", response_model=CalibrationDetail)
-def get_calibration(cal_id: CalId, svc: Svc, version: VersionQ = None):
-    return svc.out(cal_id, version, detail=True)
+def get_calibration(cal_id: CalId, svc: Svc, response: Response, version: VersionQ = None):
+    """A version (default: the current one); ``ETag`` names the calibration's current state."""
+    return _tagged(response, svc.out(cal_id, version, detail=True))
 
 
-@router.patch("/api/calibrations/{cal_id}", response_model=CalibrationOut)
-def rename_calibration(cal_id: CalId, req: Rename, svc: Svc):
-    return svc.rename(cal_id, req.name)
+@router.patch("/api/calibrations/{cal_id}", response_model=CalibrationOut, responses=CONFLICT)
+def rename_calibration(cal_id: CalId, req: Rename, svc: Svc, response: Response, if_match: IfMatch = None):
+    return _tagged(response, svc.rename(cal_id, req.name, if_match))
 
 
-@router.delete("/api/calibrations/{cal_id}", status_code=204)
-def delete_calibration(cal_id: CalId, svc: Svc):
-    svc.delete(cal_id)
+@router.delete("/api/calibrations/{cal_id}", status_code=204, responses=CONFLICT)
+def delete_calibration(cal_id: CalId, svc: Svc, if_match: IfMatch = None):
+    svc.delete(cal_id, if_match)
     return Response(status_code=204)
 
 
 @router.get("/api/calibrations/{cal_id}/versions", response_model=VersionList)
-def list_versions(cal_id: CalId, svc: Svc):
+def list_versions(cal_id: CalId, svc: Svc, response: Response):
     rec = svc.store.get(cal_id)
+    versions = [v.brief() for v in svc.store.versions(cal_id)]
+    current = versions[-1]["version"] if versions else rec.current_version
+    if current != rec.current_version:  # a version was added between the two reads: name that one
+        rec = svc.store.get(cal_id)
+    response.headers["ETag"] = rec.etag
     return {
         "id": rec.id,
         "name": rec.name,
         "current_version": rec.current_version,
-        "versions": [v.brief() for v in svc.store.versions(cal_id)],
+        "etag": rec.etag,
+        "versions": versions,
     }
 
 
-@router.post("/api/calibrations/{cal_id}/versions", response_model=CalibrationOut, status_code=201)
-def new_version(cal_id: CalId, req: NewVersion, svc: Svc):
-    """Refit (e.g. with pairs excluded) and store the result as the new current version."""
-    svc.store.get(cal_id)
-    return svc.save_version(cal_id, svc.wait_fit(req), req.note)
+@router.post(
+    "/api/calibrations/{cal_id}/versions", response_model=CalibrationOut, status_code=201, responses=CONFLICT
+)
+def new_version(cal_id: CalId, req: NewVersion, svc: Svc, response: Response, if_match: IfMatch = None):
+    """Refit (e.g. with pairs excluded) and store the result as the new current version. The answer
+    names the version this request created (``version``)."""
+    svc.check_if_match(cal_id, if_match)  # before spending a fit; the write checks again
+    return _tagged(response, svc.save_version(cal_id, svc.wait_fit(req), req.note, if_match))
 
 
-@router.post("/api/calibrations/{cal_id}/rollback", response_model=CalibrationOut)
-def rollback(cal_id: CalId, req: Rollback, svc: Svc):
+@router.post("/api/calibrations/{cal_id}/rollback", response_model=CalibrationOut, responses=CONFLICT)
+def rollback(cal_id: CalId, req: Rollback, svc: Svc, response: Response, if_match: IfMatch = None):
     """Make an earlier version current again (as a new version that copies it)."""
-    return svc.rollback(cal_id, req.version)
+    return _tagged(response, svc.rollback(cal_id, req.version, if_match))
 
 
 @router.get(
@@ -110,7 +131,7 @@ def export(cal_id: CalId, svc: Svc, version: VersionQ = None):
     ver, cal = svc.calibration(cal_id, version)
     safe = re.sub(r"[^A-Za-z0-9._-]+", "_", rec.name).strip("._")[:60] or "calibration"
     return Response(
-        cal.to_json(),
+        cal.to_json(svc.sign_key),  # signed with the server's --sign-key
         media_type="application/json",
         headers={"Content-Disposition": f'attachment; filename="{safe}-v{ver.version}.json"'},
     )

@@ -22,9 +22,10 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 
 from eyetohand.server.core import ApiError
+from eyetohand.server.routes import StrictJsonRoute
 from eyetohand.server.routes.page import STATIC_DIR
 
-router = APIRouter(tags=["collection"])
+router = APIRouter(tags=["collection"], route_class=StrictJsonRoute)
 PointN = Annotated[int, PathParam(ge=1, le=10**6, description="point number (n of CAL POINT's reply)")]
 
 

@@ -6,10 +6,10 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from eyetohand.server.routes import JobId, Svc
+from eyetohand.server.routes import JobId, StrictJsonRoute, Svc
 from eyetohand.server.schemas import ImagesCalibrate, ImagesJobOut, JobCreated
 
-router = APIRouter(tags=["images"])
+router = APIRouter(tags=["images"], route_class=StrictJsonRoute)
 
 
 @router.post("/api/images/calibrate", response_model=JobCreated, status_code=202)

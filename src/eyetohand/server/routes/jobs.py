@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Response
 
 from eyetohand.server import core
-from eyetohand.server.routes import JobId, Svc
+from eyetohand.server.routes import IfMatch, JobId, StrictJsonRoute, Svc
 from eyetohand.server.schemas import CalibrationOut, CompareRequest, FitOptions, JobCreated, JobOut, SaveJob
 
-router = APIRouter(tags=["jobs"])
+router = APIRouter(tags=["jobs"], route_class=StrictJsonRoute)
 
 
 @router.post("/api/jobs/fit", response_model=JobCreated, status_code=202)
@@ -44,6 +44,9 @@ def cancel_job(job_id: JobId, svc: Svc):
 
 
 @router.post("/api/jobs/{job_id}/save", response_model=CalibrationOut, status_code=201)
-def save_job(job_id: JobId, req: SaveJob, svc: Svc):
-    """Store a finished fit: as a new calibration (``name``) or a new version (``calibration_id``)."""
-    return svc.save_job(job_id, req.name, req.calibration_id, req.note)
+def save_job(job_id: JobId, req: SaveJob, svc: Svc, response: Response, if_match: IfMatch = None):
+    """Store a finished fit: as a new calibration (``name``) or a new version (``calibration_id``;
+    ``If-Match``: the ETag it was decided on, else 412)."""
+    out = svc.save_job(job_id, req.name, req.calibration_id, req.note, if_match)
+    response.headers["ETag"] = out["etag"]
+    return out

@@ -28,7 +28,7 @@ from eyetohand.calibration import Calibration, Mapped
 from eyetohand.server import core
 from eyetohand.server.core import ApiError
 from eyetohand.server.responses import api_error_of_validation
-from eyetohand.server.routes import CalId, JobId, VersionQ
+from eyetohand.server.routes import CalId, DuplicateKey, JobId, StrictJsonRoute, VersionQ, strict_json
 from eyetohand.server.schemas import MAX_POINTS, MapRequest, MapResponse
 
 INLINE_BYTES = 64 * 1024
@@ -36,7 +36,7 @@ INLINE_POINTS = 2000
 CHUNK_POINTS = 65536  # mapped, parsed and written this many points at a time
 CHUNK_BYTES = 1 << 20
 
-router = APIRouter(tags=["mapping"])
+router = APIRouter(tags=["mapping"], route_class=StrictJsonRoute)
 MAP_OPENAPI = {
     "requestBody": {
         "required": True,
@@ -130,14 +130,26 @@ def _plain(rest: bytes) -> bool:
         return False
 
 
+def _no_duplicate_keys(body: bytes | bytearray) -> None:
+    """400 naming a key given twice in one object (pydantic would keep the last one silently)."""
+    try:
+        strict_json(body)
+    except DuplicateKey as exc:
+        raise ApiError(400, str(exc.detail), exc.field) from None
+    except ValueError:  # not JSON: the validation below names it with its own words
+        pass
+
+
 def parse_map_body(body: bytes | bytearray) -> tuple[MapRequest, np.ndarray]:
     """The request's options and its (N, 2) points; a 422 / 400 / 413 :class:`ApiError` as before."""
     fast = fast_points(body)
     try:
         if fast is not None:
             pts, rest = fast
+            _no_duplicate_keys(rest)  # the points are plain number pairs: no object to repeat a key in
             req = _DEFAULT if _plain(rest) else MapRequest.model_validate_json(rest)
         else:
+            _no_duplicate_keys(body)
             req = MapRequest.model_validate_json(body)
             pts = np.asarray(req.points, float).reshape(-1, 2)
     except ValidationError as exc:

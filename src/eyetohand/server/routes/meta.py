@@ -6,7 +6,7 @@ from fastapi import APIRouter
 
 from eyetohand._version import __version__
 from eyetohand.models import MODEL_CHOICES
-from eyetohand.server.routes import Svc
+from eyetohand.server.routes import StrictJsonRoute, Svc
 from eyetohand.server.schemas import (
     MAX_ITERATIONS,
     MAX_NAME,
@@ -27,7 +27,7 @@ PAPER_PRESET = {
     "seed": 1,
 }  # eyetohand demo's default seed: the same figure
 
-router = APIRouter(tags=["service"])
+router = APIRouter(tags=["service"], route_class=StrictJsonRoute)
 
 
 @router.get("/api/health")

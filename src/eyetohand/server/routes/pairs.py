@@ -5,9 +5,10 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from eyetohand.server import core
+from eyetohand.server.routes import StrictJsonRoute
 from eyetohand.server.schemas import ParseRequest, ParseResponse
 
-router = APIRouter(tags=["pairs"])
+router = APIRouter(tags=["pairs"], route_class=StrictJsonRoute)
 
 
 @router.post("/api/pairs/parse", response_model=ParseResponse)

@@ -17,6 +17,7 @@ const state = {
   imagesJob: false,   // the current job is a calibration from uploaded images
   imageFiles: new Map(),  // file name -> File, for the thumbnails
   thumbs: 0,
+  etags: {},          // calibration id -> ETag of the state this page last saw (sent as If-Match)
 };
 const MAX_THUMBS = 48;
 
@@ -59,10 +60,14 @@ function renumber() {
 }
 function td(text, cls) { const c = el("td", cls ? { class: cls } : {}, text); return c; }
 
-async function api(method, path, body) {
+// `ifMatchId`: a calibration this request changes: sends the ETag this page last saw of it as If-Match,
+// so a change made meanwhile (another tab, another user) answers 412 instead of being overwritten
+async function api(method, path, body, ifMatchId) {
   const headers = {};
   const tok = $("#token").value;
   if (tok) headers["Authorization"] = "Bearer " + tok;
+  if (method !== "GET") headers["X-Requested-With"] = "eyetohand";  // the server refuses cross-site POSTs
+  if (ifMatchId !== undefined && state.etags[ifMatchId]) headers["If-Match"] = state.etags[ifMatchId];
   const opts = { method, headers };
   if (body !== undefined) { headers["Content-Type"] = "application/json"; opts.body = JSON.stringify(body); }
   let resp;
@@ -75,6 +80,11 @@ async function api(method, path, body) {
     catch { data = { error: `HTTP ${resp.status}: ${text.slice(0, 200)}`, field: null }; }
   }
   if (resp.status === 401) { $("#token-box").hidden = false; }
+  if (resp.status === 412 && data && data.error) {
+    data.error += ` (now version ${data.current_version}: the list is reloaded)`;
+    setTimeout(refreshSaved, 0);
+  }
+  if (data && data.id !== undefined && data.etag) state.etags[data.id] = data.etag;
   return { ok: resp.ok, status: resp.status, data };
 }
 
@@ -693,7 +703,7 @@ async function saveResult(asVersion) {
     body.name = $("#save-name").value.trim();
     if (!body.name) { showError("#save-err", { error: "name: give the calibration a name", field: "name" }, "#sec-save"); return; }
   }
-  const r = await api("POST", `/api/jobs/${state.job}/save`, body);
+  const r = await api("POST", `/api/jobs/${state.job}/save`, body, asVersion ? body.calibration_id : undefined);
   if (!r.ok) { showError("#save-err", r.data, "#sec-save"); return; }
   const d = r.data;
   $("#save-state").textContent = `saved as “${d.name}” (id ${d.id}) version ${d.version}`;
@@ -826,6 +836,7 @@ async function refreshSaved() {
   const r = await api("GET", "/api/calibrations");
   if (!r.ok) { showError("#saved-err", r.data); return; }
   state.saved = r.data;
+  for (const c of r.data) state.etags[c.id] = c.etag;
   const tb = $("#saved-table tbody");
   tb.innerHTML = "";
   const target = $("#save-target");
@@ -951,7 +962,7 @@ async function showVersions(id) {
     if (v.version !== d.current_version) {
       const rb = el("button", { type: "button", class: "link" }, "roll back to this");
       rb.addEventListener("click", async () => {
-        const q = await api("POST", `/api/calibrations/${id}/rollback`, { version: v.version });
+        const q = await api("POST", `/api/calibrations/${id}/rollback`, { version: v.version }, id);
         if (!q.ok) { showError("#saved-err", q.data); return; }
         await refreshSaved(); await showVersions(id);
       });
@@ -964,7 +975,7 @@ async function showVersions(id) {
 
 async function deleteSaved(c) {
   if (!window.confirm(`Delete “${c.name}” and its ${c.current_version} version(s)? This cannot be undone.`)) return;
-  const r = await api("DELETE", `/api/calibrations/${c.id}`);
+  const r = await api("DELETE", `/api/calibrations/${c.id}`, undefined, c.id);
   if (!r.ok) { showError("#saved-err", r.data); return; }
   $("#versions-block").hidden = true;
   await refreshSaved();

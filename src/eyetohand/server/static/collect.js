@@ -12,7 +12,9 @@ function headers() {
 }
 
 async function api(path, opts = {}) {
-  const resp = await fetch(path, { ...opts, headers: headers() });
+  const h = headers();
+  if (opts.method && opts.method !== "GET") h["X-Requested-With"] = "eyetohand";  // no cross-site POSTs
+  const resp = await fetch(path, { ...opts, headers: h });
   if (resp.status === 401) $("#token-box").hidden = false;
   return resp;
 }
