@@ -41,7 +41,7 @@ def _fit(model="homography"):
 
 
 def _store(data, cal, name="cell"):
-    st = Store(data)
+    st = Store(data, create=True)
     try:
         pairs = cal.pairs.to_records()
         check = cal.check_pairs.to_records()
