@@ -144,7 +144,11 @@ def bad_cases(tmp_path):
         ("binary", ["calibrate", f("b.csv", b"\x89PNG\r\n\x1a\n\x00\x00")], "binary file"),
         ("latin-1", ["calibrate", f("l.csv", "u,v,x,y\n\xe9,1,2,3\n".encode("latin-1"))], "not UTF-8"),
         ("ragged", ["calibrate", f("r.csv", "u,v,x,y\n1,2,3,4\n1,2,3\n")], "fields, the header has"),
-        ("semicolon", ["calibrate", f("sc.csv", "u;v;x;y\n1;2;3;4\n")], "expected commas"),
+        (
+            "split decimals",
+            ["calibrate", f("sc.csv", "u,v,x,y\n1,5,2,5,3,5,4,5\n")],
+            "line 2: 8 fields, the header has 4: numbers with decimal commas",
+        ),
         ("truncated json", ["calibrate", f("j.json", '{"pairs": [{"u": 1,')], "invalid JSON"),
         ("missing file", ["calibrate", str(tmp_path / "nope.csv")], "no such file"),
         ("unknown model", ["calibrate", TRAIN, "--model", "magic"], "unknown model 'magic'"),
