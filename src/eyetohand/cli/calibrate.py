@@ -19,6 +19,16 @@ from eyetohand.core import ROBOT_UNITS, load_image_points, load_pairs
 from eyetohand.solve import evaluate
 
 
+def print_notes(*loaded) -> None:
+    """``note:`` lines on stderr for what the loaders assumed of these pairs or tables (the CSV
+    dialect, a missing z): the library records notes, the CLI prints them."""
+    import sys
+
+    for item in loaded:
+        for note in getattr(item, "notes", ()) if item is not None else ():
+            print(f"note: {note}", file=sys.stderr)
+
+
 def cmd_calibrate(args) -> int:
     if args.output:  # before any work: a fit must not be lost to an output that cannot be written
         from eyetohand.core import check_output_path
@@ -26,12 +36,14 @@ def cmd_calibrate(args) -> int:
         check_output_path(args.output)
     pairs = load_pairs(args.pairs).scaled_to_mm(args.robot_units)
     check = load_pairs(args.check).scaled_to_mm(args.robot_units) if args.check else None
+    print_notes(check)  # the training pairs' notes are the calibration's own, printed with it
     return run_calibration(args, pairs, check)
 
 
 def cmd_evaluate(args) -> int:
     cal = Calibration.load(args.calibration)
     pairs = load_pairs(args.pairs)
+    print_notes(pairs)
     stats = evaluate(cal, pairs)
     if args.json:
         emit_json(stats.to_dict())
@@ -73,6 +85,7 @@ def cmd_apply(args) -> int:
         table = image_points_from_text(sys.stdin.read(), "<stdin>")
     else:
         table = load_image_points(args.input)
+    print_notes(table)
     if table.z_mm is not None and args.z is not None:
         raise CliError("apply: the input has a z column; --z would contradict it")
     if table.angle_deg is not None and args.angle is not None:
@@ -118,6 +131,7 @@ def cmd_compare(args) -> int:
 
     pairs = load_pairs(args.pairs)
     check = load_pairs(args.check)
+    print_notes(pairs, check)
     rows = compare(pairs, check, image_size=parse_image_size(args.image_size), seed=args.seed)
     if args.json:
         emit_json({"rows": rows})
