@@ -94,9 +94,19 @@ def test_apply_refuses_outside_off_plane_and_clashing_columns_and_flags_allowed(
 def test_evaluate_json_equals_calibrate_check(tmp_path, capsys):
     cal_path = tmp_path / "cal.json"
     run(capsys, "calibrate", TRAIN, "--model", "affine", "--check", CHECK, "-o", str(cal_path))
-    code, out, _ = run(capsys, "evaluate", str(cal_path), CHECK, "--json")
+    code, out, err = run(capsys, "evaluate", str(cal_path), CHECK, "--json")
+    assert code == 2 and out == ""  # two of the paper's check points lie outside the calibrated region
+    outside = "2 of 9 pairs lie outside the calibrated region (ids 0, 3; the farthest 137 px beyond"
+    assert err.startswith(f"error: {CHECK}: {outside}") and err.endswith(
+        "allow_outside evaluates them anyway\n"
+    )
+    code, out, err = run(capsys, "evaluate", str(cal_path), CHECK, "--json", "--allow-outside")
     assert code == 0
-    assert json.loads(out) == Calibration.load(cal_path).check.to_dict()
+    warning = f"{CHECK}: {outside}"
+    assert err.startswith(f"warning: {warning}") and "evaluated anyway (allow_outside)" in err
+    d = json.loads(out)
+    assert d.pop("warnings")[0].startswith(warning)
+    assert d == Calibration.load(cal_path).check.to_dict()
 
 
 def test_compare_table_has_every_model_and_solver(capsys):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eyetohand.calibration import Calibration
+from eyetohand.calibration import Calibration, evaluate_pairs
 from eyetohand.cli.common import (
     CliError,
     add_fit_options,
@@ -16,7 +16,6 @@ from eyetohand.cli.common import (
     stats_line,
 )
 from eyetohand.core import ROBOT_UNITS, load_image_points, load_pairs
-from eyetohand.solve import evaluate
 
 
 def print_notes(*loaded) -> None:
@@ -27,6 +26,14 @@ def print_notes(*loaded) -> None:
     for item in loaded:
         for note in getattr(item, "notes", ()) if item is not None else ():
             print(f"note: {note}", file=sys.stderr)
+
+
+def print_warnings(warnings) -> None:
+    """``warning:`` lines on stderr (the library's findings, e.g. a mixed-up convention)."""
+    import sys
+
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
 
 
 def cmd_calibrate(args) -> int:
@@ -44,13 +51,14 @@ def cmd_evaluate(args) -> int:
     cal = Calibration.load(args.calibration)
     pairs = load_pairs(args.pairs)
     print_notes(pairs)
-    stats = evaluate(cal, pairs)
+    ev = evaluate_pairs(cal, pairs, allow_outside=args.allow_outside)
+    print_warnings(ev.warnings)
     if args.json:
-        emit_json(stats.to_dict())
+        emit_json(ev.to_dict())
     else:
         print(f"{args.calibration}: model {cal.model_name} on {args.pairs}")
-        print(stats_line("eval", stats))
-        print_points(stats)
+        print(stats_line("eval", ev.stats))
+        print_points(ev.stats)
     return 0
 
 
@@ -153,10 +161,18 @@ def register(sub) -> None:
     add_fit_options(p)
     p.set_defaults(func=cmd_calibrate)
 
-    p = sub.add_parser("evaluate", help="statistics of a calibration on pairs")
+    p = sub.add_parser(
+        "evaluate",
+        help="statistics of a calibration on pairs (refused outside its region; mixed-up columns named)",
+    )
     p.add_argument("calibration")
     p.add_argument("pairs")
-    p.add_argument("--json", action="store_true")
+    p.add_argument(
+        "--allow-outside",
+        action="store_true",
+        help="evaluate pairs outside the calibrated region or heights too (a warning counts them)",
+    )
+    p.add_argument("--json", action="store_true", help="the statistics and 'warnings' as one JSON object")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("apply", help="map image points to robot points")
