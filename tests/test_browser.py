@@ -357,13 +357,23 @@ def test_two_heights_and_refused_files(server, page, tmp_path, capsys):
         f"latin1.csv line {cli_err.value.line}: {cli_err.value.reason}"
     )
     expect(page.locator("#pairs-count")).to_have_text("not loaded")
-    # German Excel: semicolons and decimal commas; the line named once, the fix said
+    # German Excel (BOM, CR LF, semicolons, decimal commas): read, and the note says how
     excel = tmp_path / "excel.csv"
-    excel.write_text("id;u;v;x;y;z\n1;10,5;20;30;40;0\n", encoding="utf-8")
+    excel.write_bytes("\ufeffid;u;v;x;y;z\r\n1;10,5;20;30;40;0\r\n2;11;21,25;31;41;0\r\n".encode())
     page.set_input_files("#pairs-file", str(excel))
-    expect(page.locator("#pairs-err")).to_contain_text("excel.csv line 1: columns separated by ';'")
+    expect(page.locator("#pairs-count")).to_contain_text("2 pairs")
+    expect(page.locator("#pairs-notes")).to_contain_text(
+        "excel.csv: read as ';'-separated with decimal commas (German/French Excel)"
+    )
+    # one decimal mark per file: a mixed one refused, the line named once, the fix said
+    mixed = tmp_path / "mixed.csv"
+    mixed.write_text("id;u;v;x;y;z\n1;10,5;20;30;40;0\n2;11.5;21;31;41;0\n", encoding="utf-8")
+    page.set_input_files("#pairs-file", str(mixed))
+    expect(page.locator("#pairs-err")).to_contain_text(
+        "mixed.csv line 3, field 'u': '11.5' has a decimal point"
+    )
     text = page.locator("#pairs-err").inner_text()
-    assert "save the file as 'CSV UTF-8" in text and text.count("line 1") == 1, text
+    assert "re-save it with one" in text and text.count("line 3") == 1, text
     shot = tmp_path / "refused_file.png"
     page.locator("#sec-data").screenshot(path=str(shot))
     keep_screenshot(shot)

@@ -94,9 +94,19 @@ def test_apply_refuses_outside_off_plane_and_clashing_columns_and_flags_allowed(
 def test_evaluate_json_equals_calibrate_check(tmp_path, capsys):
     cal_path = tmp_path / "cal.json"
     run(capsys, "calibrate", TRAIN, "--model", "affine", "--check", CHECK, "-o", str(cal_path))
-    code, out, _ = run(capsys, "evaluate", str(cal_path), CHECK, "--json")
+    code, out, err = run(capsys, "evaluate", str(cal_path), CHECK, "--json")
+    assert code == 2 and out == ""  # two of the paper's check points lie outside the calibrated region
+    outside = "2 of 9 pairs lie outside the calibrated region (ids 0, 3; the farthest 137 px beyond"
+    assert err.startswith(f"error: {CHECK}: {outside}") and err.endswith(
+        "allow_outside evaluates them anyway\n"
+    )
+    code, out, err = run(capsys, "evaluate", str(cal_path), CHECK, "--json", "--allow-outside")
     assert code == 0
-    assert json.loads(out) == Calibration.load(cal_path).check.to_dict()
+    warning = f"{CHECK}: {outside}"
+    assert err.startswith(f"warning: {warning}") and "evaluated anyway (allow_outside)" in err
+    d = json.loads(out)
+    assert d.pop("warnings")[0].startswith(warning)
+    assert d == Calibration.load(cal_path).check.to_dict()
 
 
 def test_compare_table_has_every_model_and_solver(capsys):
@@ -144,7 +154,11 @@ def bad_cases(tmp_path):
         ("binary", ["calibrate", f("b.csv", b"\x89PNG\r\n\x1a\n\x00\x00")], "binary file"),
         ("latin-1", ["calibrate", f("l.csv", "u,v,x,y\n\xe9,1,2,3\n".encode("latin-1"))], "not UTF-8"),
         ("ragged", ["calibrate", f("r.csv", "u,v,x,y\n1,2,3,4\n1,2,3\n")], "fields, the header has"),
-        ("semicolon", ["calibrate", f("sc.csv", "u;v;x;y\n1;2;3;4\n")], "expected commas"),
+        (
+            "split decimals",
+            ["calibrate", f("sc.csv", "u,v,x,y\n1,5,2,5,3,5,4,5\n")],
+            "line 2: 8 fields, the header has 4: numbers with decimal commas",
+        ),
         ("truncated json", ["calibrate", f("j.json", '{"pairs": [{"u": 1,')], "invalid JSON"),
         ("missing file", ["calibrate", str(tmp_path / "nope.csv")], "no such file"),
         ("unknown model", ["calibrate", TRAIN, "--model", "magic"], "unknown model 'magic'"),

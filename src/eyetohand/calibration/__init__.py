@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from eyetohand.calibration.checking import Evaluation, check_warnings, evaluate_pairs, mixup
 from eyetohand.calibration.compare import compare, format_compare
 from eyetohand.calibration.export import FORMATS, export_text
 from eyetohand.calibration.file import Calibration, Mapped
@@ -12,6 +13,7 @@ from eyetohand.calibration.verify import append_history, check_tolerance, verify
 
 __all__ = [
     "Calibration",
+    "Evaluation",
     "FORMATS",
     "FitRequest",
     "MAX_IMAGE_SIDE_PX",
@@ -20,10 +22,13 @@ __all__ = [
     "calibrate",
     "calibrate_request",
     "check_image_size",
+    "check_warnings",
     "check_tolerance",
     "compare",
+    "evaluate_pairs",
     "export_text",
     "format_compare",
     "load_sign_key",
+    "mixup",
     "verify",
 ]

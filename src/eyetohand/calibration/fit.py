@@ -531,7 +531,8 @@ SCALE_RANGE_MM_PER_PX = (0.001, 10.0)
 
 def sanity_warnings(cal: Calibration) -> list[str]:
     """What no real cell produces: a scale outside 0.001..10 mm per pixel (suspect units) at the
-    calibrated region's centre, and a check set that repeats training pairs (it then measures nothing)."""
+    calibrated region's centre, a check set whose errors a mixed-up convention explains, and a check set
+    that repeats training pairs (it then measures nothing)."""
     out = []
     pairs, check = cal.pairs, cal.check_pairs
     assert pairs is not None  # calibrate records the pairs it was given
@@ -544,6 +545,9 @@ def sanity_warnings(cal: Calibration) -> list[str]:
             f"of any real cell: are the robot coordinates in {guess}? They are read as millimetres"
         )
     if check is not None:
+        from eyetohand.calibration.checking import check_warnings
+
+        out.extend(check_warnings(cal))  # a mixed-up convention (u <-> v, x <-> y, a sign, metres), named
         train_uv = {tuple(r) for r in np.round(pairs.uv_px, 6)}
         train_xyz = {tuple(r) for r in np.round(pairs.xyz_mm, 6)}
         same = [

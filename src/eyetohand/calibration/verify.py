@@ -1,5 +1,7 @@
 """Re-check a deployed calibration with a few freshly measured pairs: per-point errors, whether the
 camera moved (shift, rotation, scale) since calibration, pass/fail against a tolerance, and a history.
+Pairs outside the calibrated region or heights are refused, counted and named, and a mixed-up
+convention (swapped u/v or x/y, a flipped sign, metres) is named (:mod:`eyetohand.calibration.checking`).
 
 The errors are ``predicted − measured`` robot points (mm), each pair mapped at its own z through the
 guarded map. A camera bump or a warm-up drift moves all points together; random error does not. So
@@ -50,6 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
+from eyetohand.calibration.checking import coverage, guard, mixup
 from eyetohand.calibration.file import Calibration
 from eyetohand.core import InputError, PointPairs
 from eyetohand.geometry import local_jacobian
@@ -135,6 +138,7 @@ class Verification:
     tolerance_mm: float
     drift: Drift
     passed: bool
+    warnings: tuple[str, ...] = ()  # a mixed-up convention named (calibration.checking)
 
     @property
     def beyond(self) -> np.ndarray:
@@ -212,6 +216,7 @@ class Verification:
             "rms_mm": self.rms_mm,
             "max_mm": self.max_mm,
             "drift": self.drift.to_dict(),
+            "warnings": list(self.warnings),
             "points": [
                 {
                     "id": i,
@@ -270,6 +275,8 @@ def verify(cal: Calibration, pairs: PointPairs, tolerance_mm: float) -> Verifica
             f"motion, got {len(pairs)}"
         )
     model = cal.model
+    found = mixup(cal, pairs)  # before the region's refusal: swapped u and v put pairs outside it
+    guard(pairs, coverage(cal, pairs), allow_outside=False, found=found, how="")
     z = None if model.height_rule is HeightRule.COMPUTED else pairs.xyz_mm[:, 2]
     try:
         m = cal.map(pairs.uv_px, z, with_sigma=True)
@@ -282,7 +289,14 @@ def verify(cal: Calibration, pairs: PointPairs, tolerance_mm: float) -> Verifica
     sigma = m.sigma_mm if m.sigma_mm is not None else np.full(len(pairs), cal.train.rms_mm)
     drift = fit_drift(cal, pairs, err[:, :2], sigma)
     return Verification(
-        tuple(pairs.ids), err, norm, np.asarray(sigma, float), tol, drift, bool((norm <= tol).all())
+        tuple(pairs.ids),
+        err,
+        norm,
+        np.asarray(sigma, float),
+        tol,
+        drift,
+        bool((norm <= tol).all()),
+        () if found is None else (found.describe(),),
     )
 
 

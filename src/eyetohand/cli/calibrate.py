@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eyetohand.calibration import Calibration
+from eyetohand.calibration import Calibration, evaluate_pairs
 from eyetohand.cli.common import (
     CliError,
     add_fit_options,
@@ -17,7 +17,24 @@ from eyetohand.cli.common import (
     stats_line,
 )
 from eyetohand.core import ROBOT_UNITS, InputError, load_image_points, load_pairs
-from eyetohand.solve import evaluate
+
+
+def print_notes(*loaded) -> None:
+    """``note:`` lines on stderr for what the loaders assumed of these pairs or tables (the CSV
+    dialect, a missing z): the library records notes, the CLI prints them."""
+    import sys
+
+    for item in loaded:
+        for note in getattr(item, "notes", ()) if item is not None else ():
+            print(f"note: {note}", file=sys.stderr)
+
+
+def print_warnings(warnings) -> None:
+    """``warning:`` lines on stderr (the library's findings, e.g. a mixed-up convention)."""
+    import sys
+
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
 
 
 def cmd_calibrate(args) -> int:
@@ -29,6 +46,7 @@ def cmd_calibrate(args) -> int:
     request = fit_request(args)  # the options before the files: a bad one is refused first
     pairs = load_pairs(args.pairs).scaled_to_mm(args.robot_units)
     check = load_pairs(args.check).scaled_to_mm(args.robot_units) if args.check else None
+    print_notes(check)  # the training pairs' notes are the calibration's own, printed with it
     rc = run_calibration(args, pairs, check, request=request)
     if rc == 0 and key is not None:
         # the file as written, proved and signed in place (atomically: never half a file)
@@ -53,13 +71,15 @@ def _sign_key(args) -> bytes | None:
 def cmd_evaluate(args) -> int:
     cal = Calibration.load(args.calibration)
     pairs = load_pairs(args.pairs)
-    stats = evaluate(cal, pairs)
+    print_notes(pairs)
+    ev = evaluate_pairs(cal, pairs, allow_outside=args.allow_outside)
+    print_warnings(ev.warnings)
     if args.json:
-        emit_json(stats.to_dict())
+        emit_json(ev.to_dict())
     else:
         print(f"{args.calibration}: model {cal.model_name} on {args.pairs}")
-        print(stats_line("eval", stats))
-        print_points(stats)
+        print(stats_line("eval", ev.stats))
+        print_points(ev.stats)
     return 0
 
 
@@ -94,6 +114,7 @@ def cmd_apply(args) -> int:
         table = image_points_from_text(sys.stdin.read(), "<stdin>")
     else:
         table = load_image_points(args.input)
+    print_notes(table)
     if table.z_mm is not None and args.z is not None:
         raise CliError("apply: the input has a z column; --z would contradict it")
     if table.angle_deg is not None and args.angle is not None:
@@ -139,6 +160,7 @@ def cmd_compare(args) -> int:
 
     pairs = load_pairs(args.pairs)
     check = load_pairs(args.check)
+    print_notes(pairs, check)
     rows = compare(pairs, check, image_size=parse_image_size(args.image_size), seed=args.seed)
     if args.json:
         emit_json({"rows": rows})
@@ -167,10 +189,18 @@ def register(sub) -> None:
     )
     p.set_defaults(func=cmd_calibrate)
 
-    p = sub.add_parser("evaluate", help="statistics of a calibration on pairs")
+    p = sub.add_parser(
+        "evaluate",
+        help="statistics of a calibration on pairs (refused outside its region; mixed-up columns named)",
+    )
     p.add_argument("calibration")
     p.add_argument("pairs")
-    p.add_argument("--json", action="store_true")
+    p.add_argument(
+        "--allow-outside",
+        action="store_true",
+        help="evaluate pairs outside the calibrated region or heights too (a warning counts them)",
+    )
+    p.add_argument("--json", action="store_true", help="the statistics and 'warnings' as one JSON object")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("apply", help="map image points to robot points")

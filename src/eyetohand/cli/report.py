@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from eyetohand.calibration import Calibration
+from eyetohand.cli.calibrate import print_notes
 from eyetohand.core import load_pairs
 from eyetohand.reports import write_report
 
@@ -13,6 +14,7 @@ def cmd_report(args) -> int:
     cal = Calibration.load(args.calibration)
     check = load_pairs(args.check) if args.check else None
     train = load_pairs(args.pairs) if args.pairs else None
+    print_notes(check, train)
     extra = {"calibration file": str(args.calibration)}
     if args.pairs:
         extra["training pairs"] = str(args.pairs)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 
 from eyetohand.calibration import Calibration, append_history, check_tolerance, verify
+from eyetohand.cli.calibrate import print_notes, print_warnings
 from eyetohand.cli.common import emit_json
 from eyetohand.core import load_pairs
 
@@ -13,7 +14,9 @@ def cmd_verify(args) -> int:
     tol = check_tolerance(args.tolerance)
     cal = Calibration.load(args.calibration)
     pairs = load_pairs(args.pairs)
+    print_notes(pairs)
     v = verify(cal, pairs, tol)
+    print_warnings(v.warnings)
     hist = None
     if not args.no_history:
         hist = append_history(args.calibration, v.history_entry(str(args.pairs)))

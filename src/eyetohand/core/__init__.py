@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from eyetohand.core.csvtext import CsvTable, read_csv
 from eyetohand.core.errors import DegenerateError, InputError
 from eyetohand.core.io import atomic_write_bytes, atomic_write_text, check_output_path, read_bounded_text
 from eyetohand.core.pairs import (
@@ -24,6 +25,7 @@ from eyetohand.core.pairs import (
 from eyetohand.core.records import FitInfo, PointError, Stats, TcpOffset
 
 __all__ = [
+    "CsvTable",
     "DegenerateError",
     "FitInfo",
     "InputError",
@@ -46,6 +48,7 @@ __all__ = [
     "pairs_from_records",
     "pairs_from_text",
     "read_bounded_text",
+    "read_csv",
     "read_pairs_text",
     "record_number",
 ]

@@ -14,11 +14,13 @@ import io
 import json
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from eyetohand.core.csvtext import read_csv
 from eyetohand.core.errors import InputError
 from eyetohand.core.io import decode_utf8, read_bounded_bytes
 
@@ -246,29 +248,16 @@ def read_pairs_text(path: Path) -> str:
 
 
 def csv_rows(text: str, name: str) -> tuple[list[list[str]], int]:
-    """Rows of a CSV text split on any line break, and the index of the header (first non-blank)."""
-    lines = text.splitlines()
-    first = next((i for i, ln in enumerate(lines) if ln.strip()), None)
-    if first is None:
-        raise InputError(f"{name}: empty file, expected a header line 'u,v,x,y[,z][,id]' and rows")
-    try:
-        rows = list(csv.reader(lines))
-    except csv.Error as exc:
-        raise InputError(f"{name}: not a readable CSV file ({exc})") from None
-    return rows, first
+    """Rows of a CSV text split on any line break, and the index of the header (first non-blank);
+    the separator (``,``, ``;``, tab) and the decimal mark are found from the text and decimal commas
+    turned into points (:func:`eyetohand.core.csvtext.read_csv`, which also gives the note)."""
+    table = read_csv(text, name)
+    return table.rows, table.first
 
 
 def _parse_csv(text: str, name: str) -> PointPairs:
-    rows, first = csv_rows(text, name)
-    if len(rows[first]) == 1:  # no comma in the header: another delimiter?
-        for delim, label in ((";", "';'"), ("\t", "tab"), ("|", "'|'")):
-            if delim in rows[first][0]:
-                raise InputError(
-                    f"columns separated by {label}, expected commas (header 'u,v,x,y[,z][,id]'); "
-                    "save the file as 'CSV UTF-8 (comma delimited)'",
-                    source=name,
-                    line=first + 1,
-                )
+    table = read_csv(text, name)
+    rows, first = table.rows, table.first
     header = [h.strip().lower() for h in rows[first]]
     header_lineno = first + 1
     seen: dict[str, int] = {}
@@ -295,7 +284,8 @@ def _parse_csv(text: str, name: str) -> PointPairs:
         records.append(rec)
     if not records:
         raise InputError(f"{name}: header only, no data rows")
-    return _from_records(records, name, label=None, z_given="z" in seen)
+    read_as = () if table.note is None else (table.note,)
+    return _from_records(records, name, label=None, z_given="z" in seen, read_as=read_as)
 
 
 def _parse_json(text: str, name: str) -> PointPairs:
@@ -316,9 +306,12 @@ def _parse_json(text: str, name: str) -> PointPairs:
     return _from_records(records, name, label="pairs")
 
 
-def _from_records(records, name: str | None, label: str | None, z_given: bool | None = None):
+def _from_records(
+    records, name: str | None, label: str | None, z_given: bool | None = None, read_as: tuple[str, ...] = ()
+):
     """Validated pairs from dicts; ``label`` names JSON-style entries (``pairs[i]``), None means CSV
-    rows that carry their own ``_where`` (file and line)."""
+    rows that carry their own ``_where`` (file and line); ``read_as``: the loader's notes on how it
+    read the text (the CSV dialect)."""
     n = len(records)
     uv = np.empty((n, 2))
     xyz = np.zeros((n, 3))
@@ -356,7 +349,7 @@ def _from_records(records, name: str | None, label: str | None, z_given: bool | 
         i = int(np.flatnonzero(np.isnan(angles))[0])
         raise wheres[i].error("empty while other rows have an angle", "angle")
     source = name if name is not None else (label or "<records>")
-    notes = () if z_given else (f"{source}: no z column: pairs taken on the plane z = 0 mm",)
+    notes = read_as + (() if z_given else (f"{source}: no z column: pairs taken on the plane z = 0 mm",))
     pairs = PointPairs(uv, xyz, tuple(ids), source, angles, notes)
     _check_values(pairs, wheres)
     return pairs
@@ -380,6 +373,9 @@ class Where:
         return self.error("").where
 
 
+_GROUPED = re.compile(r"[+-]?\d{1,3}([.,' ]\d{3})+([.,]\d*)?\Z")
+
+
 def record_number(value, where: Where, field_name: str) -> float:
     """A finite float from a JSON number or a CSV string; booleans and '6_00'-style literals refused."""
     if isinstance(value, bool):
@@ -396,7 +392,10 @@ def record_number(value, where: Where, field_name: str) -> float:
             x = float(s)
         except ValueError:
             shown = s if len(s) <= 30 else s[:27] + "..."
-            raise where.error(f"{shown!r} is not a number", field_name) from None
+            hint = ""
+            if _GROUPED.match(s):
+                hint = ": thousands separators are not read; re-save the numbers without them"
+            raise where.error(f"{shown!r} is not a number{hint}", field_name) from None
     if not math.isfinite(x):
         raise where.error(f"{value!r} is not a finite number", field_name)
     return x
@@ -451,13 +450,15 @@ OUTPUT_COLUMNS = ("x", "y", "z", "rz", "sigma_mm", "inside")
 class ImagePoints:
     """Image points to map in production: ``uv_px`` (N, 2), optional heights ``z_mm`` (N,) and image
     angles ``angle_deg`` (N,), and the source table (header and rows) so that the output keeps every
-    input column."""
+    input column (written back with ``,`` and ``.``, whatever the input's dialect: ``notes`` says
+    how it was read)."""
 
     uv_px: np.ndarray
     z_mm: np.ndarray | None
     header: tuple[str, ...]
     rows: tuple[tuple[str, ...], ...]
     angle_deg: np.ndarray | None = None
+    notes: tuple[str, ...] = ()
 
     def with_columns(self, columns: dict[str, np.ndarray]) -> str:
         """CSV text: the input table with ``columns`` appended (names never already in the input)."""
@@ -484,7 +485,8 @@ def load_image_points(path: str | os.PathLike) -> ImagePoints:
 def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
     """Image points from CSV text (see :func:`load_image_points`). A column the mapping would add
     (x, y, z when the input has no z, rz, sigma_mm, inside) is refused rather than overwritten."""
-    rows, first = csv_rows(text, name)
+    table = read_csv(text, name)
+    rows, first = table.rows, table.first
     header = [h.strip() for h in rows[first]]
     lower = [h.lower() for h in header]
     missing = [c for c in ("u", "v") if c not in lower]
@@ -523,4 +525,5 @@ def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
         tuple(header),
         tuple(body),
         np.array(ang, float) if ja is not None else None,
+        () if table.note is None else (table.note,),
     )

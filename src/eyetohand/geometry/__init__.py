@@ -16,11 +16,12 @@ from eyetohand.geometry.orientation import (
     local_jacobian,
     wrap_deg,
 )
-from eyetohand.geometry.region import CalibratedRegion, OutsideError
+from eyetohand.geometry.region import PLANE_TOLERANCE_MM, CalibratedRegion, OutsideError
 
 __all__ = [
     "CONVENTIONS",
     "CalibratedRegion",
+    "PLANE_TOLERANCE_MM",
     "Camera",
     "LocalFrame",
     "OutsideError",

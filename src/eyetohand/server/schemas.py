@@ -309,6 +309,13 @@ class StatsOut(BaseModel):
     points: list[PointErrorOut]
 
 
+class EvaluateOut(StatsOut):
+    warnings: list[str] = Field(
+        description="what was found about the pairs, in the CLI's words: pairs evaluated outside the "
+        "calibrated region (allow_outside), a mixed-up convention (u and v swapped, …)"
+    )
+
+
 class VectorOut(BaseModel):
     id: str
     u: float
@@ -400,6 +407,10 @@ class VersionList(BaseModel):
 
 class EvaluateRequest(Strict):
     pairs: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
+    allow_outside: bool = Field(
+        False,
+        description="evaluate pairs outside the calibrated region or heights too (a warning counts them)",
+    )
 
 
 class CompareRequest(Strict):

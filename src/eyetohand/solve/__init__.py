@@ -3,7 +3,16 @@ offset: how a model's parameters are found and judged."""
 
 from __future__ import annotations
 
-from eyetohand.solve.evaluate import Stats, evaluate, mapped_residuals, stats_from_residuals
+from eyetohand.solve.evaluate import (
+    MIXUPS,
+    Mixup,
+    Stats,
+    convention_mixup,
+    evaluate,
+    far_off,
+    mapped_residuals,
+    stats_from_residuals,
+)
 from eyetohand.solve.objectives import OBJECTIVES, check_objective, huber_delta_mm, objective_values
 from eyetohand.solve.solvers import OPTIMIZERS, SEED_MAX, check_optimizer, check_seed, get_solver, refine
 from eyetohand.solve.tcp_offset import (
@@ -16,6 +25,8 @@ from eyetohand.solve.tcp_offset import (
 from eyetohand.solve.uncertainty import Uncertainty, pair_leverage, param_jacobian
 
 __all__ = [
+    "MIXUPS",
+    "Mixup",
     "OBJECTIVES",
     "OPTIMIZERS",
     "SEED_MAX",
@@ -24,9 +35,11 @@ __all__ = [
     "check_objective",
     "check_optimizer",
     "check_seed",
+    "convention_mixup",
     "correct_pairs",
     "estimate_tcp_offset",
     "evaluate",
+    "far_off",
     "get_solver",
     "has_turns",
     "huber_delta_mm",

@@ -22,11 +22,24 @@ order the studentized training residual *is* the studentized left-out one, and b
 left-out corner pair is an extrapolation whose error the model's structure, not the noise, sets
 (flagging those raised a false alarm in 16 % of clean 25-pair sets). Sets of fewer than
 ``OUTLIER_MIN_PAIRS`` pairs are not tested (a median of four says nothing about the noise).
+
+Mixed-up conventions (:func:`convention_mixup`): check pairs with u and v (or x and y) swapped, a sign
+of x or y flipped, or robot coordinates in metres give errors of tens to thousands of mm where the
+calibration holds hundredths; they are named, not fitted. The rule: with a reference set (leave-one-
+out errors, else training) of RMS s on m pairs and c coordinates carrying residuals, a set of n
+pairs of RMS r is *far off* when both (1) r > ``MIXUP_RATIO`` · s (5: 25 times the mean square; a
+check set measured later or nearer the region's edge is 1–3 times worse, a mix-up 100–10 000 times)
+and (2) the ratio of mean squares r²/s² exceeds the F(c n, c m) quantile of 1 − ``MIXUP_P`` (0.1 %),
+the test that the two sets' errors have the same σ (each squared error a σ² χ² variable, s² itself an
+estimate on c m dof), which (1) leaves binding only for sets of a few pairs. Then each mix-up is
+undone in turn; one *explains* the errors when, undone, the set is no longer far off and its RMS is at
+least ``MIXUP_RATIO`` times smaller than as given; the one of smallest RMS is named.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -160,3 +173,115 @@ def evaluate(calibration, pairs) -> Stats:
     """Stats of ``calibration`` (a Calibration or a model) on ``pairs``, each mapped at its own z."""
     model = getattr(calibration, "model", calibration)
     return stats_from_residuals(mapped_residuals(model, pairs), pairs.ids)
+
+
+MIXUP_RATIO = 5.0
+MIXUP_P = 0.001
+
+
+@dataclass(frozen=True)
+class Mixup:
+    """A mixed-up convention that explains a set's errors: what looks wrong, and the set's RMS error
+    (mm) with it undone and as given."""
+
+    source: str
+    what: str  # "u and v look swapped"
+    undone: str  # "if swapped"
+    rms_undone_mm: float
+    rms_given_mm: float
+
+    @property
+    def reason(self) -> str:
+        """The finding without the source: ``u and v look swapped (check RMS 0.0303 mm if swapped,
+        63.2 mm as given)``."""
+        return (
+            f"{self.what} (check RMS {_mm(self.rms_undone_mm)} mm {self.undone}, "
+            f"{_mm(self.rms_given_mm)} mm as given)"
+        )
+
+    def describe(self) -> str:
+        return f"{self.source}: {self.reason}"
+
+    def to_dict(self) -> dict:
+        return {
+            "what": self.what,
+            "rms_undone_mm": self.rms_undone_mm,
+            "rms_given_mm": self.rms_given_mm,
+            "message": self.describe(),
+        }
+
+
+def _mm(v: float) -> str:
+    return f"{v:.3g}" if v < 1000 else f"{v:.0f}"
+
+
+def _swap_uv(uv, xyz):
+    return uv[:, ::-1], xyz
+
+
+def _swap_xy(uv, xyz):
+    return uv, xyz[:, [1, 0, 2]]
+
+
+def _negate_x(uv, xyz):
+    return uv, xyz * np.array([-1.0, 1.0, 1.0])
+
+
+def _negate_y(uv, xyz):
+    return uv, xyz * np.array([1.0, -1.0, 1.0])
+
+
+def _metres(uv, xyz):
+    return uv, xyz * 1000.0
+
+
+MIXUPS = (
+    ("u and v look swapped", "if swapped", _swap_uv),
+    ("x and y look swapped", "if swapped", _swap_xy),
+    ("x has the wrong sign", "with x negated", _negate_x),
+    ("y has the wrong sign", "with y negated", _negate_y),
+    ("x, y, z look like metres, not mm", "if × 1000", _metres),
+)
+"""The mix-ups :func:`convention_mixup` tries: (what looks wrong, how it was undone, the undoing)."""
+
+
+def far_off(rms_mm: float, n: int, reference: Stats, n_coords: int) -> bool:
+    """Whether a set of ``n`` pairs with RMS error ``rms_mm`` is far off the ``reference`` set's (the
+    module docstring's rule: ``MIXUP_RATIO`` times its RMS and beyond the F test at ``MIXUP_P``)."""
+    ref = max(reference.rms_mm, _FLOOR_MM)
+    if not rms_mm > MIXUP_RATIO * ref:  # NaN too: not a finding
+        return False
+    if not math.isfinite(rms_mm):
+        return True
+    from scipy import stats
+
+    limit = float(stats.f.isf(MIXUP_P, n_coords * n, n_coords * max(reference.n, 1)))
+    return (rms_mm / ref) ** 2 > limit
+
+
+def _rms(model, uv, xyz) -> tuple[float, int]:
+    with np.errstate(all="ignore"):
+        r = np.asarray(model.residuals(uv, xyz), float).reshape(-1, 3)
+    if not np.isfinite(r).all():
+        return math.inf, 2
+    c = max(int((np.abs(r) > 0).any(axis=0).sum()), 1)
+    return float(np.sqrt(np.mean(np.sum(r * r, axis=1)))), c
+
+
+def convention_mixup(model, pairs, reference: Stats) -> Mixup | None:
+    """The mixed-up convention (``MIXUPS``) that explains why ``pairs``' errors under ``model`` are far
+    off the ``reference`` set's (leave-one-out, else training), or None: when they are not far off, or
+    no single mix-up explains them (module docstring)."""
+    model = getattr(model, "model", model)
+    given, c = _rms(model, pairs.uv_px, pairs.xyz_mm)
+    n = len(pairs)
+    if not far_off(given, n, reference, c):
+        return None
+    best = None
+    for what, undone, undo in MIXUPS:
+        rms, c_undone = _rms(model, *undo(np.asarray(pairs.uv_px), np.asarray(pairs.xyz_mm)))
+        if rms * MIXUP_RATIO > given or far_off(rms, n, reference, c_undone):
+            continue
+        if best is None or rms < best.rms_undone_mm:
+            best = Mixup(pairs.source, what, undone, rms, given)
+    return best

@@ -8,6 +8,8 @@ from typing import Any
 
 from fastapi import APIRouter, Response
 
+from eyetohand.calibration import evaluate_pairs
+from eyetohand.core import InputError
 from eyetohand.server import core
 from eyetohand.server.routes import CalId, IfMatch, StrictJsonRoute, Svc, VersionQ
 from eyetohand.server.schemas import (
@@ -15,16 +17,15 @@ from eyetohand.server.schemas import (
     CalibrationDetail,
     CalibrationOut,
     CreateCalibration,
+    EvaluateOut,
     EvaluateRequest,
     ImportCalibration,
     NewVersion,
     Rename,
     Rollback,
-    StatsOut,
     VerifyRequest,
     VersionList,
 )
-from eyetohand.solve import evaluate
 
 router = APIRouter(tags=["calibrations"], route_class=StrictJsonRoute)
 CONFLICT: dict[int | str, dict[str, Any]] = {
@@ -137,11 +138,18 @@ def export(cal_id: CalId, svc: Svc, version: VersionQ = None):
     )
 
 
-@router.post("/api/calibrations/{cal_id}/evaluate", response_model=StatsOut)
+@router.post("/api/calibrations/{cal_id}/evaluate", response_model=EvaluateOut)
 def evaluate_calibration(cal_id: CalId, req: EvaluateRequest, svc: Svc, version: VersionQ = None):
-    """Errors (mm) of a stored calibration on other pairs (e.g. new check points)."""
+    """Errors (mm) of a stored calibration on other pairs (e.g. new check points), as ``eyetohand
+    evaluate``: pairs outside the calibrated region or heights refused (422, counted and named by id)
+    unless ``allow_outside``; a mixed-up convention named in ``warnings``."""
     _, cal = svc.calibration(cal_id, version)
-    return evaluate(cal, core.to_pairs(req.pairs, "pairs")).to_dict()
+    try:
+        return evaluate_pairs(
+            cal, core.to_pairs(req.pairs, "pairs"), allow_outside=req.allow_outside
+        ).to_dict()
+    except InputError as exc:
+        raise core.input_error(exc, "pairs") from None
 
 
 @router.post("/api/calibrations/{cal_id}/verify")

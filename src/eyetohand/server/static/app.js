@@ -993,7 +993,7 @@ async function compareSaved() {
     const d = r.data, s = d.summary;
     let ev = null;
     if (state.check) {
-      const q = await api("POST", `/api/calibrations/${id}/evaluate`, { pairs: state.check });
+      const q = await api("POST", `/api/calibrations/${id}/evaluate`, { pairs: state.check, allow_outside: true });
       ev = q.ok ? q.data : null;
       if (!q.ok) showError("#saved-err", q.data);
     }
