@@ -253,7 +253,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     fresh_db = not (Path(data_dir) / DB_NAME).exists()
     line_server = None
     tcp_loop: LoopThread | None = None
-    collector = source = belt = app = None
+    collector = source = belt = app = locator = None
     data_dir = Path(data_dir)
     camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
     store = served = None
@@ -299,6 +299,12 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                     reply_format=args.reply_format,
                 )
                 commands["CAL"] = collector.handle
+                locator, sim_lines = locate_commands(
+                    source,
+                    lambda: line_server.source if line_server is not None else served,
+                    args.reply_format,
+                )
+                commands.update(sim_lines)
             if conveyor:
                 from eyetohand.cell import BeltProtocol
 
@@ -327,6 +333,9 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             )
         if belt is not None:
             print(f"TCP: 'BELT …' lines map with conveyor {conveyor}", flush=True)
+        if locator is not None:
+            extra = ", 'SIM …' lines place and pick the virtual parts" if "SIM" in commands else ""
+            print(f"TCP: 'LOCATE …' lines find parts with camera {camera}{extra}", flush=True)
 
     plc = plc_loop = None
     if _plc_wanted(args):
@@ -339,6 +348,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             allow_from=getattr(args, "modbus_allow", None),
             opcua=parse_hostport(args.opcua, "--opcua") if getattr(args, "opcua", None) else None,
             token=args.token,
+            locate=None if locator is None else locator.locate,
         )
         plc_loop = LoopThread("eyetohand-plc")
         loops.append(plc_loop)
@@ -385,6 +395,24 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             source.close()
         if store is not None:
             store.close()
+
+
+# ---- LOCATE and the sim: camera's SIM lines (the locate worktree; one block for easy merges)
+def locate_commands(source, served, reply_format: str):
+    """The camera's :class:`~eyetohand.cell.Locator` and the line commands it adds: ``LOCATE`` (and,
+    for a ``sim:`` camera, ``SIM``: parts on the virtual table). ``served()``: the calibration in
+    force, read at every LOCATE."""
+    from eyetohand.cell import Locator
+    from eyetohand.sim import SimSource, sim_command
+
+    locator = Locator(source, served, reply_format=reply_format)
+    commands: dict[str, Callable[[str], str]] = {"LOCATE": locator.handle}
+    if isinstance(source, SimSource):
+        commands["SIM"] = lambda line: sim_command(source, line)
+    return locator, commands
+
+
+# ---- end of the LOCATE block
 
 
 def _plc_wanted(args) -> bool:
