@@ -39,6 +39,7 @@ MODULE EyetohandPick
 
     PROC main()
         VAR robtarget p;
+        VAR bool more;
         SocketClose sock;                              ! SocketClose
         SocketCreate sock;                             ! SocketCreate
         SocketConnect sock, HOST, PORT \Time:=10;      ! SocketConnect
@@ -50,11 +51,14 @@ MODULE EyetohandPick
                 TPWrite "eyetohand: no part inside the region";
                 WaitTime 1;
             ENDIF
-            WHILE TRUE DO
+            more := TRUE;
+            WHILE more DO
                 IF NOT Command("LOCATE NEXT") StopPick(reply);
-                IF reply = "OK DONE" GOTO located;
-                IF NOT ParseNums(reply, 5) StopPick("LOCATE NEXT: no pose in " + Clip(reply, 48));
-                IF vals{5} < 0 OR vals{5} > MAX_SIGMA THEN
+                more := reply <> "OK DONE";
+                IF more AND NOT ParseNums(reply, 5) StopPick("LOCATE NEXT: no pose in " + Clip(reply, 48));
+                IF NOT more THEN
+                    ! every part of this LOCATE handed out
+                ELSEIF vals{5} < 0 OR vals{5} > MAX_SIGMA THEN
                     TPWrite "eyetohand: part skipped: " + Clip(reply, 54);
                 ELSE
                     p := pClear;
@@ -69,7 +73,6 @@ MODULE EyetohandPick
                     WaitTime 0.3;
                 ENDIF
             ENDWHILE
-            located:
         ENDWHILE
     ERROR
         IF ERRNO = ERR_SOCK_TIMEOUT THEN
