@@ -299,12 +299,9 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                     reply_format=args.reply_format,
                 )
                 commands["CAL"] = collector.handle
-                locator, sim_lines = locate_commands(
-                    source,
-                    lambda: line_server.source if line_server is not None else served,
-                    args.reply_format,
+                locator = add_locate(
+                    commands, source, lambda: line_server.source if line_server else served, args.reply_format
                 )
-                commands.update(sim_lines)
             if conveyor:
                 from eyetohand.cell import BeltProtocol
 
@@ -334,8 +331,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         if belt is not None:
             print(f"TCP: 'BELT …' lines map with conveyor {conveyor}", flush=True)
         if locator is not None:
-            extra = ", 'SIM …' lines place and pick the virtual parts" if "SIM" in commands else ""
-            print(f"TCP: 'LOCATE …' lines find parts with camera {camera}{extra}", flush=True)
+            print(f"TCP: 'LOCATE …' lines find parts with camera {camera}{sim_note(commands)}", flush=True)
 
     plc = plc_loop = None
     if _plc_wanted(args):
@@ -398,18 +394,22 @@ async def _run_serve(args, data_dir, loops: list) -> None:
 
 
 # ---- LOCATE and the sim: camera's SIM lines (the locate worktree; one block for easy merges)
-def locate_commands(source, served, reply_format: str):
-    """The camera's :class:`~eyetohand.cell.Locator` and the line commands it adds: ``LOCATE`` (and,
-    for a ``sim:`` camera, ``SIM``: parts on the virtual table). ``served()``: the calibration in
-    force, read at every LOCATE."""
+def add_locate(commands: dict, source, served, reply_format: str):
+    """The camera's :class:`~eyetohand.cell.Locator`, its line command ``LOCATE`` added to
+    ``commands`` (and, for a ``sim:`` camera, ``SIM``: parts on the virtual table). ``served()``: the
+    calibration in force, read at every LOCATE."""
     from eyetohand.cell import Locator
     from eyetohand.sim import SimSource, sim_command
 
     locator = Locator(source, served, reply_format=reply_format)
-    commands: dict[str, Callable[[str], str]] = {"LOCATE": locator.handle}
+    commands["LOCATE"] = locator.handle
     if isinstance(source, SimSource):
         commands["SIM"] = lambda line: sim_command(source, line)
-    return locator, commands
+    return locator
+
+
+def sim_note(commands: dict) -> str:
+    return ", 'SIM …' lines place and pick the virtual parts" if "SIM" in commands else ""
 
 
 # ---- end of the LOCATE block
