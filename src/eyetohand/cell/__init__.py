@@ -15,6 +15,7 @@ from eyetohand.cell.conveyor import (
     load_session,
 )
 from eyetohand.cell.line import MAX_REASON, CommandError, ErrorCode, ascii_reason, line_count, line_numbers
+from eyetohand.cell.locate import LocateResult, Locator, locate_parts
 from eyetohand.cell.plans import MAX_POINTS, VALID_FORMS, Plan, is_whole_in, parse_numbers, parse_plan
 from eyetohand.cell.plc import ModbusService, OpcUaService, PointResult, Status, map_point, parse_allow
 
@@ -25,6 +26,8 @@ __all__ = [
     "ConveyorCalibration",
     "Encoder",
     "ErrorCode",
+    "LocateResult",
+    "Locator",
     "MAX_POINTS",
     "MAX_REASON",
     "ModbusService",
@@ -42,6 +45,7 @@ __all__ = [
     "line_count",
     "line_numbers",
     "load_session",
+    "locate_parts",
     "map_point",
     "parse_allow",
     "parse_numbers",

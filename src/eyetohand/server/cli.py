@@ -253,7 +253,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     fresh_db = not (Path(data_dir) / DB_NAME).exists()
     line_server = None
     tcp_loop: LoopThread | None = None
-    collector = source = belt = app = None
+    collector = source = belt = app = locator = None
     data_dir = Path(data_dir)
     camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
     store = served = None
@@ -299,6 +299,9 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                     reply_format=args.reply_format,
                 )
                 commands["CAL"] = collector.handle
+                locator = add_locate(
+                    commands, source, lambda: line_server.source if line_server else served, args.reply_format
+                )
             if conveyor:
                 from eyetohand.cell import BeltProtocol
 
@@ -327,6 +330,8 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             )
         if belt is not None:
             print(f"TCP: 'BELT …' lines map with conveyor {conveyor}", flush=True)
+        if locator is not None:
+            print(f"TCP: 'LOCATE …' lines find parts with camera {camera}{sim_note(commands)}", flush=True)
 
     plc = plc_loop = None
     if _plc_wanted(args):
@@ -339,6 +344,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             allow_from=getattr(args, "modbus_allow", None),
             opcua=parse_hostport(args.opcua, "--opcua") if getattr(args, "opcua", None) else None,
             token=args.token,
+            locate=None if locator is None else locator.locate,
         )
         plc_loop = LoopThread("eyetohand-plc")
         loops.append(plc_loop)
@@ -385,6 +391,28 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             source.close()
         if store is not None:
             store.close()
+
+
+# ---- LOCATE and the sim: camera's SIM lines (the locate worktree; one block for easy merges)
+def add_locate(commands: dict, source, served, reply_format: str):
+    """The camera's :class:`~eyetohand.cell.Locator`, its line command ``LOCATE`` added to
+    ``commands`` (and, for a ``sim:`` camera, ``SIM``: parts on the virtual table). ``served()``: the
+    calibration in force, read at every LOCATE."""
+    from eyetohand.cell import Locator
+    from eyetohand.sim import SimSource, sim_command
+
+    locator = Locator(source, served, reply_format=reply_format)
+    commands["LOCATE"] = locator.handle
+    if isinstance(source, SimSource):
+        commands["SIM"] = lambda line: sim_command(source, line)
+    return locator
+
+
+def sim_note(commands: dict) -> str:
+    return ", 'SIM …' lines place and pick the virtual parts" if "SIM" in commands else ""
+
+
+# ---- end of the LOCATE block
 
 
 def _plc_wanted(args) -> bool:

@@ -32,14 +32,16 @@ class PlcServices:
         allow_from: list | None = None,
         opcua: tuple[str, int] | None = None,
         token: str | None = None,
+        locate: Callable[..., Any] | None = None,
     ):
         self.source = source
+        self.locate = locate  # the camera's LOCATE (Locator.locate), None without --camera
         self.modbus = (
             None
             if modbus is None
-            else ModbusService(source, *modbus, word_order=word_order, allow_from=allow_from)
+            else ModbusService(source, *modbus, word_order=word_order, allow_from=allow_from, locate=locate)
         )
-        self.opcua = None if opcua is None else OpcUaService(source, *opcua, token=token)
+        self.opcua = None if opcua is None else OpcUaService(source, *opcua, token=token, locate=locate)
         self.starting = ""  # the server being started (an OSError names it)
         self._poller: asyncio.Task | None = None
 
@@ -76,9 +78,15 @@ class PlcServices:
                 f"Modbus: {m.host}:{m.port} maps requests (holding registers 0..9 -> 100..130, "
                 f"{m.word_order} word order, {who}) with {what}"
             )
+            if self.locate is not None:
+                out.append(
+                    "Modbus: flag bit 3 (register 9) LOCATEs parts with the camera -> registers 200..321"
+                )
         if self.opcua is not None:
             auth = "user 'eyetohand' + token" if self.opcua.token else "anonymous (loopback)"
             out.append(f"OPC UA: {self.opcua.url} Calibration.ImageToRobot ({auth}) with {what}")
+            if self.locate is not None:
+                out.append(f"OPC UA: {self.opcua.url} Calibration.Locate finds parts with the camera")
         return out
 
 

@@ -11,6 +11,7 @@ from eyetohand.sim.conveyor import (
     simulate_conveyor,
     write_conveyor_simulation,
 )
+from eyetohand.sim.parts import Part, PartsTable, sim_command
 from eyetohand.sim.planner import DEFAULT_PLANS, METRICS, plan_study, plot_study
 from eyetohand.sim.simulate import simulate, write_simulation
 from eyetohand.sim.source import SimSource  # registers the sim: camera source
@@ -20,6 +21,8 @@ __all__ = [
     "ConveyorSetup",
     "DEFAULT_PLANS",
     "METRICS",
+    "Part",
+    "PartsTable",
     "Plan",
     "SimSource",
     "load_cell",
@@ -27,6 +30,7 @@ __all__ = [
     "plan_study",
     "plot_study",
     "sightings_from_text",
+    "sim_command",
     "simulate",
     "simulate_conveyor",
     "write_conveyor_simulation",

@@ -1,12 +1,19 @@
 """The virtual cell as a camera source: ``sim:CELL.toml`` (or ``sim:`` for the built-in cell), registered
-with :mod:`eyetohand.vision.sources` when :mod:`eyetohand.sim` is imported."""
+with :mod:`eyetohand.vision.sources` when :mod:`eyetohand.sim` is imported.
+
+Two scenes: the robot's calibration target where ``set_robot_pose`` puts it (a collection), or parts
+on the table after ``place_parts`` (a pick loop, :mod:`eyetohand.sim.parts`); each call switches to
+its scene, so a collection always sees an empty table and a ``LOCATE`` no robot in the view."""
 
 from __future__ import annotations
 
 import time
 
+import numpy as np
+
 from eyetohand.sim.camera_sim import CellCamera
 from eyetohand.sim.cell import load_cell
+from eyetohand.sim.parts import Part, PartsTable
 from eyetohand.vision import Source, SourceScheme, register_source
 
 
@@ -17,11 +24,32 @@ class SimSource(Source):
         self.uri = uri
         self.cell = load_cell(path or None)
         self.cell_camera = CellCamera(self.cell, seed)
+        self.parts_table = PartsTable(self.cell, self.cell_camera.camera)
+        self.scene = "target"  # or "parts"
+        self._part_grabs = 0
+        self._parts_seed = 0
 
     def set_robot_pose(self, x_mm, y_mm, z_mm, angle_deg=0.0) -> None:
         self.cell_camera.set_robot_pose(float(x_mm), float(y_mm), float(z_mm), float(angle_deg))
+        self.scene = "target"
+
+    def place_parts(
+        self, n: int, seed: int = 0, diameter_mm: float = 10.0, z_mm: float | None = None
+    ) -> list[Part]:
+        """``n`` new parts on the table (:meth:`PartsTable.place`); the next grabs show them."""
+        placed = self.parts_table.place(n, seed, diameter_mm, z_mm)
+        self.scene, self._part_grabs, self._parts_seed = "parts", 0, int(seed)
+        return placed
+
+    def pick(self, x_mm: float, y_mm: float):
+        """The robot picks at (x, y): :meth:`PartsTable.pick`."""
+        return self.parts_table.pick(x_mm, y_mm)
 
     def _grab(self):
+        if self.scene == "parts":
+            seq = np.random.SeedSequence([self.cell_camera.noise_seed, 3, self._parts_seed, self._part_grabs])
+            self._part_grabs += 1
+            return self.parts_table.render(np.random.default_rng(seq)), time.time()
         return self.cell_camera.render(), time.time()
 
 

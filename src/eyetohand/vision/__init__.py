@@ -4,7 +4,7 @@ registry that higher layers, e.g. :mod:`eyetohand.sim`, add to)."""
 from __future__ import annotations
 
 from eyetohand.vision.aravis import AravisSource  # registers aravis: (gi is imported only when opened)
-from eyetohand.vision.detect import annotate, detect_target
+from eyetohand.vision.detect import annotate, detect_circles, detect_target
 from eyetohand.vision.images import (
     ImageResult,
     detect_images,
@@ -31,6 +31,7 @@ __all__ = [
     "SourceScheme",
     "Target",
     "annotate",
+    "detect_circles",
     "detect_images",
     "detect_poses",
     "detect_target",

@@ -36,6 +36,7 @@ class Status(IntEnum):
     BAD_INPUT = 3  # an input the library refuses (an angle beyond its limit, a non-finite number)
     NO_CALIBRATION = 4  # nothing to map with: none served yet, deleted, or unusable
     INTERNAL = 5  # anything else (a bug): the reason names the exception
+    CAMERA = 6  # LOCATE only: no image (no camera served, or the grab timed out)
 
 
 @dataclass(frozen=True)
@@ -65,6 +66,14 @@ def served_identity(source: Any) -> tuple[str, int]:
     return str(name or ""), version
 
 
+def served_refusal(source: Any) -> PointResult | None:
+    """The refusal of every mapping while ``source`` serves nothing usable (None when it serves)."""
+    if source.cal is None or source.error is not None:
+        why = source.error or "no calibration to map with"
+        return PointResult(Status.NO_CALIBRATION, reason=ascii_reason(str(why), MAX_REASON))
+    return None
+
+
 def map_point(
     source: Any,
     u_px: float,
@@ -78,10 +87,10 @@ def map_point(
 
     Never raises: every refusal is a :class:`PointResult` with its :class:`Status` and the library's
     reason."""
+    refused = served_refusal(source)
+    if refused is not None:
+        return refused
     cal = source.cal
-    if cal is None or source.error is not None:
-        why = source.error or "no calibration to map with"
-        return PointResult(Status.NO_CALIBRATION, reason=ascii_reason(str(why), MAX_REASON))
     try:
         for name, x in (("u", u_px), ("v", v_px), ("z", z_mm), ("angle", angle_deg)):
             if x is not None and not math.isfinite(x):

@@ -4,6 +4,12 @@ last one answered (register 0, uint16) maps the request block with :func:`.mappi
 once, on the server's event loop, and writes the result block with the echoed id last (the SICK
 PLOC2D handshake): a PLC that reads its own id in register 100 reads a complete result.
 
+A request with the LOCATE flag (bit 3 of register 9) grabs and locates the parts instead
+(:class:`eyetohand.cell.locate.Locator`, ~1 s, in a worker thread): the write is answered at once, and
+the result block, the LOCATE block (200..321) and last the echoed id are written when it is done — the
+same handshake, a longer wait. A mapping request written meanwhile is answered at once, and the
+LOCATE's answer, now stale, is dropped (its id never echoed).
+
 Modbus has no authentication: on an address other than loopback the server answers only the
 clients given by ``allow_from`` (addresses or networks; this machine's loopback is always allowed)
 and closes every other connection at once. pymodbus is imported only when a server starts.
@@ -11,6 +17,7 @@ and closes every other connection at once. pymodbus is imported only when a serv
 
 from __future__ import annotations
 
+import asyncio
 import ipaddress
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -64,6 +71,7 @@ class ModbusService:
         *,
         word_order: str = "big",
         allow_from: list | None = None,
+        locate: Callable[..., Any] | None = None,
     ):
         if word_order not in R.WORD_ORDERS:
             raise ValueError(f"word order must be one of {', '.join(R.WORD_ORDERS)}, got {word_order!r}")
@@ -72,6 +80,10 @@ class ModbusService:
         self.port = port
         self.word_order = word_order
         self.allow_from = allow_from
+        self.locate = locate  # (dmin_mm, dmax_mm, z_mm) -> LocateResult, blocking; None: no camera
+        self.locating: int | None = None  # the id of the LOCATE running now
+        self._seq = 0  # requests taken: a LOCATE that finishes after a newer one is dropped
+        self._tasks: set[asyncio.Task] = set()
         self.last_id = 0  # the id answered last: 0 until the first request
         self.answered = 0
         self.refused_peers = 0
@@ -109,6 +121,16 @@ class ModbusService:
                     R.REQUEST_END, count=R.RESULT_ID - R.REQUEST_END, values=0, datatype=regs, readonly=True
                 ),
                 SimData(R.RESULT_ID, values=[0, *result], datatype=regs, readonly=True),
+                SimData(
+                    R.RESULT_END, count=R.LOCATE_COUNT - R.RESULT_END, values=0, datatype=regs, readonly=True
+                ),
+                SimData(
+                    R.LOCATE_COUNT,
+                    count=R.LOCATE_END - R.LOCATE_COUNT,
+                    values=0,
+                    datatype=regs,
+                    readonly=True,
+                ),
             ],
             action=self._action,
         )
@@ -135,19 +157,59 @@ class ModbusService:
         """Map the request ``block`` (registers 0..9) into ``registers`` unless its id was answered
         last; True when it was mapped. The id goes in last."""
         req_id = block[R.REQUEST_ID] & 0xFFFF
-        if req_id == self.last_id:
+        if req_id in (self.last_id, self.locating):
             return False  # a stale id is never answered twice: the result block keeps its answer
         req = R.decode_request(block, self.word_order)
         src = self.source()
-        if block[R.FLAGS] & ~R.FLAGS_KNOWN:
+        flags = block[R.FLAGS]
+        self._seq += 1
+        self.locating = None
+        if flags & ~R.FLAGS_KNOWN:
             res = PointResult(Status.BAD_INPUT, reason=R.RESERVED_FLAGS)
+        elif flags & R.FLAG_LOCATE and flags & (R.FLAG_ANGLE | R.FLAG_ALLOW):
+            res = PointResult(Status.BAD_INPUT, reason=R.LOCATE_FLAGS)
+        elif flags & R.FLAG_LOCATE:
+            self.locating = req_id
+            task = asyncio.get_running_loop().create_task(
+                self._locate(req_id, self._seq, req.u_px, req.v_px, req.z_mm, registers, start_address)
+            )
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+            return True
         else:
             res = map_point(src, req.u_px, req.v_px, req.z_mm, req.angle_deg, allow_outside=req.allow_outside)
+        self._write(req_id, res, None, registers, start_address)
+        return True
+
+    async def _locate(self, req_id, seq, dmin, dmax, z, registers, start_address) -> None:
+        """A LOCATE in a worker thread, then its answer written (unless a newer request came)."""
+        from eyetohand.cell.locate import NO_CAMERA, LocateResult, refused
+
+        any_size = dmin == 0 and dmax == 0
+        if self.locate is None:
+            result: LocateResult = refused(Status.CAMERA, NO_CAMERA)
+        else:
+            result = await asyncio.to_thread(
+                self.locate, None if any_size else dmin, None if any_size else dmax, z
+            )
+        if seq != self._seq:
+            return  # a newer request was answered meanwhile: this answer is stale
+        self.locating = None
+        res = PointResult(Status.OK) if result.ok else PointResult(result.status, reason=result.reason)
+        self._write(req_id, res, result, registers, start_address)
+
+    def _write(self, req_id: int, res: PointResult, located, registers, start_address: int) -> None:
+        src = self.source()
         name, version = served_identity(src)
+        if located is not None and res.ok:  # a LOCATE: no pose of its own (0, sigma -1)
+            res = PointResult(Status.OK, sigma_mm=None)
         out = R.encode_result(res, name, version, self.word_order)
         at = R.STATUS - start_address
         registers[at : at + len(out)] = out
+        if located is not None:
+            block = R.encode_locate(located, self.word_order)
+            at = R.LOCATE_COUNT - start_address
+            registers[at : at + len(block)] = block
         registers[R.RESULT_ID - start_address] = req_id  # last
         self.last_id = req_id
         self.answered += 1
-        return True

@@ -10,7 +10,13 @@ object ``Calibration`` with
   call of :func:`.mapping.map_point`. A refusal is a Bad status code — ``BadOutOfRange`` outside the
   calibrated region or heights, ``BadInvalidArgument`` for bad input, ``BadInvalidState`` with no
   calibration, ``BadInternalError`` otherwise — with the library's reason, the words the TCP line
-  service sends after ``ERR``, as ``AdditionalInfo`` of every ``InputArgumentDiagnosticInfos`` entry.
+  service sends after ``ERR``, as ``AdditionalInfo`` of every ``InputArgumentDiagnosticInfos`` entry;
+- the method ``Locate(dmin_mm, dmax_mm, z_mm) → (count, x_mm[], y_mm[], z_mm[], rz_deg[], sigma_mm[],
+  outside)``: grab, find the round parts of diameter dmin..dmax mm (both NaN or 0: any size) at height
+  ``z_mm`` (NaN: the calibration's own) and map them (:class:`eyetohand.cell.locate.Locator`); count
+  and outside UInt32, the arrays Double of ``count`` elements (σ -1 without uncertainty); the parts
+  outside the calibrated region are omitted and counted in ``outside``. Refusals as ImageToRobot's,
+  and ``BadResourceUnavailable`` without an image (no camera served, or the grab timed out).
 
 Without ``token`` the server takes anonymous sessions (for loopback; ``eyetohand serve`` refuses
 another address without one); with it, only user :data:`USER` with the token as password. Security
@@ -38,12 +44,27 @@ INPUTS = (
     ("z_mm", "object height (mm); NaN: none"),
 )
 OUTPUTS = (("x_mm", "robot x"), ("y_mm", "robot y"), ("z_mm", "robot z"), ("sigma_mm", "predicted error"))
+LOCATE_INPUTS = (
+    ("dmin_mm", "smallest part diameter (mm); NaN or 0 with dmax 0: any size"),
+    ("dmax_mm", "largest part diameter (mm)"),
+    ("z_mm", "the parts' height (mm); NaN: the calibration's own"),
+)
+LOCATE_OUTPUTS = (
+    ("count", "parts inside the calibrated region", "UInt32", -1),
+    ("x_mm", "robot x of each part", "Double", 1),
+    ("y_mm", "robot y of each part", "Double", 1),
+    ("z_mm", "robot z of each part", "Double", 1),
+    ("rz_deg", "rz of each part (0: round parts have no orientation)", "Double", 1),
+    ("sigma_mm", "predicted error of each part (-1: none)", "Double", 1),
+    ("outside", "parts found outside the calibrated region (omitted)", "UInt32", -1),
+)
 CODES = {
     Status.OUTSIDE: "BadOutOfRange",
     Status.HEIGHT: "BadOutOfRange",
     Status.BAD_INPUT: "BadInvalidArgument",
     Status.NO_CALIBRATION: "BadInvalidState",
     Status.INTERNAL: "BadInternalError",
+    Status.CAMERA: "BadResourceUnavailable",
 }
 
 
@@ -59,8 +80,17 @@ class OpcUaService:
     """The ``Calibration`` object served on ``host:port``; ``source()`` returns the served calibration in
     force. ``await start()`` on the loop that is to run it, then ``await close()``."""
 
-    def __init__(self, source: Callable[[], Any], host: str, port: int, *, token: str | None = None):
+    def __init__(
+        self,
+        source: Callable[[], Any],
+        host: str,
+        port: int,
+        *,
+        token: str | None = None,
+        locate: Callable[..., Any] | None = None,
+    ):
         self.source = source
+        self.locate = locate  # (dmin_mm, dmax_mm, z_mm) -> LocateResult, blocking; None: no camera
         self.host = host
         self.port = port
         self.token = token
@@ -96,6 +126,9 @@ class OpcUaService:
             self.nodes[name] = await obj.add_variable(idx, name, ua.Variant(value, kind))
         await obj.add_method(
             idx, "ImageToRobot", self._image_to_robot, _arguments(INPUTS), _arguments(OUTPUTS)
+        )
+        await obj.add_method(
+            idx, "Locate", self._locate, _arguments(LOCATE_INPUTS), _arguments(LOCATE_OUTPUTS)
         )
         self.server = server
         await self.refresh()
@@ -149,6 +182,40 @@ class OpcUaService:
         sigma = math.nan if res.sigma_mm is None else res.sigma_mm
         return [ua.Variant(float(x), ua.VariantType.Double) for x in (*res.xyz_mm, sigma)]
 
+    async def _locate(self, parent, *args):
+        from asyncua import ua
+
+        from eyetohand.cell.locate import NO_CAMERA, refused
+
+        values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
+        if len(values) != 3 or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in values
+        ):
+            return _refusal(
+                Status.BAD_INPUT, "expected dmin_mm, dmax_mm, z_mm: three Double numbers", len(args)
+            )
+        dmin, dmax, z = (None if math.isnan(float(x)) else float(x) for x in values)
+        if (dmin is None and dmax is None) or (dmin == 0 and dmax == 0):
+            dmin = dmax = None
+        if self.locate is None:
+            res = refused(Status.CAMERA, NO_CAMERA)
+        else:
+            res = await asyncio.to_thread(self.locate, dmin, dmax, z)
+        if not res.ok:
+            return _refusal(res.status, res.reason, 3)
+
+        def column(i: int) -> ua.Variant:
+            vals = [
+                float(p.xyz_mm[i]) if i < 3 else float(p.rz_deg if i == 3 else p.sigma_mm) for p in res.parts
+            ]
+            return ua.Variant(vals, ua.VariantType.Double, is_array=True)
+
+        return [
+            ua.Variant(len(res.parts), ua.VariantType.UInt32),
+            *(column(i) for i in range(5)),
+            ua.Variant(int(res.outside), ua.VariantType.UInt32),
+        ]
+
 
 def _refusal(status: Status, reason: str, n_args: int):
     from asyncua import ua
@@ -166,12 +233,13 @@ def _arguments(spec) -> list:
     from asyncua import ua
 
     out = []
-    for name, text in spec:
+    for name, text, *kind in spec:
+        type_name, rank = kind if kind else ("Double", -1)
         arg = ua.Argument()
         arg.Name = name
-        arg.DataType = ua.NodeId(ua.Int32(ua.ObjectIds.Double))
-        arg.ValueRank = -1
-        arg.ArrayDimensions = []
+        arg.DataType = ua.NodeId(ua.Int32(getattr(ua.ObjectIds, type_name)))
+        arg.ValueRank = rank
+        arg.ArrayDimensions = [0] if rank == 1 else []
         arg.Description = ua.LocalizedText(text)
         out.append(arg)
     return out

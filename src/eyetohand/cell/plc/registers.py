@@ -12,6 +12,14 @@ Result block (the server writes): 101 status (:class:`~eyetohand.cell.plc.mappin
 104–105 y, 106–107 z (µm), 108–109 rz (0.001 deg), 110–111 σ (µm; -1: the calibration carries no
 uncertainty), 112 the calibration's version, 113–130 its name (ASCII, 2 characters a register,
 first character in the high byte) and **100 the echoed request id, written last**.
+
+LOCATE (flag bit 3): the request's 1–2 and 3–4 are the parts' diameter range dmin, dmax (µm; both 0:
+any size), 5–6 their height z (µm, with bit 0); bits 1 and 2 must be 0. The result block's status
+(101), version and name as for a mapping (the pose registers 0, σ -1), and the LOCATE block: 200 the
+count of parts inside the calibrated region, 201 the count outside it (omitted), then up to
+:data:`MAX_PARTS` parts of 10 registers from 202 (x, y, z µm; rz 0.001 deg; σ µm or -1), unused ones
+0 — one read of 120 registers (202..321) or, with the counts, 122 (200..321). The id in 100 is written
+last here too.
 """
 
 from __future__ import annotations
@@ -27,9 +35,14 @@ RESULT_ID = 100
 STATUS, X, Y, ZZ, RZ, SIGMA, VERSION, NAME = 101, 102, 104, 106, 108, 110, 112, 113
 NAME_REGISTERS = 18  # 113..130: 36 characters
 RESULT_END = NAME + NAME_REGISTERS  # 131
-FLAG_Z, FLAG_ANGLE, FLAG_ALLOW = 1, 2, 4
-FLAGS_KNOWN = FLAG_Z | FLAG_ANGLE | FLAG_ALLOW
-RESERVED_FLAGS = "flags: bits 3..15 are reserved and must be 0"  # status 3: a newer map's request?
+FLAG_Z, FLAG_ANGLE, FLAG_ALLOW, FLAG_LOCATE = 1, 2, 4, 8
+FLAGS_KNOWN = FLAG_Z | FLAG_ANGLE | FLAG_ALLOW | FLAG_LOCATE
+RESERVED_FLAGS = "flags: bits 4..15 are reserved and must be 0"  # status 3: a newer map's request?
+LOCATE_FLAGS = "flags: a LOCATE (bit 3) takes no angle (bit 1) and no allow outside (bit 2)"
+LOCATE_COUNT, LOCATE_OUTSIDE, PARTS = 200, 201, 202
+MAX_PARTS = 12  # 202..321: with the counts, 122 registers, within one read (125)
+PART_REGISTERS = 10  # x, y, z, rz, sigma: int32 each
+LOCATE_END = PARTS + MAX_PARTS * PART_REGISTERS  # 322
 SCALE = 1000  # 0.001 px, µm, 0.001 deg
 WORD_ORDERS = ("big", "little")
 
@@ -125,6 +138,50 @@ def encode_result(result: PointResult, name: str, version: int, word_order: str 
     regs += int32_words(scaled(result.sigma_mm, -1) if ok else -1, word_order)
     regs.append(version & 0xFFFF)
     return regs + name_words(name)
+
+
+def encode_locate(result, word_order: str = "big") -> list[int]:
+    """Registers 200..321 of a LOCATE's answer (:class:`eyetohand.cell.locate.LocateResult`: ``ok``,
+    ``parts`` with ``xyz_mm``, ``rz_deg``, ``sigma_mm``, ``outside``); all 0 for a refusal. A part
+    beyond an int32 (2147 m) is not listed (and not counted)."""
+    regs = [0] * (LOCATE_END - LOCATE_COUNT)
+    if not result.ok:
+        return regs
+    listed = []
+    for p in result.parts:
+        values = [*p.xyz_mm, p.rz_deg]
+        if any(abs(v * SCALE) > INT32_MAX for v in values):
+            continue
+        words: list[int] = []
+        for v in values:
+            words += int32_words(scaled(v), word_order)
+        sigma = None if p.sigma_mm is None or p.sigma_mm < 0 else p.sigma_mm
+        listed.append(words + int32_words(scaled(sigma, -1), word_order))
+    regs[0], regs[1] = min(len(listed), 0xFFFF), min(int(result.outside), 0xFFFF)
+    for k, words in enumerate(listed[:MAX_PARTS]):
+        at = PARTS - LOCATE_COUNT + k * PART_REGISTERS
+        regs[at : at + PART_REGISTERS] = words
+    return regs
+
+
+def decode_locate(regs, word_order: str = "big") -> dict:
+    """Registers 200..321 → a dict (for tests and clients): count, outside, parts (a list of dicts x,
+    y, z, rz, sigma_mm, at most :data:`MAX_PARTS`)."""
+    count = int(regs[0])
+    parts = []
+    for k in range(min(count, MAX_PARTS)):
+        at = PARTS - LOCATE_COUNT + k * PART_REGISTERS
+        v = [words_int32(regs[at + 2 * i : at + 2 * i + 2], word_order) for i in range(5)]
+        parts.append(
+            {
+                "x": v[0] / SCALE,
+                "y": v[1] / SCALE,
+                "z": v[2] / SCALE,
+                "rz": v[3] / SCALE,
+                "sigma_mm": None if v[4] == -1 else v[4] / SCALE,
+            }
+        )
+    return {"count": count, "outside": int(regs[1]), "parts": parts}
 
 
 def decode_result(regs, word_order: str = "big") -> dict:
