@@ -16,23 +16,33 @@ from eyetohand.geometry.orientation import (
     local_jacobian,
     wrap_deg,
 )
-from eyetohand.geometry.region import CalibratedRegion
+from eyetohand.geometry.region import (
+    ONE_HEIGHT_RULE,
+    CalibratedRegion,
+    HeightPlane,
+    fit_height_plane,
+    plane_z,
+)
 
 __all__ = [
     "CONVENTIONS",
+    "ONE_HEIGHT_RULE",
     "CalibratedRegion",
     "Camera",
+    "HeightPlane",
     "LocalFrame",
     "apply_h",
     "as_camera",
     "batch_jacobian",
     "check_symmetry",
     "distort",
+    "fit_height_plane",
     "hartley",
     "image_angle_to_rz",
     "levenberg_marquardt",
     "local_jacobian",
     "matrix_to_rodrigues",
+    "plane_z",
     "rodrigues_to_matrix",
     "spread_ratio",
     "undistort",
