@@ -114,7 +114,7 @@ class PaperB(Model):
                 ]
             )
             cond = float(np.linalg.cond(design))
-            where = f"z = {z0:g} mm" if not plane.tilted else plane.formula()
+            where = f"z = {z0:g} mm" if plane.rms_mm == 0.0 and not plane.tilted else plane.describe()
             init = (
                 f"coplanar pairs ({where}): equation (5) has rank {rank} of 11, so B was "
                 "initialised from the planar least-squares solution, not the degenerate Zc ≈ 0"
