@@ -57,3 +57,73 @@ def test_api_docs_render_in_the_browser(server, tmp_path):
         page.screenshot(path=str(shot))
         keep_screenshot(shot)
         assert not page.problems, page.problems
+
+
+def _store_calibrations(url: str, names: list[str]) -> None:
+    """Calibrations fitted on the paper's pairs, stored through the API (the table the page lists)."""
+    import httpx
+    from helpers import PAPER
+
+    from eyetohand import load_pairs
+
+    pairs = load_pairs(PAPER / "calibration_points.csv")
+    check = load_pairs(PAPER / "check_points.csv")
+
+    def rows(p):
+        return [
+            {"id": i, "u": a[0], "v": a[1], "x": b[0], "y": b[1], "z": b[2]}
+            for i, a, b in zip(p.ids, p.uv_px, p.xyz_mm, strict=True)
+        ]
+
+    for name in names:
+        body = {"name": name, "pairs": rows(pairs), "check": rows(check), "model": "homography"}
+        r = httpx.post(url + "/api/calibrations", json=body, timeout=60)
+        assert r.status_code == 201, r.text
+
+
+# every link and button of the saved table: its box, whether it lies inside the window's width, and whether
+# a click at its centre lands on it (nothing over it, not clipped by the table's scroll box)
+REACHABLE_JS = """() => [...document.querySelectorAll('#saved-table tbody a, #saved-table tbody button')]
+.map((e) => {
+  // scroll the page to it vertically only: a link found by scrolling the table's box sideways is one
+  // an operator does not see
+  document.querySelectorAll('.scroll').forEach((s) => { s.scrollLeft = 0; });
+  const r0 = e.getBoundingClientRect();
+  window.scrollBy(0, r0.top - window.innerHeight / 2);
+  const r = e.getBoundingClientRect();
+  const x = r.left + r.width / 2, y = r.top + r.height / 2;
+  const hit = document.elementFromPoint(x, y);
+  return {text: e.textContent, left: r.left, right: r.right, top: r.top, bottom: r.bottom,
+          width: r.width, height: r.height, on: hit === e || e.contains(hit),
+          vw: document.documentElement.clientWidth, vh: document.documentElement.clientHeight};
+})"""
+
+
+@pytest.mark.parametrize("size", [(1280, 800), (1024, 600)], ids=["1280x800", "touch-1024x600"])
+def test_saved_calibrations_reachable(server, tmp_path, size):
+    from playwright.sync_api import expect
+
+    _store_calibrations(server, ["cell 3 camera, line A", "bench"])
+    w, h = size
+    with chromium_page(w, h) as page:
+        page.goto(server + "/")
+        expect(page.locator("#saved-table tbody tr")).to_have_count(2)
+        page.locator("#sec-saved").scroll_into_view_if_needed()
+        shot = tmp_path / f"saved_{w}x{h}.png"
+        page.screenshot(path=str(shot))
+        keep_screenshot(shot)
+        boxes = page.evaluate(REACHABLE_JS)
+        assert len(boxes) == 2 * 5, boxes  # open, history, checks, export JSON, delete per row
+        for b in boxes:
+            assert 0 <= b["left"] and b["right"] <= b["vw"], b  # inside the window, no sideways scroll
+            assert 0 <= b["top"] and b["bottom"] <= b["vh"], b
+            assert b["on"], b  # the click lands on it
+            assert b["height"] >= 24 and b["width"] >= 24, b  # a finger can hit it on a touch panel
+        widths = page.evaluate(
+            "() => [document.documentElement.scrollWidth, document.documentElement.clientWidth]"
+        )
+        assert widths[0] <= widths[1], widths
+        # clicking one works: the history opens
+        page.locator("#saved-table tbody tr").first.locator("button", has_text="history").click()
+        expect(page.locator("#versions-block")).to_be_visible()
+        assert not page.problems, page.problems

@@ -847,8 +847,19 @@ async function refreshSaved() {
     const tr = el("tr", { "data-id": c.id });
     const cb = el("input", { type: "checkbox", class: "pick", value: c.id, "aria-label": `pick ${c.name}` });
     const c0 = el("td"); c0.appendChild(cb); tr.appendChild(c0);
+    tr.appendChild(td(c.name, "text name"));
+    // the actions next to the name, where a 1024 px touch panel shows them without scrolling sideways
+    const acts = el("td", { class: "text acts" });
+    const btn = (label, fn, cls) => { const b = el("button", { type: "button", class: "link " + (cls || "") }, label); b.addEventListener("click", fn); acts.appendChild(b); };
+    btn("open", () => openSaved(c.id));
+    btn("history", () => showVersions(c.id));
+    btn("checks", () => showChecks(c));
+    const a = el("a", { href: `/api/calibrations/${c.id}/export`, download: "", class: "link" }, "export JSON");
+    a.addEventListener("click", (ev) => { if ($("#token").value) { ev.preventDefault(); exportWithToken(c.id); } });
+    acts.appendChild(a);
+    btn("delete", () => deleteSaved(c), "danger");
+    tr.appendChild(acts);
     tr.appendChild(td(String(c.id)));
-    tr.appendChild(td(c.name, "text"));
     tr.appendChild(td(String(c.current_version)));
     tr.appendChild(td(c.model, "text"));
     tr.appendChild(td(c.optimizer, "text"));
@@ -856,16 +867,6 @@ async function refreshSaved() {
     tr.appendChild(td(fmt(c.train_rms_mm)));
     tr.appendChild(td(fmt(c.check_rms_mm)));
     tr.appendChild(td(c.updated_utc.replace("T", " ").slice(0, 19), "text"));
-    const acts = el("td", { class: "text" });
-    const btn = (label, fn, cls) => { const b = el("button", { type: "button", class: "link " + (cls || "") }, label); b.addEventListener("click", fn); acts.appendChild(b); };
-    btn("open", () => openSaved(c.id));
-    btn("history", () => showVersions(c.id));
-    btn("checks", () => showChecks(c));
-    const a = el("a", { href: `/api/calibrations/${c.id}/export`, download: "" }, "export JSON");
-    a.addEventListener("click", (ev) => { if ($("#token").value) { ev.preventDefault(); exportWithToken(c.id); } });
-    acts.appendChild(a);
-    btn("delete", () => deleteSaved(c), "danger");
-    tr.appendChild(acts);
     tb.appendChild(tr);
   }
   if ([...target.options].some((o) => o.value === prevTarget)) target.value = prevTarget;
