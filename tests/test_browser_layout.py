@@ -11,6 +11,7 @@ It fails — never skips — when Chromium is missing.
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -126,4 +127,44 @@ def test_saved_calibrations_reachable(server, tmp_path, size):
         # clicking one works: the history opens
         page.locator("#saved-table tbody tr").first.locator("button", has_text="history").click()
         expect(page.locator("#versions-block")).to_be_visible()
+        assert not page.problems, page.problems
+
+
+def test_long_operations_show_the_time_left(server, tmp_path):
+    """A PSO fit and a comparison: a progress bar and an estimate of the time left while they run."""
+    from helpers import PAPER
+    from playwright.sync_api import expect
+
+    with chromium_page(1024, 600) as page:
+        page.goto(server + "/")
+        expect(page.locator("#server-status")).to_contain_text("server v")
+        page.set_input_files("#pairs-file", str(PAPER / "calibration_points.csv"))
+        page.set_input_files("#check-file", str(PAPER / "check_points.csv"))
+        expect(page.locator("#check-count")).to_contain_text("9 pairs")
+        page.select_option("#model", "paper")
+        page.select_option("#optimizer", "hybrid-pso")
+        page.fill("#particles", "1000")  # about 3 s on a 2-core machine: the page polls every 150 ms
+        page.fill("#iterations", "500")
+        page.click("#run")
+        eta = page.locator("#job-eta")
+        expect(eta).to_have_text(
+            re.compile(r"^about \d+ s \(iterations: (?!500\b)\d+ of 500\)$"), timeout=60_000
+        )
+        expect(page.locator("#job-progress")).to_be_visible()
+        value = page.evaluate("() => document.querySelector('#job-progress').value")
+        assert 0 < value <= 500, value
+        page.locator("#sec-progress").scroll_into_view_if_needed()
+        shot = tmp_path / "progress_pso.png"
+        page.screenshot(path=str(shot))
+        keep_screenshot(shot)
+        expect(page.locator("#job-status")).to_have_text("done", timeout=120_000)
+        expect(page.locator("#job-progress")).to_be_hidden()
+        expect(eta).to_have_text("–")
+
+        page.click("#compare-go")
+        expect(page.locator("#compare-state")).to_have_text(
+            re.compile(r"time left (about \d+ s|estimating…) \(fits: \d+ of \d+\)"), timeout=60_000
+        )
+        expect(page.locator("#compare-table")).to_be_visible(timeout=180_000)
+        expect(page.locator("#compare-state")).to_have_text(re.compile(r"^done \(\d+\.\d s\)$"))
         assert not page.problems, page.problems

@@ -408,6 +408,21 @@ function setJobState(j) {
   const best = n ? state.history[n - 1] : null;
   $("#job-best").textContent = best === null ? "–" : `${fmt(best, 5)} mm`;
   $("#job-elapsed").textContent = `${fmt(j.elapsed_s, 1)} s`;
+  showProgress("#job-progress", "#job-eta", j);
+}
+
+// a step counted in units (images, iterations, fits): a bar and the time it has left at its rate so far
+function timeLeft(p) {
+  if (p && p.done >= p.total) return `${p.total} ${p.unit} done; finishing`;
+  if (!p || p.eta_s === null || p.eta_s === undefined) return p && p.done < p.total ? "estimating…" : "–";
+  const s = Math.round(p.eta_s);
+  return (s >= 60 ? `about ${Math.floor(s / 60)} min ${s % 60} s` : `about ${s} s`) + ` (${p.unit}: ${p.done} of ${p.total})`;
+}
+function showProgress(barId, textId, j) {
+  const p = j.progress, bar = $(barId), running = j.status === "running" || j.status === "queued";
+  bar.hidden = !p || !running;
+  if (p) { bar.max = p.total; bar.value = p.done; }
+  if (textId) $(textId).textContent = running ? timeLeft(p) : "–";
 }
 
 // Tick values at 1-2-5 steps covering [lo, hi] (at least 2, about `n`).
@@ -792,7 +807,10 @@ async function compareMethods() {
     if (!q.ok) { showError("#compare-err", q.data); $("#compare-go").disabled = false; return; }
     const j = q.data;
     const phase = j.phase && j.phase !== j.status ? `: ${j.phase}` : "";
-    $("#compare-state").textContent = `${j.status}${phase} (${fmt(j.elapsed_s, 1)} s)`;
+    const running = j.status === "queued" || j.status === "running";
+    const left = running && j.progress ? `; time left ${timeLeft(j.progress)}` : "";
+    $("#compare-state").textContent = `${j.status}${phase} (${fmt(j.elapsed_s, 1)} s${left})`;
+    showProgress("#compare-progress", null, j);
     if (j.status === "queued" || j.status === "running") { setTimeout(tick, 300); return; }
     $("#compare-go").disabled = false;
     if (j.status !== "done") { showError("#compare-err", j.error || { error: j.status }); return; }
