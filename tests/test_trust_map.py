@@ -50,3 +50,40 @@ def test_refused_beyond_line_is_the_margin(source):
     # the approximation it replaces drew the line inside the limit (where mappings are still answered)
     old = region.outside_px(_on_line(_old_grown(region.hull_px, region.margin_px)))
     assert old.min() < region.margin_px - 0.5
+
+
+def test_best_new_point_is_the_woodbury_update():
+    """The candidates' scores equal the covariance updated by the new pair's information, computed
+    directly: C' = (C⁻¹ + J_pᵀ J_p / s²)⁻¹; the chosen one lowers the mean sigma_mm more than a pair
+    at the region's centre, where there is data already."""
+    from eyetohand.solve import best_new_point, param_jacobian
+
+    cal = calibrate(load_pairs(PAPER / "calibration_points.csv"), "homography", "lm", loo=False)
+    unc, model, z = cal.uncertainty, cal.model, cal.region.plane_z_mm
+    hull = cal.region.hull_px
+    targets = hull.mean(axis=0) + 0.8 * (hull - hull.mean(axis=0))  # inside the region
+    cands = np.vstack([hull.mean(axis=0), hull[0] + [30.0, 30.0], hull[2] - [40.0, 0.0]])
+    k, means = best_new_point(unc, model, cands, z, targets, z)
+    C = unc.covariance
+    s2 = unc.noise_mm**2
+    for i, p in enumerate(cands):
+        Jp = param_jacobian(model, p[None], np.array([z]))[0]
+        Cn = np.linalg.pinv(np.linalg.pinv(C) + Jp.T @ Jp / s2)
+        Jq = param_jacobian(model, targets, np.full(len(targets), z))
+        direct = np.sqrt(np.einsum("ncd,de,nce->n", Jq, Cn, Jq) + unc.n_coords * s2).mean()
+        assert means[i] == pytest.approx(direct, rel=1e-3), (i, means[i], direct)
+    before = unc.sigma_mm(model, targets, z).mean()
+    assert means[k] < means[0] < before  # the centre helps least; any pair helps
+
+
+def test_report_trust_map_marks_where_to_add(tmp_path):
+    from eyetohand.reports import write_report
+
+    pairs = load_pairs(PAPER / "calibration_points.csv")
+    cal = calibrate(pairs, "homography", "lm", check=load_pairs(PAPER / "check_points.csv"))
+    index = write_report(tmp_path / "r", cal)
+    html = index.read_text()
+    assert "sigma_map.png" in html and "The star marks where one more training pair helps most" in html
+    from helpers import keep_screenshot
+
+    keep_screenshot(tmp_path / "r" / "sigma_map.png")
