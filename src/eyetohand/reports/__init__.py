@@ -4,6 +4,6 @@ from __future__ import annotations
 
 from eyetohand.reports.demo import run_demo, write_demo_report
 from eyetohand.reports.plots import plot_plan_study
-from eyetohand.reports.report import write_report
+from eyetohand.reports.report import grown_hull, write_report
 
-__all__ = ["plot_plan_study", "run_demo", "write_demo_report", "write_report"]
+__all__ = ["grown_hull", "plot_plan_study", "run_demo", "write_demo_report", "write_report"]

@@ -22,7 +22,7 @@ from eyetohand.solve.tcp_offset import (
     reference_pairs,
     rotations,
 )
-from eyetohand.solve.uncertainty import Uncertainty, pair_leverage, param_jacobian
+from eyetohand.solve.uncertainty import Uncertainty, best_new_point, pair_leverage, param_jacobian
 
 __all__ = [
     "MIXUPS",
@@ -32,6 +32,7 @@ __all__ = [
     "SEED_MAX",
     "Stats",
     "Uncertainty",
+    "best_new_point",
     "check_objective",
     "check_optimizer",
     "check_seed",

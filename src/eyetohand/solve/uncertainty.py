@@ -184,3 +184,33 @@ class Uncertainty:
         if not (np.isfinite(noise) and noise >= 0):
             raise InputError("uncertainty 'noise_mm' must be a finite number ≥ 0")
         return cls(cov, noise, int(d["n_coords"]), int(d["dof"]))
+
+
+def best_new_point(
+    uncertainty: Uncertainty, model: Model, candidates_px, candidates_z, targets_px, targets_z
+) -> tuple[int, np.ndarray]:
+    """Where one more training pair helps most: ``(index of the best candidate, (K,) mean sigma_mm over
+    the targets after adding each candidate)``.
+
+    A pair at pixel p (parameter Jacobian J_p, c × D, measured with the fit's noise s per coordinate)
+    updates the covariance by the rank-c Woodbury step C' = C − C J_pᵀ (s² I + J_p C J_pᵀ)⁻¹ J_p C, so a
+    target q's fit variance tr(J_q C J_qᵀ) drops by |J_q C J_pᵀ S_p^(-1/2)|²: the candidates are scored
+    without refitting (a linearised prediction: the noise level stays the fit's)."""
+    L = uncertainty._factor
+    cz = np.broadcast_to(np.asarray(candidates_z, float), (len(candidates_px),))
+    tz = np.broadcast_to(np.asarray(targets_z, float), (len(targets_px),))
+    A = param_jacobian(model, np.asarray(targets_px, float), tz) @ L  # (N, c, D)
+    B = param_jacobian(model, np.asarray(candidates_px, float), cz) @ L  # (K, c, D)
+    s2 = uncertainty.noise_mm**2
+    base = np.einsum("ncd,ncd->n", A, A)  # tr(J_q C J_qᵀ)
+    noise = uncertainty.n_coords * s2
+    c = A.shape[1]
+    means = np.empty(len(B))
+    for k in range(len(B)):
+        S = s2 * np.eye(c) + B[k] @ B[k].T
+        w, V = np.linalg.eigh(S)
+        Sih = (V / np.sqrt(np.maximum(w, 1e-300))) @ V.T  # S^(-1/2)
+        M = np.einsum("ncd,ed->nce", A, B[k]) @ Sih  # (N, c, c)
+        drop = np.einsum("nce,nce->n", M, M)
+        means[k] = float(np.mean(np.sqrt(np.maximum(base - drop, 0.0) + noise)))
+    return int(np.argmin(means)), means
