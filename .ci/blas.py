@@ -20,7 +20,8 @@ CANDIDATES = (("SkylakeX", "avx512f"), ("Haswell", "avx2"), ("Sandybridge", "avx
 
 
 def kernels() -> list[str]:
-    import numpy  # noqa: F401  (loads OpenBLAS)
+    import numpy  # noqa: F401  (loads NumPy's OpenBLAS)
+    import scipy.linalg  # noqa: F401  (and SciPy's, a library of its own)
     import threadpoolctl
 
     return [
