@@ -4,8 +4,11 @@ errors cancel) — on simulated conveyors with known truth (eyetohand.sim.convey
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
+from numerics import assert_within_rounding, rounding_condition
 
 from eyetohand.cell.conveyor import calibrate_conveyor, format_report, session_from_text
 from eyetohand.core.errors import InputError
@@ -86,16 +89,36 @@ MAIN_ONE_SIGHTING = {
 
 
 def test_a_one_sighting_session_gives_the_answers_it_gave_before():
+    """The numbers of main, to within what the problem's conditioning lets two machines agree on: the
+    stored numbers came from one BLAS kernel, and another rounds the lens start's fit differently —
+    a shallow valley of (f, k1, k2) that moves the latch by ~1e-5 of itself between Haswell and
+    SkylakeX, so the former rtol 1e-9 held on one kernel only. Each answer's condition number κ for
+    rounding is measured here (tests/numerics.py: its response to 2-ulp perturbations of the session's
+    numbers); an answer must be within K·κ·eps of main's, norm-wise (the belt vector's small
+    components against the vector)."""
     setup = ConveyorSetup(n_parts=40, sightings=None)
-    _, conv = run(setup, seed=3)
+    sim, conv = run(setup, seed=3)
     want = MAIN_ONE_SIGHTING
-    np.testing.assert_allclose(conv.belt.vector_mm_per_count, want["belt"], rtol=1e-9)
-    np.testing.assert_allclose(conv.latch_counts, want["latch"], rtol=1e-9)
-    np.testing.assert_allclose(conv.sigma_latch_counts, want["sigma_latch"], rtol=1e-9)
-    np.testing.assert_allclose(conv.surface, want["surface"], rtol=1e-9)
-    np.testing.assert_allclose(conv.report["rms_mm"], want["rms_mm"], rtol=1e-9)
     uv = np.array([[1200.0, 1000.0], [300.0, 250.0]])
-    np.testing.assert_allclose(conv.image_to_robot_at_image(uv, allow_outside=True), want["map"], rtol=1e-9)
+
+    def answers(uv_px, xyz_mm):
+        c = sim.calibrate(dataclasses.replace(sim.session, uv_px=uv_px, xyz_mm=xyz_mm))
+        return {
+            "belt": c.belt.vector_mm_per_count,
+            "latch": c.latch_counts,
+            "sigma_latch": c.sigma_latch_counts,
+            "surface": c.surface,
+            "rms_mm": c.report["rms_mm"],
+            "map": c.image_to_robot_at_image(uv, allow_outside=True),
+        }
+
+    kappa = rounding_condition(answers, {"uv_px": sim.session.uv_px, "xyz_mm": sim.session.xyz_mm})
+    # measured under three kernels: belt 3e6, latch 1e11, σ 1e12, surface 5e4, rms 6e9, map
+    # 7e6; 100× that would be a fit that lost its conditioning, not rounding
+    ceiling = {"belt": 3e8, "latch": 1e13, "sigma_latch": 1e14, "surface": 5e6, "rms_mm": 6e11, "map": 7e8}
+    for key, got in answers(sim.session.uv_px, sim.session.xyz_mm).items():
+        assert kappa[key] < ceiling[key], (key, kappa[key])
+        assert_within_rounding(got, want[key], kappa[key], key)
     assert conv.report["present"] == want["present"]
     assert conv.report["n_sightings"] == 40 and conv.report["rms_sightings_mm"] is None
     # the power statement tells the user what this session cannot see, and what to do

@@ -319,8 +319,12 @@ def _radial_cases():
 @pytest.mark.parametrize("case", range(3))
 def test_warm_started_lens_leave_one_out_matches_refits(case, monkeypatch):
     """homography-radial's held-out fits warm-started from the full lens fit give the refits'
-    held-out residuals: within 1e-6 mm of refits converged tightly, and within MINPACK's own
-    stopping error (measured ≤ 1.3e-6 mm) of the refits as calibrate does them."""
+    held-out residuals: within 1e-6 mm of refits converged tightly (measured ≤ 4.1e-7 mm under the
+    Haswell, SkylakeX and Sandybridge kernels: two converged fits of the same flat-bottomed valley),
+    and within that plus MINPACK's own stopping error of the refits as calibrate does them (at
+    LENS_FIT_TOL = 1e-8). That stopping error depends on every step's rounding — 1.3e-6 mm under
+    Haswell, 1.9e-6 under SkylakeX, where a fixed 2e-6 held on one kernel only — so it is bounded
+    here as the refits' distance from the tightly converged ones."""
     from eyetohand.calibration.fit import cross_validate
     from eyetohand.models import radial
 
@@ -329,10 +333,13 @@ def test_warm_started_lens_leave_one_out_matches_refits(case, monkeypatch):
     assert fast is not None, "the warm-started leave-one-out fell back"
     np.testing.assert_array_equal(cross_validate(pairs, "homography-radial", image_size=size), fast)
     today = cross_validate(pairs, "homography-radial", refit=True, image_size=size)
-    np.testing.assert_allclose(fast, today, rtol=0, atol=2e-6)
     monkeypatch.setattr(radial, "LENS_FIT_TOL", 1e-14)
     tight = cross_validate(pairs, "homography-radial", refit=True, image_size=size)
     np.testing.assert_allclose(fast, tight, rtol=0, atol=1e-6)
+    # so |fast − today| ≤ 1e-6 + |today − tight| (the triangle inequality), and today's refits stop
+    # short of the minimum only by LENS_FIT_TOL's stopping error (1e-8 relative steps, ~1e-6 mm here),
+    # not at another minimum (refits that do, where the view does not tell f, differ by up to 0.06 mm)
+    assert np.abs(today - tight).max() < 1e-5
     assert np.abs(fast).max() > 1e-3
 
 

@@ -9,6 +9,7 @@ as ``matrix_image_to_robot``. Subclasses that correct the pixels first (a lens) 
 
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
 from types import MappingProxyType
 from typing import ClassVar
@@ -50,6 +51,22 @@ def planar_setup(name: str, min_pairs: int, uv_px, xyz_mm):
     T_uv, uv_n = hartley(uv)
     T_xy, xy_n = hartley(xyz[:, :2])
     return uv, xyz, plane, T_uv, T_xy, uv_n, xy_n
+
+
+# the NaN this machine's floating point gives for an invalid operation (0/0, inf - inf): its sign bit
+# differs from math.nan's on x86-64, and the many-point paths give this one
+_INVALID_NAN = math.inf - math.inf
+
+
+def ieee_over_zero(a: float, zero: float) -> float:
+    """``a / zero`` for ``zero`` = ±0.0 as IEEE 754 (and NumPy, and the compiled loop) divide, bit for
+    bit: ±inf signed by both operands, a NaN ``a`` itself, 0/0 the invalid operation's NaN — where
+    Python's float division raises ZeroDivisionError."""
+    if a != a:
+        return a
+    if a == 0.0:
+        return _INVALID_NAN
+    return math.copysign(math.inf, a) * math.copysign(1.0, zero)
 
 
 def to_robot(xy_n: np.ndarray, Tinv_xy: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
@@ -164,8 +181,10 @@ class PlanarMatrixModel(Model):
             u, v = self._ideal_one(*pt)
             h0, h1, h2, h3, h4, h5, h6, h7, h8 = self._h
             w = h6 * u + h7 * v + h8
-            with np.errstate(divide="ignore", invalid="ignore"):
-                return np.array([[(h0 * u + h1 * v + h2) / w, (h3 * u + h4 * v + h5) / w, z]])
+            x, y = h0 * u + h1 * v + h2, h3 * u + h4 * v + h5
+            if w == 0.0:  # on the horizon: Python raises where the many-point paths give IEEE's ±inf/NaN
+                return np.array([[ieee_over_zero(x, w), ieee_over_zero(y, w), z]])
+            return np.array([[x / w, y / w, z]])
         uv = as_uv(uv_px, check_finite=False)
         if type(self)._ideal_px is PlanarMatrixModel._ideal_px:  # no lens: one matrix on the pixels
             zq = self._z_for(1, z_mm)[0] if z_mm is None or np.ndim(z_mm) == 0 else self._z_for(len(uv), z_mm)
