@@ -68,6 +68,16 @@ def check_options(args) -> None:
         ):
             if given:
                 raise ServeError(f"{flag} is for the TCP service: give --tcp HOST:PORT too")
+    first_line_s = getattr(args, "tcp_first_line_s", None)
+    if first_line_s is not None and not 0 < first_line_s <= 3600:
+        raise ServeError(f"--tcp-first-line: expected seconds in (0, 3600], got {first_line_s:g}")
+    for addr in getattr(args, "robot_address", None) or ():
+        try:
+            ipaddress.ip_address(addr)
+        except ValueError:
+            raise ServeError(
+                f"--robot-address: expected an IP address (e.g. 192.168.0.10), got {addr!r}"
+            ) from None
     if getattr(args, "reply_format", "plain") != "plain" and not camera:
         raise ServeError("--reply-format is for the collection's CAL replies: give --camera URI too")
 
@@ -152,7 +162,16 @@ async def _run_serve(args, data_dir, loops: list) -> None:
 
     from eyetohand.server.app import LOOPBACK_HOSTS, create_app
     from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
-    from eyetohand.server.tcp import LineServer, LoopThread, PendingCalibration, StoredCalibration
+    from eyetohand.server.tcp import (
+        FIRST_LINE_S,
+        LineServer,
+        LoopThread,
+        PendingCalibration,
+        SameFile,
+        StoredCalibration,
+        collection_rule,
+        served_for_check,
+    )
 
     http_sock = bind_http(args.host, args.port)
     line_server = None
@@ -161,6 +180,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     data_dir = Path(data_dir)
     camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
     store = None
+    same_file: SameFile | None = None
     if args.tcp:
         host, port = parse_hostport(args.tcp)
         served = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
@@ -173,12 +193,13 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                     f"in {data_dir} yet (no {DB_NAME}); save one in the workbench first"
                 )
             store = Store(data_dir, wait_s=args.db_wait)
+            same_file = SameFile(store)  # the database file as opened: TCP refuses once it is another
             served = PendingCalibration(args.calibration)
             try:
                 if args.calibration:
                     try:
                         rec = store.find(args.calibration)
-                        served = StoredCalibration(store, rec.id)
+                        served = StoredCalibration(store, rec.id, same_file)
                     except NotFound:
                         if not camera:  # with a camera, CAL BEGIN <name> … CAL END creates it
                             raise
@@ -196,6 +217,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         else:
             what = f"the file {served.label} (sha256 {served.sha256[:12]}…)"
         commands: dict[str, Callable[[str], str]] = {}
+        busy_replies: dict[str, Callable[[str], str]] = {}
         # the line service runs on a loop of its own: the robot's lines never wait behind HTTP work
         tcp_loop = LoopThread()
         loops.append(tcp_loop)
@@ -216,12 +238,13 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                         if isinstance(current, StoredCalibration) and current.cal_id == saved_rec.id:
                             current.poll()  # at once, not at the next poll
                         else:
-                            line_server.follow(StoredCalibration(store, saved_rec.id), loop)
+                            line_server.follow(StoredCalibration(store, saved_rec.id, same_file), loop)
                     if app is not None:  # the workbench's cache of current versions
                         app.state.service.invalidate(saved_rec.id)
 
                 if store is None:
                     store = Store(data_dir, wait_s=args.db_wait)
+                    same_file = SameFile(store)
                 collect_dir = args.collect_dir or (data_dir / "collect")
                 collector = Collector(
                     collect_dir,
@@ -230,8 +253,12 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                     load_fn=store_load_fn(store),
                     calibration=args.calibration,
                     reply_format=args.reply_format,
+                    # one calibration for mapping lines and CAL CHECK (docs/collection.md)
+                    begin_rule=collection_rule(lambda: line_server, args.calibration),
+                    served_fn=served_for_check(lambda: line_server),
                 )
                 commands["CAL"] = collector.handle
+                busy_replies["CAL"] = collector.refuse
             if conveyor:
                 from eyetohand.cell import BeltProtocol
 
@@ -244,7 +271,16 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             if store is not None:
                 store.close()
             raise ServeError(str(exc).splitlines()[0]) from None
-        line_server = LineServer(served, host, port, token=args.token, commands=commands)
+        line_server = LineServer(
+            served,
+            host,
+            port,
+            token=args.token,
+            commands=commands,
+            busy_replies=busy_replies,
+            robot_addresses=getattr(args, "robot_address", None) or (),
+            first_line_s=getattr(args, "tcp_first_line_s", None) or FIRST_LINE_S,
+        )
         try:
             await tcp_loop.call(line_server.start())
         except OSError as exc:
