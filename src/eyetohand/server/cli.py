@@ -148,6 +148,27 @@ def store_load_fn(store):
     return load
 
 
+def one_calibration(server_fn, wanted: str | None) -> dict:
+    """The Collector's options that make mapping lines and CAL CHECK use one calibration (docs/collection.md):
+    BEGIN only for the served one (with ``--calibration``), CHECK checks what the mapping lines use."""
+    from eyetohand.server.tcp import collection_rule, served_for_check
+
+    return {"begin_rule": collection_rule(server_fn, wanted), "served_fn": served_for_check(server_fn)}
+
+
+def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
+    """The LineServer's options from ``serve``'s: the command handlers, their busy replies, the robot's
+    reserved addresses and the first-line grace."""
+    from eyetohand.server.tcp import FIRST_LINE_S
+
+    return {
+        "commands": commands,
+        "busy_replies": busy_replies,
+        "robot_addresses": getattr(args, "robot_address", None) or (),
+        "first_line_s": getattr(args, "tcp_first_line_s", None) or FIRST_LINE_S,
+    }
+
+
 async def _serve(args, data_dir) -> None:
     loops: list = []  # the line service's loop thread, stopped however _run_serve ends
     try:
@@ -162,16 +183,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
 
     from eyetohand.server.app import LOOPBACK_HOSTS, create_app
     from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
-    from eyetohand.server.tcp import (
-        FIRST_LINE_S,
-        LineServer,
-        LoopThread,
-        PendingCalibration,
-        SameFile,
-        StoredCalibration,
-        collection_rule,
-        served_for_check,
-    )
+    from eyetohand.server.tcp import LineServer, LoopThread, PendingCalibration, SameFile, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     line_server = None
@@ -253,9 +265,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                     load_fn=store_load_fn(store),
                     calibration=args.calibration,
                     reply_format=args.reply_format,
-                    # one calibration for mapping lines and CAL CHECK (docs/collection.md)
-                    begin_rule=collection_rule(lambda: line_server, args.calibration),
-                    served_fn=served_for_check(lambda: line_server),
+                    **one_calibration(lambda: line_server, args.calibration),
                 )
                 commands["CAL"] = collector.handle
                 busy_replies["CAL"] = collector.refuse
@@ -272,14 +282,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                 store.close()
             raise ServeError(str(exc).splitlines()[0]) from None
         line_server = LineServer(
-            served,
-            host,
-            port,
-            token=args.token,
-            commands=commands,
-            busy_replies=busy_replies,
-            robot_addresses=getattr(args, "robot_address", None) or (),
-            first_line_s=getattr(args, "tcp_first_line_s", None) or FIRST_LINE_S,
+            served, host, port, token=args.token, **tcp_options(args, commands, busy_replies)
         )
         try:
             await tcp_loop.call(line_server.start())
