@@ -39,7 +39,8 @@ survives a restart like the CAL collection):
     touches' errors cancelling. Counts going back by more than the noise allowance (5 counts) are an
     ERR.
 ``BELT TOUCH <id>,<x>,<y>,<z>,<e>`` — the robot touched part ``id`` at (x, y, z) mm with the belt
-    stopped at count ``e`` → ``OK <n_touches>``.
+    stopped at count ``e`` → ``OK <n_touches>``; a part not sighted yet in the session is an ERR
+    naming the missing ``BELT SIGHT``.
 ``BELT END`` — :func:`~eyetohand.cell.conveyor.calibrate_conveyor` on the session (rows in the order they
     came), saved as ``<store_dir>/<name>.conveyor.json``, and served by the mapping commands from then
     on → ``OK <parts>,<touches>,<mm_per_count>,<yaw_deg>,<pitch_deg>,<rms_mm>``; on ERR the session
@@ -338,6 +339,11 @@ class BeltProtocol:
             raise CommandError(f"BELT TOUCH: {len(args)} fields; expected <id>,<x>,<y>,<z>,<e>")
         xyz = line_numbers(args[1:4], ("x", "y", "z"), "BELT TOUCH", "mm")
         e = _count(args[4], "e", self.encoder)
+        if not any(r["op"] == "sight" and r["id"] == args[0] for r in s["rows"]):
+            raise CommandError(
+                f"BELT TOUCH: part {args[0][:30]!r} was never sighted; send BELT SIGHT {args[0][:30]} "
+                "first (a touch pairs with the camera's sighting of the same part)"
+            )
         self._check_count(s, e, "BELT TOUCH")
         self._record({"op": "touch", "id": args[0], "xyz_mm": xyz, "e": e})
         return [str(sum(r["op"] == "touch" for r in s["rows"]))]

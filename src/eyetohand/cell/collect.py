@@ -71,7 +71,7 @@ import sqlite3
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -195,19 +195,33 @@ class JsonlJournal:
                         self._records.append(json.loads(line))
                     except json.JSONDecodeError:
                         raise InputError(f"{path} line {k}: not a journal record (invalid JSON)") from None
-        self._fh = open(path, "ab")  # noqa: SIM115 - kept open for the Collector's life
+        # unbuffered: a write that fails leaves nothing behind in a buffer for a later write to flush
+        self._fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
 
     def records(self) -> list[dict]:
         return list(self._records)
 
     def append(self, rec: dict) -> None:
-        self._fh.write((json.dumps(rec, allow_nan=False, separators=(",", ":")) + "\n").encode())
-        self._fh.flush()
-        os.fsync(self._fh.fileno())
+        """Write and fsync one record, or raise ``OSError`` with the file as it was (a record written
+        in part is cut off again): a refused command leaves no record, now or later."""
+        data = (json.dumps(rec, allow_nan=False, separators=(",", ":")) + "\n").encode()
+        size = os.fstat(self._fd).st_size
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(self._fd, view) :]
+            os.fsync(self._fd)
+        except OSError:
+            try:
+                os.ftruncate(self._fd, size)
+                os.fsync(self._fd)
+            except OSError:
+                pass  # a torn tail is cut off when the journal is opened again
+            raise
         self._records.append(rec)
 
     def close(self) -> None:
-        self._fh.close()
+        os.close(self._fd)
 
 
 class _SqliteJournal:
@@ -308,6 +322,10 @@ class Collector:
     for CHECK (default: that file). ``calibration``: the name CHECK uses before any BEGIN (the server's
     ``--calibration``). ``detect_options`` go to :func:`eyetohand.vision.detect.detect_target`.
     ``reply_format``: a name of :data:`REPLY_FORMATS` (``plain`` or ``ur``), held as :attr:`replies`.
+    ``begin_rule(name)``: why a collection for ``name`` is refused at BEGIN, or None (the server: only
+    the calibration its mapping lines serve). ``served_fn() -> (name, version, cal, error)``: the
+    calibration CHECK checks instead of ``load_fn(calibration)`` (the server: the one its mapping lines
+    use, so a check and a mapping answer never come from two calibrations).
     """
 
     def __init__(
@@ -323,6 +341,8 @@ class Collector:
         still_tol_px: float = STILL_TOL_PX,
         detect_options: dict | None = None,
         keep_images: bool = False,
+        begin_rule: Callable[[str], str | None] | None = None,
+        served_fn: Callable[[], tuple[str, int | None, Any, str | None]] | None = None,
     ):
         if reply_format not in REPLY_FORMATS:
             raise InputError(f"reply format {reply_format!r}: expected one of {', '.join(REPLY_FORMATS)}")
@@ -347,6 +367,8 @@ class Collector:
         self.detect_options = dict(detect_options or {})
         self.keep_images = keep_images
         self.calibration_name = calibration
+        self.begin_rule = begin_rule
+        self.served_fn = served_fn
         self.image_size: tuple[int, int] | None = None
         self.last_grab: tuple | None = None  # (image, Detection, utc) of the last POINT/CHECK grab
         self._lock = threading.Lock()
@@ -377,6 +399,11 @@ class Collector:
     def close(self) -> None:
         self.journal.close()
 
+    def refuse(self, reason: str) -> str:
+        """The reply refusing a command before it ran (the line service's ``ERR busy``), in this
+        collector's reply format."""
+        return self.replies.error(CommandError(reason, ErrorCode.BUSY))
+
     def __enter__(self):
         return self
 
@@ -385,8 +412,14 @@ class Collector:
 
     # ---------------------------------------------------------------- journal replay
     def _record(self, rec: dict) -> None:
+        """Journal ``rec`` (fsync-ed), then apply it; a write that fails is a refusal with nothing
+        recorded (the journal cuts off what it wrote in part)."""
         rec = {**rec, "utc": utc_now()}
-        self.journal.append(rec)
+        try:
+            self.journal.append(rec)
+        except (OSError, sqlite3.Error) as exc:
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            raise CommandError(f"journal write failed ({why}); nothing recorded") from None
         self._apply(rec)
 
     def _apply(self, rec: dict) -> None:
@@ -575,6 +608,9 @@ class Collector:
                 f"CAL BEGIN: {len(args)} fields; expected <name>[,<model>] or "
                 "<name>,<plan>,<x0>,<y0>,<x1>,<y1>,<z>[,<model>]"
             )
+        why = self.begin_rule(name) if self.begin_rule is not None else None
+        if why:
+            raise CommandError(f"CAL BEGIN {name}: {why}")
         if model != "auto":
             try:
                 get_model(model)
@@ -787,14 +823,20 @@ class Collector:
         if len(args) != 3:
             raise CommandError(f"CAL CHECK: {len(args)} fields; expected <x>,<y>,<z>")
         xyz = line_numbers(args, ("x", "y", "z"), "CAL CHECK")
-        name = self.calibration_name
-        cal = self.load_fn(name) if name else None
-        if cal is None or not name:
-            raise CommandError(
-                "no calibration to check"
-                + (f": '{name}' has none yet" if name else "; send CAL BEGIN … CAL END first"),
-                ErrorCode.NO_CALIBRATION,
-            )
+        version = None
+        if self.served_fn is not None:  # what the mapping lines use, whatever was collected
+            name, version, cal, why = self.served_fn()
+            if cal is None:
+                raise CommandError(f"no calibration to check: {why}", ErrorCode.NO_CALIBRATION)
+        else:
+            name = self.calibration_name or ""
+            cal = self.load_fn(name) if name else None
+            if cal is None or not name:
+                raise CommandError(
+                    "no calibration to check"
+                    + (f": '{name}' has none yet" if name else "; send CAL BEGIN … CAL END first"),
+                    ErrorCode.NO_CALIBRATION,
+                )
         uv, det, img, _ = self._acquire(xyz, 0.0)
         with np.errstate(all="ignore"):
             got = cal.image_to_robot(np.array([uv]), xyz[2])[0]
@@ -807,6 +849,7 @@ class Collector:
         rec = {
             "utc": utc_now(),
             "name": name,
+            "version": version,
             "calibration_created_utc": cal.created_utc,
             "data_sha256": cal.data_sha256,
             "xyz_mm": xyz,

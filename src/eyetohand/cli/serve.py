@@ -150,6 +150,23 @@ def register(sub) -> None:
         help="how long a write waits for another writer's database lock before answering "
         "503 with Retry-After (default 2 s)",
     )
+    # -- the TCP line service's fairness (docs/server.md "TCP line protocol")
+    p.add_argument(
+        "--robot-address",
+        metavar="ADDR",
+        action="append",
+        default=None,
+        help="the robot's IP address (repeatable): its connections are served beyond the 256-client "
+        "limit, so no flood of sockets from elsewhere locks it out",
+    )
+    p.add_argument(
+        "--tcp-first-line",
+        dest="tcp_first_line_s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="close a TCP connection that sent no whole line this long after connecting (default 10 s)",
+    )
     p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     # ---- --token-file, --allow-host, --sign-key, --require-signed (http worktree)
     p.add_argument(

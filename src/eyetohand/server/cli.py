@@ -76,6 +76,16 @@ def check_options(args) -> None:
             if given:
                 raise ServeError(f"{flag} is for the TCP service: give --tcp HOST:PORT too")
     check_plc_options(args)
+    first_line_s = getattr(args, "tcp_first_line_s", None)
+    if first_line_s is not None and not 0 < first_line_s <= 3600:
+        raise ServeError(f"--tcp-first-line: expected seconds in (0, 3600], got {first_line_s:g}")
+    for addr in getattr(args, "robot_address", None) or ():
+        try:
+            ipaddress.ip_address(addr)
+        except ValueError:
+            raise ServeError(
+                f"--robot-address: expected an IP address (e.g. 192.168.0.10), got {addr!r}"
+            ) from None
     if getattr(args, "reply_format", "plain") != "plain" and not camera:
         raise ServeError("--reply-format is for the collection's CAL replies: give --camera URI too")
 
@@ -232,6 +242,27 @@ def store_load_fn(store):
     return load
 
 
+def one_calibration(server_fn, wanted: str | None) -> dict:
+    """The Collector's options that make mapping lines and CAL CHECK use one calibration (docs/collection.md):
+    BEGIN only for the served one (with ``--calibration``), CHECK checks what the mapping lines use."""
+    from eyetohand.server.tcp import collection_rule, served_for_check
+
+    return {"begin_rule": collection_rule(server_fn, wanted), "served_fn": served_for_check(server_fn)}
+
+
+def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
+    """The LineServer's options from ``serve``'s: the command handlers, their busy replies, the robot's
+    reserved addresses and the first-line grace."""
+    from eyetohand.server.tcp import FIRST_LINE_S
+
+    return {
+        "commands": commands,
+        "busy_replies": busy_replies,
+        "robot_addresses": getattr(args, "robot_address", None) or (),
+        "first_line_s": getattr(args, "tcp_first_line_s", None) or FIRST_LINE_S,
+    }
+
+
 async def _serve(args, data_dir) -> None:
     loops: list = []  # the line service's loop thread, stopped however _run_serve ends
     try:
@@ -246,7 +277,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
 
     from eyetohand.server.app import create_app
     from eyetohand.server.storage import DB_NAME, Store
-    from eyetohand.server.tcp import LineServer, LoopThread, StoredCalibration
+    from eyetohand.server.tcp import LineServer, LoopThread, SameFile, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     # the database is created only at a first start: later, a missing one is an error, never a new one
@@ -257,12 +288,14 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     data_dir = Path(data_dir)
     camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
     store = served = None
+    same_file: SameFile | None = None
     if args.tcp or _plc_wanted(args):
-        served, store = _served_calibration(args, data_dir, camera, http_sock, create=fresh_db)
+        served, store, same_file = _served_calibration(args, data_dir, camera, http_sock, create=fresh_db)
     if args.tcp:
         host, port = parse_hostport(args.tcp)
         what = describe(served)
         commands: dict[str, Callable[[str], str]] = {}
+        busy_replies: dict[str, Callable[[str], str]] = {}
         # the line service runs on a loop of its own: the robot's lines never wait behind HTTP work
         tcp_loop = LoopThread()
         loops.append(tcp_loop)
@@ -283,12 +316,13 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                         if isinstance(current, StoredCalibration) and current.cal_id == saved_rec.id:
                             current.poll()  # at once, not at the next poll
                         else:
-                            line_server.follow(StoredCalibration(store, saved_rec.id), loop)
+                            line_server.follow(StoredCalibration(store, saved_rec.id, same_file), loop)
                     if app is not None:  # the workbench's cache of current versions
                         app.state.service.invalidate(saved_rec.id)
 
                 if store is None:
                     store = Store(data_dir, wait_s=args.db_wait, create=fresh_db)
+                    same_file = SameFile(store)
                 collect_dir = args.collect_dir or (data_dir / "collect")
                 collector = Collector(
                     collect_dir,
@@ -297,11 +331,13 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                     load_fn=store_load_fn(store),
                     calibration=args.calibration,
                     reply_format=args.reply_format,
+                    **one_calibration(lambda: line_server, args.calibration),
                 )
                 commands["CAL"] = collector.handle
                 locator = add_locate(
                     commands, source, lambda: line_server.source if line_server else served, args.reply_format
                 )
+                busy_replies["CAL"] = collector.refuse
             if conveyor:
                 from eyetohand.cell import BeltProtocol
 
@@ -315,7 +351,9 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                 store.close()
             raise ServeError(str(exc).splitlines()[0]) from None
         assert served is not None  # _served_calibration ran for --tcp
-        line_server = LineServer(served, host, port, token=args.token, commands=commands)
+        line_server = LineServer(
+            served, host, port, token=args.token, **tcp_options(args, commands, busy_replies)
+        )
         try:
             await tcp_loop.call(line_server.start())
         except OSError as exc:
@@ -420,16 +458,17 @@ def _plc_wanted(args) -> bool:
 
 
 def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool):
-    """(the served-calibration object, the store or None) for ``--calibration``: a file (proved by
+    """(the served-calibration object, the store or None, its :class:`SameFile` or None) for
+    ``--calibration``: a file (proved by
     check_options), a stored calibration (followed), or none yet (with a camera, a collection creates
     it). A refusal closes ``http_sock`` and raises :class:`ServeError`. ``create``: the database may be
     created (a first start only)."""
     from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
-    from eyetohand.server.tcp import PendingCalibration, StoredCalibration
+    from eyetohand.server.tcp import PendingCalibration, SameFile, StoredCalibration
 
     served = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
     if served is not None:
-        return served, None
+        return served, None, None
     # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
     if args.calibration and not camera and not (data_dir / DB_NAME).is_file():
         http_sock.close()
@@ -438,12 +477,13 @@ def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool
             f"in {data_dir} yet (no {DB_NAME}); save one in the workbench first"
         )
     store = Store(data_dir, wait_s=args.db_wait, create=create)
+    same_file = SameFile(store)  # the database file as opened: TCP refuses once it is another
     served = PendingCalibration(args.calibration)
     try:
         if args.calibration:
             try:
                 rec = store.find(args.calibration)
-                served = StoredCalibration(store, rec.id)
+                served = StoredCalibration(store, rec.id, same_file)
             except NotFound:
                 if not camera:  # with a camera, CAL BEGIN <name> … CAL END creates it
                     raise
@@ -451,7 +491,7 @@ def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool
         http_sock.close()
         store.close()
         raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
-    return served, store
+    return served, store, same_file
 
 
 def describe(served) -> str:

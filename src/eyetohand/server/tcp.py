@@ -21,8 +21,11 @@ from __future__ import annotations
 import asyncio
 import hmac
 import math
+import os
 import threading
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
@@ -36,6 +39,26 @@ MAX_CLIENTS = 256
 MAX_PER_PEER = 64
 IDLE_S = 300.0
 AUTH_S = 10.0
+FIRST_LINE_S = 10.0
+"""A connection that has not sent one whole line this long after connecting is closed: idle sockets
+(a port scanner, a stuck client) do not hold a slot for :data:`IDLE_S`."""
+ROBOT_SLOTS = 8
+"""Connections from a ``robot_addresses`` address are served beyond :data:`MAX_CLIENTS` (up to this many),
+so no flood from elsewhere locks the robot out."""
+MAX_PENDING = 8
+"""CAL/BELT commands waiting or running at once (each may grab for a second); one more is answered
+``ERR busy`` at once and never delays the others."""
+COMMAND_WORKERS = 4
+WRITE_HIGH = 16 * 1024
+"""Bytes of answers a connection may have waiting to be sent; above it, its lines are not read until
+the client reads (a client that never reads stops itself, nobody else)."""
+BURST = 8
+"""Lines answered for one connection before the event loop serves the others (a client pipelining
+thousands of lines in one read must not hold every other client for seconds)."""
+MISSING = {  # a command word of a service this server was not started with -> why it is refused
+    "CAL": "no camera: start eyetohand serve with --camera URI to use CAL",
+    "BELT": "no conveyor: start eyetohand serve with --conveyor FILE to use BELT",
+}
 
 
 USAGE = "send u,v[,z][,a=ANGLE][,s=N][,t=DEG][,allow][,sigma] or VERSION"
@@ -81,13 +104,58 @@ class PendingCalibration:
         return f"ERR {self.error}"
 
 
-class StoredCalibration:
-    """The current version of a stored calibration, refreshed by :meth:`poll` (blocking: run it off
-    the event loop). A deleted calibration sets ``error``; a database that cannot be read for a moment
-    keeps the version in force."""
+class SameFile:
+    """Whether the database path still names the file the store opened (deleted, or replaced by a copy,
+    a restore, another cell's database: the truth HTTP answers from is that path).
 
-    def __init__(self, store, cal_id: int):
+    Uses the store's own ``check_same_file()`` when it has one; else one ``os.stat`` of ``store.path``
+    compared with the (device, inode) seen when this was made (make it when the store is opened)."""
+
+    def __init__(self, store):
+        self.path = Path(store.path)
+        self._check = getattr(store, "check_same_file", None)
+        self.identity: tuple[int, int] | None = None
+        if self._check is None:
+            st = os.stat(self.path)
+            self.identity = (st.st_dev, st.st_ino)
+
+    def problem(self) -> str | None:
+        """None while the path names the opened file; else why not (``database replaced or missing: …``).
+        No SQLite, no lock: cheap enough for every line."""
+        if self._check is not None:
+            from eyetohand.server.storage import StorageError
+
+            try:
+                self._check()
+            except StorageError as exc:
+                return str(exc)
+            return None
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            return (
+                f"database replaced or missing: {self.path} was deleted under the running server "
+                "(put it back, or restart the server on the database to use)"
+            )
+        except OSError as exc:
+            return f"database replaced or missing: cannot stat {self.path} ({exc.strerror or exc})"
+        if (st.st_dev, st.st_ino) != self.identity:
+            return (
+                f"database replaced or missing: {self.path} is no longer the file this server opened "
+                "(restart the server to use the new one)"
+            )
+        return None
+
+
+class StoredCalibration:
+    """The current version of a stored calibration, refreshed by :meth:`poll` (blocking: the line
+    server runs it on a thread of its own). A deleted calibration sets ``error``, and so does a
+    database file replaced or deleted under the server (``same_file``, until the path names the opened
+    file again); a database that cannot be read for a moment keeps the version in force."""
+
+    def __init__(self, store, cal_id: int, same_file: SameFile | None = None):
         self.store = store
+        self.same_file = same_file or SameFile(store)
         self.cal_id = cal_id
         self.cal: Calibration | None = None
         self.error: str | None = None
@@ -101,9 +169,18 @@ class StoredCalibration:
     def version_line(self) -> str:
         return f"OK {self.name},{self.version},{self.created_utc}"
 
+    def problem(self) -> str | None:
+        """Why nothing may be mapped now (per line: the file check is one stat), or None."""
+        gone = self.same_file.problem()
+        return gone if gone is not None else self.error
+
     def poll(self) -> None:
         from eyetohand.server.storage import NotFound, StorageError
 
+        gone = self.same_file.problem()
+        if gone is not None:
+            self.error = gone  # the version in force is kept for when the file is back
+            return
         try:
             now = self.store.current(self.cal_id)
             if now is None:
@@ -113,6 +190,7 @@ class StoredCalibration:
             name, version = now
             self.name = name
             if version == self.version and self.cal is not None:
+                self.error = None
                 return
             ver = self.store.version(self.cal_id, version)
             cal = Calibration.from_dict(ver.calibration, f"calibration {name!r} version {version}")
@@ -128,6 +206,79 @@ class StoredCalibration:
             return
         # one assignment each, read by the event loop between lines (the GIL makes them atomic)
         self.cal, self.version, self.created_utc, self.error = cal, ver.version, ver.created_utc, None
+
+
+class _Poller:
+    """Polls the served calibration every ``poll_s`` on a thread of its own (with its own SQLite
+    connection: the store keeps one per thread), so the freshness of what the mapping lines use never
+    waits behind other work — commands queued for the camera, HTTP requests."""
+
+    def __init__(self, server: LineServer, poll_s: float):
+        self.server, self.poll_s = server, poll_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="eyetohand-tcp-poll", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.poll_s):
+            src = self.server.source
+            if isinstance(src, StoredCalibration):
+                try:
+                    src.poll()
+                except Exception:  # noqa: BLE001 - a poll that breaks is tried again, never ends the thread
+                    pass
+
+    def stop(self) -> None:
+        self._stop.set()
+
+
+def collection_rule(
+    server_fn: Callable[[], LineServer | None], wanted: str | None
+) -> Callable[[str], str | None]:
+    """``begin_rule`` for the server's Collector: with ``--calibration`` (``wanted``) a collection must be
+    for the calibration the mapping lines serve (a file is never collected into); without it, any name
+    (the mapping lines follow what a collection saves)."""
+
+    def rule(name: str) -> str | None:
+        if wanted is None:
+            return None
+        server = server_fn()
+        src = server.source if server is not None else None
+        if isinstance(src, FixedCalibration):
+            return (
+                f"this server maps with the file {src.label} (--calibration), which a collection does "
+                f"not change; start serve with --calibration {name} to collect it"
+            )
+        served = src.name if isinstance(src, StoredCalibration) and src.name else wanted
+        served = served[5:] if served.lower().startswith("name:") else served
+        if name == served:
+            return None
+        return (
+            f"mapping lines and CAL CHECK use calibration '{served}' (serve --calibration); send "
+            f"CAL BEGIN {served}, or restart serve with --calibration {name}"
+        )
+
+    return rule
+
+
+def served_for_check(server_fn: Callable[[], LineServer | None]):
+    """``served_fn`` for the server's Collector: ``(name, version, cal, why_none)`` of the calibration the
+    mapping lines use now, so CAL CHECK checks exactly that."""
+
+    def served() -> tuple[str, int | None, Calibration | None, str | None]:
+        server = server_fn()
+        if server is None:
+            return "", None, None, "the line service is not started yet"
+        src = server.source
+        if isinstance(src, StoredCalibration):
+            problem = src.problem()
+            return src.name, src.version, (src.cal if problem is None else None), problem
+        if isinstance(src, FixedCalibration):
+            return Path(src.label).stem, None, src.cal, None
+        why = f"'{src.name}' has none yet" if src.name else "send CAL BEGIN ... CAL END first"
+        return src.name or "", None, None, why
+
+    return served
 
 
 def answer(cal: Calibration, line: bytes) -> bytes:
@@ -160,7 +311,7 @@ def answer(cal: Calibration, line: bytes) -> bytes:
     nums = [p for p in parts if "=" not in p and p.lower() not in ("allow", "sigma")]
     words = [p.lower() for p in parts[len(nums) :]]
     if parts[: len(nums)] != nums or len(nums) not in (2, 3):
-        return f"ERR {len(nums)} numbers; {USAGE}\n".encode()
+        return f"ERR {len(nums)} numbers; expected 2 or 3 (u,v or u,v,z) before any words; {USAGE}\n".encode()
     vals = []
     for name, p in zip("uvz", nums, strict=False):
         x, err = _number(name, p)
@@ -226,8 +377,47 @@ def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
     return (out + "\n").encode()
 
 
+class _Lines:
+    """Splits a byte stream into lines: CR, LF and CR LF each end one line (a KAREL robot may send CR
+    only), CR LF also when the CR ends one read and the LF starts the next."""
+
+    def __init__(self) -> None:
+        self.buf = b""
+        self.skip_lf = False  # the last line ended with a CR at the end of a read: a LF next is its end
+
+    def feed(self, data: bytes) -> None:
+        if self.skip_lf and data:
+            self.skip_lf = False
+            if data[:1] == b"\n":
+                data = data[1:]
+        self.buf += data
+
+    def next(self) -> bytes | None:
+        """The next whole line without its end, or None until more comes."""
+        buf = self.buf
+        cr, lf = buf.find(b"\r"), buf.find(b"\n")
+        if cr < 0 and lf < 0:
+            return None
+        i = lf if cr < 0 or 0 <= lf < cr else cr
+        line, rest = buf[:i], buf[i + 1 :]
+        if buf[i : i + 1] == b"\r":
+            if rest[:1] == b"\n":
+                rest = rest[1:]
+            elif not rest:
+                self.skip_lf = True
+        self.buf = rest
+        return line
+
+
 class LineServer:
-    """Serve ``cal`` on ``host:port``. ``await start()``, then ``await serve_forever()`` or ``close()``."""
+    """Serve ``cal`` on ``host:port``. ``await start()``, then ``await serve_forever()`` or ``close()``.
+
+    ``commands``: first word (upper case) -> handler(line) -> reply without line end, run on a pool of
+    :data:`COMMAND_WORKERS` threads of its own (a command may grab and detect for a second), at most
+    ``max_pending`` at once (more: ``busy_replies[word](reason)``, else ``ERR busy: …``).
+    ``robot_addresses``: addresses served beyond ``max_clients`` (up to :data:`ROBOT_SLOTS`
+    connections). ``first_line_s``: a connection without a whole line this long after connecting is
+    closed."""
 
     def __init__(
         self,
@@ -242,15 +432,21 @@ class LineServer:
         auth_s: float = AUTH_S,
         poll_s: float = POLL_S,
         commands: dict[str, Callable[[str], str]] | None = None,
+        busy_replies: dict[str, Callable[[str], str]] | None = None,
+        max_pending: int = MAX_PENDING,
+        robot_addresses: tuple[str, ...] | list[str] = (),
+        first_line_s: float = FIRST_LINE_S,
     ):
         self.source: FixedCalibration | StoredCalibration | PendingCalibration = (
             FixedCalibration(cal) if isinstance(cal, Calibration) else cal
         )
         self.poll_s = poll_s
-        self._poller: asyncio.Task | None = None
-        # first word (upper case) -> handler(line) -> reply without line end, run off the event loop
-        # (a command may grab and detect for a second); e.g. {"CAL": collector.handle}
+        self._poller: _Poller | None = None
         self.commands = {k.upper(): f for k, f in (commands or {}).items()}
+        self.busy_replies = {k.upper(): f for k, f in (busy_replies or {}).items()}
+        self.max_pending = max_pending
+        self.pending = 0
+        self._pool: ThreadPoolExecutor | None = None
         self.max_per_peer = max_per_peer
         self.auth_s = auth_s
         self.per_peer: dict[str, int] = {}
@@ -259,49 +455,37 @@ class LineServer:
         self.port = port
         self.max_clients = max_clients
         self.idle_s = idle_s
+        self.first_line_s = first_line_s
+        self.robot_addresses = frozenset(robot_addresses)
         self.clients = 0
+        self.robots = 0
         self.server: asyncio.AbstractServer | None = None
 
     async def start(self) -> None:
         self.server = await asyncio.start_server(self._client, self.host, self.port, limit=MAX_LINE)
         self.port = self.server.sockets[0].getsockname()[1]
-        if isinstance(self.source, StoredCalibration):
-            self._poller = asyncio.get_running_loop().create_task(self._follow(self.source))
+        self._poller = _Poller(self, self.poll_s)
 
     def follow(self, source: StoredCalibration, loop: asyncio.AbstractEventLoop | None = None) -> None:
         """Serve (and follow) ``source`` from now on: after a collection created the calibration.
-        Callable from any thread; ``loop`` is the server's (needed from another thread)."""
+        Callable from any thread (``loop`` is not needed any more: the poller reads :attr:`source`)."""
         self.source = source
-
-        def restart() -> None:
-            if self._poller is not None:
-                self._poller.cancel()
-            self._poller = asyncio.get_running_loop().create_task(self._follow(source))
-
-        if loop is not None:
-            loop.call_soon_threadsafe(restart)
-        else:
-            restart()
 
     @property
     def cal(self) -> Calibration | None:
         """The calibration in force (None while a followed one is deleted)."""
         return self.source.cal
 
-    async def _follow(self, src: StoredCalibration) -> None:
-        while True:
-            await asyncio.sleep(self.poll_s)
-            await asyncio.to_thread(src.poll)
-
     def reply(self, line: bytes) -> bytes:
         """The answer to one line with the calibration in force (``VERSION`` names it)."""
         src = self.source
+        problem = src.problem() if isinstance(src, StoredCalibration) else src.error
         if line.strip().upper() == b"VERSION":
-            text = src.version_line() if src.error is None else f"ERR {ascii_reason(src.error)}"
+            text = src.version_line() if problem is None else f"ERR {ascii_reason(problem)}"
             return text.encode("ascii", "replace") + b"\n"
         cal = src.cal
-        if cal is None or src.error is not None:
-            return f"ERR {ascii_reason(str(src.error))}\n".encode()
+        if cal is None or problem is not None:
+            return f"ERR {ascii_reason(str(problem))}\n".encode()
         return answer(cal, line)
 
     async def serve_forever(self) -> None:
@@ -311,63 +495,130 @@ class LineServer:
 
     def close(self) -> None:
         if self._poller is not None:
-            self._poller.cancel()
+            self._poller.stop()
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
         if self.server is not None:
             self.server.close()
+
+    def _admit(self, addr: str) -> str | None:
+        """Take a slot for a new connection from ``addr``, or the ERR line that refuses it."""
+        if addr in self.robot_addresses:
+            if self.robots >= ROBOT_SLOTS:
+                return f"ERR busy: {ROBOT_SLOTS} connections from the robot's address {addr} already"
+            self.robots += 1
+            return None
+        if self.clients >= self.max_clients:
+            return "ERR busy: too many clients, try again later"
+        if self.per_peer.get(addr, 0) >= self.max_per_peer:
+            return f"ERR busy: {self.max_per_peer} connections from {addr} already"
+        self.clients += 1
+        self.per_peer[addr] = self.per_peer.get(addr, 0) + 1
+        return None
+
+    def _release(self, addr: str) -> None:
+        if addr in self.robot_addresses:
+            self.robots -= 1
+            return
+        self.clients -= 1
+        left = self.per_peer.get(addr, 1) - 1
+        if left > 0:
+            self.per_peer[addr] = left
+        else:
+            self.per_peer.pop(addr, None)
+
+    async def _command(self, word: str, line: bytes) -> bytes:
+        """A CAL/BELT command's reply, run on the command pool; refused at once when it is full."""
+        handler = self.commands[word]
+        if self.pending >= self.max_pending:
+            reason = f"busy: {self.pending} commands are waiting for the camera or conveyor; try again later"
+            busy = self.busy_replies.get(word)
+            reply = busy(reason) if busy is not None else f"ERR {reason}"
+        else:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(COMMAND_WORKERS, thread_name_prefix="eyetohand-cmd")
+            self.pending += 1
+            try:
+                loop = asyncio.get_running_loop()
+                reply = await loop.run_in_executor(self._pool, handler, line.decode("ascii", "replace"))
+            finally:
+                self.pending -= 1
+        return reply.encode("ascii", "replace") + b"\n"
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
         addr = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
-        if self.clients >= self.max_clients:
-            writer.write(b"ERR busy: too many clients, try again later\n")
+        refused = self._admit(addr)
+        if refused is not None:
+            writer.write(refused.encode() + b"\n")
             await _close(writer)
             return
-        if self.per_peer.get(addr, 0) >= self.max_per_peer:
-            writer.write(f"ERR busy: {self.max_per_peer} connections from {addr} already\n".encode())
-            await _close(writer)
-            return
-        self.clients += 1
-        self.per_peer[addr] = self.per_peer.get(addr, 0) + 1
+        writer.transport.set_write_buffer_limits(high=WRITE_HIGH)
+        lines = _Lines()
         try:
-            if self.token is not None and not await self._auth(reader, writer):
+            if self.token is not None and not await self._auth(reader, writer, lines):
                 return
-            while True:
-                try:
-                    # asyncio.timeout, not wait_for: wait_for runs the read as a task of its own, two
-                    # more turns of the event loop for every line
-                    async with asyncio.timeout(self.idle_s):
-                        line = await reader.readuntil(b"\n")
-                except (asyncio.LimitOverrunError, ValueError):
-                    writer.write(f"ERR line longer than {MAX_LINE} bytes; closing\n".encode())
-                    break
-                except asyncio.IncompleteReadError:
-                    break  # end of stream; a last line without its newline may be cut: no answer
-                except TimeoutError:
-                    writer.write(f"ERR idle for {self.idle_s:g} s; closing\n".encode())
-                    break
-                word = line.split(None, 1)[0].upper().decode("ascii", "replace") if line.strip() else ""
-                if word in self.commands:
-                    reply = await asyncio.to_thread(self.commands[word], line[:-1].decode("ascii", "replace"))
-                    writer.write(reply.encode("ascii", "replace") + b"\n")
-                else:
-                    writer.write(self.reply(line[:-1]))
-                await writer.drain()
+            await self._serve_lines(reader, writer, lines)
         except (ConnectionError, asyncio.CancelledError):
             pass
         finally:
-            self.clients -= 1
-            left = self.per_peer.get(addr, 1) - 1
-            if left > 0:
-                self.per_peer[addr] = left
-            else:
-                self.per_peer.pop(addr, None)
+            self._release(addr)
             await _close(writer)
 
-    async def _auth(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> bool:
+    async def _serve_lines(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines) -> None:
+        spoken = self.token is not None  # AUTH was the first line
+        burst = 0
+        while True:
+            line = lines.next()
+            if line is None:
+                if len(lines.buf) > MAX_LINE:
+                    writer.write(f"ERR line longer than {MAX_LINE} bytes; closing\n".encode())
+                    return
+                wait_s = self.idle_s if spoken else min(self.idle_s, self.first_line_s)
+                try:
+                    # asyncio.timeout, not wait_for: wait_for runs the read as a task of its own, two
+                    # more turns of the event loop for every line
+                    async with asyncio.timeout(wait_s):
+                        data = await reader.read(4096)
+                except TimeoutError:
+                    what = "idle" if spoken else "no line"
+                    writer.write(f"ERR {what} for {wait_s:g} s; closing\n".encode())
+                    return
+                if not data:
+                    return  # end of stream; a last line without its end may be cut: no answer
+                lines.feed(data)
+                continue
+            spoken = True
+            if len(line) > MAX_LINE:
+                writer.write(f"ERR line longer than {MAX_LINE} bytes; closing\n".encode())
+                return
+            word = line.split(None, 1)[0].upper().decode("ascii", "replace") if line.strip() else ""
+            if word in self.commands:
+                writer.write(await self._command(word, line))
+            elif word in MISSING:
+                writer.write(f"ERR {MISSING[word]}\n".encode())
+            else:
+                writer.write(self.reply(line))
+            # returns at once unless this client's unsent answers are over WRITE_HIGH: then only this
+            # client waits (its lines are not read meanwhile), nobody else
+            await writer.drain()
+            burst += 1
+            if burst >= BURST:  # let the other clients in between a pipelining client's lines
+                burst = 0
+                await asyncio.sleep(0)
+
+    async def _auth(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines: _Lines) -> bool:
+        line = b""
         try:
-            line = await asyncio.wait_for(reader.readuntil(b"\n"), min(self.auth_s, self.idle_s))
-        except (asyncio.LimitOverrunError, ValueError, asyncio.IncompleteReadError, TimeoutError):
-            line = b""
+            async with asyncio.timeout(min(self.auth_s, self.idle_s)):
+                while (got := lines.next()) is None and len(lines.buf) <= MAX_LINE:
+                    data = await reader.read(4096)
+                    if not data:
+                        break
+                    lines.feed(data)
+                line = got or b""
+        except TimeoutError:
+            pass
         given = line.strip()[5:] if line[:5].upper() == b"AUTH " else b""
         assert self.token is not None  # _auth runs only with a token
         if hmac.compare_digest(given.strip(), self.token):

@@ -186,6 +186,7 @@ class FolderSource(Source):
 
         before = {n: (st.st_mtime_ns, st.st_size) for n, st in self._scan().items()}
         sizes: dict[str, int] = {}
+        bad: dict[str, str] = {}  # a new file that does not decode (yet) -> why
         t_end = time.monotonic() + self.timeout_s
         while True:
             now = self._scan()
@@ -201,16 +202,26 @@ class FolderSource(Source):
                 try:
                     data = path.read_bytes()
                     check_complete(data, name)  # refuses truncated PNG / JPEG files
-                except (InputError, OSError):
+                except InputError as exc:  # perhaps still being written: waited for, and said at the end
+                    bad[name] = str(exc).splitlines()[0]
+                    continue
+                except OSError:
                     continue
                 img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
                 if img is None:
+                    why = f"{name} in {self.folder} does not decode as an image"
+                    if data.startswith((b"\x89PNG\r\n\x1a\n", b"\xff\xd8")):  # whole (its end marker
+                        raise InputError(f"image decode failed: {why} ({self.uri})")  # is there): corrupt
+                    bad[name] = why  # another format: perhaps still being written
                     continue
                 self.last_path = path
                 if self.latches_encoder:
                     self.encoder_count = _sidecar_count(path)
                 return img, now[name].st_mtime_ns * 1e-9
             if time.monotonic() >= t_end:
+                if bad:  # a new file came but never decoded: say so, not "no image"
+                    name, why = next(iter(bad.items()))
+                    raise InputError(f"image decode failed: {why} (new file {name}, {self.uri})")
                 raise GrabTimeout(f"no new image within {self.timeout_s:g} s ({self.uri})")
             time.sleep(FOLDER_POLL_S)
 
