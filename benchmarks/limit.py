@@ -39,11 +39,12 @@ from eyetohand import PointPairs, calibrate
 from eyetohand.core import InputError
 
 S_MM = 300.0  # the oracle's homography takes plane points in units of S_MM (conditioning only)
-MODELS_RUN = ("homography", "homography-radial", "auto", "camera")
-CASES = {  # name: (k1, principal point offset from the image centre, px)
-    "no lens": (0.0, (0.0, 0.0)),
-    "k1": (-0.08, (0.0, 0.0)),
-    "k1+centre": (-0.08, (8.0, -5.0)),
+MODELS_RUN = ("homography", "homography-radial", "auto", "camera", "dlt3d")
+CASES = {  # name: (k1, principal point offset from the image centre px, robot heights mm)
+    "no lens": (0.0, (0.0, 0.0), (0.0,)),
+    "k1": (-0.08, (0.0, 0.0), (0.0,)),
+    "k1+centre": (-0.08, (8.0, -5.0), (0.0,)),
+    "2 heights": (-0.08, (8.0, -5.0), (0.0, -100.0)),  # for the models of several heights
 }
 NOISES = ((0.05, 0.01), (0.2, 0.02))  # (σ_px, σ_r mm)
 GRIDS = (3, 5, 7)
@@ -53,7 +54,8 @@ CHECK_SIDE = 25
 @dataclass(frozen=True)
 class Cell:
     """The true camera over the robot's plane z = 0: pinhole f, principal point, radial k1, the
-    plane ``distance_mm`` away along the optical axis and turned ``tilt_deg`` about the x axis."""
+    plane ``distance_mm`` away along the optical axis and turned ``tilt_deg`` about the x axis;
+    calibration points at ``heights_mm`` (robot z; −100 is 100 mm nearer the camera)."""
 
     f_px: float = 2400.0
     size_px: tuple[int, int] = (1920, 1200)
@@ -62,67 +64,82 @@ class Cell:
     k1: float = 0.0
     pp_offset_px: tuple[float, float] = (0.0, 0.0)
     half_span_mm: tuple[float, float] = (260.0, 160.0)  # the calibration grid: ±x, ±y (≈ 78 % of the view)
+    heights_mm: tuple[float, ...] = (0.0,)
 
     @property
     def centre_px(self) -> np.ndarray:
         w, h = self.size_px
         return np.array([(w - 1) / 2 + self.pp_offset_px[0], (h - 1) / 2 + self.pp_offset_px[1]])
 
-    def plane_to_camera(self) -> np.ndarray:
-        """G (3×3): camera coordinates ∝ G·(x/S, y/S, 1) of plane point (x, y, 0)."""
-        a = np.deg2rad(self.tilt_deg)
-        R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-        return np.column_stack([R[:, 0] * S_MM, R[:, 1] * S_MM, [0.0, 0.0, self.distance_mm]])
+    @property
+    def planar(self) -> bool:
+        return len(self.heights_mm) == 1
 
     def theta(self) -> np.ndarray:
-        """The true parameter row: H (8, H[2,2] = 1), k1, principal point (2)."""
-        G = self.plane_to_camera()
-        return np.r_[(G / G[2, 2]).ravel()[:8], self.k1, self.centre_px]
+        """The true parameter row (14): P (3×4 on (x/S, y/S, z/S, 1), P[2,3] = 1, row-major, 11), k1,
+        principal point (2)."""
+        a = np.deg2rad(self.tilt_deg)
+        R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+        P = np.column_stack([R * S_MM, [0.0, 0.0, self.distance_mm]])
+        return np.r_[(P / P[2, 3]).ravel()[:11], self.k1, self.centre_px]
 
-    def project(self, xy_mm) -> np.ndarray:
-        return project(self.theta()[None], np.asarray(xy_mm, float), self.f_px)[0]
+    def project(self, xyz_mm) -> np.ndarray:
+        return project(self.theta()[None], np.asarray(xyz_mm, float), self.f_px)[0]
 
     def grid(self, n: int) -> np.ndarray:
-        """n×n plane points (mm) over the calibration rectangle."""
+        """(n² per height, 3) points (mm) over the calibration rectangle at every height."""
         gx = np.linspace(-self.half_span_mm[0], self.half_span_mm[0], n)
         gy = np.linspace(-self.half_span_mm[1], self.half_span_mm[1], n)
         xx, yy = np.meshgrid(gx, gy)
-        return np.column_stack([xx.ravel(), yy.ravel()])
+        return np.vstack(
+            [np.column_stack([xx.ravel(), yy.ravel(), np.full(xx.size, z)]) for z in self.heights_mm]
+        )
 
 
 # ---------------------------------------------------------------- the true model, vectorised over θ rows
 
 
-def project(theta: np.ndarray, xy_mm: np.ndarray, f_px: float) -> np.ndarray:
-    """Pixels (P, N, 2) of plane points (N, 2) or (P, N, 2) for parameter rows θ (P, 11)."""
-    H = np.concatenate([theta[:, :8], np.ones((len(theta), 1))], axis=1).reshape(-1, 3, 3)
-    xn = np.broadcast_to(xy_mm / S_MM, (len(theta), *np.shape(xy_mm)[-2:]))
-    q = np.einsum("pij,pnj->pni", H[:, :, :2], xn) + H[:, None, :, 2]
+def _matrices(theta: np.ndarray) -> np.ndarray:
+    return np.concatenate([theta[:, :11], np.ones((len(theta), 1))], axis=1).reshape(-1, 3, 4)
+
+
+def project(theta: np.ndarray, xyz_mm: np.ndarray, f_px: float) -> np.ndarray:
+    """Pixels (P, N, 2) of points (N, 3) or (P, N, 3) for parameter rows θ (P, 14)."""
+    P = _matrices(theta)
+    xn = np.broadcast_to(xyz_mm / S_MM, (len(theta), *np.shape(xyz_mm)[-2:]))
+    q = np.einsum("pij,pnj->pni", P[:, :, :3], xn) + P[:, None, :, 3]
     m = q[..., :2] / q[..., 2:3]
-    g = 1 + theta[:, 8, None, None] * (m * m).sum(axis=-1, keepdims=True)
-    return theta[:, None, 9:11] + f_px * m * g
+    g = 1 + theta[:, 11, None, None] * (m * m).sum(axis=-1, keepdims=True)
+    return theta[:, None, 12:14] + f_px * m * g
 
 
-def unproject(theta: np.ndarray, uv_px: np.ndarray, f_px: float) -> np.ndarray:
-    """Plane points (P, N, 2) mm of pixels (N, 2) for θ rows (P, 11): undistort (Newton on the radius),
-    then the inverse homography."""
-    md = (uv_px[None] - theta[:, None, 9:11]) / f_px
+def unproject(theta: np.ndarray, uv_px: np.ndarray, z_mm: np.ndarray, f_px: float) -> np.ndarray:
+    """Plane points (P, N, 2) mm (x, y) of pixels (N, 2) at heights z (N,) for θ rows (P, 14):
+    undistort (Newton on the radius), then the inverse of the homography of the plane z."""
+    md = (uv_px[None] - theta[:, None, 12:14]) / f_px
     rd = np.linalg.norm(md, axis=-1)
-    k = theta[:, 8, None]
+    k = theta[:, 11, None]
     r = rd.copy()
     for _ in range(12):
         r -= (r + k * r**3 - rd) / (1 + 3 * k * r**2)
     m = md * np.where(rd > 0, r / np.where(rd > 0, rd, 1), 1)[..., None]
-    Hinv = np.linalg.inv(np.concatenate([theta[:, :8], np.ones((len(theta), 1))], axis=1).reshape(-1, 3, 3))
-    q = np.einsum("pij,pnj->pni", Hinv[:, :, :2], m) + Hinv[:, None, :, 2]
-    return S_MM * q[..., :2] / q[..., 2:3]
+    P = _matrices(theta)
+    out = np.empty(m.shape)
+    for z in np.unique(z_mm):
+        on = z_mm == z
+        H = np.concatenate([P[:, :, :2], P[:, :, 2:3] * (z / S_MM) + P[:, :, 3:4]], axis=2)
+        Hinv = np.linalg.inv(H)
+        q = np.einsum("pij,pnj->pni", Hinv[:, :, :2], m[:, on]) + Hinv[:, None, :, 2]
+        out[:, on] = S_MM * q[..., :2] / q[..., 2:3]
+    return out
 
 
 def _free(cell: Cell, centre_free: bool = False) -> np.ndarray:
-    """Indices of θ the oracle estimates: H; k1 when the true lens has one; the principal point
-    only when asked (the CRB with it unknown)."""
-    idx = list(range(8)) + ([8] if cell.k1 != 0 else [])
-    return np.array(idx + ([9, 10] if centre_free else []))
+    """Indices of θ the oracle estimates: P (its z column only with two heights or more); k1 when
+    the true lens has one; the principal point only when asked (the CRB with it unknown)."""
+    idx = [0, 1, 3, 4, 5, 7, 8, 9] if cell.planar else list(range(11))
+    idx += [11] if cell.k1 != 0 else []
+    return np.array(idx + ([12, 13] if centre_free else []))
 
 
 def _theta_steps(theta: np.ndarray) -> np.ndarray:
@@ -131,8 +148,8 @@ def _theta_steps(theta: np.ndarray) -> np.ndarray:
 
 def whitened_jacobian(cell: Cell, theta, X, sigma_px, sigma_r, free) -> np.ndarray:
     """(4N, D + 2N) Jacobian of the stacked whitened residuals [(robot − X)/σ_r, (uv − P(X))/σ_px]
-    by (θ_free, X): central differences, all rows of θ in one call, every point's own 2×2 block
-    from two shifts of all points at once."""
+    by (θ_free, the points' x, y): central differences, all rows of θ in one call, every point's own
+    2×2 block from two shifts of all points at once (z is known)."""
     N, D = len(X), len(free)
     h = _theta_steps(theta[free])
     rows = np.tile(theta, (2 * D, 1))
@@ -143,7 +160,7 @@ def whitened_jacobian(cell: Cell, theta, X, sigma_px, sigma_r, free) -> np.ndarr
     hx = 1e-4
     A = np.empty((N, 2, 2))  # A[i, :, j]: d uv_i / d X_ij
     for j in range(2):
-        e = np.zeros(2)
+        e = np.zeros(3)
         e[j] = hx
         shifted = project(np.stack([theta, theta]), np.stack([X + e, X - e]), cell.f_px)
         A[:, :, j] = (shifted[0] - shifted[1]) / (2 * hx)
@@ -156,14 +173,14 @@ def whitened_jacobian(cell: Cell, theta, X, sigma_px, sigma_r, free) -> np.ndarr
     return J
 
 
-def map_jacobian(cell: Cell, theta, uv_px, free) -> np.ndarray:
-    """(M, 2, D) derivative of the inverse map's plane points at fixed pixels by θ_free."""
+def map_jacobian(cell: Cell, theta, uv_px, z_mm, free) -> np.ndarray:
+    """(M, 2, D) derivative of the inverse map's plane points at fixed pixels and heights by θ_free."""
     D = len(free)
     h = _theta_steps(theta[free])
     rows = np.tile(theta, (2 * D, 1))
     rows[np.arange(D), free] += h
     rows[D + np.arange(D), free] -= h
-    out = unproject(rows, uv_px, cell.f_px)
+    out = unproject(rows, uv_px, z_mm, cell.f_px)
     return ((out[:D] - out[D:]) / (2 * h)[:, None, None]).transpose(1, 2, 0)
 
 
@@ -174,33 +191,33 @@ class Bound:
     free: np.ndarray
 
 
-def crb(cell: Cell, n: int, sigma_px: float, sigma_r: float, check_xy, centre_free=False) -> Bound:
+def crb(cell: Cell, n: int, sigma_px: float, sigma_r: float, check, centre_free=False) -> Bound:
     """The linearised Cramér–Rao bound on the check error of the true model's map (see the module
     docstring); ``centre_free``: the principal point unknown too."""
     theta = cell.theta()
     free = _free(cell, centre_free)
     J = whitened_jacobian(cell, theta, cell.grid(n), sigma_px, sigma_r, free)
     cov = np.linalg.pinv(J.T @ J)[: len(free), : len(free)]
-    G = map_jacobian(cell, theta, cell.project(check_xy), free)
+    G = map_jacobian(cell, theta, cell.project(check), check[:, 2], free)
     mse = np.einsum("mad,de,mae->m", G, cov, G)
     return Bound(float(np.sqrt(mse.mean())), cov, free)
 
 
-def oracle_fit(cell: Cell, uv_obs, xy_obs, sigma_px, sigma_r, free) -> np.ndarray:
-    """θ (11,) of the maximum-likelihood fit of the true model with the N true points as nuisance
-    parameters, started from the truth."""
+def oracle_fit(cell: Cell, uv_obs, xy_obs, z_mm, sigma_px, sigma_r, free) -> np.ndarray:
+    """θ (14,) of the maximum-likelihood fit of the true model with the N true points' (x, y) as
+    nuisance parameters (their heights z known), started from the truth."""
     theta0 = cell.theta()
     N, D = len(xy_obs), len(free)
 
     def unpack(z):
         theta = theta0.copy()
         theta[free] = z[:D]
-        return theta, z[D:].reshape(N, 2)
+        return theta, np.column_stack([z[D:].reshape(N, 2), z_mm])
 
     def fun(z):
         theta, X = unpack(z)
         uv = project(theta[None], X, cell.f_px)[0]
-        return np.concatenate([((xy_obs - X) / sigma_r).ravel(), ((uv_obs - uv) / sigma_px).ravel()])
+        return np.concatenate([((xy_obs - X[:, :2]) / sigma_r).ravel(), ((uv_obs - uv) / sigma_px).ravel()])
 
     def jac(z):
         theta, X = unpack(z)
@@ -229,8 +246,9 @@ class Tally:
 def run_config(cell: Cell, n: int, sigma_px: float, sigma_r: float, trials: int, seed: int, models):
     """One (cell, n, noise): the oracle and every model on the same ``trials`` data sets."""
     rng = np.random.default_rng(seed)
-    xy = cell.grid(n)
-    uv_true = cell.project(xy)
+    xyz = cell.grid(n)
+    xy, z = xyz[:, :2], xyz[:, 2]
+    uv_true = cell.project(xyz)
     check = cell.grid(CHECK_SIDE)
     uv_check = cell.project(check)
     bound = crb(cell, n, sigma_px, sigma_r, check)
@@ -240,19 +258,19 @@ def run_config(cell: Cell, n: int, sigma_px: float, sigma_r: float, trials: int,
     xy_noise = rng.normal(0, sigma_r, (trials, len(xy), 2))
     ck_uv_noise = rng.normal(0, sigma_px, (trials, len(check), 2))
     ck_xy_noise = rng.normal(0, sigma_r, (trials, len(check), 2))
+    ck_z = check[:, 2]
     oracle_mse, nees = [], []
     cov_inv = np.linalg.pinv(bound.cov_theta)
     tallies = {m: Tally([], [], [], []) for m in models}
     picks: dict[str, int] = {}
-    z0 = np.zeros((len(xy), 1))
     for t in range(trials):
         uv_obs, xy_obs = uv_true + uv_noise[t], xy + xy_noise[t]
-        theta = oracle_fit(cell, uv_obs, xy_obs, sigma_px, sigma_r, bound.free)
-        e = unproject(theta[None], uv_check, cell.f_px)[0] - check
+        theta = oracle_fit(cell, uv_obs, xy_obs, z, sigma_px, sigma_r, bound.free)
+        e = unproject(theta[None], uv_check, ck_z, cell.f_px)[0] - check[:, :2]
         oracle_mse.append(float((e * e).sum(axis=1).mean()))
         d = (theta - cell.theta())[bound.free]
         nees.append(float(d @ cov_inv @ d) / len(d))
-        pairs = PointPairs.from_arrays(uv_obs, np.hstack([xy_obs, z0]))
+        pairs = PointPairs.from_arrays(uv_obs, np.column_stack([xy_obs, z]))
         for name in models:
             tally = tallies[name]
             if tally.refused:
@@ -264,15 +282,16 @@ def run_config(cell: Cell, n: int, sigma_px: float, sigma_r: float, trials: int,
                 continue
             if name == "auto":
                 picks[cal.model_name] = picks.get(cal.model_name, 0) + 1
-            m = cal.map(uv_check, allow_outside=True)
-            e = m.xyz_mm[:, :2] - check
+            zq = None if cell.planar else ck_z
+            m = cal.map(uv_check, zq, allow_outside=True)
+            e = m.xyz_mm[:, :2] - check[:, :2]
             tally.mse.append(float((e * e).sum(axis=1).mean()))
             assert m.sigma_mm is not None and cal.uncertainty is not None
             noise2 = cal.uncertainty.n_coords * cal.uncertainty.noise_mm**2
             tally.sig2.append(float((m.sigma_mm**2).mean()))
             tally.sigfit2.append(float(np.maximum(m.sigma_mm**2 - noise2, 0).mean()))
-            meas = cal.map(uv_check + ck_uv_noise[t], allow_outside=True, with_sigma=False).xyz_mm
-            em = meas[:, :2] - (check + ck_xy_noise[t])
+            meas = cal.map(uv_check + ck_uv_noise[t], zq, allow_outside=True, with_sigma=False).xyz_mm
+            em = meas[:, :2] - (check[:, :2] + ck_xy_noise[t])
             tally.meas2.append(float((em * em).sum(axis=1).mean()))
     return bound, bound_c, np.array(oracle_mse), np.array(nees), tallies, picks
 
@@ -292,10 +311,10 @@ def ratio_se(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 
 def configs(quick: bool):
-    for ci, (case, (k1, pp)) in enumerate(CASES.items()):
+    for ci, (case, (k1, pp, heights)) in enumerate(CASES.items()):
         for n in (5, 7) if quick else GRIDS:
             for ni, (spx, sr) in enumerate(NOISES):
-                yield ci, case, Cell(k1=k1, pp_offset_px=pp), n, ni, spx, sr
+                yield ci, case, Cell(k1=k1, pp_offset_px=pp, heights_mm=heights), n, ni, spx, sr
 
 
 def main(argv=None) -> int:
@@ -326,7 +345,7 @@ def main(argv=None) -> int:
         o, o_se = rms_se(omse)
         crbc = f"{1e3 * bound_c.rms_mm:6.2f}" if bound_c is not None else f"{'-':>6}"
         line = (
-            f"{case:<10} {n * n:>2} {spx:>4.2f} {sr:>4.2f} {1e3 * bound.rms_mm:6.2f} {crbc} "
+            f"{case:<10} {len(cell.grid(n)):>2} {spx:>4.2f} {sr:>4.2f} {1e3 * bound.rms_mm:6.2f} {crbc} "
             f"{1e3 * o:6.2f}±{1e3 * o_se:<3.2f} {o / bound.rms_mm:6.3f} {nees.mean():5.2f}"
         )
         for name in args.models:
@@ -337,7 +356,7 @@ def main(argv=None) -> int:
                 continue
             r, se = ratio_se(np.array(tl.mse), omse)
             line += f" {r:>11.3f}±{se:<5.3f}"
-            honesty.append((case, n * n, spx, name, tl))
+            honesty.append((case, len(cell.grid(n)), spx, name, tl))
         total = sum(picks.values())
         if total:
             line += "  " + ", ".join(f"{k} {100 * v / total:.0f}%" for k, v in sorted(picks.items()))

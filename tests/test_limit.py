@@ -21,11 +21,13 @@ def lens_free():
 
 
 def test_true_model_round_trips():
-    """unproject inverts project (lens and off-centre principal point included) to 1e-9 mm."""
-    cell = Cell(k1=-0.08, pp_offset_px=(8.0, -5.0))
-    xy = cell.grid(7)
-    back = unproject(cell.theta()[None], project(cell.theta()[None], xy, cell.f_px)[0], cell.f_px)[0]
-    assert np.abs(back - xy).max() < 1e-9
+    """unproject inverts project (lens, off-centre principal point, two heights) to 1e-9 mm."""
+    for heights in ((0.0,), (0.0, -100.0)):
+        cell = Cell(k1=-0.08, pp_offset_px=(8.0, -5.0), heights_mm=heights)
+        xyz = cell.grid(7)
+        uv = project(cell.theta()[None], xyz, cell.f_px)[0]
+        back = unproject(cell.theta()[None], uv, xyz[:, 2], cell.f_px)[0]
+        assert np.abs(back - xyz[:, :2]).max() < 1e-9
 
 
 def test_oracle_reaches_the_bound(lens_free):
