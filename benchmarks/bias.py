@@ -11,8 +11,9 @@ homography can represent costs nothing); this measures the rest, on the limit ce
   a camera whose principal point is shifted by the window's corner) and found by ``detect_target``;
   ``--quick`` uses the renderer's exact ellipse centre (``circle_truth``) plus 0.006 px Gaussian
   noise per coordinate instead (about the detector's error on these renders, measured by the full run);
-* ``homography`` is fitted on the detected centres (robot positions exact, so that only the
-  image side is measured);
+* ``homography`` is fitted on the detected centres, the robot positions exact (so that only the
+  image side is measured) and then, for the "noisy" columns, read with noise σ_r (0.02 mm; 20
+  draws) — the check error a real cell would see, against which "matters" (> 10 %) is judged;
 * check: an 8×8 grid of other plane points, its pixels (a) the exact projections of the circles'
   centres (what the map must answer for an unbiased detection) and (b) the ellipse centres of the
   same targets there (a check with the same detector: bias at use cancels bias at calibration
