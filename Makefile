@@ -71,6 +71,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_uncertainty.py --cells 20
 	$(BIN)/python benchmarks/bench_verify.py --trials 300 --seeds 2
 	$(BIN)/python benchmarks/bench_outliers.py --sets 100
+	$(BIN)/python benchmarks/limit.py --quick
+	$(BIN)/python benchmarks/bias.py --quick
 
 clean:
 	rm -rf $(VENV) build dist demo-out src/*.egg-info src/eyetohand/*/*.so
