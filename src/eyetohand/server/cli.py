@@ -373,26 +373,15 @@ async def _run_serve(args, data_dir, loops: list) -> None:
 
     plc = plc_loop = None
     if _plc_wanted(args):
-        from eyetohand.server.plc import PlcServices
-
-        plc = PlcServices(
+        plc, plc_loop = await _start_plc(
+            args,
             lambda: line_server.source if line_server is not None else served,
-            modbus=parse_hostport(args.modbus, "--modbus") if getattr(args, "modbus", None) else None,
-            word_order=getattr(args, "modbus_word_order", None) or "big",
-            allow_from=getattr(args, "modbus_allow", None),
-            opcua=parse_hostport(args.opcua, "--opcua") if getattr(args, "opcua", None) else None,
-            token=args.token,
+            served,
+            poll=line_server is None,
             locate=None if locator is None else locator.locate,
+            http_sock=http_sock,
         )
-        plc_loop = LoopThread("eyetohand-plc")
         loops.append(plc_loop)
-        try:
-            await plc_loop.call(plc.start(poll=line_server is None))
-        except OSError as exc:
-            http_sock.close()
-            raise ServeError(f"{plc.starting}: cannot listen there ({exc.strerror or exc})") from None
-        for line in plc.lines(describe(served)):
-            print(line, flush=True)
 
     app = create_app(
         data_dir,
@@ -429,6 +418,34 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             source.close()
         if store is not None:
             store.close()
+
+
+async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
+    """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
+    service's served calibration when there is one, else ``served``, followed by polling when
+    ``poll``); print their start-up lines. Returns (the services, their loop)."""
+    from eyetohand.server.plc import PlcServices
+    from eyetohand.server.tcp import LoopThread
+
+    plc = PlcServices(
+        current,
+        modbus=parse_hostport(args.modbus, "--modbus") if getattr(args, "modbus", None) else None,
+        word_order=getattr(args, "modbus_word_order", None) or "big",
+        allow_from=getattr(args, "modbus_allow", None),
+        opcua=parse_hostport(args.opcua, "--opcua") if getattr(args, "opcua", None) else None,
+        token=args.token,
+        locate=locate,
+    )
+    plc_loop = LoopThread("eyetohand-plc")
+    try:
+        await plc_loop.call(plc.start(poll=poll))
+    except OSError as exc:
+        plc_loop.stop()
+        http_sock.close()
+        raise ServeError(f"{plc.starting}: cannot listen there ({exc.strerror or exc})") from None
+    for line in plc.lines(describe(served)):
+        print(line, flush=True)
+    return plc, plc_loop
 
 
 # ---- LOCATE and the sim: camera's SIM lines (the locate worktree; one block for easy merges)
