@@ -156,7 +156,12 @@ def register(sub) -> None:
         help="tool angles (deg): all pairs at A0, the centre position again at A1, .. (9 + 2)",
     )
     p.add_argument("--out", metavar="DIR", help="output folder")
-    p.add_argument("--seed", type=int, default=None, help="random seed (same seed, same session)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="random seed (default: a fresh session each run; same seed, same session)",
+    )
     p.add_argument("--images", action="store_true", help="also render the target images")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_simulate)
