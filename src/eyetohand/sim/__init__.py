@@ -11,7 +11,7 @@ from eyetohand.sim.conveyor import (
     simulate_conveyor,
     write_conveyor_simulation,
 )
-from eyetohand.sim.planner import DEFAULT_PLANS, METRICS, plan_study, plot_study
+from eyetohand.sim.planner import DEFAULT_PLANS, METRICS, VIEW_MARGIN, plan_study, plot_study, view_rectangle
 from eyetohand.sim.simulate import simulate, write_simulation
 from eyetohand.sim.source import SimSource  # registers the sim: camera source
 
@@ -20,6 +20,7 @@ __all__ = [
     "ConveyorSetup",
     "DEFAULT_PLANS",
     "METRICS",
+    "VIEW_MARGIN",
     "Plan",
     "SimSource",
     "load_cell",
@@ -29,6 +30,7 @@ __all__ = [
     "sightings_from_text",
     "simulate",
     "simulate_conveyor",
+    "view_rectangle",
     "write_conveyor_simulation",
     "write_simulation",
 ]
