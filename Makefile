@@ -55,7 +55,7 @@ test: $(STAMP) aravis browser systemd-analyze
 # served workbench and line service; PyYAML through a YAML cell). CI runs it after `make test`.
 FLOORS_VENV ?= .venv-floors
 FLOORS_TESTS := tests/test_cli.py tests/test_calibration.py tests/test_sim.py tests/test_pairs.py \
-	tests/test_truth_http.py tests/test_first_day_trips.py
+	tests/test_truth_http.py tests/test_first_day_trips.py tests/test_plan_from_view.py
 floors:
 	rm -rf $(FLOORS_VENV)
 	$(PY) -m venv $(FLOORS_VENV)
