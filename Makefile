@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint format bench clean browser systemd-analyze aravis
+.PHONY: setup demo test lint format bench clean browser systemd-analyze aravis floors
 
 # setup.py builds the compiled parts (src/eyetohand/models/_rows.c, solve/_swarm.c) into the source tree
 $(STAMP): pyproject.toml setup.py src/eyetohand/models/_rows.c src/eyetohand/solve/_swarm.c src/eyetohand/_buffers.h
@@ -49,6 +49,22 @@ test: $(STAMP) aravis browser systemd-analyze
 	$(BIN)/mypy
 	$(BIN)/python -m pytest
 
+# The stated floors, tested: a second venv with every `>=` floor of pyproject.toml pinned exactly
+# (.ci/floors.py), and the tests that reach each floored package (NumPy, SciPy, OpenCV, Matplotlib
+# through the CLI and the simulator; FastAPI, Starlette, pydantic, uvicorn, h11, orjson through the
+# served workbench and line service; PyYAML through a YAML cell). CI runs it after `make test`.
+FLOORS_VENV ?= .venv-floors
+FLOORS_TESTS := tests/test_cli.py tests/test_calibration.py tests/test_sim.py tests/test_pairs.py \
+	tests/test_truth_http.py tests/test_first_day_trips.py tests/test_plan_from_view.py
+floors:
+	rm -rf $(FLOORS_VENV)
+	$(PY) -m venv $(FLOORS_VENV)
+	$(PY) .ci/floors.py yaml dev > $(FLOORS_VENV)/floors.txt
+	$(FLOORS_VENV)/bin/pip install --quiet --constraint $(FLOORS_VENV)/floors.txt '.[yaml]' pytest hypothesis httpx
+	$(FLOORS_VENV)/bin/pip list --format=freeze | grep -iE '^(numpy|scipy|opencv|matplotlib|fastapi|starlette|pydantic|uvicorn|h11|orjson|swagger|pyyaml)'
+	$(FLOORS_VENV)/bin/python -c "import eyetohand, sys; assert 'site-packages' in eyetohand.__file__, eyetohand.__file__"
+	$(FLOORS_VENV)/bin/python -m pytest -p no:cacheprovider $(FLOORS_TESTS)
+
 lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
@@ -75,4 +91,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bias.py --quick
 
 clean:
-	rm -rf $(VENV) build dist demo-out src/*.egg-info src/eyetohand/*/*.so
+	rm -rf $(VENV) $(FLOORS_VENV) build dist demo-out src/*.egg-info src/eyetohand/*/*.so

@@ -37,10 +37,11 @@ skew_deg = 0.01
 """
 SEED = 5
 PLAN = "grid:3x3"
-# The programs' rectangle (-40,570)-(60,650) at z 150 in this cell: 8 of the 9 poses are seen, the
-# corner (-40,650) is cut by the image border, so every run also takes the skip path with the
-# server's real ERR reply ("ERR outside the image: ...", longer than 80 characters).
-N_RECORDED, N_SKIPPED = 8, 1
+# The programs' rectangle (0,570)-(70,650) at z 150 lies inside this cell's view: all 9 poses are
+# recorded. The skip path (the server's real "ERR outside the image: ..." reply, longer than RAPID's
+# 80 characters) is taken by test_abb_rapid_skips_a_pose_outside_the_view with the old rectangle.
+N_RECORDED, N_SKIPPED = 9, 0
+OUTSIDE_RECT = "-40,570,60,650"  # its corner (-40,650) is cut by the image border here
 
 
 @pytest.fixture(scope="module")
@@ -249,7 +250,7 @@ def test_ur_script(tmp_path, cell_file):
                 assert r[2] == recorded
         r = cmd("CAL END")
         assert r[1] == 1 and r[2] == N_RECORDED and 0 < r[3] < 0.5, r
-        assert skipped == [-5] * N_SKIPPED  # -5: outside the image
+        assert skipped == []  # -5 would be: outside the image
         assert wire.sent[:3] == [begin.encode(), b"\r", b"\n"]
     finally:
         wire.close()
@@ -324,11 +325,30 @@ def test_abb_rapid(tmp_path, cell_file):
         out = abb_run(wire, begin, line_end, dec.pop())
         assert out["ok"], out
         assert re.fullmatch(rf"OK [a-z-]+,{N_RECORDED},\d+\.\d{{4}},\d+\.\d{{4}}", out["end"]), out
-        skipped = out["messages"][:-1]
-        assert len(skipped) == N_SKIPPED and all(len(m) == 80 for m in skipped), skipped
-        assert skipped[0].startswith("eyetohand: point skipped: ERR outside the image")
+        assert out["messages"][:-1] == [], out["messages"]
         assert out["messages"][-1] == f"eyetohand: calibrated: {out['end']}"
         assert wire.sent[0] == begin.encode() + b"\r\n" and all(s.endswith(b"\r\n") for s in wire.sent)
+    finally:
+        wire.close()
+        srv.stop()
+
+
+def test_abb_rapid_skips_a_pose_outside_the_view(tmp_path, cell_file):
+    """A rectangle with a corner outside the view: RAPID's skip message quoting the server's real ERR
+    is cut to 80 characters, the other poses are recorded and END calibrates."""
+    text = program("abb/EyetohandCollect.mod")
+    begin = short_plan(one(r'CONST string BEGIN_CMD := "([^"]+)";', text).group(1))
+    begin = re.sub(r",grid:3x3,[-0-9.,]+,([0-9.]+)$", f",grid:3x3,{OUTSIDE_RECT},\\1", begin)
+    assert OUTSIDE_RECT in begin, begin
+    srv = serve(tmp_path, cell_file)
+    wire = Wire(srv.tcp_port)
+    try:
+        out = abb_run(wire, begin, b"\r\n", 4)
+        assert out["ok"], out
+        assert re.fullmatch(r"OK [a-z-]+,8,\d+\.\d{4},\d+\.\d{4}", out["end"]), out
+        skipped = out["messages"][:-1]
+        assert len(skipped) == 1 and len(skipped[0]) == 80, skipped
+        assert skipped[0].startswith("eyetohand: point skipped: ERR outside the image")
     finally:
         wire.close()
         srv.stop()
@@ -378,7 +398,7 @@ def test_fanuc_karel(tmp_path, cell_file):
                 skipped.append(reply[:40])
         ok, end = send_cmd("CAL END")
         assert ok and n == N_RECORDED and end.startswith("OK ") and len(end) <= reply_len, end
-        assert len(skipped) == N_SKIPPED and skipped[0].startswith("ERR outside the image")
+        assert skipped == []
         assert karel_cnv_str_real(end[3:].split(",")[0]) is None  # why END's reply is not parsed
     finally:
         wire.close()
@@ -490,7 +510,8 @@ def test_epson_spel(tmp_path, cell_file):
 
 
 def test_robot_client_documented_negative_rect(tmp_path, cell_file):
-    """README's form, ``--rect -40,570,60,650`` (a value that starts with '-'), is accepted."""
+    """The form ``--rect -40,570,60,650`` (a value that starts with '-'; README's rectangle no longer
+    does) is accepted; its corner (-40,650) is outside this cell's view, so 8 of 9 are recorded."""
     srv = serve(tmp_path, cell_file)
     try:
         client = subprocess.run(
@@ -515,7 +536,7 @@ def test_robot_client_documented_negative_rect(tmp_path, cell_file):
         )
         assert client.returncode == 0, client.stdout + client.stderr
         replies = [ln[2:] for ln in client.stdout.splitlines() if ln.startswith("< ")]
-        assert replies[-1].startswith("OK ") and f",{N_RECORDED}," in replies[-1], replies
+        assert replies[-1].startswith("OK ") and ",8," in replies[-1], replies
         sent = [ln[2:] for ln in client.stdout.splitlines() if ln.startswith("> ")]
         assert sent[0] == f"CAL BEGIN cell1,{PLAN},-40.0000,570.0000,60.0000,650.0000,150.0000"
     finally:

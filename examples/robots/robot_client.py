@@ -18,7 +18,7 @@ Camera modes:
 Example (a server started with ``eyetohand serve --tcp 127.0.0.1:5000 --camera sim:cell.toml``)::
 
     python examples/robots/robot_client.py --tcp 127.0.0.1:5000 --name cell1 \\
-        --plan grid:5x5 --rect -40,570,60,650 --z 150
+        --plan grid:5x5 --rect 0,570,70,650 --z 150
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ MODULE EyetohandCollect
 
     CONST string HOST := "192.168.125.10";   ! the vision PC
     CONST num PORT := 5000;
-    CONST string BEGIN_CMD := "CAL BEGIN cell1,grid:5x5,-40,570,60,650,150";
+    CONST string BEGIN_CMD := "CAL BEGIN cell1,grid:5x5,0,570,70,650,150";
     CONST num TIMEOUT_S := 30;
     PERS tooldata tCalTarget := [TRUE, [[0, 0, 120], [1, 0, 0, 0]], [0.5, [0, 0, 50], [1, 0, 0, 0], 0, 0, 0]];
     PERS wobjdata wCal := [FALSE, TRUE, "", [[0, 0, 0], [1, 0, 0, 0]], [[0, 0, 0], [1, 0, 0, 0]]];

@@ -43,7 +43,7 @@ Function CalCollect
     EndIf
     CP Off
 
-    If Not Cmd("CAL BEGIN cell1,grid:5x5,-40,570,60,650,150") Then GoTo Fail
+    If Not Cmd("CAL BEGIN cell1,grid:5x5,0,570,70,650,150") Then GoTo Fail
 
     Do
         If Not Cmd("CAL NEXT") Then GoTo Fail

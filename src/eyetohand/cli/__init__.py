@@ -1,6 +1,7 @@
 """The ``eyetohand`` command: parse, call the library, print, set the exit code.
 
-Exit codes: 0 ok; 2 bad input (one ``error:`` line on stderr); 1 internal failure.
+Exit codes: 0 ok; 2 bad input (one ``error:`` line on stderr); 1 internal failure; 130 Ctrl-C (one
+``error: interrupted`` line, in every command: tests/test_first_day_trips.py).
 The commands live in this package only, one module per group, each with ``register(subparsers)``
 (listed in ``COMMAND_MODULES``, in the order of ``eyetohand --help``). Library modules print nothing
 and never import this package.
@@ -12,6 +13,7 @@ import argparse
 import functools
 import importlib
 import os
+import signal
 import sys
 
 from eyetohand._version import __version__
@@ -54,7 +56,30 @@ def _parser() -> argparse.ArgumentParser:
     return build_parser()
 
 
+class _Interrupt:
+    """Ctrl-C, seen by the command whatever a library makes of it: the signal handler raises
+    KeyboardInterrupt as Python's does, and remembers the signal, so an interrupt that a library turns
+    into another exception (NumPy, a thread pool) still ends as one ``error: interrupted`` line, 130."""
+
+    seen = False
+
+    @classmethod
+    def handler(cls, signum, frame):
+        cls.seen = True
+        raise KeyboardInterrupt
+
+    @classmethod
+    def install(cls) -> None:
+        cls.seen = False
+        try:  # Python's own handler only: an ignored SIGINT (nohup, a service) stays ignored
+            if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+                signal.signal(signal.SIGINT, cls.handler)
+        except ValueError:  # not the main thread (main called from a thread): Python's rule stands
+            pass
+
+
 def main(argv=None) -> int:
+    _Interrupt.install()
     try:
         parser = _parser()
         args = parser.parse_args(argv)
@@ -71,6 +96,9 @@ def main(argv=None) -> int:
     except BrokenPipeError:
         return 0
     except Exception as exc:  # internal failure: one line unless debugging
+        if _Interrupt.seen:  # Ctrl-C, turned into another exception on its way out
+            print("error: interrupted", file=sys.stderr)
+            return 130
         if os.environ.get("EYETOHAND_DEBUG"):
             raise
         print(

@@ -73,6 +73,22 @@ def cmd_apply(args) -> int:
             raise InputError("conveyor apply: --angle gives rz with --e-now; the tracking form has no rz")
         t = conv.tracking_form(uv, args.e_image)
         p, b = t["position_mm"][0], t["belt_mm_per_count"]
+        if args.json:
+            xyz = dict(zip("xyz", (float(v) for v in p), strict=True))
+            belt = [float(v) for v in b]
+            print(
+                json.dumps(
+                    {
+                        "u": args.uv[0],
+                        "v": args.uv[1],
+                        "e_image": args.e_image,
+                        **xyz,
+                        "belt_mm_per_count": belt,
+                    },
+                    allow_nan=False,
+                )
+            )
+            return 0
         print(" ".join(f"{v:.6f}" for v in p) + f" {args.e_image} " + " ".join(f"{v:.9g}" for v in b))
         return 0
     if args.e_now is None:
@@ -83,6 +99,11 @@ def cmd_apply(args) -> int:
         vals += list(
             conv.rz_deg(uv, args.angle, symmetry=args.symmetry, tool_rz_offset_deg=args.tool_rz_offset)
         )
+    if args.json:  # full precision, named as apply --json names them
+        names = ("x", "y", "z", "rz")[: len(vals)]
+        out = {"u": args.uv[0], "v": args.uv[1], "e_image": args.e_image, "e_now": args.e_now}
+        print(json.dumps({**out, **{k: float(v) for k, v in zip(names, vals, strict=True)}}, allow_nan=False))
+        return 0
     print(" ".join(f"{v:.6f}" for v in vals))
     return 0
 
@@ -108,14 +129,31 @@ def cmd_simulate(args) -> int:
     )
     sim = simulate_conveyor(setup, seed=args.seed)
     files = write_conveyor_simulation(sim, args.out)
+    lo, hi = sim.truth["window_along_belt_mm"]
+    w, h = sim.cell.image_size
+    if args.json:
+        summary = {"out": str(args.out), "rows": len(sim.session), "parts": setup.n_parts}
+        print(
+            json.dumps(
+                {
+                    **summary,
+                    "files": [str(f) for f in files],
+                    "counts_wrap": sim.truth["counts_wrap"],
+                    "window_along_belt_mm": [lo, hi],
+                    "image_size": [w, h],
+                    "pulses_per_mm": setup.stated_counts_per_mm,
+                },
+                allow_nan=False,
+                default=float,
+            )
+        )
+        return 0
     print(
         f"simulated {len(sim.session)} rows ({setup.n_parts} parts, sighted "
         f"{'once' if setup.sightings is None else '/'.join(setup.sightings)}); "
         f"counts wrap: {sim.truth['counts_wrap']}"
     )
     print(f"wrote {', '.join(str(f) for f in files)}")
-    lo, hi = sim.truth["window_along_belt_mm"]
-    w, h = sim.cell.image_size
     print(
         f"next: eyetohand conveyor calibrate {args.out}/session.csv -o belt.json "
         f"--pulses-per-mm {setup.stated_counts_per_mm:.9g} --window {lo:.3f} {hi:.3f} --image-size {w}x{h}"
@@ -160,11 +198,12 @@ def register(sub) -> None:
     )
     add_orientation_options(p)
     p.add_argument("--allow-outside", action="store_true", help="answer outside the robot window too")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_apply)
 
     p = csub.add_parser("simulate", help="write a simulated conveyor session and its truth")
     p.add_argument("--out", required=True, metavar="DIR")
-    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--seed", type=int, default=None, help="random seed (default: a fresh session each run)")
     p.add_argument("--parts", type=int, default=120)
     p.add_argument("--yaw-deg", type=float, default=3.0)
     p.add_argument("--pitch-deg", type=float, default=0.5)
@@ -177,6 +216,7 @@ def register(sub) -> None:
         help="each part's frames: a comma list of stopped/running (default stopped,running), or 'one' "
         "(one sighting per part, half of them stopped)",
     )
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     _counter_options(p)
     p.set_defaults(func=cmd_simulate)
     conv.set_defaults(func=lambda a: (conv.print_help(), 2)[1])

@@ -3,6 +3,7 @@ and with the target detected in it (the way to check a camera before a collectio
 
 from __future__ import annotations
 
+import json
 import sys
 from datetime import datetime
 from pathlib import Path
@@ -34,6 +35,30 @@ def _encode(image, path: str) -> bytes:
     return data.tobytes()
 
 
+def _grab_json(image, timestamp_s: float, output, detection) -> dict:
+    out = {
+        "width": int(image.shape[1]),
+        "height": int(image.shape[0]),
+        "channels": 1 if image.ndim == 2 else int(image.shape[2]),
+        "dtype": str(image.dtype),
+        "timestamp_s": timestamp_s,
+        "output": output,
+    }
+    if detection is not None:
+        out["target"] = (
+            {
+                "u": detection.u,
+                "v": detection.v,
+                "diameter_px": detection.diameter_px,
+                "score": detection.score,
+            }
+            if detection.ok
+            else None
+        )
+        out["reason"] = None if detection.ok else detection.reason
+    return out
+
+
 def cmd_grab(args) -> int:
     if args.output:
         _check_output(args.output)
@@ -49,13 +74,17 @@ def cmd_grab(args) -> int:
             raise InputError(str(exc)) from None
     kind = "grey" if image.ndim == 2 else f"{image.shape[2]} channels"
     when = datetime.fromtimestamp(timestamp_s).astimezone().isoformat(timespec="milliseconds")
-    print(f"frame {image.shape[1]}x{image.shape[0]} px {kind} {image.dtype}")
-    print(f"timestamp {timestamp_s:.6f} s ({when})")
     detection = detect_target(image) if args.detect else None
     if args.output:
         atomic_write_bytes(
             args.output, _encode(annotate(image, detection) if detection else image, args.output)
         )
+    if args.json:
+        print(json.dumps(_grab_json(image, timestamp_s, args.output, detection), allow_nan=False))
+        return 2 if detection is not None and not detection.ok else 0
+    print(f"frame {image.shape[1]}x{image.shape[0]} px {kind} {image.dtype}")
+    print(f"timestamp {timestamp_s:.6f} s ({when})")
+    if args.output:
         print(f"wrote {args.output}" + (" (target drawn)" if detection else ""))
     if detection is None:
         return 0
@@ -87,4 +116,5 @@ def register(sub) -> None:
         help="X Y Z [ANGLE]: where the robot is (sim: draws the target there; a real camera sees it)",
     )
     p.add_argument("--timeout", type=float, default=None, metavar="S", help="seconds the grab may wait")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_grab)

@@ -6,15 +6,18 @@ import json
 import sys
 
 from eyetohand.cell import VALID_FORMS, parse_numbers, parse_plan
-from eyetohand.core import InputError, atomic_write_text
+from eyetohand.cli.common import parse_image_size
+from eyetohand.core import InputError, atomic_write_text, load_pairs
 from eyetohand.sim import (
     DEFAULT_PLANS,
     METRICS,
+    VIEW_MARGIN,
     Cell,
     load_cell,
     plan_study,
     plot_study,
     simulate,
+    view_rectangle,
     write_simulation,
 )
 
@@ -85,7 +88,36 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def cmd_plan_from_view(args) -> int:
+    """``plan --from-view --corners FILE --image-size WxH``: the rectangle to collect over, in robot mm."""
+    if not args.corners or not args.image_size:
+        raise InputError(
+            "plan --from-view: give --corners FILE (3 or 4 pairs u,v,x,y,z: the target jogged near the "
+            "image's corners) and --image-size WxH (eyetohand grab prints it)"
+        )
+    view = view_rectangle(load_pairs(args.corners), parse_image_size(args.image_size), margin=args.margin)
+    x0, y0, x1, y1 = view["rect_mm"]
+    rect = f"{x0:g},{y0:g},{x1:g},{y1:g}"
+    view["rect"] = rect
+    view["begin"] = f"CAL BEGIN cell1,grid:5x5,{rect},{view['z_mm']:g}"
+    if args.json:
+        print(json.dumps(view, allow_nan=False))
+        return 0
+    w, h = view["image_size"]
+    print(
+        f"view at z = {view['z_mm']:g} mm ({w}x{h} px less {view['margin']:g} of it at each edge), "
+        f"from {view['n_pairs']} jogged pairs ({view['map']} map, rough: no lens):"
+    )
+    print("  " + "  ".join(f"({a:.1f}, {b:.1f})" for a, b in view["view_mm"]))
+    print(f"rectangle: x {x0:g} to {x1:g}, y {y0:g} to {y1:g} mm ({x1 - x0:g} x {y1 - y0:g} mm)")
+    print(f"--rect {rect} --z {view['z_mm']:g}")
+    print(view["begin"])
+    return 0
+
+
 def cmd_plan(args) -> int:
+    if args.from_view:
+        return cmd_plan_from_view(args)
     cell = load_cell(args.config)
     plans = [p for item in (args.plan or DEFAULT_PLANS) for p in item.split(",") if p.strip()]
     study = plan_study(
@@ -156,7 +188,12 @@ def register(sub) -> None:
         help="tool angles (deg): all pairs at A0, the centre position again at A1, .. (9 + 2)",
     )
     p.add_argument("--out", metavar="DIR", help="output folder")
-    p.add_argument("--seed", type=int, default=None, help="random seed (same seed, same session)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="random seed (default: a fresh session each run; same seed, same session)",
+    )
     p.add_argument("--images", action="store_true", help="also render the target images")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_simulate)
@@ -183,5 +220,22 @@ def register(sub) -> None:
     p.add_argument("--model", default="auto", help="model to calibrate with (default auto)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--plot", metavar="FILE.png", help="write a bar chart of the predictions")
+    p.add_argument(
+        "--from-view",
+        action="store_true",
+        help="instead: the rectangle (robot mm) to collect over, from what the camera sees (--corners)",
+    )
+    p.add_argument(
+        "--corners",
+        metavar="PAIRS.csv",
+        help="3-4 pairs u,v,x,y,z: the target jogged near the image's corners at the work height",
+    )
+    p.add_argument("--image-size", metavar="WxH", help="image size in px (with --from-view)")
+    p.add_argument(
+        "--margin",
+        type=float,
+        default=VIEW_MARGIN,
+        help=f"fraction of the image kept clear at each edge (with --from-view; default {VIEW_MARGIN:g})",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_plan)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import importlib.util
 import ipaddress
+import logging
 import socket
 from collections.abc import Callable
 from pathlib import Path
@@ -263,6 +264,12 @@ def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
     }
 
 
+def _not_a_cancellation(record: logging.LogRecord) -> bool:
+    """A logging filter: False for a record of a cancelled task (Ctrl-C), True for any other."""
+    exc = record.exc_info[1] if record.exc_info else None
+    return not isinstance(exc, asyncio.CancelledError | KeyboardInterrupt)
+
+
 async def _serve(args, data_dir) -> None:
     loops: list = []  # the line service's loop thread, stopped however _run_serve ends
     try:
@@ -403,6 +410,9 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     config = uvicorn.Config(
         app, log_level=args.log_level, timeout_graceful_shutdown=5, http=GuardedH11Protocol
     )
+    # after Config (it configures uvicorn's loggers): Ctrl-C while the app starts cancels uvicorn's
+    # lifespan task, which it logs as an ERROR with two tracebacks; the command ends with one line
+    logging.getLogger("uvicorn.error").addFilter(_not_a_cancellation)
     server = uvicorn.Server(config)
     try:
         await server.serve(sockets=[http_sock])

@@ -12,7 +12,7 @@ from eyetohand.sim.conveyor import (
     write_conveyor_simulation,
 )
 from eyetohand.sim.parts import Part, PartsTable, sim_command
-from eyetohand.sim.planner import DEFAULT_PLANS, METRICS, plan_study, plot_study
+from eyetohand.sim.planner import DEFAULT_PLANS, METRICS, VIEW_MARGIN, plan_study, plot_study, view_rectangle
 from eyetohand.sim.simulate import simulate, write_simulation
 from eyetohand.sim.source import SimSource  # registers the sim: camera source
 
@@ -23,6 +23,7 @@ __all__ = [
     "METRICS",
     "Part",
     "PartsTable",
+    "VIEW_MARGIN",
     "Plan",
     "SimSource",
     "load_cell",
@@ -33,6 +34,7 @@ __all__ = [
     "sim_command",
     "simulate",
     "simulate_conveyor",
+    "view_rectangle",
     "write_conveyor_simulation",
     "write_simulation",
 ]

@@ -163,3 +163,107 @@ def plot_study(study: dict, path) -> None:
     buf = io.BytesIO()
     ax.figure.savefig(buf, format="png", dpi=110)
     atomic_write_bytes(path, buf.getvalue())
+
+
+# ---------------------------------------------------------------- the rectangle from what the camera sees
+
+VIEW_MARGIN = 0.08
+"""Default fraction of the image kept clear at each edge by ``plan --from-view`` (the cell's plan margin)."""
+
+
+def _rough_map(uv: np.ndarray, xy: np.ndarray):
+    """Pixel → robot (x, y) mm from 3 jogged pairs (affine, exact) or 4 and more (a homography, least
+    squares): no lens, no refinement — a day-one map for choosing where to collect, not for picking."""
+    if len(uv) == 3:
+        A = np.column_stack([uv, np.ones(3)])
+        if abs(np.linalg.det(A)) < 1e-6 * max(1.0, float(np.ptp(uv)) ** 2):
+            raise InputError(
+                "corners: the 3 pixels are on one line; jog the target to 3 corners of the image"
+            )
+        M = np.linalg.solve(A, xy)  # (3, 2)
+        return lambda q: np.column_stack([q, np.ones(len(q))]) @ M
+    import cv2
+
+    H, _ = cv2.findHomography(uv.astype(np.float64), xy.astype(np.float64), 0)
+    if H is None or not np.all(np.isfinite(H)):
+        raise InputError("corners: no map from these pairs (three or more on one line?); jog to the corners")
+
+    def apply(q):
+        p = np.column_stack([q, np.ones(len(q))]) @ H.T
+        return p[:, :2] / p[:, 2:3]
+
+    return apply
+
+
+def _largest_rectangle(poly: np.ndarray, step_mm: float) -> tuple[float, float, float, float]:
+    """The largest axis-aligned rectangle (x0, y0, x1, y1) inside the convex polygon ``poly`` (closed
+    loop of points), on a grid of ``step_mm`` in x, its edges rounded inwards to ``step_mm``."""
+    xs = np.arange(np.ceil(poly[:, 0].min() / step_mm), np.floor(poly[:, 0].max() / step_mm) + 1) * step_mm
+    lo = np.full(len(xs), np.inf)
+    hi = np.full(len(xs), -np.inf)
+    for (xa, ya), (xb, yb) in zip(poly[:-1], poly[1:], strict=True):  # the polygon's y range at each x
+        if xa == xb:
+            continue
+        t = (xs - xa) / (xb - xa)
+        ok = (t >= 0) & (t <= 1)
+        y = ya + t * (yb - ya)
+        lo[ok] = np.minimum(lo[ok], y[ok])
+        hi[ok] = np.maximum(hi[ok], y[ok])
+    best, rect = 0.0, None
+    for i in range(len(xs)):
+        top = np.maximum.accumulate(lo[i:])  # the rectangle's y range over [xs[i], xs[j]]
+        bottom = np.minimum.accumulate(hi[i:])
+        y0 = np.ceil(top / step_mm) * step_mm
+        y1 = np.floor(bottom / step_mm) * step_mm
+        area = (xs[i:] - xs[i]) * np.maximum(y1 - y0, 0.0)
+        area[~np.isfinite(area)] = 0.0
+        j = int(np.argmax(area))
+        if area[j] > best:
+            best, rect = float(area[j]), (float(xs[i]), float(y0[j]), float(xs[i + j]), float(y1[j]))
+    if rect is None:
+        raise InputError(
+            "corners: the view they describe holds no rectangle; jog closer to the image corners"
+        )
+    return rect
+
+
+def view_rectangle(pairs, image_size, *, margin: float = VIEW_MARGIN, step_mm: float = 1.0) -> dict:
+    """Where to collect, from what the camera sees, before any calibration: ``pairs`` (3 or more, from
+    jogging the target near the image's corners, all at the work height) give a rough map; the image less
+    ``margin`` at each edge, mapped through it, is the view at that height; the answer is the largest
+    axis-aligned rectangle (robot x, y mm, rounded inwards to ``step_mm``) inside it."""
+    w, h = image_size
+    uv, xyz = np.asarray(pairs.uv_px, float), np.asarray(pairs.xyz_mm, float)
+    if not 3 <= len(uv) <= 50:
+        raise InputError(f"corners: expected 3 or 4 jogged pairs (pixel and robot), got {len(uv)}")
+    if not 0 <= margin < 0.45:
+        raise InputError(f"--margin: expected a fraction of the image from 0 to 0.45, got {margin!r}")
+    z = xyz[:, 2]
+    if np.ptp(z) > 0.5:
+        raise InputError(
+            f"corners: the pairs are at z = {z.min():g} to {z.max():g} mm; jog them all at the work height "
+            "(the view is a different size at each height)"
+        )
+    outside = (uv[:, 0] < 0) | (uv[:, 0] > w - 1) | (uv[:, 1] < 0) | (uv[:, 1] > h - 1)
+    if outside.any():
+        raise InputError(f"corners: pair {pairs.ids[int(np.argmax(outside))]} is outside the {w}x{h} image")
+    to_robot = _rough_map(uv, xyz[:, :2])
+    m = margin * min(w, h)
+    t = np.linspace(0.0, 1.0, 65)[:-1, None]
+    c = np.array([[m, m], [w - 1 - m, m], [w - 1 - m, h - 1 - m], [m, h - 1 - m]])
+    border = np.vstack([c[k] + t * (c[(k + 1) % 4] - c[k]) for k in range(4)])  # the image's edge, in order
+    poly = to_robot(border)
+    poly = np.vstack([poly, poly[:1]])
+    x0, y0, x1, y1 = _largest_rectangle(poly, step_mm)
+    reach = np.linalg.norm(to_robot(uv) - xyz[:, :2], axis=1)  # exact for 3 and for 4 good pairs
+    return {
+        "rect_mm": [x0, y0, x1, y1],
+        "z_mm": float(np.mean(z)),
+        "size_mm": [x1 - x0, y1 - y0],
+        "view_mm": [[float(a), float(b)] for a, b in to_robot(c)],
+        "margin": float(margin),
+        "image_size": [int(w), int(h)],
+        "n_pairs": len(uv),
+        "map": "affine" if len(uv) == 3 else "homography",
+        "pair_residual_max_mm": float(reach.max()),
+    }

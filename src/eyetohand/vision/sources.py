@@ -15,6 +15,11 @@ URI                        source
 
 Options follow a ``?``: ``folder:DIR?timeout=5``, ``sim:cell.toml?seed=3``, ``opencv:0?timeout=2``.
 
+**What ``folder:`` does with the files it read** (default: nothing, every image stays where it was):
+``folder:DIR?after=delete`` deletes each image once taken, ``?after=move`` moves it into ``DIR/done/``,
+``?keep=N`` keeps only the N newest images at or before the one just taken (in ``DIR``, or with
+``after=move`` in ``DIR/done/``); sidecars go with their image (:class:`FolderSource`).
+
 **Encoder counts latched with the frame** (conveyors, ``BELT SIGHT`` without a count): after each
 grab, ``source.encoder_count`` is the belt encoder's count the camera latched with that frame, or
 None (never a count left over from an earlier frame). Sources that provide one, with ``encoder=1``:
@@ -49,6 +54,7 @@ GenICam and Basler sources need their extras and a camera and are untested on th
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from collections.abc import Callable, Mapping
@@ -63,6 +69,8 @@ from eyetohand.core import InputError
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 DEFAULT_TIMEOUT_S = 10.0
 FOLDER_POLL_S = 0.01
+FOLDER_AFTER = ("keep", "delete", "move")
+"""``folder:DIR?after=…``: what becomes of a file once taken (default keep: nothing is deleted)."""
 
 
 class GrabTimeout(TimeoutError):
@@ -149,9 +157,24 @@ class FolderSource(Source):
     and it decodes (truncated PNG/JPEG files are waited for). Hidden files (``.name``) and
     ``*.tmp``/``*.part`` are ignored, so writers that rename into place (as
     :func:`eyetohand.core.io.atomic_write_bytes` does) are picked up only when whole. Several new files:
-    the oldest by modification time (then name)."""
+    the oldest by modification time (then name).
 
-    def __init__(self, folder: str, uri: str, timeout_s: float = DEFAULT_TIMEOUT_S, encoder: bool = False):
+    Retention (what happens to the files once read; default: nothing, every image stays):
+    ``after="delete"`` deletes the file just taken (and its ``.json`` sidecar), ``after="move"`` moves
+    them into ``folder/done/``; ``keep=N`` keeps, of the images in ``folder`` (with ``after="move"``:
+    in ``done/``) that are not newer than the one just taken, only the N newest — older ones can never
+    be taken again (a grab takes only files that appear after it starts), second exposures included."""
+
+    def __init__(
+        self,
+        folder: str,
+        uri: str,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        encoder: bool = False,
+        *,
+        after: str = "keep",
+        keep: int | None = None,
+    ):
         self.uri, self.timeout_s = uri, timeout_s
         self.latches_encoder = bool(encoder)
         self.folder = Path(folder)
@@ -159,6 +182,12 @@ class FolderSource(Source):
             raise InputError(f"{uri}: expected folder:<directory>")
         if not self.folder.is_dir():
             raise InputError(f"{uri}: {self.folder} is not a folder")
+        if after not in FOLDER_AFTER:
+            raise InputError(f"{uri}: option after={after!r}, expected one of {', '.join(FOLDER_AFTER)}")
+        if keep is not None and (after == "delete" or keep < 0):
+            why = "with after=delete nothing is kept" if after == "delete" else "a whole number >= 0"
+            raise InputError(f"{uri}: option keep={keep!r}: {why}")
+        self.after, self.keep = after, keep
         self.last_path: Path | None = None
 
     def _scan(self) -> dict[str, os.stat_result]:
@@ -217,6 +246,7 @@ class FolderSource(Source):
                 self.last_path = path
                 if self.latches_encoder:
                     self.encoder_count = _sidecar_count(path)
+                self._retain(path, now)
                 return img, now[name].st_mtime_ns * 1e-9
             if time.monotonic() >= t_end:
                 if bad:  # a new file came but never decoded: say so, not "no image"
@@ -224,6 +254,38 @@ class FolderSource(Source):
                     raise InputError(f"image decode failed: {why} (new file {name}, {self.uri})")
                 raise GrabTimeout(f"no new image within {self.timeout_s:g} s ({self.uri})")
             time.sleep(FOLDER_POLL_S)
+
+    def _retain(self, path: Path, seen: dict[str, os.stat_result]) -> None:
+        """Apply the retention options to the file just taken (see the class); a file that vanished or
+        cannot be removed is left as it is (the grab has its image)."""
+        taken = seen[path.name]
+        files = [path, path.with_name(path.name + ".json")]
+        try:
+            if self.after == "delete":
+                for f in files:
+                    f.unlink(missing_ok=True)
+            elif self.after == "move":
+                done = self.folder / "done"
+                done.mkdir(exist_ok=True)
+                for f in files:
+                    if f.exists():
+                        os.replace(f, done / f.name)
+        except OSError:
+            return
+        if self.keep is None:
+            return
+        where = self.folder / "done" if self.after == "move" else self.folder
+        old = []
+        for e in os.scandir(where):
+            if e.name.startswith(".") or not e.name.lower().endswith(IMAGE_SUFFIXES) or not e.is_file():
+                continue
+            st = e.stat()
+            if (st.st_mtime_ns, e.name) <= (taken.st_mtime_ns, path.name):
+                old.append((st.st_mtime_ns, e.name))
+        for _, name in sorted(old, reverse=True)[self.keep :]:
+            for f in (where / name, where / (name + ".json")):
+                with contextlib.suppress(OSError):
+                    f.unlink()
 
 
 def _sidecar_count(image: Path) -> int:
@@ -431,6 +493,7 @@ def _timeout(opts: dict, overrides: dict) -> float:
 _TIMEOUT: dict[str, Callable[[str], object]] = {"timeout": float}
 # the sources that can carry a latched encoder count
 _LATCHING: dict[str, Callable[[str], object]] = {"timeout": float, "encoder": _flag}
+_FOLDER: dict[str, Callable[[str], object]] = {**_LATCHING, "after": str, "keep": int}
 register_source(
     "opencv",
     SourceScheme(
@@ -444,9 +507,14 @@ register_source(
     "folder",
     SourceScheme(
         lambda target, uri, opts, over: FolderSource(
-            target, uri, timeout_s=_timeout(opts, over), encoder=opts.get("encoder", False)
+            target,
+            uri,
+            timeout_s=_timeout(opts, over),
+            encoder=opts.get("encoder", False),
+            after=opts.get("after", "keep"),
+            keep=opts.get("keep"),
         ),
-        _LATCHING,
+        _FOLDER,
         "folder:<dir>",
     ),
 )
