@@ -68,12 +68,25 @@ def test_write_report_on_paper_data(tmp_path, paper_cal):
     assert not list((tmp_path / "r").glob(".*.tmp"))
 
 
-def test_report_without_pairs_skips_vectors_and_says_so(tmp_path, paper_cal):
+def test_report_draws_vectors_from_the_pairs_the_file_carries(tmp_path, paper_cal):
+    """A calibration file stores its training and check pairs: the report draws them without --pairs
+    (it once said the file did not store the image positions)."""
     cal, _, _ = paper_cal
+    assert cal.pairs is not None and cal.check_pairs is not None
     text = write_report(tmp_path / "r", cal).read_text(encoding="utf-8")
+    assert (tmp_path / "r" / "residual_vectors.png").exists()
+    assert "not drawn" not in text and "but not its image position" not in text
+    assert f"{cal.check.rms_mm:.4f}" in text  # the stored check stats are still reported
+
+
+def test_report_without_pairs_skips_vectors_and_says_so(tmp_path, paper_cal):
+    from dataclasses import replace
+
+    cal, _, _ = paper_cal
+    bare = replace(cal, pairs=None, check_pairs=None)
+    text = write_report(tmp_path / "r", bare).read_text(encoding="utf-8")
     assert not (tmp_path / "r" / "residual_vectors.png").exists()
     assert "Residual vectors: not drawn" in text and "--pairs" in text
-    assert f"{cal.check.rms_mm:.4f}" in text  # the stored check stats are still reported
 
 
 def test_report_with_pso_history_has_convergence_and_selection(tmp_path, paper_cal):

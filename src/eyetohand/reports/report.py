@@ -220,7 +220,10 @@ def _plots(
         "Fit residual of each training point and, when computed, its "
         "leave-one-out error (the point predicted by a fit without it).",
     )
-    _residual_plot(doc, cal, [(ev.train_label, train_pairs), ("check", check_pairs)])
+    # the pairs given, else the ones the calibration file carries (every schema-2 file does)
+    stored_train = cal.pairs if ev.train_label == "train" else None
+    sets = [(ev.train_label, train_pairs or stored_train), ("check", check_pairs or cal.check_pairs)]
+    _residual_plot(doc, cal, sets)
     _sigma_map(doc, cal)
 
 
@@ -236,8 +239,8 @@ def _residual_plot(
     given = [(label, p) for label, p in sets if p is not None]
     if not given:
         doc.p(
-            "Residual vectors: not drawn. The calibration file stores each point's error but not "
-            "its image position; give the pairs (--pairs TRAIN and/or --check CHECK) to draw them.",
+            "Residual vectors: not drawn. This calibration carries no pairs (their image positions); "
+            "give them (--pairs TRAIN and/or --check CHECK) to draw them.",
             "muted",
         )
         return
