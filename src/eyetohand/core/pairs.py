@@ -207,9 +207,32 @@ def load_pairs(path: str | os.PathLike) -> PointPairs:
     path = Path(path)
     name = str(path)
     text = read_pairs_text(path)
+    check_pair_count(text, name)
     if path.suffix.lower() == ".json":
         return _parse_json(text, name)
     return pairs_from_text(text, name)
+
+
+MAX_PAIRS = 2_000
+"""Most pairs a pairs file (or an HTTP request) may hold: a calibration plan is 9-100 points; far past
+this a file is a mix-up (a log, an image list), and reading millions of rows costs gigabytes."""
+
+
+def check_pair_count(text: str, source: str) -> None:
+    """Refuse a text that holds more than :data:`MAX_PAIRS` pairs, counted before it is parsed (so a
+    3-million-row file is refused in a second, not after 2 GB of rows): CSV lines that are not blank,
+    less the header; for JSON, the ``"u"`` keys (every pair has one)."""
+    if text.lstrip().startswith(("{", "[")):
+        n = text.count('"u"')
+    elif text.count("\n") + text.count("\r") <= MAX_PAIRS:  # at most this many lines: nothing to count
+        return
+    else:
+        n = sum(1 for line in text.splitlines() if line.strip()) - 1
+    if n > MAX_PAIRS:
+        raise InputError(
+            f"{source}: {n} pairs, expected at most {MAX_PAIRS} (a calibration needs 9-100; is this "
+            "the right file?)"
+        )
 
 
 def pairs_from_text(text: str, source: str = "<text>") -> PointPairs:

@@ -8,7 +8,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool, W
 from pydantic import Strict as StrictType
 
 from eyetohand.calibration import MAX_IMAGE_SIDE_PX, check_image_size
-from eyetohand.core import InputError
+from eyetohand.core import MAX_PAIRS, InputError
 from eyetohand.geometry import check_symmetry
 from eyetohand.models import MODEL_CHOICES, get_model
 from eyetohand.server.storage import clean_text, is_id_like
@@ -26,7 +26,6 @@ MAX_BODY_BYTES = 64 * 1024 * 1024
 """Largest request body (bytes); a larger one gets 413."""
 MAX_POINTS = 1_000_000
 """Most image points in one image-to-robot request; more gets 413."""
-MAX_PAIRS = 2_000
 """Most point pairs (or check pairs) in one fit request. Measured on a 2-core machine: ``auto``
 on 2 000 pairs holds the fit worker ~21 s at ~440 MiB; 5 000 took ~3 min at 1.9 GiB."""
 MAX_FIT_BODY_BYTES = 4 * 1024 * 1024
