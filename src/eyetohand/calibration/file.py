@@ -42,7 +42,7 @@ from eyetohand.geometry import (
     local_jacobian,
     wrap_deg,
 )
-from eyetohand.models import HeightRule, Model, model_from_dict
+from eyetohand.models import HeightRule, Model, as_uv, model_from_dict, one_point, opencv
 from eyetohand.solve import Uncertainty
 
 SCHEMA = "eyetohand.calibration"
@@ -180,7 +180,37 @@ class Calibration:
     # ------------------------------------------------------------ mapping
     def image_to_robot(self, uv_px, z=None, *, allow_outside: bool = False) -> np.ndarray:
         """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
+        one = self._map_one(uv_px, z)
+        if one is not None:
+            return one[1]
         return self.map(uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm
+
+    def _map_one(self, uv_px, z) -> tuple[tuple[float, float], np.ndarray] | None:
+        """``((u, v), (1, 3) robot mm)`` of one pixel inside the training points' hull at an allowed
+        height, on plain floats (the guard's one-point tests, then the model's one-point map); None for
+        anything else — many points, a point outside the hull (in the margin or beyond: the horizon, the
+        refusal), a height to refuse, a tilted plane's given z, a non-finite result — which ``map``
+        answers, so every refusal keeps its one path and words. A non-finite pixel is refused as ``map``
+        refuses it."""
+        region = self.region
+        if region is None:
+            return None
+        pt = one_point(uv_px)
+        if pt is None or region.outside_one(pt[0], pt[1]) != 0.0:
+            return None
+        if z is not None:
+            if isinstance(z, np.ndarray) and z.size == 1 and z.dtype.kind in "fiu":
+                z = z.reshape(-1)[0]
+            elif isinstance(z, bool) or not isinstance(z, (float, int, np.floating, np.integer)):
+                return None
+            z = float(z)
+            if not region.z_allowed_one(z):  # a non-finite z, a height to refuse, a tilted plane's
+                return None
+        xyz = self.model.image_to_robot(pt, z)
+        x, y, zz = xyz[0].tolist()
+        if x - x != 0.0 or y - y != 0.0 or zz - zz != 0.0:  # NaN or ±inf
+            return None
+        return pt, xyz
 
     def map(
         self,
@@ -206,15 +236,21 @@ class Calibration:
         :mod:`eyetohand.geometry.orientation`), folded by ``symmetry``; ``tool_rz_offset_deg`` makes rz the
         gripper's command.
         """
-        from eyetohand.models import as_uv
-
         s = check_symmetry(symmetry)  # checked with or without an angle: one rule on every interface
         if tool_rz_offset_deg is not None:  # likewise
             why = angle_refusal(float(tool_rz_offset_deg))
             if why:
                 raise InputError(why, field="tool_rz_offset_deg")
-        uv = as_uv(uv_px)
+        if angle_deg is None and not (with_sigma and self.uncertainty is not None):
+            one = self._map_one(uv_px, z)
+            if one is not None:
+                return Mapped(np.array([one[0]]), one[1], None, None, np.ones(1, bool), np.zeros(1))
+        uv = as_uv(uv_px, check_finite=False)
         n = len(uv)
+        # many points: the hull's half-plane tests and the pixels' finiteness in one pass
+        scanned = self.region.scan(uv) if self.region is not None and n > 1 else None
+        if scanned is None or not scanned.finite:
+            uv = as_uv(uv)  # refuses a non-finite pixel in its words
         if z is not None:
             z = np.broadcast_to(np.asarray(z, float), (n,))
             if not np.isfinite(z).all():
@@ -231,10 +267,11 @@ class Calibration:
             xy = None  # a tilted plane's height at the points: x, y of a single-height map do not depend on z
             if z is not None and self.region.plane_slope is not None:
                 xy = self.model.image_to_robot(uv, z)[:, :2]
-            inside, outside = self.region.check(uv, z, allow_outside=allow_outside, xy_mm=xy)
+            inside, outside = self.region.check(uv, z, allow_outside=allow_outside, xy_mm=xy, scanned=scanned)
         xyz = np.ascontiguousarray(self.model.image_to_robot(uv, z))
-        bad = ~np.isfinite(xyz).all(axis=1)
-        if not bad.any() and self.region is not None and (outside > 0).any():
+        bad = np.zeros(n, bool) if _all_finite(xyz) else ~np.isfinite(xyz).all(axis=1)
+        some_outside = self.region is not None and (scanned is None or scanned.mask is not None)
+        if not bad.any() and some_outside and (outside > 0).any():  # scanned: none is outside the hull
             bad[outside > 0] = self._beyond_horizon(uv[outside > 0], None if z is None else z[outside > 0])
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
@@ -467,6 +504,20 @@ class Calibration:
         except ValueError as exc:
             raise InputError(f"{path}: not a calibration file ({exc})") from None
         return cls.from_dict(d, str(path), sign_key=sign_key, require_signed=require_signed)
+
+
+_CV_FINITE_MIN = 1 << 12
+
+
+def _all_finite(a: np.ndarray) -> bool:
+    """Whether every element of the C-ordered float64 ``a`` is finite: from ``_CV_FINITE_MIN`` elements by
+    OpenCV's L1 norm (one SIMD pass: a NaN or ±inf makes it non-finite; an overflow of the sum says
+    False, and the caller's exact check then finds every element finite), else by NumPy."""
+    if a.size >= _CV_FINITE_MIN:
+        cv2 = opencv()
+        if cv2 is not None:
+            return math.isfinite(cv2.norm(a.reshape(-1), cv2.NORM_L1))
+    return bool(np.isfinite(a).all())
 
 
 def _malformed(exc: Exception) -> str:
