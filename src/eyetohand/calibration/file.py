@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from eyetohand._version import __version__
+from eyetohand.calibration.mapped import Mapped, all_finite
 from eyetohand.calibration.signing import check_signature, signature_of
 from eyetohand.core import (
     MAX_ABS_ANGLE_DEG,
@@ -42,7 +43,7 @@ from eyetohand.geometry import (
     local_jacobian,
     wrap_deg,
 )
-from eyetohand.models import HeightRule, Model, as_uv, model_from_dict, one_point, opencv
+from eyetohand.models import HeightRule, Model, as_uv, model_from_dict, one_point
 from eyetohand.solve import Uncertainty
 
 SCHEMA = "eyetohand.calibration"
@@ -57,38 +58,6 @@ V1_FIELDS = frozenset(
 )
 """Every field a version 1 file has (eyetohand 0.1 wrote exactly these)."""
 REPRODUCE_TOL_MM = 1e-9
-
-
-@dataclass(frozen=True)
-class Mapped:
-    """Image points mapped by a calibration: per point the pixel, the robot point (mm), the robot
-    angle (deg, when image angles were given), the predicted error ``sigma_mm``, whether it lies in
-    the calibrated region and how far outside it is (px)."""
-
-    uv_px: np.ndarray
-    xyz_mm: np.ndarray
-    rz_deg: np.ndarray | None
-    sigma_mm: np.ndarray | None
-    inside: np.ndarray
-    outside_px: np.ndarray
-
-    def records(self) -> list[dict]:
-        """One dict per point, full precision: u, v, x, y, z, [rz], sigma_mm, inside."""
-        out = []
-        for i in range(len(self.uv_px)):
-            rec = {
-                "u": float(self.uv_px[i, 0]),
-                "v": float(self.uv_px[i, 1]),
-                "x": float(self.xyz_mm[i, 0]),
-                "y": float(self.xyz_mm[i, 1]),
-                "z": float(self.xyz_mm[i, 2]),
-            }
-            if self.rz_deg is not None:
-                rec["rz"] = float(self.rz_deg[i])
-            rec["sigma_mm"] = None if self.sigma_mm is None else float(self.sigma_mm[i])  # type: ignore[assignment]
-            rec["inside"] = bool(self.inside[i])
-            out.append(rec)
-        return out
 
 
 @dataclass(frozen=True)
@@ -186,12 +155,9 @@ class Calibration:
         return self.map(uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm
 
     def _map_one(self, uv_px, z) -> tuple[tuple[float, float], np.ndarray] | None:
-        """``((u, v), (1, 3) robot mm)`` of one pixel inside the training points' hull at an allowed
-        height, on plain floats (the guard's one-point tests, then the model's one-point map); None for
-        anything else — many points, a point outside the hull (in the margin or beyond: the horizon, the
-        refusal), a height to refuse, a tilted plane's given z, a non-finite result — which ``map``
-        answers, so every refusal keeps its one path and words. A non-finite pixel is refused as ``map``
-        refuses it."""
+        """``((u, v), (1, 3) robot mm)`` of one pixel inside the training points' hull at an allowed height,
+        on plain floats; None for anything else (many points, in the margin or beyond, a height to refuse,
+        a tilted plane's z, a non-finite result): ``map`` answers those, in its one path and words."""
         region = self.region
         if region is None:
             return None
@@ -269,7 +235,7 @@ class Calibration:
                 xy = self.model.image_to_robot(uv, z)[:, :2]
             inside, outside = self.region.check(uv, z, allow_outside=allow_outside, xy_mm=xy, scanned=scanned)
         xyz = np.ascontiguousarray(self.model.image_to_robot(uv, z))
-        bad = np.zeros(n, bool) if _all_finite(xyz) else ~np.isfinite(xyz).all(axis=1)
+        bad = np.zeros(n, bool) if all_finite(xyz) else ~np.isfinite(xyz).all(axis=1)
         some_outside = self.region is not None and (scanned is None or scanned.mask is not None)
         if not bad.any() and some_outside and (outside > 0).any():  # scanned: none is outside the hull
             bad[outside > 0] = self._beyond_horizon(uv[outside > 0], None if z is None else z[outside > 0])
@@ -504,20 +470,6 @@ class Calibration:
         except ValueError as exc:
             raise InputError(f"{path}: not a calibration file ({exc})") from None
         return cls.from_dict(d, str(path), sign_key=sign_key, require_signed=require_signed)
-
-
-_CV_FINITE_MIN = 1 << 12
-
-
-def _all_finite(a: np.ndarray) -> bool:
-    """Whether every element of the C-ordered float64 ``a`` is finite: from ``_CV_FINITE_MIN`` elements by
-    OpenCV's L1 norm (one SIMD pass: a NaN or ±inf makes it non-finite; an overflow of the sum says
-    False, and the caller's exact check then finds every element finite), else by NumPy."""
-    if a.size >= _CV_FINITE_MIN:
-        cv2 = opencv()
-        if cv2 is not None:
-            return math.isfinite(cv2.norm(a.reshape(-1), cv2.NORM_L1))
-    return bool(np.isfinite(a).all())
 
 
 def _malformed(exc: Exception) -> str:
