@@ -8,8 +8,8 @@
  * horizontal bands of equal height, and each band carries a u interval that region.py has proven to lie
  * inside every edge with room to spare for rounding (each rectangle's corners checked with the same
  * cross products and a margin far above their rounding error); a pixel in its band's interval passes
- * every edge test, so it is inside without them.  The others take the K tests.  Each call also tells
- * whether every pixel was finite (exponent bits, as models/_rows.c).
+ * every edge test, so it is inside without them (and finite: the intervals are).  The others take the K
+ * tests.  Each call also tells whether every pixel was finite (exponent bits, as models/_rows.c).
  *
  * Optional: when it cannot be built, region.py runs the K tests in NumPy chunks: the same verdicts.
  */
@@ -31,17 +31,17 @@ scan_loop(const double *restrict uv, const double *restrict edges, Py_ssize_t k,
     const double top = (double)nb;
     for (Py_ssize_t i = 0; i < n; i++) {
         const double u = uv[2 * i], v = uv[2 * i + 1];
-        uint64_t bu, bv;
-        memcpy(&bu, &uv[2 * i], 8);
-        memcpy(&bv, &uv[2 * i + 1], 8);
-        bad |= NOT_FINITE_BITS(bu) | NOT_FINITE_BITS(bv);
         const double t = (v - v0) * inv_h;
         int in = 0;
-        if (t >= 0.0 && t < top) {
+        if (t >= 0.0 && t < top) { /* in a band, and in its (finite) interval: finite, and inside */
             const Py_ssize_t b = (Py_ssize_t)t;
             in = u >= bands[2 * b] && u <= bands[2 * b + 1];
         }
-        if (!in) {
+        if (!in) { /* the K tests; the finiteness of the pixels that get here */
+            uint64_t bu, bv;
+            memcpy(&bu, &uv[2 * i], 8);
+            memcpy(&bv, &uv[2 * i + 1], 8);
+            bad |= NOT_FINITE_BITS(bu) | NOT_FINITE_BITS(bv);
             in = 1;
             for (Py_ssize_t j = 0; j < k; j++) {
                 const double *e = edges + 4 * j; /* a_u, a_v, e_u, e_v */
