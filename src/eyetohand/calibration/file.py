@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from eyetohand._version import __version__
+from eyetohand.calibration.mapped import Mapped, all_finite
 from eyetohand.calibration.signing import check_signature, signature_of
 from eyetohand.core import (
     MAX_ABS_ANGLE_DEG,
@@ -42,7 +43,7 @@ from eyetohand.geometry import (
     local_jacobian,
     wrap_deg,
 )
-from eyetohand.models import HeightRule, Model, model_from_dict
+from eyetohand.models import HeightRule, Model, as_uv, model_from_dict, one_point
 from eyetohand.solve import Uncertainty
 
 SCHEMA = "eyetohand.calibration"
@@ -57,38 +58,6 @@ V1_FIELDS = frozenset(
 )
 """Every field a version 1 file has (eyetohand 0.1 wrote exactly these)."""
 REPRODUCE_TOL_MM = 1e-9
-
-
-@dataclass(frozen=True)
-class Mapped:
-    """Image points mapped by a calibration: per point the pixel, the robot point (mm), the robot
-    angle (deg, when image angles were given), the predicted error ``sigma_mm``, whether it lies in
-    the calibrated region and how far outside it is (px)."""
-
-    uv_px: np.ndarray
-    xyz_mm: np.ndarray
-    rz_deg: np.ndarray | None
-    sigma_mm: np.ndarray | None
-    inside: np.ndarray
-    outside_px: np.ndarray
-
-    def records(self) -> list[dict]:
-        """One dict per point, full precision: u, v, x, y, z, [rz], sigma_mm, inside."""
-        out = []
-        for i in range(len(self.uv_px)):
-            rec = {
-                "u": float(self.uv_px[i, 0]),
-                "v": float(self.uv_px[i, 1]),
-                "x": float(self.xyz_mm[i, 0]),
-                "y": float(self.xyz_mm[i, 1]),
-                "z": float(self.xyz_mm[i, 2]),
-            }
-            if self.rz_deg is not None:
-                rec["rz"] = float(self.rz_deg[i])
-            rec["sigma_mm"] = None if self.sigma_mm is None else float(self.sigma_mm[i])  # type: ignore[assignment]
-            rec["inside"] = bool(self.inside[i])
-            out.append(rec)
-        return out
 
 
 @dataclass(frozen=True)
@@ -180,7 +149,34 @@ class Calibration:
     # ------------------------------------------------------------ mapping
     def image_to_robot(self, uv_px, z=None, *, allow_outside: bool = False) -> np.ndarray:
         """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
+        one = self._map_one(uv_px, z)
+        if one is not None:
+            return one[1]
         return self.map(uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm
+
+    def _map_one(self, uv_px, z) -> tuple[tuple[float, float], np.ndarray] | None:
+        """``((u, v), (1, 3) robot mm)`` of one pixel inside the training points' hull at an allowed height,
+        on plain floats; None for anything else (many points, in the margin or beyond, a height to refuse,
+        a tilted plane's z, a non-finite result): ``map`` answers those, in its one path and words."""
+        region = self.region
+        if region is None:
+            return None
+        pt = one_point(uv_px)
+        if pt is None or region.outside_one(pt[0], pt[1]) != 0.0:
+            return None
+        if z is not None:
+            if isinstance(z, np.ndarray) and z.size == 1 and z.dtype.kind in "fiu":
+                z = z.reshape(-1)[0]
+            elif isinstance(z, bool) or not isinstance(z, (float, int, np.floating, np.integer)):
+                return None
+            z = float(z)
+            if not region.z_allowed_one(z):  # a non-finite z, a height to refuse, a tilted plane's
+                return None
+        xyz = self.model.image_to_robot(pt, z)
+        x, y, zz = xyz[0].tolist()
+        if x - x != 0.0 or y - y != 0.0 or zz - zz != 0.0:  # NaN or ±inf
+            return None
+        return pt, xyz
 
     def map(
         self,
@@ -206,15 +202,21 @@ class Calibration:
         :mod:`eyetohand.geometry.orientation`), folded by ``symmetry``; ``tool_rz_offset_deg`` makes rz the
         gripper's command.
         """
-        from eyetohand.models import as_uv
-
         s = check_symmetry(symmetry)  # checked with or without an angle: one rule on every interface
         if tool_rz_offset_deg is not None:  # likewise
             why = angle_refusal(float(tool_rz_offset_deg))
             if why:
                 raise InputError(why, field="tool_rz_offset_deg")
-        uv = as_uv(uv_px)
+        if angle_deg is None and not (with_sigma and self.uncertainty is not None):
+            one = self._map_one(uv_px, z)
+            if one is not None:
+                return Mapped(np.array([one[0]]), one[1], None, None, np.ones(1, bool), np.zeros(1))
+        uv = as_uv(uv_px, check_finite=False)
         n = len(uv)
+        # many points: the hull's half-plane tests and the pixels' finiteness in one pass
+        scanned = self.region.scan(uv) if self.region is not None and n > 1 else None
+        if scanned is None or not scanned.finite:
+            uv = as_uv(uv)  # refuses a non-finite pixel in its words
         if z is not None:
             z = np.broadcast_to(np.asarray(z, float), (n,))
             if not np.isfinite(z).all():
@@ -231,10 +233,11 @@ class Calibration:
             xy = None  # a tilted plane's height at the points: x, y of a single-height map do not depend on z
             if z is not None and self.region.plane_slope is not None:
                 xy = self.model.image_to_robot(uv, z)[:, :2]
-            inside, outside = self.region.check(uv, z, allow_outside=allow_outside, xy_mm=xy)
+            inside, outside = self.region.check(uv, z, allow_outside=allow_outside, xy_mm=xy, scanned=scanned)
         xyz = np.ascontiguousarray(self.model.image_to_robot(uv, z))
-        bad = ~np.isfinite(xyz).all(axis=1)
-        if not bad.any() and self.region is not None and (outside > 0).any():
+        bad = np.zeros(n, bool) if all_finite(xyz) else ~np.isfinite(xyz).all(axis=1)
+        some_outside = self.region is not None and (scanned is None or scanned.mask is not None)
+        if not bad.any() and some_outside and (outside > 0).any():  # scanned: none is outside the hull
             bad[outside > 0] = self._beyond_horizon(uv[outside > 0], None if z is None else z[outside > 0])
         if bad.any():
             i = int(np.flatnonzero(bad)[0])

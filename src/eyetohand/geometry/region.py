@@ -20,10 +20,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from types import ModuleType
 
 import numpy as np
 
 from eyetohand.core import InputError
+
+_HULL: ModuleType | None
+try:  # the optional compiled loop (setup.py); see hull_kernel
+    from eyetohand.geometry import _hull as _HULL
+except ImportError:
+    _HULL = None
 
 MARGIN_FRACTION = 0.05
 """The image margin: 5 % of the larger side of the hull's bounding box (at least ``MIN_MARGIN_PX``)."""
@@ -48,6 +55,33 @@ Z_MARGIN_FRACTION = 0.25
 """Multi-height models: the z range grown by 25 % of its span on each side (at least ``MIN_Z_MARGIN_MM``)."""
 MIN_Z_MARGIN_MM = 5.0
 _CHUNK = 1 << 16
+_TEST_CHUNK = 1 << 13  # points per pass of the NumPy half-plane tests (no compiled loop): stays in cache
+BANDS = 256
+"""Horizontal bands of the hull whose proven-inside u intervals decide most pixels in one lookup."""
+_BAND_SLACK = 1e-6
+"""Each band's rectangle is proven for v this fraction of a band beyond its edges (a pixel's band is
+found by one rounded multiplication)."""
+_PROOF_MARGIN = 1e-12
+"""A band's corners must pass every edge's cross product by this × |e_u| + |e_v| × the hull's span:
+above the rounding of any cross product there by three orders of magnitude."""
+
+
+def hull_kernel() -> ModuleType | None:
+    """``eyetohand.geometry._hull``, the compiled test of many pixels against the hull
+    (src/eyetohand/geometry/_hull.c, built at install), or None where it could not be built: the tests
+    then run in NumPy chunks — the same verdicts, slower."""
+    return _HULL
+
+
+@dataclass(frozen=True)
+class HullScan:
+    """Many pixels tested against the hull (:meth:`CalibratedRegion.scan`): ``outside`` how many fail a
+    half-plane test, ``mask`` (N,) True for those (None when none does), ``finite`` whether every pixel
+    was finite."""
+
+    outside: int
+    mask: np.ndarray | None
+    finite: bool
 
 
 @dataclass(frozen=True)
@@ -226,24 +260,79 @@ class CalibratedRegion:
             np.maximum((e * e).sum(-1), 1e-300),
         )
 
-    def _outside_one(self, u: float, v: float) -> float:
-        """``outside_px`` of one point on (K,) edge columns: no (N, K, 2) temporaries."""
-        au, av, eu, ev, ee = self._edges
-        ru, rv = u - au, v - av
-        if ((eu * rv - ev * ru) >= 0).all():
-            return 0.0
-        t = np.clip((ru * eu + rv * ev) / ee, 0.0, 1.0)
-        du, dv = u - (au + t * eu), v - (av + t * ev)
-        return float(np.sqrt((du * du + dv * dv).min()))
+    @cached_property
+    def _edge_floats(self) -> tuple[tuple[float, float, float, float, float], ...]:
+        """The same per edge as Python floats (a_u, a_v, e_u, e_v, squared length): one point's test."""
+        return tuple(zip(*(c.tolist() for c in self._edges), strict=True))
 
-    def outside_px(self, uv_px) -> np.ndarray:
-        """(N,) distance (px) of each point outside the hull; 0 inside or on it."""
+    @cached_property
+    def _scan_tables(self) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """``(edges (K, 4), bands (B, 2), v0, 1/h)`` of the compiled scan (see ``_bands``)."""
+        au, av, eu, ev, _ = self._edges
+        edges = np.ascontiguousarray(np.column_stack([au, av, eu, ev]))
+        bands, v0, inv_h = _bands(edges)
+        return edges, bands, v0, inv_h
+
+    def _outside_one(self, u: float, v: float) -> float:
+        """``outside_px`` of one point on Python floats: the same arithmetic as the many-point paths
+        (IEEE doubles, in their order), no arrays."""
+        edges = self._edge_floats
+        for au, av, eu, ev, _ in edges:
+            if not (eu * (v - av) - ev * (u - au) >= 0):
+                break
+        else:
+            return 0.0
+        best = math.inf
+        for au, av, eu, ev, ee in edges:
+            ru, rv = u - au, v - av
+            t = (ru * eu + rv * ev) / ee
+            t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t  # np.clip's order: a NaN stays NaN
+            du, dv = u - (au + t * eu), v - (av + t * ev)
+            dd = du * du + dv * dv
+            if not dd >= best:  # np.min: the first NaN wins
+                best = dd
+                if dd != dd:
+                    break
+        return math.sqrt(best)
+
+    def outside_one(self, u: float, v: float) -> float:
+        """``outside_px`` of one point (floats): the library's one-point path, no arrays."""
+        return self._outside_one(u, v)
+
+    def scan(self, uv_px) -> HullScan:
+        """Which of (N, 2) pixels fail one of the hull's half-plane tests (the outside ones, and NaN), in
+        one compiled pass (``hull_kernel``) or NumPy chunks; and whether every pixel was finite."""
+        uv = np.ascontiguousarray(np.asarray(uv_px, float).reshape(-1, 2))
+        kernel = hull_kernel()
+        if kernel is not None:
+            edges, bands, v0, inv_h = self._scan_tables
+            mask = np.empty(len(uv), np.uint8)
+            count, finite = kernel.scan(uv, edges, bands, v0, inv_h, mask)
+            return HullScan(count, mask.view(bool) if count else None, finite)
+        au, av, eu, ev, _ = self._edges
+        fail = np.zeros(len(uv), bool)
+        for s in range(0, len(uv), _TEST_CHUNK):
+            u, v = uv[s : s + _TEST_CHUNK, 0], uv[s : s + _TEST_CHUNK, 1]
+            f = fail[s : s + _TEST_CHUNK]
+            for k in range(len(au)):
+                f |= ~(eu[k] * (v - av[k]) - ev[k] * (u - au[k]) >= 0)
+        count = int(np.count_nonzero(fail))
+        return HullScan(count, fail if count else None, bool(np.isfinite(uv).all()))
+
+    def outside_px(self, uv_px, scanned: HullScan | None = None) -> np.ndarray:
+        """(N,) distance (px) of each point outside the hull; 0 inside or on it. The distance is
+        computed only for the points that fail a half-plane test (``scan``, or ``scanned`` of these
+        points)."""
         uv = np.asarray(uv_px, float).reshape(-1, 2)
-        if len(uv) == 1:
+        if len(uv) == 1 and scanned is None:
             return np.array([self._outside_one(float(uv[0, 0]), float(uv[0, 1]))])
-        out = np.empty(len(uv))
-        for s in range(0, len(uv), _CHUNK):
-            out[s : s + _CHUNK] = _outside_distance(self.hull_px, uv[s : s + _CHUNK])
+        sc = self.scan(uv) if scanned is None else scanned
+        out = np.zeros(len(uv))
+        if sc.mask is not None:
+            idx = np.flatnonzero(sc.mask)
+            for s in range(0, len(idx), _CHUNK):
+                i = idx[s : s + _CHUNK]
+                out[i] = _outside_distance(self.hull_px, uv[i])
         return out
 
     def plane_z_at(self, xy_mm=None) -> np.ndarray | float:
@@ -267,6 +356,18 @@ class CalibratedRegion:
         lo, hi = self._z_range()
         return np.maximum(np.maximum(lo - self.z_margin_mm - z, z - hi - self.z_margin_mm), 0.0)
 
+    def z_allowed_one(self, z: float) -> bool:
+        """Whether one height ``z`` (a float) passes ``z_outside_mm`` without needing x, y: finite, and on
+        a level plane within ``PLANE_TOLERANCE_MM`` or in the calibrated range and its margin — the same
+        arithmetic on floats. False for a tilted plane (its height depends on where)."""
+        if not math.isfinite(z):
+            return False
+        if self.plane_z_mm is not None:
+            return self.plane_slope is None and not abs(z - self.plane_z_mm) - PLANE_TOLERANCE_MM > 0.0
+        lo, hi = self._z_range()
+        m = self.z_margin_mm
+        return not (lo - m - z > 0.0 or z - hi - m > 0.0)
+
     def _z_range(self) -> tuple[float, float]:
         if self.z_range_mm is None:
             raise InputError("the calibrated region records neither a plane nor a z range")
@@ -274,20 +375,24 @@ class CalibratedRegion:
 
     # ------------------------------------------------------------ the rule
     def check(
-        self, uv_px, z_mm=None, *, allow_outside: bool = False, xy_mm=None
+        self, uv_px, z_mm=None, *, allow_outside: bool = False, xy_mm=None, scanned: HullScan | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """``(inside (N,) bool, outside_px (N,))``; refuses (``OutsideError``, naming the first point
         and how far outside) a point beyond the margin or a height beyond its tolerance, unless
         ``allow_outside``. A height off a single-height model's plane (at the point's mapped x, y,
         ``xy_mm`` (N, 2): needed when the plane is tilted) is refused even when allowed: the model
-        cannot map it."""
+        cannot map it. ``scanned``: :meth:`scan` of these points, when the caller has it."""
         uv = np.asarray(uv_px, float).reshape(-1, 2)
-        d = self.outside_px(uv)
-        inside = d <= self.margin_px
+        if scanned is not None and scanned.mask is None:  # every point passes every half-plane test
+            d, inside = np.zeros(len(uv)), np.ones(len(uv), bool)
+        else:
+            d = self.outside_px(uv, scanned)
+            inside = d <= self.margin_px
         xy = None if xy_mm is None else np.asarray(xy_mm, float).reshape(-1, 2)
-        if z_mm is not None and len(uv) == 1:
+        if z_mm is not None and (len(uv) == 1 or (len(uv) > 1 and _one_value(z_mm) and xy is None)):
+            # one point, or one height for all (no tilted plane): one test of it
             if float(self.z_outside_mm(np.asarray(z_mm, float).reshape(-1)[0], xy).reshape(-1)[0]) <= 0:
-                z_mm = None  # one point at an allowed height: nothing more to check
+                z_mm = None  # at an allowed height: nothing more to check
         if z_mm is not None:
             z = np.broadcast_to(np.asarray(z_mm, float), (len(uv),))
             dz = self.z_outside_mm(z, xy)
@@ -385,6 +490,54 @@ def convex_hull(points: np.ndarray) -> np.ndarray:
 
 def _cross(o, a, b) -> float:
     return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+
+def _one_value(z) -> bool:
+    """Whether ``z`` is one number: a scalar, or an array broadcast from one (every stride 0)."""
+    return np.ndim(z) == 0 or (isinstance(z, np.ndarray) and not any(z.strides))
+
+
+def _bands(edges: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """The lookup of the compiled scan for the convex hull of (K, 4) ``edges`` rows (a_u, a_v, e_u, e_v):
+    ``(bands (BANDS, 2), v0, 1/h)``, the hull's v extent cut into ``BANDS`` bands of height h, each with
+    a u interval [lo, hi] whose rectangle — widened by ``_BAND_SLACK`` of a band in v — passes every
+    edge's cross product e_u (v - a_v) - e_v (u - a_u) at its four corners by ``_PROOF_MARGIN`` × (|e_u|
+    + |e_v|) × the hull's span. The cross product is affine in (u, v), so its least value on the
+    rectangle is at a corner, and that margin is far above its rounding anywhere there: every pixel in a
+    band's interval passes every test, as computed. A band that cannot be proven is empty (lo > hi)."""
+    au, av, eu, ev = edges.T
+    v0, v1 = float(av.min()), float(av.max())
+    empty = np.tile([math.inf, -math.inf], (BANDS, 1))
+    span = float(np.ptp(edges[:, :2], axis=0).max())
+    if not v1 > v0 or not span > 0:
+        return empty, 0.0, 0.0
+    h = (v1 - v0) / BANDS
+    b = np.arange(BANDS, dtype=float)
+    lo_v = v0 + (b - _BAND_SLACK) * h
+    hi_v = v0 + (b + 1 + _BAND_SLACK) * h
+
+    def cross_section(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """[left, right] u of the hull at each v (NaN outside its v extent)."""
+        bv = av + ev
+        vv = v[:, None]
+        spans = (np.minimum(av, bv)[None] <= vv) & (vv <= np.maximum(av, bv)[None]) & (ev != 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.where(spans, au[None] + (v[:, None] - av[None]) * (eu / ev)[None], np.nan)
+            return np.nanmin(u, axis=1, initial=math.inf), np.nanmax(u, axis=1, initial=-math.inf)
+
+    with np.errstate(invalid="ignore"):
+        (l0, r0), (l1, r1) = cross_section(lo_v), cross_section(hi_v)
+    pad = 1e-9 * span
+    lo, hi = np.maximum(l0, l1) + pad, np.minimum(r0, r1) - pad
+    # the proof: each rectangle's corners against every edge, as the scan computes the products
+    cu = np.stack([lo, hi, lo, hi], axis=1)[..., None]  # (B, 4, 1)
+    cv = np.stack([lo_v, lo_v, hi_v, hi_v], axis=1)[..., None]
+    with np.errstate(invalid="ignore"):
+        c = eu * (cv - av) - ev * (cu - au)  # (B, 4, K)
+        need = _PROOF_MARGIN * (np.abs(eu) + np.abs(ev)) * span
+        ok = (c >= need).all(axis=(1, 2)) & (lo <= hi) & np.isfinite(lo) & np.isfinite(hi)
+    bands = np.where(ok[:, None], np.column_stack([lo, hi]), empty)
+    return np.ascontiguousarray(bands), v0, 1.0 / h
 
 
 def _outside_distance(hull: np.ndarray, uv: np.ndarray) -> np.ndarray:

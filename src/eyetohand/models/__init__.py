@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from eyetohand.core import InputError
 from eyetohand.models.affine import Affine
-from eyetohand.models.base import HeightRule, Model, RobotToImage, as_uv
+from eyetohand.models.base import HeightRule, Model, RobotToImage, as_uv, one_point, opencv
 from eyetohand.models.dlt3d import DLT3D
 from eyetohand.models.homography import Homography
 from eyetohand.models.paper import PaperB
@@ -54,6 +54,8 @@ __all__ = [
     "PlanarMatrixModel",
     "RobotToImage",
     "as_uv",
+    "one_point",
+    "opencv",
     "get_model",
     "model_from_dict",
 ]

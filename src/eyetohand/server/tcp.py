@@ -352,7 +352,8 @@ def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
     z = vals[2] if len(vals) == 3 else None
     want_sigma = bool(opts.get("sigma"))
     try:
-        symmetry = check_symmetry(line_count(opts.get("symmetry", 1)))  # "2.0" is 2, as on BELT lines
+        # "2.0" is 2, as on BELT lines; none given is 1, which needs no check
+        symmetry = check_symmetry(line_count(opts["symmetry"])) if "symmetry" in opts else 1
         with np.errstate(all="ignore"):
             m = cal.map(
                 np.array([vals[:2]]),
@@ -366,7 +367,7 @@ def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
     except InputError as exc:
         reason = exc.reason if exc.index is not None else str(exc)
         return f"ERR {ascii_reason(reason.splitlines()[0])}\n".encode()
-    x, y, zz = (float(v) for v in m.xyz_mm[0])
+    x, y, zz = m.xyz_mm[0].tolist()  # Python floats (not a NumPy scalar per coordinate)
     out = f"{x!r},{y!r},{zz!r}"
     if m.rz_deg is not None:
         out += f",{float(m.rz_deg[0])!r}"
