@@ -83,13 +83,16 @@ class Cell:
             *extra,
         )
         self.side = TcpLink("127.0.0.1", self.srv.tcp_port, timeout_s=60)
-        assert self.side.send(f"SIM PARTS 12,3,10,{Z}") == "OK 12"
+        # with --reply-format ur every reply on every connection is bracketed, the simulator's too
+        self.ok = "(1," if "ur" in extra else "OK "
+        placed = self.side.send(f"SIM PARTS 12,3,10,{Z}")
+        assert placed == ("(1,12,0,0,0,0)" if "ur" in extra else "OK 12"), placed
         self.wire = Wire(self.srv.tcp_port)
         self.picked: list[str] = []
 
     def grip(self, x: float, y: float) -> None:
         reply = self.side.send(f"SIM PICK {x:.4f},{y:.4f}")
-        assert reply.startswith("OK "), reply
+        assert reply.startswith(self.ok), reply
         self.picked.append(reply)
 
     def close(self) -> None:

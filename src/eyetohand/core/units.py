@@ -69,7 +69,6 @@ class OutputUnits:
         return f"rz_{self.angle}"
 
 
-
 def check_units(units: Any, angle_units: Any = "deg") -> None:
     """Refuse a unit not known, every interface with these words (``units: expected mm or m, got
     'cm'``, ``angle_units: expected deg or rad, got 'grad'``) as an :class:`InputError`."""
