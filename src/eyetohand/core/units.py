@@ -53,8 +53,8 @@ class OutputUnits:
             return v_deg
         return math.radians(v_deg) if isinstance(v_deg, float | int) else v_deg * _DEG_TO_RAD
 
-    def in_length(self, v: float | None) -> float | None:
-        """A length given in this unit, in mm (m · 1000.0); None stays None."""
+    def in_length(self, v: Any) -> Any:
+        """A length given in this unit (a float or an array), in mm (m · 1000.0); None stays None."""
         div = _PER_MM[self.length]
         return v if v is None or div is None else v * div
 
