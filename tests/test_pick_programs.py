@@ -83,13 +83,16 @@ class Cell:
             *extra,
         )
         self.side = TcpLink("127.0.0.1", self.srv.tcp_port, timeout_s=60)
-        assert self.side.send(f"SIM PARTS 12,3,10,{Z}") == "OK 12"
+        # with --reply-format ur every reply on every connection is bracketed, the simulator's too
+        self.ok = "(1," if "ur" in extra else "OK "
+        placed = self.side.send(f"SIM PARTS 12,3,10,{Z}")
+        assert placed == ("(1,12,0,0,0,0)" if "ur" in extra else "OK 12"), placed
         self.wire = Wire(self.srv.tcp_port)
         self.picked: list[str] = []
 
     def grip(self, x: float, y: float) -> None:
         reply = self.side.send(f"SIM PICK {x:.4f},{y:.4f}")
-        assert reply.startswith("OK "), reply
+        assert reply.startswith(self.ok), reply
         self.picked.append(reply)
 
     def close(self) -> None:
@@ -119,10 +122,14 @@ def test_ur_pick(calibrated):
     cmd_def = one(r"def cmd\(line\):(.*?)\n  end", text, re.S).group(1)
     line_end = bytes(int(b) for b in re.findall(r'socket_send_byte\((\d+), "cam"\)', cmd_def))
     n_read = int(one(r'socket_read_ascii_float\((\d+), "cam"', cmd_def).group(1))
-    max_sigma = float(one(r"MAX_SIGMA_MM = ([\d.]+)", text).group(1))
+    max_sigma_m = float(one(r"MAX_SIGMA = ([\d.]+)", text).group(1))
+    vision = one(r"# Vision side: +eyetohand serve (.*)$", text, re.M).group(1).split()
+    serve_opts = vision[vision.index("--reply-format") :]  # what the script says the server runs with
+    assert serve_opts == ["--reply-format", "ur", "--units", "m", "--angle-units", "rad"]
     assert line_end == b"\r\n" and n_read == 6
-    assert 'cmd("LOCATE NEXT")' in text and "r[6] < 0 or r[6] > MAX_SIGMA_MM" in text
-    cell = Cell(calibrated, "--reply-format", "ur")
+    assert 'cmd("LOCATE NEXT")' in text and "r[6] < 0 or r[6] > MAX_SIGMA" in text
+    assert "down = p[r[2], r[3], r[4] + TOOL_DZ," in text  # metres as answered: no conversion
+    cell = Cell(calibrated, *serve_opts)
     try:
 
         def cmd(line: str) -> list[float]:
@@ -138,14 +145,17 @@ def test_ur_pick(calibrated):
             assert r[1] == 1, r
             return int(r[2])
 
-        def next_part():
+        def next_part():  # metres and radians, back in mm and deg for run_cycle's checks
             r = cmd("LOCATE NEXT")
             assert r[1] in (0, 1), r
-            return None if r[1] == 0 else r[2:7]
+            if r[1] == 0:
+                return None
+            sigma = r[6] if r[6] < 0 else round(r[6] * 1000, 4)
+            return [round(r[2] * 1000, 4), round(r[3] * 1000, 4), round(r[4] * 1000, 4), r[5], sigma]
 
-        first, again = run_cycle(cell, locate, next_part, max_sigma)
+        first, again = run_cycle(cell, locate, next_part, max_sigma_m * 1000)
         assert again == 0
-        assert cmd("LOCATE 12,8")[1] == -1  # refused: a negative code, six numbers still
+        assert cmd("LOCATE 0.012,0.008")[1] == -1  # refused: a negative code, six numbers still
     finally:
         cell.close()
 

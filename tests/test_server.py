@@ -1259,7 +1259,14 @@ def test_large_mapping_is_chunked_and_streamed_identically(client, monkeypatch):
         symmetry=1,
         tool_rz_offset_deg=None,
     )
-    whole = {"id": 1, "version": 1, "units": "mm", "points": m.xyz_mm, "rz_deg": m.rz_deg}
+    whole = {
+        "id": 1,
+        "version": 1,
+        "units": "mm",
+        "angle_units": "deg",
+        "points": m.xyz_mm,
+        "rz_deg": m.rz_deg,
+    }
     whole.update({"sigma_mm": m.sigma_mm, "inside": m.inside})
     assert r.content == orjson.dumps(whole, option=orjson.OPT_SERIALIZE_NUMPY)
     assert 0 < sum(orjson.loads(r.content)["inside"]) < 2500

@@ -14,10 +14,20 @@ from eyetohand.cell.conveyor import (
     format_report,
     load_session,
 )
-from eyetohand.cell.line import MAX_REASON, CommandError, ErrorCode, ascii_reason, line_count, line_numbers
+from eyetohand.cell.line import (
+    MAX_REASON,
+    UR_ERROR_CODES,
+    CommandError,
+    ErrorCode,
+    ascii_reason,
+    line_count,
+    line_numbers,
+)
 from eyetohand.cell.locate import LocateResult, Locator, locate_parts
 from eyetohand.cell.plans import MAX_POINTS, VALID_FORMS, Plan, is_whole_in, parse_numbers, parse_plan
 from eyetohand.cell.plc import ModbusService, OpcUaService, PointResult, Status, map_point, parse_allow
+from eyetohand.cell.replies import PLAIN as PLAIN_REPLIES
+from eyetohand.cell.replies import LineReplies, mapping_code, reason_code
 
 __all__ = [
     "BeltProtocol",
@@ -26,16 +36,19 @@ __all__ = [
     "ConveyorCalibration",
     "Encoder",
     "ErrorCode",
+    "LineReplies",
     "LocateResult",
     "Locator",
     "MAX_POINTS",
     "MAX_REASON",
     "ModbusService",
     "OpcUaService",
+    "PLAIN_REPLIES",
     "Plan",
     "PointResult",
     "Session",
     "Status",
+    "UR_ERROR_CODES",
     "VALID_FORMS",
     "ascii_reason",
     "calibrate_conveyor",
@@ -47,7 +60,9 @@ __all__ = [
     "load_session",
     "locate_parts",
     "map_point",
+    "mapping_code",
     "parse_allow",
     "parse_numbers",
     "parse_plan",
+    "reason_code",
 ]

@@ -75,7 +75,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from eyetohand.cell.line import CommandError, ErrorCode, ascii_reason, line_numbers
+from eyetohand.cell.line import UR_ERROR_CODES, CommandError, ErrorCode, ascii_reason, line_numbers
 from eyetohand.core import InputError
 
 STILL_TOL_PX = 0.2
@@ -83,18 +83,6 @@ POSE_MATCH_MM = 0.01
 REPEAT_MATCH_MM = 1e-3
 NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 UR_STATES = {"none": 0, "collecting": 1, "calibrated": 2, "aborted": 3}
-UR_ERROR_CODES = {  # the kind of a refusal (CommandError.code) -> the ur reply format's status
-    ErrorCode.OTHER: -1,  # a malformed command, or anything else
-    ErrorCode.TARGET_NOT_FOUND: -2,
-    ErrorCode.AMBIGUOUS: -3,
-    ErrorCode.MOVING: -4,
-    ErrorCode.OUTSIDE_IMAGE: -5,
-    ErrorCode.TIMEOUT: -6,
-    ErrorCode.NO_COLLECTION: -7,
-    ErrorCode.FIT_FAILED: -8,
-    ErrorCode.NO_CALIBRATION: -9,
-    ErrorCode.BUSY: -10,
-}
 UR_ERROR_OTHER = UR_ERROR_CODES[ErrorCode.OTHER]
 SQLITE_SUFFIXES = (".db", ".sqlite", ".sqlite3")
 

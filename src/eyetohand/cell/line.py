@@ -27,10 +27,11 @@ MAX_REASON = 200
 
 
 class ErrorCode(enum.Enum):
-    """What kind of refusal a :class:`CommandError` is, set where it is raised (its value names the kind
-    in words; CAL's reasons of a kind start with them). A reply format that cannot send the reason sends
-    this instead: the CAL ``ur`` format a negative number per kind
-    (``eyetohand.cell.collect.UR_ERROR_CODES``)."""
+    """What kind of refusal a :class:`CommandError` (or any ``ERR`` line) is, set where it is raised
+    (its value names the kind in words; CAL's and the transport's reasons of a kind start with them, the
+    mapping line's kinds are the library's exception types: ``eyetohand.cell.replies.mapping_code``).
+    A reply format that cannot send the reason sends this instead: the ``ur`` format a negative number
+    per kind, :data:`UR_ERROR_CODES` (docs/collection.md has the table)."""
 
     OTHER = "other"  # a malformed command, or anything else
     TARGET_NOT_FOUND = "target not found"
@@ -42,6 +43,38 @@ class ErrorCode(enum.Enum):
     FIT_FAILED = "fit failed"
     NO_CALIBRATION = "no calibration"
     BUSY = "busy"
+    # the mapping line's refusals (the library's guard: a point outside the calibrated region, or on or
+    # beyond the model's horizon; a height off the calibrated heights)
+    OUTSIDE_REGION = "outside the calibrated region"
+    HEIGHT = "height outside the calibrated heights"
+    # the transport's refusals (the line service itself, not a command)
+    LINE_TOO_LONG = "line longer than"
+    AUTH = "send 'AUTH"
+    IDLE = "idle"
+    DATABASE = "database replaced or missing"
+    NOT_SERVED = "not served"  # CAL without --camera, BELT without --conveyor
+
+
+#: the ``ur`` reply format's status of each kind of refusal (1 and 0 and 2 are the OK statuses)
+UR_ERROR_CODES = {
+    ErrorCode.OTHER: -1,  # a malformed command, or anything else
+    ErrorCode.TARGET_NOT_FOUND: -2,
+    ErrorCode.AMBIGUOUS: -3,
+    ErrorCode.MOVING: -4,
+    ErrorCode.OUTSIDE_IMAGE: -5,
+    ErrorCode.TIMEOUT: -6,
+    ErrorCode.NO_COLLECTION: -7,
+    ErrorCode.FIT_FAILED: -8,
+    ErrorCode.NO_CALIBRATION: -9,
+    ErrorCode.BUSY: -10,
+    ErrorCode.OUTSIDE_REGION: -11,
+    ErrorCode.HEIGHT: -12,
+    ErrorCode.LINE_TOO_LONG: -13,
+    ErrorCode.AUTH: -14,
+    ErrorCode.IDLE: -15,
+    ErrorCode.DATABASE: -16,
+    ErrorCode.NOT_SERVED: -17,
+}
 
 
 class CommandError(Exception):
@@ -107,4 +140,12 @@ def line_count(value: float) -> int | float:
     return int(value) if value == int(value) else value
 
 
-__all__ = ["MAX_REASON", "CommandError", "ErrorCode", "ascii_reason", "line_count", "line_numbers"]
+__all__ = [
+    "MAX_REASON",
+    "UR_ERROR_CODES",
+    "CommandError",
+    "ErrorCode",
+    "ascii_reason",
+    "line_count",
+    "line_numbers",
+]

@@ -34,8 +34,10 @@ from typing import Any
 
 import numpy as np
 
-from eyetohand.cell.line import CommandError, ErrorCode, ascii_reason, line_numbers
+from eyetohand.cell.line import UR_ERROR_CODES, CommandError, ErrorCode, ascii_reason, line_numbers
 from eyetohand.cell.plc.mapping import MAX_REASON, Status, map_point, served_refusal
+from eyetohand.cell.replies import DECIMALS, UR_DONE, UR_OK, ur_line, ur_number
+from eyetohand.core import MM_DEG, OutputUnits
 
 DIAMETER_WINDOW = (0.7, 1.4)  # the detector's size window around its hint (vision.detect)
 NO_SIGMA = -1.0  # sigma of a calibration without uncertainty, on every interface
@@ -46,7 +48,6 @@ CODES = {
     Status.NO_CALIBRATION: ErrorCode.NO_CALIBRATION,
     Status.CAMERA: ErrorCode.TIMEOUT,
 }
-UR_FIELDS = 6  # (status,a,b,c,d,e): socket_read_ascii_float(6)
 
 
 @dataclass(frozen=True)
@@ -165,14 +166,24 @@ class Locator:
     """LOCATE over a camera ``source`` and the served calibration ``served()`` (read at every call).
     :meth:`locate` for the PLC adapters; :meth:`handle` for the line protocol (``LOCATE`` and
     ``LOCATE NEXT``, which hands out the parts of the last line ``LOCATE`` one at a time: one picking
-    robot per server). ``reply_format``: ``plain`` or ``ur`` (as the collection's)."""
+    robot per server). ``reply_format``: ``plain`` or ``ur`` (as the collection's); ``units``: the
+    line's lengths (its dmin, dmax, z and the parts' x, y, z, sigma) and angles (rz), as the mapping
+    line's (:mod:`eyetohand.core.units`; :meth:`locate` and :class:`Part` stay mm and deg)."""
 
-    def __init__(self, source: Any, served: Callable[[], Any], *, reply_format: str = "plain"):
+    def __init__(
+        self,
+        source: Any,
+        served: Callable[[], Any],
+        *,
+        reply_format: str = "plain",
+        units: OutputUnits = MM_DEG,
+    ):
         if reply_format not in ("plain", "ur"):
             raise ValueError(f"reply format {reply_format!r}: expected plain or ur")
         self.source = source
         self.served = served
         self.reply_format = reply_format
+        self.units = units
         self.pending: list[Part] = []
         self.last: LocateResult | None = None
         self._lock = threading.Lock()
@@ -208,8 +219,8 @@ class Locator:
             with self._lock:
                 part = self.pending.pop(0) if self.pending else None
             if part is None:
-                return "(0,0,0,0,0,0)" if self.reply_format == "ur" else "OK DONE"
-            return self._ok([*part.xyz_mm, part.rz_deg, part.sigma_mm])
+                return ur_line(UR_DONE) if self.reply_format == "ur" else "OK DONE"
+            return self._part(part)
         try:
             args = [a.strip() for a in rest.split(",")] if rest else []
             if len(args) not in (0, 2, 3):
@@ -217,32 +228,30 @@ class Locator:
             vals = line_numbers(args, ("dmin_mm", "dmax_mm", "z_mm"), "LOCATE", "mm")
         except CommandError as exc:
             return self._error(Status.BAD_INPUT, str(exc))
-        dmin, dmax, z = (vals + [None, None, None])[:3]
+        dmin, dmax, z = (self.units.in_length(v) for v in (vals + [None, None, None])[:3])
         result = self.locate(dmin, dmax, z)
         with self._lock:
             self.pending = list(result.parts)
         if not result.ok:
             return self._error(result.status, result.reason)
         if self.reply_format == "ur":
-            return _ur([1, len(result.parts), result.outside])
+            return ur_line(UR_OK, (str(len(result.parts)), str(result.outside)))
         return f"OK {len(result.parts)},{result.outside}"
 
-    def _ok(self, nums: list[float]) -> str:
+    def _part(self, part: Part) -> str:
+        """A part in the line's units: x, y, z, rz, sigma (sigma -1 stays -1: not known)."""
+        u = self.units
+        ld, ad = DECIMALS[u.length], DECIMALS[u.angle]
+        sigma = part.sigma_mm if part.sigma_mm == NO_SIGMA else u.out_length(part.sigma_mm)
+        nums = [(u.out_length(v), ld) for v in part.xyz_mm] + [(u.out_angle(part.rz_deg), ad), (sigma, ld)]
         if self.reply_format == "ur":
-            return _ur([1, *nums])
-        return "OK " + ",".join(f"{v:.4f}" for v in nums)
+            return ur_line(UR_OK, [ur_number(v, d) for v, d in nums])
+        return "OK " + ",".join(f"{v:.{d}f}" for v, d in nums)
 
     def _error(self, status: Status, reason: str) -> str:
         if self.reply_format == "ur":
-            from eyetohand.cell.collect import UR_ERROR_CODES
-
-            return _ur([UR_ERROR_CODES[CODES.get(status, ErrorCode.OTHER)]])
+            return ur_line(UR_ERROR_CODES[CODES.get(status, ErrorCode.OTHER)])
         return f"ERR {ascii_reason(reason, MAX_REASON)}"
-
-
-def _ur(nums: list[float]) -> str:
-    nums = list(nums) + [0] * (UR_FIELDS - len(nums))
-    return "(" + ",".join(str(int(v)) if float(v).is_integer() else f"{v:.4f}" for v in nums) + ")"
 
 
 __all__ = ["Locator", "LocateResult", "NO_SIGMA", "Part", "check_range", "locate_parts"]

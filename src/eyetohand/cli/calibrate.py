@@ -16,7 +16,7 @@ from eyetohand.cli.common import (
     run_calibration,
     stats_line,
 )
-from eyetohand.core import ROBOT_UNITS, InputError, load_image_points, load_pairs
+from eyetohand.core import ROBOT_UNITS, InputError, load_image_points, load_pairs, output_units
 
 
 def print_notes(*loaded) -> None:
@@ -91,6 +91,7 @@ def cmd_apply(args) -> int:
 
     if args.output:
         check_output_path(args.output)
+    units = output_units(args.units, args.angle_units)  # refused before the file is read
     cal = Calibration.load(args.calibration)
     opts = {
         "allow_outside": args.allow_outside,
@@ -100,11 +101,12 @@ def cmd_apply(args) -> int:
     if args.uv is not None:
         if args.input:
             raise CliError("apply: give either --uv U V or an input CSV, not both")
-        m = cal.map(np.array([args.uv], float), args.z, angle_deg=args.angle, **opts)
+        m = cal.map(np.array([args.uv], float), units.in_length(args.z), angle_deg=args.angle, **opts)
         if args.json:
-            print(json.dumps({"points": m.records()}, allow_nan=False))
+            print(json.dumps(mapped_json(m, units), allow_nan=False))
         else:
-            vals = list(m.xyz_mm[0]) + ([] if m.rz_deg is None else [m.rz_deg[0]])
+            vals = [units.out_length(float(v)) for v in m.xyz_mm[0]]
+            vals += [] if m.rz_deg is None else [units.out_angle(float(m.rz_deg[0]))]
             print(" ".join(repr(float(v)) for v in vals))
         _warn_outside(m)
         return 0
@@ -119,19 +121,20 @@ def cmd_apply(args) -> int:
         raise CliError("apply: the input has a z column; --z would contradict it")
     if table.angle_deg is not None and args.angle is not None:
         raise CliError("apply: the input has an angle column; --angle would contradict it")
-    z = table.z_mm if table.z_mm is not None else args.z
+    z = table.z_mm if table.z_mm is not None else args.z  # the input's z column: in --units too
     ang = table.angle_deg if table.angle_deg is not None else args.angle
-    m = cal.map(table.uv_px, z, angle_deg=ang, **opts)
+    m = cal.map(table.uv_px, units.in_length(z), angle_deg=ang, **opts)
     if args.json:
-        text = json.dumps({"points": m.records()}, allow_nan=False) + "\n"
+        text = json.dumps(mapped_json(m, units), allow_nan=False) + "\n"
     else:
-        cols = {"x": m.xyz_mm[:, 0], "y": m.xyz_mm[:, 1]}
+        xyz = units.out_length(m.xyz_mm)
+        cols = {"x": xyz[:, 0], "y": xyz[:, 1]}
         if table.z_mm is None:
-            cols["z"] = m.xyz_mm[:, 2]
+            cols["z"] = xyz[:, 2]
         if m.rz_deg is not None:
-            cols["rz"] = m.rz_deg
+            cols["rz"] = units.out_angle(m.rz_deg)
         if m.sigma_mm is not None:
-            cols["sigma_mm"] = m.sigma_mm
+            cols[units.sigma_key] = units.out_length(m.sigma_mm)
         cols["inside"] = m.inside
         text = table.with_columns(cols)
     if args.output:
@@ -141,6 +144,22 @@ def cmd_apply(args) -> int:
         sys.stdout.write(text)
     _warn_outside(m)
     return 0
+
+
+def mapped_json(m, units) -> dict:
+    """``apply --json``: the points (u, v, x, y, z, [rz], sigma_<unit>, inside) in ``units``, which it
+    names (``units``, ``angle_units``); mm and deg: every number as ``Mapped.records`` has it."""
+    recs = m.records()
+    if not units.is_default:
+        for rec in recs:
+            for k in ("x", "y", "z"):
+                rec[k] = units.out_length(rec[k])
+            if "rz" in rec:
+                rec["rz"] = units.out_angle(rec["rz"])
+            sigma = rec.pop("sigma_mm")
+            rec[units.sigma_key] = None if sigma is None else units.out_length(sigma)
+            rec["inside"] = rec.pop("inside")  # last, as in mm
+    return {"units": units.length, "angle_units": units.angle, "points": recs}
 
 
 def _warn_outside(m) -> None:
@@ -212,7 +231,7 @@ def register(sub) -> None:
         "x,y[,z][,rz],sigma_mm,inside",
     )
     p.add_argument("--uv", nargs=2, type=float, metavar=("U", "V"))
-    p.add_argument("--z", type=float, default=None, help="object height in mm")
+    p.add_argument("--z", type=float, default=None, help="object height in mm (in --units)")
     add_orientation_options(p)
     p.add_argument(
         "--allow-outside",
@@ -221,6 +240,16 @@ def register(sub) -> None:
     )
     p.add_argument(
         "--json", action="store_true", help="JSON with every point's u v x y z [rz] sigma_mm inside"
+    )
+    p.add_argument(
+        "--units",
+        default=None,
+        metavar="mm|m",
+        help="length unit of x, y, z and sigma (sigma_m) in the output, and of --z and the input's z "
+        "column (default mm; m = mm / 1000)",
+    )
+    p.add_argument(
+        "--angle-units", default=None, metavar="deg|rad", help="unit of rz in the output (default deg)"
     )
     p.add_argument("-o", "--output", help="output file (default: standard output)")
     p.set_defaults(func=cmd_apply)

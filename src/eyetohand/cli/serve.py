@@ -121,13 +121,7 @@ def register(sub) -> None:
         "folder:DIR, sim:CELL.toml, genicam:PRODUCER.cti, pylon:[SERIAL] "
         "(docs/collection.md)",
     )
-    p.add_argument(
-        "--reply-format",
-        choices=["plain", "ur"],
-        default="plain",
-        help="form of the CAL replies: plain 'OK …'/'ERR …' lines, or ur: '(status,a,b,c)' "
-        "for URScript's socket_read_ascii_float(4) (default plain)",
-    )
+    add_line_options(p)
     p.add_argument(
         "--collect-dir",
         metavar="DIR",
@@ -197,3 +191,28 @@ def register(sub) -> None:
     )
     # ---- end of the http worktree's options
     p.set_defaults(func=cmd_serve)
+
+
+def add_line_options(p) -> None:
+    """The TCP line service's reply format and units (docs/server.md "Reply format and units")."""
+    p.add_argument(
+        "--reply-format",
+        choices=["plain", "ur"],
+        default="plain",
+        help="form of every TCP reply: plain 'OK …'/'ERR …' lines, or ur: '(status,a,b,…)' with a "
+        "fixed count per command (CAL 4, the rest 6) for URScript's socket_read_ascii_float(n) "
+        "(default plain; docs/server.md)",
+    )
+    p.add_argument(
+        "--units",
+        default=None,
+        metavar="mm|m",
+        help="length unit of the TCP mapping and LOCATE lines, both ways: a line's z and the answer's x, "
+        "y, z, sigma (default mm; CAL and BELT stay mm, Modbus and OPC UA too)",
+    )
+    p.add_argument(
+        "--angle-units",
+        default=None,
+        metavar="deg|rad",
+        help="angle unit of the rz those lines answer (default deg; a= and t= stay deg)",
+    )

@@ -25,8 +25,15 @@ from eyetohand.core.pairs import (
     record_number,
 )
 from eyetohand.core.records import FitInfo, PointError, Stats, TcpOffset
+from eyetohand.core.units import ANGLE_UNITS, LENGTH_UNITS, MM_DEG, OutputUnits, check_units, output_units
 
 __all__ = [
+    "ANGLE_UNITS",
+    "LENGTH_UNITS",
+    "MM_DEG",
+    "OutputUnits",
+    "check_units",
+    "output_units",
     "CsvTable",
     "DegenerateError",
     "FitInfo",

@@ -87,8 +87,7 @@ def check_options(args) -> None:
             raise ServeError(
                 f"--robot-address: expected an IP address (e.g. 192.168.0.10), got {addr!r}"
             ) from None
-    if getattr(args, "reply_format", "plain") != "plain" and not camera:
-        raise ServeError("--reply-format is for the collection's CAL replies: give --camera URI too")
+    check_line_options(args)
 
     args.calibration_file = None
     if args.calibration:
@@ -100,6 +99,31 @@ def check_options(args) -> None:
                 args.calibration_file = signed_file(FixedCalibration, path, args)
             except InputError as exc:
                 raise ServeError(f"--calibration: {exc}") from None
+
+
+def check_line_options(args) -> None:
+    """``--reply-format``, ``--units``, ``--angle-units``: the TCP line service's words and units
+    (``args.output_units``); refused without ``--tcp`` (Modbus registers are in µm and 0.001 deg, OPC UA
+    in mm and deg whatever these say: docs/plc.md)."""
+    from eyetohand.core import output_units
+
+    units, angle = getattr(args, "units", None), getattr(args, "angle_units", None)
+    try:
+        args.output_units = output_units(units, angle)
+    except InputError as exc:
+        raise ServeError(str(exc)) from None
+    if args.tcp:
+        return
+    for flag, given in (
+        ("--reply-format", getattr(args, "reply_format", "plain") != "plain"),
+        ("--units", units is not None),
+        ("--angle-units", angle is not None),
+    ):
+        if given:
+            raise ServeError(
+                f"{flag} is for the TCP line service: give --tcp HOST:PORT too (Modbus registers are "
+                "in um and 0.001 deg, OPC UA in mm and deg: docs/plc.md)"
+            )
 
 
 def check_plc_options(args) -> None:
@@ -254,6 +278,7 @@ def one_calibration(server_fn, wanted: str | None) -> dict:
 def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
     """The LineServer's options from ``serve``'s: the command handlers, their busy replies, the robot's
     reserved addresses and the first-line grace."""
+    from eyetohand.core import MM_DEG
     from eyetohand.server.tcp import FIRST_LINE_S
 
     return {
@@ -261,6 +286,8 @@ def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
         "busy_replies": busy_replies,
         "robot_addresses": getattr(args, "robot_address", None) or (),
         "first_line_s": getattr(args, "tcp_first_line_s", None) or FIRST_LINE_S,
+        "reply_format": getattr(args, "reply_format", None) or "plain",
+        "units": getattr(args, "output_units", None) or MM_DEG,
     }
 
 
@@ -342,7 +369,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                 )
                 commands["CAL"] = collector.handle
                 locator = add_locate(
-                    commands, source, lambda: line_server.source if line_server else served, args.reply_format
+                    commands, source, lambda: line_server.source if line_server else served, args
                 )
                 busy_replies["CAL"] = collector.refuse
             if conveyor:
@@ -366,6 +393,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         except OSError as exc:
             http_sock.close()
             raise ServeError(f"--tcp {args.tcp}: cannot listen there ({exc.strerror or exc})") from None
+        what += units_note(args)
         print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with {what}", flush=True)
         if collector is not None:
             print(
@@ -459,18 +487,30 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
 
 
 # ---- LOCATE and the sim: camera's SIM lines (the locate worktree; one block for easy merges)
-def add_locate(commands: dict, source, served, reply_format: str):
+def add_locate(commands: dict, source, served, args):
     """The camera's :class:`~eyetohand.cell.Locator`, its line command ``LOCATE`` added to
     ``commands`` (and, for a ``sim:`` camera, ``SIM``: parts on the virtual table). ``served()``: the
     calibration in force, read at every LOCATE."""
     from eyetohand.cell import Locator
+    from eyetohand.core import MM_DEG
     from eyetohand.sim import SimSource, sim_command
 
-    locator = Locator(source, served, reply_format=reply_format)
+    locator = Locator(
+        source, served, reply_format=args.reply_format, units=getattr(args, "output_units", None) or MM_DEG
+    )
     commands["LOCATE"] = locator.handle
     if isinstance(source, SimSource):
         commands["SIM"] = lambda line: sim_command(source, line)
     return locator
+
+
+def units_note(args) -> str:
+    """The start-up line's note of the line service's words and units, when not plain mm and deg."""
+    u = getattr(args, "output_units", None)
+    parts = [] if u is None or u.is_default else [f"answers in {u.length} and {u.angle}"]
+    if getattr(args, "reply_format", "plain") != "plain":
+        parts.append(f"replies {args.reply_format}")
+    return f" ({'; '.join(parts)})" if parts else ""
 
 
 def sim_note(commands: dict) -> str:

@@ -249,15 +249,28 @@ class MapRequest(Strict):
         False, description="map points outside the calibrated region too (flagged inside=false)"
     )
     sigma: StrictBool = Field(True, description="compute each point's predicted error sigma_mm")
+    # checked by the route with every interface's words (eyetohand.core.output_units): any JSON value
+    units: Any = Field(
+        None,
+        json_schema_extra={"enum": ["mm", "m"]},
+        description="length unit of the answer's points and sigma, and of z given here (default mm; "
+        "m = mm / 1000)",
+    )
+    angle_units: Any = Field(
+        None, json_schema_extra={"enum": ["deg", "rad"]}, description="unit of the answer's rz (default deg)"
+    )
 
 
 class MapResponse(BaseModel):
     id: int | None = Field(None, description="calibration id (absent for an unsaved job result)")
     version: int | None = None
-    units: Literal["mm"] = "mm"
-    points: list[tuple[float, float, float]] = Field(description="robot points [x, y, z] in mm")
+    units: Literal["mm", "m"] = Field("mm", description="length unit of points and sigma_<units>")
+    angle_units: Literal["deg", "rad"] = Field("deg", description="unit of rz_<angle_units>")
+    points: list[tuple[float, float, float]] = Field(description="robot points [x, y, z] in units")
     rz_deg: list[float] | None = Field(None, description="robot angles (deg), when angles were given")
+    rz_rad: list[float] | None = Field(None, description="the same in rad (angle_units rad)")
     sigma_mm: list[float] | None = Field(None, description="predicted error of each point (mm)")
+    sigma_m: list[float] | None = Field(None, description="the same in m (units m)")
     inside: list[bool] = Field(description="whether each point lies in the calibrated region")
 
 

@@ -26,12 +26,21 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
 from eyetohand.calibration import Calibration
-from eyetohand.cell import MAX_REASON, CommandError, ascii_reason, line_count, line_numbers
-from eyetohand.core import InputError
+from eyetohand.cell import (
+    MAX_REASON,
+    PLAIN_REPLIES,
+    CommandError,
+    LineReplies,
+    ascii_reason,
+    line_count,
+    line_numbers,
+)
+from eyetohand.core import MM_DEG, InputError, OutputUnits
 from eyetohand.geometry import check_symmetry
 
 MAX_LINE = 256
@@ -281,8 +290,9 @@ def served_for_check(server_fn: Callable[[], LineServer | None]):
     return served
 
 
-def answer(cal: Calibration, line: bytes) -> bytes:
-    """The reply to one request line (without its newline).
+def answer(cal: Calibration, line: bytes, replies: LineReplies = PLAIN_REPLIES) -> bytes:
+    """The reply to one request line (without its newline), worded by ``replies`` (the server's reply
+    format and units: :mod:`eyetohand.cell.replies`; a given z is in its units).
 
     ``u,v[,z]`` → ``x,y,z`` (mm). Optional words after the numbers, as ``apply`` and the HTTP API take
     them: ``a=ANGLE`` (the image angle, deg from +u towards +v) adds ``,rz``; ``s=N`` folds rz for a part
@@ -300,7 +310,7 @@ def answer(cal: Calibration, line: bytes) -> bytes:
             pass
         else:
             if all(map(math.isfinite, vals)):
-                return _mapped_line(cal, vals, {})
+                return _mapped_line(cal, vals, {}, replies)
     try:
         text = line.decode("ascii").strip()
     except UnicodeDecodeError:
@@ -333,7 +343,7 @@ def answer(cal: Calibration, line: bytes) -> bytes:
         if err:
             return err
         opts[_WORDS[key]] = x
-    return _mapped_line(cal, vals, opts)
+    return _mapped_line(cal, vals, opts, replies)
 
 
 _WORDS = {"a": "angle_deg", "s": "symmetry", "t": "tool_rz_offset_deg"}
@@ -348,8 +358,8 @@ def _number(name: str, text: str) -> tuple[float, bytes | None]:
         return 0.0, f"ERR {exc}\n".encode()
 
 
-def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
-    z = vals[2] if len(vals) == 3 else None
+def _mapped_line(cal: Calibration, vals: list[float], opts: dict, replies: LineReplies) -> bytes:
+    z = replies.z_in(vals[2]) if len(vals) == 3 else None
     want_sigma = bool(opts.get("sigma"))
     try:
         # "2.0" is 2, as on BELT lines; none given is 1, which needs no check
@@ -365,17 +375,13 @@ def _mapped_line(cal: Calibration, vals: list[float], opts: dict) -> bytes:
                 with_sigma=want_sigma,
             )
     except InputError as exc:
-        reason = exc.reason if exc.index is not None else str(exc)
-        return f"ERR {ascii_reason(reason.splitlines()[0])}\n".encode()
-    x, y, zz = m.xyz_mm[0].tolist()  # Python floats (not a NumPy scalar per coordinate)
-    out = f"{x!r},{y!r},{zz!r}"
-    if m.rz_deg is not None:
-        out += f",{float(m.rz_deg[0])!r}"
-    if want_sigma and m.sigma_mm is not None:
-        out += f",{float(m.sigma_mm[0])!r}"
-    if not m.inside[0]:
-        out += ",OUTSIDE"
-    return (out + "\n").encode()
+        return replies.refused(exc)
+    return replies.mapped(
+        m.xyz_mm[0].tolist(),  # Python floats (not a NumPy scalar per coordinate)
+        None if m.rz_deg is None else m.rz_deg[0],
+        m.sigma_mm[0] if want_sigma and m.sigma_mm is not None else None,
+        bool(m.inside[0]),
+    )
 
 
 class _Lines:
@@ -437,7 +443,10 @@ class LineServer:
         max_pending: int = MAX_PENDING,
         robot_addresses: tuple[str, ...] | list[str] = (),
         first_line_s: float = FIRST_LINE_S,
+        reply_format: str = "plain",
+        units: OutputUnits = MM_DEG,
     ):
+        self.replies = LineReplies(reply_format, units)  # how every reply is worded (cell/replies.py)
         self.source: FixedCalibration | StoredCalibration | PendingCalibration = (
             FixedCalibration(cal) if isinstance(cal, Calibration) else cal
         )
@@ -487,7 +496,7 @@ class LineServer:
         cal = src.cal
         if cal is None or problem is not None:
             return f"ERR {ascii_reason(str(problem))}\n".encode()
-        return answer(cal, line)
+        return answer(cal, line, self.replies)
 
     async def serve_forever(self) -> None:
         assert self.server is not None
@@ -547,6 +556,8 @@ class LineServer:
         return reply.encode("ascii", "replace") + b"\n"
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if self.replies.ur:  # every line this connection is sent goes through the ur format
+            writer = cast(asyncio.StreamWriter, _Worded(writer, self.replies))
         peer = writer.get_extra_info("peername")
         addr = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
         refused = self._admit(addr)
@@ -594,6 +605,8 @@ class LineServer:
                 writer.write(f"ERR line longer than {MAX_LINE} bytes; closing\n".encode())
                 return
             word = line.split(None, 1)[0].upper().decode("ascii", "replace") if line.strip() else ""
+            if isinstance(writer, _Worded):
+                writer.kind = word  # the ur count of this line's replies (CAL's 4, others' 6)
             if word in self.commands:
                 writer.write(await self._command(word, line))
             elif word in MISSING:
@@ -627,6 +640,21 @@ class LineServer:
             return True
         writer.write(b"ERR send 'AUTH <token>' first; closing\n")
         return False
+
+
+class _Worded:
+    """A connection's writer that sends every reply through the server's
+    :meth:`~eyetohand.cell.LineReplies.wire` (``ur``: no line stays text), in the count of the
+    connection's last command word (:attr:`kind`); everything else is the writer's."""
+
+    def __init__(self, writer: asyncio.StreamWriter, replies: LineReplies):
+        self._writer, self._replies, self.kind = writer, replies, ""
+
+    def write(self, data: bytes) -> None:
+        self._writer.write(self._replies.wire(data, self.kind))
+
+    def __getattr__(self, name: str):
+        return getattr(self._writer, name)
 
 
 async def _close(writer: asyncio.StreamWriter) -> None:

@@ -25,6 +25,7 @@ from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from eyetohand.calibration import Calibration, Mapped
+from eyetohand.core import InputError, OutputUnits, output_units
 from eyetohand.server import core
 from eyetohand.server.core import ApiError
 from eyetohand.server.responses import api_error_of_validation
@@ -182,16 +183,31 @@ async def map_body(request: Request) -> tuple[MapRequest, np.ndarray]:
     return await run_in_threadpool(parse_map_body, body)
 
 
+def request_units(req: MapRequest) -> OutputUnits:
+    """The request's ``units`` and ``angle_units``, refused (422) with every interface's words."""
+    if req.units is None and req.angle_units is None:
+        return _MM_DEG
+    try:
+        return output_units(req.units, req.angle_units)
+    except InputError as exc:
+        raise ApiError(422, str(exc), str(exc).split(":", 1)[0]) from None
+
+
 def _map(cal: Calibration, req: MapRequest, pts: np.ndarray) -> Mapped:
     """``core.map_points`` over the request; a large one in chunks written into the output arrays
     (each point's answer is its own: the same numbers). A refusal is re-done on the whole array, so
-    it names the same point, with the same words, as one call would."""
+    it names the same point, with the same words, as one call would. Heights are given in the request's
+    units (mm for the library: :meth:`OutputUnits.in_length`); the answer is in mm."""
+    units = request_units(req)
+    z = req.z
+    if not units.is_default and z is not None:
+        z = [units.in_length(v) for v in z] if isinstance(z, list) else units.in_length(z)
 
     def one(sl: slice) -> Mapped:
         return core.map_points(
             cal,
             pts[sl],
-            req.z[sl] if isinstance(req.z, list) else req.z,
+            z[sl] if isinstance(z, list) else z,
             angles=None if req.angles is None else req.angles[sl],
             symmetry=req.symmetry,
             tool_rz_offset_deg=req.tool_rz_offset_deg,
@@ -231,28 +247,50 @@ def _map(cal: Calibration, req: MapRequest, pts: np.ndarray) -> Mapped:
     return out
 
 
-def _head(cal_id, version) -> bytes:
-    return orjson.dumps({"id": cal_id, "version": version, "units": "mm"})[:-1]
+_MM_DEG = output_units()
+
+
+def in_units(m: Mapped, units: OutputUnits) -> Mapped:
+    """The mapped points with x, y, z and sigma in ``units.length``, rz in ``units.angle``
+    (:mod:`eyetohand.core.units`: m = mm / 1000.0, rad = deg · π/180)."""
+    if units.is_default:
+        return m
+    return Mapped(
+        m.uv_px,
+        units.out_length(m.xyz_mm),
+        None if m.rz_deg is None else units.out_angle(m.rz_deg),
+        None if m.sigma_mm is None else units.out_length(m.sigma_mm),
+        m.inside,
+        m.outside_px,
+    )
+
+
+def _head(cal_id, version, units: OutputUnits) -> bytes:
+    head = {"id": cal_id, "version": version, "units": units.length, "angle_units": units.angle}
+    return orjson.dumps(head)[:-1]
 
 
 def _work(cal: Calibration, req: MapRequest, pts: np.ndarray, cal_id, version) -> bytes:
-    m = _map(cal, req, pts)
+    units = request_units(req)
+    m = in_units(_map(cal, req, pts), units)
     return orjson.dumps(
         {
             "id": cal_id,
             "version": version,
-            "units": "mm",
+            "units": units.length,
+            "angle_units": units.angle,
             "points": m.xyz_mm,
-            "rz_deg": m.rz_deg,
-            "sigma_mm": m.sigma_mm,
+            units.rz_key: m.rz_deg,
+            units.sigma_key: m.sigma_mm,
             "inside": m.inside,
         },
         option=orjson.OPT_SERIALIZE_NUMPY,
     )
 
 
-def _pieces(m: Mapped, cal_id, version) -> Iterator[bytes]:
-    """The same JSON as :func:`_work`, in pieces of :data:`CHUNK_POINTS` points."""
+def _pieces(m: Mapped, cal_id, version, units: OutputUnits = _MM_DEG) -> Iterator[bytes]:
+    """The same JSON as :func:`_work`, in pieces of :data:`CHUNK_POINTS` points (``m`` already in
+    ``units``)."""
     n = len(m.xyz_mm)
 
     def array(a: np.ndarray) -> Iterator[bytes]:
@@ -263,11 +301,11 @@ def _pieces(m: Mapped, cal_id, version) -> Iterator[bytes]:
 
         yield b"]"
 
-    yield _head(cal_id, version) + b',"points":'
+    yield _head(cal_id, version, units) + b',"points":'
     yield from array(m.xyz_mm)
-    yield b',"rz_deg":'
+    yield f',"{units.rz_key}":'.encode()
     yield from (array(m.rz_deg) if m.rz_deg is not None else [b"null"])
-    yield b',"sigma_mm":'
+    yield f',"{units.sigma_key}":'.encode()
     yield from (array(m.sigma_mm) if m.sigma_mm is not None else [b"null"])
     yield b',"inside":'
     yield from array(m.inside)
@@ -277,9 +315,10 @@ def _pieces(m: Mapped, cal_id, version) -> Iterator[bytes]:
 async def mapped(cal: Calibration, req: MapRequest, pts: np.ndarray, cal_id=None, version=None) -> Response:
     if len(pts) <= INLINE_POINTS:
         return Response(_work(cal, req, pts, cal_id, version), media_type="application/json")
-    m = await run_in_threadpool(_map, cal, req, pts)
+    units = request_units(req)
+    m = in_units(await run_in_threadpool(_map, cal, req, pts), units)
     del pts
-    return StreamingResponse(_pieces(m, cal_id, version), media_type="application/json")
+    return StreamingResponse(_pieces(m, cal_id, version, units), media_type="application/json")
 
 
 @router.post(
