@@ -730,7 +730,8 @@ def plot_drift(
                 label=f"beyond the limit ({int(over.sum())})",
             )
         top = max(top, max(v for _, v in limits))
-    _version_marks(ax, pts, versions)
+    marks = _version_marks(ax, pts, versions)
+    _time_limits(ax, t + marks)
     ax.set_ylim(0, 1.12 * top if top > 0 else 1.0)
     ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(ax.xaxis.get_major_locator()))
     ax.set_xlabel("time of the check (UTC)")
@@ -765,8 +766,19 @@ def _limit_at(steps: list[tuple], when) -> float:
     return value
 
 
-def _version_marks(ax, pts: list[dict], versions: Sequence[tuple] | None) -> None:
-    """A vertical line labelled ``v<N>`` at each version change within (or after) the checks' times."""
+def _time_limits(ax, times: list) -> None:
+    """The time axis over ``times`` with a margin, at least a minute either side: checks made within
+    one second (a script, a test) would otherwise be spread over years by matplotlib's autoscale."""
+    import datetime as dt
+
+    lo, hi = min(times), max(times)
+    pad = max((hi - lo) * 0.04, dt.timedelta(minutes=1))
+    ax.set_xlim(lo - pad, hi + pad)
+
+
+def _version_marks(ax, pts: list[dict], versions: Sequence[tuple] | None) -> list:
+    """A vertical line labelled ``v<N>`` at each version change within (or after) the checks' times;
+    returns their times."""
     if versions is not None:
         marks = sorted((_utc(u, f"version {v}"), int(v)) for u, v in versions)
         first = pts[0]["utc"]
@@ -789,3 +801,4 @@ def _version_marks(ax, pts: list[dict], versions: Sequence[tuple] | None) -> Non
             fontsize=8,
             color="0.25",
         )
+    return [u for u, _ in marks]

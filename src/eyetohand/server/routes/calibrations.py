@@ -163,10 +163,21 @@ def verify_calibration(cal_id: CalId, req: VerifyRequest, svc: Svc, version: Ver
 
 
 @router.get("/api/calibrations/{cal_id}/history")
-def verification_history(cal_id: CalId, svc: Svc):
-    """The calibration's verifications, oldest first (rms, max, shift, rotation, scale change)."""
+def verification_history(cal_id: CalId, svc: Svc, request: Request):
+    """The calibration's verifications, oldest first (rms, max, shift, rotation, scale change);
+    ``collection_checks``: how many CAL CHECKs this server's collection made of it (``drift.png``
+    draws both)."""
     rec = svc.store.get(cal_id)
-    return {"id": rec.id, "name": rec.name, "entries": svc.store.verifications(cal_id)}
+    try:
+        collected = len(_collection_checks(request, rec.name))
+    except InputError:  # a damaged checks file: drift.png names its line; the verifications stand
+        collected = 0
+    return {
+        "id": rec.id,
+        "name": rec.name,
+        "entries": svc.store.verifications(cal_id),
+        "collection_checks": collected,
+    }
 
 
 # ------------------------------------------------------------------ pictures (server/figures.py)
@@ -219,7 +230,10 @@ def drift(cal_id: CalId, svc: Svc, request: Request, width: FigWidth = 800, limi
     (``limit_mm``, default the tolerance the verifications record), a vertical line where a new
     version was made. ``X-Checks``: how many checks are drawn."""
     rec = svc.store.get(cal_id)
-    entries = svc.store.verifications(cal_id) + _collection_checks(request, rec.name)
+    # a verification at the store's clock (ms, as the versions' times) rather than its own (whole s):
+    # a check and a version of one second stay in the order they were made
+    stored = [{**e, "utc": e.get("stored_utc") or e["utc"]} for e in svc.store.verifications(cal_id)]
+    entries = stored + _collection_checks(request, rec.name)
     if not entries:
         raise ApiError(
             404,
