@@ -169,3 +169,25 @@ def test_drift_png_joins_the_collections_checks(tmp_path):
         assert r.status_code == 200 and r.headers["X-Checks"] == "2"
         verify(client, cid, PAIRS[::2], 1.0)
         assert client.get(f"/api/calibrations/{cid}/drift.png").headers["X-Checks"] == "3"
+
+
+def test_a_trust_map_being_drawn_blocks_no_other_request(client):
+    import threading
+
+    cid = create(client)["id"]
+    done = {}
+
+    def draw():
+        t0 = time.perf_counter()
+        done["status"] = client.get(f"/api/calibrations/{cid}/trust-map.png?width=1000").status_code
+        done["s"] = time.perf_counter() - t0
+
+    th = threading.Thread(target=draw)
+    th.start()
+    time.sleep(0.3)  # the render has started on the thread pool
+    t0 = time.perf_counter()
+    assert client.get("/api/health").status_code == 200
+    health_s = time.perf_counter() - t0
+    th.join(60)
+    assert done["status"] == 200
+    assert health_s < 0.25 * done["s"], (health_s, done["s"])
