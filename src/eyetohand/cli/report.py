@@ -7,7 +7,7 @@ import argparse
 from eyetohand.calibration import Calibration
 from eyetohand.cli.calibrate import print_notes
 from eyetohand.core import load_pairs
-from eyetohand.reports import write_report
+from eyetohand.reports import load_history, write_report
 
 
 def cmd_report(args) -> int:
@@ -20,7 +20,10 @@ def cmd_report(args) -> int:
         extra["training pairs"] = str(args.pairs)
     if args.check:
         extra["check pairs"] = str(args.check)
-    path = write_report(args.output, cal, check, train, extra)
+    history = load_history(args.history) if args.history else None
+    if args.history:
+        extra["check history"] = str(args.history)
+    path = write_report(args.output, cal, check, train, extra, history=history, limit_mm=args.limit)
     print(path)
     return 0
 
@@ -34,5 +37,17 @@ def register(sub) -> None:
     p.add_argument("calibration", metavar="CAL.json", help="calibration file written by 'calibrate -o'")
     p.add_argument("--check", metavar="CHECK", help="check pairs: evaluate the calibration on them")
     p.add_argument("--pairs", metavar="TRAIN", help="the training pairs (for the residual-vector plot)")
+    p.add_argument(
+        "--history",
+        metavar="FILE",
+        help="the calibration's checks in JSON lines (verify's CAL.json.history.jsonl, a collection's "
+        "NAME.checks.jsonl): drawn over time in a Drift section",
+    )
+    p.add_argument(
+        "--limit",
+        metavar="MM",
+        type=float,
+        help="the drift plot's limit line (default: the tolerance the history records)",
+    )
     p.add_argument("-o", "--output", metavar="DIR", required=True, help="report folder (index.html + PNGs)")
     p.set_defaults(func=cmd_report)

@@ -3,7 +3,16 @@
 from __future__ import annotations
 
 from eyetohand.reports.demo import run_demo, write_demo_report
-from eyetohand.reports.plots import plot_plan_study
-from eyetohand.reports.report import grown_hull, write_report
+from eyetohand.reports.plots import plot_drift, plot_plan_study
+from eyetohand.reports.report import grown_hull, load_history, trust_map, write_report
 
-__all__ = ["grown_hull", "plot_plan_study", "run_demo", "write_demo_report", "write_report"]
+__all__ = [
+    "grown_hull",
+    "plot_drift",
+    "plot_plan_study",
+    "load_history",
+    "run_demo",
+    "trust_map",
+    "write_demo_report",
+    "write_report",
+]

@@ -18,7 +18,9 @@ import numpy as np
 from eyetohand.core import InputError
 
 __all__ = [
+    "drift_points",
     "plot_convergence",
+    "plot_drift",
     "plot_model_comparison",
     "plot_plan_study",
     "plot_point_errors",
@@ -529,6 +531,7 @@ def plot_sigma_map(
     points_px=None,
     image_size: tuple[int, int] | None = None,
     add_point_px=None,
+    background=None,
     title: str | None = "Predicted error sigma_mm over the image",
 ):
     """sigma_mm (mm) as a colour map over the image, the calibrated region outlined.
@@ -536,7 +539,9 @@ def plot_sigma_map(
     ``u_px`` (W,), ``v_px`` (H,): the grid's pixel coordinates; ``sigma_mm`` (H, W) (NaN where the
     map has no answer). ``hull_px`` (K, 2): the training pixels' hull, drawn closed; optional
     ``margin_hull_px`` the hull grown by the margin (dashed: beyond it mappings are refused);
-    ``points_px`` (N, 2) the training pixels; ``add_point_px`` (u, v) where to add a pair (a star).
+    ``points_px`` (N, 2) the training pixels; ``add_point_px`` (u, v) where to add a pair (a star);
+    ``background`` (H, W) or (H, W, 3) a camera image (BGR, as OpenCV reads it) drawn in grey under a
+    half-transparent heat map, pixel (0, 0) at (u, v) = (0, 0).
     Image axes: u right, v down, equal aspect. Returns the axes."""
     u = np.asarray(u_px, float)
     v = np.asarray(v_px, float)
@@ -550,7 +555,15 @@ def plot_sigma_map(
         ax = _new_axes((7.2, 5.4))
     finite = s[np.isfinite(s)]
     vmax = float(np.percentile(finite, 99)) if finite.size else 1.0
-    mesh = ax.pcolormesh(u, v, s, shading="nearest", cmap="viridis", vmin=0.0, vmax=vmax)
+    alpha = None
+    if background is not None:
+        img = np.asarray(background)
+        if img.ndim == 3:  # BGR → luminance
+            img = img[..., :3].astype(float) @ np.array([0.114, 0.587, 0.299])
+        h, w = img.shape[:2]
+        ax.imshow(img, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5), interpolation="antialiased")
+        alpha = 0.55
+    mesh = ax.pcolormesh(u, v, s, shading="nearest", cmap="viridis", vmin=0.0, vmax=vmax, alpha=alpha)
     ax.figure.colorbar(mesh, ax=ax, label="sigma_mm [mm]")
     closed = np.vstack([hull, hull[:1]])
     ax.plot(closed[:, 0], closed[:, 1], color="white", lw=2.0, label="calibrated region (training hull)")
@@ -592,3 +605,200 @@ def plot_sigma_map(
     if title:
         ax.set_title(title)
     return ax
+
+
+# ------------------------------------------------------------------ drift: the checks over time
+
+
+def _utc(value, what: str):
+    """A timezone-aware datetime (UTC when the text names no zone) from an ISO 8601 text or datetime."""
+    import datetime as dt
+
+    if isinstance(value, dt.datetime):
+        t = value
+    else:
+        try:
+            t = dt.datetime.fromisoformat(str(value))
+        except ValueError:
+            raise InputError(f"{what}: 'utc' {value!r} is not an ISO 8601 time") from None
+    return t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)
+
+
+def drift_points(entries: Sequence[Mapping]) -> list[dict]:
+    """The checks of a verification history as the drift plot draws them, oldest first: ``utc``
+    (datetime), ``error_mm`` (the check's largest point error: a verification's ``max_mm``, the one
+    point of a collection's CAL CHECK's ``error_mm``; what a tolerance is held against), ``rms_mm``
+    (verifications only, else None), ``tolerance_mm`` (None when not recorded), ``version`` (None when
+    not recorded) and ``kind`` ("verify" or "CAL CHECK"). An entry with neither error is named."""
+    out = []
+    for i, e in enumerate(entries):
+        what = f"history entry {i + 1}"
+        if "utc" not in e:
+            raise InputError(f"{what}: no 'utc'")
+        if e.get("max_mm") is not None:
+            err, rms, kind = float(e["max_mm"]), e.get("rms_mm"), "verify"
+        elif e.get("error_mm") is not None:
+            err, rms, kind = float(e["error_mm"]), None, "CAL CHECK"
+        else:
+            raise InputError(f"{what}: neither 'max_mm' (a verification) nor 'error_mm' (a CAL CHECK)")
+        tol, ver = e.get("tolerance_mm"), e.get("version")
+        out.append(
+            {
+                "utc": _utc(e["utc"], what),
+                "error_mm": err,
+                "rms_mm": None if rms is None else float(rms),
+                "tolerance_mm": None if tol is None else float(tol),
+                "version": None if ver is None else int(ver),
+                "kind": kind,
+            }
+        )
+    out.sort(key=lambda p: p["utc"])  # stable: entries of one second keep their order
+    return out
+
+
+def plot_drift(
+    entries: Sequence[Mapping],
+    ax=None,
+    *,
+    limit_mm: float | None = None,
+    versions: Sequence[tuple] | None = None,
+    title: str | None = "Drift: the error of each check over time",
+):
+    """The error of each check of a calibration over time, against the limit.
+
+    ``entries``: verification history entries (``eyetohand verify``'s ``CAL.json.history.jsonl``, the
+    server's ``/history``: ``utc``, ``max_mm``, ``rms_mm``, ``tolerance_mm``, ``version``) and/or a
+    collection's CAL CHECK records (``<name>.checks.jsonl``: ``utc``, ``error_mm``, ``version``), in any
+    order (see :func:`drift_points`). One line, oldest first, of each check's largest point error (mm)
+    — what the tolerance is held against — with verifications as circles and CAL CHECKs as diamonds,
+    the verifications' RMS dotted under it, and checks beyond the limit ringed.
+    ``limit_mm``: the limit, a horizontal dashed line; default the entries' ``tolerance_mm`` (a step
+    line when it changed, none when no entry records one). ``versions``: ``(utc, version)`` of each
+    calibration version (when it was made); default the first check of each new version. A version
+    change is a vertical line labelled ``v<N>`` on the time axis. Returns the axes."""
+    import matplotlib.dates as mdates
+
+    pts = drift_points(entries)
+    if not pts:
+        raise InputError("plot_drift: no checks in the history")
+    if limit_mm is not None and not (math.isfinite(limit_mm) and limit_mm > 0):
+        raise InputError(f"plot_drift: limit_mm must be a positive number of mm, got {limit_mm!r}")
+    if ax is None:
+        ax = _new_axes((7.6, 4.2))
+    t = [p["utc"] for p in pts]
+    err = np.array([p["error_mm"] for p in pts])
+    ax.plot(t, err, "-", color=COLORS[0], lw=1.4, label="check error (largest point)", gid="drift-error")
+    for kind, marker in (("verify", "o"), ("CAL CHECK", "D")):
+        sel = [i for i, p in enumerate(pts) if p["kind"] == kind]
+        if sel:
+            ax.plot(
+                [t[i] for i in sel], err[sel], marker, ms=5, color=COLORS[0], label=f"{kind} ({len(sel)})"
+            )
+    rms = [(p["utc"], p["rms_mm"]) for p in pts if p["rms_mm"] is not None]
+    if rms:
+        ax.plot(*zip(*rms, strict=True), ":", color=COLORS[2], lw=1.2, label="verify: RMS of its points")
+    top = float(err.max())
+    limits = _limit_steps(pts, limit_mm)
+    if limits:
+        if len({v for _, v in limits}) == 1:
+            value = limits[0][1]
+            ax.axhline(value, color=COLORS[1], ls="--", lw=1.3, label=f"limit {value:g} mm", gid="limit")
+        else:
+            xs = [x for x, _ in limits] + [t[-1]]
+            ys = [v for _, v in limits] + [limits[-1][1]]
+            ax.step(
+                xs,
+                ys,
+                where="post",
+                color=COLORS[1],
+                ls="--",
+                lw=1.3,
+                label="limit (as recorded)",
+                gid="limit",
+            )
+        tol = np.array([_limit_at(limits, x) for x in t])
+        over = err > tol
+        if over.any():
+            ax.plot(
+                [t[i] for i in np.flatnonzero(over)],
+                err[over],
+                "o",
+                ms=11,
+                mfc="none",
+                mec=COLORS[1],
+                mew=1.6,
+                label=f"beyond the limit ({int(over.sum())})",
+            )
+        top = max(top, max(v for _, v in limits))
+    marks = _version_marks(ax, pts, versions)
+    _time_limits(ax, t + marks)
+    ax.set_ylim(0, 1.12 * top if top > 0 else 1.0)
+    ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(ax.xaxis.get_major_locator()))
+    ax.set_xlabel("time of the check (UTC)")
+    ax.set_ylabel("error [mm]")
+    ax.grid(True, alpha=0.35)
+    ax.set_axisbelow(True)
+    # under the axes: inside, it would hide the checks of whichever corner it took
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=3, frameon=False)
+    if title:
+        ax.set_title(title)
+    return ax
+
+
+def _limit_steps(pts: list[dict], limit_mm: float | None) -> list[tuple]:
+    """[(from utc, limit mm)]: the given limit throughout, else each change of the recorded tolerance."""
+    if limit_mm is not None:
+        return [(pts[0]["utc"], float(limit_mm))]
+    steps: list[tuple] = []
+    for p in pts:
+        tol = p["tolerance_mm"]
+        if tol is not None and (not steps or steps[-1][1] != tol):
+            steps.append((p["utc"], tol))
+    return steps
+
+
+def _limit_at(steps: list[tuple], when) -> float:
+    """The limit in force at ``when`` (the first one before the first step)."""
+    value = steps[0][1]
+    for start, v in steps:
+        if start <= when:
+            value = v
+    return value
+
+
+def _time_limits(ax, times: list) -> None:
+    """The time axis over ``times`` with a margin, at least a minute either side: checks made within
+    one second (a script, a test) would otherwise be spread over years by matplotlib's autoscale."""
+    import datetime as dt
+
+    lo, hi = min(times), max(times)
+    pad = max((hi - lo) * 0.04, dt.timedelta(minutes=1))
+    ax.set_xlim(lo - pad, hi + pad)
+
+
+def _version_marks(ax, pts: list[dict], versions: Sequence[tuple] | None) -> list:
+    """A vertical line labelled ``v<N>`` at each version change within (or after) the checks' times;
+    returns their times."""
+    if versions is not None:
+        marks = sorted((_utc(u, f"version {v}"), int(v)) for u, v in versions)
+        first = pts[0]["utc"]
+        marks = [(u, v) for u, v in marks if u > first]
+    else:
+        marks, prev = [], None
+        for p in pts:
+            if p["version"] is not None and prev is not None and p["version"] != prev:
+                marks.append((p["utc"], p["version"]))
+            prev = p["version"] if p["version"] is not None else prev
+    for u, v in marks:
+        ax.axvline(u, color="0.35", ls="-.", lw=1.0, gid=f"version-{v}")
+        ax.text(
+            u,
+            0.98,
+            f" v{v}",
+            transform=ax.get_xaxis_transform(),
+            ha="left",
+            va="top",
+            fontsize=8,
+            color="0.25",
+        )
+    return [u for u, _ in marks]

@@ -14,8 +14,9 @@ Units everywhere: robot errors, fitness and statistics in mm, image positions in
 
 from __future__ import annotations
 
+import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,7 +35,7 @@ from eyetohand.reports.sections import (
 )
 from eyetohand.solve import Stats, evaluate
 
-__all__ = ["build_report", "write_report"]
+__all__ = ["build_report", "load_history", "trust_map", "write_report"]
 
 
 def _fitness_label(objective: str) -> str:
@@ -95,6 +96,8 @@ def build_report(
     extra: Mapping | None = None,
     *,
     title: str | None = None,
+    history: Sequence[Mapping] | None = None,
+    limit_mm: float | None = None,
 ) -> tuple[str, dict[str, bytes]]:
     """The report of one calibration, in memory: ``(index.html text, {png name: bytes})``.
 
@@ -102,6 +105,9 @@ def build_report(
     replace any stored ones). ``train_pairs``: the pairs the calibration was fitted on, for the image
     positions of the residual-vector plot; if their SHA-256 differs from the calibration's, they
     are shown as "given pairs" with a warning. ``extra``: more name → value rows for the header.
+    ``history``: the calibration's checks (verification entries, CAL CHECK records: see
+    :func:`eyetohand.reports.plots.plot_drift`), drawn over time in a "Drift" section against
+    ``limit_mm`` (default: the tolerance they record).
     """
     cal = calibration
     if not isinstance(cal, Calibration):
@@ -110,11 +116,14 @@ def build_report(
     doc = Document(title or f"Calibration report — {cal.model_name} + {cal.fit.optimizer}")
     doc.add(
         '<nav><a href="#summary">summary</a><a href="#accuracy">accuracy</a><a href="#plots">plots</a>'
-        '<a href="#points">per point</a><a href="#fit">fit</a><a href="#params">parameters</a></nav>'
+        + ('<a href="#drift">drift</a>' if history is not None else "")
+        + '<a href="#points">per point</a><a href="#fit">fit</a><a href="#params">parameters</a></nav>'
     )
     _summary(doc, cal, ev, extra)
     _accuracy(doc, cal, ev)
     _plots(doc, cal, ev, check_pairs, train_pairs)
+    if history is not None:
+        _drift(doc, history, limit_mm)
     doc.h2("Per point residuals", "points")
     if ev.check is not None:
         doc.h3("Check points")
@@ -286,6 +295,52 @@ def _residual_plot(
     )
 
 
+def _drift(doc: Document, history: Sequence[Mapping], limit_mm: float | None) -> None:
+    """The checks of the calibration over time against the limit (or a note that there are none)."""
+    from eyetohand.reports import plots
+
+    doc.h2("Drift", "drift")
+    if not history:
+        doc.p("No checks in the history given: nothing to draw yet.", "muted")
+        return
+    ax = plots.plot_drift(history, limit_mm=limit_mm)
+    pts = plots.drift_points(history)
+    worst = max(pts, key=lambda p: p["error_mm"])
+    doc.figure(
+        "drift.png",
+        ax,
+        f"The largest point error of each of the {len(pts)} checks over time (a verification's max, a "
+        "CAL CHECK's one point), the limit dashed, version changes as vertical lines. A rising trend "
+        f"is the camera or the cell moving; the worst was {worst['error_mm']:.4f} mm on "
+        f"{worst['utc']:%Y-%m-%d %H:%M} UTC.",
+    )
+
+
+def load_history(path: str | os.PathLike) -> list[dict]:
+    """The entries of a check history in JSON lines (``eyetohand verify``'s ``CAL.json.history.jsonl``,
+    a collection's ``<name>.checks.jsonl``), file order. A line that is not a JSON object is an
+    :class:`InputError` naming it, except a torn last line (a crash mid-write), which is left out."""
+    p = Path(path)
+    try:
+        lines = p.read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read the history ({exc.strerror or exc})") from None
+    out = []
+    for i, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            d = json.loads(line)
+        except json.JSONDecodeError:
+            if i == len(lines):
+                break
+            raise InputError(f"{p} line {i}: not JSON") from None
+        if not isinstance(d, dict):
+            raise InputError(f"{p} line {i}: not a JSON object")
+        out.append(d)
+    return out
+
+
 SIGMA_GRID = 120
 
 
@@ -301,19 +356,28 @@ def _sigma_map(doc: Document, cal: Calibration) -> None:
     doc.figure("sigma_map.png", ax, caption)
 
 
-def trust_map(cal: Calibration, ax=None):
+def trust_map(cal: Calibration, ax=None, *, background=None):
     """The trust map of ``cal`` (which must record its region and uncertainty): ``(axes, caption)`` —
     sigma_mm over the image as a heat map, the calibrated region and the refused-beyond line, and the
     pixel of the region where one more training pair lowers the mean sigma_mm inside it most
-    (:func:`eyetohand.solve.best_new_point`)."""
+    (:func:`eyetohand.solve.best_new_point`). ``background``: an image of the camera (H, W[, 3]) drawn
+    under the map; it must be the calibration's image size when the calibration records one."""
     from eyetohand.models import HeightRule
     from eyetohand.reports import plots
     from eyetohand.solve import best_new_point
 
     assert cal.region is not None and cal.uncertainty is not None
     hull = cal.region.hull_px
-    if cal.image_size is not None:
-        w, h = cal.image_size
+    size = cal.image_size
+    if background is not None:
+        bh, bw = np.asarray(background).shape[:2]
+        if size is not None and tuple(size) != (bw, bh):
+            raise InputError(
+                f"background: the image is {bw} x {bh} px, the calibration's images {size[0]} x {size[1]} px"
+            )
+        size = (bw, bh)
+    if size is not None:
+        w, h = size
         lo, hi = np.array([0.0, 0.0]), np.array([w - 1.0, h - 1.0])
     else:
         span = hull.max(axis=0) - hull.min(axis=0)
@@ -352,9 +416,10 @@ def trust_map(cal: Calibration, ax=None):
         hull,
         ax,
         points_px=pts,
-        image_size=cal.image_size,
+        image_size=size,
         margin_hull_px=grown_hull(hull, cal.region.margin_px),
         add_point_px=None if best is None else best[0],
+        background=background,
     )
     rng = f"{np.nanmin(inner):.4f}–{np.nanmax(inner):.4f} mm" if inner.size else "–"
     add = (
@@ -404,6 +469,9 @@ def write_report(
     check_pairs: PointPairs | None = None,
     train_pairs: PointPairs | None = None,
     extra: Mapping | None = None,
+    *,
+    history: Sequence[Mapping] | None = None,
+    limit_mm: float | None = None,
 ) -> Path:
     """Write the report of ``calibration`` into ``out_dir``; returns the path of ``index.html``.
 
@@ -413,5 +481,7 @@ def write_report(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
-    text, files = build_report(calibration, check_pairs, train_pairs, extra)
+    text, files = build_report(
+        calibration, check_pairs, train_pairs, extra, history=history, limit_mm=limit_mm
+    )
     return write_folder(out, text, files)

@@ -4,13 +4,15 @@ writes the database)."""
 from __future__ import annotations
 
 import re
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Query, Request, Response
 
 from eyetohand.calibration import evaluate_pairs
 from eyetohand.core import InputError
-from eyetohand.server import core
+from eyetohand.reports import load_history
+from eyetohand.server import core, figures
+from eyetohand.server.core import ApiError
 from eyetohand.server.routes import CalId, IfMatch, StrictJsonRoute, Svc, VersionQ
 from eyetohand.server.schemas import (
     CalibrationBrief,
@@ -161,7 +163,86 @@ def verify_calibration(cal_id: CalId, req: VerifyRequest, svc: Svc, version: Ver
 
 
 @router.get("/api/calibrations/{cal_id}/history")
-def verification_history(cal_id: CalId, svc: Svc):
-    """The calibration's verifications, oldest first (rms, max, shift, rotation, scale change)."""
+def verification_history(cal_id: CalId, svc: Svc, request: Request):
+    """The calibration's verifications, oldest first (rms, max, shift, rotation, scale change);
+    ``collection_checks``: how many CAL CHECKs this server's collection made of it (``drift.png``
+    draws both)."""
     rec = svc.store.get(cal_id)
-    return {"id": rec.id, "name": rec.name, "entries": svc.store.verifications(cal_id)}
+    try:
+        collected = len(_collection_checks(request, rec.name))
+    except InputError:  # a damaged checks file: drift.png names its line; the verifications stand
+        collected = 0
+    return {
+        "id": rec.id,
+        "name": rec.name,
+        "entries": svc.store.verifications(cal_id),
+        "collection_checks": collected,
+    }
+
+
+# ------------------------------------------------------------------ pictures (server/figures.py)
+
+PNG: dict[int | str, dict[str, Any]] = {200: {"content": {"image/png": {}}}}
+FigWidth = Annotated[int, Query(ge=320, le=2400, description="width of the PNG in px")]
+LimitQ = Annotated[
+    float | None, Query(gt=0, le=1000, description="the limit line, mm (default: the recorded tolerance)")
+]
+
+
+def _png_response(png: bytes, headers: dict) -> Response:
+    return Response(png, media_type="image/png", headers={"Cache-Control": "no-store", **headers})
+
+
+@router.get(
+    "/api/calibrations/{cal_id}/trust-map.png",
+    responses={**PNG, 409: {"description": "the version records no region or uncertainty"}},
+)
+def trust_map(cal_id: CalId, svc: Svc, request: Request, version: VersionQ = None, width: FigWidth = 800):
+    """Where a version can be trusted (the report's trust map): sigma_mm over the image, the calibrated
+    region and its refused-beyond line, and a star where one more pair would lower the mean sigma_mm
+    most — over the camera's image when the server has a camera (``serve --camera``) of the
+    calibration's image size. About 2 s to draw, then kept per (calibration, version, width):
+    ``X-Cache`` says ``hit`` or ``miss``; ``X-Caption`` is the report's caption (percent-encoded),
+    ``X-Trust-Background`` what is under the map."""
+    ver, cal = svc.calibration(cal_id, version)
+    label = f"calibration {cal_id} version {ver.version}"
+    camera = getattr(request.app.state, "collect", None)
+    key = ("trust-map", cal_id, ver.version, width, ver.calibration.get("content_sha256"))
+    png, headers, hit = figures.figure_cache(request.app.state).get(
+        key, lambda: figures.trust_map_png(cal, label, width, camera)
+    )
+    return _png_response(png, {**headers, "X-Cache": "hit" if hit else "miss", "X-Version": str(ver.version)})
+
+
+def _collection_checks(request: Request, name: str) -> list[dict]:
+    """The CAL CHECK records of calibration ``name`` when this server runs a collection."""
+    view = getattr(request.app.state, "collect", None)
+    if view is None:
+        return []
+    path = view.collector.history_path(name)
+    return load_history(path) if path.exists() else []
+
+
+@router.get("/api/calibrations/{cal_id}/drift.png", responses={**PNG, 404: {"description": "no checks yet"}})
+def drift(cal_id: CalId, svc: Svc, request: Request, width: FigWidth = 800, limit_mm: LimitQ = None):
+    """The calibration's checks over time (the verifications of ``/history`` and, when this server
+    runs a collection, its CAL CHECKs): each check's largest point error against the limit
+    (``limit_mm``, default the tolerance the verifications record), a vertical line where a new
+    version was made. ``X-Checks``: how many checks are drawn."""
+    rec = svc.store.get(cal_id)
+    # a verification at the store's clock (ms, as the versions' times) rather than its own (whole s):
+    # a check and a version of one second stay in the order they were made
+    stored = [{**e, "utc": e.get("stored_utc") or e["utc"]} for e in svc.store.verifications(cal_id)]
+    entries = stored + _collection_checks(request, rec.name)
+    if not entries:
+        raise ApiError(
+            404,
+            f"calibration {rec.name!r} has no checks yet (POST /api/calibrations/{cal_id}/verify, "
+            "eyetohand verify, or CAL CHECK)",
+        )
+    versions = [(v.created_utc, v.version) for v in svc.store.versions(cal_id)]
+    try:
+        png = figures.drift_png(entries, versions, width, limit_mm)
+    except InputError as exc:
+        raise core.input_error(exc, "history") from None
+    return _png_response(png, {"X-Checks": str(len(entries))})

@@ -74,6 +74,13 @@ class CameraView:
             )
         return f"camera error: {type(exc).__name__}: {exc}"
 
+    def still(self) -> tuple[np.ndarray | None, str]:
+        """The camera's image now, as the view would show it but undrawn (the trust map's background):
+        ``(image or None, where it came from or why there is none)``. Not counted as a view frame."""
+        with self._lock:
+            img, _, where = self._grab()
+        return img, where or "no image"
+
     def frame(self, width: int | None = None, fmt: str = "png") -> tuple[bytes, dict]:
         """The annotated image now: full resolution and lossless (``fmt`` "png", ``width`` None), or
         as a JPEG ``width`` px wide (never enlarged) with the overlay drawn at that size."""

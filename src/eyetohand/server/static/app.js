@@ -88,6 +88,37 @@ async function api(method, path, body, ifMatchId) {
   return { ok: resp.ok, status: resp.status, data };
 }
 
+// Load a PNG of the API into the <img> `imgSel` through fetch (an <img src> cannot send the token).
+// Answers {ok, status, headers, error}; a load overtaken by a newer one for the same image changes
+// nothing (stale: true), so the picture always belongs to the calibration last asked for.
+const imageLoads = {};
+async function loadPlot(imgSel, path) {
+  const n = (imageLoads[imgSel] = (imageLoads[imgSel] || 0) + 1);
+  const headers = {};
+  const tok = $("#token").value;
+  if (tok) headers["Authorization"] = "Bearer " + tok;
+  let resp;
+  try { resp = await fetch(path, { headers }); }
+  catch (e) { return { ok: false, status: 0, error: "cannot reach the server (" + e.message + ")" }; }
+  if (n !== imageLoads[imgSel]) return { ok: false, stale: true };
+  if (!resp.ok) {
+    let error = `HTTP ${resp.status}`;
+    try { error = (await resp.json()).error || error; } catch { /* not JSON */ }
+    if (resp.status === 401) $("#token-box").hidden = false;
+    return { ok: false, status: resp.status, error };
+  }
+  const blob = await resp.blob();
+  if (n !== imageLoads[imgSel]) return { ok: false, stale: true };
+  const img = $(imgSel);
+  if (img.src.startsWith("blob:")) URL.revokeObjectURL(img.src);
+  await new Promise((resolve) => { img.onload = img.onerror = resolve; img.src = URL.createObjectURL(blob); });
+  return { ok: true, status: resp.status, headers: resp.headers };
+}
+// a header the server percent-encodes (X-Caption, X-Trust-Background)
+function headerText(h, name) { try { return decodeURIComponent(h.get(name) || ""); } catch { return h.get(name) || ""; } }
+// the PNG width for an image shown at most 800 CSS px wide: sharp on a high-density screen
+function plotWidth() { return Math.min(1600, Math.max(320, Math.round(800 * Math.min(2, window.devicePixelRatio || 1)))); }
+
 // Show an API error next to where it happened: the box `boxId`, plus the field's own marker.
 function showError(boxId, err, scope) {
   const box = $(boxId);
@@ -540,6 +571,7 @@ function showResult(sum, saved) {
   renderTrainTable(sum);
   renderCheckTable(sum);
   drawVectors(sum);
+  showTrustMap(saved);
   state.history = sum.history.slice();
   state.iterations = sum.optimizer.includes("pso") ? sum.history.length : 0;
   drawCurve();
@@ -549,6 +581,27 @@ function showResult(sum, saved) {
   $("#save-state").textContent = saved ? `this is “${saved.name}” v${saved.version}` : "not saved yet";
   updateButtons();
   refreshMapSources(saved ? `cal:${saved.id}` : "job");
+}
+
+// the trust map of a saved version (the server draws it, ~2 s the first time): σ over the image
+async function showTrustMap(saved) {
+  const fig = $("#trust-fig"), st = $("#trust-state");
+  if (!saved) {
+    imageLoads["#trust-map"] = (imageLoads["#trust-map"] || 0) + 1;  // a load under way is for another
+    fig.hidden = true;
+    st.textContent = "save the fit to see its trust map";
+    return;
+  }
+  st.textContent = "drawing…";
+  const r = await loadPlot("#trust-map", `/api/calibrations/${saved.id}/trust-map.png?version=${saved.version}&width=${plotWidth()}`);
+  if (r.stale) return;
+  if (!r.ok) { fig.hidden = true; st.textContent = `no trust map: ${r.error}`; return; }
+  const caption = headerText(r.headers, "X-Caption");
+  const under = headerText(r.headers, "X-Trust-Background");
+  $("#trust-map").alt = caption || "the trust map of this calibration";
+  $("#trust-map").title = caption;
+  st.textContent = `“${saved.name}” v${saved.version}` + (under.startsWith("the camera") ? `, over ${under}` : "");
+  fig.hidden = false;
 }
 
 function setResultTitle() {
@@ -724,6 +777,7 @@ async function saveResult(asVersion) {
   $("#save-state").textContent = `saved as “${d.name}” (id ${d.id}) version ${d.version}`;
   state.resultSaved = { id: d.id, name: d.name, version: d.version };
   setResultTitle();
+  showTrustMap(state.resultSaved);
   await refreshSaved();
   refreshMapSources(`cal:${d.id}`);
 }
@@ -870,7 +924,7 @@ async function refreshSaved() {
     const acts = el("td", { class: "text acts" });
     const btn = (label, fn, cls) => { const b = el("button", { type: "button", class: "link " + (cls || "") }, label); b.addEventListener("click", fn); acts.appendChild(b); };
     btn("open", () => openSaved(c.id));
-    btn("history", () => showVersions(c.id));
+    btn("history", () => { showVersions(c.id); showChecks(c); });
     btn("checks", () => showChecks(c));
     const a = el("a", { href: `/api/calibrations/${c.id}/export`, download: "", class: "link" }, "export JSON");
     a.addEventListener("click", (ev) => { if ($("#token").value) { ev.preventDefault(); exportWithToken(c.id); } });
@@ -911,7 +965,9 @@ async function showChecks(c) {
   clearError("#saved-err");
   const r = await api("GET", `/api/calibrations/${c.id}/history`);
   if (!r.ok) { showError("#saved-err", r.data); return; }
-  $("#checks-name").textContent = `“${c.name}”` + (r.data.entries.length ? "" : " — none yet");
+  $("#checks-name").textContent = `“${r.data.name}”` + (r.data.entries.length ? "" : " — none yet");
+  $("#checks-table").hidden = !r.data.entries.length;
+  showDrift(c.id, r.data.entries.length + (r.data.collection_checks || 0));
   const tb = $("#checks-table tbody");
   tb.innerHTML = "";
   const worst = Math.max(1e-9, ...r.data.entries.map((e) => e.max_mm));
@@ -927,6 +983,20 @@ async function showChecks(c) {
     tb.appendChild(tr);
   }
   $("#checks-block").hidden = false;
+}
+
+// the checks over time as the server draws them (the verifications and the collection's CAL CHECKs)
+async function showDrift(id, checks) {
+  const fig = $("#drift-fig");
+  if (!checks) {  // nothing to draw (the server would answer 404)
+    imageLoads["#drift-img"] = (imageLoads["#drift-img"] || 0) + 1;
+    fig.hidden = true;
+    return;
+  }
+  const r = await loadPlot("#drift-img", `/api/calibrations/${id}/drift.png?width=${plotWidth()}`);
+  if (r.stale) return;
+  fig.hidden = !r.ok;  // 404: no checks yet (the heading says so)
+  if (r.ok) $("#drift-img").dataset.checks = r.headers.get("X-Checks") || "";
 }
 
 async function exportWithToken(id) {
@@ -997,6 +1067,7 @@ async function deleteSaved(c) {
   const r = await api("DELETE", `/api/calibrations/${c.id}`, undefined, c.id);
   if (!r.ok) { showError("#saved-err", r.data); return; }
   $("#versions-block").hidden = true;
+  $("#checks-block").hidden = true;
   await refreshSaved();
 }
 
