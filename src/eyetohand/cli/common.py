@@ -5,11 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import TYPE_CHECKING
 
-from eyetohand.calibration import Calibration, FitRequest, calibrate_request
 from eyetohand.core import InputError
 from eyetohand.models import MODEL_CHOICES
 from eyetohand.solve import OBJECTIVES, OPTIMIZERS
+
+if TYPE_CHECKING:  # the fit's modules load when a command fits (not for `apply`: see cli/__init__.py)
+    from eyetohand.calibration import Calibration, FitRequest
 
 
 class CliError(InputError):
@@ -147,6 +150,8 @@ def emit_json(obj) -> None:
 def fit_request(args) -> FitRequest:
     """The fit options of :func:`add_fit_options` as one checked request (as the HTTP fit takes them;
     absent swarm options: the solver's defaults): made before any pairs are read or detected."""
+    from eyetohand.calibration import FitRequest
+
     return FitRequest(
         model=args.model,
         optimizer=args.optimizer,
@@ -161,6 +166,8 @@ def fit_request(args) -> FitRequest:
 def run_calibration(args, pairs, check, extra: dict | None = None, request: FitRequest | None = None) -> int:
     """Shared end of calibrate and calibrate-images: fit, save, print (``extra`` joins the JSON);
     ``request``: :func:`fit_request` of ``args``, when the command made it up front."""
+    from eyetohand.calibration import calibrate_request
+
     request = fit_request(args) if request is None else request
     progress = progress_callback(args.optimizer, args.iterations or 150) if request.is_swarm else None
     cal = calibrate_request(request, pairs, check=check, callback=progress)
