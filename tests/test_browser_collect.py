@@ -66,6 +66,12 @@ def test_collection_view_follows_the_robot(serve, page, tmp_path):
     first = frame_number(page)
     page.wait_for_timeout(2500)
     assert frame_number(page) >= first + 2
+    # before the first POINT: what to do, in words (not the sim camera's Python error)
+    expect(page.locator("#frame-source")).to_have_text(
+        "no image yet: the simulated camera shows the target once the robot has moved "
+        "(CAL NEXT, then the first POINT)"
+    )
+    assert "set_robot_pose" not in page.content()
 
     link = TcpLink("127.0.0.1", serve["tcp"], timeout_s=60)
     robot = VirtualRobot(link.send)
@@ -77,7 +83,24 @@ def test_collection_view_follows_the_robot(serve, page, tmp_path):
     # the live image now shows the target at the robot's last pose, detected (sim: a fresh grab)
     png = httpx.get(url + "/api/camera/frame.png", timeout=30)
     assert png.status_code == 200 and png.headers["content-type"] == "image/png"
-    assert png.headers["x-frame-source"] == "live"
+    assert png.headers["x-frame-source"] == "live" and png.headers["x-frame-size"] == "640x512"
+    assert png.content[:8] == b"\x89PNG\r\n\x1a\n"
+    # the page shows a JPEG sized to its view, not the full-resolution PNG
+    expect(page.locator("#frame-source")).to_have_text("")
+    shown = page.evaluate(
+        """() => { const i = document.querySelector('#frame');
+        return [i.naturalWidth, i.clientWidth * devicePixelRatio, Number(i.dataset.bytes)]; }"""
+    )
+    assert shown[1] <= shown[0] < shown[1] + 64 or shown[0] == 640, shown  # never enlarged past 640
+    assert shown[2] <= 300_000, shown
+    jpg = httpx.get(url + "/api/camera/frame.jpg?width=320", timeout=30)
+    assert jpg.headers["content-type"] == "image/jpeg" and jpg.content[:2] == b"\xff\xd8"
+    import cv2
+    import numpy as np
+
+    small = cv2.imdecode(np.frombuffer(jpg.content, np.uint8), cv2.IMREAD_COLOR)
+    assert small.shape[:2] == (256, 320), small.shape
+    assert httpx.get(url + "/api/camera/frame.jpg?width=10").status_code == 422
     n0 = frame_number(page)
     page.wait_for_timeout(2500)
     assert frame_number(page) >= n0 + 2

@@ -1,6 +1,7 @@
 """Calibration files: bit-identical round trips, atomic writes, refusing files that are not ours."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -63,9 +64,9 @@ def test_failed_save_keeps_the_earlier_file(tmp_path, paper_pairs, monkeypatch):
     [
         ('{"a": 1}', "not an eyetohand calibration"),
         ("u,v,x,y\n1,2,3,4\n", "invalid JSON"),
-        ('{"schema": "eyetohand.calibration.file", "schema_version": 99}', "schema_version 99"),
+        ('{"schema": "eyetohand.calibration", "schema_version": 99}', "schema_version 99"),
         (
-            '{"schema": "eyetohand.calibration.file", "schema_version": 1, "model": {"name": "x"}}',
+            '{"schema": "eyetohand.calibration", "schema_version": 1, "model": {"name": "x"}}',
             "malformed|model",
         ),
     ],
@@ -103,3 +104,16 @@ def test_outlier_test_is_quiet_on_clean_sets():
         cal = calibrate(pairs, "homography-radial", "lm", loo=False)
         flagged += bool(cal.train.outliers)
     assert flagged == 0
+
+
+def test_a_file_written_by_the_previous_tree_loads_and_maps_the_same():
+    """A homography file written by the tree before the layered package (commit 46bf23c, the paper's
+    pairs): its schema name and fields still load, and it maps to the same mm, bit for bit (the
+    values printed by that tree for these pixels). Module moves must never move a file format."""
+    path = Path(__file__).parent / "data" / "calibrations" / "homography-0.2.0.dev0-46bf23c.json"
+    cal = Calibration.load(path)
+    got = cal.image_to_robot(np.array([[600.0, 900.0], [700.0, 800.0]])).tolist()
+    assert got == [
+        [22.40586535479865, 616.4669904466546, 167.4166],
+        [20.572994678268387, 605.7139148648038, 167.4166],
+    ]

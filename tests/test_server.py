@@ -61,7 +61,7 @@ def test_create_get_list_and_summary(client):
     assert [(c["id"], c["name"], c["current_version"]) for c in listed] == [(1, "cell 3", 1)]
     full = client.get("/api/calibrations/1").json()
     assert full["pairs"][0]["u"] == PAIRS[0]["u"] and len(full["check"]) == 9
-    assert full["calibration"]["schema"] == "eyetohand.calibration.file"
+    assert full["calibration"]["schema"] == "eyetohand.calibration"
 
 
 def test_versions_exclude_rollback_and_delete(client):

@@ -336,7 +336,7 @@ def test_a_number_json_allows_but_a_float_cannot_hold_is_named(tmp_path, text, w
     """The file's numbers are checked in one pass without field names; the one that fails is then
     named by its path (each of these fails on that check, before anything else is read)."""
     f = tmp_path / "n.json"
-    f.write_text('{"schema": "eyetohand.calibration.file", "schema_version": 2, ' + text + "}")
+    f.write_text('{"schema": "eyetohand.calibration", "schema_version": 2, ' + text + "}")
     with pytest.raises(InputError) as err:
         Calibration.load(f)
     assert str(err.value) == f"{f}: {words}", err.value

@@ -90,12 +90,15 @@ def coverage(cal: Calibration, pairs: PointPairs) -> Coverage:
     out_z = np.zeros(len(pairs), bool)
     height_words = ""
     if cal.model.height_rule is not HeightRule.COMPUTED:
-        dz = region.z_outside_mm(pairs.xyz_mm[:, 2])
+        dz = region.z_outside_mm(pairs.xyz_mm[:, 2], pairs.xyz_mm[:, :2])
         out_z = dz > 0
         if out_z.any():
             if region.plane_z_mm is not None:
+                plane = f"z = {region.plane_z_mm:g} mm" + (
+                    "" if region.plane_slope is None else " at x = y = 0, tilted"
+                )
                 height_words = (
-                    f"off the calibration plane z = {region.plane_z_mm:g} mm by up to {dz.max():.3g} mm, "
+                    f"off the calibration plane {plane} by up to {dz.max():.3g} mm, "
                     f"tolerance {PLANE_TOLERANCE_MM:g} mm"
                 )
             else:

@@ -10,17 +10,23 @@ from eyetohand.models import MODELS, HeightRule
 from eyetohand.solve import OPTIMIZERS, stats_from_residuals
 
 
-def compare(pairs, check, *, image_size=None, seed=0, optimizers=OPTIMIZERS) -> list[dict]:
+def compare(pairs, check, *, image_size=None, seed=0, optimizers=OPTIMIZERS, progress=None) -> list[dict]:
     """One row per (model, optimizer): train fitness (eq. 16, mm), check RMS / max (mm), seconds.
+
+    ``progress(done, total, row)``, when given, is called after each combination; a true answer stops
+    the comparison there (the rows so far are returned).
 
     Models are every one that fits the pairs' geometry (single-height or multi-height), including
     those ``auto`` never chooses (the paper's own B), simplest first. A combination that cannot run
     gives a row with its reason.
     """
     models = [c.name for c in compared_models(pairs)]
-    rows = []
+    rows: list[dict] = []
+    total = len(models) * len(optimizers)
     for name in models:
         for opt in optimizers:
+            if progress is not None and rows and progress(len(rows), total, rows[-1]):
+                return rows
             t0 = time.perf_counter()
             row = {"model": name, "optimizer": opt}
             try:
@@ -38,6 +44,8 @@ def compare(pairs, check, *, image_size=None, seed=0, optimizers=OPTIMIZERS) -> 
                 seconds=time.perf_counter() - t0,
             )
             rows.append(row)
+    if progress is not None and rows:
+        progress(len(rows), total, rows[-1])
     return rows
 
 

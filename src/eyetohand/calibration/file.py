@@ -37,6 +37,7 @@ from eyetohand.geometry import (
     CalibratedRegion,
     LocalFrame,
     check_symmetry,
+    fit_height_plane,
     image_angle_to_rz,
     local_jacobian,
     wrap_deg,
@@ -44,7 +45,7 @@ from eyetohand.geometry import (
 from eyetohand.models import HeightRule, Model, model_from_dict
 from eyetohand.solve import Uncertainty
 
-SCHEMA = "eyetohand.calibration.file"
+SCHEMA = "eyetohand.calibration"
 SCHEMA_VERSION = 2
 READS_VERSIONS = (2,)
 """Versions this eyetohand loads. Version 1 (eyetohand 0.1) is recognised only to be refused with its
@@ -195,7 +196,8 @@ class Calibration:
         """Map pixels (and image angles) to robot points (and rz), guarded.
 
         ``z``: the object's height (mm), scalar or (N,): required by models of several heights; a
-        single-height model refuses a z off its plane (``region.PLANE_TOLERANCE_MM``). A point beyond
+        single-height model refuses a z off its plane at the point's x, y (``region.PLANE_TOLERANCE_MM``)
+        and, given none, answers the plane's z there. A point beyond
         the region's margin, a height beyond the calibrated range, or a non-finite result is refused
         with :class:`~eyetohand.geometry.region.OutsideError` / :class:`InputError` naming the point, unless
         ``allow_outside`` (then ``inside`` is False for it; a non-finite result, or one on or beyond
@@ -226,7 +228,10 @@ class Calibration:
                 )
             inside, outside = np.zeros(n, bool), np.full(n, np.nan)
         else:
-            inside, outside = self.region.check(uv, z, allow_outside=allow_outside)
+            xy = None  # a tilted plane's height at the points: x, y of a single-height map do not depend on z
+            if z is not None and self.region.plane_slope is not None:
+                xy = self.model.image_to_robot(uv, z)[:, :2]
+            inside, outside = self.region.check(uv, z, allow_outside=allow_outside, xy_mm=xy)
         xyz = np.ascontiguousarray(self.model.image_to_robot(uv, z))
         bad = ~np.isfinite(xyz).all(axis=1)
         if not bad.any() and self.region is not None and (outside > 0).any():
@@ -540,8 +545,17 @@ def content_sha256(d: dict) -> str:
 def derived_region(model: Model, fitted: PointPairs) -> CalibratedRegion:
     """The calibrated region of a model fitted on ``fitted`` (as
     :func:`eyetohand.calibration.fit.calibrate` makes it)."""
-    plane = None if model.height_rule is HeightRule.GIVEN else float(np.mean(fitted.xyz_mm[:, 2]))
-    return CalibratedRegion.from_pairs(fitted.uv_px, fitted.xyz_mm, plane_z_mm=plane)
+    if model.height_rule is HeightRule.GIVEN:
+        return CalibratedRegion.from_pairs(fitted.uv_px, fitted.xyz_mm, plane_z_mm=None)
+    if model.height_rule is HeightRule.PLANE:  # the model's own plane (the one height rule)
+        plane_z, slope = model.plane_z_mm, model.plane_slope
+    else:  # the paper's B computes z; at one height its region's plane is the pairs' plane
+        plane = fit_height_plane(fitted.xyz_mm)
+        if plane.one_height:
+            plane_z, slope = plane.z0_mm, plane.slope
+        else:
+            plane_z, slope = float(np.mean(fitted.xyz_mm[:, 2])), (0.0, 0.0)
+    return CalibratedRegion.from_pairs(fitted.uv_px, fitted.xyz_mm, plane_z_mm=plane_z, plane_slope=slope)
 
 
 def _replace(cal: Calibration, **changes) -> Calibration:
@@ -643,7 +657,7 @@ def _same_uncertainty(
         return REPRODUCE_TOL_MM
 
     _same(want, given, "uncertainty", tol)
-    stored = Uncertainty.from_dict(given, model.n_params)
+    stored = Uncertainty.from_dict(given, model.n_covariance())
     uv = np.vstack([fitted.uv_px, region.hull_px])
     z_mid = float(np.mean(fitted.xyz_mm[:, 2]))
     z = np.concatenate([fitted.xyz_mm[:, 2], np.full(len(region.hull_px), z_mid)])
@@ -656,6 +670,17 @@ def _same_uncertainty(
             "field 'uncertainty' does not reproduce sigma_mm from the training pairs "
             f"(to {REPRODUCE_TOL_MM:g} mm): {CHANGED}"
         )
+
+
+def _stored_uncertainty(d: dict, model: Model) -> Uncertainty | None:
+    """The file's uncertainty record, parsed; one of another shape than this eyetohand computes (e.g.
+    a lens model's covariance before it held the lens terms) is refused as computed differently."""
+    if d.get("uncertainty") is None:
+        return None
+    try:
+        return Uncertainty.from_dict(d["uncertainty"], model.n_covariance())
+    except InputError as exc:
+        raise InputError(_as_written(f"{str(exc).rstrip('.')}: {CHANGED}", d)) from None
 
 
 def _check_numbers(obj, path: str) -> None:
@@ -767,11 +792,7 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
     if ver >= 2:
         extra = {
             "region": CalibratedRegion.from_dict(d["region"]) if d.get("region") is not None else None,
-            "uncertainty": (
-                Uncertainty.from_dict(d["uncertainty"], model.n_params)
-                if d.get("uncertainty") is not None
-                else None
-            ),
+            "uncertainty": _stored_uncertainty(d, model),
             "pairs": (
                 pairs_from_records(d["pairs"], "pairs", label="pairs") if d.get("pairs") is not None else None
             ),

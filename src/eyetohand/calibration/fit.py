@@ -29,6 +29,7 @@ import numpy as np
 
 from eyetohand.calibration.file import Calibration, derived_region
 from eyetohand.core import DegenerateError, InputError, PointPairs, TcpOffset
+from eyetohand.geometry import ONE_HEIGHT_RULE, fit_height_plane
 from eyetohand.models import MODELS, HeightRule, Model, get_model
 from eyetohand.solve import (
     Uncertainty,
@@ -174,6 +175,26 @@ def _map_and_jacobian(model: Model, P: np.ndarray, uv: np.ndarray, z: np.ndarray
     return out[:n], J.transpose(0, 2, 3, 1)
 
 
+def height_notes(fitted: Model, pairs: PointPairs, *, auto: bool) -> list[str]:
+    """What the one-height rule found, for the CLI's notes and the report: the plane a single-height
+    model maps on (its tilt, RMS and tolerance when the pairs' z is not exactly constant), or why
+    ``auto`` took a model of several heights."""
+    plane = fit_height_plane(pairs.xyz_mm)
+    if fitted.height_rule is HeightRule.PLANE:
+        if plane.rms_mm == 0.0 and not plane.tilted:  # z exactly constant: the note as it always was
+            return [f"single-height model: x, y are mapped on the plane z = {fitted.plane_z_mm:g} mm"]
+        return [
+            f"single-height model: x, y are mapped on the pairs' least-squares plane {plane.describe()}; "
+            "z is that plane's at the mapped x, y"
+        ]
+    if auto and fitted.needs_heights():
+        return [
+            f"auto: the pairs are not one height ({plane.why_not_one()}), so a model of several heights "
+            f"was chosen ({ONE_HEIGHT_RULE})"
+        ]
+    return []
+
+
 def _held_out_plane_z(model: Model, z: np.ndarray) -> np.ndarray:
     """z residuals of the held-out pairs as the refits give them: a single-height model's plane is
     the mean of its training heights (0 for models that take z as given)."""
@@ -256,8 +277,9 @@ def _held_out(pairs, model, optimizer, objective, image_size, seed, full, refit)
 
 
 def candidate_models(pairs: PointPairs) -> list[type[Model]]:
-    """Models ``auto`` may choose for the pairs' geometry (one height or several), simplest first."""
-    multi = len(pairs.z_levels_mm) > 1
+    """Models ``auto`` may choose for the pairs' geometry (one height or several, by the one-height
+    rule: :func:`eyetohand.geometry.fit_height_plane`), simplest first."""
+    multi = not fit_height_plane(pairs.xyz_mm).one_height
     cands = [c for c in MODELS.values() if c.auto_candidate and c.needs_heights() == multi]
     return sorted(cands, key=lambda c: c.n_unknowns())
 
@@ -357,7 +379,7 @@ def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=Non
     if not scored:
         fallback = next((c for c in candidate_models(pairs) if n >= c.min_pairs), None)
         if fallback is None:
-            kind = "several heights" if len(pairs.z_levels_mm) > 1 else "one height"
+            kind = "one height" if fit_height_plane(pairs.xyz_mm).one_height else "several heights"
             raise InputError(f"{pairs.source}: too few pairs ({n}) for any model of pairs at {kind}")
         reason = (
             f"too few pairs ({n}) to cross-validate any model; took '{fallback.name}', "
@@ -478,8 +500,7 @@ def calibrate(
     notes = list(pairs.notes)
     if fitted.init_note is not None:
         notes.append(f"{model}: {fitted.init_note}")
-    if fitted.height_rule is HeightRule.PLANE:
-        notes.append(f"single-height model: x, y are mapped on the plane z = {fitted.plane_z_mm:g} mm")
+    notes.extend(height_notes(fitted, pairs, auto=selection is not None))
     lev = pair_leverage(fitted, pairs.uv_px, pairs.xyz_mm)
     train = stats_from_residuals(fitted.residuals(pairs.uv_px, pairs.xyz_mm), pairs.ids, leverage=lev)
     loo_stats = None

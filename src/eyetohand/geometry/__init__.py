@@ -21,7 +21,15 @@ if TYPE_CHECKING:
         local_jacobian,
         wrap_deg,
     )
-    from eyetohand.geometry.region import PLANE_TOLERANCE_MM, CalibratedRegion, OutsideError
+    from eyetohand.geometry.region import (
+        ONE_HEIGHT_RULE,
+        PLANE_TOLERANCE_MM,
+        CalibratedRegion,
+        HeightPlane,
+        OutsideError,
+        fit_height_plane,
+        plane_z,
+    )
 else:
     __getattr__, __dir__ = lazy_exports(
         __name__,
@@ -39,15 +47,25 @@ else:
                 "local_jacobian",
                 "wrap_deg",
             ),
-            "region": ("PLANE_TOLERANCE_MM", "CalibratedRegion", "OutsideError"),
+            "region": (
+                "ONE_HEIGHT_RULE",
+                "PLANE_TOLERANCE_MM",
+                "CalibratedRegion",
+                "HeightPlane",
+                "OutsideError",
+                "fit_height_plane",
+                "plane_z",
+            ),
         },
     )
 
 __all__ = [
     "CONVENTIONS",
+    "ONE_HEIGHT_RULE",
     "CalibratedRegion",
     "PLANE_TOLERANCE_MM",
     "Camera",
+    "HeightPlane",
     "LocalFrame",
     "OutsideError",
     "apply_h",
@@ -55,11 +73,13 @@ __all__ = [
     "batch_jacobian",
     "check_symmetry",
     "distort",
+    "fit_height_plane",
     "hartley",
     "image_angle_to_rz",
     "levenberg_marquardt",
     "local_jacobian",
     "matrix_to_rodrigues",
+    "plane_z",
     "rodrigues_to_matrix",
     "spread_ratio",
     "undistort",

@@ -2,13 +2,22 @@
 outside it.
 
 A mapping is answered only inside the convex hull of the training pixels, grown by a margin, and at
-heights the calibration knows: the plane (single-height models, within ``PLANE_TOLERANCE_MM``) or
-the calibrated z range grown by a margin (multi-height models). The same rule, margins and words
-serve the library, the CLI, HTTP, TCP and the page (they all call :meth:`CalibratedRegion.check`).
+heights the calibration knows: the plane (single-height models, within ``PLANE_TOLERANCE_MM`` of the
+plane at the point's x, y) or the calibrated z range grown by a margin (multi-height models). The
+same rule, margins and words serve the library, the CLI, HTTP, TCP and the page (they all call
+:meth:`CalibratedRegion.check`).
+
+Whether robot points are *one height* is one rule too (:func:`fit_height_plane`, used by the
+single-height models, ``auto`` and the region): a robot's reported z varies from pose to pose by
+0.01–0.05 mm and a table is not perfectly level, so the points' least-squares plane
+z = a·x + b·y + c is fitted and they are one height when its residuals are robot noise — they do not
+split into levels (no gap between sorted residuals wider than ``LEVEL_GAP_MIN_MM`` and
+``LEVEL_GAP_NOISE`` × the RMS within the levels) and their RMS is at most ``MAX_HEIGHT_NOISE_MM``.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -20,11 +29,148 @@ MARGIN_FRACTION = 0.05
 """The image margin: 5 % of the larger side of the hull's bounding box (at least ``MIN_MARGIN_PX``)."""
 MIN_MARGIN_PX = 5.0
 PLANE_TOLERANCE_MM = 0.5
-"""A z given to a single-height model may differ from its plane by this much (mm)."""
+"""A z given to a single-height model may differ from its plane (at the point's x, y) by this much (mm)."""
+MIN_HEIGHT_TOLERANCE_MM = 0.05
+"""The floor of a plane's tolerance, max(0.05 mm, 3 × its RMS): a robot's z repeats to 0.01–0.05 mm."""
+HEIGHT_TOLERANCE_RMS = 3.0
+MAX_HEIGHT_NOISE_MM = 0.1
+"""Points whose RMS about their plane exceeds this are not one height: twice the worst robot z noise."""
+LEVEL_GAP_MIN_MM = PLANE_TOLERANCE_MM / 2
+"""Two levels must be at least this far apart (and ``LEVEL_GAP_NOISE`` × the noise within them)."""
+LEVEL_GAP_NOISE = 10.0
+ONE_HEIGHT_RULE = (
+    f"one height: the least-squares plane's residuals split into no levels (no gap wider than "
+    f"{LEVEL_GAP_MIN_MM:g} mm and {LEVEL_GAP_NOISE:g}× the RMS within the levels) and their RMS is at "
+    f"most {MAX_HEIGHT_NOISE_MM:g} mm"
+)
+"""The one-height rule in words (notes, the report, messages)."""
 Z_MARGIN_FRACTION = 0.25
 """Multi-height models: the z range grown by 25 % of its span on each side (at least ``MIN_Z_MARGIN_MM``)."""
 MIN_Z_MARGIN_MM = 5.0
 _CHUNK = 1 << 16
+
+
+@dataclass(frozen=True)
+class HeightPlane:
+    """The least-squares plane z = a·x + b·y + c of robot points and the verdict of the one-height rule
+    (module docstring). ``levels``: the (z_mm, count) of each level when the points split into two or
+    more (empty when they do not)."""
+
+    z0_mm: float  # c: the plane's z at x = y = 0
+    slope: tuple[float, float]  # (a, b), mm of z per mm of x and of y
+    rms_mm: float  # RMS of the points' z about the plane (N − 3 degrees of freedom)
+    centre_xy_mm: tuple[float, float]
+    n: int
+    levels: tuple[tuple[float, int], ...] = ()
+
+    @property
+    def tolerance_mm(self) -> float:
+        """How far the points lie from their plane, from the robot's noise: max(0.05 mm, 3 × RMS)."""
+        return max(MIN_HEIGHT_TOLERANCE_MM, HEIGHT_TOLERANCE_RMS * self.rms_mm)
+
+    @property
+    def tilt_deg(self) -> float:
+        return math.degrees(math.atan(math.hypot(*self.slope)))
+
+    @property
+    def tilted(self) -> bool:
+        return self.slope != (0.0, 0.0)
+
+    @property
+    def one_height(self) -> bool:
+        return not self.levels and self.rms_mm <= MAX_HEIGHT_NOISE_MM
+
+    @property
+    def centre_z_mm(self) -> float:
+        return float(self.z_at(np.array([self.centre_xy_mm]))[0])
+
+    def z_at(self, xy_mm) -> np.ndarray:
+        """(N,) the plane's z at (N, 2) robot x, y (mm)."""
+        xy = np.asarray(xy_mm, float).reshape(-1, 2)
+        return plane_z(self.z0_mm, self.slope, xy)
+
+    def describe(self) -> str:
+        """The plane in words: its height, tilt, RMS and tolerance (for notes and the report)."""
+        where = f"z = {self.z0_mm:g} mm" if not self.tilted else self.formula()
+        return (
+            f"{where} (tilt {self.tilt_deg:.3f} deg, RMS {self.rms_mm:.3f} mm about it, "
+            f"tolerance {self.tolerance_mm:.3f} mm)"
+        )
+
+    def formula(self) -> str:
+        a, b = self.slope
+        return (
+            f"z = {self.z0_mm:.6g} {'+-'[a < 0]} {abs(a):.6g}·x {'+-'[b < 0]} {abs(b):.6g}·y mm "
+            f"({self.centre_z_mm:g} mm at the points' centre)"
+        )
+
+    def why_not_one(self) -> str:
+        """Why the points are not one height (empty when they are)."""
+        if self.levels:
+            parts = [f"z ≈ {z:.3f} mm ({k} pair{'s' * (k != 1)})" for z, k in self.levels]
+            what = " and ".join(parts) if len(parts) == 2 else ", ".join(parts)
+            return f"{len(self.levels)} levels: {what}"
+        if self.rms_mm > MAX_HEIGHT_NOISE_MM:
+            return (
+                f"heights spread by RMS {self.rms_mm:.3f} mm about their best plane, beyond a robot's "
+                f"z noise ({MAX_HEIGHT_NOISE_MM:g} mm)"
+            )
+        return ""
+
+
+def plane_z(z0_mm: float, slope, xy_mm: np.ndarray) -> np.ndarray:
+    """(N,) z = a·x + b·y + c at (N, 2) x, y; exactly ``c`` where the slope is (0, 0)."""
+    a, b = float(slope[0]), float(slope[1])
+    if a == 0.0 and b == 0.0:
+        return np.full(len(xy_mm), float(z0_mm))
+    return a * xy_mm[:, 0] + b * xy_mm[:, 1] + float(z0_mm)
+
+
+def fit_height_plane(xyz_mm) -> HeightPlane:
+    """The one-height rule (module docstring) on (N, 3) robot points. Points whose z is exactly
+    constant give the plane z = mean(z) with slope (0, 0) — exactly what a calibration of one height
+    stored before the plane (``plane_z_mm`` alone)."""
+    xyz = np.asarray(xyz_mm, float).reshape(-1, 3)
+    z = xyz[:, 2]
+    n = len(z)
+    if n == 0 or not np.isfinite(xyz).all():
+        raise InputError("the height plane needs one or more finite robot points")
+    centre = xyz[:, :2].mean(axis=0)
+    cxy = (float(centre[0]), float(centre[1]))
+    if np.ptp(z) == 0.0:
+        return HeightPlane(float(z.mean()), (0.0, 0.0), 0.0, cxy, n)
+    d = xyz[:, :2] - centre
+    zm = float(z.mean())
+    a = b = 0.0
+    if n >= 3 and np.linalg.matrix_rank(d) == 2:
+        (a, b), *_ = np.linalg.lstsq(d, z - zm, rcond=None)
+        a, b = float(a), float(b)
+    c = zm - a * cxy[0] - b * cxy[1]
+    r = z - plane_z(c, (a, b), xyz[:, :2])
+    rms = float(np.sqrt((r @ r) / max(n - 3, 1)))
+    groups = _levels(r)
+    if groups is None and rms > MAX_HEIGHT_NOISE_MM:
+        groups = _levels(z)  # e.g. two layers side by side, which a tilted plane half follows
+    levels = () if groups is None else tuple((float(z[g].mean()), int(g.size)) for g in groups)
+    return HeightPlane(c, (a, b), rms, cxy, n, levels)
+
+
+def _levels(v: np.ndarray) -> list[np.ndarray] | None:
+    """Index groups of ``v`` split at every gap wider than ``LEVEL_GAP_MIN_MM`` between its sorted
+    values, when each of those gaps is also wider than ``LEVEL_GAP_NOISE`` × the pooled RMS of the
+    values about their group's mean; None when ``v`` is one level."""
+    order = np.argsort(v, kind="stable")
+    s = v[order]
+    gaps = np.diff(s)
+    cuts = np.flatnonzero(gaps > LEVEL_GAP_MIN_MM) + 1
+    if cuts.size == 0:
+        return None
+    groups = np.split(order, cuts)
+    ss = sum(float(((v[g] - v[g].mean()) ** 2).sum()) for g in groups)
+    within = math.sqrt(ss / max(len(v) - len(groups), 1))
+    if gaps[cuts - 1].min() <= LEVEL_GAP_NOISE * within:
+        return None
+    return groups
 
 
 class OutsideError(InputError):
@@ -34,22 +180,32 @@ class OutsideError(InputError):
 @dataclass(frozen=True)
 class CalibratedRegion:
     """``hull_px`` (K, 2) counter-clockwise in image coordinates; ``margin_px``; the heights:
-    ``plane_z_mm`` (single height) or ``z_range_mm`` (lo, hi) with ``z_margin_mm``."""
+    the plane z = ``plane_slope`` · (x, y) + ``plane_z_mm`` (single height; a slope of None is (0, 0),
+    as every file before the plane stored it) or ``z_range_mm`` (lo, hi) with ``z_margin_mm``."""
 
     hull_px: np.ndarray
     margin_px: float
     plane_z_mm: float | None = None
     z_range_mm: tuple[float, float] | None = None
     z_margin_mm: float = 0.0
+    plane_slope: tuple[float, float] | None = None
 
     @classmethod
-    def from_pairs(cls, uv_px, xyz_mm, *, plane_z_mm: float | None) -> CalibratedRegion:
+    def from_pairs(
+        cls, uv_px, xyz_mm, *, plane_z_mm: float | None, plane_slope: tuple[float, float] | None = None
+    ) -> CalibratedRegion:
         uv = np.asarray(uv_px, float)
         hull = convex_hull(uv)
         span = float(np.max(uv.max(axis=0) - uv.min(axis=0)))
         margin = max(MIN_MARGIN_PX, MARGIN_FRACTION * span)
         if plane_z_mm is not None:
-            return cls(hull, margin, plane_z_mm=float(plane_z_mm))
+            slope = None if plane_slope is None or tuple(plane_slope) == (0.0, 0.0) else plane_slope
+            return cls(
+                hull,
+                margin,
+                plane_z_mm=float(plane_z_mm),
+                plane_slope=None if slope is None else (float(slope[0]), float(slope[1])),
+            )
         z = np.asarray(xyz_mm, float)[:, 2]
         lo, hi = float(z.min()), float(z.max())
         return cls(
@@ -90,11 +246,24 @@ class CalibratedRegion:
             out[s : s + _CHUNK] = _outside_distance(self.hull_px, uv[s : s + _CHUNK])
         return out
 
-    def z_outside_mm(self, z_mm) -> np.ndarray:
-        """(N,) how far each height is beyond what the calibration allows (mm; 0 when fine)."""
+    def plane_z_at(self, xy_mm=None) -> np.ndarray | float:
+        """The plane's z (single height): a number for a level plane, else (N,) at the (N, 2) robot
+        x, y ``xy_mm`` (required then: a tilted plane's height depends on where)."""
+        if self.plane_z_mm is None:
+            raise InputError("the calibrated region records no plane (a calibration of several heights)")
+        if self.plane_slope is None:
+            return self.plane_z_mm
+        if xy_mm is None:
+            raise InputError("the calibration plane is tilted: its height needs the point's x, y (mm)")
+        return plane_z(self.plane_z_mm, self.plane_slope, np.asarray(xy_mm, float).reshape(-1, 2))
+
+    def z_outside_mm(self, z_mm, xy_mm=None) -> np.ndarray:
+        """(N,) how far each height is beyond what the calibration allows (mm; 0 when fine): off the
+        plane at the point's x, y (``xy_mm``, (N, 2): needed for a tilted plane) by more than
+        ``PLANE_TOLERANCE_MM``, or beyond the calibrated z range and its margin."""
         z = np.asarray(z_mm, float)
         if self.plane_z_mm is not None:
-            return np.maximum(np.abs(z - self.plane_z_mm) - PLANE_TOLERANCE_MM, 0.0)
+            return np.maximum(np.abs(z - self.plane_z_at(xy_mm)) - PLANE_TOLERANCE_MM, 0.0)
         lo, hi = self._z_range()
         return np.maximum(np.maximum(lo - self.z_margin_mm - z, z - hi - self.z_margin_mm), 0.0)
 
@@ -104,25 +273,31 @@ class CalibratedRegion:
         return self.z_range_mm
 
     # ------------------------------------------------------------ the rule
-    def check(self, uv_px, z_mm=None, *, allow_outside: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def check(
+        self, uv_px, z_mm=None, *, allow_outside: bool = False, xy_mm=None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``(inside (N,) bool, outside_px (N,))``; refuses (``OutsideError``, naming the first point
         and how far outside) a point beyond the margin or a height beyond its tolerance, unless
-        ``allow_outside``. A height off a single-height model's plane is refused even when allowed:
-        the model cannot map it."""
+        ``allow_outside``. A height off a single-height model's plane (at the point's mapped x, y,
+        ``xy_mm`` (N, 2): needed when the plane is tilted) is refused even when allowed: the model
+        cannot map it."""
         uv = np.asarray(uv_px, float).reshape(-1, 2)
         d = self.outside_px(uv)
         inside = d <= self.margin_px
+        xy = None if xy_mm is None else np.asarray(xy_mm, float).reshape(-1, 2)
         if z_mm is not None and len(uv) == 1:
-            if float(self.z_outside_mm(np.asarray(z_mm, float).reshape(-1)[0])) <= 0:
+            if float(self.z_outside_mm(np.asarray(z_mm, float).reshape(-1)[0], xy).reshape(-1)[0]) <= 0:
                 z_mm = None  # one point at an allowed height: nothing more to check
         if z_mm is not None:
             z = np.broadcast_to(np.asarray(z_mm, float), (len(uv),))
-            dz = self.z_outside_mm(z)
+            dz = self.z_outside_mm(z, xy)
             if self.plane_z_mm is not None and (dz > 0).any():
                 i = int(np.flatnonzero(dz > 0)[0])
+                zp = np.broadcast_to(self.plane_z_at(xy), (len(uv),))
+                at = "" if self.plane_slope is None else f" at (x, y) = ({xy[i, 0]:g}, {xy[i, 1]:g}) mm"  # type: ignore[index]
                 raise OutsideError(
-                    f"z = {z[i]:g} mm is {abs(z[i] - self.plane_z_mm):.3g} mm off the calibration plane "
-                    f"z = {self.plane_z_mm:g} mm (tolerance {PLANE_TOLERANCE_MM:g} mm): this single-height "
+                    f"z = {z[i]:g} mm is {abs(z[i] - zp[i]):.3g} mm off the calibration plane "
+                    f"z = {zp[i]:g} mm{at} (tolerance {PLANE_TOLERANCE_MM:g} mm): this single-height "
                     "calibration maps only that plane; calibrate at two or more heights to map others",
                     index=i,
                     field="z",
@@ -152,7 +327,7 @@ class CalibratedRegion:
 
     # ------------------------------------------------------------ persistence
     def to_dict(self) -> dict:
-        return {
+        out = {
             "hull_px": self.hull_px.tolist(),
             "margin_px": self.margin_px,
             "plane_z_mm": self.plane_z_mm,
@@ -160,6 +335,9 @@ class CalibratedRegion:
             "z_margin_mm": self.z_margin_mm,
             "plane_tolerance_mm": PLANE_TOLERANCE_MM,
         }
+        if self.plane_slope is not None:  # a level plane is written as before the plane had a slope
+            out["plane_slope"] = list(self.plane_slope)
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> CalibratedRegion:
@@ -167,12 +345,20 @@ class CalibratedRegion:
         if hull.ndim != 2 or hull.shape[1] != 2 or len(hull) < 3 or not np.isfinite(hull).all():
             raise InputError("region 'hull_px' must be three or more finite (u, v) points")
         zr = d.get("z_range_mm")
+        slope = d.get("plane_slope")
+        if slope is not None and (
+            not isinstance(slope, list)
+            or len(slope) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in slope)
+        ):
+            raise InputError("region 'plane_slope' must be two numbers (mm of z per mm of x, y)")
         return cls(
             hull,
             float(d["margin_px"]),
             None if d.get("plane_z_mm") is None else float(d["plane_z_mm"]),
             None if zr is None else (float(zr[0]), float(zr[1])),
             float(d.get("z_margin_mm", 0.0)),
+            None if slope is None else (float(slope[0]), float(slope[1])),
         )
 
 

@@ -19,10 +19,10 @@ class Affine(PlanarMatrixModel):
 
     @classmethod
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> Affine:
-        uv, xyz, z0, T_uv, T_xy, uv_n, xy_n = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
+        uv, xyz, plane, T_uv, T_xy, uv_n, xy_n = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
         design = np.column_stack([uv_n, np.ones(len(uv_n))])
         sol, *_ = np.linalg.lstsq(design, xy_n, rcond=None)  # (3, 2)
-        constants = {"T_uv": T_uv.tolist(), "T_xy": T_xy.tolist(), "plane_z_mm": z0}
+        constants = {"T_uv": T_uv.tolist(), "T_xy": T_xy.tolist(), **plane}
         return cls(sol.T.reshape(-1), constants, {"condition_number": float(np.linalg.cond(design))})
 
     @staticmethod

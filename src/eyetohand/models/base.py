@@ -28,7 +28,9 @@ import numpy as np
 
 from eyetohand.core import DegenerateError, InputError
 from eyetohand.geometry import (
+    HeightPlane,
     batch_jacobian,  # noqa: F401  (models' own estimation steps use it)
+    fit_height_plane,
     spread_ratio,
 )
 
@@ -136,6 +138,12 @@ class Model(ABC):
     height_rule: ClassVar[HeightRule] = HeightRule.PLANE
     auto_candidate: ClassVar[bool] = True  # may ``model="auto"`` choose it
     constant_shapes: ClassVar[Mapping[str, tuple]] = MappingProxyType({})  # shape, or a Choice of words
+    # constants that may be absent (files written before them): validated when given, else the
+    # model reads its default (a single-height model's ``plane_slope``: a level plane)
+    optional_constant_shapes: ClassVar[Mapping[str, tuple]] = MappingProxyType({})
+    # constants fitted from the pairs beside the parameters (a lens's k1, k2): the parameter
+    # covariance (solve/uncertainty.py) includes them, so sigma_mm carries their error too
+    fitted_constants: ClassVar[tuple[str, ...]] = ()
     # the refit on a subset of pairs is the refinement of the same parameter family (the constants
     # depend on the pairs only through normalisation), so leave-one-out may start from the full fit
     loo_warm_start: ClassVar[bool] = True
@@ -185,12 +193,16 @@ class Model(ABC):
         given = dict(constants or {})
         diag = dict(diagnostics or {})
         if diagnostics is None:  # one merged mapping (the file format before 0.2): split it
-            diag = {k: v for k, v in given.items() if k not in self.constant_shapes}
+            known = {**self.constant_shapes, **self.optional_constant_shapes}
+            diag = {k: v for k, v in given.items() if k not in known}
         consts = {}
         for key, shape in self.constant_shapes.items():
             if key not in given:
                 raise InputError(f"model '{self.name}': constant '{key}' missing")
             consts[key] = _check_constant(self.name, key, given[key], shape)
+        for key, shape in self.optional_constant_shapes.items():
+            if key in given:
+                consts[key] = _check_constant(self.name, key, given[key], shape)
         self.constants: Mapping[str, Any] = MappingProxyType(consts)
         self.diagnostics: Mapping[str, Any] = MappingProxyType(diag)
         self._prepare()
@@ -209,6 +221,23 @@ class Model(ABC):
         """The calibration plane's height for single-height models, else None."""
         z = self.constants.get("plane_z_mm")
         return None if z is None else float(z)
+
+    @property
+    def plane_slope(self) -> tuple[float, float]:
+        """(a, b) of a single-height model's plane z = a·x + b·y + ``plane_z_mm`` ((0, 0): level)."""
+        a, b = self.constants.get("plane_slope", (0.0, 0.0))
+        return float(a), float(b)
+
+    def fitted_constant_steps(self) -> np.ndarray:
+        """Central-difference steps for the :attr:`fitted_constants` (their derivative in
+        solve/uncertainty.py): 1e-6 of each value's size (at least 1e-3); a model whose constants
+        act through a power of a coordinate gives steps on that scale."""
+        v = np.array([float(self.constants[k]) for k in self.fitted_constants])
+        return 1e-6 * np.maximum(np.abs(v), 1e-3)
+
+    def n_covariance(self) -> int:
+        """Size of the parameter covariance: the parameters and the :attr:`fitted_constants`."""
+        return self.n_params + len(self.fitted_constants)
 
     @property
     def condition_number(self) -> float | None:
@@ -406,15 +435,26 @@ def check_not_collinear(model_name: str, uv_px: np.ndarray, xy_mm: np.ndarray) -
             )
 
 
-def check_single_height(model_name: str, xyz_mm: np.ndarray, tol_mm: float = 1e-3) -> float:
-    """Return the plane height; refuse pairs spread over several heights."""
-    z = xyz_mm[:, 2]
-    if np.ptp(z) > tol_mm:
+def check_single_height(model_name: str, xyz_mm: np.ndarray) -> HeightPlane:
+    """The pairs' height plane (:func:`eyetohand.geometry.fit_height_plane`: least squares
+    z = a·x + b·y + c, one height when its residuals are a robot's z noise — a tilted table
+    included); pairs at two or more heights are refused, naming the levels."""
+    plane = fit_height_plane(xyz_mm)
+    if not plane.one_height:
         raise DegenerateError(
-            f"model '{model_name}' is for pairs at one height, these span z = "
-            f"{z.min():g}..{z.max():g} mm; use dlt3d or camera for several heights"
+            f"model '{model_name}' is for pairs at one height; these are not ({plane.why_not_one()}): "
+            "use dlt3d or camera for several heights"
         )
-    return float(z.mean())
+    return plane
+
+
+def plane_constants(plane: HeightPlane) -> dict[str, Any]:
+    """A single-height model's height constants: ``plane_z_mm`` (c) and, for a plane that is not
+    level, ``plane_slope`` (a, b) — absent when level, so a level plane is stored as before."""
+    out: dict[str, Any] = {"plane_z_mm": plane.z0_mm}
+    if plane.tilted:
+        out["plane_slope"] = list(plane.slope)
+    return out
 
 
 def _check_constant(model_name: str, key: str, value, shape: tuple):

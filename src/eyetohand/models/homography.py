@@ -52,9 +52,9 @@ class Homography(PlanarMatrixModel):
 
     @classmethod
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> Homography:
-        uv, xyz, z0, T_uv, T_xy, uv_n, xy_n = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
+        uv, xyz, plane, T_uv, T_xy, uv_n, xy_n = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
         H, cond = dlt_homography(uv_n, xy_n, cls.name)
-        constants = {"T_uv": T_uv.tolist(), "T_xy": T_xy.tolist(), "plane_z_mm": z0}
+        constants = {"T_uv": T_uv.tolist(), "T_xy": T_xy.tolist(), **plane}
         return cls(H.reshape(-1)[:8], constants, {"condition_number": cond})
 
     @staticmethod

@@ -7,11 +7,13 @@ paper's hybrid PSO.
 
 Estimation:
 - pairs at two or more heights: equation (5) by normalised DLT, then B = A / mean(Zc);
-- coplanar pairs (the paper's own data): equation (5) has rank 9 of 11 and its minimum-norm solution
+- pairs at one height (the paper's own data; :func:`eyetohand.geometry.fit_height_plane`, a robot's
+  z noise and a tilted table included): equation (5) has rank 9 of 11 and its minimum-norm solution
   is the degenerate Zc ≈ 0, so B is initialised from the planar solution instead — the least-squares
-  affine robot→image map (u, v) = A₂ₓ₃ (x, y, 1) on the plane z = z0, placed in B as
-  [[a11 a12 0 a13], [a21 a22 0 a23], [0 0 1/z0 0]], which makes equation (13) reproduce that affine
-  map and return z = z0. ``init_note`` records which path was taken, ``equation5_rank`` the rank found.
+  affine robot→image map (u, v) = A₂ₓ₃ (x, y, 1) on the pairs' plane z = a·x + b·y + z0, placed in B
+  as [[a11 a12 0 a13], [a21 a22 0 a23], [−a/z0 −b/z0 1/z0 0]], which makes equation (13) reproduce
+  that affine map and return z on that plane (z = z0 on a level one). ``init_note`` records which
+  path was taken, ``equation5_rank`` the rank found.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from eyetohand.core import DegenerateError
-from eyetohand.geometry import hartley, spread_ratio
+from eyetohand.geometry import fit_height_plane, hartley, spread_ratio
 from eyetohand.models.base import (
     CV_MIN_POINTS,
     MAP_CHUNK,
@@ -77,7 +79,8 @@ class PaperB(Model):
         xyz = np.asarray(xyz_mm, float)
         check_enough(cls.name, cls.min_pairs, len(uv))
         rank, cond = equation5_rank(uv, xyz)
-        if spread_ratio(xyz) >= COPLANAR_RATIO and len(uv) >= 7:
+        plane = fit_height_plane(xyz)
+        if not plane.one_height and spread_ratio(xyz) >= COPLANAR_RATIO and len(uv) >= 7:
             P, T_uv, T3, cond = dlt_projection(uv, xyz, cls.name)
             A = np.linalg.inv(T_uv) @ P @ T3
             zc = np.column_stack([xyz, np.ones(len(xyz))]) @ A[2]
@@ -85,18 +88,18 @@ class PaperB(Model):
             init = f"equation (5), rank {rank} of 11; B = A / mean(Zc)"
         else:
             check_not_collinear(cls.name, uv, xyz[:, :2])
-            z = xyz[:, 2]
-            if np.ptp(z) > 1e-3:
+            if not plane.one_height:
                 raise DegenerateError(
-                    f"model '{cls.name}': pairs lie on one tilted plane; equation (5) is "
-                    "rank-deficient there and the planar start needs a horizontal plane"
+                    f"model '{cls.name}': the pairs are not one height ({plane.why_not_one()}) and too "
+                    "few (7 or more) for equation (5) at several heights"
                 )
-            z0 = float(z.mean())
+            z0 = plane.z0_mm
             if abs(z0) < 1e-9:
                 raise DegenerateError(
-                    f"model '{cls.name}': the plane is z = 0, where the paper's B (third row "
-                    "1/z0) is undefined; use affine or homography"
+                    f"model '{cls.name}': the plane passes through z = 0 at x = y = 0, where the paper's B "
+                    "(third row 1/z0) is undefined; use affine or homography"
                 )
+            a, b = plane.slope
             T_xy, xy_n = hartley(xyz[:, :2])
             T_uv, uv_n = hartley(uv)
             design = np.column_stack([xy_n, np.ones(len(xy_n))])
@@ -106,12 +109,14 @@ class PaperB(Model):
                 [
                     [A[0, 0], A[0, 1], 0.0, A[0, 2]],
                     [A[1, 0], A[1, 1], 0.0, A[1, 2]],
-                    [0.0, 0.0, 1.0 / z0, 0.0],
+                    # the plane z = a·x + b·y + z0 as B's third row: (−a, −b, 1, 0) / z0 · (x, y, z, 1) = 1
+                    [-a / z0 if a else 0.0, -b / z0 if b else 0.0, 1.0 / z0, 0.0],
                 ]
             )
             cond = float(np.linalg.cond(design))
+            where = f"z = {z0:g} mm" if plane.rms_mm == 0.0 and not plane.tilted else plane.describe()
             init = (
-                f"coplanar pairs (z = {z0:g} mm): equation (5) has rank {rank} of 11, so B was "
+                f"coplanar pairs ({where}): equation (5) has rank {rank} of 11, so B was "
                 "initialised from the planar least-squares solution, not the degenerate Zc ≈ 0"
             )
         return cls(B.reshape(-1), {}, {"init": init, "equation5_rank": rank, "condition_number": cond})

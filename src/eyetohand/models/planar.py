@@ -30,23 +30,26 @@ from eyetohand.models.base import (
     one_point,
     opencv,
     opencv_xy_into,
+    plane_constants,
     refuse_non_finite,
     rows_kernel,
 )
 
 PLANAR_CONSTANTS = MappingProxyType({"T_uv": (3, 3), "T_xy": (3, 3), "plane_z_mm": ()})
+PLANE_SLOPE = MappingProxyType({"plane_slope": (2,)})  # optional: absent for a level plane
 
 
 def planar_setup(name: str, min_pairs: int, uv_px, xyz_mm):
-    """Validate planar pairs and return ``(uv, xyz, z0, T_uv, T_xy, uv_n, xy_n)``."""
+    """Validate planar pairs and return ``(uv, xyz, plane, T_uv, T_xy, uv_n, xy_n)``: ``plane`` the
+    height constants of the pairs' plane (``plane_constants``; refused when not one height)."""
     uv = np.asarray(uv_px, dtype=float)
     xyz = np.asarray(xyz_mm, dtype=float)
     check_enough(name, min_pairs, len(uv))
     check_not_collinear(name, uv, xyz[:, :2])
-    z0 = check_single_height(name, xyz)
+    plane = plane_constants(check_single_height(name, xyz))
     T_uv, uv_n = hartley(uv)
     T_xy, xy_n = hartley(xyz[:, :2])
-    return uv, xyz, z0, T_uv, T_xy, uv_n, xy_n
+    return uv, xyz, plane, T_uv, T_xy, uv_n, xy_n
 
 
 def to_robot(xy_n: np.ndarray, Tinv_xy: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
@@ -61,6 +64,7 @@ class PlanarMatrixModel(Model):
 
     height_rule: ClassVar[HeightRule] = HeightRule.PLANE
     constant_shapes = PLANAR_CONSTANTS
+    optional_constant_shapes = PLANE_SLOPE
 
     def _prepare(self) -> None:
         self._T_uv = np.asarray(self.constants["T_uv"], float)
@@ -77,6 +81,8 @@ class PlanarMatrixModel(Model):
         self._M = tuple(self.batch_matrices(self.params[None])[0].ravel().tolist())
         self._affine = self._h[6] == 0.0 and self._h[7] == 0.0
         self._z0 = float(self.constants["plane_z_mm"])
+        self._slope = self.plane_slope
+        self._tilted = self._slope != (0.0, 0.0)
 
     @staticmethod
     @abstractmethod
@@ -136,6 +142,15 @@ class PlanarMatrixModel(Model):
         return u, v
 
     def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
+        """As :meth:`Model.image_to_robot`; with no ``z_mm``, z is the calibration plane's at the
+        mapped x, y (z = a·x + b·y + c: a tilted plane's height depends on where)."""
+        out = self._map_on_plane(uv_px, z_mm)
+        if z_mm is None and self._tilted:
+            a, b = self._slope
+            out[:, 2] = a * out[:, 0] + b * out[:, 1] + self._z0
+        return out
+
+    def _map_on_plane(self, uv_px, z_mm=None) -> np.ndarray:
         """As :meth:`Model.image_to_robot`, through the precomputed px → mm matrix: one point on plain
         floats; many, without a lens, in one pass of the compiled loop (``rows_kernel``), else — and
         with a lens — elementwise in cache-sized chunks (no BLAS, no (P, N, ·) temporaries). Equal to

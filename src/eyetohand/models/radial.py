@@ -33,12 +33,14 @@ import numpy as np
 from eyetohand.core import DegenerateError
 from eyetohand.geometry import (
     distort,
+    fit_height_plane,
     hartley,
     levenberg_marquardt,
     matrix_to_rodrigues,
     rodrigues_to_matrix,
     undistort,
 )
+from eyetohand.models.base import plane_constants
 from eyetohand.models.homography import Homography, dlt_homography
 from eyetohand.models.planar import PLANAR_CONSTANTS, planar_setup
 
@@ -244,6 +246,9 @@ class HomographyRadial(Homography):
 
     name = "homography-radial"
     n_params = 8  # the homography; f, k1, k2 are fixed by the lens fit
+    # ... and fitted from the pairs, so the covariance includes k1, k2 (f only sets their units: a
+    # change of f with k1 f², k2 f⁴ held undistorts every pixel alike, so it is no error of the map)
+    fitted_constants = ("k1", "k2")
     unknowns = 10  # 8 + k1, k2 (f only sets k's units)
     min_pairs = 6
     summary = "10 unknowns: homography plus radial lens distortion k1, k2"
@@ -255,7 +260,7 @@ class HomographyRadial(Homography):
 
     @classmethod
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> HomographyRadial:
-        uv, xyz, z0, *_ = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
+        uv, xyz, plane, *_ = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
         centre, f_default, source = _centre(uv, image_size)
         lens, rms_px = fit_lens(uv, xyz[:, :2], centre, f_default)
         f, k1, k2 = (float(v) for v in lens[:3])
@@ -274,7 +279,7 @@ class HomographyRadial(Homography):
         constants = {
             "T_uv": T_uv.tolist(),
             "T_xy": T_xy.tolist(),
-            "plane_z_mm": z0,
+            **plane,
             "centre_px": centre.tolist(),
             "focal_px": f,
             "k1": k1,
@@ -291,7 +296,7 @@ class HomographyRadial(Homography):
         homography by Gauss–Newton on its own pairs from its DLT; None where that cannot be trusted
         (the caller then refits). Checked against refits, and against SciPy's own fits with f
         held, in tests/test_speed_paths.py."""
-        uv, xyz, z0, *_ = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
+        uv, xyz, _, *_ = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
         n = len(uv)
         if n - 1 < cls.min_pairs:
             return None
@@ -323,7 +328,11 @@ class HomographyRadial(Homography):
             T_uv, ideal_n = hartley(ideal)
             T_xy, xy_n = hartley(xyz[keep, :2])
             H, _ = dlt_homography(ideal_n, xy_n, cls.name)
-            plane = {"T_uv": T_uv.tolist(), "T_xy": T_xy.tolist(), "plane_z_mm": float(xyz[keep, 2].mean())}
+            plane = {
+                "T_uv": T_uv.tolist(),
+                "T_xy": T_xy.tolist(),
+                **plane_constants(fit_height_plane(xyz[keep])),
+            }
             # the homography's Gauss–Newton on the subset's ideal pixels, undistorted once: the same
             # steps as on the radial model, which undistorts them again at every step
             fitted = _gauss_newton(Homography(H.reshape(-1)[:8], plane, {}), ideal, xyz[keep])
@@ -341,6 +350,13 @@ class HomographyRadial(Homography):
         self._lens = (float(c["focal_px"]), float(c["k1"]), float(c["k2"]))
         self._k = np.array([self._lens[1], self._lens[2], 0.0, 0.0])
         self._cu, self._cv = (float(x) for x in self._c)
+
+    def fitted_constant_steps(self) -> np.ndarray:
+        """k1, k2 act through r², r⁴ (r the f-normalised radius): steps that move k1 r², k2 r⁴ by 1e-6
+        at the training pixels' spread (√2 / the Hartley scale of the ideal pixels), whatever f the lens
+        fit settled on (seen straight on, f is free along its valley and can be a few px)."""
+        radius = np.sqrt(2.0) / float(np.asarray(self.constants["T_uv"], float)[0][0]) / self._lens[0]
+        return 1e-6 * np.array([radius**-2, radius**-4])
 
     def _ideal_one(self, u: float, v: float) -> tuple[float, float]:
         f = self._lens[0]

@@ -9,15 +9,15 @@ from eyetohand.core import lazy_exports
 if TYPE_CHECKING:
     from eyetohand.reports.demo import run_demo, write_demo_report
     from eyetohand.reports.plots import plot_plan_study
-    from eyetohand.reports.report import write_report
+    from eyetohand.reports.report import grown_hull, write_report
 else:
     __getattr__, __dir__ = lazy_exports(
         __name__,
         {
             "demo": ("run_demo", "write_demo_report"),
             "plots": ("plot_plan_study",),
-            "report": ("write_report",),
+            "report": ("grown_hull", "write_report"),
         },
     )
 
-__all__ = ["plot_plan_study", "run_demo", "write_demo_report", "write_report"]
+__all__ = ["grown_hull", "plot_plan_study", "run_demo", "write_demo_report", "write_report"]

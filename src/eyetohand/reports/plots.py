@@ -528,6 +528,7 @@ def plot_sigma_map(
     margin_hull_px=None,
     points_px=None,
     image_size: tuple[int, int] | None = None,
+    add_point_px=None,
     title: str | None = "Predicted error sigma_mm over the image",
 ):
     """sigma_mm (mm) as a colour map over the image, the calibrated region outlined.
@@ -535,8 +536,8 @@ def plot_sigma_map(
     ``u_px`` (W,), ``v_px`` (H,): the grid's pixel coordinates; ``sigma_mm`` (H, W) (NaN where the
     map has no answer). ``hull_px`` (K, 2): the training pixels' hull, drawn closed; optional
     ``margin_hull_px`` the hull grown by the margin (dashed: beyond it mappings are refused);
-    ``points_px`` (N, 2) the training pixels. Image axes: u right, v down, equal aspect. Returns
-    the axes."""
+    ``points_px`` (N, 2) the training pixels; ``add_point_px`` (u, v) where to add a pair (a star).
+    Image axes: u right, v down, equal aspect. Returns the axes."""
     u = np.asarray(u_px, float)
     v = np.asarray(v_px, float)
     s = np.asarray(sigma_mm, float)
@@ -560,6 +561,16 @@ def plot_sigma_map(
     if points_px is not None:
         pts = np.asarray(points_px, float)
         ax.plot(pts[:, 0], pts[:, 1], "o", ms=3, color="#D55E00", label="training pairs")
+    if add_point_px is not None:
+        ax.plot(
+            [add_point_px[0]],
+            [add_point_px[1]],
+            "*",
+            ms=16,
+            color="#F0E442",
+            mec="black",
+            label="add a pair here",
+        )
     if image_size is not None:
         ax.set_xlim(-0.5, image_size[0] - 0.5)
         ax.set_ylim(image_size[1] - 0.5, -0.5)

@@ -288,15 +288,26 @@ SIGMA_GRID = 120
 
 def _sigma_map(doc: Document, cal: Calibration) -> None:
     """sigma_mm over the image with the calibrated region outlined: where it can be trusted."""
-    from eyetohand.models import HeightRule
-    from eyetohand.reports import plots
-
     if cal.region is None or cal.uncertainty is None:
         doc.p(
             "No sigma map: this calibration records no calibrated region or uncertainty (a pre-0.2 file).",
             "muted",
         )
         return
+    ax, caption = trust_map(cal)
+    doc.figure("sigma_map.png", ax, caption)
+
+
+def trust_map(cal: Calibration, ax=None):
+    """The trust map of ``cal`` (which must record its region and uncertainty): ``(axes, caption)`` —
+    sigma_mm over the image as a heat map, the calibrated region and the refused-beyond line, and the
+    pixel of the region where one more training pair lowers the mean sigma_mm inside it most
+    (:func:`eyetohand.solve.best_new_point`)."""
+    from eyetohand.models import HeightRule
+    from eyetohand.reports import plots
+    from eyetohand.solve import best_new_point
+
+    assert cal.region is not None and cal.uncertainty is not None
     hull = cal.region.hull_px
     if cal.image_size is not None:
         w, h = cal.image_size
@@ -313,35 +324,75 @@ def _sigma_map(doc: Document, cal: Calibration) -> None:
     else:
         lo_z, hi_z = cal.region.z_range_mm or (0.0, 0.0)
         z, where = 0.5 * (lo_z + hi_z), f"at z = {0.5 * (lo_z + hi_z):g} mm, mid calibrated range"
-    zq = np.zeros(len(uv)) if cal.model.height_rule is HeightRule.COMPUTED else np.full(len(uv), z)
+    computed = cal.model.height_rule is HeightRule.COMPUTED
+    zq = np.zeros(len(uv)) if computed else np.full(len(uv), z)
     with np.errstate(all="ignore"):
         s = cal.uncertainty.sigma_mm(cal.model, uv, zq).reshape(n_v, n_u)
+    inside = (cal.region.outside_px(uv) <= cal.region.margin_px) & np.isfinite(s.ravel())
+    inner = s.ravel()[inside]
+    best = None
+    if inner.size:
+        # candidates: every 4th grid pixel inside the refused-beyond line (where parts are mapped; a
+        # pair far outside would score best by leverage alone, somewhere the robot may not reach)
+        sub = np.zeros((n_v, n_u), bool)
+        sub[::4, ::4] = True
+        cand = uv[sub.ravel() & inside] if (sub.ravel() & inside).any() else uv[inside]
+        with np.errstate(all="ignore"):
+            k, means = best_new_point(cal.uncertainty, cal.model, cand, zq[0], uv[inside], zq[0])
+        if np.isfinite(means[k]):
+            best = (cand[k], float(np.mean(inner)), float(means[k]))
     pts = cal.fitted_pairs.uv_px if cal.fitted_pairs is not None else None
     ax = plots.plot_sigma_map(
         u,
         v,
         s,
         hull,
+        ax,
         points_px=pts,
         image_size=cal.image_size,
-        margin_hull_px=_grown(hull, cal.region.margin_px),
+        margin_hull_px=grown_hull(hull, cal.region.margin_px),
+        add_point_px=None if best is None else best[0],
     )
-    inner = s.ravel()[cal.region.outside_px(uv) <= cal.region.margin_px]
     rng = f"{np.nanmin(inner):.4f}–{np.nanmax(inner):.4f} mm" if inner.size else "–"
-    doc.figure(
-        "sigma_map.png",
-        ax,
+    add = (
+        f" The star marks where one more training pair helps most: at (u, v) = ({best[0][0]:.0f}, "
+        f"{best[0][1]:.0f}) px the mean sigma_mm inside falls from {best[1]:.4f} to {best[2]:.4f} mm "
+        "(predicted, same noise)."
+        if best is not None
+        else ""
+    )
+    caption = (
         f"Where this calibration can be trusted: the predicted error "
         f"sigma_mm of a mapped point ({where}), the calibrated region (training hull) in white "
-        f"and its margin dashed — mappings beyond it are refused. Inside: {rng}.",
+        f"and its margin dashed — mappings beyond it are refused. Inside: {rng}.{add}"
     )
+    return ax, caption
 
 
-def _grown(hull: np.ndarray, margin_px: float) -> np.ndarray:
-    """The hull's outline moved out by ``margin_px`` (vertices pushed along their bisectors)."""
-    c = hull.mean(axis=0)
-    d = hull - c
-    return hull + margin_px * d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+def grown_hull(hull: np.ndarray, margin_px: float, step_deg: float = 2.0) -> np.ndarray:
+    """(M, 2) the outline of the points within ``margin_px`` of the convex ``hull`` (K, 2): the hull
+    grown by the margin — its Minkowski sum with a disc: each edge moved out along its normal, joined
+    by an arc of radius ``margin_px`` round each vertex (sampled every ``step_deg``; the chords stay
+    within r·(1 − cos(step/2)) of the arc, 0.008 px for a 50 px margin). This is where
+    :meth:`CalibratedRegion.check` starts refusing (``outside_px`` > margin)."""
+    a = np.asarray(hull, float)
+    e = np.roll(a, -1, axis=0) - a
+    area2 = float(np.sum(a[:, 0] * np.roll(a[:, 1], -1) - np.roll(a[:, 0], -1) * a[:, 1]))
+    turn = 1.0 if area2 > 0 else -1.0  # +1: counter-clockwise in (u, v) as written
+    n = (
+        turn
+        * np.column_stack([e[:, 1], -e[:, 0]])
+        / np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-12)
+    )
+    out = []
+    for i in range(len(a)):
+        t0 = np.arctan2(n[i - 1, 1], n[i - 1, 0])
+        t1 = np.arctan2(n[i, 1], n[i, 0])
+        d = (t1 - t0 + np.pi) % (2 * np.pi) - np.pi  # the turn at vertex i, signed as the polygon turns
+        k = max(1, int(np.ceil(abs(np.degrees(d)) / step_deg)))
+        th = t0 + d * np.linspace(0.0, 1.0, k + 1)
+        out.append(a[i] + margin_px * np.column_stack([np.cos(th), np.sin(th)]))
+    return np.vstack(out)
 
 
 def write_report(

@@ -230,6 +230,7 @@ def fit_progress(job: Job, model: str, optimizer: str, iterations: int):
     def progress(_iteration, best, *_):
         job.history.append(_finite(best))
         done = len(job.history)
+        job.step("iterations", min(done, iterations), iterations)
         job.phase = (
             "leave-one-out refits and check points"
             if done >= iterations
@@ -265,6 +266,29 @@ class Job:
     saved: dict | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
     done: threading.Event = field(default_factory=threading.Event)
+    # the current step of work counted in units (images detected, iterations, fits of a comparison):
+    # what it is, how many are done of how many, and when its first unit started
+    unit: str = ""
+    units_done: int = 0
+    units_total: int = 0
+    unit_started: float = 0.0
+
+    def step(self, unit: str, done: int, total: int) -> None:
+        """Count the current step's progress (a new ``unit`` starts the clock of its estimate)."""
+        if unit != self.unit:
+            self.unit, self.unit_started = unit, time.monotonic()
+        self.units_done, self.units_total = done, total
+
+    def progress(self) -> dict | None:
+        """``{unit, done, total, eta_s}``: ``eta_s`` the time left in this step at its rate so far
+        (None before its first unit is done)."""
+        if not self.units_total:
+            return None
+        eta = None
+        if 0 < self.units_done and self.status == "running":
+            rate = (time.monotonic() - self.unit_started) / self.units_done
+            eta = round(rate * max(self.units_total - self.units_done, 0), 1)
+        return {"unit": self.unit, "done": self.units_done, "total": self.units_total, "eta_s": eta}
 
     def elapsed(self) -> float:
         if self.started is None:
@@ -282,6 +306,7 @@ class Job:
             "history_from": since,
             "history": self.history[since:],
             "elapsed_s": round(self.elapsed(), 3),
+            "progress": self.progress(),
             "result": self.fitted.summary() if (self.fitted and self.status == "done") else None,
             "compare": self.compare,
             "error": self.error,
@@ -381,8 +406,14 @@ class Jobs:
 
         def work(job: Job) -> None:
             job.phase = "fitting every model with every solver, then scoring on the check points"
+
+            def progress(done: int, total: int, row: dict) -> bool:
+                job.step("fits", done, total)
+                job.phase = f"fit {done} of {total} done ({row['model']} + {row['optimizer']})"
+                return job.cancel.is_set()
+
             try:
-                rows = compare(pairs, check, seed=seed)
+                rows = compare(pairs, check, seed=seed, progress=progress)
             except InputError as exc:
                 raise input_error(exc, "pairs") from None
             job.compare = [

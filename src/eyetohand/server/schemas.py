@@ -425,6 +425,15 @@ class JobCreated(BaseModel):
     status: str
 
 
+class JobProgress(BaseModel):
+    unit: str = Field(description="what is counted: images (detection), iterations (PSO), fits (compare)")
+    done: int
+    total: int
+    eta_s: float | None = Field(
+        description="seconds left in this step at its rate so far (None: not known yet)"
+    )
+
+
 class JobOut(BaseModel):
     id: str
     kind: Literal["fit", "compare"]
@@ -434,6 +443,9 @@ class JobOut(BaseModel):
     history_from: int = Field(description="index of the first entry of history in this answer")
     history: list[float | None] = Field(description="best fitness after each iteration so far, mm")
     elapsed_s: float
+    progress: JobProgress | None = Field(
+        None, description="the current step counted (images, iterations, fits) with the time it has left"
+    )
     result: Summary | None = None
     compare: list[dict[str, Any]] | None = None
     error: dict[str, Any] | None = None

@@ -376,6 +376,7 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
             if job.cancel.is_set():
                 return
             job.phase = f"detecting the target: image {i + 1} of {len(poses)} ({pose.image})"
+            job.step("images", i, len(poses))
             base = pose.image.replace("\\", "/").rsplit("/", 1)[-1]
             upload = base if base in files else None
             inside = pose.path.resolve().is_relative_to(root) and not Path(pose.image).is_absolute()
@@ -393,6 +394,7 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
             run["detections"].append(res.to_dict())
             if not res.ok:
                 run["left_out"].append(res.image)
+        job.step("images", len(poses), len(poses))
         run["unused_images"] = sorted(set(files) - named)
         try:
             pairs = pairs_from_detections(poses, results, req.poses.name)

@@ -27,7 +27,7 @@ if TYPE_CHECKING:
         reference_pairs,
         rotations,
     )
-    from eyetohand.solve.uncertainty import Uncertainty, pair_leverage, param_jacobian
+    from eyetohand.solve.uncertainty import Uncertainty, best_new_point, pair_leverage, param_jacobian
 else:
     __getattr__, __dir__ = lazy_exports(
         __name__,
@@ -51,7 +51,7 @@ else:
                 "reference_pairs",
                 "rotations",
             ),
-            "uncertainty": ("Uncertainty", "pair_leverage", "param_jacobian"),
+            "uncertainty": ("Uncertainty", "best_new_point", "pair_leverage", "param_jacobian"),
         },
     )
 
@@ -63,6 +63,7 @@ __all__ = [
     "SEED_MAX",
     "Stats",
     "Uncertainty",
+    "best_new_point",
     "check_objective",
     "check_optimizer",
     "check_seed",

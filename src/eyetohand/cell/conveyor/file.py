@@ -15,7 +15,7 @@ from eyetohand.calibration import Calibration
 from eyetohand.cell.conveyor.records import Belt, Encoder
 from eyetohand.core import InputError, atomic_write_text, read_bounded_text
 
-SCHEMA = "eyetohand.cell.conveyor"
+SCHEMA = "eyetohand.conveyor"
 SCHEMA_VERSION = 1
 
 

@@ -17,7 +17,7 @@ import time
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 
@@ -42,7 +42,7 @@ class CameraView:
         self._lock = threading.Lock()
 
     def _grab(self):
-        """(image or None, detection or None, where it came from)."""
+        """(image or None, detection or None, where it came from or what the operator should do)."""
         from eyetohand.vision import detect_target
 
         col = self.collector
@@ -51,7 +51,7 @@ class CameraView:
             try:
                 img, _ = self.source.grab()
             except Exception as exc:  # no pose yet (sim:), a camera that fails: say so on the image
-                img, err = None, f"{type(exc).__name__}: {exc}"
+                img, err = None, self._grab_failed(exc)
             finally:
                 col._lock.release()
             if img is not None:
@@ -63,58 +63,107 @@ class CameraView:
             return img, det, f"last grab of the collection ({utc})"
         return None, None, "no image yet"
 
-    def frame_png(self) -> tuple[bytes, dict]:
-        import cv2
+    def _grab_failed(self, exc: Exception) -> str:
+        """What the view says when the camera gave no image: for a camera the robot's pose drives (the
+        ``sim:`` camera renders the target where the robot holds it) before the robot has moved, what
+        to do; else the camera's own error. (Called holding the collection's lock: reads no status.)"""
+        if hasattr(self.source, "set_robot_pose") and self.collector.last_grab is None:
+            return (
+                "no image yet: the simulated camera shows the target once the robot has moved "
+                "(CAL NEXT, then the first POINT)"
+            )
+        return f"camera error: {type(exc).__name__}: {exc}"
 
-        from eyetohand.vision import annotate
+    def frame(self, width: int | None = None, fmt: str = "png") -> tuple[bytes, dict]:
+        """The annotated image now: full resolution and lossless (``fmt`` "png", ``width`` None), or
+        as a JPEG ``width`` px wide (never enlarged) with the overlay drawn at that size."""
+        import cv2
 
         with self._lock:
             img, det, where = self._grab()
             self.frames += 1
             n = self.frames
-        info = {"frame": n, "source": where, "ok": None}
+        info: dict = {"frame": n, "source": where, "ok": None, "size": None}
         if img is None:
-            out = np.full((240, 640, 3), 40, np.uint8)
-            cv2.putText(
-                out,
-                (where or "no image")[:70],
-                (10, 120),
-                cv2.FONT_HERSHEY_SIMPLEX,
-                0.5,
-                (0, 200, 255),
-                1,
-                cv2.LINE_AA,
-            )
+            out = _message_image(where or "no image", width or 640)
         else:
-            out = annotate(img, det)
+            info["size"] = f"{img.shape[1]}x{img.shape[0]}"
             info["ok"] = bool(det.ok)
             if det.ok:
                 info.update(u=det.u, v=det.v, score=det.score, rms_px=det.rms_px, contrast=det.contrast)
-                text = (
-                    f"u {det.u:.2f} v {det.v:.2f}  d {det.diameter_px:.1f} px  score {det.score:.2f}  "
-                    f"rms {det.rms_px:.3f} px  contrast {det.contrast:.0f}"
-                )
-                cv2.putText(
-                    out,
-                    text,
-                    (8, out.shape[0] - 10),
-                    cv2.FONT_HERSHEY_SIMPLEX,
-                    0.45,
-                    (0, 255, 0),
-                    1,
-                    cv2.LINE_AA,
-                )
-        cv2.putText(
-            out,
-            f"#{n} {time.strftime('%H:%M:%S')}",
-            (8, 18),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.45,
-            (255, 255, 0),
-            1,
-            cv2.LINE_AA,
-        )
+            out = _annotated(img, det, width)
+        k = out.shape[1] / 640
+        _text(out, f"#{n} {time.strftime('%H:%M:%S')}", (8, int(18 * max(k, 1))), (255, 255, 0), max(k, 1))
+        if fmt == "jpg":
+            return cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])[1].tobytes(), info
         return cv2.imencode(".png", out)[1].tobytes(), info
+
+
+JPEG_QUALITY = 80
+
+
+def _text(out: np.ndarray, text: str, org: tuple[int, int], colour, scale: float = 1.0) -> None:
+    import cv2
+
+    cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, 0.45 * scale, colour, 1, cv2.LINE_AA)
+
+
+def _message_image(message: str, width: int) -> np.ndarray:
+    """A dark image with ``message`` word-wrapped on it (never cut off)."""
+    import textwrap
+
+    width = max(320, min(width, 1280))
+    per_line = max(20, int(width / 8.5))
+    lines = textwrap.wrap(message, per_line) or [""]
+    out = np.full((max(240, 60 + 22 * len(lines)), width, 3), 40, np.uint8)
+    for i, line in enumerate(lines):
+        _text(out, line, (10, 60 + 22 * i), (0, 200, 255), 1.1)
+    return out
+
+
+def _annotated(img: np.ndarray, det, width: int | None) -> np.ndarray:
+    """The image with the detection drawn: at full resolution (``annotate``, as the CLI draws it), or
+    scaled to ``width`` px first and drawn at that size (lines stay visible on a small view)."""
+    import cv2
+
+    from eyetohand.vision import annotate
+
+    h, w = img.shape[:2]
+    if width is None or width >= w:
+        out = annotate(img, det)
+        k = 1.0
+    else:
+        k = width / w
+        small = cv2.resize(img, (width, max(1, round(h * k))), interpolation=cv2.INTER_AREA)
+        out = _draw_small(small, det, k)
+    if det.ok:
+        text = (
+            f"u {det.u:.2f} v {det.v:.2f}  d {det.diameter_px:.1f} px  score {det.score:.2f}  "
+            f"rms {det.rms_px:.3f} px  contrast {det.contrast:.0f}"
+        )
+        _text(out, text, (8, out.shape[0] - 10), (0, 255, 0), max(1.0, out.shape[1] / 1400))
+    return out
+
+
+def _draw_small(small: np.ndarray, det, k: float) -> np.ndarray:
+    """The detection (ellipse green, centre cross red) on an image scaled by ``k``, 2 px lines."""
+    import cv2
+
+    out = small if small.ndim == 3 else cv2.cvtColor(small, cv2.COLOR_GRAY2BGR)
+    if out.dtype != np.uint8:
+        out = cv2.normalize(out, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    if not det.ok:
+        _text(out, (det.reason or "not found")[:80], (10, 40), (0, 0, 255), 1.2)
+        return out
+    S = 16
+    (cx, cy), (A, B), ang = det.ellipse
+    c = (int(round(cx * k * S)), int(round(cy * k * S)))
+    axes = (int(round(A / 2 * k * S)), int(round(B / 2 * k * S)))
+    cv2.ellipse(out, c, axes, ang, 0, 360, (0, 255, 0), 2, cv2.LINE_AA, 4)
+    arm = int(max(6, 0.15 * A * k) * S)
+    cv2.line(out, (c[0] - arm, c[1]), (c[0] + arm, c[1]), (0, 0, 255), 2, cv2.LINE_AA, 4)
+    cv2.line(out, (c[0], c[1] - arm), (c[0], c[1] + arm), (0, 0, 255), 2, cv2.LINE_AA, 4)
+    return out
 
 
 def _view(request: Request) -> CameraView:
@@ -131,16 +180,36 @@ def collect_page():
     return FileResponse(STATIC_DIR / "collect.html", headers={"Cache-Control": "no-store"})
 
 
-@router.get("/api/camera/frame.png", responses={200: {"content": {"image/png": {}}}})
-def camera_frame(request: Request):
-    """The camera's image now, with the detected target (ellipse, centre) and its quality drawn."""
-    png, info = _view(request).frame_png()
+def _frame_headers(info: dict) -> dict:
     headers = {
         "Cache-Control": "no-store",
         "X-Frame": str(info["frame"]),
-        "X-Frame-Source": str(info["source"])[:120].encode("ascii", "replace").decode(),
+        "X-Frame-Source": str(info["source"])[:200].encode("ascii", "replace").decode(),
     }
-    return Response(png, media_type="image/png", headers=headers)
+    if info["size"]:
+        headers["X-Frame-Size"] = info["size"]
+    return headers
+
+
+@router.get("/api/camera/frame.png", responses={200: {"content": {"image/png": {}}}})
+def camera_frame(request: Request):
+    """The camera's image now at full resolution, lossless, with the detected target (ellipse, centre)
+    and its quality drawn (several MB for a 5 MP camera: the page asks for ``frame.jpg``)."""
+    png, info = _view(request).frame(None, "png")
+    return Response(png, media_type="image/png", headers=_frame_headers(info))
+
+
+Width = Annotated[
+    int, Query(ge=64, le=8192, description="width of the view in px (the image is never enlarged)")
+]
+
+
+@router.get("/api/camera/frame.jpg", responses={200: {"content": {"image/jpeg": {}}}})
+def camera_frame_jpeg(request: Request, width: Width = 960):
+    """The camera's image now as a JPEG sized to the view (``width`` px), the detection drawn at
+    that size: what the collection page shows once a second."""
+    jpg, info = _view(request).frame(width, "jpg")
+    return Response(jpg, media_type="image/jpeg", headers=_frame_headers(info))
 
 
 @router.get("/api/collect/status")

@@ -408,6 +408,21 @@ function setJobState(j) {
   const best = n ? state.history[n - 1] : null;
   $("#job-best").textContent = best === null ? "–" : `${fmt(best, 5)} mm`;
   $("#job-elapsed").textContent = `${fmt(j.elapsed_s, 1)} s`;
+  showProgress("#job-progress", "#job-eta", j);
+}
+
+// a step counted in units (images, iterations, fits): a bar and the time it has left at its rate so far
+function timeLeft(p) {
+  if (p && p.done >= p.total) return `${p.total} ${p.unit} done; finishing`;
+  if (!p || p.eta_s === null || p.eta_s === undefined) return p && p.done < p.total ? "estimating…" : "–";
+  const s = Math.round(p.eta_s);
+  return (s >= 60 ? `about ${Math.floor(s / 60)} min ${s % 60} s` : `about ${s} s`) + ` (${p.unit}: ${p.done} of ${p.total})`;
+}
+function showProgress(barId, textId, j) {
+  const p = j.progress, bar = $(barId), running = j.status === "running" || j.status === "queued";
+  bar.hidden = !p || !running;
+  if (p) { bar.max = p.total; bar.value = p.done; }
+  if (textId) $(textId).textContent = running ? timeLeft(p) : "–";
 }
 
 // Tick values at 1-2-5 steps covering [lo, hi] (at least 2, about `n`).
@@ -792,7 +807,10 @@ async function compareMethods() {
     if (!q.ok) { showError("#compare-err", q.data); $("#compare-go").disabled = false; return; }
     const j = q.data;
     const phase = j.phase && j.phase !== j.status ? `: ${j.phase}` : "";
-    $("#compare-state").textContent = `${j.status}${phase} (${fmt(j.elapsed_s, 1)} s)`;
+    const running = j.status === "queued" || j.status === "running";
+    const left = running && j.progress ? `; time left ${timeLeft(j.progress)}` : "";
+    $("#compare-state").textContent = `${j.status}${phase} (${fmt(j.elapsed_s, 1)} s${left})`;
+    showProgress("#compare-progress", null, j);
     if (j.status === "queued" || j.status === "running") { setTimeout(tick, 300); return; }
     $("#compare-go").disabled = false;
     if (j.status !== "done") { showError("#compare-err", j.error || { error: j.status }); return; }
@@ -847,8 +865,19 @@ async function refreshSaved() {
     const tr = el("tr", { "data-id": c.id });
     const cb = el("input", { type: "checkbox", class: "pick", value: c.id, "aria-label": `pick ${c.name}` });
     const c0 = el("td"); c0.appendChild(cb); tr.appendChild(c0);
+    tr.appendChild(td(c.name, "text name"));
+    // the actions next to the name, where a 1024 px touch panel shows them without scrolling sideways
+    const acts = el("td", { class: "text acts" });
+    const btn = (label, fn, cls) => { const b = el("button", { type: "button", class: "link " + (cls || "") }, label); b.addEventListener("click", fn); acts.appendChild(b); };
+    btn("open", () => openSaved(c.id));
+    btn("history", () => showVersions(c.id));
+    btn("checks", () => showChecks(c));
+    const a = el("a", { href: `/api/calibrations/${c.id}/export`, download: "", class: "link" }, "export JSON");
+    a.addEventListener("click", (ev) => { if ($("#token").value) { ev.preventDefault(); exportWithToken(c.id); } });
+    acts.appendChild(a);
+    btn("delete", () => deleteSaved(c), "danger");
+    tr.appendChild(acts);
     tr.appendChild(td(String(c.id)));
-    tr.appendChild(td(c.name, "text"));
     tr.appendChild(td(String(c.current_version)));
     tr.appendChild(td(c.model, "text"));
     tr.appendChild(td(c.optimizer, "text"));
@@ -856,16 +885,6 @@ async function refreshSaved() {
     tr.appendChild(td(fmt(c.train_rms_mm)));
     tr.appendChild(td(fmt(c.check_rms_mm)));
     tr.appendChild(td(c.updated_utc.replace("T", " ").slice(0, 19), "text"));
-    const acts = el("td", { class: "text" });
-    const btn = (label, fn, cls) => { const b = el("button", { type: "button", class: "link " + (cls || "") }, label); b.addEventListener("click", fn); acts.appendChild(b); };
-    btn("open", () => openSaved(c.id));
-    btn("history", () => showVersions(c.id));
-    btn("checks", () => showChecks(c));
-    const a = el("a", { href: `/api/calibrations/${c.id}/export`, download: "" }, "export JSON");
-    a.addEventListener("click", (ev) => { if ($("#token").value) { ev.preventDefault(); exportWithToken(c.id); } });
-    acts.appendChild(a);
-    btn("delete", () => deleteSaved(c), "danger");
-    tr.appendChild(acts);
     tb.appendChild(tr);
   }
   if ([...target.options].some((o) => o.value === prevTarget)) target.value = prevTarget;

@@ -1,4 +1,5 @@
-// The collection view: polls /api/collect/status and reloads /api/camera/frame.png every second.
+// The collection view: polls /api/collect/status and reloads the camera's image every second, as a JPEG
+// sized to the view (/api/camera/frame.jpg?width=W); the full-resolution PNG only when asked for.
 "use strict";
 const $ = (s) => document.querySelector(s);
 const f4 = (x) => (x === null || x === undefined ? "" : Number(x).toFixed(4));
@@ -25,9 +26,16 @@ function showError(msg) {
   e.hidden = !msg;
 }
 
+// the view's width in device pixels, in steps of 64 (a window resized by a few px asks for the same size)
+function viewWidth() {
+  const img = $("#frame");
+  const css = img.clientWidth || img.parentElement.clientWidth || 640;
+  return Math.max(64, Math.min(8192, Math.ceil((css * (window.devicePixelRatio || 1)) / 64) * 64));
+}
+
 async function refreshFrame() {
   try {
-    const resp = await api("/api/camera/frame.png");
+    const resp = await api(`/api/camera/frame.jpg?width=${viewWidth()}`);
     if (!resp.ok) { showError((await resp.json()).error); return; }
     const blob = await resp.blob();
     const url = URL.createObjectURL(blob);
@@ -35,7 +43,11 @@ async function refreshFrame() {
     img.onload = () => { if (frameUrl) URL.revokeObjectURL(frameUrl); frameUrl = url; };
     img.src = url;
     img.dataset.frame = resp.headers.get("X-Frame") || "";
-    $("#frame-count").textContent = "frame " + img.dataset.frame + " · " + (resp.headers.get("X-Frame-Source") || "");
+    img.dataset.bytes = String(blob.size);
+    const size = resp.headers.get("X-Frame-Size");
+    $("#frame-count").textContent = "frame " + img.dataset.frame + (size ? ` · camera ${size} px` : "");
+    const src = resp.headers.get("X-Frame-Source") || "";
+    $("#frame-source").textContent = src === "live" ? "" : src;
   } catch (err) { $("#server-status").textContent = "server unreachable"; }
 }
 
@@ -107,6 +119,16 @@ async function setDropped(n, drop) {
   if (!resp.ok) showError((await resp.json()).error);
   refreshStatus();
 }
+
+// the full-resolution image (lossless, several MB) in a new tab; with a token, fetched with it
+async function openFull(ev) {
+  if (!$("#token").value) return;  // the link itself works
+  ev.preventDefault();
+  const resp = await api("/api/camera/frame.png");
+  if (!resp.ok) { showError((await resp.json()).error); return; }
+  window.open(URL.createObjectURL(await resp.blob()), "_blank");
+}
+$("#frame-full").addEventListener("click", openFull);
 
 // The token (when the server asks for one) is kept in this page only, never stored.
 $("#token").addEventListener("change", () => { refreshStatus(); refreshFrame(); });
