@@ -57,8 +57,10 @@ lint: $(STAMP)
 format: $(STAMP)
 	$(BIN)/ruff format src tests benchmarks
 
-# every benchmark, each printing its ratios against the peer measured in the same run (~5 minutes)
+# every benchmark, each printing its ratios against the peer measured in the same run (~6 minutes);
+# bench_paths.py first: the table of issue 29 (the paths users call, each with its goal met or not)
 bench: $(STAMP)
+	$(BIN)/python benchmarks/bench_paths.py --quick
 	$(BIN)/python benchmarks/bench_pso.py --quick
 	$(BIN)/python benchmarks/bench_detect.py --quick
 	$(BIN)/python benchmarks/bench_server.py
