@@ -43,11 +43,16 @@ browser:
 systemd-analyze:
 	command -v systemd-analyze >/dev/null || (apt-get update && apt-get install -y --no-install-recommends systemd)
 
+# pytest-xdist: one worker per core (2 on CI), each test file whole on one worker (its module fixtures
+# built once, its servers and timing checks never beside its own other tests); `make test
+# PYTEST_PARALLEL=` runs serially. docs/performance.md has the suite's times.
+PYTEST_PARALLEL ?= -n auto --dist loadfile
+
 test: $(STAMP) aravis browser systemd-analyze
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/mypy
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest $(PYTEST_PARALLEL)
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks

@@ -163,11 +163,17 @@ def fit_request(args) -> FitRequest:
     )
 
 
+def calibrate_request(*args, **kwargs):
+    """:func:`eyetohand.calibration.calibrate_request`, whose fit modules load only when a command fits
+    (not for ``apply``; see cli/__init__.py); a name of this module, as tests replace it."""
+    from eyetohand.calibration import calibrate_request as fit
+
+    return fit(*args, **kwargs)
+
+
 def run_calibration(args, pairs, check, extra: dict | None = None, request: FitRequest | None = None) -> int:
     """Shared end of calibrate and calibrate-images: fit, save, print (``extra`` joins the JSON);
     ``request``: :func:`fit_request` of ``args``, when the command made it up front."""
-    from eyetohand.calibration import calibrate_request
-
     request = fit_request(args) if request is None else request
     progress = progress_callback(args.optimizer, args.iterations or 150) if request.is_swarm else None
     cal = calibrate_request(request, pairs, check=check, callback=progress)
