@@ -59,3 +59,19 @@ def paper_pairs():
     from eyetohand import load_pairs
 
     return load_pairs(PAPER / "calibration_points.csv"), load_pairs(PAPER / "check_points.csv")
+
+
+def pytest_collection_modifyitems(items):
+    """Schemathesis (4.x) names each API operation's case of a test (``test_fuzz_no_server_errors[POST
+    /api/…]``) but gives all of them the test's node id. pytest-xdist schedules a file's tests by node id
+    (``make test``'s ``--dist loadfile``), so it ran one of the 30: each gets its name's id back."""
+    for item in items:
+        bracket = item.name.find("[")
+        if bracket > 0 and not item.nodeid.endswith("]"):
+            nodeid = f"{item.nodeid}{item.name[bracket:]}"
+            if hasattr(item, "_id"):  # pytest >= 9.2 keeps a structured id (schemathesis sets _nodeid)
+                from _pytest.nodeid import coerce_node_id
+
+                item._id = coerce_node_id(nodeid)
+            else:
+                item._nodeid = nodeid
