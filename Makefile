@@ -43,11 +43,18 @@ browser:
 systemd-analyze:
 	command -v systemd-analyze >/dev/null || (apt-get update && apt-get install -y --no-install-recommends systemd)
 
+# pytest-xdist: one worker per core (2 on CI), each test file whole on one worker (its module fixtures
+# built once); the tests that assert latency or deadlines (marker `serial`, tests/conftest.py) run
+# afterwards on their own, so no timing measures the other worker's load. `make test
+# PYTEST_PARALLEL=` runs everything serially. docs/performance.md has the suite's times.
+PYTEST_PARALLEL ?= -n auto --dist loadfile
+
 test: $(STAMP) aravis browser systemd-analyze
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/mypy
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -m "not serial"
+	$(BIN)/python -m pytest -m serial
 
 # The stated floors, tested: a second venv with every `>=` floor of pyproject.toml pinned exactly
 # (.ci/floors.py), and the tests that reach each floored package (NumPy, SciPy, OpenCV, Matplotlib
@@ -73,8 +80,10 @@ lint: $(STAMP)
 format: $(STAMP)
 	$(BIN)/ruff format src tests benchmarks
 
-# every benchmark, each printing its ratios against the peer measured in the same run (~5 minutes)
+# every benchmark, each printing its ratios against the peer measured in the same run (~6 minutes);
+# bench_paths.py first: the table of issue 29 (the paths users call, each with its goal met or not)
 bench: $(STAMP)
+	$(BIN)/python benchmarks/bench_paths.py --quick
 	$(BIN)/python benchmarks/bench_pso.py --quick
 	$(BIN)/python benchmarks/bench_detect.py --quick
 	$(BIN)/python benchmarks/bench_server.py

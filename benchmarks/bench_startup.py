@@ -4,7 +4,8 @@ Three commands, each a fresh process, interleaved round by round so the machine'
 of them alike: the peer ``python -c "import numpy"`` (the floor of any NumPy program), ``eyetohand
 --help`` and ``eyetohand apply CAL --uv U V`` on a saved homography calibration of the paper's pairs
 (one guarded point, the question a robot program asks). Wall time per process (median of the rounds)
-and the children's CPU time; goal ≤ 2× the peer for both commands.
+and the children's CPU time; goal ≤ 1.5× the peer for ``apply`` (issue 29), ≤ 2× for ``--help``
+(which imports every command's module to list them).
 ``python benchmarks/bench_startup.py [--rounds N]`` (~10 s at the default 15 rounds).
 """
 
@@ -37,10 +38,9 @@ def _run(cmd: list[str]) -> tuple[float, float]:
     return time.perf_counter() - t0, _children_cpu() - c0
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds (default 15)")
-    args = ap.parse_args()
+def measure(rounds: int) -> tuple[dict[str, float], dict[str, float]]:
+    """Median wall and CPU seconds per process of each command (the peer first), ``rounds`` interleaved
+    rounds after one untimed warm-up each (bench_paths.py reuses this)."""
     exe = Path(sys.executable).with_name("eyetohand")
     if not exe.exists():
         sys.exit(f"error: {exe} not found: run from the project's venv (make setup)")
@@ -50,28 +50,41 @@ def main() -> None:
         calibrate(pairs, "homography", "lm").save(cal_path)
         u, v = (str(c) for c in pairs.uv_px.mean(axis=0).round(1))
         commands = {
-            'python -c "import numpy"': [sys.executable, "-c", "import numpy"],
+            PEER: [sys.executable, "-c", "import numpy"],
             "eyetohand --help": [str(exe), "--help"],
-            "eyetohand apply CAL --uv U V": [str(exe), "apply", str(cal_path), "--uv", u, v],
+            APPLY: [str(exe), "apply", str(cal_path), "--uv", u, v],
         }
         for cmd in commands.values():  # warm the file cache
             _run(cmd)
         wall: dict[str, list[float]] = {k: [] for k in commands}
         cpu: dict[str, list[float]] = {k: [] for k in commands}
-        for _ in range(args.rounds):
+        for _ in range(rounds):
             for name, cmd in commands.items():
                 w, c = _run(cmd)
                 wall[name].append(w)
                 cpu[name].append(c)
-    peer = next(iter(commands))
-    pw, pc = statistics.median(wall[peer]), statistics.median(cpu[peer])
+    return (
+        {k: statistics.median(v) for k, v in wall.items()},
+        {k: statistics.median(v) for k, v in cpu.items()},
+    )
+
+
+PEER = 'python -c "import numpy"'
+APPLY = "eyetohand apply CAL --uv U V"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds (default 15)")
+    args = ap.parse_args()
+    wall, cpu = measure(args.rounds)
+    pw, pc = wall[PEER], cpu[PEER]
     print(f"Start-up, {args.rounds} interleaved rounds, median per process")
-    for name in commands:
-        w, c = statistics.median(wall[name]), statistics.median(cpu[name])
-        print(f"   {name:30s} wall {w * 1e3:6.0f} ms  CPU {c * 1e3:6.0f} ms")
-    for name in list(commands)[1:]:
-        w, c = statistics.median(wall[name]), statistics.median(cpu[name])
-        print(f"RATIO {name} / {peer}: {w / pw:.2f} wall, {c / pc:.2f} CPU (goal ≤ 2)")
+    for name in wall:
+        print(f"   {name:30s} wall {wall[name] * 1e3:6.0f} ms  CPU {cpu[name] * 1e3:6.0f} ms")
+    for name in list(wall)[1:]:
+        goal = 1.5 if name == APPLY else 2  # --help imports every command's module to list them
+        print(f"RATIO {name} / {PEER}: {wall[name] / pw:.2f} wall, {cpu[name] / pc:.2f} CPU (goal ≤ {goal})")
 
 
 if __name__ == "__main__":

@@ -95,7 +95,28 @@ NUMERIC_FILES = {
 }
 
 
-def pytest_collection_modifyitems(config, items):
+# Files whose tests assert latency or deadlines (p99 of a robot's lines under faults, slow-client
+# deadlines, a render's time): `make test` runs them on their own after the parallel run (`-m serial`),
+# so a test's timing never measures the other worker's load.
+SERIAL_FILES = {"test_faults.py", "test_truth_tcp.py", "test_truth_http.py", "test_render.py"}
+
+
+def pytest_collection_modifyitems(items):
+    """The numeric marker on NUMERIC_FILES' tests. And: Schemathesis (4.x) names each API operation's case
+    of a test (``test_fuzz_no_server_errors[POST /api/…]``) but gives all of them the test's node id.
+    pytest-xdist schedules a file's tests by node id (``make test``'s ``--dist loadfile``), so it ran
+    one of the 30: each gets its name's id back."""
     for item in items:
         if item.path.name in NUMERIC_FILES:
             item.add_marker(pytest.mark.numeric)
+        if item.path.name in SERIAL_FILES:
+            item.add_marker(pytest.mark.serial)
+        bracket = item.name.find("[")
+        if bracket > 0 and not item.nodeid.endswith("]"):
+            nodeid = f"{item.nodeid}{item.name[bracket:]}"
+            if hasattr(item, "_id"):  # pytest >= 9.2 keeps a structured id (schemathesis sets _nodeid)
+                from _pytest.nodeid import coerce_node_id
+
+                item._id = coerce_node_id(nodeid)
+            else:
+                item._nodeid = nodeid

@@ -2,14 +2,33 @@
 
 from __future__ import annotations
 
-from eyetohand.calibration.checking import Evaluation, check_warnings, evaluate_pairs, mixup
-from eyetohand.calibration.compare import compare, format_compare
-from eyetohand.calibration.export import FORMATS, export_text
-from eyetohand.calibration.file import Calibration, Mapped
-from eyetohand.calibration.fit import MAX_IMAGE_SIDE_PX, calibrate, check_image_size
-from eyetohand.calibration.request import FitRequest, calibrate_request
-from eyetohand.calibration.signing import load_sign_key
-from eyetohand.calibration.verify import append_history, check_tolerance, verify
+from typing import TYPE_CHECKING
+
+from eyetohand.core import lazy_exports
+
+if TYPE_CHECKING:
+    from eyetohand.calibration.checking import Evaluation, check_warnings, evaluate_pairs, mixup
+    from eyetohand.calibration.compare import compare, format_compare
+    from eyetohand.calibration.export import FORMATS, export_text
+    from eyetohand.calibration.file import Calibration, Mapped
+    from eyetohand.calibration.fit import MAX_IMAGE_SIDE_PX, calibrate, check_image_size
+    from eyetohand.calibration.request import FitRequest, calibrate_request
+    from eyetohand.calibration.signing import load_sign_key
+    from eyetohand.calibration.verify import append_history, check_tolerance, verify
+else:
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "checking": ("Evaluation", "check_warnings", "evaluate_pairs", "mixup"),
+            "compare": ("compare", "format_compare"),
+            "export": ("FORMATS", "export_text"),
+            "file": ("Calibration", "Mapped"),
+            "fit": ("MAX_IMAGE_SIDE_PX", "calibrate", "check_image_size"),
+            "request": ("FitRequest", "calibrate_request"),
+            "signing": ("load_sign_key",),
+            "verify": ("append_history", "check_tolerance", "verify"),
+        },
+    )
 
 __all__ = [
     "Calibration",

@@ -35,25 +35,58 @@ COMMAND_MODULES = (
 )
 
 
+#: each command → the module that registers it (tests/test_cli.py checks this table against the modules):
+#: ``eyetohand apply …`` imports and registers only its own module, not every command's library.
+_COMMANDS = {
+    "calibrate": "eyetohand.cli.calibrate",
+    "evaluate": "eyetohand.cli.calibrate",
+    "apply": "eyetohand.cli.calibrate",
+    "compare": "eyetohand.cli.calibrate",
+    "demo": "eyetohand.cli.demo",
+    "report": "eyetohand.cli.report",
+    "serve": "eyetohand.cli.serve",
+    "simulate": "eyetohand.cli.sim",
+    "plan": "eyetohand.cli.sim",
+    "detect": "eyetohand.cli.images",
+    "calibrate-images": "eyetohand.cli.images",
+    "grab": "eyetohand.cli.grab",
+    "conveyor": "eyetohand.cli.conveyor",
+    "export": "eyetohand.cli.export",
+    "verify": "eyetohand.cli.verify",
+}
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # argparse's own errors: one line, exit 2
         raise CliError(f"{self.prog}: {message}")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    return _build(COMMAND_MODULES)
+
+
+def _build(modules: tuple[str, ...]) -> argparse.ArgumentParser:
     parser = _Parser(prog="eyetohand", description="Eye-to-hand camera-to-robot calibration.")
     parser.add_argument("--version", action="version", version=f"eyetohand {__version__}")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser, metavar="COMMAND")
-    for name in COMMAND_MODULES:
+    for name in modules:
         importlib.import_module(name).register(sub)
     return parser
 
 
 @functools.cache
-def _parser() -> argparse.ArgumentParser:
+def _parser(module: str | None = None) -> argparse.ArgumentParser:
     """The parser :func:`main` uses, built once per process (~6 ms): parsing does not change it, and
-    a program or test that calls ``main`` many times need not rebuild 17 subcommands each time."""
-    return build_parser()
+    a program or test that calls ``main`` many times need not rebuild 17 subcommands each time.
+    With ``module``, only that command module's commands: what ``eyetohand apply …`` needs."""
+    return build_parser() if module is None else _build((module,))
+
+
+def _module_of(argv) -> str | None:
+    """The command module of the command ``argv`` starts with; None (every command) for anything else:
+    ``--help``, ``--version``, no command, an unknown one."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    return _COMMANDS.get(args[0]) if args else None
 
 
 class _Interrupt:
@@ -81,10 +114,9 @@ class _Interrupt:
 def main(argv=None) -> int:
     _Interrupt.install()
     try:
-        parser = _parser()
-        args = parser.parse_args(argv)
+        args = _parser(_module_of(argv)).parse_args(argv)
         if not getattr(args, "func", None):
-            parser.print_help()
+            _parser().print_help()
             return 2
         return int(args.func(args) or 0)
     except InputError as exc:

@@ -5,11 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import TYPE_CHECKING
 
-from eyetohand.calibration import Calibration, FitRequest, calibrate_request
 from eyetohand.core import InputError
 from eyetohand.models import MODEL_CHOICES
 from eyetohand.solve import OBJECTIVES, OPTIMIZERS
+
+if TYPE_CHECKING:  # the fit's modules load when a command fits (not for `apply`: see cli/__init__.py)
+    from eyetohand.calibration import Calibration, FitRequest
 
 
 class CliError(InputError):
@@ -147,6 +150,8 @@ def emit_json(obj) -> None:
 def fit_request(args) -> FitRequest:
     """The fit options of :func:`add_fit_options` as one checked request (as the HTTP fit takes them;
     absent swarm options: the solver's defaults): made before any pairs are read or detected."""
+    from eyetohand.calibration import FitRequest
+
     return FitRequest(
         model=args.model,
         optimizer=args.optimizer,
@@ -156,6 +161,14 @@ def fit_request(args) -> FitRequest:
         iterations=args.iterations,
         image_size=parse_image_size(args.image_size),
     )
+
+
+def calibrate_request(*args, **kwargs):
+    """:func:`eyetohand.calibration.calibrate_request`, whose fit modules load only when a command fits
+    (not for ``apply``; see cli/__init__.py); a name of this module, as tests replace it."""
+    from eyetohand.calibration import calibrate_request as fit
+
+    return fit(*args, **kwargs)
 
 
 def run_calibration(args, pairs, check, extra: dict | None = None, request: FitRequest | None = None) -> int:

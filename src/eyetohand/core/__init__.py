@@ -6,6 +6,7 @@ from __future__ import annotations
 from eyetohand.core.csvtext import CsvTable, read_csv
 from eyetohand.core.errors import DegenerateError, InputError
 from eyetohand.core.io import atomic_write_bytes, atomic_write_text, check_output_path, read_bounded_text
+from eyetohand.core.lazy import lazy_exports
 from eyetohand.core.pairs import (
     MAX_ABS_ANGLE_DEG,
     MAX_PAIRS,
@@ -54,6 +55,7 @@ __all__ = [
     "check_pair_count",
     "csv_rows",
     "image_points_from_text",
+    "lazy_exports",
     "load_image_points",
     "load_pairs",
     "pairs_from_records",

@@ -3,28 +3,61 @@ orientation (image angles to robot rz) and the calibrated region. Imports only :
 
 from __future__ import annotations
 
-from eyetohand.geometry.camera import Camera, as_camera
-from eyetohand.geometry.lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
-from eyetohand.geometry.lm import levenberg_marquardt
-from eyetohand.geometry.normalize import apply_h, hartley, spread_ratio
-from eyetohand.geometry.numdiff import batch_jacobian
-from eyetohand.geometry.orientation import (
-    CONVENTIONS,
-    LocalFrame,
-    check_symmetry,
-    image_angle_to_rz,
-    local_jacobian,
-    wrap_deg,
-)
-from eyetohand.geometry.region import (
-    ONE_HEIGHT_RULE,
-    PLANE_TOLERANCE_MM,
-    CalibratedRegion,
-    HeightPlane,
-    OutsideError,
-    fit_height_plane,
-    plane_z,
-)
+from typing import TYPE_CHECKING
+
+from eyetohand.core import lazy_exports
+
+if TYPE_CHECKING:
+    from eyetohand.geometry.camera import Camera, as_camera
+    from eyetohand.geometry.lens import distort, matrix_to_rodrigues, rodrigues_to_matrix, undistort
+    from eyetohand.geometry.lm import levenberg_marquardt
+    from eyetohand.geometry.normalize import apply_h, hartley, spread_ratio
+    from eyetohand.geometry.numdiff import batch_jacobian
+    from eyetohand.geometry.orientation import (
+        CONVENTIONS,
+        LocalFrame,
+        check_symmetry,
+        image_angle_to_rz,
+        local_jacobian,
+        wrap_deg,
+    )
+    from eyetohand.geometry.region import (
+        ONE_HEIGHT_RULE,
+        PLANE_TOLERANCE_MM,
+        CalibratedRegion,
+        HeightPlane,
+        OutsideError,
+        fit_height_plane,
+        plane_z,
+    )
+else:
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "camera": ("Camera", "as_camera"),
+            "lens": ("distort", "matrix_to_rodrigues", "rodrigues_to_matrix", "undistort"),
+            "lm": ("levenberg_marquardt",),
+            "normalize": ("apply_h", "hartley", "spread_ratio"),
+            "numdiff": ("batch_jacobian",),
+            "orientation": (
+                "CONVENTIONS",
+                "LocalFrame",
+                "check_symmetry",
+                "image_angle_to_rz",
+                "local_jacobian",
+                "wrap_deg",
+            ),
+            "region": (
+                "ONE_HEIGHT_RULE",
+                "PLANE_TOLERANCE_MM",
+                "CalibratedRegion",
+                "HeightPlane",
+                "OutsideError",
+                "fit_height_plane",
+                "plane_z",
+            ),
+        },
+    )
 
 __all__ = [
     "CONVENTIONS",

@@ -2,9 +2,35 @@
 
 from __future__ import annotations
 
-from eyetohand.reports.demo import run_demo, write_demo_report
-from eyetohand.reports.plots import plot_drift, plot_plan_study
-from eyetohand.reports.report import grown_hull, load_history, trust_map, write_report
+from typing import TYPE_CHECKING
+
+from eyetohand.core import lazy_exports
+
+if TYPE_CHECKING:
+    from eyetohand.reports.demo import run_demo, write_demo_report
+    from eyetohand.reports.plots import plot_drift, plot_plan_study
+    from eyetohand.reports.report import grown_hull, load_history, trust_map, write_report
+else:
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "demo": (
+                "run_demo",
+                "write_demo_report",
+            ),
+            "plots": (
+                "plot_drift",
+                "plot_plan_study",
+            ),
+            "report": (
+                "grown_hull",
+                "load_history",
+                "trust_map",
+                "write_report",
+            ),
+        },
+    )
+
 
 __all__ = [
     "grown_hull",

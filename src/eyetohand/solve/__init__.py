@@ -3,26 +3,57 @@ offset: how a model's parameters are found and judged."""
 
 from __future__ import annotations
 
-from eyetohand.solve.evaluate import (
-    MIXUPS,
-    Mixup,
-    Stats,
-    convention_mixup,
-    evaluate,
-    far_off,
-    mapped_residuals,
-    stats_from_residuals,
-)
-from eyetohand.solve.objectives import OBJECTIVES, check_objective, huber_delta_mm, objective_values
-from eyetohand.solve.solvers import OPTIMIZERS, SEED_MAX, check_optimizer, check_seed, get_solver, refine
-from eyetohand.solve.tcp_offset import (
-    correct_pairs,
-    estimate_tcp_offset,
-    has_turns,
-    reference_pairs,
-    rotations,
-)
-from eyetohand.solve.uncertainty import Uncertainty, best_new_point, pair_leverage, param_jacobian
+from typing import TYPE_CHECKING
+
+from eyetohand.core import lazy_exports
+
+if TYPE_CHECKING:
+    from eyetohand.solve.evaluate import (
+        MIXUPS,
+        Mixup,
+        Stats,
+        convention_mixup,
+        evaluate,
+        far_off,
+        mapped_residuals,
+        stats_from_residuals,
+    )
+    from eyetohand.solve.objectives import OBJECTIVES, check_objective, huber_delta_mm, objective_values
+    from eyetohand.solve.solvers import OPTIMIZERS, SEED_MAX, check_optimizer, check_seed, get_solver, refine
+    from eyetohand.solve.tcp_offset import (
+        correct_pairs,
+        estimate_tcp_offset,
+        has_turns,
+        reference_pairs,
+        rotations,
+    )
+    from eyetohand.solve.uncertainty import Uncertainty, best_new_point, pair_leverage, param_jacobian
+else:
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "evaluate": (
+                "MIXUPS",
+                "Mixup",
+                "Stats",
+                "convention_mixup",
+                "evaluate",
+                "far_off",
+                "mapped_residuals",
+                "stats_from_residuals",
+            ),
+            "objectives": ("OBJECTIVES", "check_objective", "huber_delta_mm", "objective_values"),
+            "solvers": ("OPTIMIZERS", "SEED_MAX", "check_optimizer", "check_seed", "get_solver", "refine"),
+            "tcp_offset": (
+                "correct_pairs",
+                "estimate_tcp_offset",
+                "has_turns",
+                "reference_pairs",
+                "rotations",
+            ),
+            "uncertainty": ("Uncertainty", "best_new_point", "pair_leverage", "param_jacobian"),
+        },
+    )
 
 __all__ = [
     "MIXUPS",

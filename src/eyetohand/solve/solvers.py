@@ -26,7 +26,9 @@ from eyetohand.solve.objectives import (
     huber_delta_mm,
     objective_values,
 )
-from eyetohand.solve.optimize import MUTATION_RATE, candidates_per_iteration, hybrid_pso, pso
+
+# the swarm (eyetohand.solve.optimize) loads when a swarm runs or is sized, not for every import of the
+# registry: `eyetohand apply` needs OPTIMIZERS' names only
 
 PSO_SPREAD_MM = 1.0
 HUBER_ROUNDS = 5
@@ -79,10 +81,14 @@ class Solver:
         1 + 2 + 0.1 = 3.1; the plain swarm only the moved particle (1); 0 for solvers without a swarm."""
         if not self.is_swarm:
             return 0.0
+        from eyetohand.solve.optimize import MUTATION_RATE
+
         return 1 + 2 + MUTATION_RATE if self.hybrid else 1.0
 
     def candidates(self, n_particles: int) -> int:
         """Positions one iteration of this swarm evaluates (the optimiser's own count)."""
+        from eyetohand.solve.optimize import candidates_per_iteration
+
         return candidates_per_iteration(n_particles, crossover=self.hybrid, mutation=self.hybrid)
 
     def for_cross_validation(self, objective: str) -> str:
@@ -167,6 +173,8 @@ def _swarm(kind: str):
         sigma = param_scale(
             model, problem.uv_px, problem.xyz_mm[:, 2], step_mm=PSO_SPREAD_MM / np.sqrt(model.n_params)
         )
+        from eyetohand.solve.optimize import hybrid_pso, pso
+
         fn = hybrid_pso if SOLVERS[kind].hybrid else pso
         res = fn(
             problem.fitness,

@@ -3,24 +3,46 @@ registry that higher layers, e.g. :mod:`eyetohand.sim`, add to)."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+from eyetohand.core import lazy_exports
 from eyetohand.vision.aravis import AravisSource  # registers aravis: (gi is imported only when opened)
-from eyetohand.vision.detect import annotate, detect_circles, detect_target
-from eyetohand.vision.images import (
-    ImageResult,
-    detect_images,
-    detect_poses,
-    load_poses,
-    pairs_from_detections,
-)
-from eyetohand.vision.render import Target, render
-from eyetohand.vision.sources import (
-    FolderSource,
-    GrabTimeout,
-    Source,
-    SourceScheme,
-    open_source,
-    register_source,
-)
+
+if TYPE_CHECKING:
+    from eyetohand.vision.detect import annotate, detect_circles, detect_target
+    from eyetohand.vision.images import (
+        ImageResult,
+        detect_images,
+        detect_poses,
+        load_poses,
+        pairs_from_detections,
+    )
+    from eyetohand.vision.render import Target, render
+    from eyetohand.vision.sources import (
+        FolderSource,
+        GrabTimeout,
+        Source,
+        SourceScheme,
+        open_source,
+        register_source,
+    )
+else:
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "detect": ("annotate", "detect_circles", "detect_target"),
+            "images": ("ImageResult", "detect_images", "detect_poses", "load_poses", "pairs_from_detections"),
+            "render": ("Target", "render"),
+            "sources": (
+                "FolderSource",
+                "GrabTimeout",
+                "Source",
+                "SourceScheme",
+                "open_source",
+                "register_source",
+            ),
+        },
+    )
 
 __all__ = [
     "AravisSource",

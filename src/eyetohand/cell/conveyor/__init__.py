@@ -39,17 +39,39 @@ mapping and its file), :mod:`.fit` (the joint fit), :mod:`.report` (the report).
 
 from __future__ import annotations
 
-from eyetohand.cell.conveyor.file import ConveyorCalibration
-from eyetohand.cell.conveyor.fit import calibrate_belt, calibrate_conveyor
-from eyetohand.cell.conveyor.records import (
-    Belt,
-    Encoder,
-    Session,
-    direction_from_angles,
-    load_session,
-    session_from_text,
-)
-from eyetohand.cell.conveyor.report import THRESHOLDS, format_report
+from typing import TYPE_CHECKING
+
+from eyetohand.core import lazy_exports
+
+if TYPE_CHECKING:
+    from eyetohand.cell.conveyor.file import ConveyorCalibration
+    from eyetohand.cell.conveyor.fit import calibrate_belt, calibrate_conveyor
+    from eyetohand.cell.conveyor.records import (
+        Belt,
+        Encoder,
+        Session,
+        direction_from_angles,
+        load_session,
+        session_from_text,
+    )
+    from eyetohand.cell.conveyor.report import THRESHOLDS, format_report
+else:
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "file": ("ConveyorCalibration",),
+            "fit": ("calibrate_belt", "calibrate_conveyor"),
+            "records": (
+                "Belt",
+                "Encoder",
+                "Session",
+                "direction_from_angles",
+                "load_session",
+                "session_from_text",
+            ),
+            "report": ("THRESHOLDS", "format_report"),
+        },
+    )
 
 __all__ = [
     "Belt",

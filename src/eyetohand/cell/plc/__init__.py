@@ -4,10 +4,24 @@ over one protocol-independent mapping call (:func:`.mapping.map_point`) and the 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from eyetohand.cell.plc import registers
-from eyetohand.cell.plc.mapping import PointResult, Status, map_point, served_identity
-from eyetohand.cell.plc.modbus import ModbusService, parse_allow, peer_allowed
-from eyetohand.cell.plc.opcua import OpcUaService, state_of
+from eyetohand.core import lazy_exports
+
+if TYPE_CHECKING:
+    from eyetohand.cell.plc.mapping import PointResult, Status, map_point, served_identity
+    from eyetohand.cell.plc.modbus import ModbusService, parse_allow, peer_allowed
+    from eyetohand.cell.plc.opcua import OpcUaService, state_of
+else:
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "mapping": ("PointResult", "Status", "map_point", "served_identity"),
+            "modbus": ("ModbusService", "parse_allow", "peer_allowed"),
+            "opcua": ("OpcUaService", "state_of"),
+        },
+    )
 
 __all__ = [
     "ModbusService",

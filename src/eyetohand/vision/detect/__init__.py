@@ -45,10 +45,25 @@ The modules: :mod:`.read` (the image and its noise σ), :mod:`.search` (stage 1)
 
 from __future__ import annotations
 
-from eyetohand.vision.detect.api import annotate, detect_circles, detect_target
-from eyetohand.vision.detect.quality import Detection
-from eyetohand.vision.detect.read import check_complete, load_image, noise_sigma
-from eyetohand.vision.detect.refine import fit_ellipse
+from typing import TYPE_CHECKING
+
+from eyetohand.core import lazy_exports
+
+if TYPE_CHECKING:
+    from eyetohand.vision.detect.api import annotate, detect_circles, detect_target
+    from eyetohand.vision.detect.quality import Detection
+    from eyetohand.vision.detect.read import check_complete, load_image, noise_sigma
+    from eyetohand.vision.detect.refine import fit_ellipse
+else:
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "api": ("annotate", "detect_circles", "detect_target"),
+            "quality": ("Detection",),
+            "read": ("check_complete", "load_image", "noise_sigma"),
+            "refine": ("fit_ellipse",),
+        },
+    )
 
 __all__ = [
     "Detection",
