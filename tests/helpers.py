@@ -14,6 +14,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -122,6 +124,31 @@ class ServeProcess:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait(timeout=5)
+
+
+@contextmanager
+def workbench_thread(data_dir: Path, token: str | None = None) -> Iterator[str]:
+    """The workbench app (``create_app``) served by uvicorn in a thread on a free loopback port, for
+    the browser tests; yields its base URL and stops it on exit."""
+    import uvicorn
+
+    from eyetohand.server.app import LOOPBACK_HOSTS, create_app
+
+    port = free_port()
+    app = create_app(data_dir, token=token, allowed_hosts=LOOPBACK_HOSTS)
+    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    th = threading.Thread(target=srv.run, daemon=True)
+    th.start()
+    deadline = time.monotonic() + 20
+    while not srv.started:
+        assert time.monotonic() < deadline, "server did not start"
+        assert th.is_alive(), "server thread died"
+        time.sleep(0.05)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        srv.should_exit = True
+        th.join(timeout=15)
 
 
 def keep_screenshot(shot: Path) -> None:

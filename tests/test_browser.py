@@ -9,12 +9,10 @@ never skips — when Chromium is missing (`make test` installs it).
 from __future__ import annotations
 
 import re
-import threading
-import time
 
 import pytest
 from conftest import chromium_page
-from helpers import PAPER, free_port, keep_screenshot
+from helpers import PAPER, keep_screenshot, workbench_thread
 
 from eyetohand import InputError, calibrate, load_pairs
 from eyetohand.cli import build_parser, main
@@ -22,24 +20,8 @@ from eyetohand.cli import build_parser, main
 
 @pytest.fixture
 def server(tmp_path, request):
-    import uvicorn
-
-    from eyetohand.server.app import LOOPBACK_HOSTS, create_app
-
-    port = free_port()
-    token = getattr(request, "param", None)
-    app = create_app(tmp_path / "data", token=token, allowed_hosts=LOOPBACK_HOSTS)
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    th = threading.Thread(target=srv.run, daemon=True)
-    th.start()
-    deadline = time.monotonic() + 20
-    while not srv.started:
-        assert time.monotonic() < deadline, "server did not start"
-        assert th.is_alive(), "server thread died"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}"
-    srv.should_exit = True
-    th.join(timeout=15)
+    with workbench_thread(tmp_path / "data", getattr(request, "param", None)) as url:
+        yield url
 
 
 @pytest.fixture

@@ -12,34 +12,16 @@ It fails — never skips — when Chromium is missing.
 from __future__ import annotations
 
 import re
-import threading
-import time
 
 import pytest
 from conftest import chromium_page
-from helpers import keep_screenshot
+from helpers import keep_screenshot, workbench_thread
 
 
 @pytest.fixture
 def server(tmp_path):
-    import uvicorn
-    from helpers import free_port
-
-    from eyetohand.server.app import LOOPBACK_HOSTS, create_app
-
-    port = free_port()
-    app = create_app(tmp_path / "data", allowed_hosts=LOOPBACK_HOSTS)
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    th = threading.Thread(target=srv.run, daemon=True)
-    th.start()
-    deadline = time.monotonic() + 20
-    while not srv.started:
-        assert time.monotonic() < deadline, "server did not start"
-        assert th.is_alive(), "server thread died"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}"
-    srv.should_exit = True
-    th.join(timeout=15)
+    with workbench_thread(tmp_path / "data") as url:
+        yield url
 
 
 def test_api_docs_render_in_the_browser(server, tmp_path):

@@ -6,13 +6,10 @@ Chromium is missing.
 
 from __future__ import annotations
 
-import threading
-import time
-
 import httpx
 import pytest
 from conftest import chromium_page
-from helpers import PAPER, free_port, keep_screenshot, records
+from helpers import PAPER, keep_screenshot, records, workbench_thread
 
 PAIRS = records(PAPER / "calibration_points.csv")
 CHECK = records(PAPER / "check_points.csv")
@@ -25,24 +22,9 @@ IMG_JS = """(sel) => { const i = document.querySelector(sel);
 
 @pytest.fixture
 def server(tmp_path, request):
-    import uvicorn
-
-    from eyetohand.server.app import LOOPBACK_HOSTS, create_app
-
-    port = free_port()
     token = getattr(request, "param", None)
-    app = create_app(tmp_path / "data", token=token, allowed_hosts=LOOPBACK_HOSTS)
-    srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    th = threading.Thread(target=srv.run, daemon=True)
-    th.start()
-    deadline = time.monotonic() + 20
-    while not srv.started:
-        assert time.monotonic() < deadline, "server did not start"
-        assert th.is_alive(), "server thread died"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}", token
-    srv.should_exit = True
-    th.join(timeout=15)
+    with workbench_thread(tmp_path / "data", token) as url:
+        yield url, token
 
 
 def stored(base: str, token: str | None, checks: bool) -> int:
