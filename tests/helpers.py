@@ -26,6 +26,20 @@ ROBOTS = ROOT / "examples" / "robots"  # robot_client.py: the virtual robot and 
 PAPER = ROOT / "examples" / "paper"
 
 
+# A small virtual cell (640x512 px, its camera's centre a few px off, small robot axis errors): the
+# collection, LOCATE and robot-program tests run their servers' sim: camera on it
+SMALL_CELL_TOML = """[camera]
+width_px = 640
+height_px = 512
+pixel_size_um = 13.8
+principal_offset_px = [3.0, -2.0]
+
+[robot]
+scale_error = [1e-4, -5e-5]
+skew_deg = 0.01
+"""
+
+
 def records(path: Path) -> list[dict]:
     """A pairs CSV as the HTTP API's JSON records: ``id`` kept as text, every other column a float."""
     with open(path, newline="") as fh:

@@ -16,7 +16,7 @@ import time
 import cv2
 import numpy as np
 import pytest
-from helpers import ROBOTS, ServeProcess, src_env, view_square_mm
+from helpers import ROBOTS, SMALL_CELL_TOML, ServeProcess, src_env, view_square_mm
 
 from eyetohand.calibration.file import Calibration
 from eyetohand.cell.collect import Collector, plan_poses
@@ -31,16 +31,7 @@ from eyetohand.vision.sources import FolderSource, GrabTimeout, open_source
 sys.path.insert(0, str(ROBOTS))
 from robot_client import FolderCamera, TcpLink, VirtualRobot  # noqa: E402
 
-CELL = """[camera]
-width_px = 640
-height_px = 512
-pixel_size_um = 13.8
-principal_offset_px = [3.0, -2.0]
-
-[robot]
-scale_error = [1e-4, -5e-5]
-skew_deg = 0.01
-"""
+CELL = SMALL_CELL_TOML
 Z = 150.0
 SEED = 5
 

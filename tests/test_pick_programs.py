@@ -15,7 +15,7 @@ import re
 import sys
 
 import pytest
-from helpers import ROBOTS, ServeProcess, view_square_mm
+from helpers import ROBOTS, SMALL_CELL_TOML, ServeProcess, view_square_mm
 from test_robot_programs import (
     Wire,
     code,
@@ -35,16 +35,7 @@ from test_robot_programs import (
 sys.path.insert(0, str(ROBOTS))
 from robot_client import TcpLink, VirtualRobot  # noqa: E402
 
-CELL = """[camera]
-width_px = 640
-height_px = 512
-pixel_size_um = 13.8
-principal_offset_px = [3.0, -2.0]
-
-[robot]
-scale_error = [1e-4, -5e-5]
-skew_deg = 0.01
-"""
+CELL = SMALL_CELL_TOML
 SEED = 5
 Z = 150.0
 

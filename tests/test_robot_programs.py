@@ -23,18 +23,9 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers import ROBOTS, ServeProcess, src_env
+from helpers import ROBOTS, SMALL_CELL_TOML, ServeProcess, src_env
 
-CELL = """[camera]
-width_px = 640
-height_px = 512
-pixel_size_um = 13.8
-principal_offset_px = [3.0, -2.0]
-
-[robot]
-scale_error = [1e-4, -5e-5]
-skew_deg = 0.01
-"""
+CELL = SMALL_CELL_TOML
 SEED = 5
 PLAN = "grid:3x3"
 # The programs' rectangle (0,570)-(70,650) at z 150 lies inside this cell's view: all 9 poses are
