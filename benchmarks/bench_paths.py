@@ -119,13 +119,7 @@ def servers(rounds: int, requests: int) -> None:
             srv.wait_port(ports["peer_tcp"], procs["peer_tcp"])
             _measure_servers(ports, rounds, requests)
         finally:
-            for p in procs.values():
-                p.terminate()
-            for p in procs.values():
-                try:
-                    p.wait(timeout=15)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+            srv.stop_all(procs)
 
 
 def _clients(ports: dict[str, int], pm, url: str, reqs: list[bytes], pts: list[tuple[float, float]]):

@@ -307,6 +307,17 @@ def line(label: str, ours: float, peer: float, unit: str, goal: str) -> None:
     )
 
 
+def stop_all(procs: dict) -> None:
+    """Terminate every started process, then reap each (killed after 15 s)."""
+    for p in procs.values():
+        p.terminate()
+    for p in procs.values():
+        try:
+            p.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=3, help="repeats of each measure (default 3)")
@@ -408,13 +419,7 @@ def main(argv: list[str] | None = None) -> int:
             assert status == 413
             c.close()
         finally:
-            for p in procs.values():
-                p.terminate()
-            for p in procs.values():
-                try:
-                    p.wait(timeout=15)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+            stop_all(procs)
     return 0
 
 

@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from eyetohand.cell.collect import ascii_reason
+from eyetohand.cell.line import ErrorCode, ascii_reason
+from eyetohand.cell.replies import mapping_code
 from eyetohand.core import InputError
-from eyetohand.geometry import OutsideError
 
 MAX_REASON = 200  # as the TCP line service's ERR reasons
 
@@ -118,9 +118,10 @@ def map_point(
     )
 
 
+_STATUS_OF_CODE = {ErrorCode.HEIGHT: Status.HEIGHT, ErrorCode.OUTSIDE_REGION: Status.OUTSIDE}
+
+
 def _status_of(exc: InputError) -> Status:
-    if isinstance(exc, OutsideError):
-        return Status.HEIGHT if exc.field == "z" else Status.OUTSIDE
-    if exc.index is not None and exc.field is None:
-        return Status.OUTSIDE  # a point that maps to no finite robot point: on or beyond the horizon
-    return Status.BAD_INPUT
+    """The register status of a refused mapping: the line service's one rule for its kind
+    (:func:`eyetohand.cell.replies.mapping_code`), any other refusal bad input."""
+    return _STATUS_OF_CODE.get(mapping_code(exc), Status.BAD_INPUT)
