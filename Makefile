@@ -5,8 +5,8 @@ STAMP := $(VENV)/.installed
 
 .PHONY: setup demo test lint format bench clean browser systemd-analyze aravis floors
 
-# setup.py builds the compiled parts (src/eyetohand/models/_rows.c, solve/_swarm.c) into the source tree
-$(STAMP): pyproject.toml setup.py src/eyetohand/models/_rows.c src/eyetohand/solve/_swarm.c src/eyetohand/_buffers.h
+# setup.py builds the compiled parts (src/eyetohand/models/_rows.c, solve/_swarm.c, geometry/_hull.c) into the source tree
+$(STAMP): pyproject.toml setup.py src/eyetohand/models/_rows.c src/eyetohand/solve/_swarm.c src/eyetohand/geometry/_hull.c src/eyetohand/_buffers.h
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'

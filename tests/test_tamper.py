@@ -345,7 +345,7 @@ def test_a_number_json_allows_but_a_float_cannot_hold_is_named(tmp_path, text, w
 def test_numbers_of_other_types_are_checked_with_their_names():
     """Values that are not what ``json.loads`` gives (a dict built in code with NumPy numbers) take
     the walk with names, so a NumPy infinity is refused like a parsed one."""
-    from eyetohand.calibration.file import _check_numbers
+    from eyetohand.calibration.fields import check_numbers as _check_numbers
 
     _check_numbers({"a": [np.float64(1.5), 2, "x", None, True]}, "")
     with pytest.raises(InputError, match=r"^field 'a\[1\]': inf is not a finite number$"):

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import math
 import os
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -20,6 +19,17 @@ from pathlib import Path
 import numpy as np
 
 from eyetohand._version import __version__
+from eyetohand.calibration.fields import (
+    CHANGED,
+    KIND,
+    MISSING,
+    check_numbers,
+    kind_of,
+    refuse_constant,
+    rel_tol,
+    same,
+)
+from eyetohand.calibration.horizon import beyond_horizon, horizon_clear
 from eyetohand.calibration.mapped import Mapped, all_finite
 from eyetohand.calibration.signing import check_signature, signature_of
 from eyetohand.core import (
@@ -152,7 +162,48 @@ class Calibration:
         one = self._map_one(uv_px, z)
         if one is not None:
             return one[1]
+        if not allow_outside:
+            many = self._map_many(uv_px, z)
+            if many is not None:
+                return many
         return self.map(uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm
+
+    def _map_many(self, uv_px, z) -> np.ndarray | None:
+        """(N, 3) robot mm of many pixels (a float64 (N, 2) array) at one allowed height (or none), when
+        the guard passes them all; None for anything else, for ``map`` to answer in its one path and
+        words. One lookup proves most pixels within the margin (``region.unproven``); where the horizon
+        is proven clear over the margin (``_horizon_clear``) that is all they need, and ``map`` checks
+        the few others; without that proof ``region.guard`` sorts the pixels into the hull and its
+        margin, and the margin's are tested against the horizon."""
+        region = self.region
+        if region is None or not _many_uv(uv_px):
+            return None
+        n = len(uv_px)
+        zq = None
+        if z is not None:
+            zf = _one_height(z)
+            if zf is None or not region.z_allowed_one(zf):
+                return None
+            zq = np.broadcast_to(np.asarray(zf, float), (n,))  # as map passes it to the model
+        uv = np.ascontiguousarray(uv_px)
+        if self._horizon_clear:
+            few = region.unproven(uv)
+        else:
+            g = region.guard(uv)
+            if g.beyond:
+                return None
+            few = np.flatnonzero(g.status == 1)
+        if len(few):
+            try:
+                self.map(uv[few], None if zq is None else zq[few], with_sigma=False)
+            except InputError:
+                return None  # map refuses one of them: let it name the first one among all
+        try:
+            xyz = np.ascontiguousarray(self.model.image_to_robot(uv, zq))
+        except InputError:
+            return None
+        # proven within the margin where the horizon is clear: finite (Model.jacobian_det_range)
+        return xyz if self._horizon_clear or all_finite(xyz) else None
 
     def _map_one(self, uv_px, z) -> tuple[tuple[float, float], np.ndarray] | None:
         """``((u, v), (1, 3) robot mm)`` of one pixel inside the training points' hull at an allowed height,
@@ -265,18 +316,15 @@ class Calibration:
             sigma = self.uncertainty.sigma_mm(self.model, uv, zs)
         return Mapped(uv, xyz, rz, sigma, inside, outside)
 
-    HORIZON_SCALE_RATIO = 1e3
-
     def _beyond_horizon(self, uv: np.ndarray, z) -> np.ndarray:
-        """(N,) True for points (outside the region) on or beyond the model's horizon: the local
-        map flips handedness there (a homography's det J = det H / w³ changes sign with w) or its
-        scale explodes (beyond ``HORIZON_SCALE_RATIO`` × the region centre's), where the answer is a
-        finite number that means nothing."""
-        with np.errstate(all="ignore"):
-            det = np.linalg.det(local_jacobian(self.xy_map(z), uv))
-            ref = np.linalg.det(self._centre_jacobian)
-            ratio = np.sqrt(np.abs(det / ref))
-        return ~np.isfinite(det) | (np.sign(det) != np.sign(ref)) | ~(ratio < self.HORIZON_SCALE_RATIO)
+        """(N,) True for points on or beyond the model's horizon (:func:`~.horizon.beyond_horizon`)."""
+        return beyond_horizon(self.xy_map(z), self._centre_jacobian, uv)
+
+    @cached_property
+    def _horizon_clear(self) -> bool:
+        """Whether no point within the region's margin can be beyond the horizon (proven once, from
+        the model's bound on its Jacobian: :func:`~.horizon.horizon_clear`)."""
+        return self.region is not None and horizon_clear(self.model, self.region, self._centre_jacobian)
 
     def robot_to_image(self, xyz_mm) -> np.ndarray:
         """(N, 3) robot mm → (N, 2) pixels."""
@@ -373,7 +421,7 @@ class Calibration:
             )
         try:
             check_signature(d, sign_key, require_signed)
-            _check_numbers(d, "")
+            check_numbers(d, "")
             cal = _from_dict(cls, d, ver)
             cal = cal._proven(d)
         except InputError as exc:
@@ -389,9 +437,9 @@ class Calibration:
         fitted = self.fitted_pairs
         assert fitted is not None  # verify() refuses a file without pairs
         region = derived_region(self.model, fitted)
-        _same(region.to_dict(), d.get("region", _MISSING), "region", _rel_tol(REPRODUCE_TOL_MM))
+        same(region.to_dict(), d.get("region", MISSING), "region", rel_tol(REPRODUCE_TOL_MM))
         unc = Uncertainty.of_fit(self.model, fitted.uv_px, fitted.xyz_mm)
-        _same_uncertainty(unc, d.get("uncertainty", _MISSING), self.model, fitted, region)
+        _same_uncertainty(unc, d.get("uncertainty", MISSING), self.model, fitted, region)
         out = _replace(self, region=region, uncertainty=unc)
         want = out._content()
         for key in FREE_FIELDS:
@@ -401,12 +449,12 @@ class Calibration:
         want["uncertainty"] = given.get("uncertainty")  # compared above, with its own tolerance
         want["region"] = given.get("region")  # compared above
         local = want.pop("local_frame")
-        _same(local, given.pop("local_frame", _MISSING), "local_frame", _rel_tol(REPRODUCE_TOL_MM))
+        same(local, given.pop("local_frame", MISSING), "local_frame", rel_tol(REPRODUCE_TOL_MM))
         given.pop("content_sha256", None)
         given.pop("signature", None)  # checked by check_signature
-        _same(want, given, "", _rel_tol(0.0))
-        sha = d.get("content_sha256", _MISSING)
-        if sha is _MISSING:
+        same(want, given, "", rel_tol(0.0))
+        sha = d.get("content_sha256", MISSING)
+        if sha is MISSING:
             raise InputError("field 'content_sha256' missing: this file cannot prove its records intact")
         if sha != content_sha256(d):
             raise InputError(
@@ -444,7 +492,7 @@ class Calibration:
                     # the training outliers as calibrate flags them: studentized by the pairs' leverage
                     lev = pair_leverage(self.model, pairs.uv_px, pairs.xyz_mm) if key == "train" else None
                     again = stats_from_residuals(res, pairs.ids, leverage=lev).to_dict()
-                _same(again, _stats_dict(stats), key, _rel_tol(REPRODUCE_TOL_MM, relative=False))
+                same(again, _stats_dict(stats), key, rel_tol(REPRODUCE_TOL_MM, relative=False))
             except InputError as exc:
                 raise InputError(
                     f"the model does not reproduce its recorded {label} errors (to {REPRODUCE_TOL_MM:g} mm; "
@@ -462,7 +510,7 @@ class Calibration:
         path = Path(path)
         text = read_bounded_text(path, what="a calibration file")
         try:
-            d = json.loads(text, parse_constant=_refuse_constant)
+            d = json.loads(text, parse_constant=refuse_constant)
         except json.JSONDecodeError as exc:
             raise InputError(
                 f"{path} line {exc.lineno}: not a calibration file (invalid JSON: {exc.msg})"
@@ -470,6 +518,26 @@ class Calibration:
         except ValueError as exc:
             raise InputError(f"{path}: not a calibration file ({exc})") from None
         return cls.from_dict(d, str(path), sign_key=sign_key, require_signed=require_signed)
+
+
+def _many_uv(uv_px) -> bool:
+    """Whether ``uv_px`` is a float64 (N, 2) array of two or more pixels."""
+    return (
+        isinstance(uv_px, np.ndarray)
+        and uv_px.dtype == np.float64
+        and uv_px.ndim == 2
+        and uv_px.shape[1] == 2
+        and len(uv_px) > 1
+    )
+
+
+def _one_height(z) -> float | None:
+    """One height as a float: a number or a one-element numeric array; None for anything else."""
+    if isinstance(z, np.ndarray) and z.size == 1 and z.dtype.kind in "fiu":
+        return float(z.reshape(-1)[0])
+    if isinstance(z, bool) or not isinstance(z, (float, int, np.floating, np.integer)):
+        return None
+    return float(z)
 
 
 def _malformed(exc: Exception) -> str:
@@ -487,7 +555,7 @@ def _v1_refusal(cls, d: dict) -> str:
             "file has: a newer file relabelled as version 1 (to skip its proof) is refused"
         )
     try:
-        _check_numbers(d, "")
+        check_numbers(d, "")
         _from_dict(cls, d, 1)
     except InputError as exc:
         return str(exc)
@@ -500,7 +568,6 @@ def _v1_refusal(cls, d: dict) -> str:
     )
 
 
-CHANGED = "the file was changed after it was written"
 CHANGED_OR_DAMAGED = "the file was changed or damaged after it was written"
 
 
@@ -531,7 +598,6 @@ FREE_FIELDS = ("created_utc", "eyetohand_version", "notes", "warnings")
 COVARIANCE_TOL = 1e-6
 """A stored covariance entry may differ from the recomputed one by this fraction of
 sqrt(C_ii C_jj) (room for another machine's linear algebra; the recomputed one is used)."""
-_MISSING = object()
 
 
 def content_sha256(d: dict) -> str:
@@ -574,76 +640,6 @@ def _stats_dict(s: Stats) -> dict:
         return {"n": s.n, "rms_mm": s.rms_mm, "points": list(s.points)}
 
 
-def _rel_tol(tol: float, relative: bool = True):
-    """Numbers equal within ``tol`` (times max(1, |expected|) when ``relative``)."""
-
-    def f(path: str, want: float) -> float:
-        return tol * max(1.0, abs(want)) if relative else tol
-
-    return f
-
-
-_KIND = {
-    bool: "true or false",
-    int: "a number",
-    float: "a number",
-    str: "a string",
-    list: "a list",
-    dict: "an object",
-    type(None): "null",
-}
-
-
-def _kind(v) -> str:
-    return _KIND.get(type(v), type(v).__name__)
-
-
-def _join(path: str, key) -> str:
-    if isinstance(key, int):
-        return f"{path}[{key}]"
-    return f"{path}.{key}" if path else str(key)
-
-
-def _same(want, given, path: str, tol) -> None:
-    """Refuse (one line naming the field) unless ``given`` (from the file) is ``want`` (what this
-    version writes for it): same keys, types (true/false is not a number), lengths, and numbers
-    within ``tol(path, want)``."""
-    where = f"field '{path}'" if path else "the file"
-    if given is _MISSING:
-        raise InputError(f"{where} missing")
-    if isinstance(want, dict):
-        if not isinstance(given, dict):
-            raise InputError(f"{where} must be an object, got {_kind(given)}")
-        for key in want:
-            if key not in given:
-                raise InputError(f"field '{_join(path, key)}' missing")
-        for key in given:
-            if key not in want:
-                raise InputError(f"unexpected field '{_join(path, key)}'")
-        for key in want:
-            _same(want[key], given[key], _join(path, key), tol)
-        return
-    if isinstance(want, (list, tuple)):
-        if not isinstance(given, list):
-            raise InputError(f"{where} must be a list, got {_kind(given)}")
-        if len(given) != len(want):
-            raise InputError(f"{where} must have {len(want)} entries, got {len(given)}")
-        for i, (w, g) in enumerate(zip(want, given, strict=True)):
-            _same(w, g, _join(path, i), tol)
-        return
-    number = (int, float)
-    if isinstance(want, number) and not isinstance(want, bool):
-        if isinstance(given, bool) or not isinstance(given, number):
-            raise InputError(f"{where} must be a number, got {_kind(given)}")
-        if not abs(float(given) - float(want)) <= tol(path, float(want)):
-            raise InputError(f"{where} is {given!r}, but the calibration gives {want!r}: {CHANGED}")
-        return
-    if type(given) is not type(want):
-        raise InputError(f"{where} must be {_kind(want)}, got {_kind(given)}")
-    if given != want:
-        raise InputError(f"{where} is {given!r}, expected {want!r}")
-
-
 def _same_uncertainty(
     unc: Uncertainty, given, model: Model, fitted: PointPairs, region: CalibratedRegion
 ) -> None:
@@ -659,7 +655,7 @@ def _same_uncertainty(
             return COVARIANCE_TOL * float(sd[i] * sd[j])
         return REPRODUCE_TOL_MM
 
-    _same(want, given, "uncertainty", tol)
+    same(want, given, "uncertainty", tol)
     stored = Uncertainty.from_dict(given, model.n_covariance())
     uv = np.vstack([fitted.uv_px, region.hull_px])
     z_mid = float(np.mean(fitted.xyz_mm[:, 2]))
@@ -684,53 +680,6 @@ def _stored_uncertainty(d: dict, model: Model) -> Uncertainty | None:
         return Uncertainty.from_dict(d["uncertainty"], model.n_covariance())
     except InputError as exc:
         raise InputError(_as_written(f"{str(exc).rstrip('.')}: {CHANGED}", d)) from None
-
-
-def _check_numbers(obj, path: str) -> None:
-    """Every number in the parsed file finite and within the float range (JSON allows 1e400)."""
-    if not _numbers_fine(obj):
-        _refuse_numbers(obj, path)
-
-
-def _numbers_fine(obj) -> bool:
-    """True when every number in ``obj`` (as ``json.loads`` gives it) is finite and within range;
-    False when one is not or a value is of another type: then :func:`_refuse_numbers` walks it with
-    the field names (building them for every value costs more than the whole check)."""
-    todo = [obj]
-    pop, extend = todo.pop, todo.extend
-    while todo:
-        o = pop()
-        t = type(o)
-        if t is float:
-            if not math.isfinite(o):
-                return False
-        elif t is dict:
-            extend(o.values())
-        elif t is list:
-            extend(o)
-        elif t is int:
-            if abs(o) > 2**63:
-                return False
-        elif t is not str and t is not bool and o is not None:
-            return False
-    return True
-
-
-def _refuse_numbers(obj, path: str) -> None:
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            _refuse_numbers(v, _join(path, k))
-    elif isinstance(obj, list):
-        for i, v in enumerate(obj):
-            _refuse_numbers(v, _join(path, i))
-    elif isinstance(obj, float) and not np.isfinite(obj):
-        raise InputError(f"field '{path}': {float(obj)!r} is not a finite number")
-    elif isinstance(obj, int) and not isinstance(obj, bool) and abs(obj) > 2**63:
-        raise InputError(f"field '{path}': {obj} is too large a number")
-
-
-def _refuse_constant(name: str):
-    raise ValueError(f"{name} is not a number JSON allows")
 
 
 def _corrected(pairs: PointPairs | None, tcp: TcpOffset | None) -> PointPairs | None:
@@ -780,7 +729,7 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
         raise InputError("'data_sha256' must be a string")
     for key in ("train", "check", "loo"):
         if d.get(key) is not None or key == "train":
-            _typed_stats(d.get(key, _MISSING), key)
+            _typed_stats(d.get(key, MISSING), key)
     if d.get("tcp_offset") is not None:
         _typed(d["tcp_offset"], "tcp_offset", TCP_TYPES)
     sel = d.get("selection")
@@ -868,15 +817,15 @@ POINT_TYPES: dict = {
 def _typed(d, path: str, types: dict) -> None:
     """Refuse unless ``d`` is an object with every key of ``types`` of its type (a bool is no number)."""
     if not isinstance(d, dict):
-        raise InputError(f"field '{path}' must be an object, got {_kind(d)}")
+        raise InputError(f"field '{path}' must be an object, got {kind_of(d)}")
     for key, t in types.items():
         if key not in d:
             raise InputError(f"field '{path}.{key}' missing")
         v = d[key]
         ok = isinstance(v, t) and not (isinstance(v, bool) and t is not bool)
         if not ok:
-            want = "a number" if t in (_NUM, int) else _KIND.get(t, "null or a number")
-            raise InputError(f"field '{path}.{key}' must be {want}, got {_kind(v)}")
+            want = "a number" if t in (_NUM, int) else KIND.get(t, "null or a number")
+            raise InputError(f"field '{path}.{key}' must be {want}, got {kind_of(v)}")
     for key in ("history", "offset_mm", "std_mm"):
         if key in types and not all(isinstance(x, _NUM) and not isinstance(x, bool) for x in d[key]):
             raise InputError(f"field '{path}.{key}' must be a list of numbers")
@@ -886,7 +835,7 @@ def _typed(d, path: str, types: dict) -> None:
 
 
 def _typed_stats(d, path: str) -> None:
-    if d is _MISSING:
+    if d is MISSING:
         raise InputError(f"field '{path}' missing")
     _typed(d, path, STATS_TYPES)
     for i, p in enumerate(d["points"]):

@@ -15,6 +15,7 @@ if TYPE_CHECKING:
     from eyetohand.geometry.numdiff import batch_jacobian
     from eyetohand.geometry.orientation import (
         CONVENTIONS,
+        JACOBIAN_STEP_PX,
         LocalFrame,
         check_symmetry,
         image_angle_to_rz,
@@ -28,6 +29,7 @@ if TYPE_CHECKING:
         HeightPlane,
         OutsideError,
         fit_height_plane,
+        grown_polygon,
         plane_z,
     )
 else:
@@ -41,6 +43,7 @@ else:
             "numdiff": ("batch_jacobian",),
             "orientation": (
                 "CONVENTIONS",
+                "JACOBIAN_STEP_PX",
                 "LocalFrame",
                 "check_symmetry",
                 "image_angle_to_rz",
@@ -54,6 +57,7 @@ else:
                 "HeightPlane",
                 "OutsideError",
                 "fit_height_plane",
+                "grown_polygon",
                 "plane_z",
             ),
         },
@@ -61,6 +65,7 @@ else:
 
 __all__ = [
     "CONVENTIONS",
+    "JACOBIAN_STEP_PX",
     "ONE_HEIGHT_RULE",
     "CalibratedRegion",
     "PLANE_TOLERANCE_MM",
@@ -74,6 +79,7 @@ __all__ = [
     "check_symmetry",
     "distort",
     "fit_height_plane",
+    "grown_polygon",
     "hartley",
     "image_angle_to_rz",
     "levenberg_marquardt",

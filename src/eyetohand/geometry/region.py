@@ -61,6 +61,13 @@ BANDS = 256
 _BAND_SLACK = 1e-6
 """Each band's rectangle is proven for v this fraction of a band beyond its edges (a pixel's band is
 found by one rounded multiplication)."""
+MARGIN_BANDS = 256
+"""Horizontal bands of a polygon proven to lie within the margin: the lookup of the margin ring."""
+MARGIN_ARC_POINTS = 64
+"""Vertices of the regular polygon that stands for the margin's disc in a grown hull."""
+_MARGIN_SHRINK = 1e-9
+"""The margin polygon is the hull grown by the margin less this × (the hull's span + the margin): room
+above the rounding of a computed distance by six orders of magnitude."""
 _PROOF_MARGIN = 1e-12
 """A band's corners must pass every edge's cross product by this × |e_u| + |e_v| × the hull's span:
 above the rounding of any cross product there by three orders of magnitude."""
@@ -81,6 +88,19 @@ class HullScan:
 
     outside: int
     mask: np.ndarray | None
+    finite: bool
+
+
+@dataclass(frozen=True)
+class GuardScan:
+    """Many pixels against the hull and its margin (:meth:`CalibratedRegion.guard`): ``status`` (N,)
+    uint8, 0 inside the hull, 1 within the margin (outside the hull, or not proven inside it), 2 beyond
+    the margin or not finite; ``in_margin`` and ``beyond`` count the 1s and 2s; ``finite``: whether every
+    pixel was finite."""
+
+    status: np.ndarray
+    in_margin: int
+    beyond: int
     finite: bool
 
 
@@ -272,6 +292,70 @@ class CalibratedRegion:
         edges = np.ascontiguousarray(np.column_stack([au, av, eu, ev]))
         bands, v0, inv_h = _bands(edges)
         return edges, bands, v0, inv_h
+
+    @cached_property
+    def _guard_tables(self) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray, float, float]:
+        """``(edges, hull bands, v0, 1/h, margin bands, v0, 1/h)`` of the compiled guard: the scan's
+        tables and the bands of the hull grown by the margin less ``_MARGIN_SHRINK`` (an inscribed
+        polygon, so every point of it is nearer the hull than that)."""
+        edges, bands, v0, inv_h = self._scan_tables
+        m_bands, mv0, minv = _bands(_polygon_edges(self._margin_polygon), MARGIN_BANDS)
+        return edges, bands, v0, inv_h, m_bands, mv0, minv
+
+    def guard(self, uv_px) -> GuardScan:
+        """Which of (N, 2) pixels lie inside the hull, within its margin, or beyond (or are not finite),
+        in one compiled pass (``hull_kernel``) — the verdicts of :meth:`check` on the image, without a
+        distance for the points it can prove within the margin — or, without it, by :meth:`scan` and
+        :meth:`outside_px`."""
+        uv = np.ascontiguousarray(np.asarray(uv_px, float).reshape(-1, 2))
+        kernel = hull_kernel()
+        if kernel is not None:
+            edges, hb, hv0, hinv, mb, mv0, minv = self._guard_tables
+            status = np.empty(len(uv), np.uint8)
+            _, in_margin, beyond, finite = kernel.guard(
+                uv, edges, hb, hv0, hinv, mb, mv0, minv, self.margin_px, status
+            )
+            return GuardScan(status, in_margin, beyond, finite)
+        sc = self.scan(uv)
+        status = np.zeros(len(uv), np.uint8)
+        if sc.mask is not None:
+            d = self.outside_px(uv, sc)
+            status[d > 0] = 1
+            status[~(d <= self.margin_px)] = 2
+        return GuardScan(
+            status, int(np.count_nonzero(status == 1)), int(np.count_nonzero(status == 2)), sc.finite
+        )
+
+    @cached_property
+    def _margin_polygon(self) -> np.ndarray:
+        """The hull grown by the margin less ``_MARGIN_SHRINK`` (inscribed: every point of it is nearer
+        the hull than the margin, with room for a computed distance's rounding)."""
+        span = float(np.ptp(self.hull_px, axis=0).max()) if len(self.hull_px) else 0.0
+        return grown_polygon(self.hull_px, self.margin_px - _MARGIN_SHRINK * (span + self.margin_px))
+
+    @cached_property
+    def _margin_chords(self) -> tuple[np.ndarray, float, float]:
+        """The trapezoid lookup (:func:`_chord_bands`) of ``_margin_polygon``."""
+        return _chord_bands(_polygon_edges(self._margin_polygon), MARGIN_BANDS)
+
+    def unproven(self, uv_px) -> np.ndarray:
+        """The indices of the (N, 2) pixels that one lookup does not prove within the margin (the
+        trapezoids of ``_margin_chords``): every other pixel is finite and passes :meth:`check`'s image
+        test. Many pixels in one compiled pass, else the same arithmetic in NumPy."""
+        uv = np.ascontiguousarray(np.asarray(uv_px, float).reshape(-1, 2))
+        rows, v0, inv_h = self._margin_chords
+        kernel = hull_kernel()
+        if kernel is not None:
+            idx = np.empty(len(uv), np.int64)
+            return idx[: kernel.unproven(uv, rows, v0, inv_h, idx)]
+        u, v = uv[:, 0], uv[:, 1]
+        with np.errstate(invalid="ignore"):
+            t = (v - v0) * inv_h
+            in_t = (t >= 0.0) & (t < len(rows))
+            r = rows[np.where(in_t, t, 0.0).astype(np.intp)]
+            dv = v - r[:, 0]
+            ok = in_t & (u >= r[:, 1] + r[:, 2] * dv) & (u <= r[:, 3] + r[:, 4] * dv)
+        return np.flatnonzero(~ok)
 
     def _outside_one(self, u: float, v: float) -> float:
         """``outside_px`` of one point on Python floats: the same arithmetic as the many-point paths
@@ -497,9 +581,19 @@ def _one_value(z) -> bool:
     return np.ndim(z) == 0 or (isinstance(z, np.ndarray) and not any(z.strides))
 
 
-def _bands(edges: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """The lookup of the compiled scan for the convex hull of (K, 4) ``edges`` rows (a_u, a_v, e_u, e_v):
-    ``(bands (BANDS, 2), v0, 1/h)``, the hull's v extent cut into ``BANDS`` bands of height h, each with
+def grown_polygon(hull_px: np.ndarray, radius_px: float, *, circumscribed: bool = False) -> np.ndarray:
+    """The convex polygon ``hull_px`` ⊕ a regular ``MARGIN_ARC_POINTS``-gon of radius ``radius_px``
+    (counter-clockwise, as :func:`convex_hull`): inside the hull grown by the radius (every point nearer
+    the hull than that) or, ``circumscribed``, around it (the polygon's edges touch the circle)."""
+    a = 2 * math.pi * np.arange(MARGIN_ARC_POINTS) / MARGIN_ARC_POINTS
+    r = radius_px / math.cos(math.pi / MARGIN_ARC_POINTS) if circumscribed else radius_px
+    disc = r * np.column_stack([np.cos(a), np.sin(a)])
+    return convex_hull((np.asarray(hull_px, float)[:, None, :] + disc[None]).reshape(-1, 2))
+
+
+def _bands(edges: np.ndarray, count: int = BANDS) -> tuple[np.ndarray, float, float]:
+    """The lookup of the compiled scan for the convex polygon of (K, 4) ``edges`` rows (a_u, a_v, e_u, e_v):
+    ``(bands (count, 2), v0, 1/h)``, the polygon's v extent cut into ``count`` bands of height h, each with
     a u interval [lo, hi] whose rectangle — widened by ``_BAND_SLACK`` of a band in v — passes every
     edge's cross product e_u (v - a_v) - e_v (u - a_u) at its four corners by ``_PROOF_MARGIN`` × (|e_u|
     + |e_v|) × the hull's span. The cross product is affine in (u, v), so its least value on the
@@ -507,26 +601,17 @@ def _bands(edges: np.ndarray) -> tuple[np.ndarray, float, float]:
     band's interval passes every test, as computed. A band that cannot be proven is empty (lo > hi)."""
     au, av, eu, ev = edges.T
     v0, v1 = float(av.min()), float(av.max())
-    empty = np.tile([math.inf, -math.inf], (BANDS, 1))
+    empty = np.tile([math.inf, -math.inf], (count, 1))
     span = float(np.ptp(edges[:, :2], axis=0).max())
     if not v1 > v0 or not span > 0:
         return empty, 0.0, 0.0
-    h = (v1 - v0) / BANDS
-    b = np.arange(BANDS, dtype=float)
+    h = (v1 - v0) / count
+    b = np.arange(count, dtype=float)
     lo_v = v0 + (b - _BAND_SLACK) * h
     hi_v = v0 + (b + 1 + _BAND_SLACK) * h
 
-    def cross_section(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """[left, right] u of the hull at each v (NaN outside its v extent)."""
-        bv = av + ev
-        vv = v[:, None]
-        spans = (np.minimum(av, bv)[None] <= vv) & (vv <= np.maximum(av, bv)[None]) & (ev != 0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.where(spans, au[None] + (v[:, None] - av[None]) * (eu / ev)[None], np.nan)
-            return np.nanmin(u, axis=1, initial=math.inf), np.nanmax(u, axis=1, initial=-math.inf)
-
     with np.errstate(invalid="ignore"):
-        (l0, r0), (l1, r1) = cross_section(lo_v), cross_section(hi_v)
+        (l0, r0), (l1, r1) = _cross_section(edges, lo_v), _cross_section(edges, hi_v)
     pad = 1e-9 * span
     lo, hi = np.maximum(l0, l1) + pad, np.minimum(r0, r1) - pad
     # the proof: each rectangle's corners against every edge, as the scan computes the products
@@ -538,6 +623,59 @@ def _bands(edges: np.ndarray) -> tuple[np.ndarray, float, float]:
         ok = (c >= need).all(axis=(1, 2)) & (lo <= hi) & np.isfinite(lo) & np.isfinite(hi)
     bands = np.where(ok[:, None], np.column_stack([lo, hi]), empty)
     return np.ascontiguousarray(bands), v0, 1.0 / h
+
+
+def _polygon_edges(polygon: np.ndarray) -> np.ndarray:
+    """(K, 4) rows (a_u, a_v, e_u, e_v) of a polygon's edges, as ``CalibratedRegion._edges`` has them."""
+    e = np.roll(polygon, -1, axis=0) - polygon
+    return np.ascontiguousarray(np.column_stack([polygon, e]))
+
+
+def _cross_section(edges: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[left, right] u of the convex polygon of (K, 4) ``edges`` rows at each v (inf, -inf outside its
+    v extent)."""
+    au, av, eu, ev = edges.T
+    bv = av + ev
+    vv = v[:, None]
+    spans = (np.minimum(av, bv)[None] <= vv) & (vv <= np.maximum(av, bv)[None]) & (ev != 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(spans, au[None] + (v[:, None] - av[None]) * (eu / ev)[None], np.nan)
+        return np.nanmin(u, axis=1, initial=math.inf), np.nanmax(u, axis=1, initial=-math.inf)
+
+
+def _chord_bands(edges: np.ndarray, count: int) -> tuple[np.ndarray, float, float]:
+    """A finer lookup than :func:`_bands` for the convex polygon of (K, 4) ``edges`` rows: ``(rows
+    (count, 5), v0, 1/h)``, each band b a trapezoid, row (v_b, L, l, R, r): a pixel with
+    L + l·(v - v_b) <= u <= R + r·(v - v_b) is inside. Its sides are the chords between the polygon's
+    boundary points at the band's v limits (widened by ``_BAND_SLACK``), which lie inside a convex
+    polygon, moved 1e-9 × its span inwards; the four corners are then proven against every edge as
+    in :func:`_bands`, so the trapezoid (their convex hull) is inside with room for rounding. Only
+    the thin triangles between a chord and a polygon vertex within the band are left out. A band that
+    cannot be proven gets the row (0, inf, 0, -inf, 0): no pixel passes it."""
+    au, av, eu, ev = edges.T
+    v0, v1 = float(av.min()), float(av.max())
+    empty = np.tile([0.0, math.inf, 0.0, -math.inf, 0.0], (count, 1))
+    span = float(np.ptp(edges[:, :2], axis=0).max())
+    if not v1 > v0 or not span > 0:
+        return empty, 0.0, 0.0
+    h = (v1 - v0) / count
+    b = np.arange(count, dtype=float)
+    lo_v = v0 + (b - _BAND_SLACK) * h
+    hi_v = v0 + (b + 1 + _BAND_SLACK) * h
+    with np.errstate(invalid="ignore"):
+        (l0, r0), (l1, r1) = _cross_section(edges, lo_v), _cross_section(edges, hi_v)
+        pad = 1e-9 * span
+        dv = hi_v - lo_v
+        L, R = l0 + pad, r0 - pad
+        sl, sr = ((l1 + pad) - L) / dv, ((r1 - pad) - R) / dv
+        # the corners as the lookup computes them: L + l·(v - v_b) at both v limits
+        cu = np.stack([L, R, L + sl * dv, R + sr * dv], axis=1)[..., None]  # (B, 4, 1)
+        cv = np.stack([lo_v, lo_v, hi_v, hi_v], axis=1)[..., None]
+        c = eu * (cv - av) - ev * (cu - au)  # (B, 4, K)
+        need = _PROOF_MARGIN * (np.abs(eu) + np.abs(ev)) * span
+        ok = (c >= need).all(axis=(1, 2)) & np.isfinite(np.column_stack([L, R, sl, sr])).all(axis=1)
+    rows = np.where(ok[:, None], np.column_stack([lo_v, L, sl, R, sr]), empty)
+    return np.ascontiguousarray(rows), v0, 1.0 / h
 
 
 def _outside_distance(hull: np.ndarray, uv: np.ndarray) -> np.ndarray:

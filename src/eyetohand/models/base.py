@@ -267,6 +267,13 @@ class Model(ABC):
         z = self._z_for(len(uv), z_mm)
         return self.batch_image_to_robot(self.params[None, :], uv, z)[0]
 
+    def jacobian_det_range(self, polygon_px: np.ndarray) -> tuple[float, float] | None:
+        """Bounds (lo, hi) on det d(x, y)/d(u, v) of ``image_to_robot`` over the convex polygon (K, 2) px,
+        proven from the model's form (a planar matrix's det H / w³ with w affine in the pixel), given
+        only where the model's answer is also finite everywhere in the polygon; None for the models
+        whose form gives no bound (the caller then tests each point)."""
+        return None
+
     def batch_map_and_jacobian(
         self, params: np.ndarray, uv_px: np.ndarray, z_mm: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray] | None:

@@ -154,6 +154,12 @@ class PaperB(Model):
         self._rows_m = np.array([[g0, g1, g2 * dw] for g0, g1, g2 in self._Minv])
         self._affine3 = np.column_stack([G[:, :2], G @ (np.array([0.0, 0.0, 1.0]) - B[0, :, 3])])
 
+    def jacobian_det_range(self, polygon_px: np.ndarray) -> tuple[float, float] | None:
+        """Equation (13) is affine in (u, v): det d(x, y)/d(u, v) is one number everywhere."""
+        (a0, a1, _), (b0, b1, _), _ = self._Minv
+        det = a0 * b1 - a1 * b0
+        return det, det
+
     def image_to_robot(self, uv_px, z_mm=None) -> np.ndarray:
         """Equation (13) with the precomputed M⁻¹: one point on plain floats, many in one pass of the
         compiled loop (``rows_kernel``) or, without it, elementwise in cache-sized chunks; the same

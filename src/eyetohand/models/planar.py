@@ -154,6 +154,25 @@ class PlanarMatrixModel(Model):
         """3×3 matrix mapping (u', v', 1) px to (x, y, 1) mm (up to scale; [2, 2] = 1)."""
         return self._H_px.copy()
 
+    def jacobian_det_range(self, polygon_px: np.ndarray) -> tuple[float, float] | None:
+        """det d(x, y)/d(u, v) = det H / w³, w = h₆u + h₇v + 1 affine in the pixel, so over a convex
+        polygon w ranges between its values at the vertices, and the answer's x, y (ratios of affine
+        functions to w, which keeps its sign) take their extremes there: finite at the vertices, finite
+        throughout. None where w reaches 0 (the horizon), the answer at a vertex is not finite, or a
+        lens model bends the pixels first (its form gives no such bound here)."""
+        if type(self)._ideal_px is not PlanarMatrixModel._ideal_px:
+            return None
+        H = self._H_px
+        p = np.asarray(polygon_px, float).reshape(-1, 2)
+        w = H[2, 0] * p[:, 0] + H[2, 1] * p[:, 1] + H[2, 2]
+        lo, hi = float(w.min()), float(w.max())
+        if not (lo > 0.0 or hi < 0.0) or not math.isfinite(lo * hi):
+            return None
+        if not np.isfinite(self.image_to_robot(p)).all():
+            return None
+        d = [float(np.linalg.det(H)) / lo**3, float(np.linalg.det(H)) / hi**3]
+        return min(d), max(d)
+
     def _ideal_one(self, u: float, v: float) -> tuple[float, float]:
         """``_ideal_px`` of one point, on plain floats (NaN where the lens cannot be inverted)."""
         return u, v
