@@ -11,7 +11,9 @@ all three, one request at a time, and the protocols alternate in rounds over the
 - OPC UA: one ``Calibration.ImageToRobot(u, v, NaN)`` call (asyncua's client; a session kept open).
 
 Prints p50 and p99 (ms, end to end, client included: on a small machine the clients share the cores
-with the server) and each one's ratio to the TCP line's p50 measured in the same run.
+with the server) and each one's ratio to the TCP line's p50 measured in the same run; and the Modbus
+and OPC UA rounds to the minimal servers of peer_plc.py (pymodbus, asyncua: the same register map and
+method, the same mapping call, nothing else), each ratio ours / its peer: what the service adds.
 """
 
 from __future__ import annotations
@@ -68,6 +70,23 @@ def start(cal_file: Path, data: Path, ports: dict[str, int]) -> subprocess.Popen
         if line.startswith("workbench:"):
             return proc
     raise SystemExit("serve did not start: " + (proc.stdout.read() if proc.stdout else ""))
+
+
+def start_peer(cal_file: Path, ports: dict[str, int]) -> subprocess.Popen:
+    """peer_plc.py on ``ports["peer_modbus"]`` and ``ports["peer_opcua"]``, returned once both accept."""
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "peer_plc.py"), str(cal_file)]
+    proc = subprocess.Popen(cmd + [str(ports["peer_modbus"]), str(ports["peer_opcua"])], env=src_env())
+    deadline = time.monotonic() + 60
+    for key in ("peer_modbus", "peer_opcua"):
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", ports[key]), timeout=1).close()
+                break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise SystemExit("peer_plc.py did not start") from None
+                time.sleep(0.1)
+    return proc
 
 
 def tcp_round(port: int, pts) -> list[float]:
@@ -134,11 +153,15 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         cal_file = fit(folder)
-        ports = {k: free_port() for k in ("tcp", "modbus", "opcua")}
+        ports = {k: free_port() for k in ("tcp", "modbus", "opcua", "peer_modbus", "peer_opcua")}
         proc = start(cal_file, folder / "data", ports)
+        peer = start_peer(cal_file, ports)
         url = f"opc.tcp://127.0.0.1:{ports['opcua']}/eyetohand/"
+        peer_url = f"opc.tcp://127.0.0.1:{ports['peer_opcua']}/eyetohand/"
         pm = ModbusTcpClient("127.0.0.1", port=ports["modbus"])
         assert pm.connect()
+        pp = ModbusTcpClient("127.0.0.1", port=ports["peer_modbus"])
+        assert pp.connect()
         mt = ModbusClient(host="127.0.0.1", port=ports["modbus"], auto_open=True)
         span = R.RESULT_END - R.RESULT_ID
         clients = {
@@ -154,6 +177,12 @@ def main(argv: list[str] | None = None) -> int:
                 pts,
             ),
             "OPC UA (asyncua client)": lambda pts: asyncio.run(opcua_round(url, pts)),
+            "Modbus peer (pymodbus client)": lambda pts: modbus_round(
+                lambda regs: pp.write_registers(0, regs),
+                lambda: pp.read_holding_registers(R.RESULT_ID, count=span).registers,
+                pts,
+            ),
+            "OPC UA peer (asyncua client)": lambda pts: asyncio.run(opcua_round(peer_url, pts)),
         }
         times: dict[str, list[float]] = {k: [] for k in clients}
         try:
@@ -165,15 +194,23 @@ def main(argv: list[str] | None = None) -> int:
                     times[k] += run(pts)
         finally:
             pm.close()
+            pp.close()
             mt.close()
-            proc.terminate()
-            proc.wait(20)
+            for p in (proc, peer):
+                p.terminate()
+                p.wait(20)
     ref = float(np.percentile(times["TCP line"], 50))
     print(f"loopback round trips, {args.rounds} rounds x {args.requests} requests, {os.cpu_count()} cores")
     print(f"{'':30s} {'p50 ms':>8s} {'p99 ms':>8s} {'p50 / TCP line':>15s}")
     for k, ms in times.items():
         p50, p99 = np.percentile(ms, [50, 99])
         print(f"{k:30s} {p50:8.3f} {p99:8.3f} {p50 / ref:15.2f}")
+    p50 = {k: float(np.percentile(ms, 50)) for k, ms in times.items()}
+    for ours, peer_key in (
+        ("Modbus (pymodbus client)", "Modbus peer (pymodbus client)"),
+        ("OPC UA (asyncua client)", "OPC UA peer (asyncua client)"),
+    ):
+        print(f"{ours.split(' (')[0]}: ours / minimal peer (peer_plc.py) {p50[ours] / p50[peer_key]:.2f}")
     return 0
 
 

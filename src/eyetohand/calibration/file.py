@@ -258,10 +258,13 @@ class Calibration:
             why = angle_refusal(float(tool_rz_offset_deg))
             if why:
                 raise InputError(why, field="tool_rz_offset_deg")
-        if angle_deg is None and not (with_sigma and self.uncertainty is not None):
+        if angle_deg is None:
             one = self._map_one(uv_px, z)
             if one is not None:
-                return Mapped(np.array([one[0]]), one[1], None, None, np.ones(1, bool), np.zeros(1))
+                uv1, xyz1 = np.array([one[0]]), one[1]
+                return Mapped(
+                    uv1, xyz1, None, self._sigma(uv1, xyz1, with_sigma), np.ones(1, bool), np.zeros(1)
+                )
         uv = as_uv(uv_px, check_finite=False)
         n = len(uv)
         # many points: the hull's half-plane tests and the pixels' finiteness in one pass
@@ -310,11 +313,14 @@ class Calibration:
             if tool_rz_offset_deg is not None:
                 rz = rz + float(tool_rz_offset_deg) - self.local_frame().u_axis_rz_deg
             rz = wrap_deg(rz, s)
-        sigma = None
-        if with_sigma and self.uncertainty is not None:
-            zs = xyz[:, 2] if self.model.height_rule is not HeightRule.COMPUTED else np.zeros(n)
-            sigma = self.uncertainty.sigma_mm(self.model, uv, zs)
-        return Mapped(uv, xyz, rz, sigma, inside, outside)
+        return Mapped(uv, xyz, rz, self._sigma(uv, xyz, with_sigma), inside, outside)
+
+    def _sigma(self, uv: np.ndarray, xyz: np.ndarray, wanted: bool) -> np.ndarray | None:
+        """(N,) predicted error (mm) of the mapped points, when ``wanted`` and the file has an uncertainty."""
+        if not wanted or self.uncertainty is None:
+            return None
+        zs = xyz[:, 2] if self.model.height_rule is not HeightRule.COMPUTED else np.zeros(len(uv))
+        return self.uncertainty.sigma_mm(self.model, uv, zs)
 
     def _beyond_horizon(self, uv: np.ndarray, z) -> np.ndarray:
         """(N,) True for points on or beyond the model's horizon (:func:`~.horizon.beyond_horizon`)."""
