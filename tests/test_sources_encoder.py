@@ -30,8 +30,26 @@ def _disc_png() -> bytes:
     return buf.tobytes()
 
 
-def _later(fn, delay_s: float = 0.15) -> threading.Thread:
-    th = threading.Thread(target=lambda: (time.sleep(delay_s), fn()))
+def _later(src, fn, delay_s: float = 0.05) -> threading.Thread:
+    """Run ``fn`` (a frame dropped into the folder) once ``src``'s next grab has listed the folder's
+    files as they were, and ``delay_s`` later: a drop before that listing would be a stale frame to
+    the grab (a sleep alone races a loaded machine)."""
+    listed = threading.Event()
+    scan = type(src)._scan
+
+    def watched():
+        out = scan(src)
+        listed.set()
+        return out
+
+    src._scan = watched  # this instance's listing, until the next _later
+
+    def run():
+        assert listed.wait(30), "the grab never listed the folder"
+        time.sleep(delay_s)
+        fn()
+
+    th = threading.Thread(target=run)
     th.start()
     return th
 
@@ -49,7 +67,7 @@ def test_folder_source_latches_the_count_of_each_frame(tmp_path):
     src = open_source(f"folder:{tmp_path}?encoder=1&timeout=5")
     counts = []
     for k, count in enumerate((16_777_100, 5, 123_456)):  # a 24-bit counter rolling over between frames
-        th = _later(lambda k=k, count=count: _drop(tmp_path, f"f{k}.png", count))
+        th = _later(src, lambda k=k, count=count: _drop(tmp_path, f"f{k}.png", count))
         img, _ = src.grab()
         th.join()
         assert img.shape == (240, 320)
@@ -57,7 +75,7 @@ def test_folder_source_latches_the_count_of_each_frame(tmp_path):
     assert counts == [16_777_100, 5, 123_456]
     # without the option the sidecars are not read: no count, never one from an earlier frame
     plain = open_source(f"folder:{tmp_path}?timeout=5")
-    th = _later(lambda: _drop(tmp_path, "f9.png", 77))
+    th = _later(plain, lambda: _drop(tmp_path, "f9.png", 77))
     plain.grab()
     th.join()
     assert plain.encoder_count is None
@@ -75,7 +93,7 @@ def test_folder_source_latches_the_count_of_each_frame(tmp_path):
 )
 def test_folder_source_refuses_a_missing_or_bad_sidecar_by_name(tmp_path, sidecar, words):
     src = open_source(f"folder:{tmp_path}?encoder=1&timeout=5")
-    th = _later(lambda: _drop(tmp_path, "f0.png", sidecar=sidecar))
+    th = _later(src, lambda: _drop(tmp_path, "f0.png", sidecar=sidecar))
     with pytest.raises(InputError, match="f0.png.json") as info:
         src.grab()
     th.join()
@@ -88,6 +106,8 @@ def test_encoder_option_is_checked_and_only_where_a_source_can_latch(tmp_path):
         open_source(f"folder:{tmp_path}?encoder=yes")
     with pytest.raises(InputError, match="unknown option 'encoder'; valid options: timeout"):
         open_source("opencv:0?encoder=1")
+    import eyetohand.sim  # noqa: F401  (registers sim:, as every interface does; alone this file has not)
+
     with pytest.raises(InputError, match="unknown option 'encoder'; valid options: seed"):
         open_source("sim:?encoder=1")
 
@@ -100,15 +120,15 @@ def test_belt_sight_takes_the_count_the_camera_latched(tmp_path):
     src = open_source(f"folder:{frames}?encoder=1&timeout=5")
     belt = BeltProtocol(None, source=src, store_dir=tmp_path / "store")
     assert belt.handle("BELT BEGIN latch") == "OK"
-    th = _later(lambda: _drop(frames, "a.png", 1000))
+    th = _later(src, lambda: _drop(frames, "a.png", 1000))
     reply = belt.handle("BELT SIGHT p1")
     th.join()
     assert reply.startswith("OK"), reply
-    th = _later(lambda: _drop(frames, "b.png", 1500))
+    th = _later(src, lambda: _drop(frames, "b.png", 1500))
     reply = belt.handle("BELT SIGHT p2,1600")
     th.join()
     assert reply.startswith("OK"), reply
-    th = _later(lambda: _drop(frames, "c.png"))
+    th = _later(src, lambda: _drop(frames, "c.png"))
     reply = belt.handle("BELT SIGHT p3")
     th.join()
     assert reply.startswith("ERR ") and "c.png.json" in reply and "\n" not in reply, reply
