@@ -9,10 +9,11 @@ benchmarks/bench_paths.py [--quick]`.
 4. HTTP one point, p50, against a minimal FastAPI app (peer_http.py; goal ≤ 1.2×).
 5. ``eyetohand apply CAL --uv U V`` start against ``python -c "import numpy"`` (goal ≤ 1.5×, wall and
    CPU medians of interleaved fresh processes).
-6. Modbus and OPC UA round trips (p50) beside the TCP line's, to the same ``eyetohand serve``.
+6. Modbus and OPC UA round trips (p50) beside the TCP line's, to the same ``eyetohand serve``, and
+   against minimal servers of their own protocol (peer_plc.py: pymodbus, asyncua).
 
 Rows 1-2 run in this process on a homography calibration of the paper's pairs (bench_startup.py's);
-rows 3-4 and 6 use one ``eyetohand serve --tcp --modbus --opcua`` and the two peers as subprocesses on
+rows 3-4 and 6 use one ``eyetohand serve --tcp --modbus --opcua`` and the three peers as subprocesses on
 127.0.0.1, the calibration seeded as bench_server.py does, ours and the peer alternating round by
 round over the same points; row 5 is bench_startup.py's measure. The pieces are those benchmarks'
 own (imported). Each row prints its ratio and "goal met" or "NOT met". ~2 min (``--quick`` ~1 min).
@@ -96,7 +97,8 @@ def servers(rounds: int, requests: int) -> None:
         data, cal_file = Path(tmp) / "data", Path(tmp) / "bench.json"
         srv.seed_database(data, cal_file)
         srv.INSIDE = srv.inside_points(cal_file)
-        ports = {k: srv.free_port() for k in ("http", "tcp", "modbus", "opcua", "peer_http", "peer_tcp")}
+        keys = ("http", "tcp", "modbus", "opcua", "peer_http", "peer_tcp", "peer_modbus", "peer_opcua")
+        ports = {k: srv.free_port() for k in keys}
         py = sys.executable
         ours = [py, "-m", "eyetohand.cli", "serve", "--port", str(ports["http"]), "--data", str(data)]
         ours += ["--calibration", "bench", "--log-level", "warning"]
@@ -106,6 +108,8 @@ def servers(rounds: int, requests: int) -> None:
             "ours": ours,
             "peer_http": [py, str(HERE / "peer_http.py"), str(cal_file), str(ports["peer_http"])],
             "peer_tcp": [py, str(HERE / "peer_tcp.py"), str(cal_file), str(ports["peer_tcp"])],
+            "peer_plc": [py, str(HERE / "peer_plc.py"), str(cal_file)]
+            + [str(ports["peer_modbus"]), str(ports["peer_opcua"])],
         }
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         procs = {
@@ -117,52 +121,66 @@ def servers(rounds: int, requests: int) -> None:
                 srv.wait_port(ports[p], procs[k])
             srv.wait_port(ports["peer_http"], procs["peer_http"])
             srv.wait_port(ports["peer_tcp"], procs["peer_tcp"])
+            srv.wait_port(ports["peer_modbus"], procs["peer_plc"])
+            srv.wait_port(ports["peer_opcua"], procs["peer_plc"])
             _measure_servers(ports, rounds, requests)
         finally:
             srv.stop_all(procs)
 
 
-def _clients(ports: dict[str, int], pm, url: str, reqs: list[bytes], pts: list[tuple[float, float]]):
+def _clients(ports: dict[str, int], pms: dict, reqs: list[bytes], pts: list[tuple[float, float]]):
     """One round's client of each server: name → a call returning its latencies (ms)."""
     R = bench_plc.R
     lines = [f"{u!r},{v!r}\n".encode() for u, v in pts]
+
+    def modbus(pm):
+        return lambda: bench_plc.modbus_round(
+            lambda regs: pm.write_registers(0, regs),
+            lambda: pm.read_holding_registers(R.RESULT_ID, count=R.RESULT_END - R.RESULT_ID).registers,
+            pts,
+        )
+
+    def opcua(key: str):
+        url = f"opc.tcp://127.0.0.1:{ports[key]}/eyetohand/"
+        return lambda: asyncio.run(bench_plc.opcua_round(url, pts))
+
     return {
         "http": lambda: srv.http_one(ports["http"], reqs),
         "peer_http": lambda: srv.http_one(ports["peer_http"], reqs),
         "tcp": lambda: asyncio.run(srv.tcp_clients(ports["tcp"], [lines])),
         "peer_tcp": lambda: asyncio.run(srv.tcp_clients(ports["peer_tcp"], [lines])),
-        "modbus": lambda: bench_plc.modbus_round(
-            lambda regs: pm.write_registers(0, regs),
-            lambda: pm.read_holding_registers(R.RESULT_ID, count=R.RESULT_END - R.RESULT_ID).registers,
-            pts,
-        ),
-        "opcua": lambda: asyncio.run(bench_plc.opcua_round(url, pts)),
+        "modbus": modbus(pms["modbus"]),
+        "peer_modbus": modbus(pms["peer_modbus"]),
+        "opcua": opcua("opcua"),
+        "peer_opcua": opcua("peer_opcua"),
     }
 
 
 def _measure_servers(ports: dict[str, int], rounds: int, requests: int) -> None:
     from pymodbus.client import ModbusTcpClient
 
-    pm = ModbusTcpClient("127.0.0.1", port=ports["modbus"])
-    assert pm.connect()
-    url = f"opc.tcp://127.0.0.1:{ports['opcua']}/eyetohand/"
+    pms = {k: ModbusTcpClient("127.0.0.1", port=ports[k]) for k in ("modbus", "peer_modbus")}
+    assert all(pm.connect() for pm in pms.values())
     lat: dict[str, list[float]] = {}
     try:
         for r in range(-1, rounds):  # round -1: warm-up (connections, first calls), not counted
             reqs = srv.bodies(r + 10, 20 if r < 0 else requests)
             pts = [(u, v) for u, v in srv.pick(r + 30, len(reqs)).round(3).tolist()]
-            runs = _clients(ports, pm, url, reqs, pts)
+            runs = _clients(ports, pms, reqs, pts)
             for k in list(runs) if r % 2 == 0 else list(runs)[::-1]:  # ours and peer, alternating first
                 got = runs[k]()
                 if r >= 0:
                     lat.setdefault(k, []).extend(got)
     finally:
-        pm.close()
+        for pm in pms.values():
+            pm.close()
     p50 = {k: float(np.percentile(v, 50)) for k, v in lat.items()}
     row("TCP line u,v round trip, p50", p50["tcp"], p50["peer_tcp"], "ms", "asyncio echo-and-map", 1.5)
     row("HTTP one point, p50", p50["http"], p50["peer_http"], "ms", "minimal FastAPI (peer_http)", 1.2)
     row("Modbus write+read handshake, p50", p50["modbus"], p50["tcp"], "ms", "our TCP line, p50", None)
     row("OPC UA ImageToRobot call, p50", p50["opcua"], p50["tcp"], "ms", "our TCP line, p50", None)
+    row("Modbus handshake, p50", p50["modbus"], p50["peer_modbus"], "ms", "minimal pymodbus (peer_plc)", None)
+    row("OPC UA call, p50", p50["opcua"], p50["peer_opcua"], "ms", "minimal asyncua (peer_plc)", None)
 
 
 def startup(rounds: int) -> None:

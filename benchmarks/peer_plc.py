@@ -1,9 +1,10 @@
 """The PLC peers of bench_plc.py and bench_paths.py: a minimal pymodbus server and a minimal asyncua
 server answering the service's own requests — the same register map (the request block 0..9, the
 result block 100..130, the id written last), the same method ``Calibration.ImageToRobot(u, v, z)`` in
-the namespace ``urn:eyetohand`` — through the same guarded ``Calibration.map`` call, with nothing
-else: no access list, no LOCATE, no stale-id rule, no refusals (a bad request breaks them), no
-variables, no switching of the served calibration. What the service costs beyond these is its own.
+the namespace ``urn:eyetohand`` — through the same guarded ``Calibration.map`` call (the point and
+its sigma), with nothing else: no access list, no LOCATE, no stale-id rule, no refusals (a bad
+request breaks them), no variables, no switching of the served calibration. What the service costs
+beyond these is its own.
 
 ``python benchmarks/peer_plc.py CALIBRATION.json MODBUS_PORT OPCUA_PORT`` serves both on 127.0.0.1.
 """
@@ -22,9 +23,11 @@ from eyetohand.cell.plc import registers as R
 from eyetohand.cell.plc.mapping import PointResult, Status
 
 
-def _xyz(cal: Calibration, u: float, v: float) -> tuple[float, float, float]:
-    x, y, z = cal.map(np.array([[u, v]]), None, with_sigma=False).xyz_mm[0].tolist()
-    return x, y, z
+def _mapped(cal: Calibration, u: float, v: float) -> tuple[tuple[float, float, float], float]:
+    """The point (mm) and its sigma (mm; NaN without one): both protocols answer both."""
+    m = cal.map(np.array([[u, v]]), None)
+    x, y, z = m.xyz_mm[0].tolist()
+    return (x, y, z), math.nan if m.sigma_mm is None else float(m.sigma_mm[0])
 
 
 async def modbus(cal: Calibration, port: int) -> None:
@@ -37,7 +40,10 @@ async def modbus(cal: Calibration, port: int) -> None:
         block = list(registers[: R.REQUEST_END])
         block[address : address + count] = [int(v) for v in set_values][: R.REQUEST_END - address]
         req = R.decode_request(block)
-        out = R.encode_result(PointResult(Status.OK, _xyz(cal, req.u_px, req.v_px)), "peer", 0)
+        xyz, sigma = _mapped(cal, req.u_px, req.v_px)
+        out = R.encode_result(
+            PointResult(Status.OK, xyz, sigma_mm=None if sigma != sigma else sigma), "peer", 0
+        )
         registers[R.STATUS : R.STATUS + len(out)] = out
         registers[R.RESULT_ID] = block[R.REQUEST_ID]  # last
         return None
@@ -61,12 +67,8 @@ async def opcua(cal: Calibration, port: int) -> None:
     obj = await server.nodes.objects.add_object(idx, "Calibration")
 
     async def image_to_robot(parent, u, v, z):
-        x, y, zz = _xyz(
-            cal,
-            float(u.Value if isinstance(u, ua.Variant) else u),
-            float(v.Value if isinstance(v, ua.Variant) else v),
-        )
-        return [ua.Variant(w, ua.VariantType.Double) for w in (x, y, zz, math.nan)]
+        (x, y, zz), sigma = _mapped(cal, float(getattr(u, "Value", u)), float(getattr(v, "Value", v)))
+        return [ua.Variant(w, ua.VariantType.Double) for w in (x, y, zz, sigma)]
 
     double = [ua.VariantType.Double] * 3
     await obj.add_method(idx, "ImageToRobot", image_to_robot, double, double + [ua.VariantType.Double])
