@@ -8,6 +8,13 @@ from eyetohand.core import lazy_exports
 
 if TYPE_CHECKING:
     from eyetohand.calibration.checking import Evaluation, check_warnings, evaluate_pairs, mixup
+    from eyetohand.calibration.circles import (
+        check_target_diameter,
+        corrected_centres_px,
+        ellipse_centres_px,
+        fit_corrected,
+        projected_centres_px,
+    )
     from eyetohand.calibration.compare import compare, format_compare
     from eyetohand.calibration.export import FORMATS, export_text
     from eyetohand.calibration.file import Calibration, Mapped
@@ -19,6 +26,13 @@ else:
     __getattr__, __dir__ = lazy_exports(
         __name__,
         {
+            "circles": (
+                "check_target_diameter",
+                "corrected_centres_px",
+                "ellipse_centres_px",
+                "fit_corrected",
+                "projected_centres_px",
+            ),
             "checking": ("Evaluation", "check_warnings", "evaluate_pairs", "mixup"),
             "compare": ("compare", "format_compare"),
             "export": ("FORMATS", "export_text"),
@@ -41,13 +55,18 @@ __all__ = [
     "calibrate",
     "calibrate_request",
     "check_image_size",
+    "check_target_diameter",
     "check_warnings",
     "check_tolerance",
     "compare",
+    "corrected_centres_px",
+    "ellipse_centres_px",
     "evaluate_pairs",
     "export_text",
+    "fit_corrected",
     "format_compare",
     "load_sign_key",
     "mixup",
+    "projected_centres_px",
     "verify",
 ]

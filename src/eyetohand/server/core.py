@@ -100,6 +100,7 @@ def fit(opts: FitOptions, callback=None) -> Fitted:
             n_particles=opts.particles,
             iterations=opts.iterations,
             image_size=opts.image_size,
+            target_diameter_mm=opts.target_diameter_mm,
         )
         cal = calibrate_request(asked, kept, check=check, callback=callback)
     except InputError as exc:
