@@ -195,6 +195,10 @@ def test_the_cli_and_http_fit_with_the_diameter(cells, tmp_path, capsys):
         r = client.post("/api/calibrations", json={**body, "target_diameter_mm": 20})
         assert r.status_code == 201, r.text
         cal_id = r.json()["id"]
+        arrows = r.json()["summary"]["vectors"]["train"]  # of the centres as fitted: no bias left
+        assert max(np.hypot(a["du_px"], a["dv_px"]) for a in arrows) < 0.05  # the bias is ≈ 0.12 px
+        again = client.get(f"/api/calibrations/{cal_id}").json()["summary"]["vectors"]["train"]
+        assert again == arrows
         stored = json.loads(client.get(f"/api/calibrations/{cal_id}/export").text)
     assert stored["fit"]["target_diameter_mm"] == 20.0
     assert np.allclose(stored["model"]["params"], want.model.params, rtol=0, atol=0)

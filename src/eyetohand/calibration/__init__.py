@@ -9,11 +9,13 @@ from eyetohand.core import lazy_exports
 if TYPE_CHECKING:
     from eyetohand.calibration.checking import Evaluation, check_warnings, evaluate_pairs, mixup
     from eyetohand.calibration.circles import (
+        as_fitted,
         check_target_diameter,
         corrected_centres_px,
         ellipse_centres_px,
         fit_corrected,
         projected_centres_px,
+        recorded_diameter_mm,
     )
     from eyetohand.calibration.compare import compare, format_compare
     from eyetohand.calibration.export import FORMATS, export_text
@@ -27,11 +29,13 @@ else:
         __name__,
         {
             "circles": (
+                "as_fitted",
                 "check_target_diameter",
                 "corrected_centres_px",
                 "ellipse_centres_px",
                 "fit_corrected",
                 "projected_centres_px",
+                "recorded_diameter_mm",
             ),
             "checking": ("Evaluation", "check_warnings", "evaluate_pairs", "mixup"),
             "compare": ("compare", "format_compare"),
@@ -52,6 +56,7 @@ __all__ = [
     "MAX_IMAGE_SIDE_PX",
     "Mapped",
     "append_history",
+    "as_fitted",
     "calibrate",
     "calibrate_request",
     "check_image_size",
@@ -68,5 +73,6 @@ __all__ = [
     "load_sign_key",
     "mixup",
     "projected_centres_px",
+    "recorded_diameter_mm",
     "verify",
 ]

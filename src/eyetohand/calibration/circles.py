@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import overload
 
 import numpy as np
 
@@ -140,3 +141,24 @@ def fit_corrected(
         "detected_sha256": pairs.sha256(),
     }
     return dataclasses.replace(cal, fit=dataclasses.replace(cal.fit, extra={**cal.fit.extra, **record}))
+
+
+def recorded_diameter_mm(cal) -> float | None:
+    """The target diameter (mm) a calibration's centres were corrected for (its fit record's
+    ``target_diameter_mm``), or None: fitted on the centres as detected."""
+    value = cal.fit.extra.get("target_diameter_mm")
+    return None if value is None else check_target_diameter(value)
+
+
+@overload
+def as_fitted(cal, pairs: PointPairs) -> PointPairs: ...
+@overload
+def as_fitted(cal, pairs: None) -> None: ...
+def as_fitted(cal, pairs: PointPairs | None) -> PointPairs | None:
+    """``pairs`` as detected, in the form ``cal`` was fitted on: their centres corrected with its
+    maps when it records a target diameter (:func:`recorded_diameter_mm`), else unchanged — so that
+    their residuals are comparable with its statistics."""
+    diameter = recorded_diameter_mm(cal)
+    if pairs is None or diameter is None:
+        return pairs
+    return with_centres(pairs, corrected_centres_px(cal, pairs.uv_px, diameter, pairs.xyz_mm[:, 2]))
