@@ -207,3 +207,17 @@ def test_the_cli_and_http_fit_with_the_diameter(cells, tmp_path, capsys):
 def test_fit_corrected_needs_a_diameter(cells):
     with pytest.raises(InputError, match="target_diameter_mm"):
         fit_corrected(lambda p, c, last: None, cells[0.0][1], None, None)  # type: ignore[arg-type]
+
+
+def test_evaluate_and_verify_take_detections_as_the_fit_did(cells):
+    """Pairs detected with the same target, checked against a corrected calibration, are corrected
+    as its training pairs were: the training pairs score their own statistics, not the bias."""
+    from eyetohand.calibration import evaluate_pairs, verify
+
+    _, pairs, _, _ = cells[20.0]
+    cal = fit(pairs, DIAMETER_MM)
+    assert abs(evaluate_pairs(cal, pairs).stats.rms_mm - cal.train.rms_mm) < 1e-4  # 0.1 µm
+    v = verify(cal, pairs, 0.005)  # the bias alone would be ≈ 0.04 mm at every pair
+    assert v.passed, v.norm_mm.max()
+    plain = fit(pairs, None)
+    assert abs(evaluate_pairs(plain, pairs).stats.rms_mm - plain.train.rms_mm) < 1e-12
