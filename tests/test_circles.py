@@ -221,3 +221,21 @@ def test_evaluate_and_verify_take_detections_as_the_fit_did(cells):
     assert v.passed, v.norm_mm.max()
     plain = fit(pairs, None)
     assert abs(evaluate_pairs(plain, pairs).stats.rms_mm - plain.train.rms_mm) < 1e-12
+
+
+def test_the_pairs_a_corrected_calibration_was_fitted_on_are_known_again(cells):
+    """as_fitted: the detections it was fitted on become its stored pairs bit for bit, its stored
+    pairs stay as they are (never corrected twice), so a report on the pairs as detected shows them
+    as the training pairs, not as 'given pairs' with a warning."""
+    from eyetohand.calibration import as_fitted
+    from eyetohand.reports.report import build_report
+
+    _, pairs, _, _ = cells[20.0]
+    cal = fit(pairs, DIAMETER_MM)
+    assert cal.pairs is not None
+    assert as_fitted(cal, pairs) is cal.pairs and as_fitted(cal, cal.pairs) is cal.pairs
+    other = pairs.subset(np.arange(20))  # not the fitted set: corrected with the final maps
+    moved = as_fitted(cal, other).uv_px - other.uv_px
+    assert np.abs(moved - (cal.pairs.uv_px[:20] - pairs.uv_px[:20])).max() < 1e-3  # px
+    html, _ = build_report(cal, train_pairs=pairs)
+    assert "is not the data this calibration was fitted on" not in html

@@ -157,8 +157,15 @@ def as_fitted(cal, pairs: None) -> None: ...
 def as_fitted(cal, pairs: PointPairs | None) -> PointPairs | None:
     """``pairs`` as detected, in the form ``cal`` was fitted on: their centres corrected with its
     maps when it records a target diameter (:func:`recorded_diameter_mm`), else unchanged — so that
-    their residuals are comparable with its statistics."""
+    their residuals are comparable with its statistics. The very pairs it was fitted on (their
+    SHA-256 its ``detected_sha256``) become its stored training pairs, bit for bit; its stored
+    training and check pairs are returned as they are."""
     diameter = recorded_diameter_mm(cal)
     if pairs is None or diameter is None:
         return pairs
+    stored = [p.sha256() for p in (cal.pairs, cal.check_pairs) if p is not None]
+    if pairs.sha256() in (cal.data_sha256, *stored):  # the calibration's own: already as fitted
+        return pairs
+    if cal.pairs is not None and pairs.sha256() == cal.fit.extra.get("detected_sha256"):
+        return cal.pairs
     return with_centres(pairs, corrected_centres_px(cal, pairs.uv_px, diameter, pairs.xyz_mm[:, 2]))
