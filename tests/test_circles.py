@@ -239,3 +239,25 @@ def test_the_pairs_a_corrected_calibration_was_fitted_on_are_known_again(cells):
     assert np.abs(moved - (cal.pairs.uv_px[:20] - pairs.uv_px[:20])).max() < 1e-3  # px
     html, _ = build_report(cal, train_pairs=pairs)
     assert "is not the data this calibration was fitted on" not in html
+
+
+@pytest.mark.parametrize("model", ["dlt3d", "camera"])
+def test_the_correction_at_two_heights(cells, model):
+    """The multi-height models: each pair corrected at its own height (the renderer's exact ellipse
+    centres + 0.006 px noise, the detector's error; the 20° cell at z = 0 and 100 mm)."""
+    cam = cells[20.0][0]
+    grid = plane_grid(cam, 5, 0.1, 0.9)
+    train = np.vstack([grid, grid + [0, 0, 100.0]])
+    check = plane_grid(cam, 8, 0.14, 0.86)
+    check = np.vstack([check, check + [0, 0, 50.0]])
+    rng = np.random.default_rng(7)
+    ellipse = np.array([circle_truth(cam, X, DIAMETER_MM).ellipse_centre_px for X in train])
+    pairs = PointPairs.from_arrays(ellipse + rng.normal(0, 0.006, ellipse.shape), train)
+    uv_true = cam.robot_to_image(check)
+    errors = []
+    for diameter in (None, DIAMETER_MM):
+        request = FitRequest(model, image_size=SIZE, loo=False, seed=0, target_diameter_mm=diameter)
+        cal = calibrate_request(request, pairs)
+        err = cal.image_to_robot(uv_true, check[:, 2], allow_outside=True)[:, :2] - check[:, :2]
+        errors.append(float(np.sqrt((err**2).sum(axis=1).mean())))
+    assert errors[0] > 0.03 and errors[1] < 0.5 * errors[0], errors  # r² sin θ / Z ≈ 43 µm at z = 0
