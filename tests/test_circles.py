@@ -177,6 +177,7 @@ def test_the_file_keeps_the_diameter(cells, tmp_path):
     assert 0.05 < extra["centre_shift_px_rms"] < 0.3  # the bias here, 0.12 px
     assert np.array_equal(back.model.params, cal.model.params)
     assert "target_diameter_mm" not in fit(pairs, None).fit.to_dict()
+    assert any("correct a detection of the same target before mapping" in n for n in back.notes)
 
 
 def test_the_cli_and_http_fit_with_the_diameter(cells, tmp_path, capsys):

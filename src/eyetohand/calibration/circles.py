@@ -142,7 +142,13 @@ def fit_corrected(
         "centre_shift_px_max": float(shift.max()),
         "detected_sha256": pairs.sha256(),
     }
-    return dataclasses.replace(cal, fit=dataclasses.replace(cal.fit, extra={**cal.fit.extra, **record}))
+    note = (
+        f"centres corrected for a {diameter:g} mm circle's perspective bias (RMS shift "
+        f"{record['centre_shift_px_rms']:.3g} px): this calibration maps where a circle's centre "
+        "projects; correct a detection of the same target before mapping it (corrected_centres_px)"
+    )
+    fit_info = dataclasses.replace(cal.fit, extra={**cal.fit.extra, **record})
+    return dataclasses.replace(cal, fit=fit_info, notes=(*cal.notes, note))
 
 
 def recorded_diameter_mm(cal) -> float | None:
