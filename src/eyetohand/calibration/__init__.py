@@ -8,6 +8,15 @@ from eyetohand.core import lazy_exports
 
 if TYPE_CHECKING:
     from eyetohand.calibration.checking import Evaluation, check_warnings, evaluate_pairs, mixup
+    from eyetohand.calibration.circles import (
+        as_fitted,
+        check_target_diameter,
+        corrected_centres_px,
+        ellipse_centres_px,
+        fit_corrected,
+        projected_centres_px,
+        recorded_diameter_mm,
+    )
     from eyetohand.calibration.compare import compare, format_compare
     from eyetohand.calibration.export import FORMATS, export_text
     from eyetohand.calibration.file import Calibration, Mapped
@@ -19,6 +28,15 @@ else:
     __getattr__, __dir__ = lazy_exports(
         __name__,
         {
+            "circles": (
+                "as_fitted",
+                "check_target_diameter",
+                "corrected_centres_px",
+                "ellipse_centres_px",
+                "fit_corrected",
+                "projected_centres_px",
+                "recorded_diameter_mm",
+            ),
             "checking": ("Evaluation", "check_warnings", "evaluate_pairs", "mixup"),
             "compare": ("compare", "format_compare"),
             "export": ("FORMATS", "export_text"),
@@ -38,16 +56,23 @@ __all__ = [
     "MAX_IMAGE_SIDE_PX",
     "Mapped",
     "append_history",
+    "as_fitted",
     "calibrate",
     "calibrate_request",
     "check_image_size",
+    "check_target_diameter",
     "check_warnings",
     "check_tolerance",
     "compare",
+    "corrected_centres_px",
+    "ellipse_centres_px",
     "evaluate_pairs",
     "export_text",
+    "fit_corrected",
     "format_compare",
     "load_sign_key",
     "mixup",
+    "projected_centres_px",
+    "recorded_diameter_mm",
     "verify",
 ]

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from eyetohand.calibration.circles import as_fitted
 from eyetohand.calibration.file import Calibration
 from eyetohand.core import InputError, PointPairs, Stats
 from eyetohand.geometry import PLANE_TOLERANCE_MM
@@ -154,6 +155,7 @@ def evaluate_pairs(cal: Calibration, pairs: PointPairs, *, allow_outside: bool =
     found = mixup(cal, pairs)
     cov = coverage(cal, pairs)
     outside = guard(pairs, cov, allow_outside=allow_outside, found=found, how=ALLOW_OUTSIDE_WORDS)
+    pairs = as_fitted(cal, pairs)  # a circle target's centres corrected as the fit's were
     stats = stats_from_residuals(mapped_residuals(cal.model, pairs), pairs.ids)
     warnings = tuple(w for w in (outside, found.describe() if found else None) if w)
     return Evaluation(stats, cov, found, warnings)

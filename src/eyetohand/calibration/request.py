@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from eyetohand.calibration.circles import check_target_diameter, fit_corrected
 from eyetohand.calibration.file import Calibration
 from eyetohand.calibration.fit import calibrate, check_image_size
 from eyetohand.core import PointPairs
@@ -26,8 +27,10 @@ class FitRequest:
     ``n_particles`` and ``iterations`` are the swarms' options (None: the solver's defaults, 200 and
     150; the other solvers accept and ignore them); ``seed`` a whole number from 0 to ``SEED_MAX``,
     None (fresh entropy) or a :class:`numpy.random.Generator`; ``image_size`` ``(W, H)`` px or None;
-    ``loo``: also score the training pairs by leave-one-out. Values are normalised when checked (a
-    NumPy integer seed becomes an int, an image size a tuple of ints)."""
+    ``loo``: also score the training pairs by leave-one-out; ``target_diameter_mm``: the circle
+    target's diameter, when given the detected centres are corrected for its perspective bias
+    (:func:`~eyetohand.calibration.circles.fit_corrected`). Values are normalised when checked (a
+    NumPy integer seed becomes an int, an image size a tuple of ints, a diameter a float)."""
 
     model: str = "auto"
     optimizer: str = "lm"
@@ -37,6 +40,7 @@ class FitRequest:
     iterations: int | None = None
     image_size: tuple[int, int] | None = None
     loo: bool = True
+    target_diameter_mm: float | None = None
 
     def __post_init__(self) -> None:
         check_optimizer(self.optimizer, self.objective, self.solver_options)
@@ -44,6 +48,7 @@ class FitRequest:
         if self.model != "auto":
             get_model(self.model)
         object.__setattr__(self, "image_size", check_image_size(self.image_size))
+        object.__setattr__(self, "target_diameter_mm", check_target_diameter(self.target_diameter_mm))
 
     @property
     def solver_options(self) -> dict[str, int]:
@@ -61,16 +66,24 @@ def calibrate_request(
     request: FitRequest, pairs: PointPairs, *, check: PointPairs | None = None, callback=None
 ) -> Calibration:
     """:func:`calibrate` of ``pairs`` as ``request`` says; ``check``: pairs not used for fitting;
-    ``callback(iteration, best, x)`` after each of a swarm's iterations (a true return stops it)."""
-    return calibrate(
-        pairs,
-        model=request.model,
-        optimizer=request.optimizer,
-        objective=request.objective,
-        check=check,
-        image_size=request.image_size,
-        seed=request.seed,
-        callback=callback,
-        loo=request.loo,
-        **request.solver_options,
-    )
+    ``callback(iteration, best, x)`` after each of a swarm's iterations (a true return stops it).
+    With ``request.target_diameter_mm``: fit, correct the centres with the fit's maps, refit, twice
+    (the intermediate fits without leave-one-out); the file records the diameter."""
+
+    def fit(train: PointPairs, held: PointPairs | None, last: bool = True) -> Calibration:
+        return calibrate(
+            train,
+            model=request.model,
+            optimizer=request.optimizer,
+            objective=request.objective,
+            check=held,
+            image_size=request.image_size,
+            seed=request.seed,
+            callback=callback,
+            loo=request.loo and last,
+            **request.solver_options,
+        )
+
+    if request.target_diameter_mm is None:
+        return fit(pairs, check)
+    return fit_corrected(fit, pairs, check, request.target_diameter_mm)

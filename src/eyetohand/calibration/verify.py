@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from eyetohand.calibration.checking import coverage, guard, mixup
+from eyetohand.calibration.circles import as_fitted
 from eyetohand.calibration.file import Calibration
 from eyetohand.core import InputError, PointPairs
 from eyetohand.geometry import local_jacobian
@@ -277,6 +278,7 @@ def verify(cal: Calibration, pairs: PointPairs, tolerance_mm: float) -> Verifica
     model = cal.model
     found = mixup(cal, pairs)  # before the region's refusal: swapped u and v put pairs outside it
     guard(pairs, coverage(cal, pairs), allow_outside=False, found=found, how="")
+    pairs = as_fitted(cal, pairs)  # a circle target's centres corrected as the fit's were
     z = None if model.height_rule is HeightRule.COMPUTED else pairs.xyz_mm[:, 2]
     try:
         m = cal.map(pairs.uv_px, z, with_sigma=True)

@@ -40,6 +40,14 @@ def add_fit_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--iterations", type=int, default=None, metavar="N", help="swarm iterations (pso, hybrid-pso)"
     )
+    p.add_argument(
+        "--target-diameter-mm",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="the circle target's diameter: correct the detected centres for its perspective bias "
+        "on a tilted view (fit, correct with the fit's maps, refit; docs/limit.md)",
+    )
     p.add_argument("-o", "--output", metavar="CAL.json", help="write the calibration here")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
@@ -160,6 +168,7 @@ def fit_request(args) -> FitRequest:
         n_particles=args.particles,
         iterations=args.iterations,
         image_size=parse_image_size(args.image_size),
+        target_diameter_mm=args.target_diameter_mm,
     )
 
 

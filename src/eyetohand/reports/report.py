@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eyetohand.calibration import Calibration
+from eyetohand.calibration import Calibration, as_fitted
 from eyetohand.core import InputError, PointPairs
 from eyetohand.reports.html import Document, mm, write_folder
 from eyetohand.reports.sections import (
@@ -112,6 +112,7 @@ def build_report(
     cal = calibration
     if not isinstance(cal, Calibration):
         raise InputError(f"write_report needs a Calibration, got {type(cal).__name__}")
+    check_pairs, train_pairs = as_fitted(cal, check_pairs), as_fitted(cal, train_pairs)  # circle centres
     ev = _evaluate(cal, check_pairs, train_pairs)
     doc = Document(title or f"Calibration report — {cal.model_name} + {cal.fit.optimizer}")
     doc.add(

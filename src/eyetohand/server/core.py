@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from eyetohand.calibration import Calibration, FitRequest, calibrate_request
+from eyetohand.calibration import Calibration, FitRequest, as_fitted, calibrate_request
 from eyetohand.core import InputError, PointPairs, pairs_from_records
 from eyetohand.server.schemas import FitOptions
 from eyetohand.solve import Stats, get_solver, stats_from_residuals
@@ -100,6 +100,7 @@ def fit(opts: FitOptions, callback=None) -> Fitted:
             n_particles=opts.particles,
             iterations=opts.iterations,
             image_size=opts.image_size,
+            target_diameter_mm=opts.target_diameter_mm,
         )
         cal = calibrate_request(asked, kept, check=check, callback=callback)
     except InputError as exc:
@@ -143,6 +144,9 @@ def _stats(s: Stats | None) -> dict | None:
 
 
 def summarize(cal: Calibration, pairs: PointPairs, check: PointPairs | None, excluded=()) -> dict:
+    """The fit's summary; ``pairs`` and ``check`` as given (detected), their per-pair errors taken in
+    the form the calibration was fitted on (centres corrected when it records a target diameter)."""
+    pairs, check = as_fitted(cal, pairs), as_fitted(cal, check)
     kept, out = split_excluded(pairs, list(excluded)) if excluded else (pairs, None)
     ex_stats = None
     if out is not None:

@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool, WithJsonSchema
 from pydantic import Strict as StrictType
 
-from eyetohand.calibration import MAX_IMAGE_SIDE_PX, check_image_size
+from eyetohand.calibration import MAX_IMAGE_SIDE_PX, check_image_size, check_target_diameter
 from eyetohand.core import MAX_PAIRS, InputError
 from eyetohand.geometry import check_symmetry
 from eyetohand.models import MODEL_CHOICES, get_model
@@ -133,6 +133,12 @@ ImageSize = Annotated[
         }
     ),
 ]
+TargetDiameter = Annotated[
+    float,
+    StrictType(),
+    _library_rule(check_target_diameter),
+    WithJsonSchema({"type": "number", "exclusiveMinimum": 0}),
+]
 Seed = Annotated[
     int,
     StrictType(),
@@ -188,6 +194,11 @@ class FitOptions(Strict):
     iterations: Iterations = Field(150, description="iterations (pso, hybrid-pso)")
     image_size: ImageSize | None = Field(
         None, description="image width and height, px (sets the distortion centre)"
+    )
+    target_diameter_mm: TargetDiameter | None = Field(
+        None,
+        description="the circle target's diameter, mm: correct the detected centres for its "
+        "perspective bias (fit, correct with the fit's maps, refit)",
     )
 
 
@@ -524,6 +535,9 @@ class ImagesCalibrate(Strict):
     iterations: Iterations = Field(150, description="iterations (pso, hybrid-pso)")
     image_size: ImageSize | None = Field(
         None, description="image width and height, px (sets the distortion centre)"
+    )
+    target_diameter_mm: TargetDiameter | None = Field(
+        None, description="the circle target's diameter, mm: correct the centres for its perspective bias"
     )
 
 

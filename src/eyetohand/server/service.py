@@ -417,6 +417,7 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
         particles=req.particles,
         iterations=req.iterations,
         image_size=req.image_size,
+        target_diameter_mm=req.target_diameter_mm,
     )
     fitted = core.fit(fit_opts, core.fit_progress(job, req.model, req.optimizer, req.iterations))
     fitted.request.update(
