@@ -17,8 +17,16 @@ with few points a physically constrained fit of the lens generalises better than
    The solvers (``lm``, the PSOs) refine its 8 elements on the robot-space residuals (eq. 16);
    f, k1, k2 stay as estimated in step 1 (``meta``).
 
-Distortion centre c: the image centre ((W−1)/2, (H−1)/2) when the image size is known, otherwise the
-centre of the training points' bounding box (``diagnostics["centre_source"]`` says which). Seen straight on,
+Which lens terms step 1 fits is the pairs' to say (:func:`choose_lens`, issue 31): k1 alone, k2 only
+when a nested F-test of the image-space residual sums of squares says it pays, then the distortion
+centre (also the principal point) when a second test says so strongly — a k2 or a centre fitted to
+noise costs accuracy (k2 cost 5–17 % on a cell whose lens has k1 alone, docs/limit.md), a real one
+left out is a bias. ``constants["lens_terms"]`` records the choice (absent in older files: "k1 k2");
+the covariance (sigma_mm) covers exactly those terms (``fitted_constants``).
+
+Distortion centre c: the image centre ((W−1)/2, (H−1)/2) when the image size is known (then fitted
+when the pairs support it), otherwise the centre of the training points' bounding box
+(``diagnostics["centre_source"]`` says which). Seen straight on,
 f and the camera's distance cannot be told apart; the lens fit then settles on one of the equivalent
 (f, k1, k2) and the mapping is the same. Leave-one-out there keeps the full fit's f in each held-out
 lens fit (a fit from the subset's own start would end wherever that start put it along the valley).
