@@ -45,7 +45,7 @@ def test_the_distortion_centre_is_fitted_where_the_pairs_tell_it_and_held_where_
 
 def test_k2_only_when_it_pays():
     """The true lens has k1 alone: k2 is left out in most trials (α = 0.15; measured 14 of 20 at 49
-    pairs, 16 of 20 at 25); on the same grid with k2 = 0.3 (≈ 0.8 px at the corners) it is taken."""
+    pairs, 0.05 px); on the same grid with k2 = 0.3 added it is taken."""
     cell = Cell(k1=-0.08)
     terms = [t for t, _ in _choices(cell, 7, 0.05, 20, seed=5)]
     assert terms.count("k1") >= 12, terms
