@@ -380,27 +380,28 @@ def select_model(
 
 def _nested_choice(scored: list[Candidate], what: str) -> tuple[Candidate, str]:
     """The simplest scored candidate, replaced in turn by each one with more fitted numbers that is
-    significantly better (:func:`nested_f_test` at ``AUTO_ALPHA``) and scores lower held out too."""
+    significantly better (:func:`nested_f_test` at ``AUTO_ALPHA``) and scores lower held out too; the
+    reason names the test that took the chosen one and each later candidate's that did not pay."""
     chosen = scored[0]
     reason = f"the simplest model that could be scored ({what} {chosen.score:.4f} mm)"
+    declined: list[str] = []
     for rich in scored[1:]:
         p = nested_f_test(chosen, rich)
         if p is None:  # not more numbers: the held-out score alone decides
             if rich.score < chosen.score:
                 chosen, reason = rich, f"lower {what} ({rich.score:.4f} mm), no more numbers fitted"
+                declined = []
             continue
         if p < AUTO_ALPHA and rich.score < chosen.score:
             reason = (
                 f"its extra terms pay: F-test against '{chosen.model}' p = {p:.2g} < {AUTO_ALPHA:g}, "
                 f"{what} {rich.score:.4f} vs {chosen.score:.4f} mm"
             )
-            chosen = rich
-        elif p >= AUTO_ALPHA and chosen is scored[0]:
-            reason = (
-                f"the simplest model the data support: '{rich.model}' is no significant improvement "
-                f"(F-test p = {p:.2g} ≥ {AUTO_ALPHA:g}; {what} {chosen.score:.4f} mm)"
-            )
-    return chosen, reason
+            chosen, declined = rich, []
+        else:
+            why = f"p = {p:.2g}" if p >= AUTO_ALPHA else f"{what} {rich.score:.4f} mm is not lower"
+            declined.append(f"'{rich.model}' does not pay ({why})")
+    return chosen, "; ".join([reason, *declined])
 
 
 def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=None, seed=0) -> Selection:
