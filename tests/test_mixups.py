@@ -75,11 +75,11 @@ def test_the_words(paper_cal, tmp_path):
     _, cal = paper_cal
     path = mixed_file(tmp_path / "check.csv", "uv")
     assert mixup(cal, load_pairs(path)).describe() == (
-        f"{path}: u and v look swapped (check RMS 0.0255 mm if swapped, 63.2 mm as given)"
+        f"{path}: u and v look swapped (check RMS 0.0269 mm if swapped, 63.2 mm as given)"
     )
     path = mixed_file(tmp_path / "check.csv", "-y")
     assert mixup(cal, load_pairs(path)).describe() == (
-        f"{path}: y has the wrong sign (check RMS 0.0255 mm with y negated, 1254 mm as given)"
+        f"{path}: y has the wrong sign (check RMS 0.0269 mm with y negated, 1254 mm as given)"
     )
 
 
@@ -120,7 +120,7 @@ def test_evaluate_names_a_mixup_and_refuses_pairs_outside(paper_cal, tmp_path, c
     code, out, err = run(capsys, "evaluate", cal_path, uv)
     assert (code, out) == (2, "")
     assert err.startswith(f"error: {uv}: 5 of 9 pairs lie outside the calibrated region (ids ")
-    assert "the calibration maps no point there; u and v look swapped (check RMS 0.0255 mm if swapped" in err
+    assert "the calibration maps no point there; u and v look swapped (check RMS 0.0269 mm if swapped" in err
     assert err.endswith("leave them out, or allow_outside evaluates them anyway\n")
     code, out, err = run(capsys, "evaluate", cal_path, uv, "--allow-outside")
     assert code == 0 and "evaluated anyway (allow_outside)" in err and "u and v look swapped" in err

@@ -235,6 +235,13 @@ class Model(ABC):
         v = np.array([float(self.constants[k]) for k in self.fitted_constants])
         return 1e-6 * np.maximum(np.abs(v), 1e-3)
 
+    def with_constant_moved(self, key: str, step: float) -> Model:
+        """This model with the fitted constant ``key`` moved by ``step`` (parameters held): what the
+        covariance's central differences evaluate (solve/uncertainty.py). A model whose fitted
+        constants are not plain numbers in ``constants`` (a centre's coordinate) overrides it."""
+        moved = {**self.constants, key: float(self.constants[key]) + step}
+        return type(self)(self.params, moved, self.diagnostics)
+
     def n_covariance(self) -> int:
         """Size of the parameter covariance: the parameters and the :attr:`fitted_constants`."""
         return self.n_params + len(self.fitted_constants)

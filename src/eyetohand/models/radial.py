@@ -17,8 +17,16 @@ with few points a physically constrained fit of the lens generalises better than
    The solvers (``lm``, the PSOs) refine its 8 elements on the robot-space residuals (eq. 16);
    f, k1, k2 stay as estimated in step 1 (``meta``).
 
-Distortion centre c: the image centre ((W−1)/2, (H−1)/2) when the image size is known, otherwise the
-centre of the training points' bounding box (``diagnostics["centre_source"]`` says which). Seen straight on,
+Which lens terms step 1 fits is the pairs' to say (:func:`choose_lens`, issue 31): k1 alone, k2 only
+when a nested F-test of the image-space residual sums of squares says it pays, then the distortion
+centre (also the principal point) when a second test says so strongly — a k2 or a centre fitted to
+noise costs accuracy (k2 cost 5–17 % on a cell whose lens has k1 alone, docs/limit.md), a real one
+left out is a bias. ``constants["lens_terms"]`` records the choice (absent in older files: "k1 k2");
+the covariance (sigma_mm) covers exactly those terms (``fitted_constants``).
+
+Distortion centre c: the image centre ((W−1)/2, (H−1)/2) when the image size is known (then fitted
+when the pairs support it), otherwise the centre of the training points' bounding box
+(``diagnostics["centre_source"]`` says which). Seen straight on,
 f and the camera's distance cannot be told apart; the lens fit then settles on one of the equivalent
 (f, k1, k2) and the mapping is the same. Leave-one-out there keeps the full fit's f in each held-out
 lens fit (a fit from the subset's own start would end wherever that start put it along the valley).
@@ -27,6 +35,7 @@ lens fit (a fit from the subset's own start would end wherever that start put it
 from __future__ import annotations
 
 from types import MappingProxyType
+from typing import ClassVar
 
 import numpy as np
 
@@ -40,9 +49,9 @@ from eyetohand.geometry import (
     rodrigues_to_matrix,
     undistort,
 )
-from eyetohand.models.base import plane_constants
+from eyetohand.models.base import Choice, plane_constants
 from eyetohand.models.homography import Homography, dlt_homography
-from eyetohand.models.planar import PLANAR_CONSTANTS, planar_setup
+from eyetohand.models.planar import PLANAR_CONSTANTS, PLANE_SLOPE, planar_setup
 
 
 def focal_from_homography(H_plane_to_image: np.ndarray, centre: np.ndarray) -> float | None:
@@ -136,7 +145,7 @@ def _lens_least_squares(p0: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, ce
 
 LENS_FIT_TOL = 1e-8  # least_squares' ftol, xtol, gtol for the lens fit (SciPy's defaults)
 _LENS_CACHE: dict[tuple, tuple[np.ndarray, float]] = {}  # the last few fits (auto repeats them)
-_LENS_CACHE_SIZE = 4
+_LENS_CACHE_SIZE = 8
 
 
 def lens_start(uv_px, xy_mm, centre, f_default) -> tuple[np.ndarray, bool]:
@@ -153,9 +162,14 @@ def lens_start(uv_px, xy_mm, centre, f_default) -> tuple[np.ndarray, bool]:
     return np.r_[f, 0.0, 0.0, rvec, tvec], told
 
 
-def fit_lens(uv_px, xy_mm, centre, f_default):
-    """Single-view camera fit (f, k1, k2, pose) on image-space residuals; returns (params, rms_px).
-    Memoised on the inputs (the last few: ``auto`` fits the same full set twice)."""
+def lens_free(k2: bool) -> np.ndarray:
+    """Indices of the lens fit's parameters (f, k1, k2, pose) it fits: k2 held at 0 unless ``k2``."""
+    return np.arange(9) if k2 else np.r_[0, 1, 3:9]
+
+
+def fit_lens(uv_px, xy_mm, centre, f_default, k2: bool = True):
+    """Single-view camera fit (f, k1, k2, pose; k2 held at 0 unless ``k2``) on image-space residuals;
+    returns (params, rms_px). Memoised on the inputs (the last few: ``auto`` fits the same set twice)."""
     uv_px, xy_mm = np.asarray(uv_px, float), np.asarray(xy_mm, float)
     key = (
         uv_px.tobytes(),
@@ -163,20 +177,88 @@ def fit_lens(uv_px, xy_mm, centre, f_default):
         tuple(np.asarray(centre, float).tolist()),
         float(f_default),
         LENS_FIT_TOL,
+        k2,
     )
     hit = _LENS_CACHE.get(key)
     if hit is not None:
         return hit[0].copy(), hit[1]
     p0, _ = lens_start(uv_px, xy_mm, centre, f_default)
-    sol = _lens_least_squares(p0, uv_px, xy_mm, centre, np.arange(len(p0)))
+    sol = _lens_least_squares(p0, uv_px, xy_mm, centre, lens_free(k2))
     rms = float(np.sqrt(np.mean(sol.fun**2) * 2))
     while len(_LENS_CACHE) >= _LENS_CACHE_SIZE:  # oldest first; tolerant of another thread's pop
         try:
             _LENS_CACHE.pop(next(iter(_LENS_CACHE)), None)
         except (StopIteration, RuntimeError):
             break
-    _LENS_CACHE[key] = (sol.x.copy(), rms)
-    return sol.x, rms
+    p = p0.copy()
+    p[lens_free(k2)] = sol.x
+    _LENS_CACHE[key] = (p.copy(), rms)
+    return p, rms
+
+
+# significance levels of the nested F-tests that admit k2, then the distortion centre. k2 is let in
+# easily: a real k2 left out is a bias (on the real photos of tests/test_models.py, a strong lens's
+# k2 at p = 0.08 with 12 points, left out, costs 35 % of the held-out error); the centre needs strong
+# evidence (two numbers, identified by the distortion alone: on those photos α = 0.01 admitted a
+# centre at p = 0.0065 that cost 20 %)
+LENS_ALPHA_K2 = 0.15
+LENS_ALPHA_CENTRE = 0.001
+LENS_TERMS = ("k1", "k1 k2", "k1 centre", "k1 k2 centre")  # the lens terms a fit may have fitted
+
+
+def lens_f_test(rss0: float, rss1: float, extra: int, dof1: int) -> float:
+    """p-value of "the ``extra`` added terms are zero" from the image-space residual sums of squares
+    (px²) of the nested lens fits without (rss0) and with them (rss1, ``dof1`` residual degrees of
+    freedom): F = ((rss0 − rss1)/extra) / (rss1/dof1)."""
+    if dof1 <= 0:
+        return 1.0
+    if rss1 <= 0:
+        return 0.0 if rss0 > 0 else 1.0
+    from scipy import stats  # lazily: SciPy costs ~0.4 s of start-up
+
+    return float(stats.f.sf(max(rss0 - rss1, 0.0) / extra / (rss1 / dof1), extra, dof1))
+
+
+def fit_lens_centre(p_lens: np.ndarray, uv_px, xy_mm, centre, k2: bool):
+    """The lens fit with the distortion centre (= principal point) free too, from ``p_lens`` about
+    ``centre``: (params (9,), centre (2,), rss_px2), by SciPy's Levenberg–Marquardt."""
+    from scipy.optimize import least_squares  # lazily: SciPy costs ~0.4 s of start-up
+
+    free = lens_free(k2)
+    p_all = np.asarray(p_lens, float).copy()
+    target = np.asarray(uv_px, float)
+
+    def fun(q: np.ndarray) -> np.ndarray:
+        p = p_all.copy()
+        p[free] = q[:-2]
+        return (project_plane(p, xy_mm, q[-2:]) - target).ravel()
+
+    sol = least_squares(fun, np.r_[p_all[free], centre], method="lm", x_scale="jac")
+    p_all[free] = sol.x[:-2]
+    return p_all, sol.x[-2:], float(sol.fun @ sol.fun)
+
+
+def choose_lens(uv_px, xy_mm, centre, f_default, centre_test: bool = True):
+    """The lens terms the pairs support, by nested F-tests on the image-space residuals: k1 alone; k2
+    when it pays (``LENS_ALPHA_K2``); then, if ``centre_test``, the distortion centre (= the principal
+    point; 2 more; ``LENS_ALPHA_CENTRE``) when it pays. Without the image size the assumed centre is the
+    points' (a guess of no optical meaning) and is not tested: it stays where it was.
+    Returns (params (9,), centre (2,), terms — one of ``LENS_TERMS``, rms_px)."""
+    n2 = 2 * len(uv_px)
+    p1, rms1 = fit_lens(uv_px, xy_mm, centre, f_default, k2=False)
+    p2, rms2 = fit_lens(uv_px, xy_mm, centre, f_default, k2=True)
+    rss1, rss2 = rms1**2 * n2 / 2, rms2**2 * n2 / 2
+    k2 = lens_f_test(rss1, rss2, 1, n2 - 9) < LENS_ALPHA_K2
+    p, rss, n_fit = (p2, rss2, 9) if k2 else (p1, rss1, 8)
+    terms = "k1 k2" if k2 else "k1"
+    if centre_test and n2 - n_fit - 2 > 0:
+        try:
+            pc, c, rss_c = fit_lens_centre(p, uv_px, xy_mm, centre, k2)
+        except ValueError:  # SciPy refuses a start whose residuals are not finite: keep the centre
+            pc, c, rss_c = p, centre, rss
+        if np.isfinite(rss_c) and lens_f_test(rss, rss_c, 2, n2 - n_fit - 2) < LENS_ALPHA_CENTRE:
+            return pc, np.asarray(c, float), terms + " centre", float(np.sqrt(2 * rss_c / n2))
+    return p, np.asarray(centre, float), terms, float(np.sqrt(2 * rss / n2))
 
 
 def project_plane_batch(P: np.ndarray, xy_mm: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -195,21 +277,28 @@ LENS_LOO_TOL_PX = 1e-6  # the held-out lens fits stop when no step moves a pixel
 # steps settle at ~2e-7 px: rounding in the gradient)
 
 
-def lens_leave_one_out(p_full: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, centre) -> np.ndarray | None:
-    """The n held-out lens fits (f, k1, k2, pose), each without one pair, by Gauss–Newton from the
-    full fit ``p_full``, all at once (central-difference Jacobians in one batched projection);
-    (n, 9) or None when a held-out fit is ill-conditioned or does not settle (the caller refits)."""
-    n, D = len(uv_px), len(p_full)
+def lens_leave_one_out(
+    p_full: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, centre, k2: bool = True
+) -> np.ndarray | None:
+    """The n held-out lens fits (f, k1, k2, pose; k2 held unless ``k2``), each without one pair, by
+    Gauss–Newton from the full fit ``p_full``, all at once (central-difference Jacobians in one batched
+    projection); (n, 9) or None when a held-out fit is ill-conditioned or does not settle (the caller
+    refits)."""
+    n, D_all = len(uv_px), len(p_full)
+    free = lens_free(k2)
+    D = len(free)
     keep = 1.0 - np.eye(n)
-    P = np.tile(p_full, (n, 1))
-    eye = np.eye(D)
+    P_all = np.tile(p_full, (n, 1))
+    P = P_all[:, free]
+    eye = np.eye(D_all)[free]
     with np.errstate(all="ignore"):
         for _ in range(LENS_LOO_MAX_STEPS):
+            P_all[:, free] = P
             h = 1e-5 * np.maximum(np.abs(P), 1.0)
             rows = np.concatenate(
-                [P[:, None] + h[:, :, None] * eye, P[:, None] - h[:, :, None] * eye], axis=1
+                [P_all[:, None] + h[:, :, None] * eye, P_all[:, None] - h[:, :, None] * eye], axis=1
             )
-            out = project_plane_batch(np.vstack([P, rows.reshape(-1, D)]), xy_mm, centre)
+            out = project_plane_batch(np.vstack([P_all, rows.reshape(-1, D_all)]), xy_mm, centre)
             r = (out[:n] - uv_px) * keep[:, :, None]  # (n, N, 2)
             F = out[n:].reshape(n, 2 * D, n, 2)
             J = ((F[:, :D] - F[:, D:]) / (2 * h)[:, :, None, None]) * keep[:, None, :, None]  # (n, D, N, 2)
@@ -226,17 +315,23 @@ def lens_leave_one_out(p_full: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray,
             scaled = -np.linalg.solve(As, (g / s)[..., None])[..., 0]
             P = P + scaled / s
             if (np.abs(scaled) <= LENS_LOO_TOL_PX).all():
-                return P
+                P_all[:, free] = P
+                return P_all
     return None
 
 
-def lens_refit_holding_focal(p_full: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, centre) -> np.ndarray:
+def lens_refit_holding_focal(
+    p_full: np.ndarray, uv_px: np.ndarray, xy_mm: np.ndarray, centre, k2: bool = True
+) -> np.ndarray:
     """One held-out lens fit for a view that does not tell f: k1, k2 and the pose by the lens fit's
     Levenberg–Marquardt from the full fit, f held at the full fit's. Where f is not told, a refit
     from its own start ends wherever that start puts it along the valley of equal (f, k1, k2);
     this one is the full fit refined on the held-out subset, as every other model's leave-one-out is."""
-    sol = _lens_least_squares(p_full, uv_px, xy_mm, centre, np.arange(1, len(p_full)))
-    return np.r_[p_full[0], sol.x]
+    free = lens_free(k2)[1:]
+    sol = _lens_least_squares(p_full, uv_px, xy_mm, centre, free)
+    p = np.asarray(p_full, float).copy()
+    p[free] = sol.x
+    return p
 
 
 class HomographyRadial(Homography):
@@ -248,7 +343,7 @@ class HomographyRadial(Homography):
     n_params = 8  # the homography; f, k1, k2 are fixed by the lens fit
     # ... and fitted from the pairs, so the covariance includes k1, k2 (f only sets their units: a
     # change of f with k1 f², k2 f⁴ held undistorts every pixel alike, so it is no error of the map)
-    fitted_constants = ("k1", "k2")
+    fitted_constants: ClassVar[tuple[str, ...]] = ("k1", "k2")  # per fit: the terms it fitted (_prepare)
     unknowns = 10  # 8 + k1, k2 (f only sets k's units)
     min_pairs = 6
     summary = "10 unknowns: homography plus radial lens distortion k1, k2"
@@ -257,12 +352,16 @@ class HomographyRadial(Homography):
     constant_shapes = MappingProxyType(
         {**PLANAR_CONSTANTS, "centre_px": (2,), "focal_px": (), "k1": (), "k2": ()}
     )
+    # which lens terms the lens fit fitted (choose_lens); absent in files written before it: "k1 k2"
+    optional_constant_shapes = MappingProxyType({**PLANE_SLOPE, "lens_terms": Choice(*LENS_TERMS)})
 
     @classmethod
     def from_pairs(cls, uv_px, xyz_mm, *, image_size=None) -> HomographyRadial:
         uv, xyz, plane, *_ = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
-        centre, f_default, source = _centre(uv, image_size)
-        lens, rms_px = fit_lens(uv, xyz[:, :2], centre, f_default)
+        centre0, f_default, source = _centre(uv, image_size)
+        lens, centre, terms, rms_px = choose_lens(
+            uv, xyz[:, :2], centre0, f_default, centre_test=source == "image-size"
+        )
         f, k1, k2 = (float(v) for v in lens[:3])
         ideal = undistort_px(uv, centre, f, k1, k2)
         folded = ~np.isfinite(ideal).all(axis=1)
@@ -284,7 +383,10 @@ class HomographyRadial(Homography):
             "focal_px": f,
             "k1": k1,
             "k2": k2,
+            "lens_terms": terms,
         }
+        if "centre" in terms:
+            source = f"fitted (from the {source} centre {centre0[0]:.1f}, {centre0[1]:.1f} px)"
         diagnostics = {"centre_source": source, "lens_fit_rms_px": rms_px, "condition_number": cond}
         return cls(H.reshape(-1)[:8], constants, diagnostics)
 
@@ -293,24 +395,30 @@ class HomographyRadial(Homography):
         """Held-out residuals (N, 3) mm of the least-squares (``lm``) fits without each pair: the
         lens fits warm-started from the full one (:func:`lens_leave_one_out`; where the view does
         not tell f, :func:`lens_refit_holding_focal` with the full fit's f), each held-out
-        homography by Gauss–Newton on its own pairs from its DLT; None where that cannot be trusted
-        (the caller then refits). Checked against refits, and against SciPy's own fits with f
-        held, in tests/test_speed_paths.py."""
+        homography by Gauss–Newton on its own pairs from its DLT; the held-out lens fits keep the full
+        fit's lens terms (``choose_lens``; with a fitted centre, None: the refits choose their own);
+        None where that cannot be trusted (the caller then refits). Checked against refits, and
+        against SciPy's own fits with f held, in tests/test_speed_paths.py."""
         uv, xyz, _, *_ = planar_setup(cls.name, cls.min_pairs, uv_px, xyz_mm)
         n = len(uv)
         if n - 1 < cls.min_pairs:
             return None
-        centre, f_default, _ = _centre(uv, image_size)
-        p_full, _ = fit_lens(uv, xyz[:, :2], centre, f_default)
+        centre, f_default, source = _centre(uv, image_size)
+        p_full, _, terms, _ = choose_lens(
+            uv, xyz[:, :2], centre, f_default, centre_test=source == "image-size"
+        )
+        if "centre" in terms:  # the held-out fits choose their own terms and centre: the caller refits
+            return None
+        k2 = terms == "k1 k2"
         if lens_start(uv, xyz[:, :2], centre, f_default)[1]:
-            lenses = lens_leave_one_out(p_full, uv, xyz[:, :2], centre)
+            lenses = lens_leave_one_out(p_full, uv, xyz[:, :2], centre, k2)
             if lenses is None:
                 return None
         else:  # seen too straight on to tell f: the held-out fits keep the full fit's f
             try:
                 lenses = np.array(
                     [
-                        lens_refit_holding_focal(p_full, uv[keep], xyz[keep, :2], centre)
+                        lens_refit_holding_focal(p_full, uv[keep], xyz[keep, :2], centre, k2)
                         for keep in (np.r_[0:i, i + 1 : n] for i in range(n))
                     ]
                 )
@@ -321,8 +429,8 @@ class HomographyRadial(Homography):
         res = np.empty((n, 3))
         for i in range(n):
             keep = np.r_[0:i, i + 1 : n]
-            f, k1, k2 = (float(v) for v in lenses[i, :3])
-            ideal = undistort_px(uv[keep], centre, f, k1, k2)
+            f, k1, k2_i = (float(v) for v in lenses[i, :3])
+            ideal = undistort_px(uv[keep], centre, f, k1, k2_i)
             if not np.isfinite(ideal).all():
                 return None
             T_uv, ideal_n = hartley(ideal)
@@ -338,7 +446,7 @@ class HomographyRadial(Homography):
             fitted = _gauss_newton(Homography(H.reshape(-1)[:8], plane, {}), ideal, xyz[keep])
             if fitted is None:
                 return None
-            lens = {"centre_px": centre.tolist(), "focal_px": f, "k1": k1, "k2": k2}
+            lens = {"centre_px": centre.tolist(), "focal_px": f, "k1": k1, "k2": k2_i, "lens_terms": terms}
             m = cls(fitted.params, {**plane, **lens}, {})
             res[i] = m.image_to_robot(uv[i : i + 1], None)[0] - xyz[i]
         return res if np.isfinite(res).all() else None
@@ -350,13 +458,28 @@ class HomographyRadial(Homography):
         self._lens = (float(c["focal_px"]), float(c["k1"]), float(c["k2"]))
         self._k = np.array([self._lens[1], self._lens[2], 0.0, 0.0])
         self._cu, self._cv = (float(x) for x in self._c)
+        terms = str(c.get("lens_terms", "k1 k2")).split()
+        # the covariance's fitted constants: the lens terms the lens fit fitted (f only sets their units)
+        names: list[str] = [t for t in ("k1", "k2") if t in terms]
+        names += ["centre_u", "centre_v"] if "centre" in terms else []
+        self.fitted_constants = tuple(names)  # type: ignore[misc]
 
     def fitted_constant_steps(self) -> np.ndarray:
         """k1, k2 act through r², r⁴ (r the f-normalised radius): steps that move k1 r², k2 r⁴ by 1e-6
         at the training pixels' spread (√2 / the Hartley scale of the ideal pixels), whatever f the lens
-        fit settled on (seen straight on, f is free along its valley and can be a few px)."""
+        fit settled on (seen straight on, f is free along its valley and can be a few px); the centre's
+        coordinates by 1e-3 px."""
         radius = np.sqrt(2.0) / float(np.asarray(self.constants["T_uv"], float)[0][0]) / self._lens[0]
-        return 1e-6 * np.array([radius**-2, radius**-4])
+        steps = {"k1": radius**-2, "k2": radius**-4, "centre_u": 1e3, "centre_v": 1e3}
+        return 1e-6 * np.array([steps[k] for k in self.fitted_constants])
+
+    def with_constant_moved(self, key: str, step: float) -> HomographyRadial:
+        """The centre's coordinates (``centre_u``, ``centre_v``) move ``constants["centre_px"]``."""
+        if key not in ("centre_u", "centre_v"):
+            return super().with_constant_moved(key, step)  # type: ignore[return-value]
+        c = list(self._c)
+        c[key == "centre_v"] += step
+        return type(self)(self.params, {**self.constants, "centre_px": c}, self.diagnostics)
 
     def _ideal_one(self, u: float, v: float) -> tuple[float, float]:
         f = self._lens[0]

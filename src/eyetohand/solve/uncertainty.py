@@ -68,11 +68,10 @@ def _constants_jacobian(model: Model, uv_px: np.ndarray, z_mm: np.ndarray) -> np
     c = _coords(model)
     cols = []
     for key, h in zip(model.fitted_constants, model.fitted_constant_steps().tolist(), strict=True):
-        v = float(model.constants[key])
         out = [
-            type(model)(
-                model.params, {**model.constants, key: v + sgn * h}, model.diagnostics
-            ).batch_image_to_robot(model.params[None], uv_px, z_mm)[0][:, :c]
+            model.with_constant_moved(key, sgn * h).batch_image_to_robot(model.params[None], uv_px, z_mm)[0][
+                :, :c
+            ]
             for sgn in (1.0, -1.0)
         ]
         cols.append((out[0] - out[1]) / (2 * h))
