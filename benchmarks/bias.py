@@ -35,7 +35,9 @@ calibration must not be).
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -43,6 +45,9 @@ from eyetohand import PointPairs, calibrate, detect_target
 from eyetohand.calibration import FitRequest, calibrate_request, corrected_centres_px, projected_centres_px
 from eyetohand.geometry import Camera
 from eyetohand.vision.render import Target, circle_truth, render
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from synth import limit_view, plane_grid  # noqa: E402  (the limit cell, shared with the tests)
 
 SIZE = (1920, 1200)
 F_PX = 2400.0
@@ -57,24 +62,7 @@ QUICK_NOISE_PX = 0.006  # the detector's RMS error (2-D) on these renders is 0.0
 def camera(tilt_deg: float, distance_mm: float) -> Camera:
     """The limit cell's camera, its axis ``tilt_deg`` from the plane's normal, meeting the plane
     ``distance_mm`` away (along the axis)."""
-    t = np.deg2rad(tilt_deg)
-    return Camera.looking_down(
-        SIZE,
-        focal_px=F_PX,
-        height_mm=distance_mm * np.cos(t),
-        tilt_deg=tilt_deg,
-        tilt_direction_deg=90.0,
-        yaw_deg=0.0,
-        dist=(0.0, 0.0, 0.0, 0.0, 0.0),
-        pp_offset_px=(0.0, 0.0),
-    )
-
-
-def plane_grid(cam: Camera, n: int, lo: float, hi: float) -> np.ndarray:
-    """(n², 3) plane points (z = 0) under an n×n grid of pixels spanning lo..hi of the image."""
-    w, h = SIZE
-    uu, vv = np.meshgrid(np.linspace(lo * w, hi * w, n), np.linspace(lo * h, hi * h, n))
-    return cam.image_to_robot(np.column_stack([uu.ravel(), vv.ravel()]), 0.0)
+    return limit_view(tilt_deg, distance_mm, SIZE, F_PX)
 
 
 def window_camera(cam: Camera, x0: int, y0: int, w: int, h: int) -> Camera:

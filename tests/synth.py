@@ -61,3 +61,29 @@ def random_pairs(cam, n, heights=(0.0,), span_mm=120.0, noise_px=0.0, seed=2):
     xyz = np.c_[xy, z]
     uv = project(cam, xyz) + rng.normal(scale=noise_px, size=(n, 2))
     return PointPairs.from_arrays(uv, xyz)
+
+
+def limit_view(tilt_deg: float, distance_mm: float = 800.0, size=(1920, 1200), focal_px: float = 2400.0):
+    """The limit cell's camera (docs/limit.md; benchmarks/bias.py, tests/test_circles.py): no lens, the
+    principal point at the image centre, its axis ``tilt_deg`` from the plane's normal, meeting the plane
+    z = 0 ``distance_mm`` away along the axis."""
+    from eyetohand.geometry import Camera
+
+    t = np.deg2rad(tilt_deg)
+    return Camera.looking_down(
+        size,
+        focal_px=focal_px,
+        height_mm=distance_mm * np.cos(t),
+        tilt_deg=tilt_deg,
+        tilt_direction_deg=90.0,
+        yaw_deg=0.0,
+        dist=(0.0, 0.0, 0.0, 0.0, 0.0),
+        pp_offset_px=(0.0, 0.0),
+    )
+
+
+def plane_grid(cam, n: int, lo: float, hi: float) -> np.ndarray:
+    """(n², 3) plane points (z = 0) under an n×n grid of pixels spanning lo..hi of ``cam``'s image."""
+    w, h = cam.image_size
+    uu, vv = np.meshgrid(np.linspace(lo * w, hi * w, n), np.linspace(lo * h, hi * h, n))
+    return cam.image_to_robot(np.column_stack([uu.ravel(), vv.ravel()]), 0.0)

@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from synth import limit_view, plane_grid
 
 from eyetohand import Calibration, PointPairs, detect_target
 from eyetohand.calibration import (
@@ -32,23 +33,7 @@ DIAMETER_MM = 20.0
 
 def camera(tilt_deg: float) -> Camera:
     """benchmarks/bias.py's cell: f 2400 px, the plane 800 mm along the axis, tilted ``tilt_deg``."""
-    t = np.deg2rad(tilt_deg)
-    return Camera.looking_down(
-        SIZE,
-        focal_px=2400.0,
-        height_mm=DISTANCE_MM * np.cos(t),
-        tilt_deg=tilt_deg,
-        tilt_direction_deg=90.0,
-        yaw_deg=0.0,
-        dist=(0.0, 0.0, 0.0, 0.0, 0.0),
-        pp_offset_px=(0.0, 0.0),
-    )
-
-
-def plane_grid(cam: Camera, n: int, lo: float, hi: float) -> np.ndarray:
-    w, h = SIZE
-    uu, vv = np.meshgrid(np.linspace(lo * w, hi * w, n), np.linspace(lo * h, hi * h, n))
-    return cam.image_to_robot(np.column_stack([uu.ravel(), vv.ravel()]), 0.0)
+    return limit_view(tilt_deg, DISTANCE_MM, SIZE)
 
 
 def detected(cam: Camera, xyz_mm: np.ndarray, rng) -> np.ndarray:

@@ -599,30 +599,65 @@ def _bands(edges: np.ndarray, count: int = BANDS) -> tuple[np.ndarray, float, fl
     + |e_v|) × the hull's span. The cross product is affine in (u, v), so its least value on the
     rectangle is at a corner, and that margin is far above its rounding anywhere there: every pixel in a
     band's interval passes every test, as computed. A band that cannot be proven is empty (lo > hi)."""
-    au, av, eu, ev = edges.T
-    v0, v1 = float(av.min()), float(av.max())
     empty = np.tile([math.inf, -math.inf], (count, 1))
-    span = float(np.ptp(edges[:, :2], axis=0).max())
-    if not v1 > v0 or not span > 0:
+    g = _BandGeometry.of(edges, count)
+    if g is None:
         return empty, 0.0, 0.0
-    h = (v1 - v0) / count
-    b = np.arange(count, dtype=float)
-    lo_v = v0 + (b - _BAND_SLACK) * h
-    hi_v = v0 + (b + 1 + _BAND_SLACK) * h
-
     with np.errstate(invalid="ignore"):
-        (l0, r0), (l1, r1) = _cross_section(edges, lo_v), _cross_section(edges, hi_v)
-    pad = 1e-9 * span
-    lo, hi = np.maximum(l0, l1) + pad, np.minimum(r0, r1) - pad
-    # the proof: each rectangle's corners against every edge, as the scan computes the products
-    cu = np.stack([lo, hi, lo, hi], axis=1)[..., None]  # (B, 4, 1)
-    cv = np.stack([lo_v, lo_v, hi_v, hi_v], axis=1)[..., None]
-    with np.errstate(invalid="ignore"):
-        c = eu * (cv - av) - ev * (cu - au)  # (B, 4, K)
-        need = _PROOF_MARGIN * (np.abs(eu) + np.abs(ev)) * span
-        ok = (c >= need).all(axis=(1, 2)) & (lo <= hi) & np.isfinite(lo) & np.isfinite(hi)
+        lo, hi = np.maximum(g.l0, g.l1) + g.pad, np.minimum(g.r0, g.r1) - g.pad
+        ok = g.corners_inside(edges, [lo, hi, lo, hi]) & (lo <= hi) & np.isfinite(lo) & np.isfinite(hi)
     bands = np.where(ok[:, None], np.column_stack([lo, hi]), empty)
-    return np.ascontiguousarray(bands), v0, 1.0 / h
+    return np.ascontiguousarray(bands), g.v0, 1.0 / g.h
+
+
+@dataclass(frozen=True)
+class _BandGeometry:
+    """A convex polygon's v extent cut into bands of height ``h`` from ``v0``, each band's v limits
+    widened by ``_BAND_SLACK`` of a band (``lo_v``, ``hi_v``), the polygon's [left, right] u there
+    (``l0``, ``r0`` at ``lo_v``; ``l1``, ``r1`` at ``hi_v``), its ``span`` and the inward ``pad``."""
+
+    v0: float
+    h: float
+    span: float
+    lo_v: np.ndarray
+    hi_v: np.ndarray
+    l0: np.ndarray
+    r0: np.ndarray
+    l1: np.ndarray
+    r1: np.ndarray
+
+    @property
+    def pad(self) -> float:
+        return 1e-9 * self.span
+
+    @classmethod
+    def of(cls, edges: np.ndarray, count: int) -> _BandGeometry | None:
+        av = edges[:, 1]
+        v0, v1 = float(av.min()), float(av.max())
+        span = float(np.ptp(edges[:, :2], axis=0).max())
+        if not v1 > v0 or not span > 0:
+            return None
+        h = (v1 - v0) / count
+        b = np.arange(count, dtype=float)
+        lo_v = v0 + (b - _BAND_SLACK) * h
+        hi_v = v0 + (b + 1 + _BAND_SLACK) * h
+        with np.errstate(invalid="ignore"):
+            (l0, r0), (l1, r1) = _cross_section(edges, lo_v), _cross_section(edges, hi_v)
+        return cls(v0, h, span, lo_v, hi_v, l0, r0, l1, r1)
+
+    def corners_inside(self, edges: np.ndarray, corner_u) -> np.ndarray:
+        """(B,) whether each band's four corners — u ``corner_u`` (four (B,) arrays: at ``lo_v``,
+        ``lo_v``, ``hi_v``, ``hi_v``) — pass every edge's cross product e_u (v - a_v) - e_v (u - a_u), as
+        the compiled loops compute it, by ``_PROOF_MARGIN`` × (|e_u| + |e_v|) × the span: the cross
+        product is affine in (u, v), so a shape that is the convex hull of its corners is inside,
+        with that margin far above the products' rounding anywhere there."""
+        au, av, eu, ev = edges.T
+        cu = np.stack(corner_u, axis=1)[..., None]  # (B, 4, 1)
+        cv = np.stack([self.lo_v, self.lo_v, self.hi_v, self.hi_v], axis=1)[..., None]
+        with np.errstate(invalid="ignore"):
+            c = eu * (cv - av) - ev * (cu - au)  # (B, 4, K)
+            need = _PROOF_MARGIN * (np.abs(eu) + np.abs(ev)) * self.span
+            return (c >= need).all(axis=(1, 2))
 
 
 def _polygon_edges(polygon: np.ndarray) -> np.ndarray:
@@ -652,30 +687,19 @@ def _chord_bands(edges: np.ndarray, count: int) -> tuple[np.ndarray, float, floa
     in :func:`_bands`, so the trapezoid (their convex hull) is inside with room for rounding. Only
     the thin triangles between a chord and a polygon vertex within the band are left out. A band that
     cannot be proven gets the row (0, inf, 0, -inf, 0): no pixel passes it."""
-    au, av, eu, ev = edges.T
-    v0, v1 = float(av.min()), float(av.max())
     empty = np.tile([0.0, math.inf, 0.0, -math.inf, 0.0], (count, 1))
-    span = float(np.ptp(edges[:, :2], axis=0).max())
-    if not v1 > v0 or not span > 0:
+    g = _BandGeometry.of(edges, count)
+    if g is None:
         return empty, 0.0, 0.0
-    h = (v1 - v0) / count
-    b = np.arange(count, dtype=float)
-    lo_v = v0 + (b - _BAND_SLACK) * h
-    hi_v = v0 + (b + 1 + _BAND_SLACK) * h
     with np.errstate(invalid="ignore"):
-        (l0, r0), (l1, r1) = _cross_section(edges, lo_v), _cross_section(edges, hi_v)
-        pad = 1e-9 * span
-        dv = hi_v - lo_v
-        L, R = l0 + pad, r0 - pad
-        sl, sr = ((l1 + pad) - L) / dv, ((r1 - pad) - R) / dv
+        dv = g.hi_v - g.lo_v
+        L, R = g.l0 + g.pad, g.r0 - g.pad
+        sl, sr = ((g.l1 + g.pad) - L) / dv, ((g.r1 - g.pad) - R) / dv
         # the corners as the lookup computes them: L + l·(v - v_b) at both v limits
-        cu = np.stack([L, R, L + sl * dv, R + sr * dv], axis=1)[..., None]  # (B, 4, 1)
-        cv = np.stack([lo_v, lo_v, hi_v, hi_v], axis=1)[..., None]
-        c = eu * (cv - av) - ev * (cu - au)  # (B, 4, K)
-        need = _PROOF_MARGIN * (np.abs(eu) + np.abs(ev)) * span
-        ok = (c >= need).all(axis=(1, 2)) & np.isfinite(np.column_stack([L, R, sl, sr])).all(axis=1)
-    rows = np.where(ok[:, None], np.column_stack([lo_v, L, sl, R, sr]), empty)
-    return np.ascontiguousarray(rows), v0, 1.0 / h
+        ok = g.corners_inside(edges, [L, R, L + sl * dv, R + sr * dv])
+        ok &= np.isfinite(np.column_stack([L, R, sl, sr])).all(axis=1)
+    rows = np.where(ok[:, None], np.column_stack([g.lo_v, L, sl, R, sr]), empty)
+    return np.ascontiguousarray(rows), g.v0, 1.0 / g.h
 
 
 def _outside_distance(hull: np.ndarray, uv: np.ndarray) -> np.ndarray:
