@@ -9,11 +9,14 @@ and the children's CPU time; goal ≤ 1.5× the peer for ``apply`` (issue 29), �
 ``python benchmarks/bench_startup.py [--rounds N] [--baseline-src DIR]`` (~10 s at the default 15
 rounds); ``--baseline-src`` adds ``apply`` with another tree's ``src/`` first on ``PYTHONPATH`` (e.g. a
 copy of main's, bytecode compiled), interleaved with the rest: a change's before and after in one run.
+``--modules N`` instead prints what ``apply`` loads beyond NumPy: each module's own execution time
+(its imports' excluded), the median of N fresh processes, largest first.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import resource
 import statistics
@@ -78,6 +81,47 @@ def measure(rounds: int, baseline_src: str | None = None) -> tuple[dict[str, flo
 
 
 PEER = 'python -c "import numpy"'
+
+_MODULE_TIMES = """
+import contextlib, io, json, sys, time
+import numpy
+import importlib._bootstrap as boot
+load, stack, own = boot._load_unlocked, [], {}
+def timed(spec):
+    t0 = time.perf_counter()
+    stack.append(0.0)
+    try:
+        return load(spec)
+    finally:
+        inner, dt = stack.pop(), time.perf_counter() - t0
+        own[spec.name] = dt - inner
+        if stack:
+            stack[-1] += dt
+boot._load_unlocked = timed
+from eyetohand.cli import main
+with contextlib.redirect_stdout(io.StringIO()):
+    main(sys.argv[1:])
+print(json.dumps(own))
+"""
+
+
+def module_times(runs: int) -> dict[str, float]:
+    """Median own execution time (s) of each module ``apply`` loads after NumPy, over ``runs`` fresh
+    processes (an import hook around each module's execution)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        pairs = load_pairs(PAPER)
+        cal_path = Path(tmp) / "cal.json"
+        calibrate(pairs, "homography", "lm").save(cal_path)
+        u, v = (str(c) for c in pairs.uv_px.mean(axis=0).round(1))
+        cmd = [sys.executable, "-c", _MODULE_TIMES, "apply", str(cal_path), "--uv", u, v]
+        got: dict[str, list[float]] = {}
+        for _ in range(runs):
+            out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+            for name, t in json.loads(out.splitlines()[-1]).items():
+                got.setdefault(name, []).append(t)
+    return {k: statistics.median(v) for k, v in got.items()}
+
+
 APPLY = "eyetohand apply CAL --uv U V"
 BASELINE = "apply, --baseline-src"
 
@@ -86,7 +130,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--rounds", type=int, default=15, help="interleaved rounds (default 15)")
     ap.add_argument("--baseline-src", metavar="DIR", help="also apply with DIR first on PYTHONPATH")
+    ap.add_argument("--modules", type=int, metavar="N", help="per-module times of apply, N processes")
     args = ap.parse_args()
+    if args.modules:
+        own = module_times(args.modules)
+        print(f"apply beyond NumPy: {sum(own.values()) * 1e3:.1f} ms in {len(own)} modules (medians)")
+        for name, t in sorted(own.items(), key=lambda kv: -kv[1])[:20]:
+            print(f"   {t * 1e3:6.2f} ms  {name}")
+        return
     wall, cpu = measure(args.rounds, args.baseline_src)
     pw, pc = wall[PEER], cpu[PEER]
     print(f"Start-up, {args.rounds} interleaved rounds, median per process")
