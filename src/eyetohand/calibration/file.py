@@ -42,6 +42,7 @@ from eyetohand.core import (
     angle_refusal,
     atomic_write_text,
     pairs_from_records,
+    sha256_hex,
 )
 from eyetohand.geometry import (
     CONVENTIONS,
@@ -610,11 +611,9 @@ def content_sha256(d: dict) -> str:
     """SHA-256 of a calibration file's content as canonical JSON (sorted keys, no spaces), leaving
     out the free text (``FREE_FIELDS``) and the hash itself: any change of a number, however small,
     or of a record (fit, statistics, selection, diagnostics) changes it."""
-    import hashlib
-
     body = {k: v for k, v in d.items() if k not in FREE_FIELDS and k not in ("content_sha256", "signature")}
     canon = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
-    return hashlib.sha256(canon.encode()).hexdigest()
+    return sha256_hex(canon.encode())
 
 
 def derived_region(model: Model, fitted: PointPairs) -> CalibratedRegion:

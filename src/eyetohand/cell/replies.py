@@ -118,8 +118,8 @@ class LineReplies:
     ) -> bytes:
         """One mapped point's line (``sigma_mm`` None when not asked or not known)."""
         if self._as_computed:
-            x, y, z = (float(v) for v in xyz_mm)
-            out = f"{x!r},{y!r},{z!r}"
+            x, y, z = xyz_mm
+            out = f"{float(x)!r},{float(y)!r},{float(z)!r}"
             if rz_deg is not None:
                 out += f",{float(rz_deg)!r}"
             if sigma_mm is not None:

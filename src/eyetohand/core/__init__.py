@@ -3,9 +3,16 @@
 
 from __future__ import annotations
 
-from eyetohand.core.csvtext import CsvTable, read_csv
+from typing import TYPE_CHECKING
+
 from eyetohand.core.errors import DegenerateError, InputError
-from eyetohand.core.io import atomic_write_bytes, atomic_write_text, check_output_path, read_bounded_text
+from eyetohand.core.io import (
+    atomic_write_bytes,
+    atomic_write_text,
+    check_output_path,
+    read_bounded_text,
+    sha256_hex,
+)
 from eyetohand.core.lazy import lazy_exports
 from eyetohand.core.pairs import (
     MAX_ABS_ANGLE_DEG,
@@ -27,6 +34,11 @@ from eyetohand.core.pairs import (
 )
 from eyetohand.core.records import FitInfo, PointError, Stats, TcpOffset
 from eyetohand.core.units import ANGLE_UNITS, LENGTH_UNITS, MM_DEG, OutputUnits, check_units, output_units
+
+if TYPE_CHECKING:
+    from eyetohand.core.csvtext import CsvTable, read_csv
+else:  # the CSV reader on first use (eyetohand.core.lazy): `eyetohand apply` reads no CSV
+    __getattr__, __dir__ = lazy_exports(__name__, {"csvtext": ("CsvTable", "read_csv")})
 
 __all__ = [
     "ANGLE_UNITS",
@@ -64,4 +76,5 @@ __all__ = [
     "read_csv",
     "read_pairs_text",
     "record_number",
+    "sha256_hex",
 ]

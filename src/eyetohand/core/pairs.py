@@ -8,8 +8,6 @@ is fitted, because what is "enough" depends on the model.
 
 from __future__ import annotations
 
-import csv
-import hashlib
 import io
 import json
 import math
@@ -20,9 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from eyetohand.core.csvtext import read_csv
 from eyetohand.core.errors import InputError
-from eyetohand.core.io import decode_utf8, read_bounded_bytes
+from eyetohand.core.io import decode_utf8, read_bounded_bytes, sha256_hex
 
 REQUIRED = ("u", "v", "x", "y")
 OPTIONAL = ("z", "id", "angle")
@@ -162,13 +159,14 @@ class PointPairs:
 
     def sha256(self) -> str:
         """SHA-256 of the pairs' values (ids, u, v, x, y, z, angle) — independent of file formatting."""
-        h = hashlib.sha256()
-        h.update("\n".join(self.ids).encode())
-        h.update(np.ascontiguousarray(self.uv_px, dtype="<f8").tobytes())
-        h.update(np.ascontiguousarray(self.xyz_mm, dtype="<f8").tobytes())
+        parts = [
+            "\n".join(self.ids).encode(),
+            np.ascontiguousarray(self.uv_px, dtype="<f8").tobytes(),
+            np.ascontiguousarray(self.xyz_mm, dtype="<f8").tobytes(),
+        ]
         if self.angle_deg is not None:
-            h.update(np.ascontiguousarray(self.angle_deg, dtype="<f8").tobytes())
-        return h.hexdigest()
+            parts.append(np.ascontiguousarray(self.angle_deg, dtype="<f8").tobytes())
+        return sha256_hex(*parts)
 
     def to_records(self) -> list[dict]:
         """One dict per pair: ``{"id", "u", "v", "x", "y", "z"}`` (and ``angle``)."""
@@ -190,6 +188,8 @@ class PointPairs:
     def to_csv_text(self) -> str:
         """The pairs as CSV text with header ``id,u,v,x,y,z`` (and ``angle``)."""
         cols = ["id", "u", "v", "x", "y", "z"] + (["angle"] if self.angle_deg is not None else [])
+        import csv  # on first use: `eyetohand apply` reads no CSV
+
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(cols)
@@ -274,11 +274,15 @@ def csv_rows(text: str, name: str) -> tuple[list[list[str]], int]:
     """Rows of a CSV text split on any line break, and the index of the header (first non-blank);
     the separator (``,``, ``;``, tab) and the decimal mark are found from the text and decimal commas
     turned into points (:func:`eyetohand.core.csvtext.read_csv`, which also gives the note)."""
+    from eyetohand.core.csvtext import read_csv  # on first use: `eyetohand apply` reads no CSV
+
     table = read_csv(text, name)
     return table.rows, table.first
 
 
 def _parse_csv(text: str, name: str) -> PointPairs:
+    from eyetohand.core.csvtext import read_csv  # on first use: `eyetohand apply` reads no CSV
+
     table = read_csv(text, name)
     rows, first = table.rows, table.first
     header = [h.strip().lower() for h in rows[first]]
@@ -485,6 +489,8 @@ class ImagePoints:
 
     def with_columns(self, columns: dict[str, np.ndarray]) -> str:
         """CSV text: the input table with ``columns`` appended (names never already in the input)."""
+        import csv
+
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(list(self.header) + list(columns))
@@ -508,6 +514,8 @@ def load_image_points(path: str | os.PathLike) -> ImagePoints:
 def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
     """Image points from CSV text (see :func:`load_image_points`). A column the mapping would add
     (x, y, z when the input has no z, rz, sigma_mm, inside) is refused rather than overwritten."""
+    from eyetohand.core.csvtext import read_csv  # on first use: `eyetohand apply` reads no CSV
+
     table = read_csv(text, name)
     rows, first = table.rows, table.first
     header = [h.strip() for h in rows[first]]
