@@ -41,13 +41,13 @@ from pathlib import Path
 
 import numpy as np
 
-from eyetohand import PointPairs, calibrate, detect_target
+from eyetohand import PointPairs, calibrate
 from eyetohand.calibration import FitRequest, calibrate_request, corrected_centres_px, projected_centres_px
 from eyetohand.geometry import Camera
-from eyetohand.vision.render import Target, circle_truth, render
+from eyetohand.vision.render import circle_truth
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from synth import limit_view, plane_grid  # noqa: E402  (the limit cell, shared with the tests)
+from synth import detect_rendered, limit_view, plane_grid  # noqa: E402  (the limit cell, shared with the tests)
 
 SIZE = (1920, 1200)
 F_PX = 2400.0
@@ -63,32 +63,6 @@ def camera(tilt_deg: float, distance_mm: float) -> Camera:
     """The limit cell's camera, its axis ``tilt_deg`` from the plane's normal, meeting the plane
     ``distance_mm`` away (along the axis)."""
     return limit_view(tilt_deg, distance_mm, SIZE, F_PX)
-
-
-def window_camera(cam: Camera, x0: int, y0: int, w: int, h: int) -> Camera:
-    """The same camera seeing only the window (x0, y0, w, h) of its image."""
-    K = cam.K.copy()
-    K[0, 2] -= x0
-    K[1, 2] -= y0
-    return Camera.from_opencv(K, cam.dist, cam.R, cam.t, (w, h))
-
-
-def detect_rendered(cam: Camera, xyz_mm: np.ndarray, diameter_mm: float, rng) -> np.ndarray:
-    """(N, 2) detected centres of the target rendered at each point (in a window around it)."""
-    target = Target(diameter_mm, strip_width_mm=diameter_mm + 6, strip_length_mm=3 * diameter_mm + 10)
-    out = np.empty((len(xyz_mm), 2))
-    for i, X in enumerate(xyz_mm):
-        tr = circle_truth(cam, X, diameter_mm)
-        half = int(np.ceil(1.2 * max(tr.axes_px) + 10))
-        x0, y0 = int(round(tr.centre_px[0])) - half, int(round(tr.centre_px[1])) - half
-        img, _ = render(
-            window_camera(cam, x0, y0, 2 * half, 2 * half), X, target=target, vignetting=0, rng=rng
-        )
-        det = detect_target(img, polarity="dark", diameter_px=tr.diameter_px)
-        if not det.ok:
-            raise RuntimeError(f"target at {X} not found: {det.reason}")
-        out[i] = det.u + x0, det.v + y0
-    return out
 
 
 # ---------------------------------------------------------------- one tilt × diameter

@@ -87,3 +87,29 @@ def plane_grid(cam, n: int, lo: float, hi: float) -> np.ndarray:
     w, h = cam.image_size
     uu, vv = np.meshgrid(np.linspace(lo * w, hi * w, n), np.linspace(lo * h, hi * h, n))
     return cam.image_to_robot(np.column_stack([uu.ravel(), vv.ravel()]), 0.0)
+
+
+def detect_rendered(cam, xyz_mm: np.ndarray, diameter_mm: float, rng) -> np.ndarray:
+    """(N, 2) centres ``detect_target`` finds of the circle target rendered at each point, each in a
+    window around it (``cam`` with its principal point moved by the window's corner) — the detector's
+    answer on a picture of the cell (tests/test_circles.py, benchmarks/bias.py)."""
+    from eyetohand import detect_target
+    from eyetohand.geometry import Camera
+    from eyetohand.vision.render import Target, circle_truth, render
+
+    target = Target(diameter_mm, strip_width_mm=diameter_mm + 6, strip_length_mm=3 * diameter_mm + 10)
+    out = np.empty((len(xyz_mm), 2))
+    for i, X in enumerate(xyz_mm):
+        tr = circle_truth(cam, X, diameter_mm)
+        half = int(np.ceil(1.2 * max(tr.axes_px) + 10))
+        x0, y0 = int(round(tr.centre_px[0])) - half, int(round(tr.centre_px[1])) - half
+        K = cam.K.copy()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        window = Camera.from_opencv(K, cam.dist, cam.R, cam.t, (2 * half, 2 * half))
+        img, _ = render(window, X, target=target, vignetting=0, rng=rng)
+        det = detect_target(img, polarity="dark", diameter_px=tr.diameter_px)
+        if not det.ok:
+            raise RuntimeError(f"target at {X} not found: {det.reason}")
+        out[i] = det.u + x0, det.v + y0
+    return out

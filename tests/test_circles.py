@@ -10,9 +10,9 @@ import json
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from synth import limit_view, plane_grid
+from synth import detect_rendered, limit_view, plane_grid
 
-from eyetohand import Calibration, PointPairs, detect_target
+from eyetohand import Calibration, PointPairs
 from eyetohand.calibration import (
     FitRequest,
     calibrate_request,
@@ -24,7 +24,7 @@ from eyetohand.cli import main
 from eyetohand.core import InputError
 from eyetohand.geometry import Camera
 from eyetohand.server.app import create_app
-from eyetohand.vision.render import Target, circle_truth, render
+from eyetohand.vision.render import circle_truth
 
 SIZE = (1920, 1200)
 DISTANCE_MM = 800.0
@@ -37,23 +37,8 @@ def camera(tilt_deg: float) -> Camera:
 
 
 def detected(cam: Camera, xyz_mm: np.ndarray, rng) -> np.ndarray:
-    """The targets rendered at ``xyz_mm`` (each in a window: the camera with its principal point
-    shifted by the window's corner) and found by ``detect_target``."""
-    target = Target(DIAMETER_MM, strip_width_mm=DIAMETER_MM + 6, strip_length_mm=3 * DIAMETER_MM + 10)
-    out = np.empty((len(xyz_mm), 2))
-    for i, X in enumerate(xyz_mm):
-        tr = circle_truth(cam, X, DIAMETER_MM)
-        half = int(np.ceil(1.2 * max(tr.axes_px) + 10))
-        x0, y0 = int(round(tr.centre_px[0])) - half, int(round(tr.centre_px[1])) - half
-        K = cam.K.copy()
-        K[0, 2] -= x0
-        K[1, 2] -= y0
-        window = Camera.from_opencv(K, cam.dist, cam.R, cam.t, (2 * half, 2 * half))
-        img, _ = render(window, X, target=target, vignetting=0, rng=rng)
-        det = detect_target(img, polarity="dark", diameter_px=tr.diameter_px)
-        assert det.ok, det.reason
-        out[i] = det.u + x0, det.v + y0
-    return out
+    """The targets rendered at ``xyz_mm`` and found by ``detect_target``."""
+    return detect_rendered(cam, xyz_mm, DIAMETER_MM, rng)
 
 
 @pytest.fixture(scope="module")

@@ -1,16 +1,15 @@
 """What issue 29's second start-up pass took off ``eyetohand apply``'s path (tests/test_startup_path.py
 has the first): the CSV reader, ``tempfile`` and OpenSSL's hashes (``hashlib``, ``hmac``) load on first
-use, and the file's digests are SHA-256 either way."""
+use (checked with the first pass's, in tests/test_startup_path.py), and the file's digests are SHA-256
+either way."""
 
 from __future__ import annotations
 
 import hashlib
-import subprocess
-import sys
 
 import numpy as np
 import pytest
-from helpers import PAPER, src_env
+from helpers import PAPER
 
 from eyetohand.core import sha256_hex
 from eyetohand.core.io import SMALL_DIGEST_BYTES
@@ -46,26 +45,3 @@ def test_pairs_digest_is_unchanged():
     h.update(np.ascontiguousarray(pairs.uv_px, dtype="<f8").tobytes())
     h.update(np.ascontiguousarray(pairs.xyz_mm, dtype="<f8").tobytes())
     assert pairs.sha256() == h.hexdigest()
-
-
-def test_apply_loads_no_csv_reader_tempfile_or_openssl(tmp_path):
-    from eyetohand import calibrate, load_pairs
-
-    cal = tmp_path / "cal.json"
-    calibrate(load_pairs(PAPER / "calibration_points.csv"), "homography", "lm").save(cal)
-    code = f"""
-import sys
-from eyetohand.cli import main
-sys.argv = ["eyetohand", "apply", {str(cal)!r}, "--uv", "700", "750"]
-assert main() == 0
-print(" ".join(sorted(sys.modules)), file=sys.stderr)
-"""
-    r = subprocess.run(
-        [sys.executable, "-c", code], env=src_env(), capture_output=True, text=True, timeout=120
-    )
-    assert r.returncode == 0, r.stderr
-    assert len(r.stdout.split()) == 3
-    loaded = set(r.stderr.split())
-    for module in ("eyetohand.core.csvtext", "csv", "tempfile", "hashlib", "_hashlib", "hmac"):
-        assert module not in loaded, module
-    assert "eyetohand.calibration.file" in loaded  # the run did load and prove the file
