@@ -89,7 +89,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_server.py
 	$(BIN)/python benchmarks/bench_map.py --quick
 	$(BIN)/python benchmarks/bench_startup.py
-	$(BIN)/python benchmarks/bench_scale.py --sizes 1000 10000 100000 --models homography
+	$(BIN)/python benchmarks/bench_scale.py --sizes 20 200 2000 --models homography
 	$(BIN)/python benchmarks/bench_lens.py
 	$(BIN)/python benchmarks/bench_conveyor.py
 	$(BIN)/python benchmarks/bench_fit.py --quick
