@@ -167,9 +167,11 @@ def lens_free(k2: bool) -> np.ndarray:
     return np.arange(9) if k2 else np.r_[0, 1, 3:9]
 
 
-def fit_lens(uv_px, xy_mm, centre, f_default, k2: bool = True):
+def fit_lens(uv_px, xy_mm, centre, f_default, k2: bool = True, start: np.ndarray | None = None):
     """Single-view camera fit (f, k1, k2, pose; k2 held at 0 unless ``k2``) on image-space residuals;
-    returns (params, rms_px). Memoised on the inputs (the last few: ``auto`` fits the same set twice)."""
+    returns (params, rms_px). ``start``: the parameters to start from (default: :func:`lens_start`'s;
+    ``choose_lens`` starts the k2 fit at the k1 fit's optimum, a few steps from its own). Memoised on
+    the inputs (the last few: ``auto`` fits the same set twice)."""
     uv_px, xy_mm = np.asarray(uv_px, float), np.asarray(xy_mm, float)
     key = (
         uv_px.tobytes(),
@@ -178,11 +180,12 @@ def fit_lens(uv_px, xy_mm, centre, f_default, k2: bool = True):
         float(f_default),
         LENS_FIT_TOL,
         k2,
+        None if start is None else np.asarray(start, float).tobytes(),
     )
     hit = _LENS_CACHE.get(key)
     if hit is not None:
         return hit[0].copy(), hit[1]
-    p0, _ = lens_start(uv_px, xy_mm, centre, f_default)
+    p0 = lens_start(uv_px, xy_mm, centre, f_default)[0] if start is None else np.asarray(start, float).copy()
     sol = _lens_least_squares(p0, uv_px, xy_mm, centre, lens_free(k2))
     rms = float(np.sqrt(np.mean(sol.fun**2) * 2))
     while len(_LENS_CACHE) >= _LENS_CACHE_SIZE:  # oldest first; tolerant of another thread's pop
@@ -246,7 +249,7 @@ def choose_lens(uv_px, xy_mm, centre, f_default, centre_test: bool = True):
     Returns (params (9,), centre (2,), terms — one of ``LENS_TERMS``, rms_px)."""
     n2 = 2 * len(uv_px)
     p1, rms1 = fit_lens(uv_px, xy_mm, centre, f_default, k2=False)
-    p2, rms2 = fit_lens(uv_px, xy_mm, centre, f_default, k2=True)
+    p2, rms2 = fit_lens(uv_px, xy_mm, centre, f_default, k2=True, start=p1)
     rss1, rss2 = rms1**2 * n2 / 2, rms2**2 * n2 / 2
     k2 = lens_f_test(rss1, rss2, 1, n2 - 9) < LENS_ALPHA_K2
     p, rss, n_fit = (p2, rss2, 9) if k2 else (p1, rss1, 8)
