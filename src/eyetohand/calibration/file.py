@@ -174,8 +174,8 @@ class Calibration:
         the guard passes them all; None for anything else, for ``map`` to answer in its one path and
         words. One lookup proves most pixels within the margin (``region.unproven``); where the horizon
         is proven clear over the margin (``_horizon_clear``) that is all they need, and ``map`` checks
-        the few others; without that proof ``region.guard`` sorts the pixels into the hull and its
-        margin, and the margin's are tested against the horizon."""
+        the few others; without that proof the hull's own scan (``region.scan``) leaves ``map`` the
+        pixels outside the hull, for the margin and the horizon."""
         region = self.region
         if region is None or not _many_uv(uv_px):
             return None
@@ -189,11 +189,9 @@ class Calibration:
         uv = np.ascontiguousarray(uv_px)
         if self._horizon_clear:
             few = region.unproven(uv)
-        else:
-            g = region.guard(uv)
-            if g.beyond:
-                return None
-            few = np.flatnonzero(g.status == 1)
+        else:  # the pixels outside the hull (margin, beyond, not finite) take map's region and horizon tests
+            sc = region.scan(uv)
+            few = np.empty(0, np.intp) if sc.mask is None else np.flatnonzero(sc.mask)
         if len(few):
             try:
                 self.map(uv[few], None if zq is None else zq[few], with_sigma=False)
@@ -217,13 +215,9 @@ class Calibration:
         if pt is None or region.outside_one(pt[0], pt[1]) != 0.0:
             return None
         if z is not None:
-            if isinstance(z, np.ndarray) and z.size == 1 and z.dtype.kind in "fiu":
-                z = z.reshape(-1)[0]
-            elif isinstance(z, bool) or not isinstance(z, (float, int, np.floating, np.integer)):
-                return None
-            z = float(z)
-            if not region.z_allowed_one(z):  # a non-finite z, a height to refuse, a tilted plane's
-                return None
+            z = _one_height(z)
+            if z is None or not region.z_allowed_one(z):  # not one number, not finite, a height to
+                return None  # refuse, a tilted plane's
         xyz = self.model.image_to_robot(pt, z)
         x, y, zz = xyz[0].tolist()
         if x - x != 0.0 or y - y != 0.0 or zz - zz != 0.0:  # NaN or ±inf

@@ -10,12 +10,13 @@
  * cross products and a margin far above their rounding error); a pixel in its band's interval passes
  * every edge test, so it is inside without them (and finite: the intervals are).  The others take the K
  * tests.  Each call also tells whether every pixel was finite (exponent bits, as models/_rows.c).
+ * `unproven`: one trapezoid lookup of the hull grown by its margin (`CalibratedRegion.unproven`), the
+ * indices of the pixels it does not prove within the margin.
  *
  * Optional: when it cannot be built, region.py runs the K tests in NumPy chunks: the same verdicts.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
-#include <math.h>
 #include <stdint.h>
 #include <string.h>
 
@@ -126,158 +127,6 @@ unproven(PyObject *self, PyObject *args)
     return PyLong_FromSsize_t(count);
 }
 
-/* The guard of many pixels (region.py `CalibratedRegion.guard`): status 0 inside the hull, 1 within
- * `margin` of it (outside, or not proven inside), 2 beyond the margin or not finite.  Two lookups
- * first: the hull's bands (as `scan`), then the bands of a polygon that region.py has proven to lie
- * within the margin of the hull with room for rounding; the rest get the K tests and, failing one, the
- * distance to the hull in the arithmetic of region.py `_outside_distance` (per edge: the clipped
- * projection, the squared distance, NumPy's minimum, which keeps a NaN; then the root), compared with
- * `margin` as `CalibratedRegion.check` compares it. */
-static void
-guard_loop(const double *restrict uv, const double *restrict edges, Py_ssize_t k, const double *restrict hb,
-           Py_ssize_t nhb, double hv0, double hinv, const double *restrict mb, Py_ssize_t nmb, double mv0,
-           double minv, double margin, unsigned char *restrict status, Py_ssize_t n, Py_ssize_t *counts,
-           int *finite)
-{
-    uint64_t bad = 0;
-    Py_ssize_t c0 = 0, c1 = 0, c2 = 0;
-    const double htop = (double)nhb, mtop = (double)nmb;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        const double u = uv[2 * i], v = uv[2 * i + 1];
-        const double t = (v - hv0) * hinv;
-        if (t >= 0.0 && t < htop) {
-            const Py_ssize_t b = (Py_ssize_t)t;
-            if (u >= hb[2 * b] && u <= hb[2 * b + 1]) {
-                status[i] = 0;
-                c0++;
-                continue;
-            }
-        }
-        const double tm = (v - mv0) * minv;
-        if (tm >= 0.0 && tm < mtop) {
-            const Py_ssize_t b = (Py_ssize_t)tm;
-            if (u >= mb[2 * b] && u <= mb[2 * b + 1]) {
-                status[i] = 1;
-                c1++;
-                continue;
-            }
-        }
-        uint64_t bu, bv;
-        memcpy(&bu, &uv[2 * i], 8);
-        memcpy(&bv, &uv[2 * i + 1], 8);
-        bad |= NOT_FINITE_BITS(bu) | NOT_FINITE_BITS(bv);
-        int in = 1;
-        for (Py_ssize_t j = 0; j < k; j++) {
-            const double *e = edges + 4 * j;
-            const double c = e[2] * (v - e[1]) - e[3] * (u - e[0]);
-            if (!(c >= 0.0)) {
-                in = 0;
-                break;
-            }
-        }
-        if (in) {
-            status[i] = 0;
-            c0++;
-            continue;
-        }
-        double least = INFINITY;
-        for (Py_ssize_t j = 0; j < k; j++) {
-            const double *e = edges + 4 * j;
-            double ee = e[2] * e[2] + e[3] * e[3];
-            ee = ee > 1e-300 ? ee : (ee != ee ? ee : 1e-300); /* np.maximum(ee, 1e-300) */
-            const double ru = u - e[0], rv = v - e[1];
-            double s = (ru * e[2] + rv * e[3]) / ee;
-            s = s < 0.0 ? 0.0 : (s > 1.0 ? 1.0 : s); /* np.clip: a NaN stays NaN */
-            const double du = u - (e[0] + s * e[2]), dv = v - (e[1] + s * e[3]);
-            const double dd = du * du + dv * dv;
-            if (least != least) { /* np.minimum: a NaN wins */
-                continue;
-            }
-            if (dd != dd || dd < least) {
-                least = dd;
-            }
-        }
-        if (sqrt(least) <= margin) {
-            status[i] = 1;
-            c1++;
-        } else {
-            status[i] = 2;
-            c2++;
-        }
-    }
-    counts[0] = c0;
-    counts[1] = c1;
-    counts[2] = c2;
-    *finite = bad == 0;
-}
-
-PyDoc_STRVAR(guard_doc,
-"guard(uv, edges, hull_bands, hv0, hinv, margin_bands, mv0, minv, margin, status)\n"
-"    -> (inside, in_margin, beyond, finite)\n\n"
-"(N, 2) float64 pixels ``uv`` against the convex hull of (K, 4) ``edges`` rows (a_u, a_v, e_u, e_v)\n"
-"grown by ``margin`` px: ``status[i]`` (N uint8) 0 inside the hull, 1 outside it (or not proven\n"
-"inside) but within the margin, 2 beyond the margin or not finite. ``hull_bands`` (B, 2) as in\n"
-"``scan``; ``margin_bands`` (B', 2) the same lookup for a polygon the caller has proven to lie within\n"
-"the margin (v0 ``mv0``, 1/h ``minv``). Returns the three counts and whether every pixel that took\n"
-"the tests was finite (a pixel in a band's finite interval is).");
-
-static PyObject *
-guard(PyObject *self, PyObject *args)
-{
-    PyObject *uv_o, *edges_o, *hb_o, *mb_o, *st_o;
-    double hv0, hinv, mv0, minv, margin;
-    if (!PyArg_ParseTuple(args, "OOOddOdddO:guard", &uv_o, &edges_o, &hb_o, &hv0, &hinv, &mb_o, &mv0, &minv,
-                          &margin, &st_o)) {
-        return NULL;
-    }
-    Py_buffer uv, edges, hb, mb, st;
-    if (get_doubles(uv_o, &uv, 0, -2, "uv") < 0) {
-        return NULL;
-    }
-    Py_ssize_t n = uv.len / 16;
-    if (get_doubles(edges_o, &edges, 0, -4, "edges") < 0) {
-        goto fail_uv;
-    }
-    if (get_doubles(hb_o, &hb, 0, -2, "hull_bands") < 0) {
-        goto fail_edges;
-    }
-    if (get_doubles(mb_o, &mb, 0, -2, "margin_bands") < 0) {
-        goto fail_hb;
-    }
-    if (PyObject_GetBuffer(st_o, &st, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE) < 0) {
-        goto fail_mb;
-    }
-    if (st.len != n || st.itemsize != 1) {
-        PyErr_Format(PyExc_ValueError, "status: expected %zd one-byte items", n);
-        goto fail_st;
-    }
-    int finite;
-    Py_ssize_t counts[3];
-    const double *U = uv.buf, *E = edges.buf, *HB = hb.buf, *MB = mb.buf;
-    unsigned char *S = st.buf;
-    Py_ssize_t k = edges.len / 32, nhb = hb.len / 16, nmb = mb.len / 16;
-    Py_BEGIN_ALLOW_THREADS
-    guard_loop(U, E, k, HB, nhb, hv0, hinv, MB, nmb, mv0, minv, margin, S, n, counts, &finite);
-    Py_END_ALLOW_THREADS
-    PyBuffer_Release(&st);
-    PyBuffer_Release(&mb);
-    PyBuffer_Release(&hb);
-    PyBuffer_Release(&edges);
-    PyBuffer_Release(&uv);
-    return Py_BuildValue("(nnnN)", counts[0], counts[1], counts[2], PyBool_FromLong(finite));
-fail_st:
-    PyBuffer_Release(&st);
-fail_mb:
-    PyBuffer_Release(&mb);
-fail_hb:
-    PyBuffer_Release(&hb);
-fail_edges:
-    PyBuffer_Release(&edges);
-fail_uv:
-    PyBuffer_Release(&uv);
-    return NULL;
-}
-
 PyDoc_STRVAR(scan_doc,
 "scan(uv, edges, bands, v0, inv_h, mask) -> (outside, finite)\n\n"
 "(N, 2) float64 pixels ``uv`` against the convex hull of (K, 4) float64 ``edges`` rows (a_u, a_v, e_u,\n"
@@ -338,7 +187,6 @@ fail_uv:
 
 static PyMethodDef methods[] = {
     {"scan", scan, METH_VARARGS, scan_doc},
-    {"guard", guard, METH_VARARGS, guard_doc},
     {"unproven", unproven, METH_VARARGS, unproven_doc},
     {NULL, NULL, 0, NULL},
 };

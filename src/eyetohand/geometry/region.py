@@ -92,19 +92,6 @@ class HullScan:
 
 
 @dataclass(frozen=True)
-class GuardScan:
-    """Many pixels against the hull and its margin (:meth:`CalibratedRegion.guard`): ``status`` (N,)
-    uint8, 0 inside the hull, 1 within the margin (outside the hull, or not proven inside it), 2 beyond
-    the margin or not finite; ``in_margin`` and ``beyond`` count the 1s and 2s; ``finite``: whether every
-    pixel was finite."""
-
-    status: np.ndarray
-    in_margin: int
-    beyond: int
-    finite: bool
-
-
-@dataclass(frozen=True)
 class HeightPlane:
     """The least-squares plane z = a·x + b·y + c of robot points and the verdict of the one-height rule
     (module docstring). ``levels``: the (z_mm, count) of each level when the points split into two or
@@ -292,39 +279,6 @@ class CalibratedRegion:
         edges = np.ascontiguousarray(np.column_stack([au, av, eu, ev]))
         bands, v0, inv_h = _bands(edges)
         return edges, bands, v0, inv_h
-
-    @cached_property
-    def _guard_tables(self) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray, float, float]:
-        """``(edges, hull bands, v0, 1/h, margin bands, v0, 1/h)`` of the compiled guard: the scan's
-        tables and the bands of the hull grown by the margin less ``_MARGIN_SHRINK`` (an inscribed
-        polygon, so every point of it is nearer the hull than that)."""
-        edges, bands, v0, inv_h = self._scan_tables
-        m_bands, mv0, minv = _bands(_polygon_edges(self._margin_polygon), MARGIN_BANDS)
-        return edges, bands, v0, inv_h, m_bands, mv0, minv
-
-    def guard(self, uv_px) -> GuardScan:
-        """Which of (N, 2) pixels lie inside the hull, within its margin, or beyond (or are not finite),
-        in one compiled pass (``hull_kernel``) — the verdicts of :meth:`check` on the image, without a
-        distance for the points it can prove within the margin — or, without it, by :meth:`scan` and
-        :meth:`outside_px`."""
-        uv = np.ascontiguousarray(np.asarray(uv_px, float).reshape(-1, 2))
-        kernel = hull_kernel()
-        if kernel is not None:
-            edges, hb, hv0, hinv, mb, mv0, minv = self._guard_tables
-            status = np.empty(len(uv), np.uint8)
-            _, in_margin, beyond, finite = kernel.guard(
-                uv, edges, hb, hv0, hinv, mb, mv0, minv, self.margin_px, status
-            )
-            return GuardScan(status, in_margin, beyond, finite)
-        sc = self.scan(uv)
-        status = np.zeros(len(uv), np.uint8)
-        if sc.mask is not None:
-            d = self.outside_px(uv, sc)
-            status[d > 0] = 1
-            status[~(d <= self.margin_px)] = 2
-        return GuardScan(
-            status, int(np.count_nonzero(status == 1)), int(np.count_nonzero(status == 2)), sc.finite
-        )
 
     @cached_property
     def _margin_polygon(self) -> np.ndarray:
