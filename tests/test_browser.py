@@ -147,6 +147,27 @@ def test_paper_preset_in_the_workbench(server, page, tmp_path):
     assert not page.problems, page.problems
 
 
+def test_the_target_diameter_is_sent_and_refused_in_the_librarys_words(server, page):
+    """The page's fit form sends the circle target's diameter (issue 31 part 4: the same option as the
+    CLI's --target-diameter-mm and the API's field); a bad one comes back under its field."""
+    from playwright.sync_api import expect
+
+    from eyetohand.calibration import FitRequest
+    from eyetohand.core import InputError
+
+    with pytest.raises(InputError) as info:
+        FitRequest(target_diameter_mm=-1.0)
+    page.goto(server + "/")
+    expect(page.locator("#server-status")).to_contain_text("server v")
+    page.set_input_files("#pairs-file", str(PAPER / "calibration_points.csv"))
+    expect(page.locator("#pairs-count")).to_contain_text("16 pairs")
+    page.fill("#target_diameter_mm", "-1")
+    page.click("#run")
+    expect(page.locator("#fit-err")).to_be_visible()
+    words = str(info.value).split(": ")[-1].split(", got")[0]  # the rule, as the library says it
+    expect(page.locator("#fit-err")).to_contain_text(words)
+
+
 @pytest.mark.parametrize("server", ["s3cret-token"], indirect=True)
 def test_token_is_asked_for_and_used(server, page):
     from playwright.sync_api import expect

@@ -364,6 +364,8 @@ function fitRequest() {
     req.seed = num("#seed");
   }
   for (const k of ["particles", "iterations", "seed"]) if (req[k] === null) delete req[k];
+  const diameter = num("#target_diameter_mm");  // the server checks it, in the words of the CLI and library
+  if (diameter !== null) req.target_diameter_mm = diameter;
   return req;
 }
 
