@@ -249,7 +249,7 @@ async function runImages() {
   const d = $("#images-diameter").value;
   if (d !== "") req.diameter_px = Number(d);
   const fit = fitRequest();
-  for (const k of ["model", "optimizer", "objective", "particles", "iterations", "seed", "check"]) if (fit[k] !== undefined) req[k] = fit[k];
+  for (const k of ["model", "optimizer", "objective", "particles", "iterations", "seed", "check", "target_diameter_mm"]) if (fit[k] !== undefined) req[k] = fit[k];
   state.imageFiles = new Map(files.map((f) => [f.name, f]));
   $("#images-hint").textContent = `uploading ${(total / 2 ** 20).toFixed(1)} MiB…`;
   const r = await api("POST", "/api/images/calibrate", req);
