@@ -111,6 +111,19 @@ class _Interrupt:
             pass
 
 
+def _interrupted() -> int:
+    """Ctrl-C reported: one line, 130. The same SIGINT may still be delivered again while the
+    process winds down (uvicorn re-raises the signals it captured when its server exits, after
+    restoring the handler), which would kill the process with the signal after the line was printed:
+    from here on the command is ending, and SIGINT is ignored."""
+    print("error: interrupted", file=sys.stderr)
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: nothing was installed here either
+        pass
+    return 130
+
+
 def main(argv=None) -> int:
     _Interrupt.install()
     try:
@@ -123,14 +136,12 @@ def main(argv=None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
+        return _interrupted()
     except BrokenPipeError:
         return 0
     except Exception as exc:  # internal failure: one line unless debugging
         if _Interrupt.seen:  # Ctrl-C, turned into another exception on its way out
-            print("error: interrupted", file=sys.stderr)
-            return 130
+            return _interrupted()
         if os.environ.get("EYETOHAND_DEBUG"):
             raise
         print(
