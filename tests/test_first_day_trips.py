@@ -159,6 +159,38 @@ def test_ctrl_c_that_a_library_turns_into_another_exception_is_still_130(monkeyp
     assert "internal error: ZeroDivisionError" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("entry", ["-m", "script"])
+def test_ctrl_c_inside_code_run_from_a_string_still_exits_130(entry, tmp_path):
+    """Ctrl-C that lands in code run from a string (dataclasses build their methods with ``exec``:
+    it happened importing h11 while ``serve`` started) sets CPython's "unhandled KeyboardInterrupt"
+    flag, which outlived our ``except`` and killed the process with SIGINT at exit: -2, not 130."""
+    body = (
+        "import argparse, sys\n"
+        "import eyetohand.cli as cli\n"
+        "p = argparse.ArgumentParser()\n"
+        "p.set_defaults(func=lambda a: exec('import signal; signal.raise_signal(signal.SIGINT)'))\n"
+        "cli._parser = lambda *a: p\n"
+        "sys.exit(cli.main([]))\n"
+    )
+    script = tmp_path / "entry.py"
+    script.write_text(body)
+    if entry == "-m":  # the way `python -m eyetohand.cli` runs: runpy, then the module
+        (tmp_path / "entry_mod.py").write_text(body)
+        cmd = [sys.executable, "-m", "entry_mod"]
+    else:  # the way pip's `eyetohand` console script runs: a file
+        cmd = [sys.executable, str(script)]
+    r = subprocess.run(
+        cmd,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env=src_env(),
+        timeout=60,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    assert (r.returncode, r.stderr) == (130, "error: interrupted\n")
+
+
 # ---- --json everywhere ----------------------------------------------------------------------------------
 
 # commands that print no result to read: a service, files written, a file format on stdout

@@ -115,12 +115,20 @@ def _interrupted() -> int:
     """Ctrl-C reported: one line, 130. The same SIGINT may still be delivered again while the
     process winds down (uvicorn re-raises the signals it captured when its server exits, after
     restoring the handler), which would kill the process with the signal after the line was printed:
-    from here on the command is ending, and SIGINT is ignored."""
+    from here on the command is ending, and SIGINT is ignored.
+
+    And CPython remembers a KeyboardInterrupt that ended code run from a string (``exec``/``eval``
+    of text: dataclasses and namedtuples build their methods so) in a flag that outlives the
+    ``except`` that caught it; ``Py_RunMain`` reads that flag at exit and kills the process with
+    SIGINT (exit -2, not 130) -- Ctrl-C during an import that defines dataclasses did that to
+    ``serve``. Running an empty string resets the flag (``run_eval_code_obj`` in
+    Python/pythonrun.c): the interrupt was handled here."""
     print("error: interrupted", file=sys.stderr)
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     except ValueError:  # not the main thread: nothing was installed here either
         pass
+    exec("")  # noqa: S102 -- resets CPython's "unhandled KeyboardInterrupt" flag, see above
     return 130
 
 
