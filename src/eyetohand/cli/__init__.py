@@ -112,12 +112,11 @@ class _Interrupt:
 
 
 def _interrupted() -> int:
-    """Ctrl-C reported: one line, 130. The same SIGINT may still be delivered again while the
-    process winds down (uvicorn re-raises the signals it captured when its server exits, after
-    restoring the handler), which would kill the process with the signal after the line was printed:
-    from here on the command is ending, and SIGINT is ignored.
+    """Ctrl-C reported: one line, 130. From here on the command is ending, and SIGINT is ignored: a
+    second Ctrl-C while the process winds down (threads joined, files closed) would otherwise end it
+    with a traceback after the line was printed.
 
-    And CPython remembers a KeyboardInterrupt that ended code run from a string (``exec``/``eval``
+    CPython remembers a KeyboardInterrupt that ended code run from a string (``exec``/``eval``
     of text: dataclasses and namedtuples build their methods so) in a flag that outlives the
     ``except`` that caught it; ``Py_RunMain`` reads that flag at exit and kills the process with
     SIGINT (exit -2, not 130) -- Ctrl-C during an import that defines dataclasses did that to
