@@ -7,7 +7,10 @@ squares. Starting from the simplest, it moves to a candidate with more fitted nu
 data support them: a nested-model F-test of the two fits' residual sums of squares (the extra
 numbers' count as the numerator's degrees of freedom, the larger fit's residual degrees of freedom
 as the denominator's) rejects "the extra terms are zero" at ``AUTO_ALPHA`` (2 %), and its held-out
-score is lower too. "Lowest held-out score wins" alone took a lens model on a lens-free cell in
+score is lower too. The F-test holds only where the richer model nests the simpler (``Model.nests``:
+the homography and the affine map); between models that do not (dlt3d with its skew, the camera with
+its lens) Vuong's non-nested likelihood-ratio test, penalised by Schwarz's term, takes its place at
+the same level. "Lowest held-out score wins" alone took a lens model on a lens-free cell in
 2–24 % of trials (docs/limit.md). A candidate is considered only when the pairs give at least 8 more
 equations than it has unknowns (2n ≥ unknowns + 8), so that its held-out score means something;
 the report says why each candidate was or was not taken. The chosen model's held-out residuals are
@@ -27,7 +30,8 @@ step that does not settle, other objectives — falls back to refitting.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import math
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -310,6 +314,9 @@ class Candidate:
     why: str | None = None  # why it was not considered
     rss_mm2: float | None = None  # the full fit's robot-space residual sum of squares
     dof: int | None = None  # its residual degrees of freedom (coordinates − numbers fitted)
+    # the full fit's robot-space residuals (n, coordinates; their squares sum to rss_mm2): the
+    # non-nested test's per-pair likelihoods; not in the report
+    fit_residuals_mm: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
     def considered(self) -> bool:
@@ -359,6 +366,33 @@ def nested_f_test(simple: Candidate, rich: Candidate) -> float | None:
     return float(stats.f.sf(f, extra, rich.dof))
 
 
+def non_nested_test(simple: Candidate, rich: Candidate) -> float | None:
+    """p-value of "the richer fit is no closer to the truth" for two models neither of which is the
+    other with numbers held (dlt3d, with its skew, and the camera, with its lens): Vuong's test
+    (Econometrica 57, 1989, section 5) on the two full fits' Gaussian log-likelihoods per pair, each
+    with its own maximum-likelihood variance, their ratio penalised by Schwarz's
+    ``(extra numbers)/2 · ln n``; the statistic is standard normal under the hypothesis. None when the
+    richer fit fits no more numbers, a fit is exact, or the two fits' per-pair likelihoods do not
+    differ (the same map: the test does not apply)."""
+    r0, r1 = simple.fit_residuals_mm, rich.fit_residuals_mm
+    if r0 is None or r1 is None or simple.dof is None or rich.dof is None or r0.shape != r1.shape:
+        return None
+    extra = simple.dof - rich.dof
+    n, coords = r0.shape
+    if extra <= 0 or n < 2:
+        return None
+    q0, q1 = (r0 * r0).sum(axis=1), (r1 * r1).sum(axis=1)
+    v0, v1 = q0.sum() / (n * coords), q1.sum() / (n * coords)  # maximum-likelihood variances
+    if not (v0 > 0 and v1 > 0):
+        return None
+    d = 0.5 * coords * math.log(v0 / v1) + 0.5 * (q0 / v0 - q1 / v1)  # per-pair log-likelihood ratio
+    omega = float(d.std())
+    if not omega > 1e-12 * max(1.0, float(np.abs(d).max())):
+        return None
+    z = (float(d.sum()) - 0.5 * extra * math.log(n)) / (math.sqrt(n) * omega)
+    return 0.5 * math.erfc(z / math.sqrt(2.0))
+
+
 @dataclass(frozen=True)
 class Selection:
     """What ``auto`` chose and why: ``report`` is the JSON-able record kept in the calibration;
@@ -380,26 +414,29 @@ def select_model(
 
 def _nested_choice(scored: list[Candidate], what: str) -> tuple[Candidate, str]:
     """The simplest scored candidate, replaced in turn by each one with more fitted numbers that is
-    significantly better (:func:`nested_f_test` at ``AUTO_ALPHA``) and scores lower held out too; the
-    reason names the test that took the chosen one and each later candidate's that did not pay."""
+    significantly better at ``AUTO_ALPHA`` (:func:`nested_f_test` against a model it nests,
+    :func:`non_nested_test` against any other) and scores lower held out too; the reason names the
+    test that took the chosen one and each later candidate's that did not pay."""
     chosen = scored[0]
     reason = f"the simplest model that could be scored ({what} {chosen.score:.4f} mm)"
     declined: list[str] = []
     for rich in scored[1:]:
-        p = nested_f_test(chosen, rich)
-        if p is None:  # not more numbers: the held-out score alone decides
+        nested = chosen.model in MODELS[rich.model].nests
+        p = nested_f_test(chosen, rich) if nested else non_nested_test(chosen, rich)
+        test = "F-test" if nested else "non-nested (Vuong) test"
+        if p is None:  # not more numbers, or the same map: the held-out score alone decides
             if rich.score < chosen.score:
                 chosen, reason = rich, f"lower {what} ({rich.score:.4f} mm), no more numbers fitted"
                 declined = []
             continue
         if p < AUTO_ALPHA and rich.score < chosen.score:
             reason = (
-                f"its extra terms pay: F-test against '{chosen.model}' p = {p:.2g} < {AUTO_ALPHA:g}, "
+                f"its extra terms pay: {test} against '{chosen.model}' p = {p:.2g} < {AUTO_ALPHA:g}, "
                 f"{what} {rich.score:.4f} vs {chosen.score:.4f} mm"
             )
             chosen, declined = rich, []
         else:
-            why = f"p = {p:.2g}" if p >= AUTO_ALPHA else f"{what} {rich.score:.4f} mm is not lower"
+            why = f"{test} p = {p:.2g}" if p >= AUTO_ALPHA else f"{what} {rich.score:.4f} mm is not lower"
             declined.append(f"'{rich.model}' does not pay ({why})")
     return chosen, "; ".join([reason, *declined])
 
@@ -431,7 +468,9 @@ def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=Non
         score = held_out_score(res, objective, delta)
         rss = fit_noise.noise_mm**2 * fit_noise.dof
         cv_rms = float(np.sqrt(np.mean(e**2)))
-        cands.append(Candidate(cls.name, k, cv_rms, float(e.max()), score, None, rss, fit_noise.dof))
+        with np.errstate(all="ignore"):
+            fit_res = full.residuals(pairs.uv_px, pairs.xyz_mm)[:, : fit_noise.n_coords]
+        cands.append(Candidate(cls.name, k, cv_rms, float(e.max()), score, None, rss, fit_noise.dof, fit_res))
         held[cls.name] = res
     rows = [c.to_dict() for c in cands]
     scored = [c for c in cands if c.scored]

@@ -144,6 +144,10 @@ class Model(ABC):
     # constants fitted from the pairs beside the parameters (a lens's k1, k2): the parameter
     # covariance (solve/uncertainty.py) includes them, so sigma_mm carries their error too
     fitted_constants: ClassVar[tuple[str, ...]] = ()
+    # the models that are this one with some of its numbers held (a homography with its last row
+    # (0, 0, 1) is the affine map): ``auto`` compares a model with one it nests by an F-test, with any
+    # other by a test for non-nested models (calibration/fit.py)
+    nests: ClassVar[tuple[str, ...]] = ()
     # the refit on a subset of pairs is the refinement of the same parameter family (the constants
     # depend on the pairs only through normalisation), so leave-one-out may start from the full fit
     loo_warm_start: ClassVar[bool] = True

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from eyetohand.core import DegenerateError
@@ -47,6 +49,7 @@ class Homography(PlanarMatrixModel):
 
     name = "homography"
     n_params = 8
+    nests: ClassVar[tuple[str, ...]] = ("affine",)  # H with its last row (0, 0, 1)
     min_pairs = 5
     summary = "8 unknowns: plane-to-plane perspective (tilted camera), no lens distortion"
 

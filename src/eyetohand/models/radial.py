@@ -343,6 +343,7 @@ class HomographyRadial(Homography):
     the homography's 8 elements."""
 
     name = "homography-radial"
+    nests = ("homography", "affine")  # k1 = k2 = 0
     n_params = 8  # the homography; f, k1, k2 are fixed by the lens fit
     # ... and fitted from the pairs, so the covariance includes k1, k2 (f only sets their units: a
     # change of f with k1 f², k2 f⁴ held undistorts every pixel alike, so it is no error of the map)
