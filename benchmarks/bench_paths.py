@@ -5,7 +5,9 @@ benchmarks/bench_paths.py [--quick]`.
    ``cv2.perspectiveTransform`` with the model's matrix (goal ≤ 1.5×); the model alone beside it.
 2. The same, one point, against NumPy's ``H @ [u, v, 1]`` and divide (goal ≤ 3×).
 3. The TCP line ``u,v`` round trip, p50, against a minimal asyncio echo-and-map server
-   (peer_tcp.py; goal ≤ 1.5×).
+   (peer_tcp.py; goal ≤ 1.5×); beside it the same with each server and its client pinned to one core
+   (bench_server.on_one_core): a round trip is two wake-ups, which across a VM's cores cost 0.1-0.5 ms
+   each and move the unpinned ratio 1-3× between runs; on one core both servers are measured alike.
 4. HTTP one point, p50, against a minimal FastAPI app (peer_http.py; goal ≤ 1.2×).
 5. ``eyetohand apply CAL --uv U V`` start against ``python -c "import numpy"`` (goal ≤ 1.5×, wall and
    CPU medians of interleaved fresh processes).
@@ -123,7 +125,8 @@ def servers(rounds: int, requests: int) -> None:
             srv.wait_port(ports["peer_tcp"], procs["peer_tcp"])
             srv.wait_port(ports["peer_modbus"], procs["peer_plc"])
             srv.wait_port(ports["peer_opcua"], procs["peer_plc"])
-            _measure_servers(ports, rounds, requests)
+            pids = {"tcp": procs["ours"].pid, "peer_tcp": procs["peer_tcp"].pid}
+            _measure_servers(ports, rounds, requests, pids)
         finally:
             srv.stop_all(procs)
 
@@ -156,7 +159,7 @@ def _clients(ports: dict[str, int], pms: dict, reqs: list[bytes], pts: list[tupl
     }
 
 
-def _measure_servers(ports: dict[str, int], rounds: int, requests: int) -> None:
+def _measure_servers(ports: dict[str, int], rounds: int, requests: int, pids: dict[str, int]) -> None:
     from pymodbus.client import ModbusTcpClient
 
     pms = {k: ModbusTcpClient("127.0.0.1", port=ports[k]) for k in ("modbus", "peer_modbus")}
@@ -171,11 +174,24 @@ def _measure_servers(ports: dict[str, int], rounds: int, requests: int) -> None:
                 got = runs[k]()
                 if r >= 0:
                     lat.setdefault(k, []).extend(got)
+            lines = [f"{u!r},{v!r}\n".encode() for u, v in pts]
+            for k in ("tcp", "peer_tcp") if r % 2 == 0 else ("peer_tcp", "tcp"):  # both on one core
+                got = srv.on_one_core(pids[k], ports[k], [lines])
+                if r >= 0:
+                    lat.setdefault(k + " one core", []).extend(got)
     finally:
         for pm in pms.values():
             pm.close()
     p50 = {k: float(np.percentile(v, 50)) for k, v in lat.items()}
     row("TCP line u,v round trip, p50", p50["tcp"], p50["peer_tcp"], "ms", "asyncio echo-and-map", 1.5)
+    row(
+        "   (each server and its client on one core)",
+        p50["tcp one core"],
+        p50["peer_tcp one core"],
+        "ms",
+        "asyncio echo-and-map",
+        None,
+    )
     row("HTTP one point, p50", p50["http"], p50["peer_http"], "ms", "minimal FastAPI (peer_http)", 1.2)
     row("Modbus write+read handshake, p50", p50["modbus"], p50["tcp"], "ms", "our TCP line, p50", None)
     row("OPC UA ImageToRobot call, p50", p50["opcua"], p50["tcp"], "ms", "our TCP line, p50", None)
