@@ -213,3 +213,5 @@ def test_the_non_nested_test_is_vuongs_statistic():
     same = Candidate("camera", 14, dof=n * c - 14, fit_residuals_mm=r0)
     assert non_nested_test(Candidate("dlt3d", 11, dof=n * c - 11, fit_residuals_mm=r0), same) is None
     assert non_nested_test(same, same) is None  # no more numbers fitted
+    exact = Candidate("camera", 14, dof=n * c - 14, fit_residuals_mm=np.zeros((n, c)))
+    assert non_nested_test(Candidate("dlt3d", 11, dof=n * c - 11, fit_residuals_mm=r0), exact) == 0.0

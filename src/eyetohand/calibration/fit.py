@@ -372,8 +372,8 @@ def non_nested_test(simple: Candidate, rich: Candidate) -> float | None:
     (Econometrica 57, 1989, section 5) on the two full fits' Gaussian log-likelihoods per pair, each
     with its own maximum-likelihood variance, their ratio penalised by Schwarz's
     ``(extra numbers)/2 · ln n``; the statistic is standard normal under the hypothesis. None when the
-    richer fit fits no more numbers, a fit is exact, or the two fits' per-pair likelihoods do not
-    differ (the same map: the test does not apply)."""
+    richer fit fits no more numbers, both fits are exact, or the two fits' per-pair likelihoods do not
+    differ (the same map: the test does not apply); 0 when only the richer fit is exact."""
     r0, r1 = simple.fit_residuals_mm, rich.fit_residuals_mm
     if r0 is None or r1 is None or simple.dof is None or rich.dof is None or r0.shape != r1.shape:
         return None
@@ -383,6 +383,8 @@ def non_nested_test(simple: Candidate, rich: Candidate) -> float | None:
         return None
     q0, q1 = (r0 * r0).sum(axis=1), (r1 * r1).sum(axis=1)
     v0, v1 = q0.sum() / (n * coords), q1.sum() / (n * coords)  # maximum-likelihood variances
+    if v1 == 0.0 and v0 > 0.0:  # the richer fit exact, the simpler not (as nested_f_test)
+        return 0.0
     if not (v0 > 0 and v1 > 0):
         return None
     d = 0.5 * coords * math.log(v0 / v1) + 0.5 * (q0 / v0 - q1 / v1)  # per-pair log-likelihood ratio
