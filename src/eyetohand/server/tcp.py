@@ -310,7 +310,7 @@ def answer(cal: Calibration, line: bytes, replies: LineReplies = PLAIN_REPLIES) 
             pass
         else:
             if all(map(math.isfinite, vals)):
-                return _mapped_plain(cal, vals, replies)
+                return _mapped_line(cal, vals, {}, replies)
     try:
         text = line.decode("ascii").strip()
     except UnicodeDecodeError:
@@ -356,18 +356,6 @@ def _number(name: str, text: str) -> tuple[float, bytes | None]:
         return line_numbers([text], (name,), None)[0], None
     except CommandError as exc:
         return 0.0, f"ERR {exc}\n".encode()
-
-
-def _mapped_plain(cal: Calibration, vals: list[float], replies: LineReplies) -> bytes:
-    """:func:`_mapped_line` of a line without words (the robot's every line): the same call with
-    every option at its default, without looking each one up."""
-    z = replies.z_in(vals[2]) if len(vals) == 3 else None
-    try:
-        with np.errstate(all="ignore"):
-            m = cal.map(np.array([vals[:2]]), z, with_sigma=False)
-    except InputError as exc:
-        return replies.refused(exc)
-    return replies.mapped(m.xyz_mm[0].tolist(), None, None, bool(m.inside[0]))
 
 
 def _mapped_line(cal: Calibration, vals: list[float], opts: dict, replies: LineReplies) -> bytes:
