@@ -102,12 +102,8 @@ def servers(rounds: int, requests: int) -> None:
         keys = ("http", "tcp", "modbus", "opcua", "peer_http", "peer_tcp", "peer_modbus", "peer_opcua")
         ports = {k: srv.free_port() for k in keys}
         py = sys.executable
-        ours = [py, "-m", "eyetohand.cli", "serve", "--port", str(ports["http"]), "--data", str(data)]
-        ours += ["--calibration", "bench", "--log-level", "warning"]
-        for flag in ("tcp", "modbus", "opcua"):
-            ours += [f"--{flag}", f"127.0.0.1:{ports[flag]}"]
         cmds = {
-            "ours": ours,
+            "ours": srv.serve_command(data, ports),
             "peer_http": [py, str(HERE / "peer_http.py"), str(cal_file), str(ports["peer_http"])],
             "peer_tcp": [py, str(HERE / "peer_tcp.py"), str(cal_file), str(ports["peer_tcp"])],
             "peer_plc": [py, str(HERE / "peer_plc.py"), str(cal_file)]

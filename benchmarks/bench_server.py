@@ -45,6 +45,18 @@ BIG = 1_000_000
 MAP_PATH = "/api/calibrations/1/image-to-robot"
 
 
+def serve_command(data: Path, ports: dict[str, int]) -> list[str]:
+    """``eyetohand serve`` of the seeded calibration "bench" (:func:`seed_database`) on 127.0.0.1:
+    the workbench on ``ports["http"]`` and each of the line, Modbus and OPC UA services ``ports`` has
+    (keys "tcp", "modbus", "opcua"; other keys are ignored)."""
+    cmd = [sys.executable, "-m", "eyetohand.cli", "serve", "--port", str(ports["http"]), "--data", str(data)]
+    cmd += ["--calibration", "bench", "--log-level", "warning"]
+    for flag in ("tcp", "modbus", "opcua"):
+        if flag in ports:
+            cmd += [f"--{flag}", f"127.0.0.1:{ports[flag]}"]
+    return cmd
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -332,8 +344,7 @@ def main(argv: list[str] | None = None) -> int:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         py = sys.executable
         cmds = {
-            "ours": [py, "-m", "eyetohand.cli", "serve", "--port", str(port), "--data", str(data)]
-            + ["--tcp", f"127.0.0.1:{tcp_port}", "--calibration", "bench", "--log-level", "warning"],
+            "ours": serve_command(data, {"http": port, "tcp": tcp_port}),
             "peer_http": [py, str(HERE / "peer_http.py"), str(cal_file), str(peer_port)],
             "peer_tcp": [py, str(HERE / "peer_tcp.py"), str(cal_file), str(peer_tcp_port)],
         }

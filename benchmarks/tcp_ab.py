@@ -41,11 +41,10 @@ def main() -> None:
         for name, src in (("baseline", args.baseline_src), ("this tree", str(SRC))):
             p = {k: srv.free_port() for k in ("http", "tcp", "modbus", "opcua")}
             ports[name] = p
-            cmd = [py, "-m", "eyetohand.cli", "serve", "--port", str(p["http"]), "--data", str(data)]
-            cmd += ["--calibration", "bench", "--log-level", "warning"]
-            for flag in ("tcp", "modbus", "opcua"):
-                cmd += [f"--{flag}", f"127.0.0.1:{p[flag]}"]
-            cmds[name], envs[name] = cmd, {**os.environ, "PYTHONPATH": src, "PYTHONUNBUFFERED": "1"}
+            cmds[name], envs[name] = (
+                srv.serve_command(data, p),
+                {**os.environ, "PYTHONPATH": src, "PYTHONUNBUFFERED": "1"},
+            )
         peer_port = srv.free_port()
         ports["peer"] = {"tcp": peer_port}
         cmds["peer"] = [py, str(HERE / "peer_tcp.py"), str(cal_file), str(peer_port)]
