@@ -312,11 +312,16 @@ class Candidate:
     cv_max_mm: float | None = None
     cv_score_mm: float | None = None  # held-out score on the objective (held_out_score)
     why: str | None = None  # why it was not considered
-    rss_mm2: float | None = None  # the full fit's robot-space residual sum of squares
-    dof: int | None = None  # its residual degrees of freedom (coordinates − numbers fitted)
-    # the full fit's robot-space residuals (n, coordinates; their squares sum to rss_mm2): the
-    # non-nested test's per-pair likelihoods; not in the report
+    dof: int | None = None  # the full fit's residual degrees of freedom (coordinates − numbers fitted)
+    # the full fit's robot-space residuals (n, coordinates): the F-test's sum of squares, the
+    # non-nested test's per-pair likelihoods; in the report as their sum of squares only
     fit_residuals_mm: np.ndarray | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def rss_mm2(self) -> float | None:
+        """The full fit's robot-space residual sum of squares."""
+        r = self.fit_residuals_mm
+        return None if r is None else float((r * r).sum())
 
     @property
     def considered(self) -> bool:
@@ -468,11 +473,10 @@ def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=Non
         if delta is None:  # one Huber threshold for every candidate, from the simplest's errors
             delta = huber_delta_mm(e[np.isfinite(e)]) if np.isfinite(e).any() else 1.0
         score = held_out_score(res, objective, delta)
-        rss = fit_noise.noise_mm**2 * fit_noise.dof
         cv_rms = float(np.sqrt(np.mean(e**2)))
         with np.errstate(all="ignore"):
             fit_res = full.residuals(pairs.uv_px, pairs.xyz_mm)[:, : fit_noise.n_coords]
-        cands.append(Candidate(cls.name, k, cv_rms, float(e.max()), score, None, rss, fit_noise.dof, fit_res))
+        cands.append(Candidate(cls.name, k, cv_rms, float(e.max()), score, None, fit_noise.dof, fit_res))
         held[cls.name] = res
     rows = [c.to_dict() for c in cands]
     scored = [c for c in cands if c.scored]
