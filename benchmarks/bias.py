@@ -19,7 +19,7 @@ homography can represent costs nothing); this measures the rest, on the limit ce
   same targets there (a check with the same detector: bias at use cancels bias at calibration
   where the map absorbed it);
 * correction (the library's, :mod:`eyetohand.calibration.circles`: what
-  ``FitRequest(target_diameter_mm=...)``, ``calibrate --target-diameter-mm`` and the HTTP field
+  ``FitRequest.from_names(target_diameter_mm=...)``, ``calibrate --target-diameter-mm`` and the HTTP field
   ``target_diameter_mm`` run): with a plane→image map — the fitted calibration's own
   ``robot_to_image`` (no camera model needed: the robot's plane is metric, so the map knows how the
   circle's outline projects) or the true camera (the upper bound) — each ellipse centre is moved by
@@ -111,7 +111,7 @@ def run(tilt: float, d_mm: float, distance_mm: float, quick: bool, sigma_r: floa
         return calibrate(PointPairs.from_arrays(uv, robot), model="homography", image_size=SIZE, loo=False)
 
     def fitted_correction(uv, robot=train):  # the library's loop: fit, correct, refit, twice
-        request = FitRequest("homography", image_size=SIZE, loo=False, target_diameter_mm=d_mm)
+        request = FitRequest.from_names("homography", image_size=SIZE, loo=False, target_diameter_mm=d_mm)
         return calibrate_request(request, PointPairs.from_arrays(uv, robot))
 
     out = {

@@ -61,7 +61,7 @@ def check_rms_mm(cal: Calibration, check: np.ndarray, uv_px: np.ndarray) -> floa
 
 
 def fit(pairs: PointPairs, diameter_mm: float | None) -> Calibration:
-    request = FitRequest("homography", image_size=SIZE, loo=False, target_diameter_mm=diameter_mm)
+    request = FitRequest.from_names("homography", image_size=SIZE, loo=False, target_diameter_mm=diameter_mm)
     return calibrate_request(request, pairs)
 
 
@@ -158,7 +158,9 @@ def test_the_cli_and_http_fit_with_the_diameter(cells, tmp_path, capsys):
     argv = ["calibrate", str(csv), "--model", "homography", "--image-size", "1920x1200"]
     assert main([*argv, "--target-diameter-mm", "20", "-o", str(out)]) == 0, capsys.readouterr().err
     by_cli = Calibration.load(out)
-    want = calibrate_request(FitRequest("homography", image_size=SIZE, target_diameter_mm=20.0), pairs)
+    want = calibrate_request(
+        FitRequest.from_names("homography", image_size=SIZE, target_diameter_mm=20.0), pairs
+    )
     assert np.array_equal(by_cli.model.params, want.model.params)
     assert by_cli.fit.extra["target_diameter_mm"] == 20.0
     with TestClient(create_app(tmp_path / "data")) as client:
@@ -227,7 +229,9 @@ def test_the_correction_at_two_heights(cells, model):
     uv_true = cam.robot_to_image(check)
     errors = []
     for diameter in (None, DIAMETER_MM):
-        request = FitRequest(model, image_size=SIZE, loo=False, seed=0, target_diameter_mm=diameter)
+        request = FitRequest.from_names(
+            model, image_size=SIZE, loo=False, seed=0, target_diameter_mm=diameter
+        )
         cal = calibrate_request(request, pairs)
         err = cal.image_to_robot(uv_true, check[:, 2], allow_outside=True)[:, :2] - check[:, :2]
         errors.append(float(np.sqrt((err**2).sum(axis=1).mean())))

@@ -12,6 +12,7 @@ from conftest import PAPER
 from eyetohand.calibration import FitRequest, calibrate, calibrate_request
 from eyetohand.cli import main
 from eyetohand.core import InputError
+from eyetohand.models import MODELS
 
 
 @pytest.mark.parametrize(
@@ -36,7 +37,7 @@ from eyetohand.core import InputError
 def test_a_bad_request_is_refused_in_calibrates_words(paper_pairs, options):
     train, _ = paper_pairs
     with pytest.raises(InputError) as made:
-        FitRequest(**options)
+        FitRequest.from_names(**options)
     kwargs = dict(options)
     swarm = {k: kwargs.pop(k) for k in ("n_particles", "iterations") if k in kwargs}
     with pytest.raises(InputError) as called:
@@ -46,22 +47,22 @@ def test_a_bad_request_is_refused_in_calibrates_words(paper_pairs, options):
 
 
 def test_a_request_is_normalised_and_frozen():
-    r = FitRequest(model="homography", seed=np.int64(7), image_size=[640.0, 480], n_particles=20)
+    r = FitRequest.from_names(model="homography", seed=np.int64(7), image_size=[640.0, 480], n_particles=20)
     assert r.seed == 7 and type(r.seed) is int
     assert r.image_size == (640, 480)
     assert r.solver_options == {"n_particles": 20}
-    assert FitRequest().solver_options == {}
-    assert FitRequest(optimizer="hybrid-pso").is_swarm and not FitRequest().is_swarm
+    assert FitRequest.from_names().solver_options == {}
+    assert FitRequest.from_names(optimizer="hybrid-pso").is_swarm and not FitRequest.from_names().is_swarm
     with pytest.raises(dataclasses.FrozenInstanceError):
-        r.model = "affine"  # type: ignore[misc]
+        r.model = MODELS["affine"]  # type: ignore[misc]
 
 
 @pytest.mark.parametrize(
     "request_",
     [
-        FitRequest("paper", "hybrid-pso", seed=3, n_particles=30, iterations=20),
-        FitRequest("auto", "pso", "linf", seed=5, n_particles=20, iterations=10, loo=False),
-        FitRequest("homography", "lm", image_size=(2448, 2048)),
+        FitRequest.from_names("paper", "hybrid-pso", seed=3, n_particles=30, iterations=20),
+        FitRequest.from_names("auto", "pso", "linf", seed=5, n_particles=20, iterations=10, loo=False),
+        FitRequest.from_names("homography", "lm", image_size=(2448, 2048)),
     ],
 )
 def test_calibrate_request_is_calibrate(paper_pairs, request_):
@@ -70,9 +71,7 @@ def test_calibrate_request_is_calibrate(paper_pairs, request_):
     got = calibrate_request(request_, train, check=check, callback=lambda k, f, x: seen.append(f))
     want = calibrate(
         train,
-        request_.model,
-        request_.optimizer,
-        request_.objective,
+        *request_.names,
         check=check,
         image_size=request_.image_size,
         seed=request_.seed,
@@ -101,7 +100,7 @@ def test_the_cli_and_calibrate_request_agree(tmp_path, capsys):
 
     cal = Calibration.load(out)
     want = calibrate_request(
-        FitRequest("paper", "pso", seed=4, n_particles=20, iterations=15),
+        FitRequest.from_names("paper", "pso", seed=4, n_particles=20, iterations=15),
         load_pairs(PAPER / "calibration_points.csv"),
     )
     assert np.array_equal(cal.model.params, want.model.params)

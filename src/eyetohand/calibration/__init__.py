@@ -20,8 +20,15 @@ if TYPE_CHECKING:
     from eyetohand.calibration.compare import compare, format_compare
     from eyetohand.calibration.export import FORMATS, export_text
     from eyetohand.calibration.file import Calibration, Mapped
-    from eyetohand.calibration.fit import MAX_IMAGE_SIDE_PX, calibrate, check_image_size
-    from eyetohand.calibration.request import FitRequest, calibrate_request
+    from eyetohand.calibration.fit import calibrate, calibrate_request
+    from eyetohand.calibration.request import (
+        AUTO,
+        MAX_IMAGE_SIDE_PX,
+        AutoModel,
+        FitRequest,
+        check_image_size,
+        resolve_model,
+    )
     from eyetohand.calibration.signing import load_sign_key
     from eyetohand.calibration.verify import append_history, check_tolerance, verify
 else:
@@ -41,14 +48,23 @@ else:
             "compare": ("compare", "format_compare"),
             "export": ("FORMATS", "export_text"),
             "file": ("Calibration", "Mapped"),
-            "fit": ("MAX_IMAGE_SIDE_PX", "calibrate", "check_image_size"),
-            "request": ("FitRequest", "calibrate_request"),
+            "fit": ("calibrate", "calibrate_request"),
+            "request": (
+                "AUTO",
+                "AutoModel",
+                "FitRequest",
+                "MAX_IMAGE_SIDE_PX",
+                "check_image_size",
+                "resolve_model",
+            ),
             "signing": ("load_sign_key",),
             "verify": ("append_history", "check_tolerance", "verify"),
         },
     )
 
 __all__ = [
+    "AUTO",
+    "AutoModel",
     "Calibration",
     "Evaluation",
     "FORMATS",
@@ -74,5 +90,6 @@ __all__ = [
     "mixup",
     "projected_centres_px",
     "recorded_diameter_mm",
+    "resolve_model",
     "verify",
 ]

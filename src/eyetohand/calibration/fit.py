@@ -36,21 +36,25 @@ from typing import Any
 
 import numpy as np
 
+from eyetohand.calibration.checking import check_warnings
+from eyetohand.calibration.circles import fit_corrected
 from eyetohand.calibration.file import Calibration, derived_region
+from eyetohand.calibration.request import AutoModel, FitRequest, ModelChoice, resolve_model
 from eyetohand.core import DegenerateError, InputError, PointPairs, TcpOffset
 from eyetohand.geometry import ONE_HEIGHT_RULE, fit_height_plane
 from eyetohand.models import MODELS, HeightRule, Model, get_model
 from eyetohand.solve import (
+    Objective,
+    Solver,
     Uncertainty,
-    check_optimizer,
-    check_seed,
+    check_fit,
     correct_pairs,
     estimate_tcp_offset,
+    get_objective,
     get_solver,
     has_turns,
     huber_delta_mm,
     mapped_residuals,
-    objective_values,
     pair_leverage,
     reference_pairs,
     refine,
@@ -62,25 +66,30 @@ SPARE_EQUATIONS = 8
 LOO_MAX_PAIRS = 40
 
 
+def _model_class(model: str | type[Model]) -> type[Model]:
+    return model if isinstance(model, type) else get_model(model)
+
+
 def fit_model(
     pairs: PointPairs,
-    model: str,
-    optimizer: str = "lm",
-    objective: str = "l2",
+    model: str | type[Model],
+    optimizer: str | Solver = "lm",
+    objective: str | Objective = "l2",
     *,
     image_size=None,
     seed=None,
     callback=None,
     **solver_options,
 ):
-    """Estimate ``model`` on ``pairs`` and refine it: returns ``(Model, FitInfo)``."""
-    cls = get_model(model)
+    """Estimate ``model`` (a name or a model class) on ``pairs`` and refine it with ``optimizer`` on
+    ``objective`` (names, or the resolved objects): returns ``(Model, FitInfo)``."""
+    cls = _model_class(model)
     try:
         base = cls.from_pairs(pairs.uv_px, pairs.xyz_mm, image_size=image_size)
     except InputError as exc:
         raise type(exc)(f"{pairs.source}: {exc}") from None
     except np.linalg.LinAlgError as exc:  # a singular system the model's own checks did not foresee
-        raise _unsolvable(pairs, model, exc) from None
+        raise _unsolvable(pairs, cls, exc) from None
     try:
         return refine(
             base,
@@ -93,11 +102,11 @@ def fit_model(
             **solver_options,
         )
     except np.linalg.LinAlgError as exc:
-        raise _unsolvable(pairs, model, exc) from None
+        raise _unsolvable(pairs, cls, exc) from None
 
 
-def _unsolvable(pairs: PointPairs, model: str, exc: np.linalg.LinAlgError) -> DegenerateError:
-    return DegenerateError(f"{pairs.source}: model {model!r} cannot be solved on these pairs ({exc})")
+def _unsolvable(pairs: PointPairs, cls: type[Model], exc: np.linalg.LinAlgError) -> DegenerateError:
+    return DegenerateError(f"{pairs.source}: model {cls.name!r} cannot be solved on these pairs ({exc})")
 
 
 def folds_for(n: int, seed=0) -> list[np.ndarray]:
@@ -213,19 +222,17 @@ def _held_out_plane_z(model: Model, z: np.ndarray) -> np.ndarray:
     return (z.sum() - z) / (n - 1) - z
 
 
-def _loo_warm(model: str, optimizer: str, objective: str) -> bool:
-    cls = get_model(model)
-    if objective != "l2" or not cls.loo_warm_start:
+def _loo_warm(cls: type[Model], solver: Solver, objective: Objective) -> bool:
+    if not objective.least_squares or not cls.loo_warm_start:
         return False
-    solver = get_solver(optimizer)
     return solver.is_least_squares or (solver.is_linear and cls.linear_in_params)
 
 
 def cross_validate(
     pairs: PointPairs,
-    model: str,
-    optimizer: str = "lm",
-    objective: str = "l2",
+    model: str | type[Model],
+    optimizer: str | Solver = "lm",
+    objective: str | Objective = "l2",
     *,
     image_size=None,
     seed=0,
@@ -235,40 +242,46 @@ def cross_validate(
     """Held-out residuals (N, 3) mm: leave-one-out up to 40 pairs, else 10 seeded folds.
     Leave-one-out takes Gauss–Newton from the full fit where it can (:func:`loo_gauss_newton`;
     ``full``: that fit, when the caller has it), unless ``refit``. A held-out pair that its fit maps
-    to no finite point is refused by id (:class:`DegenerateError`): no score can be made of it."""
-    res = _held_out(pairs, model, optimizer, objective, image_size, seed, full, refit)
+    to no finite point is refused by id (:class:`DegenerateError`): no score can be made of it.
+    ``model``, ``optimizer``, ``objective``: names, or the resolved objects."""
+    cls, solver, obj = _model_class(model), get_solver(optimizer), get_objective(objective)
+    res = _held_out(pairs, cls, solver, obj, image_size, seed, full, refit)
     lost = ~np.isfinite(res).all(axis=1)
     if lost.any():
         i = int(np.argmax(lost))
         raise DegenerateError(
-            f"model '{model}': the fit without pair {pairs.ids[i]} maps it to no finite point (beyond that "
-            f"fit's lens fold or horizon; {int(lost.sum())} of {len(res)} held-out pairs): it cannot be "
+            f"model '{cls.name}': the fit without pair {pairs.ids[i]} maps it to no finite point (beyond "
+            f"that fit's lens fold or horizon; {int(lost.sum())} of {len(res)} held-out pairs): it cannot be "
             "cross-validated on these pairs"
         )
     return res
 
 
-def _held_out(pairs, model, optimizer, objective, image_size, seed, full, refit) -> np.ndarray:
+def _held_out(
+    pairs: PointPairs,
+    cls: type[Model],
+    solver: Solver,
+    objective: Objective,
+    image_size,
+    seed,
+    full: Model | None,
+    refit: bool,
+) -> np.ndarray:
     n = len(pairs)
-    if (
-        not refit
-        and n <= LOO_MAX_PAIRS
-        and n - 1 >= get_model(model).min_pairs
-        and _loo_warm(model, optimizer, objective)
-    ):
+    if not refit and n <= LOO_MAX_PAIRS and n - 1 >= cls.min_pairs and _loo_warm(cls, solver, objective):
         try:
             base = (
                 full
                 if full is not None
-                else fit_model(pairs, model, optimizer, objective, image_size=image_size, seed=seed)[0]
+                else fit_model(pairs, cls, solver, objective, image_size=image_size, seed=seed)[0]
             )
             fast = loo_gauss_newton(base, pairs.uv_px, pairs.xyz_mm)
         except InputError:
             fast = None
         if fast is not None:
             return fast
-    if not refit and n <= LOO_MAX_PAIRS and objective == "l2" and get_solver(optimizer).is_least_squares:
-        own = getattr(get_model(model), "leave_one_out", None)  # a model's own warm-started refits
+    if not refit and n <= LOO_MAX_PAIRS and objective.least_squares and solver.is_least_squares:
+        own = getattr(cls, "leave_one_out", None)  # a model's own warm-started refits
         if own is not None:
             try:
                 fast = own(pairs.uv_px, pairs.xyz_mm, image_size=image_size)
@@ -279,7 +292,7 @@ def _held_out(pairs, model, optimizer, objective, image_size, seed, full, refit)
     res = np.full((n, 3), np.nan)
     for held in folds_for(n, seed):
         keep = np.setdiff1d(np.arange(n), held)
-        m, _ = fit_model(pairs.subset(keep), model, optimizer, objective, image_size=image_size, seed=seed)
+        m, _ = fit_model(pairs.subset(keep), cls, solver, objective, image_size=image_size, seed=seed)
         test = pairs.subset(held)
         res[held] = m.residuals(test.uv_px, test.xyz_mm)
     return res
@@ -293,12 +306,10 @@ def candidate_models(pairs: PointPairs) -> list[type[Model]]:
     return sorted(cands, key=lambda c: c.n_unknowns())
 
 
-def held_out_score(residuals_mm: np.ndarray, objective: str, delta_mm: float) -> float:
-    """A held-out residual set scored on the objective, per pair: RMS (l2), max (linf), Huber loss."""
-    r = np.asarray(residuals_mm, float)
-    if objective == "l2":
-        return float(np.sqrt(np.mean((r * r).sum(axis=1))))
-    return float(objective_values(r[None], objective, delta_mm)[0] / (len(r) if objective == "huber" else 1))
+def held_out_score(residuals_mm: np.ndarray, objective: str | Objective, delta_mm: float) -> float:
+    """A held-out residual set scored on the objective, per pair: RMS (l2), max (linf), Huber loss
+    (:meth:`~eyetohand.solve.Objective.held_out_score`)."""
+    return get_objective(objective).held_out_score(residuals_mm, delta_mm)
 
 
 @dataclass(frozen=True)
@@ -316,6 +327,7 @@ class Candidate:
     # the full fit's robot-space residuals (n, coordinates): the F-test's sum of squares, the
     # non-nested test's per-pair likelihoods; in the report as their sum of squares only
     fit_residuals_mm: np.ndarray | None = field(default=None, compare=False, repr=False)
+    nests: tuple[str, ...] = field(default=(), compare=False, repr=False)  # its class's Model.nests
 
     @property
     def rss_mm2(self) -> float | None:
@@ -405,18 +417,23 @@ class Selection:
     """What ``auto`` chose and why: ``report`` is the JSON-able record kept in the calibration;
     ``residuals_mm`` the chosen model's held-out residuals (reused as its leave-one-out)."""
 
-    model: str
+    model: type[Model]
     report: dict
     residuals_mm: np.ndarray | None
-    optimizer: str
+    optimizer: Solver
 
 
 def select_model(
-    pairs: PointPairs, *, optimizer: str = "lm", objective: str = "l2", image_size=None, seed=0
+    pairs: PointPairs,
+    *,
+    optimizer: str | Solver = "lm",
+    objective: str | Objective = "l2",
+    image_size=None,
+    seed=0,
 ) -> tuple[str, dict]:
     """Choose a model by cross-validated score on ``objective``; returns ``(name, report)``."""
-    sel = _select(pairs, optimizer, objective, image_size=image_size, seed=seed)
-    return sel.model, sel.report
+    sel = _select(pairs, get_solver(optimizer), get_objective(objective), image_size=image_size, seed=seed)
+    return sel.model.name, sel.report
 
 
 def _nested_choice(scored: list[Candidate], what: str) -> tuple[Candidate, str]:
@@ -428,7 +445,7 @@ def _nested_choice(scored: list[Candidate], what: str) -> tuple[Candidate, str]:
     reason = f"the simplest model that could be scored ({what} {chosen.score:.4f} mm)"
     declined: list[str] = []
     for rich in scored[1:]:
-        nested = chosen.model in MODELS[rich.model].nests
+        nested = chosen.model in rich.nests
         p = nested_f_test(chosen, rich) if nested else non_nested_test(chosen, rich)
         test = "F-test" if nested else "non-nested (Vuong) test"
         if p is None:  # not more numbers, or the same map: the held-out score alone decides
@@ -448,23 +465,23 @@ def _nested_choice(scored: list[Candidate], what: str) -> tuple[Candidate, str]:
     return chosen, "; ".join([reason, *declined])
 
 
-def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=None, seed=0) -> Selection:
+def _select(pairs: PointPairs, solver: Solver, objective: Objective, *, image_size=None, seed=0) -> Selection:
     n = len(pairs)
-    cv_opt = get_solver(optimizer).for_cross_validation(objective)
+    cv_opt = solver.for_cross_validation(objective)
     cands: list[Candidate] = []
+    classes: dict[str, type[Model]] = {}
     held: dict[str, np.ndarray] = {}
     delta = None
     for cls in candidate_models(pairs):
         k = cls.n_unknowns()
+        classes[cls.name] = cls
         if 2 * n < k + SPARE_EQUATIONS:
             need = -(-(k + SPARE_EQUATIONS) // 2)
             cands.append(Candidate(cls.name, k, why=f"needs at least {need} pairs, have {n}"))
             continue
         try:
-            full, _ = fit_model(pairs, cls.name, cv_opt, objective, image_size=image_size, seed=seed)
-            res = cross_validate(
-                pairs, cls.name, cv_opt, objective, image_size=image_size, seed=seed, full=full
-            )
+            full, _ = fit_model(pairs, cls, cv_opt, objective, image_size=image_size, seed=seed)
+            res = cross_validate(pairs, cls, cv_opt, objective, image_size=image_size, seed=seed, full=full)
             fit_noise = Uncertainty.of_fit(full, pairs.uv_px, pairs.xyz_mm)
         except InputError as exc:
             cands.append(Candidate(cls.name, k, why=str(exc)))
@@ -472,11 +489,13 @@ def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=Non
         e = np.linalg.norm(res, axis=1)
         if delta is None:  # one Huber threshold for every candidate, from the simplest's errors
             delta = huber_delta_mm(e[np.isfinite(e)]) if np.isfinite(e).any() else 1.0
-        score = held_out_score(res, objective, delta)
+        score = objective.held_out_score(res, delta)
         cv_rms = float(np.sqrt(np.mean(e**2)))
         with np.errstate(all="ignore"):
             fit_res = full.residuals(pairs.uv_px, pairs.xyz_mm)[:, : fit_noise.n_coords]
-        cands.append(Candidate(cls.name, k, cv_rms, float(e.max()), score, None, fit_noise.dof, fit_res))
+        cands.append(
+            Candidate(cls.name, k, cv_rms, float(e.max()), score, None, fit_noise.dof, fit_res, cls.nests)
+        )
         held[cls.name] = res
     rows = [c.to_dict() for c in cands]
     scored = [c for c in cands if c.scored]
@@ -491,56 +510,39 @@ def _select(pairs: PointPairs, optimizer: str, objective: str, *, image_size=Non
             "the one with the fewest unknowns"
         )
         report: dict[str, Any] = {"chosen": fallback.name, "reason": reason, "candidates": rows}
-        return Selection(fallback.name, report, None, cv_opt)
-    what = {"l2": "held-out RMS", "linf": "largest held-out error", "huber": "held-out Huber loss"}[objective]
-    chosen, reason = _nested_choice(scored, what)
+        return Selection(fallback, report, None, cv_opt)
+    chosen, reason = _nested_choice(scored, objective.held_out_what)
     report = {
         "chosen": chosen.model,
         "reason": reason,
         "method": method,
-        "objective": objective,
-        "scored_with": cv_opt,
+        "objective": objective.name,
+        "scored_with": cv_opt.name,
         "candidates": rows,
     }
-    return Selection(chosen.model, report, held[chosen.model], cv_opt)
+    return Selection(classes[chosen.model], report, held[chosen.model], cv_opt)
 
 
-def tcp_offset_for(pairs: PointPairs, model: str = "auto", *, image_size=None, seed=0) -> TcpOffset:
-    """The tool-centre offset of pairs with turns, estimated with ``model`` ("auto": chosen by
-    cross-validation on the pairs at the most common angle, as :func:`calibrate` does)."""
-    if model == "auto" and has_turns(pairs):
-        model, _ = select_model(reference_pairs(pairs), image_size=image_size, seed=seed)
-    elif model != "auto":
-        get_model(model)
+def tcp_offset_for(
+    pairs: PointPairs, model: str | ModelChoice = "auto", *, image_size=None, seed=0
+) -> TcpOffset:
+    """The tool-centre offset of pairs with turns, estimated with ``model`` (a name, a model class or
+    :data:`~eyetohand.calibration.request.AUTO`; "auto": chosen by cross-validation on the pairs at
+    the most common angle, as :func:`calibrate` does)."""
+    choice = resolve_model(model) if isinstance(model, str) else model
+    cls: type[Model] | None = None
+    if not isinstance(choice, AutoModel):
+        cls = choice
+    elif has_turns(pairs):  # (pairs without turns are refused below, before any fit)
+        lm, l2 = get_solver("lm"), get_objective("l2")
+        cls = _select(reference_pairs(pairs), lm, l2, image_size=image_size, seed=seed).model
+    linear = get_solver("linear")
 
     def fit_linear(p: PointPairs) -> Model:
-        return fit_model(p, model, "linear", image_size=image_size)[0]
+        assert cls is not None  # estimate_tcp_offset fits only pairs with turns
+        return fit_model(p, cls, linear, image_size=image_size)[0]
 
     return estimate_tcp_offset(pairs, fit_linear)  # refuses pairs without turns, saying what they lack
-
-
-MAX_IMAGE_SIDE_PX = 100_000
-"""Largest image width or height (px) a calibration takes: no camera's sensor is wider."""
-
-
-def check_image_size(image_size) -> tuple[int, int] | None:
-    """``(W, H)`` as whole numbers of pixels from 1 to :data:`MAX_IMAGE_SIDE_PX`, or None."""
-    if image_size is None:
-        return None
-    try:
-        w, h = image_size
-        ok = all(
-            not isinstance(x, bool) and float(x) == int(x) and 1 <= int(x) <= MAX_IMAGE_SIDE_PX
-            for x in (w, h)
-        )
-    except (TypeError, ValueError, OverflowError):
-        ok = False
-    if not ok:
-        raise InputError(
-            f"image size must be two whole numbers of pixels W x H from 1 to {MAX_IMAGE_SIDE_PX}, "
-            f"got {image_size!r}"
-        )
-    return int(w), int(h)
 
 
 def calibrate(
@@ -558,6 +560,9 @@ def calibrate(
 ) -> Calibration:
     """Fit a calibration: ``model`` (a name or "auto") refined by ``optimizer`` on ``objective``.
 
+    The names and options are resolved and checked once (:meth:`FitRequest.from_names`), then fitted
+    as :func:`calibrate_request` fits a request.
+
     Pairs with an ``angle`` column whose angles differ ("9 + 2") first give the tool-centre offset
     (:mod:`eyetohand.solve.tcp_offset`); the pairs are moved to their tool points and the offset is kept in
     ``Calibration.tcp_offset``.
@@ -566,37 +571,69 @@ def calibrate(
     errors on the training pairs (refit without each pair; for the PSO solvers the leave-one-out
     refits use ``lm`` — or ``linear`` for a non-smooth objective — to keep it fast, and say so).
     """
-    solver = check_optimizer(optimizer, objective, solver_options)
-    seed = check_seed(seed)
-    if model != "auto":
-        get_model(model)
-    image_size = check_image_size(image_size)
+    if set(solver_options) - set(FitRequest.SOLVER_OPTIONS):
+        check_fit(optimizer, objective, solver_options)  # refuses the unknown option, in its order and words
+    request = FitRequest.from_names(
+        model,
+        optimizer,
+        objective,
+        seed=seed,
+        image_size=image_size,
+        loo=loo,
+        **solver_options,
+    )
+    return _fit(request, pairs, check, callback, loo=loo)
+
+
+def calibrate_request(
+    request: FitRequest, pairs: PointPairs, *, check: PointPairs | None = None, callback=None
+) -> Calibration:
+    """The calibration of ``pairs`` as ``request`` says; ``check``: pairs not used for fitting;
+    ``callback(iteration, best, x)`` after each of a swarm's iterations (a true return stops it).
+    With ``request.target_diameter_mm``: fit, correct the centres with the fit's maps, refit, twice
+    (the intermediate fits without leave-one-out); the file records the diameter."""
+
+    def fit(train: PointPairs, held: PointPairs | None, last: bool = True) -> Calibration:
+        return _fit(request, train, held, callback, loo=request.loo and last)
+
+    if request.target_diameter_mm is None:
+        return fit(pairs, check)
+    return fit_corrected(fit, pairs, check, request.target_diameter_mm)
+
+
+def _fit(
+    request: FitRequest, pairs: PointPairs, check: PointPairs | None, callback, *, loo: bool
+) -> Calibration:
+    """The one fit of a resolved request: the model chosen (once, for :data:`AUTO`), fitted, scored."""
+    solver, objective, image_size, seed = request.solver, request.objective, request.image_size, request.seed
     cv_seed = 0 if seed is None else seed
     data_sha = pairs.sha256()
     original, original_check = pairs, check
     tcp = None
     if has_turns(pairs):  # "9 + 2": pairs at other tool angles reveal the tool-centre offset
-        tcp = tcp_offset_for(pairs, model, image_size=image_size, seed=cv_seed)
+        tcp = tcp_offset_for(pairs, request.model, image_size=image_size, seed=cv_seed)
         pairs = correct_pairs(pairs, tcp.offset_mm)
         if check is not None and check.angle_deg is not None:
             check = correct_pairs(check, tcp.offset_mm)
     selection = None
-    if model == "auto":
-        selection = _select(pairs, optimizer, objective, image_size=image_size, seed=cv_seed)
-        model = selection.model
+    if isinstance(request.model, AutoModel):
+        selection = _select(pairs, solver, objective, image_size=image_size, seed=cv_seed)
+        cls = selection.model
+    else:
+        cls = request.model
     fitted, info = fit_model(
         pairs,
-        model,
-        optimizer,
+        cls,
+        solver,
         objective,
         image_size=image_size,
         seed=seed,
         callback=callback,
-        **solver_options,
+        **request.solver_options,
     )
     notes = list(pairs.notes)
     if fitted.init_note is not None:
-        notes.append(f"{model}: {fitted.init_note}")
+        notes.append(f"{cls.name}: {fitted.init_note}")
     notes.extend(height_notes(fitted, pairs, auto=selection is not None))
     lev = pair_leverage(fitted, pairs.uv_px, pairs.xyz_mm)
     train = stats_from_residuals(fitted.residuals(pairs.uv_px, pairs.xyz_mm), pairs.ids, leverage=lev)
@@ -605,18 +642,18 @@ def calibrate(
         loo_opt = solver.for_cross_validation(objective)
         try:
             reused = (
-                selection.residuals_mm if selection is not None and selection.optimizer == loo_opt else None
+                selection.residuals_mm if selection is not None and selection.optimizer is loo_opt else None
             )
             if reused is not None:
                 res = reused
             else:
-                full = fitted if loo_opt == optimizer else None
+                full = fitted if loo_opt is solver else None
                 res = cross_validate(
-                    pairs, model, loo_opt, objective, image_size=image_size, seed=cv_seed, full=full
+                    pairs, cls, loo_opt, objective, image_size=image_size, seed=cv_seed, full=full
                 )
             loo_stats = stats_from_residuals(res, pairs.ids, leverage=lev, held_out=True)
-            if loo_opt != optimizer:
-                notes.append(f"leave-one-out refits used optimizer '{loo_opt}'")
+            if loo_opt is not solver:
+                notes.append(f"leave-one-out refits used optimizer '{loo_opt.name}'")
         except InputError as exc:
             notes.append(f"leave-one-out skipped: {exc}")
     check_stats = None
@@ -663,8 +700,6 @@ def sanity_warnings(cal: Calibration) -> list[str]:
             f"of any real cell: are the robot coordinates in {guess}? They are read as millimetres"
         )
     if check is not None:
-        from eyetohand.calibration.checking import check_warnings
-
         out.extend(check_warnings(cal))  # a mixed-up convention (u <-> v, x <-> y, a sign, metres), named
         train_uv = {tuple(r) for r in np.round(pairs.uv_px, 6)}
         train_xyz = {tuple(r) for r in np.round(pairs.xyz_mm, 6)}

@@ -160,10 +160,10 @@ def fit_request(args) -> FitRequest:
     absent swarm options: the solver's defaults): made before any pairs are read or detected."""
     from eyetohand.calibration import FitRequest
 
-    return FitRequest(
-        model=args.model,
-        optimizer=args.optimizer,
-        objective=args.objective,
+    return FitRequest.from_names(
+        args.model,
+        args.optimizer,
+        args.objective,
         seed=args.seed,
         n_particles=args.particles,
         iterations=args.iterations,

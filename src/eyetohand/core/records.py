@@ -66,9 +66,10 @@ class Stats:
         return cls(d["n"], d["rms_mm"], d["mean_mm"], d["max_mm"], d["p95_mm"], pts)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class FitInfo:
-    """How a model was refined: the final objective value (mm), its history, the cost."""
+    """How a model was refined: the final objective value (in its objective's unit), its history,
+    the cost. Built by keywords."""
 
     optimizer: str
     objective: str

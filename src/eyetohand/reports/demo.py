@@ -162,7 +162,7 @@ def run_demo(seed: int = 1, optimizer: str = "hybrid-pso"):
     others = {}
     for model in ("affine", "homography", "homography-radial", "auto"):
         cal = calibrate(train, model, "lm", check=check, loo=False)
-        key = f"{model}+lm" if model != "auto" else f"auto({cal.model_name})+lm"
+        key = f"{model}+lm" if cal.selection is None else f"{model}({cal.model_name})+lm"
         cals[key] = cal
         ck = _check_of(cal)
         others[key] = {"check_rms_mm": ck.rms_mm, "check_max_mm": ck.max_mm}

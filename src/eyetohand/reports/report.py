@@ -27,23 +27,21 @@ from eyetohand.core import InputError, PointPairs
 from eyetohand.reports.html import Document, mm, write_folder
 from eyetohand.reports.sections import (
     fit_table,
+    fitness_unit,
     image_jacobian,
     params_section,
     points_table,
     selection_table,
     stats_table,
 )
-from eyetohand.solve import Stats, evaluate
+from eyetohand.solve import Stats, evaluate, find_objective
 
 __all__ = ["build_report", "load_history", "trust_map", "write_report"]
 
 
 def _fitness_label(objective: str) -> str:
-    return {
-        "l2": "best fitness, eq. (16): ‖residuals‖₂ [mm]",
-        "linf": "best fitness: largest point error [mm]",
-        "huber": "best fitness: Σ Huber loss [mm²]",
-    }.get(objective, "best fitness [mm]")
+    obj = find_objective(objective)
+    return "best fitness [mm]" if obj is None else obj.fitness_label
 
 
 # ------------------------------------------------------------------ one calibration
@@ -144,7 +142,7 @@ def _summary(doc: Document, cal: Calibration, ev: _Evaluated, extra: Mapping | N
     cards = [
         ("model", cal.model_name, ""),
         ("optimizer", cal.fit.optimizer, ""),
-        ("training fitness", f"{cal.fit.fitness:.5f}", "mm²" if cal.fit.objective == "huber" else "mm"),
+        ("training fitness", f"{cal.fit.fitness:.5f}", fitness_unit(cal.fit.objective)),
     ]
     if ev.check is not None:
         cards += [("check RMS", mm(ev.check.rms_mm), "mm"), ("check max", mm(ev.check.max_mm), "mm")]

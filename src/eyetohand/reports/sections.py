@@ -17,7 +17,7 @@ import numpy as np
 from eyetohand.calibration import Calibration
 from eyetohand.core import PointPairs
 from eyetohand.reports.html import Document, escape, mm
-from eyetohand.solve import Stats
+from eyetohand.solve import Stats, find_objective
 
 __all__ = [
     "LONG_TABLE_ROWS",
@@ -138,10 +138,17 @@ def params_section(doc: Document, cal: Calibration) -> None:
     )
 
 
+def fitness_unit(objective: str) -> str:
+    """The unit of a fit's fitness on the objective called ``objective`` (mm for one this version
+    does not know)."""
+    obj = find_objective(objective)
+    return "mm" if obj is None else obj.fitness_unit
+
+
 def fit_table(doc: Document, cal: Calibration) -> None:
     """The fit as a key–value table: model, optimizer, fitness, effort, seed, provenance."""
     f = cal.fit
-    unit = "mm²" if f.objective == "huber" else "mm"
+    unit = fitness_unit(f.objective)
     rows = [
         ["model", cal.model_name],
         ["optimizer", f.optimizer],

@@ -13,7 +13,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from eyetohand.calibration import Calibration, FitRequest, as_fitted, calibrate_request
+from eyetohand.calibration import (
+    AutoModel,
+    Calibration,
+    FitRequest,
+    as_fitted,
+    calibrate_request,
+    resolve_model,
+)
 from eyetohand.core import InputError, PointPairs, pairs_from_records
 from eyetohand.server.schemas import FitOptions
 from eyetohand.solve import Stats, get_solver, stats_from_residuals
@@ -92,10 +99,10 @@ def fit(opts: FitOptions, callback=None) -> Fitted:
     check = to_pairs(opts.check, "check") if opts.check else None
     kept, _ = split_excluded(pairs, opts.exclude)
     try:
-        asked = FitRequest(
-            model=opts.model,
-            optimizer=opts.optimizer,
-            objective=opts.objective,
+        asked = FitRequest.from_names(
+            opts.model,
+            opts.optimizer,
+            opts.objective,
             seed=opts.seed,
             n_particles=opts.particles,
             iterations=opts.iterations,
@@ -225,7 +232,7 @@ def fit_progress(job: Job, model: str, optimizer: str, iterations: int):
     iteration, stops on cancel), or None for the solvers that do not iterate visibly."""
     job.phase = (
         "choosing the model by cross-validation, then fitting"
-        if model == "auto"
+        if isinstance(resolve_model(model), AutoModel)
         else f"fitting {model} with {optimizer}"
     )
     if not get_solver(optimizer).is_swarm:  # only a swarm reports progress per iteration

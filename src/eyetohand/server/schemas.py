@@ -7,18 +7,18 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool, WithJsonSchema
 from pydantic import Strict as StrictType
 
-from eyetohand.calibration import MAX_IMAGE_SIDE_PX, check_image_size, check_target_diameter
+from eyetohand.calibration import MAX_IMAGE_SIDE_PX, check_image_size, check_target_diameter, resolve_model
 from eyetohand.core import MAX_PAIRS, InputError
 from eyetohand.geometry import check_symmetry
-from eyetohand.models import MODEL_CHOICES, get_model
+from eyetohand.models import MODEL_CHOICES
 from eyetohand.server.storage import clean_text, is_id_like
 from eyetohand.solve import (
     OBJECTIVES,
     OPTIMIZERS,
     SEED_MAX,
     check_objective,
-    check_optimizer,
     check_seed,
+    check_solver_options,
     get_solver,
 )
 
@@ -110,9 +110,7 @@ def _enum(values) -> WithJsonSchema:
 
 
 # names checked by the library (its words) and listed as an enum in the schema
-ModelName = Annotated[
-    str, StrictType(), _library_rule(lambda v: v == "auto" or get_model(v)), _enum(MODEL_CHOICES)
-]
+ModelName = Annotated[str, StrictType(), _library_rule(resolve_model), _enum(MODEL_CHOICES)]
 OptimizerName = Annotated[str, StrictType(), _library_rule(get_solver), _enum(OPTIMIZERS)]
 ObjectiveName = Annotated[str, StrictType(), _library_rule(check_objective), _enum(OBJECTIVES)]
 Symmetry = Annotated[
@@ -148,14 +146,14 @@ Seed = Annotated[
 Particles = Annotated[
     int,
     StrictType(),
-    _library_rule(lambda v: check_optimizer("pso", "l2", {"n_particles": v})),
+    _library_rule(lambda v: check_solver_options({"n_particles": v})),
     _server_limit(MAX_PARTICLES, "particles"),
     WithJsonSchema({"type": "integer", "minimum": 2, "maximum": MAX_PARTICLES}),
 ]
 Iterations = Annotated[
     int,
     StrictType(),
-    _library_rule(lambda v: check_optimizer("pso", "l2", {"iterations": v})),
+    _library_rule(lambda v: check_solver_options({"iterations": v})),
     _server_limit(MAX_ITERATIONS, "iterations"),
     WithJsonSchema({"type": "integer", "minimum": 1, "maximum": MAX_ITERATIONS}),
 ]

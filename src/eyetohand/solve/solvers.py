@@ -19,13 +19,7 @@ import numpy as np
 from eyetohand.core import DegenerateError, FitInfo, InputError
 from eyetohand.geometry import batch_jacobian, levenberg_marquardt
 from eyetohand.models import Model
-from eyetohand.solve.objectives import (
-    OBJECTIVES,
-    SMOOTH_OBJECTIVES,
-    check_objective,
-    huber_delta_mm,
-    objective_values,
-)
+from eyetohand.solve.objectives import OBJECTIVES, SMOOTH_OBJECTIVES, Objective, get_objective, huber_delta_mm
 
 # the swarm (eyetohand.solve.optimize) loads when a swarm runs or is sized, not for every import of the
 # registry: `eyetohand apply` needs OPTIMIZERS' names only
@@ -41,7 +35,7 @@ class Problem:
     model: Model
     uv_px: np.ndarray
     xyz_mm: np.ndarray
-    objective: str
+    objective: Objective
     delta_mm: float
 
     def residuals(self, batch: np.ndarray) -> np.ndarray:
@@ -49,7 +43,11 @@ class Problem:
         return self.model.batch_image_to_robot(batch, self.uv_px, self.xyz_mm[:, 2]) - self.xyz_mm[None]
 
     def fitness(self, batch: np.ndarray) -> np.ndarray:
-        return objective_values(self.residuals(batch), self.objective, self.delta_mm)
+        return self.objective.values(self.residuals(batch), self.delta_mm)
+
+    def extra(self) -> dict[str, float]:
+        """What a fit records beside its fitness: a robust objective's threshold."""
+        return {"huber_delta_mm": self.delta_mm} if self.objective.robust else {}
 
 
 @dataclass(frozen=True)
@@ -91,12 +89,17 @@ class Solver:
 
         return candidates_per_iteration(n_particles, crossover=self.hybrid, mutation=self.hybrid)
 
-    def for_cross_validation(self, objective: str) -> str:
+    def minimises(self, objective: Objective) -> bool:
+        """Whether this solver can minimise ``objective``."""
+        return objective.name in self.objectives
+
+    def for_cross_validation(self, objective: Objective) -> Solver:
         """The solver whose refits score held-out pairs: the swarms' are too slow to repeat n times,
         so they use ``lm`` (smooth objectives) or ``linear``."""
         if self.cv_solver is None:
-            return self.name
-        return self.cv_solver if objective in SOLVERS[self.cv_solver].objectives else "linear"
+            return self
+        cheaper = SOLVERS[self.cv_solver]
+        return cheaper if cheaper.minimises(objective) else SOLVERS["linear"]
 
 
 # ---------------------------------------------------------------- the solvers
@@ -104,8 +107,18 @@ class Solver:
 
 def _linear(problem: Problem, **_):
     f = float(problem.fitness(problem.model.params[None])[0])
-    extra = {"huber_delta_mm": problem.delta_mm} if problem.objective == "huber" else {}
-    return problem.model, FitInfo("linear", problem.objective, f, (f,), 1, 0, 0.0, None, "closed form", extra)
+    return problem.model, FitInfo(
+        optimizer="linear",
+        objective=problem.objective.name,
+        fitness=f,
+        history=(f,),
+        nfev=1,
+        nit=0,
+        seconds=0.0,
+        seed=None,
+        message="closed form",
+        extra=problem.extra(),
+    )
 
 
 def _lm(problem: Problem, **_):
@@ -134,7 +147,7 @@ def _lm(problem: Problem, **_):
 
     extra: dict[str, float] = {}
     start = model.params[free]
-    if objective == "l2":  # least_squares(method="lm", x_scale="jac")'s own routine and iterates
+    if objective.least_squares:  # least_squares(method="lm", x_scale="jac")'s own routine and iterates
         sol = levenberg_marquardt(fun, start, jac)
     else:
         # the starting fit's errors are inflated by the very pairs Huber should discount, so the
@@ -149,18 +162,18 @@ def _lm(problem: Problem, **_):
             delta = new
         extra["huber_delta_mm"] = delta
     best = model.with_params(full(np.asarray(sol.x, float)[None])[0])
-    f = float(objective_values(fun(sol.x).reshape(1, -1, 3), objective, delta)[0])
+    f = float(objective.values(fun(sol.x).reshape(1, -1, 3), delta)[0])
     return best, FitInfo(
-        "lm",
-        objective,
-        f,
-        (f,),
-        int(sol.nfev),
-        int(sol.nfev),
-        time.perf_counter() - t0,
-        None,
-        str(sol.message),
-        extra,
+        optimizer="lm",
+        objective=objective.name,
+        fitness=f,
+        history=(f,),
+        nfev=int(sol.nfev),
+        nit=int(sol.nfev),
+        seconds=time.perf_counter() - t0,
+        seed=None,
+        message=str(sol.message),
+        extra=extra,
     )
 
 
@@ -185,18 +198,17 @@ def _swarm(kind: str):
             seed=seed,
             callback=callback,
         )
-        extra = {"huber_delta_mm": problem.delta_mm} if problem.objective == "huber" else {}
         return model.with_params(res.x), FitInfo(
-            kind,
-            problem.objective,
-            float(res.fun),
-            tuple(float(v) for v in res.history),
-            int(res.nfev),
-            int(res.nit),
-            time.perf_counter() - t0,
-            int(seed) if isinstance(seed, (int, np.integer)) else None,
-            str(res.message),
-            extra,
+            optimizer=kind,
+            objective=problem.objective.name,
+            fitness=float(res.fun),
+            history=tuple(float(v) for v in res.history),
+            nfev=int(res.nfev),
+            nit=int(res.nit),
+            seconds=time.perf_counter() - t0,
+            seed=int(seed) if isinstance(seed, (int, np.integer)) else None,
+            message=str(res.message),
+            extra=problem.extra(),
         )
 
     return run
@@ -244,7 +256,10 @@ OPTIMIZERS = tuple(SOLVERS)
 ALL_OPTIONS = tuple(sorted({o for s in SOLVERS.values() for o in s.options}))
 
 
-def get_solver(name: str) -> Solver:
+def get_solver(name: str | Solver) -> Solver:
+    """The solver called ``name`` (a :class:`Solver` is its own); an unknown name lists the choices."""
+    if isinstance(name, Solver):
+        return name
     try:
         return SOLVERS[name]
     except (KeyError, TypeError):
@@ -300,17 +315,34 @@ def _swarm_rows(kind: str, n: int) -> int:
     return get_solver(kind).candidates(n)
 
 
-def check_optimizer(name: str, objective: str = "l2", options: dict | None = None) -> Solver:
+def check_optimizer(
+    name: str | Solver, objective: str | Objective = "l2", options: dict | None = None
+) -> Solver:
     """The solver called ``name``, checked against the objective and the options before any work."""
-    solver = get_solver(name)
-    check_objective(objective)
-    if objective not in solver.objectives:
-        able = [s.name for s in SOLVERS.values() if objective in s.objectives and not s.is_linear]
+    return check_fit(name, objective, options)[0]
+
+
+def check_fit(
+    optimizer: str | Solver, objective: str | Objective = "l2", options: dict | None = None
+) -> tuple[Solver, Objective]:
+    """The solver and the objective named, checked against each other and the solver options before
+    any work: what a fit request resolves once."""
+    solver = get_solver(optimizer)
+    obj = get_objective(objective)
+    if not solver.minimises(obj):
+        able = [s.name for s in SOLVERS.values() if s.minimises(obj) and not s.is_linear]
         raise InputError(
-            f"optimizer '{name}' needs a smooth objective ({', '.join(solver.objectives)}); "
-            f"'{objective}' works with {' or '.join(able)}"
+            f"optimizer '{solver.name}' needs a smooth objective ({', '.join(solver.objectives)}); "
+            f"'{obj.name}' works with {' or '.join(able)}"
         )
-    for key, value in (options or {}).items():
+    check_solver_options(options or {})
+    return solver, obj
+
+
+def check_solver_options(options: dict) -> None:
+    """The solver options given (``n_particles``, ``iterations``): known, positive whole numbers, a
+    swarm of two or more, at most :data:`SWARM_MAX_ITERATIONS` iterations."""
+    for key, value in options.items():
         if key not in ALL_OPTIONS:
             raise InputError(f"unknown solver option {key!r}; valid options: {', '.join(ALL_OPTIONS)}")
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -320,7 +352,6 @@ def check_optimizer(name: str, objective: str = "l2", options: dict | None = Non
     if options and options.get("iterations", 1) > SWARM_MAX_ITERATIONS:
         most, got = SWARM_MAX_ITERATIONS, options["iterations"]
         raise InputError(f"solver option 'iterations' must be at most {most}, got {got!r}")
-    return solver
 
 
 def refine(
@@ -328,15 +359,16 @@ def refine(
     uv_px: np.ndarray,
     xyz_mm: np.ndarray,
     *,
-    optimizer: str = "linear",
-    objective: str = "l2",
+    optimizer: str | Solver = "linear",
+    objective: str | Objective = "l2",
     seed=None,
     callback=None,
     **options,
 ):
     """Refine ``model`` on the pairs; returns ``(model, FitInfo)``. Options another solver takes
-    (``n_particles``, ``iterations`` for the swarms) are accepted and unused by ``linear``/``lm``."""
-    solver = check_optimizer(optimizer, objective, options)
+    (``n_particles``, ``iterations`` for the swarms) are accepted and unused by ``linear``/``lm``.
+    ``optimizer`` and ``objective``: names, or the objects a fit request resolved."""
+    solver, obj = check_fit(optimizer, objective, options)
     uv = np.asarray(uv_px, float)
     xyz = np.asarray(xyz_mm, float)
     with np.errstate(all="ignore"):
@@ -347,7 +379,7 @@ def refine(
             f"model '{model.name}': its starting estimate maps {int(lost.sum())} of {len(uv)} pairs to no "
             "finite point (beyond its lens's fold or its horizon): the pairs do not determine it"
         )
-    problem = Problem(model, uv, xyz, objective, huber_delta_mm(np.linalg.norm(start, axis=1)))
+    problem = Problem(model, uv, xyz, obj, huber_delta_mm(np.linalg.norm(start, axis=1)))
     own = {k: v for k, v in options.items() if k in solver.options}
     return solver.run(problem, seed=seed, callback=callback, **own)
 

@@ -1,0 +1,157 @@
+"""Objects, not names (issue 36): a model, solver and objective are resolved once, where a request is
+made (``FitRequest.from_names``), and the fit takes the resolved values as they are.
+
+- no module outside the registries compares a value with a model's, a solver's or an objective's
+  name (read from the source with ``ast``, as tests/test_layers.py reads the imports);
+- a request made from names holds the model class (or AUTO), the Solver and the Objective;
+- fitting a request looks none of them up again (the registries are watched during the fit).
+"""
+
+from __future__ import annotations
+
+import ast
+
+import numpy as np
+import pytest
+from test_imports import MODULES
+
+import eyetohand.calibration.request as request_module
+import eyetohand.models as models_module
+import eyetohand.solve.objectives as objectives_module
+import eyetohand.solve.solvers as solvers_module
+from eyetohand.calibration import AUTO, FitRequest, calibrate, calibrate_request
+from eyetohand.core import InputError
+from eyetohand.models import MODELS
+from eyetohand.solve import OBJECTIVES, OPTIMIZERS, Objective, Solver, get_objective, get_solver
+
+#: the registries: where a name becomes its object (and the models' own modules, which name their kin)
+REGISTRIES = ("eyetohand.solve.objectives", "eyetohand.solve.solvers", "eyetohand.calibration.request")
+NAMES = {"auto", *MODELS, *OBJECTIVES, *OPTIMIZERS}
+
+
+def _in_registry(module: str) -> bool:
+    return module in REGISTRIES or module == "eyetohand.models" or module.startswith("eyetohand.models.")
+
+
+def _named(node: ast.AST) -> list[str]:
+    """The registry names a comparison's operand spells out (a string, or a tuple/list/set of them)."""
+    if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in NAMES:
+        return [node.value]
+    if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+        return [n for e in node.elts for n in _named(e)]
+    return []
+
+
+def name_tests(tree: ast.AST) -> list[tuple[int, str]]:
+    """``(line, name)`` of every ``==``, ``!=``, ``in`` or ``not in`` against a registry name, and of
+    every dict keyed by one (a lookup table by name)."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare):
+            operands = [node.left, *node.comparators]
+            if any(isinstance(op, (ast.Eq, ast.NotEq, ast.In, ast.NotIn)) for op in node.ops):
+                found += [(node.lineno, n) for o in operands for n in _named(o)]
+        elif isinstance(node, ast.Dict):
+            keys = [n for k in node.keys if k is not None for n in _named(k)]
+            if len(keys) >= 2:  # a table over names, e.g. {"l2": ..., "huber": ...}[objective]
+                found += [(node.lineno, n) for n in keys]
+    return found
+
+
+def test_the_name_finder_finds_what_it_should():
+    src = 'a = x == "auto"\nb = y in ("l2", "huber")\nc = {"l2": 1, "linf": 2}[o]\nd = z == "other"\n'
+    assert name_tests(ast.parse(src)) == [(1, "auto"), (2, "l2"), (2, "huber"), (3, "l2"), (3, "linf")]
+
+
+#: the packages that carry fits' names (below them "auto" and "lm" mean other things: a detector's
+#: polarity, geometry's module lm)
+FIT_PACKAGES = ("calibration", "solve", "cell", "reports", "sim", "server", "cli")
+#: name tests left where another part of issue 36 moves the code (the lead merges them)
+ELSEWHERE = {"eyetohand.cell.collect"}
+#: strings that spell a registry name and mean something else: the export's matrix kinds
+NOT_NAMES = {("eyetohand.calibration.export", "homography"), ("eyetohand.calibration.export", "affine")}
+
+
+def test_no_module_outside_the_registries_tests_a_name():
+    bad = []
+    for module, path in sorted(MODULES.items()):
+        package = module.split(".")[1] if "." in module else ""
+        if package not in FIT_PACKAGES or _in_registry(module) or module in ELSEWHERE:
+            continue
+        for line, name in name_tests(ast.parse(path.read_text(encoding="utf-8"))):
+            if (module, name) in NOT_NAMES:
+                continue
+            bad.append(f"{module} line {line}: tests the name {name!r} (ask the resolved object)")
+    assert not bad, "\n".join(bad)
+
+
+def test_a_request_from_names_holds_the_resolved_objects():
+    r = FitRequest.from_names("homography", "hybrid-pso", "huber", n_particles=20)
+    assert r.model is MODELS["homography"]
+    assert isinstance(r.solver, Solver) and r.solver is get_solver("hybrid-pso") and r.solver.is_swarm
+    assert isinstance(r.objective, Objective) and r.objective.robust and r.objective.fitness_unit == "mm²"
+    assert r.names == ("homography", "hybrid-pso", "huber")
+    auto = FitRequest.from_names()
+    assert auto.model is AUTO and auto.solver.is_least_squares and auto.objective.least_squares
+    assert get_objective("l2").fitness_unit == "mm" and get_objective("linf").fitness_unit == "mm"
+
+
+@pytest.mark.parametrize(
+    ("options", "words"),
+    [
+        ({"model": "nope"}, "unknown model 'nope'; choose one of: auto, affine, paper, homography"),
+        ({"optimizer": "sgd"}, "unknown optimizer 'sgd'; choose one of: linear, lm, hybrid-pso, pso"),
+        ({"objective": "l3"}, "unknown objective 'l3'; choose one of: l2, linf, huber"),
+    ],
+)
+def test_a_bad_name_is_refused_listing_the_choices(options, words):
+    with pytest.raises(InputError) as info:
+        FitRequest.from_names(**options)
+    assert str(info.value).startswith(words)
+
+
+def test_a_request_holds_values_not_names():
+    with pytest.raises(TypeError, match="from_names"):
+        FitRequest("homography")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="from_names"):
+        FitRequest(MODELS["homography"], "lm")  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="needs a smooth objective"):  # the values are checked too
+        FitRequest(MODELS["homography"], get_solver("lm"), get_objective("linf"))
+
+
+class _Watched(dict):
+    """A registry that counts the names looked up in it."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.asked: list[str] = []
+
+    def __getitem__(self, key):
+        self.asked.append(key)
+        return super().__getitem__(key)
+
+    def get(self, key, default=None):
+        self.asked.append(key)
+        return super().get(key, default)
+
+
+@pytest.mark.parametrize("model", ["homography", "auto"])
+def test_fitting_a_request_looks_no_name_up(paper_pairs, monkeypatch, model):
+    train, check = paper_pairs
+    request = FitRequest.from_names(model, "lm", "l2", seed=0)
+    watched = {
+        "models": _Watched(models_module.MODELS),
+        "solvers": _Watched(solvers_module.SOLVERS),
+        "objectives": _Watched(objectives_module.REGISTRY),
+        "choices": _Watched(request_module._CHOICES),
+    }
+    monkeypatch.setattr(models_module, "MODELS", watched["models"])
+    monkeypatch.setattr(solvers_module, "SOLVERS", watched["solvers"])
+    monkeypatch.setattr(objectives_module, "REGISTRY", watched["objectives"])
+    monkeypatch.setattr(request_module, "_CHOICES", watched["choices"])
+    cal = calibrate_request(request, train, check=check)
+    assert {k: w.asked for k, w in watched.items()} == {k: [] for k in watched}
+    monkeypatch.undo()
+    want = calibrate(train, model, "lm", "l2", check=check, seed=0)  # the names' path: the same fit
+    assert np.array_equal(cal.model.params, want.model.params) and cal.loo == want.loo
+    assert cal.fit.objective == "l2" and cal.fit.optimizer == "lm"  # the file still stores names
