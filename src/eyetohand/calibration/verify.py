@@ -316,7 +316,7 @@ def error_covariance(cal: Calibration, pairs: PointPairs, sigma_mm: np.ndarray) 
     model = cal.model
     z = pairs.xyz_mm[:, 2]
     J = param_jacobian(model, pairs.uv_px, z)[:, :2, :].reshape(2 * n, -1)
-    JL = J @ unc._factor
+    JL = J @ unc.factor
     cov = JL @ JL.T
     cov[np.diag_indices(2 * n)] += max(unc.noise_mm**2, 1e-24)
     return cov

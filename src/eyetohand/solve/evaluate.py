@@ -40,10 +40,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from eyetohand.core import InputError, PointError, Stats
+from eyetohand.core import InputError, PointError, PointPairs, Stats
+from eyetohand.models import Model
 
 OUTLIER_ALPHA = 1e-4
 OUTLIER_MIN_PAIRS = 8
@@ -201,9 +203,16 @@ def mapped_residuals(model, pairs, what: str = "pair") -> np.ndarray:
     return res
 
 
-def evaluate(calibration, pairs) -> Stats:
+class Fitted(Protocol):
+    """What carries a fitted model: a :class:`~eyetohand.calibration.Calibration`."""
+
+    @property
+    def model(self) -> Model: ...
+
+
+def evaluate(calibration: Fitted | Model, pairs: PointPairs) -> Stats:
     """Stats of ``calibration`` (a Calibration or a model) on ``pairs``, each mapped at its own z."""
-    model = getattr(calibration, "model", calibration)
+    model = calibration if isinstance(calibration, Model) else calibration.model
     return stats_from_residuals(mapped_residuals(model, pairs), pairs.ids)
 
 

@@ -144,7 +144,7 @@ class Uncertainty:
         return cls(cov, float(np.sqrt(s2)), c, dof)
 
     @cached_property
-    def _factor(self) -> np.ndarray:
+    def factor(self) -> np.ndarray:
         """L (D, D) with L Lᵀ = covariance (from its symmetric eigen-decomposition: a covariance of a
         rank-deficient fit is only positive semi-definite, where Cholesky would refuse it)."""
         w, V = np.linalg.eigh(0.5 * (self.covariance + self.covariance.T))
@@ -156,7 +156,7 @@ class Uncertainty:
         uv = np.asarray(uv_px, float).reshape(-1, 2)
         z = np.broadcast_to(np.asarray(z_mm, float), (len(uv),))
         noise = self.n_coords * self.noise_mm**2
-        L = self._factor
+        L = self.factor
         if len(uv) == 1:
             JL = param_jacobian(model, uv, z)[0] @ L  # (c, D)
             return np.array([np.sqrt(max(float((JL * JL).sum()), 0.0) + noise)])
@@ -195,7 +195,7 @@ def best_new_point(
     updates the covariance by the rank-c Woodbury step C' = C − C J_pᵀ (s² I + J_p C J_pᵀ)⁻¹ J_p C, so a
     target q's fit variance tr(J_q C J_qᵀ) drops by |J_q C J_pᵀ S_p^(-1/2)|²: the candidates are scored
     without refitting (a linearised prediction: the noise level stays the fit's)."""
-    L = uncertainty._factor
+    L = uncertainty.factor
     cz = np.broadcast_to(np.asarray(candidates_z, float), (len(candidates_px),))
     tz = np.broadcast_to(np.asarray(targets_z, float), (len(targets_px),))
     A = param_jacobian(model, np.asarray(targets_px, float), tz) @ L  # (N, c, D)
