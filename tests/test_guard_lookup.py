@@ -129,7 +129,7 @@ def test_many_points_equal_map_bit_for_bit(cell):
     uv = _around(cal, rng, 40_000)
     ok, d = cal.region.check(uv, allow_outside=True)
     ring = ok & (d > 0)
-    ok[ring] = ~beyond_horizon(cal.xy_map(z), cal._centre_jacobian, uv[ring])
+    ok[ring] = ~beyond_horizon(cal.xy_map(z), cal.centre_jacobian, uv[ring])
     inside = np.ascontiguousarray(uv[ok])
     got = cal.image_to_robot(inside, z)
     want = cal.map(inside, z, with_sigma=False).xyz_mm
@@ -174,7 +174,7 @@ def test_lens_and_three_dimensional_models_give_no_bound():
         pairs, model, _ = CELLS[name]
         cal = calibrate(pairs, model, loo=False)
         assert cal.model.jacobian_det_range(cal.region.hull_px) is None
-        assert not cal._horizon_clear
+        assert not cal.horizon_proven_clear
 
 
 def test_no_bound_across_the_horizon_and_no_proof_near_it():
@@ -190,6 +190,6 @@ def test_no_bound_across_the_horizon_and_no_proof_near_it():
     assert cal.model.jacobian_det_range(np.vstack([hull, far])) is None
     # a region grown until the horizon is near: the proof is refused, and a pixel past it is beyond
     grown = CalibratedRegion(hull, float(np.linalg.norm(far - c)))
-    assert not horizon_clear(cal.model, grown, cal._centre_jacobian)
-    assert beyond_horizon(cal.xy_map(), cal._centre_jacobian, far[None])[0]
-    assert cal._horizon_clear  # the cell's own margin is well clear of it
+    assert not horizon_clear(cal.model, grown, cal.centre_jacobian)
+    assert beyond_horizon(cal.xy_map(), cal.centre_jacobian, far[None])[0]
+    assert cal.horizon_proven_clear  # the cell's own margin is well clear of it

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from eyetohand._version import __version__
+from eyetohand.calibration import guard
 from eyetohand.calibration.fields import (
     CHANGED,
     KIND,
@@ -29,17 +30,15 @@ from eyetohand.calibration.fields import (
     rel_tol,
     same,
 )
-from eyetohand.calibration.horizon import beyond_horizon, horizon_clear
-from eyetohand.calibration.mapped import Mapped, all_finite
+from eyetohand.calibration.horizon import horizon_clear
+from eyetohand.calibration.mapped import Mapped
 from eyetohand.calibration.signing import check_signature, signature_of
 from eyetohand.core import (
-    MAX_ABS_ANGLE_DEG,
     FitInfo,
     InputError,
     PointPairs,
     Stats,
     TcpOffset,
-    angle_refusal,
     atomic_write_text,
     pairs_from_records,
     sha256_hex,
@@ -48,13 +47,10 @@ from eyetohand.geometry import (
     CONVENTIONS,
     CalibratedRegion,
     LocalFrame,
-    check_symmetry,
     fit_height_plane,
-    image_angle_to_rz,
     local_jacobian,
-    wrap_deg,
 )
-from eyetohand.models import HeightRule, Model, as_uv, model_from_dict, one_point
+from eyetohand.models import HeightRule, Model, model_from_dict
 from eyetohand.solve import Uncertainty
 
 SCHEMA = "eyetohand.calibration"
@@ -111,7 +107,7 @@ class Calibration:
         return LocalFrame.from_jacobian(local_jacobian(self.xy_map(), uv)[0])
 
     @cached_property
-    def _centre_jacobian(self) -> np.ndarray:
+    def centre_jacobian(self) -> np.ndarray:
         """(2, 2) d(x, y)/d(u, v) at the region's centre and the default height: a constant of the
         calibration (the tool offset's reference direction, the horizon test's reference scale),
         computed once rather than on every mapped point that needs it."""
@@ -121,7 +117,7 @@ class Calibration:
 
     @cached_property
     def _centre_frame(self) -> LocalFrame:
-        return LocalFrame.from_jacobian(self._centre_jacobian)
+        return LocalFrame.from_jacobian(self.centre_jacobian)
 
     @property
     def handedness(self) -> str:
@@ -157,72 +153,10 @@ class Calibration:
 
         return f
 
-    # ------------------------------------------------------------ mapping
+    # ------------------------------------------------------------ mapping (calibration/guard.py)
     def image_to_robot(self, uv_px, z=None, *, allow_outside: bool = False) -> np.ndarray:
         """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
-        one = self._map_one(uv_px, z)
-        if one is not None:
-            return one[1]
-        if not allow_outside:
-            many = self._map_many(uv_px, z)
-            if many is not None:
-                return many
-        return self.map(uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm
-
-    def _map_many(self, uv_px, z) -> np.ndarray | None:
-        """(N, 3) robot mm of many pixels (a float64 (N, 2) array) at one allowed height (or none), when
-        the guard passes them all; None for anything else, for ``map`` to answer in its one path and
-        words. One lookup proves most pixels within the margin (``region.unproven``); where the horizon
-        is proven clear over the margin (``_horizon_clear``) that is all they need, and ``map`` checks
-        the few others; without that proof the hull's own scan (``region.scan``) leaves ``map`` the
-        pixels outside the hull, for the margin and the horizon."""
-        region = self.region
-        if region is None or not _many_uv(uv_px):
-            return None
-        n = len(uv_px)
-        zq = None
-        if z is not None:
-            zf = _one_height(z)
-            if zf is None or not region.z_allowed_one(zf):
-                return None
-            zq = np.broadcast_to(np.asarray(zf, float), (n,))  # as map passes it to the model
-        uv = np.ascontiguousarray(uv_px)
-        if self._horizon_clear:
-            few = region.unproven(uv)
-        else:  # the pixels outside the hull (margin, beyond, not finite) take map's region and horizon tests
-            sc = region.scan(uv)
-            few = np.empty(0, np.intp) if sc.mask is None else np.flatnonzero(sc.mask)
-        if len(few):
-            try:
-                self.map(uv[few], None if zq is None else zq[few], with_sigma=False)
-            except InputError:
-                return None  # map refuses one of them: let it name the first one among all
-        try:
-            xyz = np.ascontiguousarray(self.model.image_to_robot(uv, zq))
-        except InputError:
-            return None
-        # proven within the margin where the horizon is clear: finite (Model.jacobian_det_range)
-        return xyz if self._horizon_clear or all_finite(xyz) else None
-
-    def _map_one(self, uv_px, z) -> tuple[tuple[float, float], np.ndarray] | None:
-        """``((u, v), (1, 3) robot mm)`` of one pixel inside the training points' hull at an allowed height,
-        on plain floats; None for anything else (many points, in the margin or beyond, a height to refuse,
-        a tilted plane's z, a non-finite result): ``map`` answers those, in its one path and words."""
-        region = self.region
-        if region is None:
-            return None
-        pt = one_point(uv_px)
-        if pt is None or region.outside_one(pt[0], pt[1]) != 0.0:
-            return None
-        if z is not None:
-            z = _one_height(z)
-            if z is None or not region.z_allowed_one(z):  # not one number, not finite, a height to
-                return None  # refuse, a tilted plane's
-        xyz = self.model.image_to_robot(pt, z)
-        x, y, zz = xyz[0].tolist()
-        if x - x != 0.0 or y - y != 0.0 or zz - zz != 0.0:  # NaN or ±inf
-            return None
-        return pt, xyz
+        return guard.image_to_robot(self, uv_px, z, allow_outside=allow_outside)
 
     def map(
         self,
@@ -248,84 +182,22 @@ class Calibration:
         :mod:`eyetohand.geometry.orientation`), folded by ``symmetry``; ``tool_rz_offset_deg`` makes rz the
         gripper's command.
         """
-        s = check_symmetry(symmetry)  # checked with or without an angle: one rule on every interface
-        if tool_rz_offset_deg is not None:  # likewise
-            why = angle_refusal(float(tool_rz_offset_deg))
-            if why:
-                raise InputError(why, field="tool_rz_offset_deg")
-        if angle_deg is None:
-            one = self._map_one(uv_px, z)
-            if one is not None:
-                uv1, xyz1 = np.array([one[0]]), one[1]
-                return Mapped(
-                    uv1, xyz1, None, self._sigma(uv1, xyz1, with_sigma), np.ones(1, bool), np.zeros(1)
-                )
-        uv = as_uv(uv_px, check_finite=False)
-        n = len(uv)
-        # many points: the hull's half-plane tests and the pixels' finiteness in one pass
-        scanned = self.region.scan(uv) if self.region is not None and n > 1 else None
-        if scanned is None or not scanned.finite:
-            uv = as_uv(uv)  # refuses a non-finite pixel in its words
-        if z is not None:
-            z = np.broadcast_to(np.asarray(z, float), (n,))
-            if not np.isfinite(z).all():
-                i = int(np.flatnonzero(~np.isfinite(z))[0])
-                raise InputError("must be a finite number (mm)", index=i, field="z", label="points")
-        if self.region is None:
-            if not allow_outside:
-                raise InputError(
-                    "this calibration file records no calibrated region (written by eyetohand 0.1): "
-                    "recalibrate it with this version, or allow_outside to map without the guard"
-                )
-            inside, outside = np.zeros(n, bool), np.full(n, np.nan)
-        else:
-            xy = None  # a tilted plane's height at the points: x, y of a single-height map do not depend on z
-            if z is not None and self.region.plane_slope is not None:
-                xy = self.model.image_to_robot(uv, z)[:, :2]
-            inside, outside = self.region.check(uv, z, allow_outside=allow_outside, xy_mm=xy, scanned=scanned)
-        xyz = np.ascontiguousarray(self.model.image_to_robot(uv, z))
-        bad = np.zeros(n, bool) if all_finite(xyz) else ~np.isfinite(xyz).all(axis=1)
-        some_outside = self.region is not None and (scanned is None or scanned.mask is not None)
-        if not bad.any() and some_outside and (outside > 0).any():  # scanned: none is outside the hull
-            bad[outside > 0] = self._beyond_horizon(uv[outside > 0], None if z is None else z[outside > 0])
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise InputError(
-                f"(u, v) = ({uv[i, 0]:g}, {uv[i, 1]:g}) px maps to no finite robot point "
-                "(on or beyond the model's horizon)",
-                index=i,
-                label="points",
-            )
-        rz = None
-        if angle_deg is not None:
-            ang = np.broadcast_to(np.asarray(angle_deg, float), (n,))
-            bad_angle = ~(np.abs(ang) <= MAX_ABS_ANGLE_DEG)  # NaN too
-            if bad_angle.any():
-                i = int(np.flatnonzero(bad_angle)[0])
-                raise InputError(str(angle_refusal(float(ang[i]))), index=i, field="angle", label="points")
-            J = local_jacobian(self.xy_map(z), uv)
-            rz = image_angle_to_rz(J, ang)
-            if tool_rz_offset_deg is not None:
-                rz = rz + float(tool_rz_offset_deg) - self.local_frame().u_axis_rz_deg
-            rz = wrap_deg(rz, s)
-        return Mapped(uv, xyz, rz, self._sigma(uv, xyz, with_sigma), inside, outside)
-
-    def _sigma(self, uv: np.ndarray, xyz: np.ndarray, wanted: bool) -> np.ndarray | None:
-        """(N,) predicted error (mm) of the mapped points, when ``wanted`` and the file has an uncertainty."""
-        if not wanted or self.uncertainty is None:
-            return None
-        zs = xyz[:, 2] if self.model.height_rule is not HeightRule.COMPUTED else np.zeros(len(uv))
-        return self.uncertainty.sigma_mm(self.model, uv, zs)
-
-    def _beyond_horizon(self, uv: np.ndarray, z) -> np.ndarray:
-        """(N,) True for points on or beyond the model's horizon (:func:`~.horizon.beyond_horizon`)."""
-        return beyond_horizon(self.xy_map(z), self._centre_jacobian, uv)
+        return guard.map_points(
+            self,
+            uv_px,
+            z,
+            angle_deg=angle_deg,
+            allow_outside=allow_outside,
+            symmetry=symmetry,
+            tool_rz_offset_deg=tool_rz_offset_deg,
+            with_sigma=with_sigma,
+        )
 
     @cached_property
-    def _horizon_clear(self) -> bool:
+    def horizon_proven_clear(self) -> bool:
         """Whether no point within the region's margin can be beyond the horizon (proven once, from
         the model's bound on its Jacobian: :func:`~.horizon.horizon_clear`)."""
-        return self.region is not None and horizon_clear(self.model, self.region, self._centre_jacobian)
+        return self.region is not None and horizon_clear(self.model, self.region, self.centre_jacobian)
 
     def robot_to_image(self, xyz_mm) -> np.ndarray:
         """(N, 3) robot mm → (N, 2) pixels."""
@@ -519,26 +391,6 @@ class Calibration:
         except ValueError as exc:
             raise InputError(f"{path}: not a calibration file ({exc})") from None
         return cls.from_dict(d, str(path), sign_key=sign_key, require_signed=require_signed)
-
-
-def _many_uv(uv_px) -> bool:
-    """Whether ``uv_px`` is a float64 (N, 2) array of two or more pixels."""
-    return (
-        isinstance(uv_px, np.ndarray)
-        and uv_px.dtype == np.float64
-        and uv_px.ndim == 2
-        and uv_px.shape[1] == 2
-        and len(uv_px) > 1
-    )
-
-
-def _one_height(z) -> float | None:
-    """One height as a float: a number or a one-element numeric array; None for anything else."""
-    if isinstance(z, np.ndarray) and z.size == 1 and z.dtype.kind in "fiu":
-        return float(z.reshape(-1)[0])
-    if isinstance(z, bool) or not isinstance(z, (float, int, np.floating, np.integer)):
-        return None
-    return float(z)
 
 
 def _malformed(exc: Exception) -> str:
