@@ -6,14 +6,15 @@ covariance of every estimate."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
-from eyetohand.calibration import calibrate
+from eyetohand.calibration import FitRequest, calibrate_request
 from eyetohand.cell.conveyor.file import ConveyorCalibration
 from eyetohand.cell.conveyor.records import Belt, Encoder, Session, direction_from_angles
 from eyetohand.cell.conveyor.report import build_report, travel_slopes
+from eyetohand.cell.conveyor.terms import JointFit, Layout, Prepared
 from eyetohand.core import DegenerateError, InputError, PointPairs, angle_refusal
 from eyetohand.models import get_model
 
@@ -21,32 +22,6 @@ SPARE_EQUATIONS = 8
 
 
 # ================================================================== preparing a session
-
-
-@dataclass(frozen=True)
-class Prepared:
-    """Touch rows of a checked session, in continuous counts, with what each relates to.
-
-    The sightings ``s_*`` hold each sighted part's FIRST sighting (its reference: the touches count
-    from it) at indices ``0..n_ref-1``, in the order the parts were first sighted, then every further
-    sighting. A further sighting ``b`` of the part whose reference is ``a`` is a pair ``(q_a, q_b)``
-    with ``q_de`` the counts from ``a`` to ``b``."""
-
-    sign: int  # +1: counts rise downstream
-    s_uv: np.ndarray  # (S, 2) sightings' pixels
-    s_moving: np.ndarray  # (S,) bool
-    s_ids: tuple[str, ...]
-    t_xyz: np.ndarray  # (T, 3) touches
-    t_de: np.ndarray  # (T,) counts since the reference sighting (sighted) or the first touch (unseen)
-    t_sight: np.ndarray  # (T,) index of the part's reference sighting, −1 for unseen parts
-    t_part: np.ndarray  # (T,) index of the unseen part, −1 for sighted
-    n_unseen: int
-    t_wheres: tuple[str, ...]
-    n_ref: int  # reference sightings: one per sighted part
-    q_a: np.ndarray  # (Q,) a further sighting's part's reference sighting
-    q_b: np.ndarray  # (Q,) the further sighting
-    q_de: np.ndarray  # (Q,) counts from a to b
-    q_wheres: tuple[str, ...]
 
 
 def _prepare(session: Session, encoder: Encoder, noise_counts: float) -> Prepared:
@@ -155,46 +130,6 @@ def _prepare(session: Session, encoder: Encoder, noise_counts: float) -> Prepare
 
 
 # ================================================================== the joint fit
-
-
-@dataclass(frozen=True)
-class Layout:
-    """Where each unknown sits in the joint fit's parameter vector (an empty slice: not fitted)."""
-
-    camera: slice  # the camera map's parameters
-    belt: slice  # the belt vector b (mm per count)
-    surface: slice  # the parts' top plane (c0, c1, c2)
-    parts: slice  # the unseen parts' positions P_k, 3 each
-    latch: slice  # the latch delay (counts)
-    n: int  # the vector's length
-
-    @classmethod
-    def of(cls, D: int, n_unseen: int, with_map: bool, fit_latch: bool) -> Layout:
-        """``D`` camera parameters (when ``with_map``), the belt, the surface (with the map), the unseen
-        parts and the latch delay (when ``fit_latch``), in that order."""
-        slices = []
-        k = 0
-        for size in (D if with_map else 0, 3, 3 if with_map else 0, 3 * n_unseen, 1 if fit_latch else 0):
-            slices.append(slice(k, k + size))
-            k += size
-        camera, belt, surface, parts, latch = slices
-        return cls(camera, belt, surface, parts, latch, k)
-
-    @property
-    def with_latch(self) -> bool:
-        """Whether the latch delay is fitted."""
-        return self.latch.stop > self.latch.start
-
-
-@dataclass
-class JointFit:
-    x: np.ndarray
-    cov: np.ndarray
-    resid: np.ndarray  # (T, 3) touches
-    s2: float
-    dof: int
-    layout: Layout
-    resid_pairs: np.ndarray  # (Q, 3) further sightings against their part's reference sighting
 
 
 def _joint_fit(prep: Prepared, model, x0, lay: Layout, xy0, z_plane, fixed_b=None) -> JointFit:
@@ -504,6 +439,8 @@ def calibrate_conveyor(
             f"model {model!r} needs parts at several heights; parts on a belt are at one: "
             "use affine, homography or homography-radial"
         )
+    request = FitRequest(cls, image_size=image_size, loo=False)  # the deployed map's fit, checked now
+    image_size = request.image_size
     sighted = prep.t_sight >= 0
     n_parts = len(np.unique(prep.t_sight[sighted]))
     if n_parts == 0:
@@ -561,7 +498,7 @@ def calibrate_conveyor(
     sig_latch = float(math.sqrt(fit.cov[lay.latch, lay.latch][0, 0])) if fit_latch else None
     # the deployed camera map: an ordinary Calibration on the sighted parts at their exposure positions
     pairs = _belt_corrected_pairs(prep, b, latch, z_plane, src)
-    cal = calibrate(pairs, model=model, image_size=image_size, loo=False)
+    cal = calibrate_request(request, pairs)
     c0, c1, c2 = (float(v) for v in fit.x[lay.surface])
     surface = (c0, c1, c2, float(xy0[0]), float(xy0[1]))
     if window_mm is None:

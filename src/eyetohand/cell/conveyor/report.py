@@ -6,14 +6,13 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from eyetohand.cell.conveyor.file import ConveyorCalibration
-    from eyetohand.cell.conveyor.fit import JointFit, Prepared
-    from eyetohand.cell.conveyor.records import Belt
+from eyetohand.cell.conveyor.file import ConveyorCalibration
+from eyetohand.cell.conveyor.records import Belt
+from eyetohand.cell.conveyor.terms import JointFit, Prepared
 
 #: fault tests: flagged when |estimate − stated| / sigma > ``z`` AND |estimate − stated| > ``min``
 THRESHOLDS = {
