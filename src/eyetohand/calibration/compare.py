@@ -20,17 +20,17 @@ def compare(pairs, check, *, image_size=None, seed=0, optimizers=OPTIMIZERS, pro
     those ``auto`` never chooses (the paper's own B), simplest first. A combination that cannot run
     gives a row with its reason.
     """
-    models = [c.name for c in compared_models(pairs)]
+    models = compared_models(pairs)
     rows: list[dict] = []
     total = len(models) * len(optimizers)
-    for name in models:
+    for cls in models:
         for opt in optimizers:
             if progress is not None and rows and progress(len(rows), total, rows[-1]):
                 return rows
             t0 = time.perf_counter()
-            row = {"model": name, "optimizer": opt}
+            row = {"model": cls.name, "optimizer": opt}
             try:
-                m, info = fit_model(pairs, name, opt, image_size=image_size, seed=seed)
+                m, info = fit_model(pairs, cls, opt, image_size=image_size, seed=seed)
             except InputError as exc:
                 row["error"] = str(exc)
                 rows.append(row)

@@ -9,6 +9,7 @@ model must reproduce the recorded training (and check) statistics to 1e-9 mm.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
 import os
@@ -41,6 +42,7 @@ from eyetohand.core import (
     TcpOffset,
     atomic_write_text,
     pairs_from_records,
+    read_bounded_text,
     sha256_hex,
 )
 from eyetohand.geometry import (
@@ -51,7 +53,7 @@ from eyetohand.geometry import (
     local_jacobian,
 )
 from eyetohand.models import HeightRule, Model, model_from_dict
-from eyetohand.solve import Uncertainty
+from eyetohand.solve import Uncertainty, pair_leverage, stats_from_residuals
 
 SCHEMA = "eyetohand.calibration"
 SCHEMA_VERSION = 2
@@ -344,8 +346,6 @@ class Calibration:
             raise InputError("the file carries no training pairs, so it cannot prove it is intact")
         if self.pairs.sha256() != self.data_sha256:
             raise InputError(f"the training pairs do not match data_sha256: {CHANGED}")
-        from eyetohand.solve import pair_leverage, stats_from_residuals
-
         for label, key, pairs, stats in (
             ("training", "train", self.fitted_pairs, self.train),
             ("check", "check", _corrected_check(self.check_pairs, self.tcp_offset), self.check),
@@ -378,8 +378,6 @@ class Calibration:
     ) -> Calibration:
         """Read a calibration saved by :meth:`save`; mappings are bit-identical to the original.
         ``sign_key``, ``require_signed``: see :meth:`from_dict`."""
-        from eyetohand.core import read_bounded_text
-
         path = Path(path)
         text = read_bounded_text(path, what="a calibration file")
         try:
@@ -479,8 +477,6 @@ def derived_region(model: Model, fitted: PointPairs) -> CalibratedRegion:
 
 
 def _replace(cal: Calibration, **changes) -> Calibration:
-    import dataclasses
-
     return dataclasses.replace(cal, **changes)
 
 
@@ -536,6 +532,7 @@ def _stored_uncertainty(d: dict, model: Model) -> Uncertainty | None:
 def _corrected(pairs: PointPairs | None, tcp: TcpOffset | None) -> PointPairs | None:
     if pairs is None or tcp is None:
         return pairs
+    # here: only a file with a tool offset needs solve.tcp_offset (1.0 ms of `apply`'s start, measured)
     from eyetohand.solve import correct_pairs
 
     return correct_pairs(pairs, tcp.offset_mm)

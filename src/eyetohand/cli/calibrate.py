@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import sys
+
 import numpy as np
 
-from eyetohand.calibration import Calibration
+from eyetohand.calibration import Calibration, load_sign_key
 from eyetohand.cli.common import (
     CliError,
     add_fit_options,
@@ -16,14 +19,21 @@ from eyetohand.cli.common import (
     run_calibration,
     stats_line,
 )
-from eyetohand.core import ROBOT_UNITS, InputError, load_image_points, load_pairs, output_units
+from eyetohand.core import (
+    ROBOT_UNITS,
+    InputError,
+    atomic_write_text,
+    check_output_path,
+    image_points_from_text,
+    load_image_points,
+    load_pairs,
+    output_units,
+)
 
 
 def print_notes(*loaded) -> None:
     """``note:`` lines on stderr for what the loaders assumed of these pairs or tables (the CSV
     dialect, a missing z): the library records notes, the CLI prints them."""
-    import sys
-
     for item in loaded:
         for note in getattr(item, "notes", ()) if item is not None else ():
             print(f"note: {note}", file=sys.stderr)
@@ -31,8 +41,6 @@ def print_notes(*loaded) -> None:
 
 def print_warnings(warnings) -> None:
     """``warning:`` lines on stderr (the library's findings, e.g. a mixed-up convention)."""
-    import sys
-
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
 
@@ -40,8 +48,6 @@ def print_warnings(warnings) -> None:
 def cmd_calibrate(args) -> int:
     key = _sign_key(args)
     if args.output:  # before any work: a fit must not be lost to an output that cannot be written
-        from eyetohand.core import check_output_path
-
         check_output_path(args.output)
     request = fit_request(args)  # the options before the files: a bad one is refused first
     pairs = load_pairs(args.pairs).scaled_to_mm(args.robot_units)
@@ -58,8 +64,6 @@ def _sign_key(args) -> bytes | None:
     """--sign-key FILE: the key (read before any work), refused without -o."""
     if getattr(args, "sign_key", None) is None:
         return None
-    from eyetohand.calibration import load_sign_key
-
     if not args.output:
         raise CliError("--sign-key signs the calibration file: give -o FILE too")
     try:
@@ -86,11 +90,6 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_apply(args) -> int:
-    import json
-    import sys
-
-    from eyetohand.core import atomic_write_text, check_output_path, image_points_from_text
-
     if args.output:
         check_output_path(args.output)
     units = output_units(args.units, args.angle_units)  # refused before the file is read
@@ -165,8 +164,6 @@ def mapped_json(m, units) -> dict:
 
 
 def _warn_outside(m) -> None:
-    import sys
-
     n = int((~m.inside).sum())
     if n:
         print(
