@@ -38,7 +38,8 @@ import numpy as np
 
 from eyetohand.calibration.checking import check_warnings
 from eyetohand.calibration.circles import fit_corrected
-from eyetohand.calibration.file import Calibration, derived_region
+from eyetohand.calibration.file import Calibration
+from eyetohand.calibration.proof import derived_region
 from eyetohand.calibration.request import AutoModel, FitRequest, ModelChoice, resolve_model
 from eyetohand.core import DegenerateError, InputError, PointPairs, TcpOffset
 from eyetohand.geometry import ONE_HEIGHT_RULE, fit_height_plane
