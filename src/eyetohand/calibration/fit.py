@@ -282,14 +282,12 @@ def _held_out(
         if fast is not None:
             return fast
     if not refit and n <= LOO_MAX_PAIRS and objective.least_squares and solver.is_least_squares:
-        own = getattr(cls, "leave_one_out", None)  # a model's own warm-started refits
-        if own is not None:
-            try:
-                fast = own(pairs.uv_px, pairs.xyz_mm, image_size=image_size)
-            except InputError:
-                fast = None
-            if fast is not None:
-                return fast
+        try:  # a model's own warm-started refits (Model.leave_one_out; None: it has none)
+            fast = cls.leave_one_out(pairs.uv_px, pairs.xyz_mm, image_size=image_size)
+        except InputError:
+            fast = None
+        if fast is not None:
+            return fast
     res = np.full((n, 3), np.nan)
     for held in folds_for(n, seed):
         keep = np.setdiff1d(np.arange(n), held)

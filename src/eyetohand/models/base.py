@@ -285,6 +285,13 @@ class Model(ABC):
         whose form gives no bound (the caller then tests each point)."""
         return None
 
+    @classmethod
+    def leave_one_out(cls, uv_px, xyz_mm, *, image_size=None) -> np.ndarray | None:
+        """Held-out residuals (N, 3) mm of the least-squares (``lm``) fits without each pair, by the
+        model's own warm-started refits, for the models that have them; None otherwise (the caller
+        refits)."""
+        return None
+
     def batch_map_and_jacobian(
         self, params: np.ndarray, uv_px: np.ndarray, z_mm: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray] | None:

@@ -309,11 +309,11 @@ def _rms(model, uv, xyz) -> tuple[float, int]:
     return float(np.sqrt(np.mean(np.sum(r * r, axis=1)))), c
 
 
-def convention_mixup(model, pairs, reference: Stats) -> Mixup | None:
+def convention_mixup(model: Fitted | Model, pairs: PointPairs, reference: Stats) -> Mixup | None:
     """The mixed-up convention (``MIXUPS``) that explains why ``pairs``' errors under ``model`` are far
     off the ``reference`` set's (leave-one-out, else training), or None: when they are not far off, or
     no single mix-up explains them (module docstring)."""
-    model = getattr(model, "model", model)
+    model = model if isinstance(model, Model) else model.model
     given, c = _rms(model, pairs.uv_px, pairs.xyz_mm)
     n = len(pairs)
     if not far_off(given, n, reference, c):
