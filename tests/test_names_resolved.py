@@ -155,3 +155,23 @@ def test_fitting_a_request_looks_no_name_up(paper_pairs, monkeypatch, model):
     want = calibrate(train, model, "lm", "l2", check=check, seed=0)  # the names' path: the same fit
     assert np.array_equal(cal.model.params, want.model.params) and cal.loo == want.loo
     assert cal.fit.objective == "l2" and cal.fit.optimizer == "lm"  # the file still stores names
+
+
+@pytest.mark.parametrize("name", OBJECTIVES)
+def test_an_objectives_facts_agree_with_its_values(name):
+    """The facts the fit acts on say what the objective computes: the least-squares one is the
+    2-norm (its held-out score the RMS), the robust one a sum of Huber losses (scored per pair), the
+    others the largest error; the smooth ones are those lm minimises."""
+    obj = get_objective(name)
+    r = np.random.default_rng(3).normal(0.0, 2.0, (4, 15, 3))
+    point = np.linalg.norm(r, axis=-1)  # (4, 15) point errors
+    delta = 1.5
+    huber = np.where(point <= delta, 0.5 * point**2, delta * (point - 0.5 * delta)).sum(axis=-1)
+    want = np.sqrt((point**2).sum(axis=-1)) if obj.least_squares else huber if obj.robust else point.max(-1)
+    np.testing.assert_allclose(obj.values(r, delta), want, rtol=1e-12)
+    score = obj.held_out_score(r[0], delta)
+    per_pair = np.sqrt(np.mean(point[0] ** 2)) if obj.least_squares else want[0] / (15 if obj.robust else 1)
+    assert score == pytest.approx(per_pair, rel=1e-12)
+    assert obj.smooth == get_solver("lm").minimises(obj)
+    assert obj.fitness_unit == ("mm²" if obj.robust else "mm")
+    assert not np.isfinite(obj.values(np.full((1, 3, 3), np.nan))).any()

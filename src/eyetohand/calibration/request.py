@@ -42,11 +42,8 @@ _CHOICES: dict[str, ModelChoice] = {AUTO.name: AUTO, **MODELS}
 def resolve_model(name: str) -> ModelChoice:
     """The model class called ``name``, or :data:`AUTO` for "auto"; an unknown name lists the choices
     (:func:`~eyetohand.models.get_model`'s words)."""
-    try:
-        return _CHOICES[name]
-    except (KeyError, TypeError):
-        get_model(name)  # raises, listing the choices
-        raise AssertionError(name) from None  # pragma: no cover - get_model refused it
+    choice = _CHOICES.get(name) if isinstance(name, str) else None
+    return get_model(name) if choice is None else choice  # get_model refuses it, listing the choices
 
 
 MAX_IMAGE_SIDE_PX = 100_000
