@@ -150,7 +150,7 @@ def test_belt_maps_a_new_part_downstream_and_refuses_outside(collected, source, 
         f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2"
     )
     # its refusals in the TCP line's words (tcp.answer on the same fields), 6_00 not a number on either
-    from eyetohand.server.tcp import answer
+    from eyetohand.positioning import answer
 
     for fields in (
         f"{d.u!r},{d.v!r},a=inf",

@@ -23,13 +23,12 @@ from pymodbus.client import ModbusTcpClient
 from pyModbusTCP.client import ModbusClient
 
 from eyetohand import calibrate
-from eyetohand.cell.plc import Status, map_point, parse_allow, peer_allowed
-from eyetohand.cell.plc import registers as R
 from eyetohand.cli import main as cli_main
 from eyetohand.core.pairs import pairs_from_records
+from eyetohand.positioning import FixedCalibration, Status, map_point, parse_allow, peer_allowed
+from eyetohand.positioning import registers as R
 from eyetohand.server.cli import ServeError, check_options
 from eyetohand.server.storage import Store
-from eyetohand.server.tcp import FixedCalibration
 
 TOKEN = "plc-token-123"
 PAIRS = records(PAPER / "calibration_points.csv")
@@ -473,7 +472,7 @@ def test_modbus_answers_only_the_allowed_peers(cal_file):
     addr = _non_loopback_address()
     if addr is None:
         pytest.skip("this machine has no non-loopback IPv4 address to connect from (rule checked above)")
-    from eyetohand.cell import ModbusService
+    from eyetohand.positioning import ModbusService
 
     src = FixedCalibration.from_file(cal_file)
 
@@ -495,7 +494,7 @@ def test_modbus_answers_only_the_allowed_peers(cal_file):
 
 
 def test_result_encoding_never_wraps():
-    from eyetohand.cell.plc import PointResult
+    from eyetohand.positioning import PointResult
 
     huge = PointResult(Status.OK, (3e6, 0.0, 0.0), None, None)
     regs = R.encode_result(huge, "n", 1)

@@ -1,5 +1,5 @@
 """What ``eyetohand serve`` runs: the workbench page and JSON API (uvicorn), and optionally the TCP line
-service, on an event loop of its own in a thread (:class:`~eyetohand.server.tcp.LoopThread`: one robot
+service, on an event loop of its own in a thread (:class:`~eyetohand.positioning.tcp.LoopThread`: one robot
 client's p50 went from 1.7-3.2x a minimal asyncio line server to 1.2-1.4x in five of six runs,
 benchmarks/bench_server.py).
 The command itself (its options) is :mod:`eyetohand.cli.serve`."""
@@ -93,7 +93,7 @@ def check_options(args) -> None:
     if args.calibration:
         path = calibration_path(args.calibration)
         if path is not None:
-            from eyetohand.server.tcp import FixedCalibration
+            from eyetohand.positioning import FixedCalibration
 
             try:
                 args.calibration_file = signed_file(FixedCalibration, path, args)
@@ -137,7 +137,7 @@ def check_plc_options(args) -> None:
         if given and importlib.util.find_spec(package) is None:
             raise ServeError(f"{flag} needs the {package} package: pip install 'eyetohand[plc]'")
     if modbus:
-        from eyetohand.cell import parse_allow
+        from eyetohand.positioning import parse_allow
 
         host, _ = parse_hostport(modbus, "--modbus")
         try:
@@ -270,7 +270,7 @@ def store_load_fn(store):
 def one_calibration(server_fn, wanted: str | None) -> dict:
     """The Collector's options that make mapping lines and CAL CHECK use one calibration (docs/collection.md):
     BEGIN only for the served one (with ``--calibration``), CHECK checks what the mapping lines use."""
-    from eyetohand.server.tcp import collection_rule, served_for_check
+    from eyetohand.server.served import collection_rule, served_for_check
 
     return {"begin_rule": collection_rule(server_fn, wanted), "served_fn": served_for_check(server_fn)}
 
@@ -279,7 +279,7 @@ def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
     """The LineServer's options from ``serve``'s: the command handlers, their busy replies, the robot's
     reserved addresses and the first-line grace."""
     from eyetohand.core import MM_DEG
-    from eyetohand.server.tcp import FIRST_LINE_S
+    from eyetohand.positioning import FIRST_LINE_S
 
     return {
         "commands": commands,
@@ -309,16 +309,16 @@ async def _serve(args, data_dir) -> None:
 async def _run_serve(args, data_dir, loops: list) -> None:
     import uvicorn
 
+    from eyetohand.positioning import LineServer, LoopThread
     from eyetohand.server.app import create_app
+    from eyetohand.server.served import SameFile, StoredCalibration
     from eyetohand.server.storage import DB_NAME, Store
-    from eyetohand.server.tcp import LineServer, LoopThread, SameFile, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     # the database is created only at a first start: later, a missing one is an error, never a new one
     fresh_db = not (Path(data_dir) / DB_NAME).exists()
-    line_server = None
     tcp_loop: LoopThread | None = None
-    collector = source = belt = app = locator = None
+    line_server = collector = source = belt = app = locator = None
     data_dir = Path(data_dir)
     camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
     store = served = None
@@ -462,8 +462,8 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
     """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
     service's served calibration when there is one, else ``served``, followed by polling when
     ``poll``); print their start-up lines. Returns (the services, their loop)."""
+    from eyetohand.positioning import LoopThread
     from eyetohand.server.plc import PlcServices
-    from eyetohand.server.tcp import LoopThread
 
     plc = PlcServices(
         current,
@@ -491,8 +491,8 @@ def add_locate(commands: dict, source, served, args):
     """The camera's :class:`~eyetohand.cell.Locator`, its line command ``LOCATE`` added to
     ``commands`` (and, for a ``sim:`` camera, ``SIM``: parts on the virtual table). ``served()``: the
     calibration in force, read at every LOCATE."""
-    from eyetohand.cell import Locator
     from eyetohand.core import MM_DEG
+    from eyetohand.positioning import Locator
     from eyetohand.sim import SimSource, sim_command
 
     locator = Locator(
@@ -530,8 +530,9 @@ def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool
     check_options), a stored calibration (followed), or none yet (with a camera, a collection creates
     it). A refusal closes ``http_sock`` and raises :class:`ServeError`. ``create``: the database may be
     created (a first start only)."""
+    from eyetohand.positioning import PendingCalibration
+    from eyetohand.server.served import SameFile, StoredCalibration
     from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
-    from eyetohand.server.tcp import PendingCalibration, SameFile, StoredCalibration
 
     served = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
     if served is not None:
@@ -563,7 +564,8 @@ def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool
 
 def describe(served) -> str:
     """What a service maps with, for its start-up line."""
-    from eyetohand.server.tcp import PendingCalibration, StoredCalibration
+    from eyetohand.positioning import PendingCalibration
+    from eyetohand.server.served import StoredCalibration
 
     if isinstance(served, StoredCalibration):
         return (

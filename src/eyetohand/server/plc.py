@@ -1,13 +1,13 @@
-"""What ``eyetohand serve --modbus / --opcua`` runs: the PLC adapters of :mod:`eyetohand.cell.plc`
+"""What ``eyetohand serve --modbus / --opcua`` runs: the PLC adapters of :mod:`eyetohand.positioning`
 (they hold no server state) wired to the calibration the server serves, on an event loop of their own
-(:class:`~eyetohand.server.tcp.LoopThread`, as the TCP line service's: a PLC's requests never wait
+(:class:`~eyetohand.positioning.tcp.LoopThread`, as the TCP line service's: a PLC's requests never wait
 behind HTTP work).
 
 The served calibration is the line service's object (``StoredCalibration``, ``FixedCalibration``,
-``PendingCalibration`` of :mod:`eyetohand.server.tcp`), read through ``source()`` at every request:
+``PendingCalibration`` of :mod:`eyetohand.positioning.tcp`), read through ``source()`` at every request:
 with ``--tcp`` the line service follows new versions (and a collection's ``follow``) and the PLC
 adapters see the same object; without it, this module polls the same ``StoredCalibration`` every
-:data:`~eyetohand.server.tcp.POLL_S` seconds (off the loop), so a new version is in force within a
+:data:`~eyetohand.positioning.tcp.POLL_S` seconds (off the loop), so a new version is in force within a
 second on every interface."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import asyncio
 from collections.abc import Callable
 from typing import Any
 
-from eyetohand.cell import ModbusService, OpcUaService
+from eyetohand.positioning import ModbusService, OpcUaService
 
 
 class PlcServices:
@@ -48,7 +48,8 @@ class PlcServices:
     async def start(self, *, poll: bool) -> None:
         """Start the servers on the running loop; ``poll``: follow a stored calibration here (no line
         service does)."""
-        from eyetohand.server.tcp import POLL_S, StoredCalibration
+        from eyetohand.positioning import POLL_S
+        from eyetohand.server.served import StoredCalibration
 
         if self.modbus is not None:
             self.starting = f"--modbus {self.modbus.host}:{self.modbus.port}"

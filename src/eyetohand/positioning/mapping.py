@@ -1,13 +1,13 @@
 """One request of a PLC protocol → one result record with a status: the protocol-independent part of
 the Modbus and OPC UA adapters (:mod:`.modbus`, :mod:`.opcua`).
 
-The mapping is the TCP line service's call (:func:`eyetohand.server.tcp.answer`): ``Calibration.map``
+The mapping is the TCP line service's call (:func:`eyetohand.positioning.tcp.answer`): ``Calibration.map``
 of one point, guarded by region, height and angle, with the uncertainty; a refusal keeps the library's
 words, as one ASCII line (:func:`eyetohand.cell.collect.ascii_reason`, at most :data:`MAX_REASON`
 characters), the text the line service sends after ``ERR``. The calibration in force is whatever the
 server serves (a file, a followed stored calibration, or none yet): any object with ``cal`` (a
 :class:`~eyetohand.calibration.Calibration` or None) and ``error`` (None or why there is none), as the
-served-calibration objects of :mod:`eyetohand.server.tcp` are.
+served-calibration objects of :mod:`eyetohand.positioning.tcp` are.
 """
 
 from __future__ import annotations
@@ -20,8 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from eyetohand.cell.line import ErrorCode, ascii_reason
-from eyetohand.cell.replies import mapping_code
+from eyetohand.cell import ErrorCode, ascii_reason, mapping_code
 from eyetohand.core import InputError
 
 MAX_REASON = 200  # as the TCP line service's ERR reasons

@@ -13,7 +13,7 @@ object ``Calibration`` with
   service sends after ``ERR``, as ``AdditionalInfo`` of every ``InputArgumentDiagnosticInfos`` entry;
 - the method ``Locate(dmin_mm, dmax_mm, z_mm) → (count, x_mm[], y_mm[], z_mm[], rz_deg[], sigma_mm[],
   outside)``: grab, find the round parts of diameter dmin..dmax mm (both NaN or 0: any size) at height
-  ``z_mm`` (NaN: the calibration's own) and map them (:class:`eyetohand.cell.locate.Locator`); count
+  ``z_mm`` (NaN: the calibration's own) and map them (:class:`eyetohand.positioning.locate.Locator`); count
   and outside UInt32, the arrays Double of ``count`` elements (σ -1 without uncertainty); the parts
   outside the calibrated region are omitted and counted in ``outside``. Refusals as ImageToRobot's,
   and ``BadResourceUnavailable`` without an image (no camera served, or the grab timed out).
@@ -32,7 +32,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from eyetohand.cell.plc.mapping import Status, map_point, served_identity
+from eyetohand.positioning.mapping import Status, map_point, served_identity
 
 NAMESPACE = "urn:eyetohand"
 PATH = "/eyetohand/"
@@ -185,7 +185,7 @@ class OpcUaService:
     async def _locate(self, parent, *args):
         from asyncua import ua
 
-        from eyetohand.cell.locate import NO_CAMERA, refused
+        from eyetohand.positioning.locate import NO_CAMERA, refused
 
         values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
         if len(values) != 3 or not all(

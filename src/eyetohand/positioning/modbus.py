@@ -5,7 +5,7 @@ once, on the server's event loop, and writes the result block with the echoed id
 PLOC2D handshake): a PLC that reads its own id in register 100 reads a complete result.
 
 A request with the LOCATE flag (bit 3 of register 9) grabs and locates the parts instead
-(:class:`eyetohand.cell.locate.Locator`, ~1 s, in a worker thread): the write is answered at once, and
+(:class:`eyetohand.positioning.locate.Locator`, ~1 s, in a worker thread): the write is answered at once, and
 the result block, the LOCATE block (200..321) and last the echoed id are written when it is done — the
 same handshake, a longer wait. A mapping request written meanwhile is answered at once, and the
 LOCATE's answer, now stale, is dropped (its id never echoed).
@@ -22,8 +22,8 @@ import ipaddress
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from eyetohand.cell.plc import registers as R
-from eyetohand.cell.plc.mapping import PointResult, Status, map_point, served_identity
+from eyetohand.positioning import registers as R
+from eyetohand.positioning.mapping import PointResult, Status, map_point, served_identity
 
 WRITE_CODES = (6, 16, 23)  # write single, write multiple, read/write multiple registers
 
@@ -183,7 +183,7 @@ class ModbusService:
 
     async def _locate(self, req_id, seq, dmin, dmax, z, registers, start_address) -> None:
         """A LOCATE in a worker thread, then its answer written (unless a newer request came)."""
-        from eyetohand.cell.locate import NO_CAMERA, LocateResult, refused
+        from eyetohand.positioning.locate import NO_CAMERA, LocateResult, refused
 
         any_size = dmin == 0 and dmax == 0
         if self.locate is None:
