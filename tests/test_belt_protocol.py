@@ -54,6 +54,8 @@ def cell_file(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def source(cell_file):
+    import eyetohand.sim  # noqa: F401  (registers the sim: camera; run alone, nothing else had imported it)
+
     return open_source(f"sim:{cell_file}?seed=2")
 
 
