@@ -860,7 +860,7 @@ def test_tcp_by_path_maps_bit_identically_to_apply(tmp_path, capsys):
 
 
 def test_import_then_tcp_follows_versions_rollback_and_delete(tmp_path):
-    from eyetohand.server.served import StoredCalibration
+    from eyetohand.server.stored import StoredCalibration
 
     data = tmp_path / "data"
     f_h, f_a = _cal_file(tmp_path, "homography"), _cal_file(tmp_path, "affine")

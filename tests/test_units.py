@@ -26,7 +26,7 @@ from eyetohand.cli import main as cli_main
 from eyetohand.core import InputError, output_units
 from eyetohand.positioning import MISSING, LineServer, answer
 from eyetohand.server.app import create_app
-from eyetohand.server.served import SameFile
+from eyetohand.server.stored import SameFile
 
 M_RAD = output_units("m", "rad")
 BAD = [

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import enum
 import math
+from dataclasses import dataclass
 
 from eyetohand.core import angle_refusal, beyond_limit
 
@@ -75,6 +76,17 @@ UR_ERROR_CODES = {
     ErrorCode.DATABASE: -16,
     ErrorCode.NOT_SERVED: -17,
 }
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """A refusal as a value: its kind (:class:`ErrorCode`) and its words (the reason a plain reply sends
+    after ``ERR``). ``broken``: a calibration exists but cannot be used (OPC UA's State ``Error``), as
+    against none at all."""
+
+    code: ErrorCode
+    reason: str
+    broken: bool = False
 
 
 class CommandError(Exception):
@@ -145,6 +157,7 @@ __all__ = [
     "UR_ERROR_CODES",
     "CommandError",
     "ErrorCode",
+    "Refusal",
     "ascii_reason",
     "line_count",
     "line_numbers",

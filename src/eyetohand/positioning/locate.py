@@ -48,6 +48,7 @@ from eyetohand.cell import (
 )
 from eyetohand.core import MM_DEG, OutputUnits
 from eyetohand.positioning.mapping import MAX_REASON, Status, map_point, served_refusal
+from eyetohand.positioning.served import Served
 
 DIAMETER_WINDOW = (0.7, 1.4)  # the detector's size window around its hint (vision.detect)
 NO_SIGMA = -1.0  # sigma of a calibration without uncertainty, on every interface
@@ -107,13 +108,13 @@ def check_range(dmin_mm: float | None, dmax_mm: float | None) -> str | None:
 
 def locate_parts(
     image,
-    served: Any,
+    served: Served,
     dmin_mm: float | None = None,
     dmax_mm: float | None = None,
     z_mm: float | None = None,
 ) -> LocateResult:
-    """The parts in ``image`` mapped with what ``served`` serves (an object with ``cal`` and ``error``,
-    :mod:`eyetohand.positioning.mapping`). Never raises: a refusal is a :class:`LocateResult`."""
+    """The parts in ``image`` mapped with what ``served`` serves (a :class:`~.served.Served`). Never
+    raises: a refusal is a :class:`LocateResult`."""
     from eyetohand.vision import detect_circles
 
     why = check_range(dmin_mm, dmax_mm)
@@ -159,7 +160,7 @@ def locate_parts(
     return LocateResult(Status.OK, tuple(parts), outside, image_size=(int(w), int(h)))
 
 
-def _scale_mm_per_px(served: Any, u: float, v: float, d_px: float, z_mm: float | None) -> float | None:
+def _scale_mm_per_px(served: Served, u: float, v: float, d_px: float, z_mm: float | None) -> float | None:
     """mm per px at (u, v): the mapped lengths of ``d_px`` across it along u and v, averaged (the
     region's guard off: a size, not a pose); None where the map gives no finite point."""
     lengths = []
@@ -183,7 +184,7 @@ class Locator:
     def __init__(
         self,
         source: Any,
-        served: Callable[[], Any],
+        served: Callable[[], Served],
         *,
         reply_format: str = "plain",
         units: OutputUnits = MM_DEG,

@@ -24,8 +24,7 @@ import math
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 
@@ -40,6 +39,7 @@ from eyetohand.cell import (
 )
 from eyetohand.core import MM_DEG, InputError, OutputUnits
 from eyetohand.geometry import check_symmetry
+from eyetohand.positioning.served import FixedCalibration, Served
 
 MAX_LINE = 256
 MAX_CLIENTS = 256
@@ -70,56 +70,6 @@ MISSING = {  # a command word of a service this server was not started with -> w
 
 USAGE = "send u,v[,z][,a=ANGLE][,s=N][,t=DEG][,allow][,sigma] or VERSION"
 POLL_S = 0.25
-
-
-class FixedCalibration:
-    """A calibration that does not change (a file, or one given in code): ``VERSION`` names it."""
-
-    def __init__(self, cal: Calibration, label: str = "calibration", sha256: str = ""):
-        self.cal: Calibration | None = cal
-        self.error: str | None = None
-        self.label = label
-        self.sha256 = sha256 or cal.to_dict()["content_sha256"]
-
-    def version_line(self) -> str:
-        return f"OK {self.label},{self.sha256}"
-
-    def problem(self) -> str | None:
-        return self.error
-
-    def poll(self) -> None:
-        """A file does not change."""
-
-    @classmethod
-    def from_file(cls, path) -> FixedCalibration:
-        import hashlib
-
-        p = Path(path)
-        cal = Calibration.load(p)
-        return cls(cal, str(p.resolve()), hashlib.sha256(p.read_bytes()).hexdigest())
-
-
-class PendingCalibration:
-    """Stands in for the served calibration before one exists (``serve --camera`` with a new name):
-    every mapping line is one ERR until a collection creates it."""
-
-    def __init__(self, name: str | None):
-        self.name = name
-        self.cal: Calibration | None = None
-        what = f"'{name}' has none yet" if name else "none is served"
-        self.error: str | None = (
-            f"no calibration to map with: {what}; collect one (CAL BEGIN ... CAL END) "
-            "or start serve with --calibration NAME"
-        )
-
-    def version_line(self) -> str:
-        return f"ERR {self.error}"
-
-    def problem(self) -> str | None:
-        return self.error
-
-    def poll(self) -> None:
-        """Nothing to follow yet (a collection replaces it: :meth:`LineServer.follow`)."""
 
 
 class _Poller:
@@ -282,7 +232,7 @@ class LineServer:
 
     def __init__(
         self,
-        cal: Any,
+        cal: Calibration | Served,
         host: str,
         port: int,
         *,
@@ -301,7 +251,7 @@ class LineServer:
         units: OutputUnits = MM_DEG,
     ):
         self.replies = LineReplies(reply_format, units)  # how every reply is worded (cell/replies.py)
-        self.source: Any = FixedCalibration(cal) if isinstance(cal, Calibration) else cal
+        self.source: Served = FixedCalibration(cal) if isinstance(cal, Calibration) else cal
         self.poll_s = poll_s
         self._poller: _Poller | None = None
         self.commands = {k.upper(): f for k, f in (commands or {}).items()}
@@ -331,7 +281,7 @@ class LineServer:
         self.port = self.server.sockets[0].getsockname()[1]
         self._poller = _Poller(self, self.poll_s)
 
-    def follow(self, source: Any, loop: asyncio.AbstractEventLoop | None = None) -> None:
+    def follow(self, source: Served, loop: asyncio.AbstractEventLoop | None = None) -> None:
         """Serve (and follow) ``source`` from now on: after a collection created the calibration.
         Callable from any thread (``loop`` is not needed any more: the poller reads :attr:`source`)."""
         self.source = source
@@ -346,11 +296,13 @@ class LineServer:
         src = self.source
         problem = src.problem()
         if line.strip().upper() == b"VERSION":
-            text = src.version_line() if problem is None else f"ERR {ascii_reason(problem)}"
+            text = src.version_line() if problem is None else f"ERR {ascii_reason(problem.reason)}"
             return text.encode("ascii", "replace") + b"\n"
         cal = src.cal
-        if cal is None or problem is not None:
-            return f"ERR {ascii_reason(str(problem))}\n".encode()
+        if problem is not None:
+            return f"ERR {ascii_reason(problem.reason)}\n".encode()
+        if cal is None:  # a Served that says nothing is wrong but has nothing to map with
+            return b"ERR no calibration to map with\n"
         return answer(cal, line, self.replies)
 
     async def serve_forever(self) -> None:

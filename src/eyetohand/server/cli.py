@@ -13,8 +13,14 @@ import logging
 import socket
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from eyetohand.core import InputError
+
+if TYPE_CHECKING:
+    from eyetohand.positioning import Served
+    from eyetohand.server.storage import Store
+    from eyetohand.server.stored import SameFile
 
 
 class ServeError(InputError):
@@ -270,7 +276,7 @@ def store_load_fn(store):
 def one_calibration(server_fn, wanted: str | None) -> dict:
     """The Collector's options that make mapping lines and CAL CHECK use one calibration (docs/collection.md):
     BEGIN only for the served one (with ``--calibration``), CHECK checks what the mapping lines use."""
-    from eyetohand.server.served import collection_rule, served_for_check
+    from eyetohand.server.stored import collection_rule, served_for_check
 
     return {"begin_rule": collection_rule(server_fn, wanted), "served_fn": served_for_check(server_fn)}
 
@@ -311,8 +317,8 @@ async def _run_serve(args, data_dir, loops: list) -> None:
 
     from eyetohand.positioning import LineServer, LoopThread
     from eyetohand.server.app import create_app
-    from eyetohand.server.served import SameFile, StoredCalibration
     from eyetohand.server.storage import DB_NAME, Store
+    from eyetohand.server.stored import SameFile, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     # the database is created only at a first start: later, a missing one is an error, never a new one
@@ -327,7 +333,8 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         served, store, same_file = _served_calibration(args, data_dir, camera, http_sock, create=fresh_db)
     if args.tcp:
         host, port = parse_hostport(args.tcp)
-        what = describe(served)
+        assert served is not None  # _served_calibration ran for --tcp
+        what = served.describe()
         commands: dict[str, Callable[[str], str]] = {}
         busy_replies: dict[str, Callable[[str], str]] = {}
         # the line service runs on a loop of its own: the robot's lines never wait behind HTTP work
@@ -347,7 +354,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                     wanted = args.calibration or saved_rec.name
                     if line_server is not None and saved_rec.name == wanted and store is not None:
                         current = line_server.source
-                        if isinstance(current, StoredCalibration) and current.cal_id == saved_rec.id:
+                        if current.identity().cal_id == saved_rec.id:
                             current.poll()  # at once, not at the next poll
                         else:
                             line_server.follow(StoredCalibration(store, saved_rec.id, same_file), loop)
@@ -384,7 +391,6 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             if store is not None:
                 store.close()
             raise ServeError(str(exc).splitlines()[0]) from None
-        assert served is not None  # _served_calibration ran for --tcp
         line_server = LineServer(
             served, host, port, token=args.token, **tcp_options(args, commands, busy_replies)
         )
@@ -462,8 +468,7 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
     """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
     service's served calibration when there is one, else ``served``, followed by polling when
     ``poll``); print their start-up lines. Returns (the services, their loop)."""
-    from eyetohand.positioning import LoopThread
-    from eyetohand.server.plc import PlcServices
+    from eyetohand.positioning import LoopThread, PlcServices
 
     plc = PlcServices(
         current,
@@ -481,7 +486,7 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
         plc_loop.stop()
         http_sock.close()
         raise ServeError(f"{plc.starting}: cannot listen there ({exc.strerror or exc})") from None
-    for line in plc.lines(describe(served)):
+    for line in plc.lines(served.describe()):
         print(line, flush=True)
     return plc, plc_loop
 
@@ -524,19 +529,21 @@ def _plc_wanted(args) -> bool:
     return bool(getattr(args, "modbus", None) or getattr(args, "opcua", None))
 
 
-def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool):
+def _served_calibration(
+    args, data_dir: Path, camera, http_sock, *, create: bool
+) -> tuple[Served, Store | None, SameFile | None]:
     """(the served-calibration object, the store or None, its :class:`SameFile` or None) for
     ``--calibration``: a file (proved by
     check_options), a stored calibration (followed), or none yet (with a camera, a collection creates
     it). A refusal closes ``http_sock`` and raises :class:`ServeError`. ``create``: the database may be
     created (a first start only)."""
     from eyetohand.positioning import PendingCalibration
-    from eyetohand.server.served import SameFile, StoredCalibration
     from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
+    from eyetohand.server.stored import SameFile, StoredCalibration
 
-    served = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
-    if served is not None:
-        return served, None, None
+    fixed = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
+    if fixed is not None:
+        return fixed, None, None
     # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
     if args.calibration and not camera and not (data_dir / DB_NAME).is_file():
         http_sock.close()
@@ -546,7 +553,7 @@ def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool
         )
     store = Store(data_dir, wait_s=args.db_wait, create=create)
     same_file = SameFile(store)  # the database file as opened: TCP refuses once it is another
-    served = PendingCalibration(args.calibration)
+    served: Served = PendingCalibration(args.calibration)
     try:
         if args.calibration:
             try:
@@ -560,21 +567,6 @@ def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool
         store.close()
         raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
     return served, store, same_file
-
-
-def describe(served) -> str:
-    """What a service maps with, for its start-up line."""
-    from eyetohand.positioning import PendingCalibration
-    from eyetohand.server.served import StoredCalibration
-
-    if isinstance(served, StoredCalibration):
-        return (
-            f"calibration {served.name!r} (id {served.cal_id}, version {served.version}, followed: a "
-            "new version or a rollback takes effect within a second)"
-        )
-    if isinstance(served, PendingCalibration):
-        return "no calibration yet (a collection creates it)"
-    return f"the file {served.label} (sha256 {served.sha256[:12]}…)"
 
 
 def bind_http(host: str, port: int) -> socket.socket:

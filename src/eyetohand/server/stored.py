@@ -1,7 +1,8 @@
-"""A stored calibration served by the positioning transports (:mod:`eyetohand.positioning`): the current
-version in the database, followed (:class:`StoredCalibration`), while the database path still names the
-file the store opened (:class:`SameFile`); and the rules that make a collection and CAL CHECK use what
-the mapping lines serve."""
+"""A stored calibration served by the positioning transports: the current version in the database,
+followed (:class:`StoredCalibration`, a :class:`eyetohand.positioning.Served`), while the database path
+still names the file the store opened (:class:`SameFile`); and the rules that make a collection and
+CAL CHECK use what the mapping lines serve (through the :class:`~eyetohand.positioning.Served`
+protocol: no kind is asked for)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from eyetohand.calibration import Calibration
-from eyetohand.cell import MAX_REASON
+from eyetohand.cell import MAX_REASON, ErrorCode, Refusal
 from eyetohand.core import InputError
-from eyetohand.positioning import FixedCalibration
+from eyetohand.positioning import Identity
 from eyetohand.server.storage import NotFound, StorageError
 
 if TYPE_CHECKING:
@@ -72,32 +73,40 @@ class StoredCalibration:
         self.same_file = same_file or SameFile(store)
         self.cal_id = cal_id
         self.cal: Calibration | None = None
-        self.error: str | None = None
+        self.error: Refusal | None = None
         self.name = ""
         self.version = 0
         self.created_utc = ""
         self.poll()
         if self.cal is None:
-            raise InputError(self.error or f"no calibration with id {cal_id}")
+            raise InputError(self.error.reason if self.error else f"no calibration with id {cal_id}")
 
     def version_line(self) -> str:
         return f"OK {self.name},{self.version},{self.created_utc}"
 
-    def problem(self) -> str | None:
+    def problem(self) -> Refusal | None:
         """Why nothing may be mapped now (per line: the file check is one stat), or None."""
         gone = self.same_file.problem()
-        return gone if gone is not None else self.error
+        return Refusal(ErrorCode.DATABASE, gone) if gone is not None else self.error
+
+    def identity(self) -> Identity:
+        return Identity(self.name, self.version, cal_id=self.cal_id)
+
+    def describe(self) -> str:
+        return (
+            f"calibration {self.name!r} (id {self.cal_id}, version {self.version}, followed: a "
+            "new version or a rollback takes effect within a second)"
+        )
 
     def poll(self) -> None:
-
         gone = self.same_file.problem()
         if gone is not None:
-            self.error = gone  # the version in force is kept for when the file is back
+            self.error = Refusal(ErrorCode.DATABASE, gone)  # the version in force is kept for when it is back
             return
         try:
             now = self.store.current(self.cal_id)
             if now is None:
-                self.error = f"calibration '{self.name or self.cal_id}' was deleted"
+                self.error = self._deleted()
                 self.cal = None
                 return
             name, version = now
@@ -108,17 +117,21 @@ class StoredCalibration:
             ver = self.store.version(self.cal_id, version)
             cal = Calibration.from_dict(ver.calibration, f"calibration {name!r} version {version}")
         except NotFound:
-            self.error = f"calibration '{self.name or self.cal_id}' was deleted"
+            self.error = self._deleted()
             self.cal = None
             return
         except StorageError:
             return  # keep what is in force; the next poll tries again
         except InputError as exc:
-            self.error = f"calibration '{self.name}' version {version} cannot be used: {exc}"[:MAX_REASON]
+            why = f"calibration '{self.name}' version {version} cannot be used: {exc}"[:MAX_REASON]
+            self.error = Refusal(ErrorCode.NO_CALIBRATION, why, broken=True)
             self.cal = None
             return
         # one assignment each, read by the event loop between lines (the GIL makes them atomic)
         self.cal, self.version, self.created_utc, self.error = cal, ver.version, ver.created_utc, None
+
+    def _deleted(self) -> Refusal:
+        return Refusal(ErrorCode.NO_CALIBRATION, f"calibration '{self.name or self.cal_id}' was deleted")
 
 
 def collection_rule(
@@ -132,13 +145,13 @@ def collection_rule(
         if wanted is None:
             return None
         server = server_fn()
-        src = server.source if server is not None else None
-        if isinstance(src, FixedCalibration):
+        ident = server.source.identity() if server is not None else Identity()
+        if ident.file:
             return (
-                f"this server maps with the file {src.label} (--calibration), which a collection does "
+                f"this server maps with the file {ident.file} (--calibration), which a collection does "
                 f"not change; start serve with --calibration {name} to collect it"
             )
-        served = src.name if isinstance(src, StoredCalibration) and src.name else wanted
+        served = ident.name or wanted
         served = served[5:] if served.lower().startswith("name:") else served
         if name == served:
             return None
@@ -159,13 +172,11 @@ def served_for_check(server_fn: Callable[[], LineServer | None]):
         if server is None:
             return "", None, None, "the line service is not started yet"
         src = server.source
-        if isinstance(src, StoredCalibration):
-            problem = src.problem()
-            return src.name, src.version, (src.cal if problem is None else None), problem
-        if isinstance(src, FixedCalibration):
-            return Path(src.label).stem, None, src.cal, None
-        why = f"'{src.name}' has none yet" if src.name else "send CAL BEGIN ... CAL END first"
-        return src.name or "", None, None, why
+        ident, problem = src.identity(), src.problem()
+        version = ident.version or None  # a file (or none yet) has no versions
+        if problem is None and src.cal is not None:
+            return ident.name, version, src.cal, None
+        return ident.name, version, None, problem.reason if problem else "no calibration to map with"
 
     return served
 
