@@ -36,6 +36,7 @@ import numpy as np
 
 from eyetohand.cell import (
     DECIMALS,
+    MAX_REASON,
     UR_DONE,
     UR_ERROR_CODES,
     UR_OK,
@@ -47,7 +48,7 @@ from eyetohand.cell import (
     ur_number,
 )
 from eyetohand.core import MM_DEG, OutputUnits
-from eyetohand.positioning.mapping import MAX_REASON, Status, map_point, served_refusal
+from eyetohand.positioning.mapping import Status, map_point, served_refusal
 from eyetohand.positioning.served import Served
 
 DIAMETER_WINDOW = (0.7, 1.4)  # the detector's size window around its hint (vision.detect)

@@ -16,11 +16,9 @@ from enum import IntEnum
 
 import numpy as np
 
-from eyetohand.cell import ErrorCode, ascii_reason, mapping_code
+from eyetohand.cell import MAX_REASON, ErrorCode, ascii_reason, mapping_code
 from eyetohand.core import InputError
 from eyetohand.positioning.served import Served
-
-MAX_REASON = 200  # as the TCP line service's ERR reasons
 
 
 class Status(IntEnum):
