@@ -3,7 +3,7 @@
 1. ``Calibration.image_to_robot`` of 10⁶ points inside the region (the default guard) against
    ``cv2.perspectiveTransform`` of the same points with the same matrix (goal ≤ 1.5×);
 2. the same, one point, against a NumPy 3×3 product and divide (goal ≤ 3×);
-3. the TCP line ``u,v`` round trip, p50, of ``server.tcp.LineServer`` (a calibration file, as
+3. the TCP line ``u,v`` round trip, p50, of ``positioning.tcp.LineServer`` (a calibration file, as
    ``eyetohand serve --calibration FILE.json`` serves it) against ``benchmarks/peer_tcp.py`` (goal ≤ 1.5×),
    each in a process of its own, one blocking client, both pinned to one CPU when it can (one round trip
    is two wake-ups: across cores on a VM each costs 0.1–0.5 ms whichever server it is).
@@ -37,7 +37,7 @@ N_BIG = 1_000_000
 SERVE = """
 import asyncio, sys
 from eyetohand.calibration import Calibration
-from eyetohand.server.tcp import FixedCalibration, LineServer
+from eyetohand.positioning import FixedCalibration, LineServer
 
 async def main():
     server = LineServer(FixedCalibration.from_file(sys.argv[1]), "127.0.0.1", int(sys.argv[2]))

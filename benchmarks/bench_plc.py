@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 from helpers import PAPER, free_port, records, src_env  # noqa: E402
 
-from eyetohand.cell.plc import registers as R  # noqa: E402
+from eyetohand.positioning import registers as R  # noqa: E402
 
 REQUESTS = 300  # per protocol per round
 

@@ -19,8 +19,8 @@ import sys
 import numpy as np
 
 from eyetohand.calibration.file import Calibration
-from eyetohand.cell.plc import registers as R
-from eyetohand.cell.plc.mapping import PointResult, Status
+from eyetohand.positioning import PointResult, Status
+from eyetohand.positioning import registers as R
 
 
 def _mapped(cal: Calibration, u: float, v: float) -> tuple[tuple[float, float, float], float]:

@@ -54,6 +54,8 @@ def cell_file(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def source(cell_file):
+    import eyetohand.sim  # noqa: F401  (registers the sim: camera; run alone, nothing else had imported it)
+
     return open_source(f"sim:{cell_file}?seed=2")
 
 
@@ -150,7 +152,7 @@ def test_belt_maps_a_new_part_downstream_and_refuses_outside(collected, source, 
         f"BELT {d.u!r},{d.v!r},{e_img},{e_now},a=30,s=2"
     )
     # its refusals in the TCP line's words (tcp.answer on the same fields), 6_00 not a number on either
-    from eyetohand.server.tcp import answer
+    from eyetohand.positioning import answer
 
     for fields in (
         f"{d.u!r},{d.v!r},a=inf",

@@ -10,6 +10,7 @@ import pytest
 
 from eyetohand import InputError, detect_circles, detect_target
 from eyetohand.geometry.camera import Camera
+from eyetohand.vision import Miss
 from eyetohand.vision.detect import annotate, fit_ellipse, load_image
 from eyetohand.vision.render import Target, render
 
@@ -183,18 +184,23 @@ REFUSALS = {
 }
 
 
+#: the kind each refusal says it is (Detection.miss), for callers that act on it without its words
+MISSES = {"two equal circles": Miss.AMBIGUOUS, "a circle cut by the border": Miss.CUT_BY_BORDER}
+
+
 @pytest.mark.parametrize("case", REFUSALS)
 def test_refusals_give_a_reason_and_no_centre(case):
     make, words = REFUSALS[case]
     d = detect_target(make())
     assert not d.ok and d.u is None and d.v is None and d.diameter_px is None
     assert words in d.reason and "\n" not in d.reason
+    assert d.miss is MISSES.get(case, Miss.NOT_FOUND)
 
 
 def test_a_lone_disc_is_found_and_the_hint_or_roi_resolve_two():
     one = finish(disc(canvas(), 300.3, 200.7, 30, 30))
     d = detect_target(one)
-    assert d.ok and np.hypot(d.u - 300.3, d.v - 200.7) < 0.05
+    assert d.ok and d.miss is None and np.hypot(d.u - 300.3, d.v - 200.7) < 0.05
     two = finish(disc(disc(canvas(), 200.3, 200.7, 30, 30), 450.2, 260.4, 15, 30))
     assert "ambiguous" in detect_target(two).reason
     d = detect_target(two, diameter_px=60)

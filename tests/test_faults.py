@@ -18,9 +18,9 @@ import numpy as np
 from fastapi.testclient import TestClient
 from helpers import PAPER, ServeProcess, records
 
+from eyetohand.positioning import LineServer
 from eyetohand.server.app import create_app
 from eyetohand.server.storage import DB_NAME, Store
-from eyetohand.server.tcp import LineServer
 
 PAIRS = records(PAPER / "calibration_points.csv")
 

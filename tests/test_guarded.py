@@ -144,7 +144,7 @@ def test_symmetry_two_folds_into_half_turn(down_single):
 def test_a_bad_symmetry_is_refused_with_or_without_an_angle(down_single, bad):
     """One rule on every interface: the library refuses a symmetry outside 1..360 even when no angle
     asks for rz (it used to ignore it there, while HTTP refused it); the TCP line says the same."""
-    from eyetohand.server.tcp import answer
+    from eyetohand.positioning import answer
 
     sim, cal = down_single
     uv = cal.pairs.uv_px[:1]

@@ -24,6 +24,7 @@ RANKS = {
     "solve": 3,
     "calibration": 4,
     "cell": 5,
+    "positioning": 6,
     "reports": 5,
     "sim": 6,
     "cli": 8,

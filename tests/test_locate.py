@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 from helpers import ROBOTS, SMALL_CELL_TOML, ServeProcess, src_env, view_square_mm
 
-from eyetohand.cell.plc import registers as R
+from eyetohand.positioning import registers as R
 
 sys.path.insert(0, str(ROBOTS))
 from robot_client import TcpLink, VirtualRobot  # noqa: E402

@@ -23,13 +23,19 @@ from pymodbus.client import ModbusTcpClient
 from pyModbusTCP.client import ModbusClient
 
 from eyetohand import calibrate
-from eyetohand.cell.plc import Status, map_point, parse_allow, peer_allowed
-from eyetohand.cell.plc import registers as R
 from eyetohand.cli import main as cli_main
 from eyetohand.core.pairs import pairs_from_records
+from eyetohand.positioning import (
+    FixedCalibration,
+    PendingCalibration,
+    Status,
+    map_point,
+    parse_allow,
+    peer_allowed,
+)
+from eyetohand.positioning import registers as R
 from eyetohand.server.cli import ServeError, check_options
 from eyetohand.server.storage import Store
-from eyetohand.server.tcp import FixedCalibration
 
 TOKEN = "plc-token-123"
 PAIRS = records(PAPER / "calibration_points.csv")
@@ -276,23 +282,20 @@ def test_a_stale_id_is_never_answered_twice(stored, points):
 
 def test_internal_error_and_no_calibration_are_statuses():
     class Broken:
-        error = None
-
         class cal:  # noqa: N801
             @staticmethod
             def map(*a, **k):
                 raise RuntimeError("boom")
 
-    res = map_point(Broken(), 1.0, 2.0)
+        def problem(self):
+            return None
+
+    res = map_point(Broken(), 1.0, 2.0)  # type: ignore[arg-type]
     assert res.status == Status.INTERNAL and "boom" in res.reason
     regs = R.encode_result(res, "x", 3)
     assert regs[0] == 5 and R.words_int32(regs[9:11]) == -1
 
-    class Pending:
-        cal = None
-        error = "no calibration to map with: none is served"
-
-    assert map_point(Pending(), 1.0, 2.0).status == Status.NO_CALIBRATION
+    assert map_point(PendingCalibration(None), 1.0, 2.0).status == Status.NO_CALIBRATION
 
 
 # ---------------------------------------------------------------------- OPC UA
@@ -473,7 +476,7 @@ def test_modbus_answers_only_the_allowed_peers(cal_file):
     addr = _non_loopback_address()
     if addr is None:
         pytest.skip("this machine has no non-loopback IPv4 address to connect from (rule checked above)")
-    from eyetohand.cell import ModbusService
+    from eyetohand.positioning import ModbusService
 
     src = FixedCalibration.from_file(cal_file)
 
@@ -495,7 +498,7 @@ def test_modbus_answers_only_the_allowed_peers(cal_file):
 
 
 def test_result_encoding_never_wraps():
-    from eyetohand.cell.plc import PointResult
+    from eyetohand.positioning import PointResult
 
     huge = PointResult(Status.OK, (3e6, 0.0, 0.0), None, None)
     regs = R.encode_result(huge, "n", 1)
@@ -505,7 +508,7 @@ def test_result_encoding_never_wraps():
 
 
 def test_modbus_alone_follows_new_versions(tmp_path, points):
-    """`serve --modbus` without `--tcp`: no line service polls the stored calibration, server/plc.py
+    """`serve --modbus` without `--tcp`: no line service polls the stored calibration, positioning/plc.py
     does (the same StoredCalibration object): a new version answers within a second."""
     import subprocess
     import sys

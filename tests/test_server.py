@@ -22,11 +22,11 @@ from hypothesis import HealthCheck, settings
 from eyetohand import InputError, load_pairs
 from eyetohand.calibration.file import Calibration
 from eyetohand.cli import main as cli_main
+from eyetohand.positioning import MAX_LINE, LineServer
+from eyetohand.positioning import answer as tcp_answer
 from eyetohand.server.app import LOOPBACK_HOSTS, MAX_POINTS, create_app
 from eyetohand.server.schemas import MAX_PAIRS
 from eyetohand.server.storage import Store
-from eyetohand.server.tcp import MAX_LINE, LineServer
-from eyetohand.server.tcp import answer as tcp_answer
 
 PAIRS = records(PAPER / "calibration_points.csv")
 CHECK = records(PAPER / "check_points.csv")
@@ -831,7 +831,7 @@ def test_serve_calibration_option_file_id_or_name(tmp_path):
 
 def test_tcp_by_path_maps_bit_identically_to_apply(tmp_path, capsys):
     from eyetohand.cli import main
-    from eyetohand.server.tcp import FixedCalibration
+    from eyetohand.positioning import FixedCalibration
 
     f = _cal_file(tmp_path)
     src = FixedCalibration.from_file(f)
@@ -860,7 +860,7 @@ def test_tcp_by_path_maps_bit_identically_to_apply(tmp_path, capsys):
 
 
 def test_import_then_tcp_follows_versions_rollback_and_delete(tmp_path):
-    from eyetohand.server.tcp import StoredCalibration
+    from eyetohand.server.stored import StoredCalibration
 
     data = tmp_path / "data"
     f_h, f_a = _cal_file(tmp_path, "homography"), _cal_file(tmp_path, "affine")
@@ -1356,7 +1356,7 @@ def test_the_line_service_on_a_loop_thread_answers_and_stops_cleanly(paper_pairs
     import socket
 
     from eyetohand import calibrate
-    from eyetohand.server.tcp import LoopThread
+    from eyetohand.positioning import LoopThread
 
     cal = calibrate(paper_pairs[0], model="homography", optimizer="lm", loo=False)
     t = LoopThread(name="test-tcp")

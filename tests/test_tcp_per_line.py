@@ -13,7 +13,7 @@ from helpers import PAPER
 from eyetohand import calibrate, load_pairs
 from eyetohand.cell import LineReplies
 from eyetohand.core import output_units
-from eyetohand.server.tcp import LineServer, answer
+from eyetohand.positioning import LineServer, answer
 
 LINES = [
     b"600,900",

@@ -24,8 +24,9 @@ from eyetohand.calibration import Calibration
 from eyetohand.cell import UR_ERROR_CODES, ErrorCode, LineReplies, reason_code
 from eyetohand.cli import main as cli_main
 from eyetohand.core import InputError, output_units
+from eyetohand.positioning import MISSING, LineServer, answer
 from eyetohand.server.app import create_app
-from eyetohand.server.tcp import MISSING, LineServer, SameFile, answer
+from eyetohand.server.stored import SameFile
 
 M_RAD = output_units("m", "rad")
 BAD = [

@@ -1,5 +1,6 @@
-"""Rank 5: the robot cell: line-protocol helpers, the collection, the belt protocol, plans, the
-conveyor and the PLC adapters (Modbus TCP, OPC UA: :mod:`eyetohand.cell.plc`)."""
+"""Rank 5: the robot cell: line-protocol helpers and reply formats, the collection, the belt
+protocol, plans, the conveyor. The positioning transports (TCP line, Modbus, OPC UA, LOCATE) are one
+rank up, in :mod:`eyetohand.positioning`."""
 
 from __future__ import annotations
 
@@ -25,14 +26,22 @@ if TYPE_CHECKING:
         UR_ERROR_CODES,
         CommandError,
         ErrorCode,
+        Refusal,
         ascii_reason,
         line_count,
         line_numbers,
     )
-    from eyetohand.cell.locate import LocateResult, Locator, locate_parts
     from eyetohand.cell.plans import MAX_POINTS, VALID_FORMS, Plan, is_whole_in, parse_numbers, parse_plan
-    from eyetohand.cell.plc import ModbusService, OpcUaService, PointResult, Status, map_point, parse_allow
-    from eyetohand.cell.replies import LineReplies, mapping_code, reason_code
+    from eyetohand.cell.replies import (
+        DECIMALS,
+        UR_DONE,
+        UR_OK,
+        LineReplies,
+        mapping_code,
+        reason_code,
+        ur_line,
+        ur_number,
+    )
 else:
     __getattr__, __dir__ = lazy_exports(
         __name__,
@@ -53,14 +62,10 @@ else:
                 "UR_ERROR_CODES",
                 "CommandError",
                 "ErrorCode",
+                "Refusal",
                 "ascii_reason",
                 "line_count",
                 "line_numbers",
-            ),
-            "locate": (
-                "LocateResult",
-                "Locator",
-                "locate_parts",
             ),
             "plans": (
                 "MAX_POINTS",
@@ -70,24 +75,26 @@ else:
                 "parse_numbers",
                 "parse_plan",
             ),
-            "plc": (
-                "ModbusService",
-                "OpcUaService",
-                "PointResult",
-                "Status",
-                "map_point",
-                "parse_allow",
-            ),
             "replies": (
+                "DECIMALS",
+                "UR_DONE",
+                "UR_OK",
                 "LineReplies",
                 "mapping_code",
                 "reason_code",
+                "ur_line",
+                "ur_number",
             ),
         },
     )
 
 
 __all__ = [
+    "DECIMALS",
+    "UR_DONE",
+    "UR_OK",
+    "ur_line",
+    "ur_number",
     "BeltProtocol",
     "Collector",
     "CommandError",
@@ -95,17 +102,12 @@ __all__ = [
     "Encoder",
     "ErrorCode",
     "LineReplies",
-    "LocateResult",
-    "Locator",
     "MAX_POINTS",
     "MAX_REASON",
-    "ModbusService",
-    "OpcUaService",
     "PLAIN_REPLIES",
     "Plan",
-    "PointResult",
+    "Refusal",
     "Session",
-    "Status",
     "UR_ERROR_CODES",
     "VALID_FORMS",
     "ascii_reason",
@@ -116,10 +118,7 @@ __all__ = [
     "line_count",
     "line_numbers",
     "load_session",
-    "locate_parts",
-    "map_point",
     "mapping_code",
-    "parse_allow",
     "parse_numbers",
     "parse_plan",
     "reason_code",

@@ -61,6 +61,7 @@ lost; a torn last line (a kill in mid-write) is cut off.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import hashlib
 import json
@@ -69,13 +70,14 @@ import os
 import re
 import sqlite3
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
 from eyetohand.cell.line import UR_ERROR_CODES, CommandError, ErrorCode, ascii_reason, line_numbers
+from eyetohand.cell.replies import UR_COUNTS, ur_line, ur_number
 from eyetohand.core import InputError
 
 STILL_TOL_PX = 0.2
@@ -147,12 +149,8 @@ class URReplies:
 
     @staticmethod
     def _line(nums: list[float]) -> str:
-        nums = nums + [0] * (4 - len(nums))
-        return "(" + ",".join(_ur_number(v) for v in nums) + ")"
-
-
-def _ur_number(v: float) -> str:
-    return str(int(v)) if float(v).is_integer() and abs(v) < 1e9 else f"{v:.4f}"
+        """``(status,a,b,c)``: the ur format's one formatter (:func:`eyetohand.cell.replies.ur_line`)."""
+        return ur_line(int(nums[0]), [ur_number(v) for v in nums[1:]], UR_COUNTS["CAL"])
 
 
 #: the reply formats by name (``Collector(reply_format=...)``, ``serve --reply-format``)
@@ -273,12 +271,15 @@ def default_calibrate(pairs, model: str, image_size):
     return calibrate(pairs, model=model, image_size=image_size, seed=0)
 
 
-def _classify(reason: str) -> CommandError:
-    """The refusal of a detection that found no target, from its reason."""
-    r = reason.removeprefix("no target found: ")
-    if reason.startswith("ambiguous"):
-        return CommandError(reason, ErrorCode.AMBIGUOUS)
-    if "cut by the image border" in reason:
+def _classify(det) -> CommandError:
+    """The refusal of a detection that found no target, by its kind (``det.miss``, a
+    :class:`eyetohand.vision.Miss`), in its words."""
+    from eyetohand.vision import Miss
+
+    r = det.reason.removeprefix("no target found: ")
+    if det.miss is Miss.AMBIGUOUS:
+        return CommandError(det.reason, ErrorCode.AMBIGUOUS)
+    if det.miss is Miss.CUT_BY_BORDER:
         return CommandError(f"outside the image: {r}", ErrorCode.OUTSIDE_IMAGE)
     return CommandError(f"target not found: {r}", ErrorCode.TARGET_NOT_FOUND)
 
@@ -359,7 +360,7 @@ class Collector:
         self.served_fn = served_fn
         self.image_size: tuple[int, int] | None = None
         self.last_grab: tuple | None = None  # (image, Detection, utc) of the last POINT/CHECK grab
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # one command at a time; a live view takes it only when free
         self.session: _Session | None = None
         for rec in self.journal.records():
             self._apply(rec)
@@ -519,6 +520,17 @@ class Collector:
             }
 
     # ---------------------------------------------------------------- protocol
+    @contextlib.contextmanager
+    def camera_if_idle(self) -> Iterator[bool]:
+        """True, holding the collection's lock (no command grabs meanwhile), when no command is running;
+        else False at once: for a live view that must never wait behind a command's grab."""
+        idle = self._lock.acquire(blocking=False)
+        try:
+            yield idle
+        finally:
+            if idle:
+                self._lock.release()
+
     def handle(self, line: str) -> str:
         """The reply (one line, no line end) to one command line. Never raises: a failure of the
         camera or of the fit is answered ``ERR internal error: …`` (journal records are written
@@ -657,7 +669,7 @@ class Collector:
         d1 = detect_target(img1, name="grab 1", **self.detect_options)
         self.last_grab = (img1, d1, utc_now())
         if not d1.ok:
-            raise _classify(d1.reason)
+            raise _classify(d1)
         assert d1.u is not None and d1.v is not None and d1.diameter_px is not None  # found: all set
         r = 2.0 * d1.diameter_px + 8
         h, w = img2.shape[:2]

@@ -1,5 +1,5 @@
 """What every line protocol shares: the CAL collection (:mod:`eyetohand.cell.collect`), the BELT commands
-(:mod:`eyetohand.cell.belt_protocol`) and the TCP mapping line (:mod:`eyetohand.server.tcp`).
+(:mod:`eyetohand.cell.belt_protocol`) and the TCP mapping line (:mod:`eyetohand.positioning.tcp`).
 
 - :class:`CommandError`: a command answered with ``ERR <reason>``, carrying an :class:`ErrorCode` set
   where it is raised (what a reply format that sends numbers only, the CAL ``ur`` one, answers);
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import enum
 import math
+from dataclasses import dataclass
 
 from eyetohand.core import angle_refusal, beyond_limit
 
@@ -21,7 +22,7 @@ from eyetohand.core import angle_refusal, beyond_limit
 #: longer ones end in ``...``. 200 (CAL and BELT had 160): the library's long one-line refusals arrive
 #: whole with their advice (a height off a single-height calibration's plane is ~180 characters, a belt fit
 #: with too few touches ~165), and a reply ``ERR <reason>\n`` (at most 205 bytes) stays within the 256
-#: bytes a request line may have (``eyetohand.server.tcp.MAX_LINE``): a client that sized its buffer by
+#: bytes a request line may have (``eyetohand.positioning.tcp.MAX_LINE``): a client that sized its buffer by
 #: that reads every reply. The ``ur`` CAL replies send no reason: their length does not depend on it.
 MAX_REASON = 200
 
@@ -75,6 +76,17 @@ UR_ERROR_CODES = {
     ErrorCode.DATABASE: -16,
     ErrorCode.NOT_SERVED: -17,
 }
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """A refusal as a value: its kind (:class:`ErrorCode`) and its words (the reason a plain reply sends
+    after ``ERR``). ``broken``: a calibration exists but cannot be used (OPC UA's State ``Error``), as
+    against none at all."""
+
+    code: ErrorCode
+    reason: str
+    broken: bool = False
 
 
 class CommandError(Exception):
@@ -145,6 +157,7 @@ __all__ = [
     "UR_ERROR_CODES",
     "CommandError",
     "ErrorCode",
+    "Refusal",
     "ascii_reason",
     "line_count",
     "line_numbers",

@@ -17,7 +17,7 @@ brackets, separated by commas, e.g. ``(1.414, 3.14159, 1.616, 0.0)``, at most 30
 - mapping line: ``(status,x,y,z,rz,sigma)``; status 1 inside the calibrated region, 2 outside it
   (mapped because the line said ``allow``); rz 0 when no angle was given, sigma -1 when not asked
   (``sigma``) or not known;
-- ``LOCATE`` / ``LOCATE NEXT``: :mod:`eyetohand.cell.locate` (the same 6);
+- ``LOCATE`` / ``LOCATE NEXT``: :mod:`eyetohand.positioning.locate` (the same 6);
 - ``VERSION``, ``AUTH``'s ``OK`` and any other ``OK`` line: ``(1,a,b,…)`` with the line's fields when
   they are all plain decimals and fit, else ``(1,0,0,0,0,0)`` (VERSION's name is not a number);
 - every refusal: ``(code,0,0,0,0,0)`` (``(code,0,0,0)`` for CAL), the code of
@@ -177,6 +177,9 @@ class LineReplies:
 PLAIN = LineReplies()
 
 __all__ = [
+    "DECIMALS",
+    "UR_DONE",
+    "UR_OK",
     "LineReplies",
     "NO_SIGMA",
     "PLAIN",

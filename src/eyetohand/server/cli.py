@@ -1,5 +1,5 @@
 """What ``eyetohand serve`` runs: the workbench page and JSON API (uvicorn), and optionally the TCP line
-service, on an event loop of its own in a thread (:class:`~eyetohand.server.tcp.LoopThread`: one robot
+service, on an event loop of its own in a thread (:class:`~eyetohand.positioning.tcp.LoopThread`: one robot
 client's p50 went from 1.7-3.2x a minimal asyncio line server to 1.2-1.4x in five of six runs,
 benchmarks/bench_server.py).
 The command itself (its options) is :mod:`eyetohand.cli.serve`."""
@@ -13,8 +13,14 @@ import logging
 import socket
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from eyetohand.core import InputError
+
+if TYPE_CHECKING:
+    from eyetohand.positioning import Served
+    from eyetohand.server.storage import Store
+    from eyetohand.server.stored import SameFile
 
 
 class ServeError(InputError):
@@ -93,7 +99,7 @@ def check_options(args) -> None:
     if args.calibration:
         path = calibration_path(args.calibration)
         if path is not None:
-            from eyetohand.server.tcp import FixedCalibration
+            from eyetohand.positioning import FixedCalibration
 
             try:
                 args.calibration_file = signed_file(FixedCalibration, path, args)
@@ -137,7 +143,7 @@ def check_plc_options(args) -> None:
         if given and importlib.util.find_spec(package) is None:
             raise ServeError(f"{flag} needs the {package} package: pip install 'eyetohand[plc]'")
     if modbus:
-        from eyetohand.cell import parse_allow
+        from eyetohand.positioning import parse_allow
 
         host, _ = parse_hostport(modbus, "--modbus")
         try:
@@ -270,7 +276,7 @@ def store_load_fn(store):
 def one_calibration(server_fn, wanted: str | None) -> dict:
     """The Collector's options that make mapping lines and CAL CHECK use one calibration (docs/collection.md):
     BEGIN only for the served one (with ``--calibration``), CHECK checks what the mapping lines use."""
-    from eyetohand.server.tcp import collection_rule, served_for_check
+    from eyetohand.server.stored import collection_rule, served_for_check
 
     return {"begin_rule": collection_rule(server_fn, wanted), "served_fn": served_for_check(server_fn)}
 
@@ -279,7 +285,7 @@ def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
     """The LineServer's options from ``serve``'s: the command handlers, their busy replies, the robot's
     reserved addresses and the first-line grace."""
     from eyetohand.core import MM_DEG
-    from eyetohand.server.tcp import FIRST_LINE_S
+    from eyetohand.positioning import FIRST_LINE_S
 
     return {
         "commands": commands,
@@ -309,16 +315,16 @@ async def _serve(args, data_dir) -> None:
 async def _run_serve(args, data_dir, loops: list) -> None:
     import uvicorn
 
+    from eyetohand.positioning import LineServer, LoopThread
     from eyetohand.server.app import create_app
     from eyetohand.server.storage import DB_NAME, Store
-    from eyetohand.server.tcp import LineServer, LoopThread, SameFile, StoredCalibration
+    from eyetohand.server.stored import SameFile, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     # the database is created only at a first start: later, a missing one is an error, never a new one
     fresh_db = not (Path(data_dir) / DB_NAME).exists()
-    line_server = None
     tcp_loop: LoopThread | None = None
-    collector = source = belt = app = locator = None
+    line_server = collector = source = belt = app = locator = None
     data_dir = Path(data_dir)
     camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
     store = served = None
@@ -327,7 +333,8 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         served, store, same_file = _served_calibration(args, data_dir, camera, http_sock, create=fresh_db)
     if args.tcp:
         host, port = parse_hostport(args.tcp)
-        what = describe(served)
+        assert served is not None  # _served_calibration ran for --tcp
+        what = served.describe()
         commands: dict[str, Callable[[str], str]] = {}
         busy_replies: dict[str, Callable[[str], str]] = {}
         # the line service runs on a loop of its own: the robot's lines never wait behind HTTP work
@@ -347,7 +354,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                     wanted = args.calibration or saved_rec.name
                     if line_server is not None and saved_rec.name == wanted and store is not None:
                         current = line_server.source
-                        if isinstance(current, StoredCalibration) and current.cal_id == saved_rec.id:
+                        if current.identity().cal_id == saved_rec.id:
                             current.poll()  # at once, not at the next poll
                         else:
                             line_server.follow(StoredCalibration(store, saved_rec.id, same_file), loop)
@@ -384,7 +391,6 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             if store is not None:
                 store.close()
             raise ServeError(str(exc).splitlines()[0]) from None
-        assert served is not None  # _served_calibration ran for --tcp
         line_server = LineServer(
             served, host, port, token=args.token, **tcp_options(args, commands, busy_replies)
         )
@@ -462,8 +468,7 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
     """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
     service's served calibration when there is one, else ``served``, followed by polling when
     ``poll``); print their start-up lines. Returns (the services, their loop)."""
-    from eyetohand.server.plc import PlcServices
-    from eyetohand.server.tcp import LoopThread
+    from eyetohand.positioning import LoopThread, PlcServices
 
     plc = PlcServices(
         current,
@@ -481,7 +486,7 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
         plc_loop.stop()
         http_sock.close()
         raise ServeError(f"{plc.starting}: cannot listen there ({exc.strerror or exc})") from None
-    for line in plc.lines(describe(served)):
+    for line in plc.lines(served.describe()):
         print(line, flush=True)
     return plc, plc_loop
 
@@ -491,8 +496,8 @@ def add_locate(commands: dict, source, served, args):
     """The camera's :class:`~eyetohand.cell.Locator`, its line command ``LOCATE`` added to
     ``commands`` (and, for a ``sim:`` camera, ``SIM``: parts on the virtual table). ``served()``: the
     calibration in force, read at every LOCATE."""
-    from eyetohand.cell import Locator
     from eyetohand.core import MM_DEG
+    from eyetohand.positioning import Locator
     from eyetohand.sim import SimSource, sim_command
 
     locator = Locator(
@@ -524,18 +529,21 @@ def _plc_wanted(args) -> bool:
     return bool(getattr(args, "modbus", None) or getattr(args, "opcua", None))
 
 
-def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool):
+def _served_calibration(
+    args, data_dir: Path, camera, http_sock, *, create: bool
+) -> tuple[Served, Store | None, SameFile | None]:
     """(the served-calibration object, the store or None, its :class:`SameFile` or None) for
     ``--calibration``: a file (proved by
     check_options), a stored calibration (followed), or none yet (with a camera, a collection creates
     it). A refusal closes ``http_sock`` and raises :class:`ServeError`. ``create``: the database may be
     created (a first start only)."""
+    from eyetohand.positioning import PendingCalibration
     from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
-    from eyetohand.server.tcp import PendingCalibration, SameFile, StoredCalibration
+    from eyetohand.server.stored import SameFile, StoredCalibration
 
-    served = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
-    if served is not None:
-        return served, None, None
+    fixed = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
+    if fixed is not None:
+        return fixed, None, None
     # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
     if args.calibration and not camera and not (data_dir / DB_NAME).is_file():
         http_sock.close()
@@ -545,7 +553,7 @@ def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool
         )
     store = Store(data_dir, wait_s=args.db_wait, create=create)
     same_file = SameFile(store)  # the database file as opened: TCP refuses once it is another
-    served = PendingCalibration(args.calibration)
+    served: Served = PendingCalibration(args.calibration)
     try:
         if args.calibration:
             try:
@@ -559,20 +567,6 @@ def _served_calibration(args, data_dir: Path, camera, http_sock, *, create: bool
         store.close()
         raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
     return served, store, same_file
-
-
-def describe(served) -> str:
-    """What a service maps with, for its start-up line."""
-    from eyetohand.server.tcp import PendingCalibration, StoredCalibration
-
-    if isinstance(served, StoredCalibration):
-        return (
-            f"calibration {served.name!r} (id {served.cal_id}, version {served.version}, followed: a "
-            "new version or a rollback takes effect within a second)"
-        )
-    if isinstance(served, PendingCalibration):
-        return "no calibration yet (a collection creates it)"
-    return f"the file {served.label} (sha256 {served.sha256[:12]}…)"
 
 
 def bind_http(host: str, port: int) -> socket.socket:

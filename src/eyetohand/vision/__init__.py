@@ -9,7 +9,7 @@ from eyetohand.core import lazy_exports
 from eyetohand.vision.aravis import AravisSource  # registers aravis: (gi is imported only when opened)
 
 if TYPE_CHECKING:
-    from eyetohand.vision.detect import annotate, detect_circles, detect_target
+    from eyetohand.vision.detect import Miss, annotate, detect_circles, detect_target
     from eyetohand.vision.images import (
         ImageResult,
         detect_images,
@@ -30,7 +30,7 @@ else:
     __getattr__, __dir__ = lazy_exports(
         __name__,
         {
-            "detect": ("annotate", "detect_circles", "detect_target"),
+            "detect": ("Miss", "annotate", "detect_circles", "detect_target"),
             "images": ("ImageResult", "detect_images", "detect_poses", "load_poses", "pairs_from_detections"),
             "render": ("Target", "render"),
             "sources": (
@@ -49,6 +49,7 @@ __all__ = [
     "FolderSource",
     "GrabTimeout",
     "ImageResult",
+    "Miss",
     "Source",
     "SourceScheme",
     "Target",

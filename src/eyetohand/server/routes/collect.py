@@ -12,6 +12,7 @@ changes what the collection records: the ``sim:`` camera renders each POINT from
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from typing import Annotated
@@ -46,14 +47,14 @@ class CameraView:
         from eyetohand.vision import detect_target
 
         col = self.collector
-        if self.live and col._lock.acquire(blocking=False):
-            err: str | None = None
-            try:
-                img, _ = self.source.grab()
-            except Exception as exc:  # no pose yet (sim:), a camera that fails: say so on the image
-                img, err = None, self._grab_failed(exc)
-            finally:
-                col._lock.release()
+        with col.camera_if_idle() if self.live else contextlib.nullcontext(False) as idle:
+            img, err = None, None
+            if idle:
+                try:
+                    img, _ = self.source.grab()
+                except Exception as exc:  # no pose yet (sim:), a camera that fails: say so on the image
+                    err = self._grab_failed(exc)
+        if idle:
             if img is not None:
                 return img, detect_target(img, name="live", refine="edge"), "live"
             if col.last_grab is None:

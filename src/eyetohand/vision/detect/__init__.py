@@ -51,7 +51,7 @@ from eyetohand.core import lazy_exports
 
 if TYPE_CHECKING:
     from eyetohand.vision.detect.api import annotate, detect_circles, detect_target
-    from eyetohand.vision.detect.quality import Detection
+    from eyetohand.vision.detect.quality import Detection, Miss
     from eyetohand.vision.detect.read import check_complete, load_image, noise_sigma
     from eyetohand.vision.detect.refine import fit_ellipse
 else:
@@ -59,7 +59,7 @@ else:
         __name__,
         {
             "api": ("annotate", "detect_circles", "detect_target"),
-            "quality": ("Detection",),
+            "quality": ("Detection", "Miss"),
             "read": ("check_complete", "load_image", "noise_sigma"),
             "refine": ("fit_ellipse",),
         },
@@ -67,6 +67,7 @@ else:
 
 __all__ = [
     "Detection",
+    "Miss",
     "annotate",
     "check_complete",
     "detect_circles",

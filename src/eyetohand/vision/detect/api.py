@@ -100,7 +100,7 @@ def detect_target(
     read as an image."""
     img, sigma, found, failed, rejected = _search(image, polarity, diameter_px, roi, name, refine)
     if not found:
-        return Detection(False, reason=_why_none(img, sigma, failed, rejected))
+        return _why_none(img, sigma, failed, rejected)
     return _one_of(found, diameter_px)
 
 

@@ -4,6 +4,7 @@ circle, two or more equally good ones) with the reason given to the user."""
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 
@@ -15,6 +16,15 @@ DIAMETER_WINDOW = (0.7, 1.4)  # an expected diameter keeps circles within these 
 AMBIGUOUS_RATIO = 0.8  # a runner-up scoring this fraction of the best makes the choice ambiguous
 MAX_RMS_REL = 0.02  # edge points' rms distance from the ellipse, as a fraction of its mean radius
 MIN_VALID_RAYS = 0.85  # share of the profiles that must lie inside the image, and fit the ellipse
+
+
+class Miss(enum.Enum):
+    """Why a search found no target (:attr:`Detection.miss`), for a caller that acts on the kind (the
+    collection's refusal codes): the words stay in :attr:`Detection.reason`."""
+
+    NOT_FOUND = "not found"  # no candidate, none round, none clean, no contrast
+    CUT_BY_BORDER = "cut by the image border"  # the only circle-like region leaves the image
+    AMBIGUOUS = "ambiguous"  # more than one equally good circle
 
 
 @dataclass(frozen=True)
@@ -40,6 +50,7 @@ class Detection:
     contrast: float | None = None  # grey levels of the input (e.g. 0..255), circle vs surround
     blur_px: float | None = None  # σ (px) of the edge's spread in the intensity fit (blur + pixel)
     method: str | None = None  # "intensity" (model fit, the default) or "edge" (its fallback)
+    miss: Miss | None = None  # why not found (``ok`` False), else None; not in :meth:`to_dict`
 
     def to_dict(self) -> dict:
         return {
@@ -76,6 +87,7 @@ def _cut_by_border(cand: _Cand, inside: np.ndarray) -> Detection | None:
             False,
             reason=f"the circle at ({cand.x:.1f}, {cand.y:.1f}) px is cut by the image border",
             polarity=cand.polarity,
+            miss=Miss.CUT_BY_BORDER,
         )
     return None
 
@@ -134,25 +146,28 @@ def _distinct(found) -> list[Detection]:
     return unique
 
 
-def _why_none(img, sigma, failed, rejected) -> str:
+def _why_none(img, sigma, failed, rejected) -> Detection:
+    """The refusal of a search that found nothing: its words and its kind."""
     if float(img.max() - img.min()) <= MIN_CONTRAST_SIGMA * max(sigma, 1e-12):
-        return "no target found: the image has no contrast above its noise (blank or noise only)"
+        why = "the image has no contrast above its noise (blank or noise only)"
+        return Detection(False, reason=f"no target found: {why}", miss=Miss.NOT_FOUND)
     cut = [c for c in rejected if c.cut]
     if cut:
         c = max(cut, key=lambda c: c.diameter)
-        return (
-            f"no target found: the only circle-like region, at ({c.x:.0f}, {c.y:.0f}) px, is cut by the "
-            "image border"
-        )
+        why = f"the only circle-like region, at ({c.x:.0f}, {c.y:.0f}) px, is cut by the image border"
+        return Detection(False, reason=f"no target found: {why}", miss=Miss.CUT_BY_BORDER)
     for d in failed:
-        return f"no target found: {d.reason}"
+        return Detection(False, reason=f"no target found: {d.reason}", miss=d.miss or Miss.NOT_FOUND)
     if rejected:
         c = min(rejected, key=lambda c: c.roundness)
-        return (
-            f"no target found: the best region, at ({c.x:.0f}, {c.y:.0f}) px, is not round "
+        why = (
+            f"the best region, at ({c.x:.0f}, {c.y:.0f}) px, is not round "
             f"(boundary radius spread {100 * c.roundness:.0f} %)"
         )
-    return "no target found: no solid circle stands out from the background"
+        return Detection(False, reason=f"no target found: {why}", miss=Miss.NOT_FOUND)
+    return Detection(
+        False, reason="no target found: no solid circle stands out from the background", miss=Miss.NOT_FOUND
+    )
 
 
 def _one_of(found, diameter_px: float | None) -> Detection:
@@ -176,5 +191,6 @@ def _one_of(found, diameter_px: float | None) -> Detection:
             False,
             reason=f"ambiguous: {1 + len(rivals)} equally good circles at {where} px{hint}",
             score=best.score,
+            miss=Miss.AMBIGUOUS,
         )
     return best

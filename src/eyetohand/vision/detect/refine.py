@@ -10,7 +10,14 @@ import math
 
 import numpy as np
 
-from eyetohand.vision.detect.quality import Detection, _cut_by_border, _not_clean, _score, _too_few_edges
+from eyetohand.vision.detect.quality import (
+    Detection,
+    Miss,
+    _cut_by_border,
+    _not_clean,
+    _score,
+    _too_few_edges,
+)
 from eyetohand.vision.detect.search import _Cand
 
 
@@ -143,7 +150,7 @@ def _refine(img, cand: _Cand, sigma: float, full: float, refine: str = "intensit
         centre = fit[0]
         ell = (tuple(centre), fit[1], fit[2])
     if fit is None:
-        return Detection(False, reason=why, polarity=cand.polarity)
+        return Detection(False, reason=why, polarity=cand.polarity, miss=Miss.NOT_FOUND)
     frac = float(use.mean())
     dist = _ellipse_distance(fit, pts[use])
     rms = float(np.sqrt(np.mean(dist**2)))

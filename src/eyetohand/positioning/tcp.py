@@ -21,18 +21,15 @@ from __future__ import annotations
 import asyncio
 import hmac
 import math
-import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 from typing import cast
 
 import numpy as np
 
 from eyetohand.calibration import Calibration
 from eyetohand.cell import (
-    MAX_REASON,
     PLAIN_REPLIES,
     CommandError,
     LineReplies,
@@ -42,6 +39,7 @@ from eyetohand.cell import (
 )
 from eyetohand.core import MM_DEG, InputError, OutputUnits
 from eyetohand.geometry import check_symmetry
+from eyetohand.positioning.served import FixedCalibration, Served
 
 MAX_LINE = 256
 MAX_CLIENTS = 256
@@ -74,149 +72,6 @@ USAGE = "send u,v[,z][,a=ANGLE][,s=N][,t=DEG][,allow][,sigma] or VERSION"
 POLL_S = 0.25
 
 
-class FixedCalibration:
-    """A calibration that does not change (a file, or one given in code): ``VERSION`` names it."""
-
-    def __init__(self, cal: Calibration, label: str = "calibration", sha256: str = ""):
-        self.cal: Calibration | None = cal
-        self.error: str | None = None
-        self.label = label
-        self.sha256 = sha256 or cal.to_dict()["content_sha256"]
-
-    def version_line(self) -> str:
-        return f"OK {self.label},{self.sha256}"
-
-    @classmethod
-    def from_file(cls, path) -> FixedCalibration:
-        import hashlib
-        from pathlib import Path
-
-        p = Path(path)
-        cal = Calibration.load(p)
-        return cls(cal, str(p.resolve()), hashlib.sha256(p.read_bytes()).hexdigest())
-
-
-class PendingCalibration:
-    """Stands in for the served calibration before one exists (``serve --camera`` with a new name):
-    every mapping line is one ERR until a collection creates it."""
-
-    def __init__(self, name: str | None):
-        self.name = name
-        self.cal: Calibration | None = None
-        what = f"'{name}' has none yet" if name else "none is served"
-        self.error: str | None = (
-            f"no calibration to map with: {what}; collect one (CAL BEGIN ... CAL END) "
-            "or start serve with --calibration NAME"
-        )
-
-    def version_line(self) -> str:
-        return f"ERR {self.error}"
-
-
-class SameFile:
-    """Whether the database path still names the file the store opened (deleted, or replaced by a copy,
-    a restore, another cell's database: the truth HTTP answers from is that path).
-
-    Uses the store's own ``check_same_file()`` when it has one; else one ``os.stat`` of ``store.path``
-    compared with the (device, inode) seen when this was made (make it when the store is opened)."""
-
-    def __init__(self, store):
-        self.path = Path(store.path)
-        self._check = getattr(store, "check_same_file", None)
-        self.identity: tuple[int, int] | None = None
-        if self._check is None:
-            st = os.stat(self.path)
-            self.identity = (st.st_dev, st.st_ino)
-
-    def problem(self) -> str | None:
-        """None while the path names the opened file; else why not (``database replaced or missing: …``).
-        No SQLite, no lock: cheap enough for every line."""
-        if self._check is not None:
-            from eyetohand.server.storage import StorageError
-
-            try:
-                self._check()
-            except StorageError as exc:
-                return str(exc)
-            return None
-        try:
-            st = os.stat(self.path)
-        except FileNotFoundError:
-            return (
-                f"database replaced or missing: {self.path} was deleted under the running server "
-                "(put it back, or restart the server on the database to use)"
-            )
-        except OSError as exc:
-            return f"database replaced or missing: cannot stat {self.path} ({exc.strerror or exc})"
-        if (st.st_dev, st.st_ino) != self.identity:
-            return (
-                f"database replaced or missing: {self.path} is no longer the file this server opened "
-                "(restart the server to use the new one)"
-            )
-        return None
-
-
-class StoredCalibration:
-    """The current version of a stored calibration, refreshed by :meth:`poll` (blocking: the line
-    server runs it on a thread of its own). A deleted calibration sets ``error``, and so does a
-    database file replaced or deleted under the server (``same_file``, until the path names the opened
-    file again); a database that cannot be read for a moment keeps the version in force."""
-
-    def __init__(self, store, cal_id: int, same_file: SameFile | None = None):
-        self.store = store
-        self.same_file = same_file or SameFile(store)
-        self.cal_id = cal_id
-        self.cal: Calibration | None = None
-        self.error: str | None = None
-        self.name = ""
-        self.version = 0
-        self.created_utc = ""
-        self.poll()
-        if self.cal is None:
-            raise InputError(self.error or f"no calibration with id {cal_id}")
-
-    def version_line(self) -> str:
-        return f"OK {self.name},{self.version},{self.created_utc}"
-
-    def problem(self) -> str | None:
-        """Why nothing may be mapped now (per line: the file check is one stat), or None."""
-        gone = self.same_file.problem()
-        return gone if gone is not None else self.error
-
-    def poll(self) -> None:
-        from eyetohand.server.storage import NotFound, StorageError
-
-        gone = self.same_file.problem()
-        if gone is not None:
-            self.error = gone  # the version in force is kept for when the file is back
-            return
-        try:
-            now = self.store.current(self.cal_id)
-            if now is None:
-                self.error = f"calibration '{self.name or self.cal_id}' was deleted"
-                self.cal = None
-                return
-            name, version = now
-            self.name = name
-            if version == self.version and self.cal is not None:
-                self.error = None
-                return
-            ver = self.store.version(self.cal_id, version)
-            cal = Calibration.from_dict(ver.calibration, f"calibration {name!r} version {version}")
-        except NotFound:
-            self.error = f"calibration '{self.name or self.cal_id}' was deleted"
-            self.cal = None
-            return
-        except StorageError:
-            return  # keep what is in force; the next poll tries again
-        except InputError as exc:
-            self.error = f"calibration '{self.name}' version {version} cannot be used: {exc}"[:MAX_REASON]
-            self.cal = None
-            return
-        # one assignment each, read by the event loop between lines (the GIL makes them atomic)
-        self.cal, self.version, self.created_utc, self.error = cal, ver.version, ver.created_utc, None
-
-
 class _Poller:
     """Polls the served calibration every ``poll_s`` on a thread of its own (with its own SQLite
     connection: the store keeps one per thread), so the freshness of what the mapping lines use never
@@ -230,64 +85,13 @@ class _Poller:
 
     def _run(self) -> None:
         while not self._stop.wait(self.poll_s):
-            src = self.server.source
-            if isinstance(src, StoredCalibration):
-                try:
-                    src.poll()
-                except Exception:  # noqa: BLE001 - a poll that breaks is tried again, never ends the thread
-                    pass
+            try:
+                self.server.source.poll()
+            except Exception:  # noqa: BLE001 - a poll that breaks is tried again, never ends the thread
+                pass
 
     def stop(self) -> None:
         self._stop.set()
-
-
-def collection_rule(
-    server_fn: Callable[[], LineServer | None], wanted: str | None
-) -> Callable[[str], str | None]:
-    """``begin_rule`` for the server's Collector: with ``--calibration`` (``wanted``) a collection must be
-    for the calibration the mapping lines serve (a file is never collected into); without it, any name
-    (the mapping lines follow what a collection saves)."""
-
-    def rule(name: str) -> str | None:
-        if wanted is None:
-            return None
-        server = server_fn()
-        src = server.source if server is not None else None
-        if isinstance(src, FixedCalibration):
-            return (
-                f"this server maps with the file {src.label} (--calibration), which a collection does "
-                f"not change; start serve with --calibration {name} to collect it"
-            )
-        served = src.name if isinstance(src, StoredCalibration) and src.name else wanted
-        served = served[5:] if served.lower().startswith("name:") else served
-        if name == served:
-            return None
-        return (
-            f"mapping lines and CAL CHECK use calibration '{served}' (serve --calibration); send "
-            f"CAL BEGIN {served}, or restart serve with --calibration {name}"
-        )
-
-    return rule
-
-
-def served_for_check(server_fn: Callable[[], LineServer | None]):
-    """``served_fn`` for the server's Collector: ``(name, version, cal, why_none)`` of the calibration the
-    mapping lines use now, so CAL CHECK checks exactly that."""
-
-    def served() -> tuple[str, int | None, Calibration | None, str | None]:
-        server = server_fn()
-        if server is None:
-            return "", None, None, "the line service is not started yet"
-        src = server.source
-        if isinstance(src, StoredCalibration):
-            problem = src.problem()
-            return src.name, src.version, (src.cal if problem is None else None), problem
-        if isinstance(src, FixedCalibration):
-            return Path(src.label).stem, None, src.cal, None
-        why = f"'{src.name}' has none yet" if src.name else "send CAL BEGIN ... CAL END first"
-        return src.name or "", None, None, why
-
-    return served
 
 
 def answer(cal: Calibration, line: bytes, replies: LineReplies = PLAIN_REPLIES) -> bytes:
@@ -428,7 +232,7 @@ class LineServer:
 
     def __init__(
         self,
-        cal: Calibration | FixedCalibration | StoredCalibration | PendingCalibration,
+        cal: Calibration | Served,
         host: str,
         port: int,
         *,
@@ -447,9 +251,7 @@ class LineServer:
         units: OutputUnits = MM_DEG,
     ):
         self.replies = LineReplies(reply_format, units)  # how every reply is worded (cell/replies.py)
-        self.source: FixedCalibration | StoredCalibration | PendingCalibration = (
-            FixedCalibration(cal) if isinstance(cal, Calibration) else cal
-        )
+        self.source: Served = FixedCalibration(cal) if isinstance(cal, Calibration) else cal
         self.poll_s = poll_s
         self._poller: _Poller | None = None
         self.commands = {k.upper(): f for k, f in (commands or {}).items()}
@@ -479,7 +281,7 @@ class LineServer:
         self.port = self.server.sockets[0].getsockname()[1]
         self._poller = _Poller(self, self.poll_s)
 
-    def follow(self, source: StoredCalibration, loop: asyncio.AbstractEventLoop | None = None) -> None:
+    def follow(self, source: Served, loop: asyncio.AbstractEventLoop | None = None) -> None:
         """Serve (and follow) ``source`` from now on: after a collection created the calibration.
         Callable from any thread (``loop`` is not needed any more: the poller reads :attr:`source`)."""
         self.source = source
@@ -492,13 +294,15 @@ class LineServer:
     def reply(self, line: bytes) -> bytes:
         """The answer to one line with the calibration in force (``VERSION`` names it)."""
         src = self.source
-        problem = src.problem() if isinstance(src, StoredCalibration) else src.error
+        problem = src.problem()
         if line.strip().upper() == b"VERSION":
-            text = src.version_line() if problem is None else f"ERR {ascii_reason(problem)}"
+            text = src.version_line() if problem is None else f"ERR {ascii_reason(problem.reason)}"
             return text.encode("ascii", "replace") + b"\n"
         cal = src.cal
-        if cal is None or problem is not None:
-            return f"ERR {ascii_reason(str(problem))}\n".encode()
+        if problem is not None:
+            return f"ERR {ascii_reason(problem.reason)}\n".encode()
+        if cal is None:  # a Served that says nothing is wrong but has nothing to map with
+            return b"ERR no calibration to map with\n"
         return answer(cal, line, self.replies)
 
     async def serve_forever(self) -> None:

@@ -1,13 +1,11 @@
 """One request of a PLC protocol → one result record with a status: the protocol-independent part of
 the Modbus and OPC UA adapters (:mod:`.modbus`, :mod:`.opcua`).
 
-The mapping is the TCP line service's call (:func:`eyetohand.server.tcp.answer`): ``Calibration.map``
+The mapping is the TCP line service's call (:func:`eyetohand.positioning.tcp.answer`): ``Calibration.map``
 of one point, guarded by region, height and angle, with the uncertainty; a refusal keeps the library's
 words, as one ASCII line (:func:`eyetohand.cell.collect.ascii_reason`, at most :data:`MAX_REASON`
 characters), the text the line service sends after ``ERR``. The calibration in force is whatever the
-server serves (a file, a followed stored calibration, or none yet): any object with ``cal`` (a
-:class:`~eyetohand.calibration.Calibration` or None) and ``error`` (None or why there is none), as the
-served-calibration objects of :mod:`eyetohand.server.tcp` are.
+server serves (a file, a followed stored calibration, or none yet): a :class:`~.served.Served`.
 """
 
 from __future__ import annotations
@@ -15,16 +13,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import IntEnum
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from eyetohand.cell.line import ErrorCode, ascii_reason
-from eyetohand.cell.replies import mapping_code
+from eyetohand.cell import MAX_REASON, ErrorCode, ascii_reason, mapping_code
 from eyetohand.core import InputError
-
-MAX_REASON = 200  # as the TCP line service's ERR reasons
+from eyetohand.positioning.served import Served
 
 
 class Status(IntEnum):
@@ -55,27 +49,17 @@ class PointResult:
         return self.status is Status.OK
 
 
-def served_identity(source: Any) -> tuple[str, int]:
-    """(name, version) of what ``source`` serves: a stored calibration's name and version; a file's
-    name without its folder and ``.json``, version 0 (a file has no versions); ('', 0) for none."""
-    version = int(getattr(source, "version", 0) or 0)
-    name = getattr(source, "name", None)
-    if not name:
-        label = getattr(source, "label", "")
-        name = Path(label).stem if label else ""
-    return str(name or ""), version
-
-
-def served_refusal(source: Any) -> PointResult | None:
+def served_refusal(source: Served) -> PointResult | None:
     """The refusal of every mapping while ``source`` serves nothing usable (None when it serves)."""
-    if source.cal is None or source.error is not None:
-        why = source.error or "no calibration to map with"
-        return PointResult(Status.NO_CALIBRATION, reason=ascii_reason(str(why), MAX_REASON))
+    problem = source.problem()
+    if problem is not None or source.cal is None:
+        why = problem.reason if problem is not None else "no calibration to map with"
+        return PointResult(Status.NO_CALIBRATION, reason=ascii_reason(why, MAX_REASON))
     return None
 
 
 def map_point(
-    source: Any,
+    source: Served,
     u_px: float,
     v_px: float,
     z_mm: float | None = None,
@@ -91,6 +75,7 @@ def map_point(
     if refused is not None:
         return refused
     cal = source.cal
+    assert cal is not None  # served_refusal answered a None
     try:
         for name, x in (("u", u_px), ("v", v_px), ("z", z_mm), ("angle", angle_deg)):
             if x is not None and not math.isfinite(x):

@@ -1,6 +1,6 @@
 """LOCATE: grab, find the round parts, map each with the served calibration — the pick loop's one
 call, protocol-independent (the line command here, the Modbus trigger bit and the OPC UA method in
-:mod:`eyetohand.cell.plc`). docs/collection.md "LOCATE" has the protocol.
+:mod:`eyetohand.positioning`). docs/collection.md "LOCATE" has the protocol.
 
 What a LOCATE does, every interface alike:
 
@@ -13,7 +13,7 @@ What a LOCATE does, every interface alike:
    round feature is). The detector gets the range's middle in px (at the image centre's scale) as
    its size hint when the range spans less than its window (0.7–1.4×), else searches all sizes;
 4. each part's centre mapped by the SAME guarded call as the mapping line
-   (:func:`eyetohand.cell.plc.map_point`, ``Calibration.map`` with the uncertainty): a part outside
+   (:func:`eyetohand.positioning.map_point`, ``Calibration.map`` with the uncertainty): a part outside
    the calibrated region is **omitted and counted** (``outside``), never answered; any other refusal
    (a height off the calibration's plane, no calibration) refuses the whole LOCATE with the mapping
    line's words.
@@ -34,10 +34,22 @@ from typing import Any
 
 import numpy as np
 
-from eyetohand.cell.line import UR_ERROR_CODES, CommandError, ErrorCode, ascii_reason, line_numbers
-from eyetohand.cell.plc.mapping import MAX_REASON, Status, map_point, served_refusal
-from eyetohand.cell.replies import DECIMALS, UR_DONE, UR_OK, ur_line, ur_number
+from eyetohand.cell import (
+    DECIMALS,
+    MAX_REASON,
+    UR_DONE,
+    UR_ERROR_CODES,
+    UR_OK,
+    CommandError,
+    ErrorCode,
+    ascii_reason,
+    line_numbers,
+    ur_line,
+    ur_number,
+)
 from eyetohand.core import MM_DEG, OutputUnits
+from eyetohand.positioning.mapping import Status, map_point, served_refusal
+from eyetohand.positioning.served import Served
 
 DIAMETER_WINDOW = (0.7, 1.4)  # the detector's size window around its hint (vision.detect)
 NO_SIGMA = -1.0  # sigma of a calibration without uncertainty, on every interface
@@ -97,13 +109,13 @@ def check_range(dmin_mm: float | None, dmax_mm: float | None) -> str | None:
 
 def locate_parts(
     image,
-    served: Any,
+    served: Served,
     dmin_mm: float | None = None,
     dmax_mm: float | None = None,
     z_mm: float | None = None,
 ) -> LocateResult:
-    """The parts in ``image`` mapped with what ``served`` serves (an object with ``cal`` and ``error``,
-    :mod:`eyetohand.cell.plc.mapping`). Never raises: a refusal is a :class:`LocateResult`."""
+    """The parts in ``image`` mapped with what ``served`` serves (a :class:`~.served.Served`). Never
+    raises: a refusal is a :class:`LocateResult`."""
     from eyetohand.vision import detect_circles
 
     why = check_range(dmin_mm, dmax_mm)
@@ -149,7 +161,7 @@ def locate_parts(
     return LocateResult(Status.OK, tuple(parts), outside, image_size=(int(w), int(h)))
 
 
-def _scale_mm_per_px(served: Any, u: float, v: float, d_px: float, z_mm: float | None) -> float | None:
+def _scale_mm_per_px(served: Served, u: float, v: float, d_px: float, z_mm: float | None) -> float | None:
     """mm per px at (u, v): the mapped lengths of ``d_px`` across it along u and v, averaged (the
     region's guard off: a size, not a pose); None where the map gives no finite point."""
     lengths = []
@@ -173,7 +185,7 @@ class Locator:
     def __init__(
         self,
         source: Any,
-        served: Callable[[], Any],
+        served: Callable[[], Served],
         *,
         reply_format: str = "plain",
         units: OutputUnits = MM_DEG,

@@ -5,7 +5,7 @@ once, on the server's event loop, and writes the result block with the echoed id
 PLOC2D handshake): a PLC that reads its own id in register 100 reads a complete result.
 
 A request with the LOCATE flag (bit 3 of register 9) grabs and locates the parts instead
-(:class:`eyetohand.cell.locate.Locator`, ~1 s, in a worker thread): the write is answered at once, and
+(:class:`eyetohand.positioning.locate.Locator`, ~1 s, in a worker thread): the write is answered at once, and
 the result block, the LOCATE block (200..321) and last the echoed id are written when it is done — the
 same handshake, a longer wait. A mapping request written meanwhile is answered at once, and the
 LOCATE's answer, now stale, is dropped (its id never echoed).
@@ -22,8 +22,10 @@ import ipaddress
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from eyetohand.cell.plc import registers as R
-from eyetohand.cell.plc.mapping import PointResult, Status, map_point, served_identity
+from eyetohand.positioning import registers as R
+from eyetohand.positioning.locate import NO_CAMERA, LocateResult, refused
+from eyetohand.positioning.mapping import PointResult, Status, map_point
+from eyetohand.positioning.served import Served
 
 WRITE_CODES = (6, 16, 23)  # write single, write multiple, read/write multiple registers
 
@@ -60,12 +62,12 @@ def peer_allowed(peer: str, allow: list | None) -> bool:
 
 class ModbusService:
     """The register map served on ``host:port``; ``source()`` returns the served calibration in force
-    (an object with ``cal`` and ``error``, :mod:`.mapping`). ``await start()`` on the loop that is to
+    (a :class:`~.served.Served`). ``await start()`` on the loop that is to
     run it, then ``await close()``. ``port`` is the bound one (``port=0``: any free port)."""
 
     def __init__(
         self,
-        source: Callable[[], Any],
+        source: Callable[[], Served],
         host: str,
         port: int,
         *,
@@ -110,7 +112,8 @@ class ModbusService:
                 return Handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
 
         regs = DataType.REGISTERS
-        name, version = served_identity(self.source())
+        ident = self.source().identity()
+        name, version = ident.name, ident.version
         result = [0] * (R.NAME - R.STATUS) + R.name_words(name)
         result[R.VERSION - R.STATUS] = version & 0xFFFF
         device = SimDevice(
@@ -183,8 +186,6 @@ class ModbusService:
 
     async def _locate(self, req_id, seq, dmin, dmax, z, registers, start_address) -> None:
         """A LOCATE in a worker thread, then its answer written (unless a newer request came)."""
-        from eyetohand.cell.locate import NO_CAMERA, LocateResult, refused
-
         any_size = dmin == 0 and dmax == 0
         if self.locate is None:
             result: LocateResult = refused(Status.CAMERA, NO_CAMERA)
@@ -199,8 +200,8 @@ class ModbusService:
         self._write(req_id, res, result, registers, start_address)
 
     def _write(self, req_id: int, res: PointResult, located, registers, start_address: int) -> None:
-        src = self.source()
-        name, version = served_identity(src)
+        ident = self.source().identity()
+        name, version = ident.name, ident.version
         if located is not None and res.ok:  # a LOCATE: no pose of its own (0, sigma -1)
             res = PointResult(Status.OK, sigma_mm=None)
         out = R.encode_result(res, name, version, self.word_order)

@@ -8,7 +8,7 @@ within a register the bytes are Modbus's own (big-endian), nothing to choose the
 Request block (the PLC writes): 1–2 u (0.001 px), 3–4 v (0.001 px), 5–6 z (µm), 7–8 image angle
 (0.001 deg), 9 flags (bit 0 z given, bit 1 angle given, bit 2 allow outside), then **0 the request
 id** (uint16): writing an id other than the last one answered maps the request.
-Result block (the server writes): 101 status (:class:`~eyetohand.cell.plc.mapping.Status`), 102–103 x,
+Result block (the server writes): 101 status (:class:`~eyetohand.positioning.mapping.Status`), 102–103 x,
 104–105 y, 106–107 z (µm), 108–109 rz (0.001 deg), 110–111 σ (µm; -1: the calibration carries no
 uncertainty), 112 the calibration's version, 113–130 its name (ASCII, 2 characters a register,
 first character in the high byte) and **100 the echoed request id, written last**.
@@ -26,7 +26,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from eyetohand.cell.plc.mapping import PointResult, Status
+from eyetohand.positioning.mapping import PointResult, Status
 
 REQUEST_ID = 0
 U, V, Z, ANGLE, FLAGS = 1, 3, 5, 7, 9
@@ -141,7 +141,7 @@ def encode_result(result: PointResult, name: str, version: int, word_order: str 
 
 
 def encode_locate(result, word_order: str = "big") -> list[int]:
-    """Registers 200..321 of a LOCATE's answer (:class:`eyetohand.cell.locate.LocateResult`: ``ok``,
+    """Registers 200..321 of a LOCATE's answer (:class:`eyetohand.positioning.locate.LocateResult`: ``ok``,
     ``parts`` with ``xyz_mm``, ``rz_deg``, ``sigma_mm``, ``outside``); all 0 for a refusal. A part
     beyond an int32 (2147 m) is not listed (and not counted)."""
     regs = [0] * (LOCATE_END - LOCATE_COUNT)

@@ -1,14 +1,12 @@
-"""What ``eyetohand serve --modbus / --opcua`` runs: the PLC adapters of :mod:`eyetohand.cell.plc`
-(they hold no server state) wired to the calibration the server serves, on an event loop of their own
-(:class:`~eyetohand.server.tcp.LoopThread`, as the TCP line service's: a PLC's requests never wait
-behind HTTP work).
+"""What ``eyetohand serve --modbus / --opcua`` runs: the PLC adapters (:mod:`.modbus`, :mod:`.opcua`;
+they hold no server state) wired to the calibration the server serves, on an event loop of their own
+(:class:`~.tcp.LoopThread`, as the TCP line service's: a PLC's requests never wait behind HTTP work).
 
-The served calibration is the line service's object (``StoredCalibration``, ``FixedCalibration``,
-``PendingCalibration`` of :mod:`eyetohand.server.tcp`), read through ``source()`` at every request:
-with ``--tcp`` the line service follows new versions (and a collection's ``follow``) and the PLC
-adapters see the same object; without it, this module polls the same ``StoredCalibration`` every
-:data:`~eyetohand.server.tcp.POLL_S` seconds (off the loop), so a new version is in force within a
-second on every interface."""
+The served calibration is the line service's :class:`~.served.Served`, read through ``source()`` at
+every request: with ``--tcp`` the line service follows new versions (and a collection's ``follow``)
+and the PLC adapters see the same object; without it, this module polls it every :data:`~.tcp.POLL_S`
+seconds (off the loop; a file's poll does nothing), so a new version is in force within a second on
+every interface."""
 
 from __future__ import annotations
 
@@ -16,7 +14,10 @@ import asyncio
 from collections.abc import Callable
 from typing import Any
 
-from eyetohand.cell import ModbusService, OpcUaService
+from eyetohand.positioning.modbus import ModbusService
+from eyetohand.positioning.opcua import OpcUaService
+from eyetohand.positioning.served import Served
+from eyetohand.positioning.tcp import POLL_S
 
 
 class PlcServices:
@@ -25,7 +26,7 @@ class PlcServices:
 
     def __init__(
         self,
-        source: Callable[[], Any],
+        source: Callable[[], Served],
         *,
         modbus: tuple[str, int] | None = None,
         word_order: str = "big",
@@ -46,9 +47,8 @@ class PlcServices:
         self._poller: asyncio.Task | None = None
 
     async def start(self, *, poll: bool) -> None:
-        """Start the servers on the running loop; ``poll``: follow a stored calibration here (no line
+        """Start the servers on the running loop; ``poll``: follow the served calibration here (no line
         service does)."""
-        from eyetohand.server.tcp import POLL_S, StoredCalibration
 
         if self.modbus is not None:
             self.starting = f"--modbus {self.modbus.host}:{self.modbus.port}"
@@ -56,9 +56,8 @@ class PlcServices:
         if self.opcua is not None:
             self.starting = f"--opcua {self.opcua.host}:{self.opcua.port}"
             await self.opcua.start()
-        served = self.source()
-        if poll and isinstance(served, StoredCalibration):
-            self._poller = asyncio.get_running_loop().create_task(_follow(served, POLL_S))
+        if poll:
+            self._poller = asyncio.get_running_loop().create_task(_follow(self.source(), POLL_S))
 
     async def close(self) -> None:
         if self._poller is not None:
@@ -90,7 +89,7 @@ class PlcServices:
         return out
 
 
-async def _follow(src, poll_s: float) -> None:
+async def _follow(src: Served, poll_s: float) -> None:
     while True:
         await asyncio.sleep(poll_s)
         await asyncio.to_thread(src.poll)

@@ -13,7 +13,7 @@ object ``Calibration`` with
   service sends after ``ERR``, as ``AdditionalInfo`` of every ``InputArgumentDiagnosticInfos`` entry;
 - the method ``Locate(dmin_mm, dmax_mm, z_mm) → (count, x_mm[], y_mm[], z_mm[], rz_deg[], sigma_mm[],
   outside)``: grab, find the round parts of diameter dmin..dmax mm (both NaN or 0: any size) at height
-  ``z_mm`` (NaN: the calibration's own) and map them (:class:`eyetohand.cell.locate.Locator`); count
+  ``z_mm`` (NaN: the calibration's own) and map them (:class:`eyetohand.positioning.locate.Locator`); count
   and outside UInt32, the arrays Double of ``count`` elements (σ -1 without uncertainty); the parts
   outside the calibrated region are omitted and counted in ``outside``. Refusals as ImageToRobot's,
   and ``BadResourceUnavailable`` without an image (no camera served, or the grab timed out).
@@ -32,7 +32,9 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from eyetohand.cell.plc.mapping import Status, map_point, served_identity
+from eyetohand.positioning.locate import NO_CAMERA, refused
+from eyetohand.positioning.mapping import Status, map_point
+from eyetohand.positioning.served import Served
 
 NAMESPACE = "urn:eyetohand"
 PATH = "/eyetohand/"
@@ -68,12 +70,13 @@ CODES = {
 }
 
 
-def state_of(source: Any) -> str:
+def state_of(source: Served) -> str:
     """``Ready`` (a calibration maps), ``Error`` (the version in force cannot be used) or
-    ``NoCalibration`` (none served yet, or deleted)."""
-    if source.cal is not None and source.error is None:
+    ``NoCalibration`` (none served yet, deleted, or the database gone)."""
+    problem = source.problem()
+    if source.cal is not None and problem is None:
         return "Ready"
-    return "Error" if "cannot be used" in str(source.error or "") else "NoCalibration"
+    return "Error" if problem is not None and problem.broken else "NoCalibration"
 
 
 class OpcUaService:
@@ -82,7 +85,7 @@ class OpcUaService:
 
     def __init__(
         self,
-        source: Callable[[], Any],
+        source: Callable[[], Served],
         host: str,
         port: int,
         *,
@@ -148,7 +151,8 @@ class OpcUaService:
         from asyncua import ua
 
         src = self.source()
-        name, version = served_identity(src)
+        ident = src.identity()
+        name, version = ident.name, ident.version
         cal = src.cal
         rms = float(cal.check.rms_mm) if cal is not None and cal.check is not None else math.nan
         shown = (name, version, rms, state_of(src))
@@ -184,8 +188,6 @@ class OpcUaService:
 
     async def _locate(self, parent, *args):
         from asyncua import ua
-
-        from eyetohand.cell.locate import NO_CAMERA, refused
 
         values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
         if len(values) != 3 or not all(
