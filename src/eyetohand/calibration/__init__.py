@@ -21,8 +21,10 @@ if TYPE_CHECKING:
     from eyetohand.calibration.export import FORMATS, export_text
     from eyetohand.calibration.file import Calibration, Mapped
     from eyetohand.calibration.fit import MAX_IMAGE_SIDE_PX, calibrate, check_image_size
+    from eyetohand.calibration.plate import calibrate_plate
     from eyetohand.calibration.request import FitRequest, calibrate_request
     from eyetohand.calibration.signing import load_sign_key
+    from eyetohand.calibration.touches import Touch, load_touches
     from eyetohand.calibration.verify import append_history, check_tolerance, verify
 else:
     __getattr__, __dir__ = lazy_exports(
@@ -42,7 +44,9 @@ else:
             "export": ("FORMATS", "export_text"),
             "file": ("Calibration", "Mapped"),
             "fit": ("MAX_IMAGE_SIDE_PX", "calibrate", "check_image_size"),
+            "plate": ("calibrate_plate",),
             "request": ("FitRequest", "calibrate_request"),
+            "touches": ("Touch", "load_touches"),
             "signing": ("load_sign_key",),
             "verify": ("append_history", "check_tolerance", "verify"),
         },
@@ -55,9 +59,11 @@ __all__ = [
     "FitRequest",
     "MAX_IMAGE_SIDE_PX",
     "Mapped",
+    "Touch",
     "append_history",
     "as_fitted",
     "calibrate",
+    "calibrate_plate",
     "calibrate_request",
     "check_image_size",
     "check_target_diameter",
@@ -71,6 +77,7 @@ __all__ = [
     "fit_corrected",
     "format_compare",
     "load_sign_key",
+    "load_touches",
     "mixup",
     "projected_centres_px",
     "recorded_diameter_mm",

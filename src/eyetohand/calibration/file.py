@@ -31,6 +31,7 @@ from eyetohand.calibration.fields import (
 )
 from eyetohand.calibration.horizon import beyond_horizon, horizon_clear
 from eyetohand.calibration.mapped import Mapped, all_finite
+from eyetohand.calibration.plate_record import PlateRecord
 from eyetohand.calibration.signing import check_signature, signature_of
 from eyetohand.core import (
     MAX_ABS_ANGLE_DEG,
@@ -92,6 +93,7 @@ class Calibration:
     pairs: PointPairs | None = None  # the training pairs as given (before a tool offset is removed)
     check_pairs: PointPairs | None = None
     warnings: tuple[str, ...] = ()
+    plate: PlateRecord | None = None  # a calibration from a plate and touches (calibration/plate.py)
 
     # ------------------------------------------------------------ facts
     @property
@@ -315,7 +317,10 @@ class Calibration:
         if not wanted or self.uncertainty is None:
             return None
         zs = xyz[:, 2] if self.model.height_rule is not HeightRule.COMPUTED else np.zeros(len(uv))
-        return self.uncertainty.sigma_mm(self.model, uv, zs)
+        sigma = self.uncertainty.sigma_mm(self.model, uv, zs)
+        if self.plate is not None:  # the touches' error, common to every point (plate_record.py)
+            sigma = np.sqrt(sigma**2 + self.plate.placement_variance_mm2(xyz, self.uncertainty.n_coords))
+        return sigma
 
     def _beyond_horizon(self, uv: np.ndarray, z) -> np.ndarray:
         """(N,) True for points on or beyond the model's horizon (:func:`~.horizon.beyond_horizon`)."""
@@ -333,6 +338,12 @@ class Calibration:
 
     # ------------------------------------------------------------ persistence
     def _content(self) -> dict:
+        out = self._base_content()
+        if self.plate is not None:  # only then: every other file keeps its fields (and hash)
+            out["plate"] = self.plate.to_dict()
+        return out
+
+    def _base_content(self) -> dict:
         frame = None
         if self.region is not None:
             try:
@@ -449,6 +460,8 @@ class Calibration:
         want["model"] = dict(want["model"], diagnostics=given.get("model", {}).get("diagnostics"))
         want["uncertainty"] = given.get("uncertainty")  # compared above, with its own tolerance
         want["region"] = given.get("region")  # compared above
+        if self.plate is not None:
+            want["plate"] = given.get("plate")  # proven when parsed (PlateRecord.from_dict)
         local = want.pop("local_frame")
         same(local, given.pop("local_frame", MISSING), "local_frame", rel_tol(REPRODUCE_TOL_MM))
         given.pop("content_sha256", None)
@@ -739,7 +752,7 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
     for key in ("created_utc", "eyetohand_version"):
         if not isinstance(d.get(key, ""), str):
             raise InputError(f"field '{key}' must be a string")
-    extra = {}
+    extra: dict[str, object] = {}
     if ver >= 2:
         extra = {
             "region": CalibratedRegion.from_dict(d["region"]) if d.get("region") is not None else None,
@@ -756,6 +769,11 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
         }
         if extra["region"] is None:
             raise InputError("field 'region' missing: a calibration must record where it was calibrated")
+        if d.get("plate") is not None:
+            pairs = extra["pairs"]
+            extra["plate"] = PlateRecord.from_dict(
+                d["plate"], pairs if isinstance(pairs, PointPairs) else None
+            )
     return cls(
         model=model,
         fit=fit,

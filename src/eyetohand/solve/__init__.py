@@ -19,6 +19,7 @@ if TYPE_CHECKING:
         stats_from_residuals,
     )
     from eyetohand.solve.objectives import OBJECTIVES, check_objective, huber_delta_mm, objective_values
+    from eyetohand.solve.placement import RigidFit, placement_variance_mm2, rigid_fit
     from eyetohand.solve.solvers import OPTIMIZERS, SEED_MAX, check_optimizer, check_seed, get_solver, refine
     from eyetohand.solve.tcp_offset import (
         correct_pairs,
@@ -51,6 +52,7 @@ else:
                 "reference_pairs",
                 "rotations",
             ),
+            "placement": ("RigidFit", "placement_variance_mm2", "rigid_fit"),
             "uncertainty": ("Uncertainty", "best_new_point", "pair_leverage", "param_jacobian"),
         },
     )
@@ -59,6 +61,7 @@ __all__ = [
     "MIXUPS",
     "Mixup",
     "OBJECTIVES",
+    "RigidFit",
     "OPTIMIZERS",
     "SEED_MAX",
     "Stats",
@@ -79,8 +82,10 @@ __all__ = [
     "objective_values",
     "pair_leverage",
     "param_jacobian",
+    "placement_variance_mm2",
     "reference_pairs",
     "refine",
+    "rigid_fit",
     "rotations",
     "stats_from_residuals",
 ]
