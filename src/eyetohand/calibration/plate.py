@@ -105,17 +105,43 @@ def calibrate_plate(
     names = names or [
         str(i) if isinstance(i, (str, os.PathLike)) else f"image {k + 1}" for k, i in enumerate(images)
     ]
-    found = []
-    for img, name in zip(images, names, strict=True):
-        det = detect_plate(img, spec, name)
-        found.append(PlateImage(Path(name).name, det.image_size, det.uv_px))
+    found = [
+        PlateImage(Path(name).name, det.image_size, det.uv_px)
+        for det, name in (
+            (detect_plate(img, spec, name), name) for img, name in zip(images, names, strict=True)
+        )
+    ]
+    if not isinstance(touches, list):
+        touches = load_touches(touches, names)
+    return calibrate_detected(
+        spec,
+        found,
+        touches,
+        check=check,
+        model=model,
+        tolerance_mm=tolerance_mm,
+        touch_noise_mm=touch_noise_mm,
+        loo=loo,
+    )
+
+
+def calibrate_detected(
+    spec: PlateSpec,
+    found: list[PlateImage],
+    touches: list[Touch],
+    *,
+    check: PointPairs | None = None,
+    model: str | None = None,
+    tolerance_mm: float = TOLERANCE_MM,
+    touch_noise_mm: float | None = None,
+    loo: bool = False,
+) -> Calibration:
+    """:func:`calibrate_plate` from the plate's points as detected in each image (``found``)."""
     sizes = {i.image_size for i in found}
     if len(sizes) > 1:
         raise InputError(
             f"the plate images differ in size ({', '.join(f'{w}x{h}' for w, h in sorted(sizes))})"
         )
-    if not isinstance(touches, list):
-        touches = load_touches(touches, names)
     record = PlateRecord.build(spec, found, touches, tolerance_mm=tolerance_mm, touch_noise_mm=touch_noise_mm)
     cam, centres = _camera_from_plate(spec, found)
     _check_not_mirrored(record, centres)
@@ -141,4 +167,4 @@ def calibrate_plate(
     return replace(cal, plate=record, notes=cal.notes + tuple(notes))
 
 
-__all__ = ["calibrate_plate"]
+__all__ = ["calibrate_detected", "calibrate_plate"]

@@ -5,19 +5,22 @@ in its own words.
 A touches file is CSV ``[image,]u,v,x,y,z[,id]``: the pixel where the touched corner is seen (read
 off the annotated image), the robot's reading of the pointer tip (mm), optionally which image
 (its file name or its number, 1-based; may be left out for one image) and a name. Each touch is
-snapped to the nearest detected corner; none within ``SNAP_FRACTION`` of the corner spacing is
-refused naming the touch. Per placement (image) at least 3 touches, not on one line, each on its own
-corner; then the least-squares rigid fit (:func:`eyetohand.solve.rigid_fit`) and the refusals:
+snapped to the nearest detected corner; none within ``SNAP_MAX_PX`` (10 px; or ``SNAP_FRACTION`` of
+the corner spacing when that is less) is refused naming the touch. Per placement (image) at least 3
+touches, not on one line, each on its own corner; then the least-squares rigid fit
+(:func:`eyetohand.solve.rigid_fit`) and the refusals:
 
 * a scale the rigid fit cannot absorb but a similarity can: "the touches are 1.020× farther apart
   than the plate says: square size 20.4 mm, or robot units?";
 * one touch the others do not explain (4+ touches): off the plate's plane ("… mm off the plane of
-  the other touches"), on another corner ("… at corner r2c6: wrong corner?"), or just off;
+  the other touches"; with exactly 4 any one of them may be it: "the touches are not on one plane"),
+  on another corner ("… at corner r2c6: wrong corner?"), or just off;
 * no single touch to blame: "the touches do not fit the plate rigidly …: did the plate move between
   the image and the touches?".
 
-``tolerance_mm`` (default 0.5 mm) is the largest residual a touch may keep: a robot's pointer reading
-is good to ~0.1 mm, a wrong corner is a pitch away, a 0.5 % scale error is 0.75 mm over 150 mm.
+``tolerance_mm`` (default 1.0 mm) is the largest residual a touch may keep: a pointer read with 0.2 mm
+noise per axis leaves residuals of ~0.35 mm (0.8 mm at the worst of 4 touches, 1 in 1000), a wrong
+corner is a pitch away, a 2 % scale error 1.4 mm at a corner 70 mm from the touches' centre.
 """
 
 from __future__ import annotations
@@ -34,8 +37,10 @@ from eyetohand.solve import RigidFit, rigid_fit
 from eyetohand.vision import PlateSpec
 
 SNAP_FRACTION = 0.3
-"""A touch's pixel must lie within this fraction of the corner spacing of a detected corner."""
-TOLERANCE_MM = 0.5
+SNAP_MAX_PX = 10.0
+"""A touch's pixel must lie within this fraction of the corner spacing of a detected corner, and
+within ``SNAP_MAX_PX``: a pixel read off the annotated image is good to a few pixels."""
+TOLERANCE_MM = 1.0
 COLLINEAR_RATIO = 0.05
 """The touched corners' smaller spread / larger spread below this: on one line."""
 NOISE_FLOOR_MM = 0.01
@@ -159,7 +164,7 @@ def snap(touches: list[Touch], uv_px: np.ndarray, spacing_px: float, spec: Plate
     """The detected corner (index) each touch's pixel is on; refused naming the touch when none is
     within ``SNAP_FRACTION`` of the spacing, or two touches share one."""
     ids = spec.ids()
-    radius = SNAP_FRACTION * spacing_px
+    radius = min(SNAP_FRACTION * spacing_px, SNAP_MAX_PX)
     out: list[int] = []
     for t in touches:
         d = np.linalg.norm(uv_px - np.array(t.uv_px), axis=1)
@@ -218,7 +223,7 @@ def place(
             f"image {image + 1}: the touches are {fit.scale:.3f}x farther apart than the plate says: "
             f"{size} {spec.pitch_mm * fit.scale:.4g} mm (not {spec.pitch_mm:g}), or robot units?"
         )
-    if worst > tolerance_mm:
+    if worst > tolerance_mm or _off_plane(fit) > tolerance_mm / 2:
         _blame(touches, P, X, fit, spec, corners, image, tolerance_mm)
     n = len(touches)
     rss = float((fit.residuals_mm**2).sum())
@@ -227,44 +232,46 @@ def place(
 
 
 def _blame(touches, P, X, fit: RigidFit, spec: PlateSpec, corners, image: int, tol: float) -> None:
-    """Refuse a placement whose residuals exceed ``tol``: one touch to blame when the others fit."""
+    """Refuse a placement the touches do not fit: one touch to blame when the others fit (4+)."""
     ids = spec.ids()
     n = len(touches)
-    if n >= 4:
-        best = None
-        for k in range(n):
-            keep = [j for j in range(n) if j != k]
-            Pk = P[keep]
-            sv = np.linalg.svd(Pk[:, :2] - Pk[:, :2].mean(axis=0), compute_uv=False)
-            if sv[1] < COLLINEAR_RATIO * sv[0]:
-                continue
-            f = rigid_fit(Pk, X[keep])
-            if np.max(np.linalg.norm(f.residuals_mm, axis=1)) <= tol:
-                off = X[k] - f.apply(P[k : k + 1])[0]
-                if best is None or np.linalg.norm(off) > np.linalg.norm(best[1]):
-                    best = (k, off, f)
-        if best is not None:
-            k, off, f = best
-            t = touches[k]
-            normal = float(off @ f.R[:, 2])
-            in_plane = f.R.T @ (X[k] - f.t_mm)  # where the robot touched, plate frame
-            if abs(normal) > 0.8 * np.linalg.norm(off):
+    found = []  # (k, off, fit of the others) for each touch whose removal leaves a fitting set
+    for k in range(n if n >= 4 else 0):
+        keep = [j for j in range(n) if j != k]
+        sv = np.linalg.svd(P[keep, :2] - P[keep, :2].mean(axis=0), compute_uv=False)
+        if sv[1] < COLLINEAR_RATIO * sv[0]:
+            continue
+        f = rigid_fit(P[keep], X[keep])
+        if np.max(np.linalg.norm(f.residuals_mm, axis=1)) <= tol and _off_plane(f) <= tol / 2:
+            found.append((k, X[k] - f.apply(P[k : k + 1])[0], f))
+    if found:
+        k, off, f = max(found, key=lambda c: float(np.linalg.norm(c[1])))
+        t = touches[k]
+        normal = float(off @ f.R[:, 2])
+        if abs(normal) > 0.8 * np.linalg.norm(off):
+            if len(found) > 1:
                 raise InputError(
-                    f"{t.where} is {abs(normal):.2f} mm off the plane of the other touches (the plate's "
-                    "plane): touched above or below the plate (its edge, a block, the pointer not down)?"
-                )
-            pts = spec.points_mm()
-            j = int(np.argmin(np.linalg.norm(pts[:, :2] - in_plane[:2], axis=1)))
-            near = float(np.linalg.norm(pts[j, :2] - in_plane[:2]))
-            if j != corners[k] and near < 0.25 * spec.pitch_mm:
-                raise InputError(
-                    f"{t.where} was read at {spec.what[:-1]} {ids[corners[k]]}, but the robot touched "
-                    f"{np.linalg.norm(off):.2f} mm from it, at {spec.what[:-1]} {ids[j]}: wrong corner?"
+                    f"image {image + 1}: the touches are not on one plane: one is {abs(normal):.2f} mm off "
+                    f"the plane of the other {n - 1} ({n} touches cannot tell which; a 5th would): touched "
+                    "above or below the plate (its edge, a block, the pointer not down)?"
                 )
             raise InputError(
-                f"{t.where} is {np.linalg.norm(off):.2f} mm from where the other touches place its "
-                f"{spec.what[:-1]} {ids[corners[k]]} (tolerance {tol:g} mm): touch it again"
+                f"{t.where} is {abs(normal):.2f} mm off the plane of the other touches (the plate's "
+                "plane): touched above or below the plate (its edge, a block, the pointer not down)?"
             )
+        in_plane = f.R.T @ (X[k] - f.t_mm)  # where the robot touched, plate frame
+        pts = spec.points_mm()
+        j = int(np.argmin(np.linalg.norm(pts[:, :2] - in_plane[:2], axis=1)))
+        near = float(np.linalg.norm(pts[j, :2] - in_plane[:2]))
+        if j != corners[k] and near < 0.25 * spec.pitch_mm:
+            raise InputError(
+                f"{t.where} was read at {spec.what[:-1]} {ids[corners[k]]}, but the robot touched "
+                f"{np.linalg.norm(off):.2f} mm from it, at {spec.what[:-1]} {ids[j]}: wrong corner?"
+            )
+        raise InputError(
+            f"{t.where} is {np.linalg.norm(off):.2f} mm from where the other touches place its "
+            f"{spec.what[:-1]} {ids[corners[k]]} (tolerance {tol:g} mm): touch it again"
+        )
     res = np.linalg.norm(fit.residuals_mm, axis=1)
     k = int(np.argmax(res))
     raise InputError(
@@ -272,6 +279,11 @@ def _blame(touches, P, X, fit: RigidFit, spec: PlateSpec, corners, image: int, t
         f"{res[k]:.2f} mm at {touches[k].where} (tolerance {tol:g} mm): did the plate move between "
         "the image and the touches, or is a touch on the wrong corner?"
     )
+
+
+def _off_plane(fit: RigidFit) -> float:
+    """The largest residual (mm) along the plate's normal."""
+    return float(np.max(np.abs(fit.residuals_mm @ fit.R[:, 2])))
 
 
 __all__ = [

@@ -149,7 +149,7 @@ class PlateSimulation:
     spec: PlateSpec
     camera: Camera
     placement: PlatePlacement
-    image: np.ndarray
+    image: np.ndarray | None
     touches_csv: str
     check_csv: str
     true_uv_px: np.ndarray  # every plate point's exact pixel
@@ -167,9 +167,11 @@ def simulate_plate(
     tilt_deg: float = 0.3,
     n_check: int = 20,
     seed: int | None = None,
+    render: bool = True,
 ) -> PlateSimulation:
     """One plate image in ``cell``, ``n_touches`` (3..4) touches of its corners A–D, ``n_check``
-    check points on the plate (module docstring)."""
+    check points on the plate (module docstring). ``render`` False: no image (``image`` None; the
+    studies that need only the truth)."""
     cell = Cell.default() if cell is None else cell
     spec = PlateSpec.parse(spec) if isinstance(spec, str) else spec
     if n_touches not in (3, 4):
@@ -191,7 +193,9 @@ def simulate_plate(
     ss = np.random.SeedSequence(seed)
     rng_img, rng_touch, rng_check = (np.random.default_rng(s) for s in ss.spawn(3))
     r = cell.values["render"]
-    image = render_plate(cam, spec, pl, blur_px=r["blur_px"], noise=r["noise"], rng=rng_img)
+    image = (
+        render_plate(cam, spec, pl, blur_px=r["blur_px"], noise=r["noise"], rng=rng_img) if render else None
+    )
     labels = list(spec.corner_labels().items())[:n_touches]
     idx = tuple(i for _, i in labels)
     xyz = world[list(idx)] + rng_touch.normal(0.0, touch_noise_mm, (len(idx), 3))
@@ -219,6 +223,8 @@ def write_plate_simulation(sim: PlateSimulation, out_dir: str | os.PathLike) -> 
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if sim.image is None:
+        raise InputError("this plate simulation was made without its image (render=False)")
     ok, png = cv2.imencode(".png", sim.image)
     if not ok:
         raise InputError(f"{out / 'plate.png'}: could not encode the image")

@@ -209,10 +209,10 @@ def detect_plate(image, spec: PlateSpec | str, name: str | None = None) -> Plate
         # what is there: any chessboard of at least 3 x 3 inner corners
         ok2, seen, meta = cv2.findChessboardCornersSBWithMeta(g, (3, 3), flags | cv2.CALIB_CB_LARGER)
         if ok2 and meta is not None:
-            r, c = meta.shape[:2]
+            a, b = sorted(meta.shape[:2], reverse=spec.cols >= spec.rows)  # its corners, as the spec orders
             seen_px = seen.reshape(-1, 2)
             raise PlateNotFound(
-                f"plate {spec.text} not found: saw a chessboard of {c - 1}x{r - 1} inner corners "
+                f"plate {spec.text} not found: saw a chessboard of {a}x{b} inner corners "
                 f"({len(seen_px)} corners), not {want} ({spec.n_points}): is the spec's count right "
                 "(inner corners, not squares) and the whole plate in view?",
                 source=name,
