@@ -155,10 +155,8 @@ def _blob_detector(shape: tuple[int, int]):
     return cv2.SimpleBlobDetector_create(p)  # type: ignore[attr-defined]
 
 
-def _find_chessboard(g: np.ndarray, spec: PlateSpec) -> np.ndarray | None:
-    """The chessboard's corners (N, 2) px roughly (to be refined), or None: found on the image halved
-    while it is over 1200 px (4× fewer pixels; the SB detector's time grows with them), then on the
-    full image, then exhaustively."""
+def _reduced(g: np.ndarray) -> tuple[np.ndarray, int]:
+    """The image halved while it is over 1200 px, and the factor."""
     import cv2
 
     small, k = g, 1
@@ -167,6 +165,16 @@ def _find_chessboard(g: np.ndarray, spec: PlateSpec) -> np.ndarray | None:
             cv2.resize(small, (small.shape[1] // 2, small.shape[0] // 2), interpolation=cv2.INTER_AREA),
             2 * k,
         )
+    return small, k
+
+
+def _find_chessboard(g: np.ndarray, spec: PlateSpec) -> np.ndarray | None:
+    """The chessboard's corners (N, 2) px roughly (to be refined), or None: found on the image halved
+    while it is over 1200 px (4× fewer pixels; the SB detector's time grows with them), then on the
+    full image, then exhaustively."""
+    import cv2
+
+    small, k = _reduced(g)
     tries = [(small, k, 0)] + ([(g, 1, 0)] if k > 1 else []) + [(g, 1, cv2.CALIB_CB_EXHAUSTIVE)]
     for img, scale, flags in tries:
         ok, corners = cv2.findChessboardCornersSB(img, (spec.cols, spec.rows), flags=flags)
@@ -205,12 +213,13 @@ def detect_plate(image, spec: PlateSpec | str, name: str | None = None) -> Plate
         corners = _find_chessboard(g, spec)
         if corners is not None:
             return PlateDetection(spec, _subpixel(g, corners, spec), size, name)
-        flags = cv2.CALIB_CB_EXHAUSTIVE
-        # what is there: any chessboard of at least 3 x 3 inner corners
-        ok2, seen, meta = cv2.findChessboardCornersSBWithMeta(g, (3, 3), flags | cv2.CALIB_CB_LARGER)
+        # what is there: any chessboard of at least 3 x 3 inner corners (on the reduced image: only counted)
+        small, k = _reduced(g)
+        flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_LARGER
+        ok2, seen, meta = cv2.findChessboardCornersSBWithMeta(small, (3, 3), flags)
         if ok2 and meta is not None:
             a, b = sorted(meta.shape[:2], reverse=spec.cols >= spec.rows)  # its corners, as the spec orders
-            seen_px = seen.reshape(-1, 2)
+            seen_px = seen.reshape(-1, 2).astype(float) * k + 0.5 * (k - 1)
             raise PlateNotFound(
                 f"plate {spec.text} not found: saw a chessboard of {a}x{b} inner corners "
                 f"({len(seen_px)} corners), not {want} ({spec.n_points}): is the spec's count right "
