@@ -32,6 +32,9 @@ from eyetohand.core import InputError, PointPairs
 from eyetohand.geometry import fit_height_plane
 from eyetohand.vision import PlateSpec, detect_plate
 
+STRAIGHT_ON_DEG = 5.0
+"""Below this tilt between the optical axis and the plate's normal the focal length is not measured."""
+
 
 def _camera_from_plate(spec: PlateSpec, images: list[PlateImage]) -> tuple[dict, list[np.ndarray]]:
     """OpenCV's camera from the plate's images: (intrinsics and lens, camera centre (3,) in each
@@ -48,10 +51,11 @@ def _camera_from_plate(spec: PlateSpec, images: list[PlateImage]) -> tuple[dict,
     if len(images) == 1:
         flags |= cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, K0, np.zeros(5), flags=flags)
-    centres = []
+    centres, tilts = [], []
     for rv, tv in zip(rvecs, tvecs, strict=True):
         R, _ = cv2.Rodrigues(rv)
         centres.append(-R.T @ tv.reshape(3))
+        tilts.append(float(np.degrees(np.arccos(min(1.0, abs(R[2, 2]))))))
     cam = {
         "fx_px": float(K[0, 0]),
         "fy_px": float(K[1, 1]),
@@ -60,6 +64,7 @@ def _camera_from_plate(spec: PlateSpec, images: list[PlateImage]) -> tuple[dict,
         "k1": float(dist.ravel()[0]),
         "k2": float(dist.ravel()[1]),
         "reprojection_rms_px": float(rms),
+        "max_tilt_deg": max(tilts),
     }
     return cam, centres
 
@@ -156,6 +161,12 @@ def calibrate_detected(
             cam["fx_px"], cam["cx_px"], cam["cy_px"], cam["k1"], cam["k2"], cam["reprojection_rms_px"]
         ),
     ]
+    if cam["max_tilt_deg"] < STRAIGHT_ON_DEG:
+        notes.append(
+            f"the plate is seen nearly straight on (tilt {cam['max_tilt_deg']:.1f} deg): its image cannot tell the "
+            "focal length from the distance, so f and k1 above are not measured (the map is); tilt the plate "
+            "~20 deg in a second image to measure the lens"
+        )
     ids = spec.ids()
     for pl in record.placements:
         touched = ", ".join(ids[i] for i in pl.corners)
