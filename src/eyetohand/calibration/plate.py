@@ -163,9 +163,9 @@ def calibrate_detected(
     ]
     if cam["max_tilt_deg"] < STRAIGHT_ON_DEG:
         notes.append(
-            f"the plate is seen nearly straight on (tilt {cam['max_tilt_deg']:.1f} deg): its image cannot tell the "
-            "focal length from the distance, so f and k1 above are not measured (the map is); tilt the plate "
-            "~20 deg in a second image to measure the lens"
+            f"the plate is seen nearly straight on (tilt {cam['max_tilt_deg']:.1f} deg): its image cannot "
+            "tell the focal length from the distance, so f and k1 above are not measured (the map is); tilt "
+            "the plate ~20 deg in a second image to measure the lens"
         )
     ids = spec.ids()
     for pl in record.placements:
