@@ -21,10 +21,11 @@ if TYPE_CHECKING:
     from eyetohand.calibration.export import FORMATS, export_text
     from eyetohand.calibration.file import Calibration, Mapped
     from eyetohand.calibration.fit import MAX_IMAGE_SIDE_PX, calibrate, check_image_size
-    from eyetohand.calibration.plate import calibrate_plate
+    from eyetohand.calibration.plate import calibrate_detected, calibrate_plate
+    from eyetohand.calibration.plate_record import PlateImage
     from eyetohand.calibration.request import FitRequest, calibrate_request
     from eyetohand.calibration.signing import load_sign_key
-    from eyetohand.calibration.touches import Touch, load_touches
+    from eyetohand.calibration.touches import Touch, load_touches, touches_from_text
     from eyetohand.calibration.verify import append_history, check_tolerance, verify
 else:
     __getattr__, __dir__ = lazy_exports(
@@ -44,9 +45,10 @@ else:
             "export": ("FORMATS", "export_text"),
             "file": ("Calibration", "Mapped"),
             "fit": ("MAX_IMAGE_SIDE_PX", "calibrate", "check_image_size"),
-            "plate": ("calibrate_plate",),
+            "plate": ("calibrate_detected", "calibrate_plate"),
+            "plate_record": ("PlateImage",),
             "request": ("FitRequest", "calibrate_request"),
-            "touches": ("Touch", "load_touches"),
+            "touches": ("Touch", "load_touches", "touches_from_text"),
             "signing": ("load_sign_key",),
             "verify": ("append_history", "check_tolerance", "verify"),
         },
@@ -59,10 +61,12 @@ __all__ = [
     "FitRequest",
     "MAX_IMAGE_SIDE_PX",
     "Mapped",
+    "PlateImage",
     "Touch",
     "append_history",
     "as_fitted",
     "calibrate",
+    "calibrate_detected",
     "calibrate_plate",
     "calibrate_request",
     "check_image_size",
@@ -81,5 +85,6 @@ __all__ = [
     "mixup",
     "projected_centres_px",
     "recorded_diameter_mm",
+    "touches_from_text",
     "verify",
 ]
