@@ -100,9 +100,11 @@ def _pattern(spec: PlateSpec, x: np.ndarray, y: np.ndarray, foot: np.ndarray) ->
     inside_plate = (_edge(x - lo[0], foot[0]) + 1) * (_edge(hi[0] - x, foot[0]) + 1) / 4
     inside_plate *= (_edge(y - lo[1], foot[1]) + 1) * (_edge(hi[1] - y, foot[1]) + 1) / 4
     if spec.kind == "chessboard":
-        kx, ky = np.rint(x / p), np.rint(y / p)
-        gx = np.where(kx % 2 == 0, 1.0, -1.0) * _edge(x - kx * p, foot[0])
-        gy = np.where(ky % 2 == 0, 1.0, -1.0) * _edge(y - ky * p, foot[1])
+        # the outer squares' far edges are the board's (below), not the square wave's
+        xs, ys = np.clip(x, -0.5 * p, (spec.cols - 0.5) * p), np.clip(y, -0.5 * p, (spec.rows - 0.5) * p)
+        kx, ky = np.rint(xs / p), np.rint(ys / p)
+        gx = np.where(kx % 2 == 0, 1.0, -1.0) * _edge(xs - kx * p, foot[0])
+        gy = np.where(ky % 2 == 0, 1.0, -1.0) * _edge(ys - ky * p, foot[1])
         f = gx * gy  # +1 white, −1 black
         qlo, qhi = -p, np.array([spec.cols * p, spec.rows * p])
         board = (_edge(x - qlo, foot[0]) + 1) * (_edge(qhi[0] - x, foot[0]) + 1) / 4

@@ -276,16 +276,21 @@ def annotate_plate(image, spec: PlateSpec, uv_px: np.ndarray, *, found: bool = T
     for label, i in spec.corner_labels().items():
         u, v = pts[i]
         cv2.circle(out, (round(u), round(v)), 10 * scale, (0, 255, 255), 2 * scale, cv2.LINE_AA)
-        cv2.putText(
-            out,
-            f"{label} {ids[i]}",
-            (round(u) + 12 * scale, round(v) - 12 * scale),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.8 * scale,
-            (0, 255, 255),
-            2 * scale,
-            cv2.LINE_AA,
-        )
+        at = (round(u) + 12 * scale, round(v) - 12 * scale)
+        for colour, width in (
+            ((0, 0, 0), 5 * scale),
+            ((0, 255, 255), 2 * scale),
+        ):  # outlined: legible on white
+            cv2.putText(
+                out,
+                f"{label} {ids[i]}",
+                at,
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.8 * scale,
+                colour,
+                width,
+                cv2.LINE_AA,
+            )
     return out
 
 
