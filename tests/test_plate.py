@@ -323,3 +323,30 @@ def test_sigma_is_calibrated_over_simulated_cells():
     sig = np.concatenate([r[1] for r in runs])
     ratio = float(np.sqrt(np.mean(sig**2) / np.mean(err**2)))
     assert 0.8 <= ratio <= 1.25, ratio
+
+
+def test_verify_counts_the_touches_error_as_no_motion():
+    """A plate calibration's error is mostly the touches' one rigid error, common to every point: a
+    fresh check that sees it is no camera motion (before, every re-check of a plate calibration was
+    'camera shifted', chi-square ~1e4); a real 3 px shift still is."""
+    from dataclasses import replace
+
+    from eyetohand.calibration import verify
+
+    alarms = 0
+    for seed in range(20):
+        sim = simulate_plate(spec=CHESS, seed=seed, touch_noise_mm=0.1, render=False, n_check=30)
+        rng = np.random.default_rng(seed)
+        uv = sim.true_uv_px + rng.normal(0, 0.02, sim.true_uv_px.shape)
+        cal = calibrate_detected(
+            sim.spec,
+            [PlateImage("p.png", sim.camera.image_size, uv)],
+            touches_from_text(sim.touches_csv, "t.csv", ["p.png"]),
+        )
+        check = pairs_from_text(sim.check_csv, "c.csv")
+        noisy = replace(check, uv_px=check.uv_px + rng.normal(0, 0.05, check.uv_px.shape))
+        alarms += verify(cal, noisy, 1.0).drift.significant
+        if seed == 0:
+            moved = replace(check, uv_px=check.uv_px + [3.0, 0.0])
+            assert verify(cal, moved, 1.0).drift.significant
+    assert alarms <= 1  # 0.1 % each under no motion

@@ -18,7 +18,7 @@ import numpy as np
 from eyetohand.calibration.fields import CHANGED
 from eyetohand.calibration.touches import TOLERANCE_MM, Placement, Touch, place, snap
 from eyetohand.core import InputError, PointPairs
-from eyetohand.solve import placement_variance_mm2
+from eyetohand.solve import placement_variance_mm2, rigid_jacobian
 from eyetohand.vision import PlateSpec
 
 PROOF_TOL_MM = 1e-9
@@ -91,6 +91,17 @@ class PlateRecord:
         to all of them, each placement's error independent)."""
         v = [placement_variance_mm2(p.covariance, p.fit.centre_mm, xyz_mm, n_coords) for p in self.placements]
         return np.mean(v, axis=0) / len(v)
+
+    def error_covariance_xy(self, xyz_mm: np.ndarray) -> np.ndarray:
+        """(2N, 2N) covariance of the x, y errors (x0, y0, x1, …) the touches put on the points
+        ``xyz_mm`` (N, 3): one rigid error shared by all of them, so correlated from point to point
+        (the diagonal is :meth:`placement_variance_mm2`)."""
+        X = np.asarray(xyz_mm, float).reshape(-1, 3)
+        out = np.zeros((2 * len(X), 2 * len(X)))
+        for p in self.placements:
+            B = rigid_jacobian(X, p.fit.centre_mm)[:, :2].reshape(2 * len(X), 6)
+            out += B @ p.covariance @ B.T
+        return out / len(self.placements) ** 2
 
     def to_dict(self) -> dict:
         return {

@@ -19,7 +19,7 @@ if TYPE_CHECKING:
         stats_from_residuals,
     )
     from eyetohand.solve.objectives import OBJECTIVES, check_objective, huber_delta_mm, objective_values
-    from eyetohand.solve.placement import RigidFit, placement_variance_mm2, rigid_fit
+    from eyetohand.solve.placement import RigidFit, placement_variance_mm2, rigid_fit, rigid_jacobian
     from eyetohand.solve.solvers import OPTIMIZERS, SEED_MAX, check_optimizer, check_seed, get_solver, refine
     from eyetohand.solve.tcp_offset import (
         correct_pairs,
@@ -52,7 +52,7 @@ else:
                 "reference_pairs",
                 "rotations",
             ),
-            "placement": ("RigidFit", "placement_variance_mm2", "rigid_fit"),
+            "placement": ("RigidFit", "placement_variance_mm2", "rigid_fit", "rigid_jacobian"),
             "uncertainty": ("Uncertainty", "best_new_point", "pair_leverage", "param_jacobian"),
         },
     )
@@ -86,6 +86,7 @@ __all__ = [
     "reference_pairs",
     "refine",
     "rigid_fit",
+    "rigid_jacobian",
     "rotations",
     "stats_from_residuals",
 ]

@@ -53,9 +53,7 @@ class RigidFit:
     def covariance(self, noise_mm: float) -> np.ndarray:
         """(6, 6) covariance of (ω rad, δt mm) about ``centre_mm`` for readings with ``noise_mm`` σ
         per axis."""
-        X = self.apply(self.plate_mm)
-        A = np.concatenate([-_skew(X - self.centre_mm), np.broadcast_to(np.eye(3), (len(X), 3, 3))], axis=2)
-        A = A.reshape(-1, 6)
+        A = rigid_jacobian(self.apply(self.plate_mm), self.centre_mm).reshape(-1, 6)
         return noise_mm**2 * np.linalg.pinv(A.T @ A)
 
 
@@ -78,6 +76,12 @@ def rigid_fit(P_mm, X_mm) -> RigidFit:
     return RigidFit(R, t, res, s, float(np.sqrt(np.mean(np.sum(scaled**2, axis=1)))), xc, P)
 
 
+def rigid_jacobian(xyz_mm: np.ndarray, centre_mm: np.ndarray) -> np.ndarray:
+    """(N, 3, 6) B = [−[X − c]×, I]: how points move under a small rigid change (ω, δt) about c."""
+    X = np.asarray(xyz_mm, float).reshape(-1, 3)
+    return np.concatenate([-_skew(X - centre_mm), np.broadcast_to(np.eye(3), (len(X), 3, 3))], axis=2)
+
+
 def placement_variance_mm2(
     cov6: np.ndarray, centre_mm: np.ndarray, xyz_mm: np.ndarray, n_coords: int
 ) -> np.ndarray:
@@ -90,4 +94,4 @@ def placement_variance_mm2(
     return np.einsum("nci,ij,ncj->n", B, cov6, B)
 
 
-__all__ = ["RigidFit", "placement_variance_mm2", "rigid_fit"]
+__all__ = ["RigidFit", "placement_variance_mm2", "rigid_fit", "rigid_jacobian"]
