@@ -14,6 +14,7 @@ from eyetohand.core import lazy_exports
 if TYPE_CHECKING:
     from eyetohand.calibration.file import Calibration
     from eyetohand.calibration.fit import calibrate, select_model
+    from eyetohand.calibration.plate import calibrate_plate
     from eyetohand.core.errors import DegenerateError, InputError
     from eyetohand.core.pairs import PointPairs, load_pairs
     from eyetohand.models import MODEL_CHOICES, MODELS, get_model
@@ -27,6 +28,7 @@ else:
         {
             "calibration.file": ("Calibration",),
             "calibration.fit": ("calibrate", "select_model"),
+            "calibration.plate": ("calibrate_plate",),
             "core.errors": ("DegenerateError", "InputError"),
             "core.pairs": ("PointPairs", "load_pairs"),
             "models": ("MODEL_CHOICES", "MODELS", "get_model"),
@@ -48,6 +50,7 @@ __all__ = [
     "Stats",
     "__version__",
     "calibrate",
+    "calibrate_plate",
     "detect_circles",
     "detect_target",
     "evaluate",

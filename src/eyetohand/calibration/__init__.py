@@ -29,7 +29,10 @@ if TYPE_CHECKING:
         check_image_size,
         resolve_model,
     )
+    from eyetohand.calibration.plate import calibrate_detected, calibrate_plate
+    from eyetohand.calibration.plate_record import PlateImage
     from eyetohand.calibration.signing import load_sign_key
+    from eyetohand.calibration.touches import Touch, load_touches, touches_from_text
     from eyetohand.calibration.verify import append_history, check_tolerance, verify
 else:
     __getattr__, __dir__ = lazy_exports(
@@ -57,6 +60,9 @@ else:
                 "check_image_size",
                 "resolve_model",
             ),
+            "plate": ("calibrate_detected", "calibrate_plate"),
+            "plate_record": ("PlateImage",),
+            "touches": ("Touch", "load_touches", "touches_from_text"),
             "signing": ("load_sign_key",),
             "verify": ("append_history", "check_tolerance", "verify"),
         },
@@ -71,9 +77,13 @@ __all__ = [
     "FitRequest",
     "MAX_IMAGE_SIDE_PX",
     "Mapped",
+    "PlateImage",
+    "Touch",
     "append_history",
     "as_fitted",
     "calibrate",
+    "calibrate_detected",
+    "calibrate_plate",
     "calibrate_request",
     "check_image_size",
     "check_target_diameter",
@@ -87,9 +97,11 @@ __all__ = [
     "fit_corrected",
     "format_compare",
     "load_sign_key",
+    "load_touches",
     "mixup",
     "projected_centres_px",
     "recorded_diameter_mm",
     "resolve_model",
+    "touches_from_text",
     "verify",
 ]

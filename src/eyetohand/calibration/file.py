@@ -25,6 +25,7 @@ from eyetohand.calibration.fields import (
 )
 from eyetohand.calibration.horizon import horizon_clear
 from eyetohand.calibration.mapped import Mapped
+from eyetohand.calibration.plate_record import PlateRecord
 from eyetohand.calibration.proof import SCHEMA, SCHEMA_VERSION, content_sha256, corrected
 from eyetohand.calibration.proof import V1_FIELDS as V1_FIELDS  # where the schema was read before
 from eyetohand.calibration.signing import signature_of
@@ -68,6 +69,7 @@ class Calibration:
     pairs: PointPairs | None = None  # the training pairs as given (before a tool offset is removed)
     check_pairs: PointPairs | None = None
     warnings: tuple[str, ...] = ()
+    plate: PlateRecord | None = None  # a calibration from a plate and touches (calibration/plate.py)
 
     # ------------------------------------------------------------ facts
     @property
@@ -186,6 +188,12 @@ class Calibration:
     # ------------------------------------------------------------ persistence
     def content(self) -> dict:
         """The file's content before its seal (``content_sha256``) and signature."""
+        out = self._base_content()
+        if self.plate is not None:  # only then: every other file keeps its fields (and hash)
+            out["plate"] = self.plate.to_dict()
+        return out
+
+    def _base_content(self) -> dict:
         frame = None
         if self.region is not None:
             try:

@@ -175,7 +175,10 @@ def _sigma(cal: Calibration, uv: np.ndarray, xyz: np.ndarray, wanted: bool) -> n
     if not wanted or cal.uncertainty is None:
         return None
     zs = xyz[:, 2] if cal.model.height_rule is not HeightRule.COMPUTED else np.zeros(len(uv))
-    return cal.uncertainty.sigma_mm(cal.model, uv, zs)
+    sigma = cal.uncertainty.sigma_mm(cal.model, uv, zs)
+    if cal.plate is not None:  # the touches' error, common to every point (plate_record.py)
+        sigma = np.sqrt(sigma**2 + cal.plate.placement_variance_mm2(xyz, cal.uncertainty.n_coords))
+    return sigma
 
 
 def _beyond_horizon(cal: Calibration, uv: np.ndarray, z) -> np.ndarray:

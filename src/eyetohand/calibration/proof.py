@@ -23,6 +23,7 @@ from eyetohand.calibration.fields import (
     rel_tol,
     same,
 )
+from eyetohand.calibration.plate_record import PlateRecord
 from eyetohand.calibration.signing import check_signature
 from eyetohand.core import (
     FitInfo,
@@ -109,6 +110,8 @@ def prove(cal: Calibration, d: dict) -> Calibration:
     want["model"] = dict(want["model"], diagnostics=given.get("model", {}).get("diagnostics"))
     want["uncertainty"] = given.get("uncertainty")  # compared above, with its own tolerance
     want["region"] = given.get("region")  # compared above
+    if cal.plate is not None:
+        want["plate"] = given.get("plate")  # proven when parsed (PlateRecord.from_dict)
     local = want.pop("local_frame")
     same(local, given.pop("local_frame", MISSING), "local_frame", rel_tol(REPRODUCE_TOL_MM))
     given.pop("content_sha256", None)
@@ -351,7 +354,7 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
     for key in ("created_utc", "eyetohand_version"):
         if not isinstance(d.get(key, ""), str):
             raise InputError(f"field '{key}' must be a string")
-    extra = {}
+    extra: dict[str, object] = {}
     if ver >= 2:
         extra = {
             "region": CalibratedRegion.from_dict(d["region"]) if d.get("region") is not None else None,
@@ -368,6 +371,9 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
         }
         if extra["region"] is None:
             raise InputError("field 'region' missing: a calibration must record where it was calibrated")
+        if d.get("plate") is not None:
+            pairs = extra["pairs"]
+            extra["plate"] = PlateRecord.from_dict(d["plate"], pairs if isinstance(pairs, PointPairs) else None)
     return cls(
         model=model,
         fit=fit,

@@ -319,6 +319,8 @@ def error_covariance(cal: Calibration, pairs: PointPairs, sigma_mm: np.ndarray) 
     JL = J @ unc.factor
     cov = JL @ JL.T
     cov[np.diag_indices(2 * n)] += max(unc.noise_mm**2, 1e-24)
+    if cal.plate is not None:  # a plate's touches: one rigid error shared by every point
+        cov += cal.plate.error_covariance_xy(cal.map(pairs.uv_px, z, allow_outside=True).xyz_mm)
     return cov
 
 

@@ -36,6 +36,12 @@ def cmd_simulate(args) -> int:
             f"wrote {args.write_config} (edit it, then: eyetohand simulate --config {args.write_config} ...)"
         )
         return 0
+    if args.plate:  # a plate image, its touches and check points (cli/plate.py)
+        from eyetohand.cli.plate import cmd_simulate_plate
+
+        return cmd_simulate_plate(args)
+    if args.touches is not None:
+        raise InputError("simulate: --touches goes with --plate SPEC")
     if not args.out:
         raise InputError("simulate: give --out DIR (or --write-config FILE to write the default cell)")
     cell = load_cell(args.config)
@@ -195,6 +201,18 @@ def register(sub) -> None:
         help="random seed (default: a fresh session each run; same seed, same session)",
     )
     p.add_argument("--images", action="store_true", help="also render the target images")
+    p.add_argument(
+        "--plate", metavar="SPEC", help="instead: a plate image (e.g. chessboard:9x6:15) and its touches"
+    )
+    p.add_argument(
+        "--touches", type=int, default=None, metavar="N", help="with --plate: 3 or 4 touches (default 4)"
+    )
+    p.add_argument(
+        "--touch-noise-mm",
+        type=float,
+        default=0.05,
+        help="with --plate: the pointer's noise per axis (default 0.05)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_simulate)
 

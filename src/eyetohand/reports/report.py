@@ -394,10 +394,15 @@ def trust_map(cal: Calibration, ax=None, *, background=None):
     zq = np.zeros(len(uv)) if computed else np.full(len(uv), z)
     with np.errstate(all="ignore"):
         s = cal.uncertainty.sigma_mm(cal.model, uv, zq).reshape(n_v, n_u)
+        if cal.plate is not None:  # the touches' error, shared by every point (docs/plate.md)
+            xyz = cal.model.image_to_robot(uv, zq if cal.model.height_rule is HeightRule.GIVEN else None)
+            s = np.sqrt(
+                s**2 + cal.plate.placement_variance_mm2(xyz, cal.uncertainty.n_coords).reshape(n_v, n_u)
+            )
     inside = (cal.region.outside_px(uv) <= cal.region.margin_px) & np.isfinite(s.ravel())
     inner = s.ravel()[inside]
     best = None
-    if inner.size:
+    if inner.size and cal.plate is None:  # one more pair does not lessen a plate's touches error
         # candidates: every 4th grid pixel inside the refused-beyond line (where parts are mapped; a
         # pair far outside would score best by leverage alone, somewhere the robot may not reach)
         sub = np.zeros((n_v, n_u), bool)

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
         plot_study,
         view_rectangle,
     )
+    from eyetohand.sim.plate import PlateSimulation, simulate_plate, write_plate_simulation
     from eyetohand.sim.simulate import simulate, write_simulation
 else:
     __getattr__, __dir__ = lazy_exports(
@@ -39,7 +40,9 @@ else:
                 "ConveyorSetup",
                 "sightings_from_text",
                 "simulate_conveyor",
+                "simulate_plate",
                 "write_conveyor_simulation",
+                "write_plate_simulation",
             ),
             "parts": (
                 "Part",
@@ -54,6 +57,7 @@ else:
                 "plot_study",
                 "view_rectangle",
             ),
+            "plate": ("PlateSimulation", "simulate_plate", "write_plate_simulation"),
             "simulate": (
                 "simulate",
                 "write_simulation",
@@ -71,6 +75,7 @@ __all__ = [
     "PartsTable",
     "VIEW_MARGIN",
     "Plan",
+    "PlateSimulation",
     "SimSource",
     "load_cell",
     "parse_plan",
@@ -80,7 +85,9 @@ __all__ = [
     "sim_command",
     "simulate",
     "simulate_conveyor",
+    "simulate_plate",
     "view_rectangle",
     "write_conveyor_simulation",
+    "write_plate_simulation",
     "write_simulation",
 ]

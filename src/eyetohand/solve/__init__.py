@@ -38,6 +38,7 @@ if TYPE_CHECKING:
         get_solver,
         refine,
     )
+    from eyetohand.solve.placement import RigidFit, placement_variance_mm2, rigid_fit, rigid_jacobian
     from eyetohand.solve.tcp_offset import (
         correct_pairs,
         estimate_tcp_offset,
@@ -87,6 +88,7 @@ else:
                 "reference_pairs",
                 "rotations",
             ),
+            "placement": ("RigidFit", "placement_variance_mm2", "rigid_fit", "rigid_jacobian"),
             "uncertainty": ("Uncertainty", "best_new_point", "pair_leverage", "param_jacobian"),
         },
     )
@@ -95,6 +97,7 @@ __all__ = [
     "MIXUPS",
     "Mixup",
     "OBJECTIVES",
+    "RigidFit",
     "OPTIMIZERS",
     "Objective",
     "SEED_MAX",
@@ -121,8 +124,11 @@ __all__ = [
     "objective_values",
     "pair_leverage",
     "param_jacobian",
+    "placement_variance_mm2",
     "reference_pairs",
     "refine",
+    "rigid_fit",
+    "rigid_jacobian",
     "rotations",
     "stats_from_residuals",
 ]

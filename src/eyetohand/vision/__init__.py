@@ -17,6 +17,7 @@ if TYPE_CHECKING:
         load_poses,
         pairs_from_detections,
     )
+    from eyetohand.vision.plate import PlateDetection, PlateNotFound, PlateSpec, annotate_plate, detect_plate
     from eyetohand.vision.render import Target, render
     from eyetohand.vision.sources import (
         FolderSource,
@@ -32,6 +33,7 @@ else:
         {
             "detect": ("Miss", "annotate", "detect_circles", "detect_target"),
             "images": ("ImageResult", "detect_images", "detect_poses", "load_poses", "pairs_from_detections"),
+            "plate": ("PlateDetection", "PlateNotFound", "PlateSpec", "annotate_plate", "detect_plate"),
             "render": ("Target", "render"),
             "sources": (
                 "FolderSource",
@@ -50,12 +52,17 @@ __all__ = [
     "GrabTimeout",
     "ImageResult",
     "Miss",
+    "PlateDetection",
+    "PlateNotFound",
+    "PlateSpec",
     "Source",
     "SourceScheme",
     "Target",
     "annotate",
+    "annotate_plate",
     "detect_circles",
     "detect_images",
+    "detect_plate",
     "detect_poses",
     "detect_target",
     "load_poses",

@@ -1,0 +1,179 @@
+"""What a calibration from a plate keeps to prove itself: the plate's spec, the corners detected in
+each image, the touches — and the placements derived from them, recomputed and compared on load.
+
+The training pairs of such a calibration are the detected corners (u, v) with their plate points
+placed in the robot frame by the touches' rigid fit. Loading a file proves that: the placements are
+fitted again from the stored touches (every refusal of :mod:`eyetohand.calibration.touches` applies),
+the pairs rebuilt and compared with the stored pairs (1e-9 mm), the stored placements with the
+recomputed ones. It also carries what the pairs cannot show — the error the touches' noise puts on
+every point alike (:meth:`PlateRecord.placement_variance_mm2`), which ``sigma_mm`` adds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from eyetohand.calibration.fields import CHANGED
+from eyetohand.calibration.touches import TOLERANCE_MM, Placement, Touch, place, snap
+from eyetohand.core import InputError, PointPairs
+from eyetohand.solve import placement_variance_mm2, rigid_jacobian
+from eyetohand.vision import PlateSpec
+
+PROOF_TOL_MM = 1e-9
+
+
+@dataclass(frozen=True)
+class PlateImage:
+    """One image of the plate: its name, size (w, h) px, the points detected (N, 2) px."""
+
+    name: str
+    image_size: tuple[int, int]
+    uv_px: np.ndarray
+
+    def spacing_px(self, spec: PlateSpec) -> float:
+        g = self.uv_px.reshape(spec.rows, spec.cols, 2)
+        return float(
+            min(
+                np.linalg.norm(np.diff(g, axis=1), axis=-1).min(),
+                np.linalg.norm(np.diff(g, axis=0), axis=-1).min(),
+            )
+        )
+
+
+@dataclass(frozen=True)
+class PlateRecord:
+    """The plate, its images, the touches, the options, and the placements derived from them."""
+
+    spec: PlateSpec
+    images: tuple[PlateImage, ...]
+    touches: tuple[Touch, ...]
+    tolerance_mm: float
+    touch_noise_mm: float | None
+    placements: tuple[Placement, ...]
+
+    @classmethod
+    def build(
+        cls,
+        spec: PlateSpec,
+        images: list[PlateImage],
+        touches: list[Touch],
+        *,
+        tolerance_mm: float = TOLERANCE_MM,
+        touch_noise_mm: float | None = None,
+    ) -> PlateRecord:
+        """Snap each image's touches and place its plate (refusals: :mod:`.touches`)."""
+        placements = []
+        for k, img in enumerate(images):
+            mine = [t for t in touches if t.image == k]
+            corners = snap(mine, img.uv_px, img.spacing_px(spec), spec)
+            placements.append(
+                place(mine, corners, spec, k, tolerance_mm=tolerance_mm, touch_noise_mm=touch_noise_mm)
+            )
+        return cls(spec, tuple(images), tuple(touches), tolerance_mm, touch_noise_mm, tuple(placements))
+
+    def pairs(self, source: str = "plate corners") -> PointPairs:
+        """The training pairs: every detected point with its plate point placed in the robot frame."""
+        pts = self.spec.points_mm()
+        ids = self.spec.ids()
+        one = len(self.images) == 1
+        uv, xyz, names = [], [], []
+        for img, pl in zip(self.images, self.placements, strict=True):
+            uv.append(img.uv_px)
+            xyz.append(pl.fit.apply(pts))
+            names += ids if one else [f"{pl.image + 1}:{i}" for i in ids]
+        return PointPairs(np.vstack(uv), np.vstack(xyz), tuple(names), source=source)
+
+    def placement_variance_mm2(self, xyz_mm: np.ndarray, n_coords: int) -> np.ndarray:
+        """(N,) the variance (mm²) the touches' noise puts on mapped points: one placement's rigid
+        error propagated to each point; with K placements the mean of theirs / K (the map is fitted
+        to all of them, each placement's error independent)."""
+        v = [placement_variance_mm2(p.covariance, p.fit.centre_mm, xyz_mm, n_coords) for p in self.placements]
+        return np.mean(v, axis=0) / len(v)
+
+    def error_covariance_xy(self, xyz_mm: np.ndarray) -> np.ndarray:
+        """(2N, 2N) covariance of the x, y errors (x0, y0, x1, …) the touches put on the points
+        ``xyz_mm`` (N, 3): one rigid error shared by all of them, so correlated from point to point
+        (the diagonal is :meth:`placement_variance_mm2`)."""
+        X = np.asarray(xyz_mm, float).reshape(-1, 3)
+        out = np.zeros((2 * len(X), 2 * len(X)))
+        for p in self.placements:
+            B = rigid_jacobian(X, p.fit.centre_mm)[:, :2].reshape(2 * len(X), 6)
+            out += B @ p.covariance @ B.T
+        return out / len(self.placements) ** 2
+
+    def to_dict(self) -> dict:
+        return {
+            "spec": self.spec.text,
+            "images": [
+                {"name": i.name, "image_size": list(i.image_size), "uv_px": i.uv_px.tolist()}
+                for i in self.images
+            ],
+            "touches": [t.to_dict() for t in self.touches],
+            "tolerance_mm": self.tolerance_mm,
+            "touch_noise_mm": self.touch_noise_mm,
+            "placements": [
+                {
+                    "image": p.image,
+                    "R": p.fit.R.tolist(),
+                    "t_mm": p.fit.t_mm.tolist(),
+                    "corners": list(p.corners),
+                    "noise_mm": p.noise_mm,
+                    "rms_mm": p.fit.rms_mm,
+                    "scale": p.fit.scale,
+                }
+                for p in self.placements
+            ],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, fitted: PointPairs | None) -> PlateRecord:
+        """The record of a file, proven: the placements fitted again from the stored touches match
+        the stored ones and rebuild the stored training pairs (``fitted``), to 1e-9 mm."""
+        if not isinstance(d, dict):
+            raise InputError("field 'plate' must be an object")
+        try:
+            spec = PlateSpec.parse(d["spec"])
+            images = [
+                PlateImage(
+                    str(i["name"]),
+                    (int(i["image_size"][0]), int(i["image_size"][1])),
+                    np.asarray(i["uv_px"], float),
+                )
+                for i in d["images"]
+            ]
+            for k, img in enumerate(images):
+                if img.uv_px.shape != (spec.n_points, 2):
+                    raise InputError(f"field 'plate.images[{k}].uv_px' must be {spec.n_points} points (u, v)")
+            touches = [Touch.from_dict(t) for t in d["touches"]]
+            noise = d["touch_noise_mm"]
+            again = cls.build(
+                spec, images, touches, tolerance_mm=float(d["tolerance_mm"]), touch_noise_mm=noise
+            )
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            if isinstance(exc, InputError):
+                raise InputError(f"field 'plate': {exc}") from None
+            raise InputError(f"field 'plate' is malformed ({type(exc).__name__}: {exc})") from None
+        want = again.to_dict()
+        _same(want, d, "plate")
+        if fitted is None or len(fitted) != sum(len(i.uv_px) for i in images):
+            raise InputError(f"field 'plate' does not rebuild the training pairs: {CHANGED}")
+        pairs = again.pairs()
+        if not (
+            np.abs(pairs.uv_px - fitted.uv_px).max() <= PROOF_TOL_MM
+            and np.abs(pairs.xyz_mm - fitted.xyz_mm).max()
+            <= PROOF_TOL_MM * max(1.0, np.abs(pairs.xyz_mm).max())
+            and pairs.ids == fitted.ids
+        ):
+            raise InputError(f"field 'plate' does not rebuild the training pairs (to 1e-9 mm): {CHANGED}")
+        return again
+
+
+def _same(want, given, path: str) -> None:
+    from eyetohand.calibration.fields import rel_tol, same
+
+    same(want, given, path, rel_tol(PROOF_TOL_MM))
+
+
+__all__ = ["PlateImage", "PlateRecord"]
