@@ -18,6 +18,7 @@ if TYPE_CHECKING:
         recorded_diameter_mm,
     )
     from eyetohand.calibration.compare import compare, format_compare
+    from eyetohand.calibration.diff import Difference, Motion, Verdict, diff
     from eyetohand.calibration.export import FORMATS, export_text
     from eyetohand.calibration.file import Calibration, Mapped
     from eyetohand.calibration.fit import MAX_IMAGE_SIDE_PX, calibrate, check_image_size
@@ -39,6 +40,7 @@ else:
             ),
             "checking": ("Evaluation", "check_warnings", "evaluate_pairs", "mixup"),
             "compare": ("compare", "format_compare"),
+            "diff": ("Difference", "Motion", "Verdict", "diff"),
             "export": ("FORMATS", "export_text"),
             "file": ("Calibration", "Mapped"),
             "fit": ("MAX_IMAGE_SIDE_PX", "calibrate", "check_image_size"),
@@ -50,11 +52,14 @@ else:
 
 __all__ = [
     "Calibration",
+    "Difference",
     "Evaluation",
     "FORMATS",
     "FitRequest",
     "MAX_IMAGE_SIDE_PX",
     "Mapped",
+    "Motion",
+    "Verdict",
     "append_history",
     "as_fitted",
     "calibrate",
@@ -64,6 +69,7 @@ __all__ = [
     "check_warnings",
     "check_tolerance",
     "compare",
+    "diff",
     "corrected_centres_px",
     "ellipse_centres_px",
     "evaluate_pairs",

@@ -1,0 +1,134 @@
+"""diff: two calibrations of one virtual cell compared (calibration/diff.py, docs/diff.md)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from eyetohand.calibration import Verdict, calibrate, diff
+from eyetohand.core import InputError
+from eyetohand.sim import Cell, simulate
+
+# a cell with a tilted camera and no lens distortion: the homography model is exact there (fast fits)
+FLAT = Cell.default().with_values(camera={"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0})
+
+
+def fit(cell: Cell, seed: int, model: str = "homography", **kw):
+    sim = simulate(cell, "grid:5x5", seed=seed, **kw)
+    return calibrate(sim.pairs, model=model, check=sim.check, loo=False)
+
+
+def moved_cell(cell: Cell, dxy_mm=(0.8, -0.6), rot_deg=0.1) -> Cell:
+    """The whole camera turned ``rot_deg`` about the vertical through its look-at point and shifted."""
+    c = cell.values["camera"]
+    return cell.with_values(
+        camera={
+            "look_at_mm": [c["look_at_mm"][0] + dxy_mm[0], c["look_at_mm"][1] + dxy_mm[1]],
+            "yaw_deg": c["yaw_deg"] + rot_deg,
+            "tilt_direction_deg": c["tilt_direction_deg"] + rot_deg,
+        }
+    )
+
+
+def true_shift_about(cell: Cell, centre_mm, dxy_mm=(0.8, -0.6), rot_deg=0.1) -> np.ndarray:
+    """The shift of the same motion expressed about ``centre_mm`` (robot x, y)."""
+    th = math.radians(rot_deg)
+    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    look = np.asarray(cell.values["camera"]["look_at_mm"], float)
+    c = np.asarray(centre_mm, float)
+    return np.asarray(dxy_mm) + (R - np.eye(2)) @ (c - look)
+
+
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_independent_collections_of_one_cell_are_consistent(seed):
+    d = diff(fit(FLAT, seed), fit(FLAT, seed + 100))
+    assert d.verdict is Verdict.CONSISTENT, d.summary()
+    assert 0.3 < d.ratio_median < 2.0
+    assert d.rms_mm < 0.05  # both are good to a few hundredths of a mm
+    assert d.n_grid > 100 and len(d.uv_px) > d.n_grid  # the grid plus the check points
+
+
+def test_moved_camera_is_named_with_its_motion():
+    a = fit(FLAT, 5)
+    b = fit(moved_cell(FLAT), 6)
+    d = diff(a, b)
+    assert d.verdict is Verdict.MOVED, d.summary()
+    want = true_shift_about(FLAT, d.motion.centre_mm)
+    assert np.hypot(d.motion.dx_mm - want[0], d.motion.dy_mm - want[1]) < 0.05
+    assert abs(d.motion.rotation_deg - 0.1) < 0.01
+    assert abs(d.motion.dz_mm) < 1e-9
+    # the motion takes A's answers to B's, to within the two fits' own errors
+    left = np.linalg.norm(d.motion.apply(d.a_mm) - d.b_mm, axis=1)
+    assert np.sqrt(np.mean(left**2)) < 3 * np.sqrt(np.mean(d.sigma_mm**2))
+    # and back: B against A is the inverse motion
+    back = diff(b, a)
+    assert back.verdict is Verdict.MOVED
+    assert abs(back.motion.rotation_deg + d.motion.rotation_deg) < 1e-3
+
+
+def test_moved_with_lens_distortion_and_auto_model():
+    cell = Cell.default()
+    a = fit(cell, 21, "homography-radial")
+    b = fit(moved_cell(cell), 22, "homography-radial")
+    d = diff(a, b)
+    assert d.verdict is Verdict.MOVED, d.summary()
+    want = true_shift_about(cell, d.motion.centre_mm)
+    assert np.hypot(d.motion.dx_mm - want[0], d.motion.dy_mm - want[1]) < 0.05
+    assert abs(d.motion.rotation_deg - 0.1) < 0.01
+
+
+def test_scale_change_is_named_scale():
+    # the robot's axes grow 0.1 % (a units or kinematics change): a similarity explains it, no rigid motion
+    b_cell = FLAT.with_values(robot={"scale_error": [1e-3, 1e-3]})
+    d = diff(fit(FLAT, 31), fit(b_cell, 32))
+    assert d.verdict is Verdict.SCALE, d.summary()
+    assert d.scale_ppm == pytest.approx(-1000, rel=0.1)  # commands shrink by 1/(1 + 1e-3)
+
+
+def test_a_model_without_perspective_against_one_with_it_is_model_error():
+    tilted = FLAT.with_values(camera={"tilt_deg": 12.0})
+    d = diff(fit(tilted, 41, "affine"), fit(tilted, 42, "homography"))
+    assert d.verdict is Verdict.MODEL_ERROR, d.summary()
+    assert "perspective" in d.reason
+
+
+def test_json_carries_the_issue_fields():
+    d = diff(fit(FLAT, 51), fit(moved_cell(FLAT), 52))
+    j = json.loads(d.to_json())
+    for key in ("verdict", "rms_mm", "p95_mm", "max_mm", "ratio_median"):
+        assert key in j
+    assert j["verdict"] == "moved"
+    assert set(j["moved"]) >= {"dx_mm", "dy_mm", "dz_mm", "rotation_deg"}
+    assert j["moved"]["dx_mm"] == pytest.approx(d.motion.dx_mm)
+    assert j["rms_mm"] >= j["p95_mm"] * 0.5 and j["max_mm"] >= j["p95_mm"]
+
+
+def test_another_plane_height_shows_as_dz():
+    a = fit(FLAT, 61)
+    b = fit(FLAT, 62, heights_mm=(152.0,))
+    d = diff(a, b)
+    assert d.motion.dz_mm == pytest.approx(2.0, abs=1e-9)
+    assert d.verdict is not Verdict.CONSISTENT  # a different plane maps the same pixel elsewhere
+
+
+def test_refuses_what_it_cannot_compare():
+    a = fit(FLAT, 71)
+    small = calibrate(
+        simulate(FLAT, "grid:5x5", seed=72).pairs, model="homography", loo=False, image_size=(640, 480)
+    )
+    with pytest.raises(InputError, match="not one camera"):
+        diff(a.__class__(**{**a.__dict__, "image_size": (2448, 2048)}), small)
+    with pytest.raises(InputError, match="grid_side"):
+        diff(a, a, grid_side=2)
+    with pytest.raises(InputError, match="no uncertainty"):
+        diff(a, a.__class__(**{**a.__dict__, "uncertainty": None}))
+
+
+def test_same_calibration_against_itself_is_exactly_consistent():
+    a = fit(FLAT, 81)
+    d = diff(a, a)
+    assert d.verdict is Verdict.CONSISTENT
+    assert d.max_mm == 0.0 and d.ratio_median == 0.0
