@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from eyetohand.calibration import Verdict, calibrate, diff
+from eyetohand.calibration import Verdict, calibrate, crossval, diff
 from eyetohand.core import InputError
 from eyetohand.sim import Cell, simulate
 
@@ -132,3 +132,36 @@ def test_same_calibration_against_itself_is_exactly_consistent():
     d = diff(a, a)
     assert d.verdict is Verdict.CONSISTENT
     assert d.max_mm == 0.0 and d.ratio_median == 0.0
+
+
+# ---------------------------------------------------------------- crossval
+
+
+def test_crossval_names_a_model_that_does_not_fit_and_passes_auto():
+    # the default cell: a tilted camera with lens distortion
+    pairs = simulate(Cell.default(), "grid:5x5", seed=3).pairs
+    bad = crossval(pairs, "affine", k=4, seed=1)
+    assert bad.verdict is Verdict.MODEL_ERROR, bad.summary()
+    assert bad.rejected == 4 and bad.reference_model == "homography-radial"
+    good = crossval(pairs, "auto", k=4, seed=1, tolerance_mm=0.005)
+    assert good.verdict is Verdict.CONSISTENT, good.summary()
+    assert good.model == "homography-radial"
+    # halving the tolerance needs four times the pairs (sigma ~ 1/sqrt(n))
+    assert good.pairs_for_tolerance is not None and good.pairs_for_tolerance > 12
+    again = crossval(pairs, "auto", k=4, seed=1, tolerance_mm=0.0025)
+    assert again.pairs_for_tolerance == pytest.approx(4 * good.pairs_for_tolerance, rel=0.1)
+    j = json.loads(good.to_json())
+    assert j["verdict"] == "consistent" and j["k"] == 4
+
+
+def test_crossval_refuses_bad_options():
+    pairs = simulate(FLAT, "grid:3x3", seed=3).pairs
+    with pytest.raises(InputError, match="at least 12 pairs"):
+        crossval(pairs, "homography")
+    pairs = simulate(FLAT, "grid:5x5", seed=3).pairs
+    with pytest.raises(InputError, match="valid models"):
+        crossval(pairs, "nonsense")
+    with pytest.raises(InputError, match="k: expected"):
+        crossval(pairs, "homography", k=0)
+    with pytest.raises(InputError, match="tolerance"):
+        crossval(pairs, "homography", tolerance_mm=-1.0)

@@ -18,6 +18,7 @@ if TYPE_CHECKING:
         recorded_diameter_mm,
     )
     from eyetohand.calibration.compare import compare, format_compare
+    from eyetohand.calibration.crossval import CrossValidation, crossval
     from eyetohand.calibration.diff import Difference, Motion, Verdict, diff
     from eyetohand.calibration.export import FORMATS, export_text
     from eyetohand.calibration.file import Calibration, Mapped
@@ -40,6 +41,7 @@ else:
             ),
             "checking": ("Evaluation", "check_warnings", "evaluate_pairs", "mixup"),
             "compare": ("compare", "format_compare"),
+            "crossval": ("CrossValidation", "crossval"),
             "diff": ("Difference", "Motion", "Verdict", "diff"),
             "export": ("FORMATS", "export_text"),
             "file": ("Calibration", "Mapped"),
@@ -52,6 +54,7 @@ else:
 
 __all__ = [
     "Calibration",
+    "CrossValidation",
     "Difference",
     "Evaluation",
     "FORMATS",
@@ -69,6 +72,7 @@ __all__ = [
     "check_warnings",
     "check_tolerance",
     "compare",
+    "crossval",
     "diff",
     "corrected_centres_px",
     "ellipse_centres_px",
