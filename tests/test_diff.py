@@ -165,3 +165,71 @@ def test_crossval_refuses_bad_options():
         crossval(pairs, "homography", k=0)
     with pytest.raises(InputError, match="tolerance"):
         crossval(pairs, "homography", tolerance_mm=-1.0)
+
+
+# ---------------------------------------------------------------- the commands
+
+
+@pytest.fixture(scope="module")
+def cal_files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("diff")
+    paths = {}
+    for key, cell, seed in (("a", FLAT, 91), ("b", FLAT, 92), ("moved", moved_cell(FLAT), 93)):
+        sim = simulate(cell, "grid:5x5", seed=seed)
+        cal = calibrate(sim.pairs, model="homography", check=sim.check, loo=False)
+        paths[key] = cal.save(d / f"{key}.json")
+        (d / f"{key}.csv").write_text(sim.pairs.to_csv_text())
+        paths[key + "_pairs"] = d / f"{key}.csv"
+    return paths
+
+
+def run(capsys, *argv):
+    from eyetohand.cli import main
+
+    rc = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def test_cli_diff_prints_the_verdict_and_json(cal_files, capsys):
+    rc, out, _ = run(capsys, "diff", cal_files["a"], cal_files["b"])
+    assert rc == 0 and "verdict: consistent" in out
+    rc, out, _ = run(capsys, "diff", cal_files["a"], cal_files["moved"], "--json")
+    j = json.loads(out)
+    assert rc == 0 and j["verdict"] == "moved"
+    assert j["moved"]["rotation_deg"] == pytest.approx(0.1, abs=0.01)
+
+
+def test_cli_diff_bad_input_is_one_line_exit_2(cal_files, capsys, tmp_path):
+    rc, _, err = run(capsys, "diff", cal_files["a"], tmp_path / "none.json")
+    assert rc == 2 and err.count("\n") == 1 and "none.json" in err
+    rc, _, err = run(capsys, "diff", cal_files["a"], cal_files["a_pairs"])
+    assert rc == 2 and "not a calibration file" in err
+
+
+def test_cli_crossval(cal_files, capsys):
+    rc, out, _ = run(capsys, "crossval", cal_files["a_pairs"], "--model", "homography", "--k", "3", "--json")
+    j = json.loads(out)
+    assert rc == 0 and j["verdict"] == "consistent" and j["k"] == 3 and j["model"] == "homography"
+    rc, _, err = run(capsys, "crossval", cal_files["a_pairs"], "--model", "nope")
+    assert rc == 2 and "valid models" in err
+    rc, _, err = run(capsys, "crossval", cal_files["a_pairs"], "--tolerance-mm", "0")
+    assert rc == 2 and "tolerance" in err
+
+
+def test_cli_diff_reads_stored_versions(cal_files, capsys, tmp_path):
+    from eyetohand.server.storage import Store
+
+    store = Store(tmp_path, create=True)
+    docs = {k: json.loads(cal_files[k].read_text()) for k in ("a", "moved")}
+    rec = store.create("line 3", {}, docs["a"], [], None)
+    store.add_version(rec.id, {}, docs["moved"], [], None, "after the bump")
+    store.close()
+    rc, out, _ = run(capsys, "diff", "line 3@1", "line 3@2", "--data", tmp_path, "--json")
+    assert rc == 0 and json.loads(out)["verdict"] == "moved"
+    rc, out, _ = run(capsys, "diff", f"id:{rec.id}@1", "line 3", "--data", tmp_path, "--json")
+    assert rc == 0 and json.loads(out)["verdict"] == "moved"  # no version: the current one
+    rc, _, err = run(capsys, "diff", "line 3@7", "line 3@1", "--data", tmp_path)
+    assert rc == 2 and "no version 7" in err
+    rc, _, err = run(capsys, "diff", "other@1", "line 3@1", "--data", tmp_path)
+    assert rc == 2 and "no calibration named 'other'" in err

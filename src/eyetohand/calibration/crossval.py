@@ -119,9 +119,12 @@ class CrossValidation:
             f"combined sigma of two half calibrations (p95): {self.sigma_p95_mm:.4g} mm",
         ]
         if self.tolerance_mm is not None:
-            lines.append(
-                f"pairs for a combined sigma under {self.tolerance_mm:g} mm: {self.pairs_for_tolerance}"
+            need = (
+                "n/a: more pairs do not cure a model error"
+                if self.pairs_for_tolerance is None
+                else f"{self.pairs_for_tolerance} (sigma ~ 1/sqrt(n))"
             )
+            lines.append(f"pairs for a combined sigma under {self.tolerance_mm:g} mm: {need}")
         return "\n".join(lines)
 
 
