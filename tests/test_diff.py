@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from eyetohand.calibration import Verdict, calibrate, crossval, diff
+from eyetohand.calibration.diff import LayerName
 from eyetohand.core import InputError
 from eyetohand.sim import Cell, simulate
 
@@ -91,6 +92,17 @@ def test_scale_change_is_named_scale():
 def test_a_model_without_perspective_against_one_with_it_is_model_error():
     tilted = FLAT.with_values(camera={"tilt_deg": 12.0})
     d = diff(fit(tilted, 41, "affine"), fit(tilted, 42, "homography"))
+    assert d.verdict is Verdict.MODEL_ERROR, d.summary()
+    # the affine map claims a wide uncertainty (its residuals hold the perspective it lacks); the
+    # homography layer explains the difference exactly
+    assert "affine" in d.reason and "residual noise" in d.reason
+    assert d.layer(LayerName.HOMOGRAPHY).rms_mm < 1e-6 < d.layer(LayerName.SCALE).rms_mm
+
+
+def test_perspective_difference_between_two_precise_maps_is_named():
+    # two homographies of cells whose camera tilt differs by 1°: a perspective change, no rigid motion
+    tilted = FLAT.with_values(camera={"tilt_deg": 4.0})
+    d = diff(fit(FLAT, 43), fit(tilted, 44))
     assert d.verdict is Verdict.MODEL_ERROR, d.summary()
     assert "perspective" in d.reason
 
@@ -233,3 +245,59 @@ def test_cli_diff_reads_stored_versions(cal_files, capsys, tmp_path):
     assert rc == 2 and "no version 7" in err
     rc, _, err = run(capsys, "diff", "other@1", "line 3@1", "--data", tmp_path)
     assert rc == 2 and "no calibration named 'other'" in err
+
+
+# ---------------------------------------------------------------- the error budget
+
+
+def test_error_budget_matches_the_cell_it_came_from():
+    from eyetohand.calibration import error_budget
+
+    cell = FLAT.with_values(detection={"pixel_noise_px": 0.2}, robot={"repeatability_mm": 0.02})
+    sims = [simulate(cell, "grid:6x6", seed=s, n_check=40) for s in (101, 102, 103)]
+    budgets = [error_budget(calibrate(s.pairs, model="homography", check=s.check, loo=False)) for s in sims]
+    for b in budgets:
+        assert b is not None and b.where == "check points"
+        # the residual noise per axis is the detector's noise at the local scale ⊕ the robot's repeatability
+        want = math.hypot(0.2 * b.scale_mm_per_px, 0.02)
+        assert b.noise_mm == pytest.approx(want, rel=0.35)
+        assert b.expected_rms_mm > b.fit_rms_mm
+        assert "expected accuracy" in b.describe() and "measured check RMS" in b.describe()
+    # the simulation's check points are exact: their measured RMS is the fit's own error (pooled)
+    measured = math.sqrt(np.mean([b.measured_rms_mm**2 for b in budgets]))
+    predicted = math.sqrt(np.mean([b.fit_rms_mm**2 for b in budgets]))
+    assert 0.5 < measured / predicted < 2.0
+
+
+# ---------------------------------------------------------------- many seeds (lens cell: bench_diff.py)
+
+
+def _same_cell_runs(n: int, base: int):
+    return [diff(fit(FLAT, base + 2 * s), fit(FLAT, base + 1 + 2 * s)) for s in range(n)]
+
+
+def _check_many(runs):
+    assert not [d for d in runs if d.verdict is Verdict.MOVED]
+    med = np.array([d.ratio_median for d in runs])
+    q = np.array([d.layers[0].q for d in runs])
+    assert 0.5 < float(np.median(med)) < 1.5
+    assert 0.7 < float(q.mean()) < 1.4  # E[q] = 1 when each map's sigma is right
+
+
+def test_no_false_moved_in_a_few_seeded_same_cell_pairs():
+    _check_many(_same_cell_runs(8, 3000))
+
+
+@pytest.mark.long
+def test_no_false_moved_in_100_seeded_same_cell_pairs():
+    _check_many(_same_cell_runs(100, 4000))
+
+
+@pytest.mark.long
+def test_moved_is_recovered_over_many_seeds():
+    for s in range(20):
+        d = diff(fit(FLAT, 6000 + 2 * s), fit(moved_cell(FLAT), 6001 + 2 * s))
+        assert d.verdict is Verdict.MOVED
+        want = true_shift_about(FLAT, d.motion.centre_mm)
+        assert np.hypot(d.motion.dx_mm - want[0], d.motion.dy_mm - want[1]) < 0.05
+        assert abs(d.motion.rotation_deg - 0.1) < 0.01

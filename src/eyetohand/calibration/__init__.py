@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 from eyetohand.core import lazy_exports
 
 if TYPE_CHECKING:
+    from eyetohand.calibration.budget import ErrorBudget, error_budget
     from eyetohand.calibration.checking import Evaluation, check_warnings, evaluate_pairs, mixup
     from eyetohand.calibration.circles import (
         as_fitted,
@@ -39,6 +40,7 @@ else:
                 "projected_centres_px",
                 "recorded_diameter_mm",
             ),
+            "budget": ("ErrorBudget", "error_budget"),
             "checking": ("Evaluation", "check_warnings", "evaluate_pairs", "mixup"),
             "compare": ("compare", "format_compare"),
             "crossval": ("CrossValidation", "crossval"),
@@ -56,6 +58,7 @@ __all__ = [
     "Calibration",
     "CrossValidation",
     "Difference",
+    "ErrorBudget",
     "Evaluation",
     "FORMATS",
     "FitRequest",
@@ -77,6 +80,7 @@ __all__ = [
     "corrected_centres_px",
     "ellipse_centres_px",
     "evaluate_pairs",
+    "error_budget",
     "export_text",
     "fit_corrected",
     "format_compare",

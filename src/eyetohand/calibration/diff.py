@@ -28,7 +28,7 @@ projecting out a layer (the weighted least-squares projector ``I − P``), the m
 ``W^½ (I − P) G / √N`` as weights — computed here for these two files, nothing tuned. Each fit's
 noise was estimated on its residual dof, so Q is tested as a scaled F: Satterthwaite's ``g·χ²_h``
 over the noise estimate's ``χ²_ν/ν`` (ν by Welch–Satterthwaite from both fits' dof). At ``ALPHA`` =
-0.1 %: the raw field consistent → ``consistent``; else consistent after the rigid motion → ``moved``;
+0.01 %: the raw field consistent → ``consistent``; else consistent after the rigid motion → ``moved``;
 else after the similarity → ``scale``; else ``model error`` (the reason says whether a homography
 explains it — a perspective change — or not: lens, focus).
 """
@@ -47,8 +47,13 @@ from eyetohand.core import InputError
 from eyetohand.models import HeightRule
 from eyetohand.solve import param_jacobian
 
-ALPHA = 1e-3
-"""Significance of every layer's test: a clean pair of calibrations is called changed 1 time in 1000."""
+ALPHA = 1e-4
+"""Significance of every layer's test: a clean pair of calibrations is called changed 1 time in 10 000.
+Measured (benchmarks/bench_diff.py, docs/diff.md): the raw layer's p-value is close to uniform on
+clean pairs (6 % below 0.05, 1 % below 0.001 over 100 pairs of the default cell), so at 0.001 a
+site that re-checks 100 times sees a false alarm with probability ~10 %; at 1e-4, ~1 %. The price:
+the threshold on the mean squared ratio grows ~20–25 % (F(15, 80): 2.93 → 3.58), the smallest
+difference called ~10 % in mm."""
 GRID_SIDE = 24
 """Grid points along the longer side of the common region's bounding box."""
 MIN_POINTS = 12
@@ -500,8 +505,36 @@ def diff(a: Calibration, b: Calibration, *, grid_side: int = GRID_SIDE, alpha: f
     layers = (layer(LayerName.RAW, None), *(layer(k, v) for k, v in bases.items()))
     motion, scale_ppm = _motion(pa, pb, w, centre)
     verdict, reason = _verdict(layers, motion, scale_ppm, alpha)
+    if verdict is Verdict.CONSISTENT:
+        noisier = _noisier(a, b, alpha)
+        if noisier:
+            verdict, reason = Verdict.MODEL_ERROR, noisier
     return Difference(
         uv, np.concatenate(z_parts), pa, pb, sa, sb, n_grid, motion, scale_ppm, layers, verdict, reason, alpha
+    )
+
+
+def _noisier(a: Calibration, b: Calibration, alpha: float) -> str | None:
+    """Why one file's residual noise is significantly larger than the other's (two-sided F test on
+    their dof at ``alpha``), or None. A model that lacks a term turns what it cannot follow into
+    residual noise, and its sigma grows with it: two such maps can agree "within their uncertainty"
+    only because one of them claims a large one."""
+    from scipy import stats  # lazily: SciPy costs ~0.4 s of start-up
+
+    ua, ub = a.uncertainty, b.uncertainty
+    if ua is None or ub is None or min(ua.noise_mm, ub.noise_mm) <= 0:
+        return None
+    f = (ua.noise_mm / ub.noise_mm) ** 2
+    p = 2 * min(float(stats.f.sf(f, ua.dof, ub.dof)), float(stats.f.cdf(f, ua.dof, ub.dof)))
+    if p >= alpha:
+        return None
+    (hi, hi_u, hi_m), (lo, lo_u, lo_m) = sorted(
+        (("A", ua, a.model_name), ("B", ub, b.model_name)), key=lambda t: -t[1].noise_mm
+    )
+    return (
+        f"the maps agree only within {hi}'s wide uncertainty: {hi} ({hi_m}) leaves {hi_u.noise_mm:.3g} mm of "
+        f"residual noise per axis where {lo} ({lo_m}) leaves {lo_u.noise_mm:.3g} mm (F test p = {p:.2g}) — "
+        f"{hi}'s model lacks a term, or its pairs were noisier"
     )
 
 
