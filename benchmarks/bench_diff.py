@@ -23,7 +23,7 @@ from collections import Counter
 
 import numpy as np
 
-from eyetohand.calibration import calibrate, diff
+from eyetohand.calibration import Verdict, calibrate, crossval, diff
 from eyetohand.sim import Cell, simulate
 
 NO_LENS = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
@@ -77,6 +77,7 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=100)
     ap.add_argument("--cells", type=int, default=60)
     ap.add_argument("--moved", type=int, default=20)
+    ap.add_argument("--crossval", type=int, default=10, help="seeds of the crossval check (default 10)")
     ap.add_argument("--base", type=int, default=1000, help="first seed of the same-cell pairs (default 1000)")
     args = ap.parse_args()
     bad = 0
@@ -126,6 +127,16 @@ def main() -> int:
         print(f"  shift error max {max(errs_mm):.4f} mm, rotation error max {max(errs_deg):.5f}°")
         bad += sum(1 for e in errs_mm if e > 0.05) + sum(1 for e in errs_deg if e > 0.01)
     bad += args.moved - verdicts.get("moved", 0)
+    cv = Counter()
+    for s in range(args.crossval):
+        pairs = simulate(cell, "grid:5x5", seed=12000 + s).pairs
+        a = crossval(pairs, "affine", k=20, seed=s)
+        b = crossval(pairs, "auto", k=20, seed=s)
+        cv[f"affine {a.verdict}"] += 1
+        cv[f"auto ({b.model}) {b.verdict}"] += 1
+        bad += (a.verdict is not Verdict.MODEL_ERROR) + (b.verdict is not Verdict.CONSISTENT)
+    if args.crossval:
+        print(f"crossval, default cell (tilt 3°, lens), 25 pairs, K = 20: {args.crossval} seeds: {dict(cv)}")
     print(f"{time.perf_counter() - t0:.0f} s; {'FAIL' if bad else 'ok'}")
     return 1 if bad else 0
 

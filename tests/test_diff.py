@@ -301,3 +301,16 @@ def test_moved_is_recovered_over_many_seeds():
         want = true_shift_about(FLAT, d.motion.centre_mm)
         assert np.hypot(d.motion.dx_mm - want[0], d.motion.dy_mm - want[1]) < 0.05
         assert abs(d.motion.rotation_deg - 0.1) < 0.01
+
+
+def test_verify_failure_names_the_motion():
+    from eyetohand.calibration import verify
+
+    cal = fit(FLAT, 111)
+    fresh = simulate(moved_cell(FLAT), "grid:4x4", seed=112).pairs
+    v = verify(cal, fresh, 0.2)
+    assert not v.passed and v.cause == "drift"
+    line = v.describe()
+    assert "the camera moved 1" in line and "mm at" in line and "°" in line
+    shift = float(np.hypot(*v.drift.shift_mm))
+    assert shift == pytest.approx(1.0, abs=0.1)  # |(0.8, -0.6)| plus the turn's share at the centre
