@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from eyetohand.calibration import Verdict, calibrate, crossval, diff
+from eyetohand.calibration import Calibration, Verdict, calibrate, crossval, diff
 from eyetohand.calibration.diff import LayerName
 from eyetohand.core import InputError
 from eyetohand.sim import Cell, simulate
@@ -314,3 +314,16 @@ def test_verify_failure_names_the_motion():
     assert "the camera moved 1" in line and "mm at" in line and "°" in line
     shift = float(np.hypot(*v.drift.shift_mm))
     assert shift == pytest.approx(1.0, abs=0.1)  # |(0.8, -0.6)| plus the turn's share at the centre
+
+
+def test_plot_difference_draws_the_ratio_and_vectors(cal_files, capsys, tmp_path):
+    from eyetohand.reports import plot_difference
+
+    d = diff(Calibration.load(cal_files["a"]), Calibration.load(cal_files["moved"]))
+    ax = plot_difference(d)
+    assert ax.collections and "moved" in ax.get_title()
+    offsets = ax.collections[0].get_offsets()
+    assert len(offsets) == d.n_grid  # one cell per grid point, at A's answers
+    png = tmp_path / "d.png"
+    rc, _, _ = run(capsys, "diff", cal_files["a"], cal_files["moved"], "--plot", png)
+    assert rc == 0 and png.read_bytes()[:4] == b"\x89PNG"

@@ -3,6 +3,7 @@ model fit (docs/diff.md)."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 from eyetohand.calibration import Calibration, crossval, diff
@@ -24,6 +25,14 @@ def cmd_diff(args) -> int:
     a = _calibration(args.a, args.data)
     b = _calibration(args.b, args.data)
     d = diff(a, b)
+    if args.plot:
+        from eyetohand.core import atomic_write_bytes
+        from eyetohand.reports import plot_difference
+
+        ax = plot_difference(d, title=f"{Path(args.a).name} → {Path(args.b).name}: {d.verdict}")
+        buf = io.BytesIO()
+        ax.figure.savefig(buf, format="png")
+        atomic_write_bytes(args.plot, buf.getvalue())
     if args.json:
         emit_json(d.to_dict())
     else:
@@ -53,6 +62,7 @@ def register(sub) -> None:
     p.add_argument(
         "--data", metavar="DIR", help="a serve data folder: A and B may be stored versions (NAME@3, id:3@2)"
     )
+    p.add_argument("--plot", metavar="PNG", help="write the ratio heat map with the difference vectors")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_diff)
 
