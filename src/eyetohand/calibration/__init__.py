@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 from eyetohand.core import lazy_exports
 
 if TYPE_CHECKING:
+    from eyetohand.calibration.budget import ErrorBudget, error_budget
     from eyetohand.calibration.checking import Evaluation, check_warnings, evaluate_pairs, mixup
     from eyetohand.calibration.circles import (
         as_fitted,
@@ -18,6 +19,8 @@ if TYPE_CHECKING:
         recorded_diameter_mm,
     )
     from eyetohand.calibration.compare import compare, format_compare
+    from eyetohand.calibration.crossval import CrossValidation, crossval
+    from eyetohand.calibration.diff import Difference, Motion, Verdict, diff
     from eyetohand.calibration.export import FORMATS, export_text
     from eyetohand.calibration.file import Calibration, Mapped
     from eyetohand.calibration.fit import calibrate, calibrate_request
@@ -47,8 +50,11 @@ else:
                 "projected_centres_px",
                 "recorded_diameter_mm",
             ),
+            "budget": ("ErrorBudget", "error_budget"),
             "checking": ("Evaluation", "check_warnings", "evaluate_pairs", "mixup"),
             "compare": ("compare", "format_compare"),
+            "crossval": ("CrossValidation", "crossval"),
+            "diff": ("Difference", "Motion", "Verdict", "diff"),
             "export": ("FORMATS", "export_text"),
             "file": ("Calibration", "Mapped"),
             "fit": ("calibrate", "calibrate_request"),
@@ -72,11 +78,16 @@ __all__ = [
     "AUTO",
     "AutoModel",
     "Calibration",
+    "CrossValidation",
+    "Difference",
+    "ErrorBudget",
     "Evaluation",
     "FORMATS",
     "FitRequest",
     "MAX_IMAGE_SIDE_PX",
     "Mapped",
+    "Motion",
+    "Verdict",
     "PlateImage",
     "Touch",
     "append_history",
@@ -90,9 +101,12 @@ __all__ = [
     "check_warnings",
     "check_tolerance",
     "compare",
+    "crossval",
+    "diff",
     "corrected_centres_px",
     "ellipse_centres_px",
     "evaluate_pairs",
+    "error_budget",
     "export_text",
     "fit_corrected",
     "format_compare",

@@ -185,7 +185,11 @@ class Verification:
             return f"PASS ({tight})"
         head = f"FAIL: {n_out} point(s) beyond {tol}"
         if self.cause == "drift":
-            return f"{head}; the camera moved (see above)"
+            d = self.drift
+            return (
+                f"{head}; the camera moved {float(np.hypot(*d.shift_mm)):.3g} mm at {d.rotation_deg:+.3g}° "
+                f"(scale {100 * d.scale_change:+.3g} %; see above)"
+            )
         if self.cause == "calibration error":
             return (
                 f"{head}, all within the calibration's own predicted error "

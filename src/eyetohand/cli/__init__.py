@@ -33,6 +33,7 @@ COMMAND_MODULES = (
     "eyetohand.cli.conveyor",
     "eyetohand.cli.export",
     "eyetohand.cli.verify",
+    "eyetohand.cli.diff",
 )
 
 
@@ -55,6 +56,8 @@ _COMMANDS = {
     "conveyor": "eyetohand.cli.conveyor",
     "export": "eyetohand.cli.export",
     "verify": "eyetohand.cli.verify",
+    "diff": "eyetohand.cli.diff",
+    "crossval": "eyetohand.cli.diff",
 }
 
 

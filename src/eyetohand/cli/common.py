@@ -128,6 +128,11 @@ def print_calibration(cal: Calibration, output: str | None) -> None:
     if cal.check:
         print(stats_line("check", cal.check))
         print_points(cal.check)
+    from eyetohand.calibration import error_budget  # lazily, as the fit's modules (see above)
+
+    budget = error_budget(cal)
+    if budget is not None:
+        print(budget.describe())
     for line in outlier_lines(cal):
         print(line)
     if output:

@@ -8,6 +8,7 @@ from eyetohand.core import lazy_exports
 
 if TYPE_CHECKING:
     from eyetohand.reports.demo import run_demo, write_demo_report
+    from eyetohand.reports.diff_plot import plot_difference
     from eyetohand.reports.plots import plot_drift, plot_plan_study
     from eyetohand.reports.report import grown_hull, load_history, trust_map, write_report
 else:
@@ -18,6 +19,7 @@ else:
                 "run_demo",
                 "write_demo_report",
             ),
+            "diff_plot": ("plot_difference",),
             "plots": (
                 "plot_drift",
                 "plot_plan_study",
@@ -34,6 +36,7 @@ else:
 
 __all__ = [
     "grown_hull",
+    "plot_difference",
     "plot_drift",
     "plot_plan_study",
     "load_history",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from eyetohand.server.cli import check_options, serve
 from eyetohand.server.storage import default_data_dir
+from eyetohand.server.versions import stored_calibration
 
 
 def create_app(*args, **kwargs):
@@ -17,4 +18,4 @@ def create_app(*args, **kwargs):
     return _create_app(*args, **kwargs)
 
 
-__all__ = ["check_options", "create_app", "default_data_dir", "serve"]
+__all__ = ["check_options", "create_app", "default_data_dir", "serve", "stored_calibration"]
