@@ -32,6 +32,7 @@ COMMAND_MODULES = (
     "eyetohand.cli.conveyor",
     "eyetohand.cli.export",
     "eyetohand.cli.verify",
+    "eyetohand.cli.store",
 )
 
 
@@ -53,6 +54,8 @@ _COMMANDS = {
     "conveyor": "eyetohand.cli.conveyor",
     "export": "eyetohand.cli.export",
     "verify": "eyetohand.cli.verify",
+    "audit": "eyetohand.cli.store",
+    "store": "eyetohand.cli.store",
 }
 
 

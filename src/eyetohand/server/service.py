@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from eyetohand.calibration import Calibration
@@ -39,7 +40,7 @@ class Service:
         store: Store,
         jobs: Jobs,
         limits: Limits,
-        token: str | None,
+        token: str | Mapping[str, str] | None,
         *,
         sign_key: bytes | None = None,
         require_signed: bool = False,
