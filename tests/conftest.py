@@ -8,7 +8,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from helpers import PAPER  # noqa: E402  (the tests' shared paths; tests import PAPER from here too)
-from pg import pg_cluster, pg_url  # noqa: E402, F401  (a throwaway PostgreSQL server: tests/pg.py)
+from pg import pg_cluster, pg_url, store_url  # noqa: E402, F401  (a throwaway PostgreSQL server: tests/pg.py)
 
 # Debian's Chromium for the browser tests (make test installs it), with the flags this closed network needs
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"

@@ -126,3 +126,11 @@ def pg_url(pg_cluster):
     url = pg_cluster.new_database()
     yield url
     pg_cluster.drop_database(url)
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store_url(request, tmp_path):
+    """A reference to an empty store of each kind: a SQLite file, a fresh PostgreSQL database."""
+    if request.param == "sqlite":
+        return f"sqlite:{tmp_path / 'cells.db'}"
+    return request.getfixturevalue("pg_url")

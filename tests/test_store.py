@@ -13,15 +13,11 @@ from eyetohand.server.audit import AuditQuery, acting_as
 from eyetohand.server.storage import Conflict, NameTaken, NotFound, SchemaTooNew, StorageError, Store
 from eyetohand.server.stores import StoreRef, StoreRefError, copy_store, open_store, store_digest
 
-BACKENDS = ["sqlite", "postgresql"]
 
-
-@pytest.fixture(params=BACKENDS)
-def ref(request, tmp_path):
-    """A reference to an empty store of each kind."""
-    if request.param == "sqlite":
-        return f"sqlite:{tmp_path / 'cells.db'}"
-    return request.getfixturevalue("pg_url")
+@pytest.fixture
+def ref(store_url):
+    """An empty store of each kind (tests/pg.py: a SQLite file, a fresh PostgreSQL database)."""
+    return store_url
 
 
 @pytest.fixture

@@ -1,0 +1,171 @@
+"""The shared store through every interface: the HTTP API with named tokens (who changed what, in
+GET /api/audit), the command line (eyetohand audit, eyetohand store copy), and a real `serve --store
+postgresql://…` process whose robot lines follow a version written by another process."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+from helpers import PAPER, ServeProcess, records
+
+from eyetohand.cli import main
+from eyetohand.server import create_app, open_store, store_digest
+from eyetohand.server.audit import acting_as
+
+TOKENS = {"alice": "alice-token-1", "bob": "bob-token-22"}
+
+
+def auth(user: str) -> dict:
+    return {"Authorization": f"Bearer {TOKENS[user]}"}
+
+
+@pytest.fixture(scope="module")
+def cal_files(paper_pairs):
+    """Two calibration files of the paper's cell (the second one's pairs shifted 5 mm in x)."""
+    from eyetohand import calibrate
+    from eyetohand.core import PointPairs
+
+    pairs, _ = paper_pairs
+    shifted = PointPairs(pairs.uv_px, pairs.xyz_mm + [5.0, 0.0, 0.0], pairs.ids)
+    return [calibrate(p, model="homography", optimizer="lm", loo=False) for p in (pairs, shifted)]
+
+
+def test_http_changes_are_audited_under_the_tokens_names(store_url, cal_files):
+    app = create_app(store_url, token=TOKENS)
+    with TestClient(app) as c:
+        r = c.post(
+            "/api/calibrations/import",
+            json={"name": "cell 1", "calibration": cal_files[0].to_dict()},
+            headers=auth("alice"),
+        )
+        assert r.status_code == 201, r.text
+        cid = r.json()["id"]
+        body = {"name": "cell 1", "calibration": cal_files[1].to_dict(), "note": "moved the camera"}
+        assert c.post("/api/calibrations/import", json=body, headers=auth("bob")).status_code == 200
+        r = c.post(f"/api/calibrations/{cid}/rollback", json={"version": 1}, headers=auth("alice"))
+        assert r.status_code == 200 and r.json()["version"] == 3
+        check = {"pairs": records(PAPER / "calibration_points.csv")[::2], "tolerance_mm": 1.0}
+        assert c.post(f"/api/calibrations/{cid}/verify", json=check, headers=auth("bob")).status_code == 200
+        r = c.patch(f"/api/calibrations/{cid}", json={"name": "cell 1 left"}, headers=auth("bob"))
+        assert r.status_code == 200
+
+        assert c.get("/api/audit").status_code == 401
+        got = c.get("/api/audit", headers=auth("alice")).json()
+        rows = [(e["user"], e["action"], e["version_before"], e["version_after"]) for e in got["entries"]]
+        assert rows == [
+            ("bob", "rename", 3, 3),
+            ("bob", "check", 3, 3),
+            ("alice", "rollback", 2, 3),
+            ("bob", "import", 1, 2),
+            ("alice", "import", None, 1),
+        ]
+        assert got["next_before"] is None
+        assert got["entries"][3]["note"] == "moved the camera"
+        assert got["entries"][1]["note"].startswith("passed on ")
+
+        by_bob = c.get("/api/audit", params={"user": "bob"}, headers=auth("bob")).json()["entries"]
+        assert {e["user"] for e in by_bob} == {"bob"} and len(by_bob) == 3
+        # by its name now, or its id; paged newest first
+        for ref in ("cell 1 left", str(cid), f"id:{cid}"):
+            page = c.get("/api/audit", params={"calibration": ref, "limit": 2}, headers=auth("bob")).json()
+            assert [e["action"] for e in page["entries"]] == ["rename", "check"]
+            nxt = page["next_before"]
+            rest = c.get("/api/audit", params={"calibration": ref, "before": nxt}, headers=auth("bob")).json()
+            assert [e["action"] for e in rest["entries"]] == ["rollback", "import", "import"]
+        r = c.get("/api/audit", params={"since": "yesterday"}, headers=auth("bob"))
+        assert r.status_code == 422 and r.json()["field"] == "since"
+        assert "ISO 8601" in r.json()["error"]
+        r = c.get("/api/audit", params={"limit": 0}, headers=auth("bob"))
+        assert r.status_code == 422
+        future = c.get("/api/audit", params={"since": "2999-01-01"}, headers=auth("bob")).json()
+        assert future == {"entries": [], "next_before": None}
+    app.state.store.close()
+
+
+def test_cli_audit_and_store_copy_both_ways(tmp_path, pg_url, capsys):
+    src_url = f"sqlite:{tmp_path / 'cell.db'}"
+    s = open_store(src_url, create=True)
+    with acting_as("dana"):
+        a = s.create("press 4", {"source": "fit"}, {"k": 1}, [], None, note="first fit")
+        s.add_version(a.id, {"source": "fit"}, {"k": 2}, [], None, "refit after crash")
+    digest = store_digest(s)
+    s.close()
+
+    assert main(["audit", "--store", src_url, "--json"]) == 0
+    entries = json.loads(capsys.readouterr().out)["entries"]
+    assert [(e["user"], e["action"], e["note"]) for e in entries] == [
+        ("dana", "new_version", "refit after crash"),
+        ("dana", "create", "first fit"),
+    ]
+    assert main(["audit", "--data", str(tmp_path / "nothing-here")]) == 2
+    assert "no " in capsys.readouterr().err
+    assert main(["audit", "--store", src_url, "--since", "last tuesday"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: --since: expected an ISO 8601 time"), err
+
+    assert main(["store", "copy", src_url, pg_url]) == 0
+    assert "copied 1 calibrations, 2 versions, 0 verifications and 2 audit entries" in capsys.readouterr().out
+    back_url = f"sqlite:{tmp_path / 'back.db'}"
+    assert main(["store", "copy", pg_url, back_url]) == 0
+    capsys.readouterr()
+    for url in (pg_url, back_url):
+        t = open_store(url)
+        assert store_digest(t) == digest
+        t.close()
+    assert main(["audit", "--store", pg_url, "--calibration", "press 4", "--user", "dana"]) == 0
+    table = capsys.readouterr().out
+    assert "refit after crash" in table and "1>2" in table
+    # a second copy into a store that is no longer empty is refused, and changes nothing
+    assert main(["store", "copy", src_url, pg_url]) == 2
+    assert "not empty" in capsys.readouterr().err
+
+
+def _ask(port: int, line: str) -> str:
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        s.sendall(line.encode() + b"\n")
+        return s.makefile().readline().strip()
+
+
+def test_serve_on_postgresql_follows_a_version_written_elsewhere(tmp_path, pg_url, cal_files):
+    """`serve --store postgresql://…` maps robot lines with the stored calibration; a new version
+    written by another process (here: this test's own connection) is answered within 2 s."""
+    store = open_store(pg_url)
+    cal0, cal1 = cal_files
+    rec = store.create("cell", {"source": "import"}, cal0.to_dict(), [], None)
+    tf = tmp_path / "tokens"
+    tf.write_text("# the cell's users\noffice:office-token-1\nrobot:robot-token-22\n")
+    srv = ServeProcess(tmp_path / "data", "--store", pg_url, "--calibration", "cell", "--token-file", str(tf))
+    try:
+        first = _ask(srv.tcp_port, "AUTH office-token-1")
+        assert first == "OK", first
+        with socket.create_connection(("127.0.0.1", srv.tcp_port), timeout=5) as s:
+            f = s.makefile("rw")
+            f.write("AUTH office-token-1\n554.166,1283.44\n")
+            f.flush()
+            assert f.readline().strip() == "OK"
+            before = f.readline().strip()
+            with acting_as("office"):
+                store.add_version(rec.id, {"source": "import"}, cal1.to_dict(), [], None, "office write")
+            t0 = time.monotonic()
+            while True:
+                f.write("554.166,1283.44\n")
+                f.flush()
+                now = f.readline().strip()
+                if now != before:
+                    break
+                assert time.monotonic() - t0 < 2.0, f"still {now!r} 2 s after the write"
+                time.sleep(0.02)
+        x0, x1 = (float(reply.split()[-1].split(",")[0]) for reply in (before, now))  # [OK ]x,y,z
+        assert x1 - x0 == pytest.approx(5.0, abs=0.05)
+        import httpx
+
+        h = {"Authorization": "Bearer robot-token-22"}
+        entries = httpx.get(srv.url + "/api/audit", headers=h).json()["entries"]
+        assert [(e["user"], e["action"]) for e in entries] == [("office", "import"), ("local", "import")]
+    finally:
+        srv.stop()
+        store.close()
