@@ -169,3 +169,75 @@ def test_serve_on_postgresql_follows_a_version_written_elsewhere(tmp_path, pg_ur
     finally:
         srv.stop()
         store.close()
+
+
+def _map(c: TestClient, cid: int) -> tuple[int, float | None]:
+    r = c.post(f"/api/calibrations/{cid}/image-to-robot", json={"points": [[554.166, 1283.44]]})
+    body = r.json()
+    return r.status_code, (body["points"][0][0] if r.status_code == 200 else None)
+
+
+def _until(what, timeout_s: float, step_s: float = 0.05):
+    """``what()``'s first truthy answer within ``timeout_s`` (else the last answer, falsy)."""
+    t0 = time.monotonic()
+    while True:
+        got = what()
+        if got or time.monotonic() - t0 > timeout_s:
+            return got
+        time.sleep(step_s)
+
+
+def test_two_servers_on_one_store_follow_each_others_changes(store_url, cal_files):
+    """Server B answers with the version server A wrote within 2 s (its cache follows the trail)."""
+    a_app, b_app = create_app(store_url), create_app(store_url)
+    with TestClient(a_app) as a, TestClient(b_app) as b:
+        cid = a.post(
+            "/api/calibrations/import", json={"name": "cell", "calibration": cal_files[0].to_dict()}
+        ).json()["id"]
+        status, x0 = _map(b, cid)
+        assert status == 200
+        assert (
+            a.post(
+                "/api/calibrations/import", json={"name": "cell", "calibration": cal_files[1].to_dict()}
+            ).status_code
+            == 200
+        )
+        t0 = time.monotonic()
+        assert _until(lambda: _map(b, cid)[1] != x0, 2.0), "B still maps with version 1 after 2 s"
+        assert time.monotonic() - t0 < 2.0
+        assert _map(b, cid)[1] - x0 == pytest.approx(5.0, abs=0.05)
+        assert b.get("/api/health").json()["store"]["reachable"] is True
+
+
+def test_an_unreachable_database_keeps_the_version_in_force_and_refuses_changes(
+    pg_cluster, pg_url, cal_files
+):
+    app = create_app(pg_url, db_wait_s=1.0)
+    with TestClient(app) as c:
+        cid = c.post(
+            "/api/calibrations/import", json={"name": "cell", "calibration": cal_files[0].to_dict()}
+        ).json()["id"]
+        status, x0 = _map(c, cid)
+        pg_cluster.stop()
+        try:
+            health = _until(lambda: c.get("/api/health").json()["status"] == "degraded", 3.0)
+            assert health, c.get("/api/health").json()
+            h = c.get("/api/health").json()["store"]
+            assert h["reachable"] is False and "unreachable" in h["reason"] and h["since_utc"]
+            assert _map(c, cid) == (200, x0)  # the robot is still answered, with the version in force
+            r = c.post(
+                "/api/calibrations/import", json={"name": "cell", "calibration": cal_files[1].to_dict()}
+            )
+            assert (
+                r.status_code == 503
+                and "unreachable" in r.json()["error"]
+                and "nothing was changed" in r.json()["error"]
+            )
+        finally:
+            pg_cluster.start()
+        assert _until(lambda: c.get("/api/health").json()["status"] == "ok", 5.0)
+        r = c.post("/api/calibrations/import", json={"name": "cell", "calibration": cal_files[1].to_dict()})
+        assert r.status_code == 200 and r.json()["version"] == 2
+        assert _until(lambda: _map(c, cid)[1] != x0, 2.0)
+        entries = c.get("/api/audit").json()["entries"]
+        assert [(e["action"], e["version_after"]) for e in entries] == [("import", 2), ("import", 1)]

@@ -95,7 +95,10 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(_app):
+        service.start_following()  # changes made by other processes reach the cache (server/follow.py)
         yield
+        if service.follower is not None:
+            service.follower.stop()
         service.jobs.shutdown()
 
     app = FastAPI(

@@ -268,11 +268,17 @@ def calibration_path(ref: str):
     return None
 
 
-def store_save_fn(store, on_saved=None):
+def store_save_fn(store, on_saved=None, user: str = "robot"):
     """``save_fn(name, cal)`` for the Collector: a new version of calibration ``name`` in the
-    server's database (a new calibration when the name is new); ``on_saved(record, cal)`` after."""
+    server's database (a new calibration when the name is new), audited as ``cal_end`` by ``user``
+    (the TCP token's name); ``on_saved(record, cal)`` after."""
+    from eyetohand.server.audit import acting_as
 
     def save(name: str, cal) -> None:
+        with acting_as(user):
+            _save(name, cal)
+
+    def _save(name: str, cal) -> None:
         request = {"source": "collection", "collection": name, "model": cal.model_name, "seed": 0}
         pairs = cal.pairs.to_records() if cal.pairs is not None else []
         check = cal.check_pairs.to_records() if cal.check_pairs is not None else None
@@ -289,6 +295,13 @@ def store_save_fn(store, on_saved=None):
             on_saved(rec, cal)
 
     return save
+
+
+def tcp_user(args) -> str:
+    """Who the audit trail names for a change made over TCP (CAL END): the name of the token TCP
+    accepts (the token file's first), else ``robot``."""
+    tokens = getattr(args, "tokens", None)
+    return next(iter(tokens)) if tokens else "robot"
 
 
 def store_load_fn(store):
@@ -398,7 +411,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                 collector = Collector(
                     collect_dir,
                     source,
-                    save_fn=store_save_fn(store, on_saved),
+                    save_fn=store_save_fn(store, on_saved, tcp_user(args)),
                     load_fn=store_load_fn(store),
                     calibration=args.calibration,
                     reply_format=args.reply_format,

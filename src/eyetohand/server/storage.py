@@ -415,6 +415,16 @@ class Store:
             (_now(), audit.current_user(), action, rec.id, rec.name, before, after, note),
         )
 
+    def changed_since(self, after: int | None) -> tuple[int, builtins.list[int]]:
+        """(the last audit entry's id, the calibrations changed after entry ``after``; None: none,
+        only the id). Writes are serialised, so ids become visible in order: nothing is skipped."""
+        if after is None:
+            return int(self._read("SELECT COALESCE(MAX(id), 0) FROM audit")[0][0]), []
+        rows = self._read("SELECT id, calibration_id FROM audit WHERE id > ? ORDER BY id", (after,))
+        if not rows:
+            return after, []
+        return int(rows[-1][0]), list(dict.fromkeys(int(c) for _, c in rows if c is not None))
+
     def audit(self, query: AuditQuery | None = None) -> builtins.list[AuditEntry]:
         """Audit entries, newest first (see :class:`~eyetohand.server.audit.AuditQuery`)."""
         q = query or AuditQuery()
