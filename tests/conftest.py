@@ -99,7 +99,13 @@ NUMERIC_FILES = {
 # Files whose tests assert latency or deadlines (p99 of a robot's lines under faults, slow-client
 # deadlines, a render's time): `make test` runs them on their own after the parallel run (`-m serial`),
 # so a test's timing never measures the other worker's load.
-SERIAL_FILES = {"test_faults.py", "test_truth_tcp.py", "test_truth_http.py", "test_render.py"}
+SERIAL_FILES = {
+    "test_faults.py",
+    "test_truth_tcp.py",
+    "test_truth_http.py",
+    "test_render.py",
+    "test_store_faults.py",
+}
 
 
 def pytest_collection_modifyitems(items):

@@ -69,7 +69,9 @@ class Cluster:
         """Start the server (on a new free port the first time, on the same port after a stop)."""
         for attempt in range(3):
             port = self.port or free_port()
-            opts = f"-p {port} -k {self.root} -c listen_addresses=127.0.0.1 -c fsync=off"
+            opts = (
+                f"-p {port} -k {self.root} -c listen_addresses=127.0.0.1 -c fsync=off -c max_connections=400"
+            )
             try:
                 self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-o", opts, "-w", "start")
             except RuntimeError:

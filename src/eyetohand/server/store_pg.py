@@ -15,6 +15,7 @@ reads what changed from the tables).
 
 from __future__ import annotations
 
+import queue
 import threading
 import urllib.parse
 from collections.abc import Iterator
@@ -27,6 +28,8 @@ from eyetohand.server.storage import WAIT_S, Busy, NoSpace, Record, StorageError
 LOCK_KEY = 0x6579_6574  # "eyet": the advisory lock every write takes
 CHANNEL = "eyetohand"
 CONNECT_TIMEOUT_S = 5
+POOL_SIZE = 4
+"""The most connections one store holds (a plant's cells share the server's ``max_connections``)."""
 
 
 def masked(url: str) -> str:
@@ -50,8 +53,10 @@ class _Conn:
 
 
 class PgStore(Store):
-    """The store on a PostgreSQL database: one connection per thread (opened on first use, opened
-    again after a failure), autocommit outside the write transactions."""
+    """The store on a PostgreSQL database through a small pool: at most :data:`POOL_SIZE`
+    connections, each lent to one thread for one read or one transaction (autocommit outside the
+    write transactions); a connection that failed is dropped and the next call opens a new one. A call
+    that finds every connection lent waits at most ``wait_s``, then :class:`Busy`."""
 
     dialect = "postgresql"
 
@@ -68,9 +73,8 @@ class PgStore(Store):
         self.where = masked(url)
         self.path = Path(self.where)  # only named in messages; there is no file to check
         self.wait_s = float(wait_s)
-        self._local = threading.local()
-        self._all: list[Any] = []
-        self._all_lock = threading.Lock()
+        self._idle: queue.LifoQueue[Any] = queue.LifoQueue()
+        self._slots = threading.BoundedSemaphore(POOL_SIZE)
         self._closed = False
         self._migrate()
 
@@ -81,47 +85,57 @@ class PgStore(Store):
     def _errors(self):
         return _translated(self.where, self._psycopg)
 
-    def _conn(self):
-        conn = getattr(self._local, "conn", None)
-        if conn is not None and (conn.closed or conn.broken):
-            conn = None
-        if conn is None:
-            if self._closed:
-                raise StorageError(f"the store of {self.where} is closed")
-            with self._errors():
-                conn = self._psycopg.connect(self.url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S)
-                conn.execute(f"SET lock_timeout = {int(self.wait_s * 1000)}")
-            self._local.conn = conn
-            with self._all_lock:
-                self._all.append(conn)
-        return conn
+    @contextmanager
+    def _borrow(self) -> Iterator[Any]:
+        """A connection of the pool for the time of the block (an idle one, else a new one)."""
+        if self._closed:
+            raise StorageError(f"the store of {self.where} is closed")
+        if not self._slots.acquire(timeout=self.wait_s):
+            raise Busy(
+                f"all {POOL_SIZE} connections to the database {self.where} are busy; try again shortly"
+            )
+        conn = None
+        try:
+            while conn is None and not self._idle.empty():
+                conn = self._idle.get_nowait()
+                if conn.closed or conn.broken:
+                    conn = None
+            if conn is None:
+                with self._errors():
+                    conn = self._psycopg.connect(self.url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S)
+                    conn.execute(f"SET lock_timeout = {int(self.wait_s * 1000)}")
+            yield conn
+        finally:
+            if conn is not None:
+                if self._closed or conn.closed or conn.broken:
+                    conn.close()
+                else:
+                    self._idle.put(conn)
+            self._slots.release()
 
     @contextmanager
     def _tx(self) -> Iterator[Any]:
         """One transaction that holds the store's advisory lock: committed or rolled back whole."""
-        conn = self._conn()
-        with self._errors(), conn.transaction():
+        with self._borrow() as conn, self._errors(), conn.transaction():
             conn.execute("SELECT pg_advisory_xact_lock(%s)", (LOCK_KEY,))
             yield _Conn(conn)
 
     def _read(self, sql: str, args: tuple = ()) -> list:
-        with self._errors():
-            return _Conn(self._conn()).execute(sql, args).fetchall()
+        with self._borrow() as conn, self._errors():
+            return _Conn(conn).execute(sql, args).fetchall()
 
     def _audit(self, db, action: str, rec: Record, before: int | None, after: int | None, note: str) -> None:
         super()._audit(db, action, rec, before, after, note)
         db.execute("SELECT pg_notify(?, ?)", (CHANNEL, str(rec.id)))
 
     def close(self) -> None:
+        """Close the idle connections; those lent out close when they come back."""
         self._closed = True
-        with self._all_lock:
-            conns, self._all = self._all, []
-        for conn in conns:
+        while not self._idle.empty():
             try:
-                conn.close()
-            except self._psycopg.Error:
+                self._idle.get_nowait().close()
+            except (queue.Empty, self._psycopg.Error):
                 pass
-        self._local = threading.local()
 
     def integrity_check(self) -> str:
         """``ok``, or what is inconsistent: a calibration whose current version is not stored."""
