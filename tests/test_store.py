@@ -207,7 +207,7 @@ def test_a_database_of_the_first_schema_is_migrated_keeping_its_rows(ref, store)
         import psycopg
 
         conn = psycopg.connect(ref, autocommit=True)
-        for t in ("audit", "schema_version", "verifications", "versions", "calibrations"):
+        for t in ("cells", "audit", "schema_version", "verifications", "versions", "calibrations"):
             conn.execute(f"DROP TABLE {t}")
         conn.execute("DROP FUNCTION eyetohand_refuse")
 

@@ -166,6 +166,12 @@ def test_serve_on_postgresql_follows_a_version_written_elsewhere(tmp_path, pg_ur
         h = {"Authorization": "Bearer robot-token-22"}
         entries = httpx.get(srv.url + "/api/audit", headers=h).json()["entries"]
         assert [(e["user"], e["action"]) for e in entries] == [("office", "import"), ("local", "import")]
+
+        def following() -> list:  # the plant view: this serve beats with the version it answers with
+            (row,) = httpx.get(srv.url + "/api/plant", headers=h).json()["calibrations"]
+            return [(c["version"], c["alive"]) for c in row["cells"]]
+
+        assert _until(lambda: following() == [(2, True)], 7.0), following()
     finally:
         srv.stop()
         store.close()
@@ -241,3 +247,55 @@ def test_an_unreachable_database_keeps_the_version_in_force_and_refuses_changes(
         assert _until(lambda: _map(c, cid)[1] != x0, 2.0)
         entries = c.get("/api/audit").json()["entries"]
         assert [(e["action"], e["version_after"]) for e in entries] == [("import", 2), ("import", 1)]
+
+
+def test_plant_view_lists_calibrations_checks_and_following_cells(store_url, cal_files):
+    from eyetohand.server.plant import CellBeat, beat
+
+    app = create_app(store_url)
+    with TestClient(app) as c:
+        cid = c.post(
+            "/api/calibrations/import", json={"name": "press 4", "calibration": cal_files[0].to_dict()}
+        ).json()["id"]
+        c.post("/api/calibrations/import", json={"name": "press 4", "calibration": cal_files[1].to_dict()})
+        check = {"pairs": records(PAPER / "calibration_points.csv")[::2], "tolerance_mm": 1.0}
+        assert c.post(f"/api/calibrations/{cid}/verify?version=1", json=check).status_code == 200
+        store = app.state.store
+        beat(
+            store,
+            CellBeat.of_this_process("http://10.0.0.7:8765", cid, "press 4", 1, "2026-12-04T05:00:00+00:00"),
+        )
+        beat(
+            store, CellBeat("old-pc http://10.0.0.9:8765", 1, "http://10.0.0.9:8765", cid, "press 4", 2, "t")
+        )
+        beat(
+            store,
+            CellBeat("pc3 http://10.0.0.8:8765", 2, "http://10.0.0.8:8765", None, "/srv/cal.json", None, "t"),
+        )
+        with store._tx() as db:  # the old PC last beat a minute ago
+            db.execute(
+                "UPDATE cells SET seen_utc = ? WHERE cell = ?",
+                ("2026-01-01T00:00:00.000+00:00", "old-pc http://10.0.0.9:8765"),
+            )
+        view = c.get("/api/plant").json()
+        (row,) = view["calibrations"]
+        assert (row["name"], row["current_version"]) == ("press 4", 2)
+        assert row["last_check"]["version"] == 1 and row["last_check"]["passed"] is True
+        assert [(x["url"], x["version"], x["alive"]) for x in row["cells"]] == [
+            ("http://10.0.0.9:8765", 2, False),
+            ("http://10.0.0.7:8765", 1, True),
+        ]
+        assert [(x["calibration"], x["alive"]) for x in view["other_cells"]] == [("/srv/cal.json", True)]
+        # activation from the office: rollback with the ETag the view showed; a stale one is refused
+        r = c.post(
+            f"/api/calibrations/{cid}/rollback", json={"version": 1}, headers={"If-Match": row["etag"]}
+        )
+        assert r.status_code == 200 and r.json()["version"] == 3
+        r = c.post(
+            f"/api/calibrations/{cid}/rollback", json={"version": 2}, headers={"If-Match": row["etag"]}
+        )
+        assert r.status_code == 412
+        assert c.get("/api/plant").json()["calibrations"][0]["current_version"] == 3
+        page = c.get("/plant")
+        assert page.status_code == 200 and "/static/plant.js" in page.text
+        assert c.get("/static/plant.js").status_code == 200

@@ -13,7 +13,7 @@ fit and other bodies up to :data:`MAX_FIT_BODY_BYTES`; beyond either the answer 
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -22,8 +22,20 @@ from fastapi import FastAPI
 from eyetohand._version import __version__
 from eyetohand.server.core import Jobs
 from eyetohand.server.middleware import BodyLimit, DatabaseGuard, HostGuard, SameOrigin, TokenGuard
+from eyetohand.server.plant import CellBeat, beat
 from eyetohand.server.responses import install_handlers
-from eyetohand.server.routes import audit, calibrations, collect, images, jobs, mapping, meta, page, pairs
+from eyetohand.server.routes import (
+    audit,
+    calibrations,
+    collect,
+    images,
+    jobs,
+    mapping,
+    meta,
+    page,
+    pairs,
+    plant,
+)
 from eyetohand.server.routes.meta import PAPER_PRESET
 from eyetohand.server.schemas import (
     MAX_BODY_BYTES,
@@ -67,6 +79,7 @@ def create_app(
     create_db: bool = True,
     sign_key: bytes | None = None,
     require_signed: bool = False,
+    heartbeat: Callable[[], CellBeat] | None = None,
 ) -> FastAPI:
     """The app over the database in ``data_dir`` (or the store a ``sqlite:PATH`` or
     ``postgresql://…`` reference names: docs/store.md). ``token``: required on /api/ when set; a
@@ -77,7 +90,8 @@ def create_app(
     when ``data_dir`` has none (``serve`` passes True only at a first start); once open, a database
     deleted or replaced under the app answers 503 and is never recreated. ``sign_key``: checks
     signed calibration files on import and signs exports; ``require_signed``: imports must be signed
-    with it."""
+    with it. ``heartbeat``: what this server is and follows, registered in the store every few
+    seconds (``serve`` passes it; the plant view lists it)."""
     limits = Limits(
         max_body_bytes=max_body_bytes,
         max_fit_body_bytes=min(max_fit_body_bytes, max_body_bytes),
@@ -95,7 +109,8 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(_app):
-        service.start_following()  # changes made by other processes reach the cache (server/follow.py)
+        # changes made by other processes reach the cache (server/follow.py); the cell beats (plant.py)
+        service.start_following(None if heartbeat is None else lambda: beat(service.store, heartbeat()))
         yield
         if service.follower is not None:
             service.follower.stop()
@@ -123,7 +138,7 @@ def create_app(
     install_handlers(app)
     # mapping first: a request is matched against the routes in order, and the robot's mapping calls
     # are the hot path (no other route matches their paths; tested)
-    for r in (mapping, page, meta, pairs, calibrations, jobs, collect, images, audit):
+    for r in (mapping, page, meta, pairs, calibrations, jobs, collect, images, audit, plant):
         app.include_router(r.router)
     page.mount_static(app)
 

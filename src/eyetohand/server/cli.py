@@ -468,7 +468,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         )
         loops.append(plc_loop)
 
-    app = _make_app(args, ref, fresh_db, http_sock)
+    app = _make_app(args, ref, fresh_db, http_sock, lambda: line_server.source if line_server else served)
     if collector is not None:
         from eyetohand.server.routes.collect import CameraView
 
@@ -562,9 +562,30 @@ def sim_note(commands: dict) -> str:
 # ---- end of the LOCATE block
 
 
-def _make_app(args, ref, fresh_db: bool, http_sock):
-    """The workbench's app on the store ``ref``; a store that cannot be opened is one
-    :class:`ServeError` line (exit 2)."""
+def cell_heartbeat(args, http_sock, source_fn):
+    """The plant view's heartbeat of this serve (:class:`~eyetohand.server.plant.CellBeat`): its
+    HTTP address and what its robots are answered with now (``source_fn()``: the served calibration)."""
+    import datetime as dt
+
+    from eyetohand.server.plant import CellBeat
+    from eyetohand.server.tcp import FixedCalibration, StoredCalibration
+
+    started = dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
+    url = f"http://{args.host}:{http_sock.getsockname()[1]}"
+
+    def beat() -> CellBeat:
+        src = source_fn()
+        if isinstance(src, StoredCalibration):
+            return CellBeat.of_this_process(url, src.cal_id, src.name, src.version, started)
+        label = src.label if isinstance(src, FixedCalibration) else ""
+        return CellBeat.of_this_process(url, None, label, None, started)
+
+    return beat
+
+
+def _make_app(args, ref, fresh_db: bool, http_sock, source_fn):
+    """The workbench's app on the store ``ref`` (beating as :func:`cell_heartbeat`); a store that
+    cannot be opened is one :class:`ServeError` line (exit 2)."""
     from eyetohand.server.app import create_app
     from eyetohand.server.storage import StorageError
     from eyetohand.server.stores import StoreRefError
@@ -578,6 +599,7 @@ def _make_app(args, ref, fresh_db: bool, http_sock):
             create_db=fresh_db,
             sign_key=getattr(args, "sign_key_bytes", None),
             require_signed=bool(getattr(args, "require_signed", False)),
+            heartbeat=cell_heartbeat(args, http_sock, source_fn),
         )
     except (StorageError, StoreRefError) as exc:  # unreachable, a newer schema: one line (exit 2)
         http_sock.close()

@@ -17,6 +17,7 @@ from __future__ import annotations
 import datetime as _dt
 import logging
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -53,10 +54,21 @@ class Follower:
     another writer changed (this process's own writes come through it too: harmless, the cache
     compares versions). Start with :meth:`start`, end with :meth:`stop`."""
 
-    def __init__(self, store: Store, on_change: Callable[[int], None], poll_s: float = POLL_S):
+    def __init__(
+        self,
+        store: Store,
+        on_change: Callable[[int], None],
+        poll_s: float = POLL_S,
+        beat: Callable[[], None] | None = None,
+        beat_s: float = 5.0,
+    ):
+        """``beat``: called every ``beat_s`` from the polling thread (a serve's heartbeat in the
+        store: :mod:`~eyetohand.server.plant`); its failures wait for the next one."""
         self.store = store
         self.on_change = on_change
         self.poll_s = poll_s
+        self.beat, self.beat_s = beat, beat_s
+        self._next_beat = 0.0
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -107,6 +119,12 @@ class Follower:
     def _run(self) -> None:
         while not self._stop.is_set():
             self.poll()
+            if self.beat is not None and time.monotonic() >= self._next_beat and self.state.reachable:
+                self._next_beat = time.monotonic() + self.beat_s
+                try:
+                    self.beat()
+                except StorageError:
+                    pass  # the poll says when the store cannot be written
             self._wake.wait(self.poll_s)
             self._wake.clear()
 

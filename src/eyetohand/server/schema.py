@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-LATEST = 2
+LATEST = 3
 """The schema version this program reads and writes."""
 
 # (the SQL each step runs, per dialect); step N takes a database from version N-1 to N
@@ -63,6 +63,17 @@ _SQLITE: dict[int, tuple[str, ...]] = {
             BEGIN SELECT RAISE(ABORT, 'the audit trail is append-only'); END""",
         """CREATE TRIGGER audit_append_only_delete BEFORE DELETE ON audit
             BEGIN SELECT RAISE(ABORT, 'the audit trail is append-only'); END""",
+    ),
+    3: (
+        """CREATE TABLE cells (
+            cell TEXT PRIMARY KEY,
+            pid INTEGER NOT NULL,
+            url TEXT NOT NULL,
+            calibration_id INTEGER,
+            calibration TEXT NOT NULL,
+            version INTEGER,
+            started_utc TEXT NOT NULL,
+            seen_utc TEXT NOT NULL)""",
     ),
 }
 
@@ -112,6 +123,18 @@ _PG: dict[int, tuple[str, ...]] = {
             EXECUTE FUNCTION eyetohand_refuse('versions are immutable: a change adds a version')""",
         """CREATE TRIGGER audit_append_only BEFORE UPDATE OR DELETE ON audit FOR EACH ROW
             EXECUTE FUNCTION eyetohand_refuse('the audit trail is append-only')""",
+    ),
+    # the serve processes' heartbeats (the plant view: server/plant.py); not audited, not copied
+    3: (
+        """CREATE TABLE cells (
+            cell TEXT PRIMARY KEY,
+            pid INTEGER NOT NULL,
+            url TEXT NOT NULL,
+            calibration_id BIGINT,
+            calibration TEXT NOT NULL,
+            version INTEGER,
+            started_utc TEXT NOT NULL,
+            seen_utc TEXT NOT NULL)""",
     ),
 }
 

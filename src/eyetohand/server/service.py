@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -110,12 +110,13 @@ class Service:
                 self._current[cal_id] = (ver.version, cal)
                 self._by_version[(cal_id, ver.version)] = cal
 
-    def start_following(self) -> None:
-        """Follow the store's changes (the app's start-up): see :mod:`~eyetohand.server.follow`."""
+    def start_following(self, beat: Callable[[], None] | None = None) -> None:
+        """Follow the store's changes (the app's start-up): see :mod:`~eyetohand.server.follow`;
+        ``beat``: this server's heartbeat, called every few seconds (:mod:`~eyetohand.server.plant`)."""
         from eyetohand.server.follow import Follower
 
         if self.follower is None:
-            self.follower = Follower(self.store, self.refresh)
+            self.follower = Follower(self.store, self.refresh, beat=beat)
             self.follower.start()
 
     def store_state(self) -> dict:
