@@ -82,7 +82,7 @@ async function refresh() {
     const name = el("a", { href: "#" }, row.name);
     name.addEventListener("click", (ev) => { ev.preventDefault(); auditOf = row.id; loadAudit(); });
     const first = el("td"); first.append(name, el("div", { class: "muted" }, `id ${row.id}`));
-    tr.append(first, el("td", { class: "num" }, `v${row.current_version}`));
+    tr.append(first, el("td", { class: "ver" }, `version ${row.current_version}`));
     const chk = el("td"); chk.append(checkText(row.last_check)); tr.append(chk);
     tr.append(cellsText(row.cells, row.current_version), rollbackForm(row));
     body.append(tr);
