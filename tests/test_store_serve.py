@@ -299,3 +299,31 @@ def test_plant_view_lists_calibrations_checks_and_following_cells(store_url, cal
         page = c.get("/plant")
         assert page.status_code == 200 and "/static/plant.js" in page.text
         assert c.get("/static/plant.js").status_code == 200
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("s3cret-token-1\n", {"default": "s3cret-token-1"}),
+        (
+            "# users\noffice: office-token-1\n\nrobot:tok:en:with:colons\n",
+            {"office": "office-token-1", "robot": "tok:en:with:colons"},
+        ),
+        ("office:abc\n", "line 1: the token of 'office' is shorter than 8 characters"),
+        ("a:aaaaaaaa1\na:bbbbbbbb2\n", "line 2: the name 'a' is given twice"),
+        ("a:aaaaaaaa1\nb:aaaaaaaa1\n", "line 2: this token is given to another name too"),
+        ("one token\ntwo:tokens-here\n", "line 1: expected 'name:token'"),
+        ("\n# nothing\n", "expected one line holding the token, or lines 'name:token'"),
+    ],
+)
+def test_token_file_names_its_tokens(tmp_path, text, expected):
+    from eyetohand.cli.common import CliError
+    from eyetohand.cli.serve import read_token_file
+
+    f = tmp_path / "tokens"
+    f.write_text(text)
+    if isinstance(expected, dict):
+        assert read_token_file(str(f), given=False) == expected
+    else:
+        with pytest.raises(CliError, match=expected):
+            read_token_file(str(f), given=False)
