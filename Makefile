@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint format bench clean browser systemd-analyze aravis floors
+.PHONY: setup demo test lint format bench clean browser systemd-analyze aravis postgres floors
 
 # setup.py builds the compiled parts (src/eyetohand/models/_rows.c, solve/_swarm.c, geometry/_hull.c) into the source tree
 $(STAMP): pyproject.toml setup.py src/eyetohand/models/_rows.c src/eyetohand/solve/_swarm.c src/eyetohand/geometry/_hull.c src/eyetohand/_buffers.h
@@ -34,6 +34,19 @@ $(ARAVIS_STAMP): $(STAMP)
 
 aravis: $(ARAVIS_STAMP)
 
+# Debian's PostgreSQL server: tests/pg.py starts a throwaway cluster on loopback (initdb in a temporary
+# folder, a random port) for the store's tests on PostgreSQL (tests/test_store.py; psycopg comes with the
+# dev extra); CI runs as root.
+POSTGRES_DEBS := postgresql
+POSTGRES_STAMP := $(VENV)/.postgres
+$(POSTGRES_STAMP): $(STAMP)
+	@missing=$$(for p in $(POSTGRES_DEBS); do \
+		dpkg-query -W -f='$${db:Status-Status}' $$p 2>/dev/null | grep -qx installed || echo $$p; done); \
+	test -z "$$missing" || (apt-get update && apt-get install -y $$missing)
+	touch $@
+
+postgres: $(POSTGRES_STAMP)
+
 # Debian's Chromium drives the workbench's browser test (tests/test_browser.py); CI runs as root.
 browser:
 	command -v chromium >/dev/null || (apt-get update && apt-get install -y chromium)
@@ -49,7 +62,7 @@ systemd-analyze:
 # PYTEST_PARALLEL=` runs everything serially. docs/performance.md has the suite's times.
 PYTEST_PARALLEL ?= -n auto --dist loadfile
 
-test: $(STAMP) aravis browser systemd-analyze
+test: $(STAMP) aravis postgres browser systemd-analyze
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/mypy

@@ -8,6 +8,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from helpers import PAPER  # noqa: E402  (the tests' shared paths; tests import PAPER from here too)
+from pg import pg_cluster, pg_url, store_url  # noqa: E402, F401  (a throwaway PostgreSQL server: tests/pg.py)
 
 # Debian's Chromium for the browser tests (make test installs it), with the flags this closed network needs
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -98,7 +99,13 @@ NUMERIC_FILES = {
 # Files whose tests assert latency or deadlines (p99 of a robot's lines under faults, slow-client
 # deadlines, a render's time): `make test` runs them on their own after the parallel run (`-m serial`),
 # so a test's timing never measures the other worker's load.
-SERIAL_FILES = {"test_faults.py", "test_truth_tcp.py", "test_truth_http.py", "test_render.py"}
+SERIAL_FILES = {
+    "test_faults.py",
+    "test_truth_tcp.py",
+    "test_truth_http.py",
+    "test_render.py",
+    "test_store_faults.py",
+}
 
 
 def pytest_collection_modifyitems(items):

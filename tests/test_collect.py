@@ -502,6 +502,13 @@ def test_serve_collects_over_tcp_with_the_robot_client(
         assert replies[-1] == run_sim["out"]["end"]  # the same images, the same fit as in-process
         vers, cal = stored(tmp_path / "data")
         assert len(vers) == 1 and vers[0].note == "collected (25 points)"
+        from eyetohand.server.storage import Store
+
+        st = Store(tmp_path / "data")
+        try:  # the audit trail names the collection's CAL END (no token: the robot)
+            assert [(e.user, e.action, e.version_after) for e in st.audit()] == [("robot", "cal_end", 1)]
+        finally:
+            st.close()
         assert cal.data_sha256 == Calibration.load(run_sim["store"] / "cell1.json").data_sha256
         rms_loop, rms_off = check_rms_mm(cal, check_pairs), check_rms_mm(offline, check_pairs)
         print(

@@ -24,6 +24,8 @@ if TYPE_CHECKING:
     from eyetohand.calibration.export import FORMATS, export_text
     from eyetohand.calibration.file import Calibration, Mapped
     from eyetohand.calibration.fit import calibrate, calibrate_request
+    from eyetohand.calibration.plate import calibrate_detected, calibrate_plate
+    from eyetohand.calibration.plate_record import PlateImage
     from eyetohand.calibration.request import (
         AUTO,
         MAX_IMAGE_SIDE_PX,
@@ -32,8 +34,6 @@ if TYPE_CHECKING:
         check_image_size,
         resolve_model,
     )
-    from eyetohand.calibration.plate import calibrate_detected, calibrate_plate
-    from eyetohand.calibration.plate_record import PlateImage
     from eyetohand.calibration.signing import load_sign_key
     from eyetohand.calibration.touches import Touch, load_touches, touches_from_text
     from eyetohand.calibration.verify import append_history, check_tolerance, verify

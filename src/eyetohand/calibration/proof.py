@@ -373,7 +373,9 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
             raise InputError("field 'region' missing: a calibration must record where it was calibrated")
         if d.get("plate") is not None:
             pairs = extra["pairs"]
-            extra["plate"] = PlateRecord.from_dict(d["plate"], pairs if isinstance(pairs, PointPairs) else None)
+            extra["plate"] = PlateRecord.from_dict(
+                d["plate"], pairs if isinstance(pairs, PointPairs) else None
+            )
     return cls(
         model=model,
         fit=fit,

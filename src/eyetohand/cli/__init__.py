@@ -34,6 +34,7 @@ COMMAND_MODULES = (
     "eyetohand.cli.export",
     "eyetohand.cli.verify",
     "eyetohand.cli.diff",
+    "eyetohand.cli.store",
 )
 
 
@@ -58,6 +59,8 @@ _COMMANDS = {
     "verify": "eyetohand.cli.verify",
     "diff": "eyetohand.cli.diff",
     "crossval": "eyetohand.cli.diff",
+    "audit": "eyetohand.cli.store",
+    "store": "eyetohand.cli.store",
 }
 
 

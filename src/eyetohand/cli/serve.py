@@ -11,12 +11,14 @@ import sys
 
 
 def cmd_serve(args) -> int:
-    from eyetohand.server import check_options, default_data_dir, serve
+    from eyetohand.server import DEFAULT_TOKEN_NAME, check_options, default_data_dir, serve
 
     args.token = args.token or os.environ.get("EYETOHAND_TOKEN") or None
+    args.tokens = None if args.token is None else {DEFAULT_TOKEN_NAME: args.token}
     # ---- --token-file (http worktree): the token read from a file, so no process listing shows it
     if getattr(args, "token_file", None) is not None:
-        args.token = read_token_file(args.token_file, given=args.token is not None)
+        args.tokens = read_token_file(args.token_file, given=args.token is not None)
+        args.token = next(iter(args.tokens.values()))  # TCP and OPC UA: the file's first token
     # ---- end --token-file
     check_options(args)
     data_dir = args.data or default_data_dir()
@@ -28,9 +30,14 @@ def cmd_serve(args) -> int:
     return 0
 
 
-def read_token_file(path: str, given: bool) -> str:
-    """The token in ``path`` (its first line, white space left out); refused with --token too."""
+def read_token_file(path: str, given: bool) -> dict[str, str]:
+    """The named tokens in ``path``: lines ``name:token`` (a name of letters, digits, ``._@-``; the
+    token after the first colon), or one line holding a token alone (named ``default``). Blank lines
+    and ``#`` comments are left out; refused with --token too."""
+    import re
+
     from eyetohand.cli.common import CliError
+    from eyetohand.server import DEFAULT_TOKEN_NAME
 
     if given:
         raise CliError("--token-file: give the token once: --token-file, or --token / EYETOHAND_TOKEN")
@@ -41,10 +48,32 @@ def read_token_file(path: str, given: bool) -> str:
         raise CliError(
             f"--token-file {path}: cannot read it ({getattr(exc, 'strerror', None) or exc})"
         ) from None
-    lines = text.strip().splitlines()
-    if len(text) > 4096 or not lines or len(lines) > 1:
-        raise CliError(f"--token-file {path}: expected one line holding the token")
-    return lines[0].strip()
+    if len(text) > 4096:
+        raise CliError(f"--token-file {path}: larger than 4096 bytes; expected lines 'name:token'")
+    lines = [(n, ln.strip()) for n, ln in enumerate(text.splitlines(), 1)]
+    lines = [(n, ln) for n, ln in lines if ln and not ln.startswith("#")]
+    if not lines:
+        raise CliError(f"--token-file {path}: expected one line holding the token, or lines 'name:token'")
+    if len(lines) == 1 and ":" not in lines[0][1]:
+        return {DEFAULT_TOKEN_NAME: lines[0][1]}
+    tokens: dict[str, str] = {}
+    for n, ln in lines:
+        name, sep, token = (part.strip() for part in ln.partition(":"))
+        if not sep or not re.fullmatch(r"[A-Za-z0-9._@-]{1,64}", name) or not token:
+            raise CliError(
+                f"--token-file {path} line {n}: expected 'name:token' (a name of letters, digits and "
+                "._@- , then the token)"
+            )
+        if name in tokens:
+            raise CliError(f"--token-file {path} line {n}: the name {name!r} is given twice")
+        if token in tokens.values():
+            raise CliError(f"--token-file {path} line {n}: this token is given to another name too")
+        if len(token) < 8:
+            raise CliError(
+                f"--token-file {path} line {n}: the token of {name!r} is shorter than 8 characters"
+            )
+        tokens[name] = token
+    return tokens
 
 
 def register(sub) -> None:
@@ -65,6 +94,7 @@ def register(sub) -> None:
         help="folder of the calibration database (default: $XDG_DATA_HOME/eyetohand "
         "or ~/.local/share/eyetohand)",
     )
+    add_store_option(p)
     p.add_argument(
         "--token",
         default=None,
@@ -167,7 +197,8 @@ def register(sub) -> None:
         "--token-file",
         metavar="FILE",
         default=None,
-        help="read the token from FILE (one line) instead of --token, so no process listing shows it",
+        help="read the tokens from FILE instead of --token, so no process listing shows them: lines "
+        "'name:token' (the name is the user in the audit trail), or one line holding one token",
     )
     p.add_argument(
         "--allow-host",
@@ -191,6 +222,18 @@ def register(sub) -> None:
     )
     # ---- end of the http worktree's options
     p.set_defaults(func=cmd_serve)
+
+
+def add_store_option(p) -> None:
+    """``--store URL`` (docs/store.md)."""
+    p.add_argument(
+        "--store",
+        metavar="URL",
+        default=None,
+        help="the store of calibrations: sqlite:PATH (a database file) or postgresql://USER@HOST:PORT/DB "
+        "(a plant's shared database; pip install 'eyetohand[postgres]'); default sqlite in --data "
+        "(docs/store.md)",
+    )
 
 
 def add_line_options(p) -> None:

@@ -6,8 +6,18 @@ Needs the ``fastapi`` and ``uvicorn`` packages. ``create_app(data_dir, token=Non
 
 from __future__ import annotations
 
+from eyetohand.server.audit import DEFAULT_TOKEN_NAME
 from eyetohand.server.cli import check_options, serve
-from eyetohand.server.storage import default_data_dir
+from eyetohand.server.storage import StorageError, default_data_dir
+from eyetohand.server.stores import (
+    QueryError,
+    StoreRef,
+    StoreRefError,
+    audit_query,
+    copy_store,
+    open_store,
+    store_digest,
+)
 from eyetohand.server.versions import stored_calibration
 
 
@@ -18,4 +28,19 @@ def create_app(*args, **kwargs):
     return _create_app(*args, **kwargs)
 
 
-__all__ = ["check_options", "create_app", "default_data_dir", "serve", "stored_calibration"]
+__all__ = [
+    "DEFAULT_TOKEN_NAME",
+    "QueryError",
+    "StorageError",
+    "StoreRef",
+    "StoreRefError",
+    "audit_query",
+    "check_options",
+    "copy_store",
+    "create_app",
+    "default_data_dir",
+    "open_store",
+    "serve",
+    "store_digest",
+    "stored_calibration",
+]

@@ -13,6 +13,7 @@ fit and other bodies up to :data:`MAX_FIT_BODY_BYTES`; beyond either the answer 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Mapping
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -21,8 +22,21 @@ from fastapi import FastAPI
 from eyetohand._version import __version__
 from eyetohand.server.core import Jobs
 from eyetohand.server.middleware import BodyLimit, DatabaseGuard, HostGuard, SameOrigin, TokenGuard
+from eyetohand.server.plant import CellBeat, beat
 from eyetohand.server.responses import install_handlers
-from eyetohand.server.routes import calibrations, collect, images, jobs, mapping, meta, page, pairs, plate
+from eyetohand.server.routes import (
+    audit,
+    calibrations,
+    collect,
+    images,
+    jobs,
+    mapping,
+    meta,
+    page,
+    pairs,
+    plant,
+    plate,
+)
 from eyetohand.server.routes.meta import PAPER_PRESET
 from eyetohand.server.schemas import (
     MAX_BODY_BYTES,
@@ -33,7 +47,8 @@ from eyetohand.server.schemas import (
     ErrorOut,
 )
 from eyetohand.server.service import Limits, Service
-from eyetohand.server.storage import WAIT_S, Store
+from eyetohand.server.storage import WAIT_S
+from eyetohand.server.stores import StoreRef, open_store
 
 LOOPBACK_HOSTS = ["127.0.0.1", "localhost", "::1", "[::1]"]
 
@@ -53,8 +68,8 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 
 
 def create_app(
-    data_dir: str | os.PathLike,
-    token: str | None = None,
+    data_dir: str | os.PathLike | StoreRef,
+    token: str | Mapping[str, str] | None = None,
     *,
     allowed_hosts: list[str] | None = None,
     max_body_bytes: int = MAX_BODY_BYTES,
@@ -65,15 +80,19 @@ def create_app(
     create_db: bool = True,
     sign_key: bytes | None = None,
     require_signed: bool = False,
+    heartbeat: Callable[[], CellBeat] | None = None,
 ) -> FastAPI:
-    """The app over the database in ``data_dir``. ``token``: required on /api/ when set.
+    """The app over the database in ``data_dir`` (or the store a ``sqlite:PATH`` or
+    ``postgresql://…`` reference names: docs/store.md). ``token``: required on /api/ when set; a
+    mapping of names to tokens accepts each, and audits a change under its token's name.
     ``allowed_hosts``: accepted Host header names (None: any). ``max_pso_work``: the largest
     particles × iterations a PSO fit may ask for (422 beyond). ``db_wait_s``: how long a write
     waits for another connection's lock before answering 503. ``create_db``: create the database
     when ``data_dir`` has none (``serve`` passes True only at a first start); once open, a database
     deleted or replaced under the app answers 503 and is never recreated. ``sign_key``: checks
     signed calibration files on import and signs exports; ``require_signed``: imports must be signed
-    with it."""
+    with it. ``heartbeat``: what this server is and follows, registered in the store every few
+    seconds (``serve`` passes it; the plant view lists it)."""
     limits = Limits(
         max_body_bytes=max_body_bytes,
         max_fit_body_bytes=min(max_fit_body_bytes, max_body_bytes),
@@ -81,7 +100,7 @@ def create_app(
         max_pso_work=max_pso_work,
     )
     service = Service(
-        Store(data_dir, wait_s=db_wait_s, create=create_db),
+        open_store(data_dir, db_wait_s, create=create_db),
         Jobs(max_pending=max_pending_jobs, max_pso_work=max_pso_work),
         limits,
         token,
@@ -91,7 +110,11 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(_app):
+        # changes made by other processes reach the cache (server/follow.py); the cell beats (plant.py)
+        service.start_following(None if heartbeat is None else lambda: beat(service.store, heartbeat()))
         yield
+        if service.follower is not None:
+            service.follower.stop()
         service.jobs.shutdown()
 
     app = FastAPI(
@@ -116,7 +139,7 @@ def create_app(
     install_handlers(app)
     # mapping first: a request is matched against the routes in order, and the robot's mapping calls
     # are the hot path (no other route matches their paths; tested)
-    for r in (mapping, page, meta, pairs, calibrations, jobs, collect, images, plate):
+    for r in (mapping, page, meta, pairs, calibrations, jobs, collect, images, plate, audit, plant):
         app.include_router(r.router)
     page.mount_static(app)
 

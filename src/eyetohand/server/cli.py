@@ -46,6 +46,7 @@ def parse_hostport(text: str, flag: str = "--tcp") -> tuple[str, int]:
 def check_options(args) -> None:
     """Refuse unsafe or incomplete option sets before anything binds."""
     check_signing_options(args)  # --sign-key, --require-signed: before --calibration FILE is read
+    check_store_option(args)
     if not 0 <= args.port <= 65535:
         raise ServeError(f"--port: expected 0..65535 (0: any free port), got {args.port}")
     if not 0 < args.db_wait <= 60:
@@ -105,6 +106,43 @@ def check_options(args) -> None:
                 args.calibration_file = signed_file(FixedCalibration, path, args)
             except InputError as exc:
                 raise ServeError(f"--calibration: {exc}") from None
+
+
+def check_store_option(args) -> None:
+    """``--store URL``: a reference this program can open (docs/store.md)."""
+    from eyetohand.server.stores import StoreRef, StoreRefError
+
+    given = getattr(args, "store", None)
+    if given:
+        try:
+            ref = StoreRef.parse(given)
+        except StoreRefError as exc:
+            raise ServeError(f"--store {exc}") from None
+        if ref.shared and importlib.util.find_spec("psycopg") is None:
+            raise ServeError(
+                f"--store {ref}: a PostgreSQL store needs psycopg: pip install 'eyetohand[postgres]'"
+            )
+
+
+def store_ref(args, data_dir):
+    """The store ``serve`` uses: ``--store``, else the SQLite database in the data folder."""
+    from eyetohand.server.stores import StoreRef
+
+    return StoreRef.parse(getattr(args, "store", None) or data_dir)
+
+
+def open_store_or_refuse(ref, args, *, create: bool, http_sock=None):
+    """The store ``ref`` names; a store that cannot be opened (unreachable, a newer schema, psycopg
+    missing) is one :class:`ServeError` line naming it (``http_sock`` closed first)."""
+    from eyetohand.server.storage import StorageError
+    from eyetohand.server.stores import StoreRefError, open_store
+
+    try:
+        return open_store(ref, args.db_wait, create=create)
+    except (StorageError, StoreRefError) as exc:
+        if http_sock is not None:
+            http_sock.close()
+        raise ServeError(f"--store {ref}: {exc}") from None
 
 
 def check_line_options(args) -> None:
@@ -236,11 +274,17 @@ def calibration_path(ref: str):
     return None
 
 
-def store_save_fn(store, on_saved=None):
+def store_save_fn(store, on_saved=None, user: str = "robot"):
     """``save_fn(name, cal)`` for the Collector: a new version of calibration ``name`` in the
-    server's database (a new calibration when the name is new); ``on_saved(record, cal)`` after."""
+    server's database (a new calibration when the name is new), audited as ``cal_end`` by ``user``
+    (the TCP token's name); ``on_saved(record, cal)`` after."""
+    from eyetohand.server.audit import acting_as
 
     def save(name: str, cal) -> None:
+        with acting_as(user):
+            _save(name, cal)
+
+    def _save(name: str, cal) -> None:
         request = {"source": "collection", "collection": name, "model": cal.model_name, "seed": 0}
         pairs = cal.pairs.to_records() if cal.pairs is not None else []
         check = cal.check_pairs.to_records() if cal.check_pairs is not None else None
@@ -257,6 +301,13 @@ def store_save_fn(store, on_saved=None):
             on_saved(rec, cal)
 
     return save
+
+
+def tcp_user(args) -> str:
+    """Who the audit trail names for a change made over TCP (CAL END): the name of the token TCP
+    accepts (the token file's first), else ``robot``."""
+    tokens = getattr(args, "tokens", None)
+    return next(iter(tokens)) if tokens else "robot"
 
 
 def store_load_fn(store):
@@ -316,13 +367,12 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     import uvicorn
 
     from eyetohand.positioning import LineServer, LoopThread
-    from eyetohand.server.app import create_app
-    from eyetohand.server.storage import DB_NAME, Store
     from eyetohand.server.stored import SameFile, StoredCalibration
 
     http_sock = bind_http(args.host, args.port)
     # the database is created only at a first start: later, a missing one is an error, never a new one
-    fresh_db = not (Path(data_dir) / DB_NAME).exists()
+    ref = store_ref(args, data_dir)
+    fresh_db = not ref.exists()
     tcp_loop: LoopThread | None = None
     line_server = collector = source = belt = app = locator = None
     data_dir = Path(data_dir)
@@ -330,7 +380,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     store = served = None
     same_file: SameFile | None = None
     if args.tcp or _plc_wanted(args):
-        served, store, same_file = _served_calibration(args, data_dir, camera, http_sock, create=fresh_db)
+        served, store, same_file = _served_calibration(args, ref, camera, http_sock, create=fresh_db)
     if args.tcp:
         host, port = parse_hostport(args.tcp)
         assert served is not None  # _served_calibration ran for --tcp
@@ -362,13 +412,13 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                         app.state.service.invalidate(saved_rec.id)
 
                 if store is None:
-                    store = Store(data_dir, wait_s=args.db_wait, create=fresh_db)
+                    store = open_store_or_refuse(ref, args, create=fresh_db, http_sock=http_sock)
                     same_file = SameFile(store)
                 collect_dir = args.collect_dir or (data_dir / "collect")
                 collector = Collector(
                     collect_dir,
                     source,
-                    save_fn=store_save_fn(store, on_saved),
+                    save_fn=store_save_fn(store, on_saved, tcp_user(args)),
                     load_fn=store_load_fn(store),
                     calibration=args.calibration,
                     reply_format=args.reply_format,
@@ -424,15 +474,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
         )
         loops.append(plc_loop)
 
-    app = create_app(
-        data_dir,
-        token=args.token,
-        db_wait_s=args.db_wait,
-        allowed_hosts=allowed_hosts(args),
-        create_db=fresh_db,
-        sign_key=getattr(args, "sign_key_bytes", None),
-        require_signed=bool(getattr(args, "require_signed", False)),
-    )
+    app = _make_app(args, ref, fresh_db, http_sock, lambda: line_server.source if line_server else served)
     if collector is not None:
         from eyetohand.server.routes.collect import CameraView
 
@@ -525,12 +567,56 @@ def sim_note(commands: dict) -> str:
 # ---- end of the LOCATE block
 
 
+def cell_heartbeat(args, http_sock, source_fn):
+    """The plant view's heartbeat of this serve (:class:`~eyetohand.server.plant.CellBeat`): its
+    HTTP address and what its robots are answered with now (``source_fn()``: the served calibration)."""
+    import datetime as dt
+
+    from eyetohand.server.plant import CellBeat
+    from eyetohand.server.tcp import FixedCalibration, StoredCalibration
+
+    started = dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
+    url = f"http://{args.host}:{http_sock.getsockname()[1]}"
+
+    def beat() -> CellBeat:
+        src = source_fn()
+        if isinstance(src, StoredCalibration):
+            return CellBeat.of_this_process(url, src.cal_id, src.name, src.version, started)
+        label = src.label if isinstance(src, FixedCalibration) else ""
+        return CellBeat.of_this_process(url, None, label, None, started)
+
+    return beat
+
+
+def _make_app(args, ref, fresh_db: bool, http_sock, source_fn):
+    """The workbench's app on the store ``ref`` (beating as :func:`cell_heartbeat`); a store that
+    cannot be opened is one :class:`ServeError` line (exit 2)."""
+    from eyetohand.server.app import create_app
+    from eyetohand.server.storage import StorageError
+    from eyetohand.server.stores import StoreRefError
+
+    try:
+        return create_app(
+            ref,
+            token=getattr(args, "tokens", None) or args.token,
+            db_wait_s=args.db_wait,
+            allowed_hosts=allowed_hosts(args),
+            create_db=fresh_db,
+            sign_key=getattr(args, "sign_key_bytes", None),
+            require_signed=bool(getattr(args, "require_signed", False)),
+            heartbeat=cell_heartbeat(args, http_sock, source_fn),
+        )
+    except (StorageError, StoreRefError) as exc:  # unreachable, a newer schema: one line (exit 2)
+        http_sock.close()
+        raise ServeError(f"--store {ref}: {exc}") from None
+
+
 def _plc_wanted(args) -> bool:
     return bool(getattr(args, "modbus", None) or getattr(args, "opcua", None))
 
 
 def _served_calibration(
-    args, data_dir: Path, camera, http_sock, *, create: bool
+    args, ref, camera, http_sock, *, create: bool
 ) -> tuple[Served, Store | None, SameFile | None]:
     """(the served-calibration object, the store or None, its :class:`SameFile` or None) for
     ``--calibration``: a file (proved by
@@ -538,20 +624,20 @@ def _served_calibration(
     it). A refusal closes ``http_sock`` and raises :class:`ServeError`. ``create``: the database may be
     created (a first start only)."""
     from eyetohand.positioning import PendingCalibration
-    from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
+    from eyetohand.server.storage import Ambiguous, NotFound, StorageError
     from eyetohand.server.stored import SameFile, StoredCalibration
 
     fixed = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
     if fixed is not None:
         return fixed, None, None
     # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
-    if args.calibration and not camera and not (data_dir / DB_NAME).is_file():
+    if args.calibration and not camera and not ref.exists():
         http_sock.close()
         raise ServeError(
             f"--calibration: {args.calibration!r} not found: no calibrations are stored "
-            f"in {data_dir} yet (no {DB_NAME}); save one in the workbench first"
+            f"in {ref.path.parent} yet (no {ref.path.name}); save one in the workbench first"
         )
-    store = Store(data_dir, wait_s=args.db_wait, create=create)
+    store = open_store_or_refuse(ref, args, create=create, http_sock=http_sock)
     same_file = SameFile(store)  # the database file as opened: TCP refuses once it is another
     served: Served = PendingCalibration(args.calibration)
     try:
@@ -565,7 +651,7 @@ def _served_calibration(
     except (NotFound, Ambiguous, StorageError, InputError) as exc:
         http_sock.close()
         store.close()
-        raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.path}") from None
+        raise ServeError(f"--calibration: {str(exc).strip(chr(39))} in {store.where}") from None
     return served, store, same_file
 
 

@@ -4,8 +4,9 @@ JSON error body without reading more of the request than it needs."""
 from __future__ import annotations
 
 import hmac
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
+from eyetohand.server.audit import DEFAULT_TOKEN_NAME, acting_as
 from eyetohand.server.responses import error_response, send_response
 
 JSON_TYPES = (b"application/json",)
@@ -77,11 +78,15 @@ class BodyLimit:
 
 
 class TokenGuard:
-    """With a token set, every /api/ request needs ``Authorization: Bearer <token>``."""
+    """With a token set, every /api/ request needs ``Authorization: Bearer <token>``. ``token``: one
+    token, or names to tokens (``--token-file`` lines ``name:token``); the changes a request makes
+    are audited under its token's name (:func:`~eyetohand.server.audit.acting_as`)."""
 
-    def __init__(self, app, token: str | None):
+    def __init__(self, app, token: str | Mapping[str, str] | None):
         self.app = app
-        self.token = token.encode() if token else None
+        named = {DEFAULT_TOKEN_NAME: token} if isinstance(token, str) else dict(token or {})
+        self.tokens = [(name, t.encode()) for name, t in named.items() if t]
+        self.token = self.tokens[0][1] if self.tokens else None
 
     async def __call__(self, scope, receive, send):
         if (
@@ -92,7 +97,9 @@ class TokenGuard:
         ):
             auth = dict(scope.get("headers") or []).get(b"authorization", b"")
             given = auth[7:].strip() if auth[:7].lower() == b"bearer " else b""
-            if not hmac.compare_digest(given, self.token):
+            # every token compared (no early exit: the time does not tell which one came close)
+            matched = [name for name, t in self.tokens if hmac.compare_digest(given, t)]
+            if not matched:
                 return await send_response(
                     send,
                     error_response(
@@ -101,6 +108,8 @@ class TokenGuard:
                         "Authorization",
                     ),
                 )
+            with acting_as(matched[0]):
+                return await self.app(scope, receive, send)
         return await self.app(scope, receive, send)
 
 

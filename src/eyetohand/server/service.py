@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from eyetohand.calibration import Calibration
 from eyetohand.core import PointPairs
@@ -19,6 +21,9 @@ from eyetohand.server import core
 from eyetohand.server.core import ApiError, Fitted, Job, Jobs
 from eyetohand.server.schemas import FitOptions, ImagesCalibrate
 from eyetohand.server.storage import Record, Store, Version, require_match
+
+if TYPE_CHECKING:
+    from eyetohand.server.follow import Follower
 
 
 @dataclass(frozen=True)
@@ -39,7 +44,7 @@ class Service:
         store: Store,
         jobs: Jobs,
         limits: Limits,
-        token: str | None,
+        token: str | Mapping[str, str] | None,
         *,
         sign_key: bytes | None = None,
         require_signed: bool = False,
@@ -55,6 +60,7 @@ class Service:
         self._current: dict[int, tuple[int, Calibration]] = {}
         self._generation: dict[int, int] = {}
         self._image_runs: OrderedDict[str, dict] = OrderedDict()  # job id -> its detections
+        self.follower: Follower | None = None  # started with the app (start_following)
 
     # ------------------------------------------------------------ cache
     def cached(self, cal_id: int, version: int | None = None) -> tuple[int, Calibration] | None:
@@ -84,6 +90,40 @@ class Service:
                 if version is None:
                     self._current[cal_id] = (ver.version, cal)
         return ver, cal
+
+    def refresh(self, cal_id: int) -> None:
+        """A change made elsewhere (:class:`~eyetohand.server.follow.Follower`): the cached current
+        version replaced by the one now in force (read and decoded before the old one is dropped, so
+        a store that fails meanwhile leaves the version in force), or dropped when it was deleted."""
+        with self._lock:
+            had = self._current.get(cal_id)
+        if had is None:
+            return  # nothing cached: the next request reads it
+        now = self.store.current(cal_id)
+        if now is None:
+            self.invalidate(cal_id, versions_too=True)
+        elif now[1] != had[0]:
+            ver = self.store.version(cal_id, now[1])
+            cal = Calibration.from_dict(ver.calibration, f"calibration {cal_id} version {ver.version}")
+            self.invalidate(cal_id)
+            with self._lock:
+                self._current[cal_id] = (ver.version, cal)
+                self._by_version[(cal_id, ver.version)] = cal
+
+    def start_following(self, beat: Callable[[], None] | None = None) -> None:
+        """Follow the store's changes (the app's start-up): see :mod:`~eyetohand.server.follow`;
+        ``beat``: this server's heartbeat, called every few seconds (:mod:`~eyetohand.server.plant`)."""
+        from eyetohand.server.follow import Follower
+
+        if self.follower is None:
+            self.follower = Follower(self.store, self.refresh, beat=beat)
+            self.follower.start()
+
+    def store_state(self) -> dict:
+        """The store's state for ``/api/health``: reachable, or since when not and why."""
+        if self.follower is None:
+            return {"kind": self.store.dialect, "reachable": None}
+        return self.follower.state.to_dict()
 
     def invalidate(self, cal_id: int, versions_too: bool = False) -> None:
         with self._lock:
@@ -337,6 +377,8 @@ class Service:
         }
 
     def close(self) -> None:
+        if self.follower is not None:
+            self.follower.stop()
         self.jobs.shutdown()
         self.store.close()
 

@@ -31,36 +31,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from eyetohand.server import audit, schema
+from eyetohand.server.audit import AuditEntry, AuditQuery
+
 DB_NAME = "calibrations.db"
 WAIT_S = 2.0
 """How long a write waits for another connection's write lock before giving up (:class:`Busy`)."""
-
-SCHEMA_SQL = """
-CREATE TABLE IF NOT EXISTS calibrations (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    name TEXT NOT NULL UNIQUE,
-    created_utc TEXT NOT NULL,
-    updated_utc TEXT NOT NULL,
-    current_version INTEGER NOT NULL
-);
-CREATE TABLE IF NOT EXISTS versions (
-    calibration_id INTEGER NOT NULL REFERENCES calibrations(id) ON DELETE CASCADE,
-    version INTEGER NOT NULL,
-    created_utc TEXT NOT NULL,
-    note TEXT NOT NULL DEFAULT '',
-    request_json TEXT NOT NULL,
-    calibration_json TEXT NOT NULL,
-    pairs_json TEXT NOT NULL,
-    check_json TEXT,
-    PRIMARY KEY (calibration_id, version)
-);
-CREATE TABLE IF NOT EXISTS verifications (
-    calibration_id INTEGER NOT NULL REFERENCES calibrations(id) ON DELETE CASCADE,
-    version INTEGER NOT NULL,
-    utc TEXT NOT NULL,
-    entry_json TEXT NOT NULL
-);
-"""
 
 
 def default_data_dir() -> Path:
@@ -108,6 +84,11 @@ class NoSpace(StorageError):
 class DatabaseGone(StorageError):
     """The database file this store opened was deleted, or its path now names another file (replaced
     under the running server): nothing is read or written until the path names it again."""
+
+
+class SchemaTooNew(StorageError):
+    """The database was written by a newer eyetohand (its schema version is newer than this one's):
+    refused, nothing read or changed."""
 
 
 class Conflict(Exception):
@@ -272,12 +253,24 @@ class Store:
     write lock, then raises :class:`Busy`; any other SQLite failure raises :class:`StorageError`
     (the transaction is rolled back). Nothing here holds a lock while SQLite waits."""
 
-    def __init__(self, data_dir: str | os.PathLike, wait_s: float = WAIT_S, *, create: bool = False):
-        """Open ``data_dir/calibrations.db``. ``create``: make it (and ``data_dir``) when there is
-        none yet — a first start; without it a missing database is :class:`DatabaseGone`. Either
-        way, once open the store never creates the file again (see :meth:`check_same_file`)."""
+    dialect = "sqlite"
+    _integrity_error: type[Exception] = sqlite3.IntegrityError
+
+    def __init__(
+        self,
+        data_dir: str | os.PathLike,
+        wait_s: float = WAIT_S,
+        *,
+        create: bool = False,
+        file_name: str = DB_NAME,
+    ):
+        """Open ``data_dir/calibrations.db`` (``file_name``: another name in that folder).
+        ``create``: make it (and ``data_dir``) when there is none yet — a first start; without it
+        a missing database is :class:`DatabaseGone`. Either way, once open the store never
+        creates the file again (see :meth:`check_same_file`)."""
         self.data_dir = Path(data_dir)
-        self.path = self.data_dir / DB_NAME
+        self.path = self.data_dir / file_name
+        self.where = str(self.path)
         self.wait_s = float(wait_s)
         self._local = threading.local()
         self._all: list[sqlite3.Connection] = []
@@ -298,10 +291,25 @@ class Store:
         with _translated(self.path):
             db = self._db
             db.execute("PRAGMA journal_mode=WAL")
-        with self._tx() as db:
-            for stmt in SCHEMA_SQL.split(";"):
-                if stmt.strip():
-                    db.execute(stmt)
+        self._migrate()
+
+    def _migrate(self) -> None:
+        """Create or upgrade the tables (:mod:`~eyetohand.server.schema`) in one write transaction."""
+        try:
+            with self._tx() as db, self._errors():
+
+                def run(sql: str, args: tuple) -> list:
+                    cur = db.execute(sql, args)
+                    return cur.fetchall() if cur.description else []
+
+                self.schema_found, self.schema_version = schema.migrate(run, self.dialect, self.where)
+        except schema.SchemaTooNew as exc:
+            self.close()
+            raise SchemaTooNew(str(exc)) from None
+
+    def _errors(self):
+        """A context that turns this backend's failures into :class:`StorageError`."""
+        return _translated(self.path)
 
     def _uri(self, mode: str) -> str:
         return f"file:{urllib.parse.quote(str(self.path.absolute()))}?mode={mode}"
@@ -398,6 +406,35 @@ class Store:
         self.check_same_file()
         with _translated(self.path):
             return self._db.execute(sql, args).fetchall()
+
+    def _audit(self, db, action: str, rec: Record, before: int | None, after: int | None, note: str) -> None:
+        """Append the audit entry of a change, inside the change's transaction."""
+        db.execute(
+            "INSERT INTO audit (utc, user_name, action, calibration_id, calibration, version_before, "
+            "version_after, note) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+            (_now(), audit.current_user(), action, rec.id, rec.name, before, after, note),
+        )
+
+    def changed_since(self, after: int | None) -> tuple[int, builtins.list[int]]:
+        """(the last audit entry's id, the calibrations changed after entry ``after``; None: none,
+        only the id). Writes are serialised, so ids become visible in order: nothing is skipped."""
+        if after is None:
+            return int(self._read("SELECT COALESCE(MAX(id), 0) FROM audit")[0][0]), []
+        rows = self._read("SELECT id, calibration_id FROM audit WHERE id > ? ORDER BY id", (after,))
+        if not rows:
+            return after, []
+        return int(rows[-1][0]), list(dict.fromkeys(int(c) for _, c in rows if c is not None))
+
+    def audit(self, query: AuditQuery | None = None) -> builtins.list[AuditEntry]:
+        """Audit entries, newest first (see :class:`~eyetohand.server.audit.AuditQuery`)."""
+        q = query or AuditQuery()
+        where, args = q.where()
+        rows = self._read(
+            "SELECT id, utc, user_name, action, calibration_id, calibration, version_before, "
+            f"version_after, note FROM audit{where} ORDER BY id DESC LIMIT ?",
+            (*args, max(1, min(q.limit, AuditQuery.MAX_LIMIT))),
+        )
+        return [AuditEntry(*r) for r in rows]
 
     # ------------------------------------------------------------------ reads
     def list(self) -> list[tuple[Record, Version]]:
@@ -513,22 +550,28 @@ class Store:
         pairs: builtins.list,
         check: builtins.list | None,
         note: str = "created",
+        *,
+        action: str | None = None,
     ) -> Record:
+        """A new calibration with its version 1. ``action``: its audit action (default from
+        ``request["source"]``: :func:`~eyetohand.server.audit.action_of`)."""
         now = _now()
         try:
-            with self._tx() as db, _translated(self.path):
+            with self._tx() as db, self._errors():
                 self._refuse_lookalike(db, name, None)
-                cur = db.execute(
-                    "INSERT INTO calibrations (name, created_utc, updated_utc, current_version) "
-                    "VALUES (?, ?, ?, 1)",
-                    (name, now, now),
+                cal_id = int(
+                    db.execute(
+                        "INSERT INTO calibrations (name, created_utc, updated_utc, current_version) "
+                        "VALUES (?, ?, ?, 1) RETURNING id",
+                        (name, now, now),
+                    ).fetchall()[0][0]
                 )
-                assert cur.lastrowid is not None  # an INSERT sets it
-                cal_id = int(cur.lastrowid)
                 self._insert_version(db, cal_id, 1, now, note, request, calibration, pairs, check)
-        except sqlite3.IntegrityError:
+                rec = Record(cal_id, name, now, now, 1)
+                self._audit(db, action or audit.action_of(request, new=True), rec, None, 1, note)
+        except self._integrity_error:
             raise NameTaken(f"a calibration named {name!r} exists already") from None
-        return Record(cal_id, name, now, now, 1)
+        return rec
 
     def add_version(
         self,
@@ -539,12 +582,15 @@ class Store:
         check: builtins.list | None,
         note: str,
         if_match: str | None = None,
+        *,
+        action: str | None = None,
     ) -> Record:
         """Add a version and make it current. Returns the record as this transaction left it: its
         ``current_version`` is the version this call created (never one a concurrent call added
-        after the commit). ``if_match``: see :meth:`_row` (:class:`Conflict`, nothing written)."""
+        after the commit). ``if_match``: see :meth:`_row` (:class:`Conflict`, nothing written).
+        ``action``: its audit action (default from ``request["source"]``)."""
         now = _now()
-        with self._tx() as db, _translated(self.path):
+        with self._tx() as db, self._errors():
             rec = self._row(db, cal_id, if_match)
             latest = db.execute(
                 "SELECT MAX(version) FROM versions WHERE calibration_id = ?", (cal_id,)
@@ -555,7 +601,11 @@ class Store:
                 "UPDATE calibrations SET current_version = ?, updated_utc = ? WHERE id = ?",
                 (new, now, cal_id),
             )
-        return Record(rec.id, rec.name, rec.created_utc, now, new)
+            after = Record(rec.id, rec.name, rec.created_utc, now, new)
+            self._audit(
+                db, action or audit.action_of(request, new=False), after, rec.current_version, new, note
+            )
+        return after
 
     def rollback(self, cal_id: int, version: int, if_match: str | None = None) -> Record:
         """Make a copy of ``version`` the new current version (the history keeps everything); the
@@ -569,20 +619,24 @@ class Store:
             old.check,
             note=f"rollback to version {version}",
             if_match=if_match,
+            action="rollback",
         )
 
     def rename(self, cal_id: int, name: str, if_match: str | None = None) -> Record:
         now = _now()
         try:
-            with self._tx() as db, _translated(self.path):
+            with self._tx() as db, self._errors():
                 rec = self._row(db, cal_id, if_match)
                 self._refuse_lookalike(db, name, cal_id)
                 db.execute(
                     "UPDATE calibrations SET name = ?, updated_utc = ? WHERE id = ?", (name, now, cal_id)
                 )
-        except sqlite3.IntegrityError:
+                after = Record(rec.id, name, rec.created_utc, now, rec.current_version)
+                v = rec.current_version
+                self._audit(db, "rename", after, v, v, f"renamed from {rec.name!r} to {name!r}")
+        except self._integrity_error:
             raise NameTaken(f"a calibration named {name!r} exists already") from None
-        return Record(rec.id, name, rec.created_utc, now, rec.current_version)
+        return after
 
     def current(self, cal_id: int) -> tuple[str, int] | None:
         """(name, current version) of a calibration, or None when it is gone: one indexed read, cheap
@@ -593,13 +647,13 @@ class Store:
     def add_verification(self, cal_id: int, version: int, entry: dict) -> None:
         """Append one verification entry (see :mod:`eyetohand.calibration.verify`) to a calibration's
         history."""
-        with self._tx() as db, _translated(self.path):
-            if db.execute("SELECT 1 FROM calibrations WHERE id = ?", (cal_id,)).fetchone() is None:
-                raise NotFound(f"no calibration with id {cal_id}")
+        with self._tx() as db, self._errors():
+            rec = self._row(db, cal_id)
             db.execute(
                 "INSERT INTO verifications (calibration_id, version, utc, entry_json) VALUES (?, ?, ?, ?)",
                 (cal_id, version, _now(), _dumps(entry)),
             )
+            self._audit(db, "check", rec, version, version, audit.check_note(entry))
 
     def verifications(self, cal_id: int) -> builtins.list[dict]:
         """The verification history, oldest first, each entry with the version it checked."""
@@ -611,8 +665,9 @@ class Store:
         return [{**json.loads(e), "version": int(v), "stored_utc": u} for v, u, e in rows]
 
     def delete(self, cal_id: int, if_match: str | None = None) -> None:
-        with self._tx() as db, _translated(self.path):
-            self._row(db, cal_id, if_match)
+        with self._tx() as db, self._errors():
+            rec = self._row(db, cal_id, if_match)
+            self._audit(db, "delete", rec, rec.current_version, None, f"deleted {rec.name!r}")
             db.execute("DELETE FROM verifications WHERE calibration_id = ?", (cal_id,))
             db.execute("DELETE FROM versions WHERE calibration_id = ?", (cal_id,))
             cur = db.execute("DELETE FROM calibrations WHERE id = ?", (cal_id,))

@@ -27,6 +27,7 @@ if TYPE_CHECKING:
         huber_delta_mm,
         objective_values,
     )
+    from eyetohand.solve.placement import RigidFit, placement_variance_mm2, rigid_fit, rigid_jacobian
     from eyetohand.solve.solvers import (
         OPTIMIZERS,
         SEED_MAX,
@@ -38,7 +39,6 @@ if TYPE_CHECKING:
         get_solver,
         refine,
     )
-    from eyetohand.solve.placement import RigidFit, placement_variance_mm2, rigid_fit, rigid_jacobian
     from eyetohand.solve.tcp_offset import (
         correct_pairs,
         estimate_tcp_offset,

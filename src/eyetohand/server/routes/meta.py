@@ -31,8 +31,15 @@ router = APIRouter(tags=["service"], route_class=StrictJsonRoute)
 
 
 @router.get("/api/health")
-async def health() -> dict[str, str]:
-    return {"status": "ok", "version": __version__}
+async def health(svc: Svc) -> dict:
+    """Alive (always 200, no token needed); ``status`` is ``degraded`` while the store cannot be read
+    (``store`` says since when and why: the cell maps with the versions in force, changes get 503)."""
+    store = svc.store_state()
+    return {
+        "status": "degraded" if store["reachable"] is False else "ok",
+        "version": __version__,
+        "store": store,
+    }
 
 
 @router.get("/api/meta", response_model=Meta)

@@ -1,0 +1,143 @@
+"""The audit trail: who changed which calibration, when, from which version to which, and why.
+
+Every write of the store appends one entry in the same transaction as the change (so there is no
+change without its entry, nor an entry without its change); entries are never changed or removed
+(the tables' triggers refuse it: :mod:`eyetohand.server.schema`).
+
+Who: the name of the token the request came with (``--token-file`` lines ``name:token``), set for
+the request by the token guard with :func:`acting_as`; a write made outside a request (a collection's
+CAL END on the TCP service, a command-line tool) names what made it.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import datetime as _dt
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
+
+ACTIONS = (
+    "create",  # a new calibration from a fit
+    "import",  # a calibration file stored (a new calibration, or a new version of one)
+    "new_version",  # a refit saved as a new version
+    "cal_end",  # a collection's CAL END saved its calibration (TCP)
+    "rollback",  # an earlier version made current again (as a new version that copies it)
+    "rename",
+    "delete",
+    "check",  # a verification's result kept in the history
+)
+
+DEFAULT_TOKEN_NAME = "default"
+"""The name of a token given alone (``--token``, or a token file of one line without a name)."""
+
+DEFAULT_USER = "local"
+"""Who a write is by when nothing says otherwise (no token is required: a loopback workbench)."""
+
+_ACTOR: contextvars.ContextVar[str] = contextvars.ContextVar("eyetohand_actor", default=DEFAULT_USER)
+
+
+def current_user() -> str:
+    """The name the writes made now are audited under."""
+    return _ACTOR.get()
+
+
+@contextmanager
+def acting_as(user: str) -> Iterator[None]:
+    """Audit the writes made inside (in this context: this request, this thread) under ``user``."""
+    token = _ACTOR.set(user)
+    try:
+        yield
+    finally:
+        _ACTOR.reset(token)
+
+
+def action_of(request: dict, new: bool) -> str:
+    """The audit action of storing a version made by ``request`` (its ``source`` says what made it)."""
+    source = request.get("source")
+    if source == "import":
+        return "import"
+    if source == "collection":
+        return "cal_end"
+    return "create" if new else "new_version"
+
+
+def check_note(entry: dict) -> str:
+    """The audit note of a verification entry: its verdict and figures."""
+    verdict = "passed" if entry.get("passed") else "failed"
+    rms, worst, tol = entry.get("rms_mm"), entry.get("max_mm"), entry.get("tolerance_mm")
+    figures = []
+    if isinstance(rms, int | float):
+        figures.append(f"rms {rms:.3f} mm")
+    if isinstance(worst, int | float):
+        figures.append(f"max {worst:.3f} mm")
+    if isinstance(tol, int | float):
+        figures.append(f"tolerance {tol:g} mm")
+    n = entry.get("n")
+    head = f"{verdict} on {n} points" if isinstance(n, int) else verdict
+    cause = entry.get("cause")
+    return ", ".join([head, *figures]) + (f" ({cause})" if cause else "")
+
+
+@dataclass(frozen=True)
+class AuditEntry:
+    id: int
+    utc: str
+    user: str
+    action: str
+    calibration_id: int | None
+    calibration: str
+    version_before: int | None
+    version_after: int | None
+    note: str
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class AuditQuery:
+    """Which entries to list, newest first: of one calibration (its id; or its name as the entries
+    recorded it, for one deleted since), by one user, within [since, until] (ISO 8601 UTC), older
+    than the entry ``before`` (the page's cursor), at most ``limit``."""
+
+    calibration_id: int | None = None
+    calibration_name: str | None = None
+    user: str | None = None
+    since: str | None = None
+    until: str | None = None
+    before: int | None = None
+    limit: int = 100
+
+    MAX_LIMIT = 1000
+
+    def where(self) -> tuple[str, tuple]:
+        """The SQL condition (``?`` placeholders) and its arguments."""
+        conds: list[str] = []
+        args: list = []
+        for sql, value in (
+            ("calibration_id = ?", self.calibration_id),
+            ("calibration = ?", self.calibration_name),
+            ("user_name = ?", self.user),
+            ("utc >= ?", self.since),
+            ("utc <= ?", self.until),
+            ("id < ?", self.before),
+        ):
+            if value is not None:
+                conds.append(sql)
+                args.append(value)
+        return (" WHERE " + " AND ".join(conds)) if conds else "", tuple(args)
+
+
+def parse_utc(text: str, what: str) -> str:
+    """``text`` (ISO 8601; a date alone is its midnight; no zone: UTC) as the store writes times
+    (``YYYY-MM-DDTHH:MM:SS.mmm+00:00``), so that they compare as text; ValueError naming ``what``."""
+    try:
+        t = _dt.datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError:
+        raise ValueError(
+            f"{what}: expected an ISO 8601 time such as 2026-12-04 or 2026-12-04T05:30:00Z, got {text!r}"
+        ) from None
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=_dt.UTC)
+    return t.astimezone(_dt.UTC).isoformat(timespec="milliseconds")
