@@ -5,7 +5,8 @@ ended by ``\n``; the server answers ``x,y,z`` (robot mm, full precision) or ``ER
 line per line, in order. Lines longer than :data:`MAX_LINE` bytes are refused and the connection is
 closed (the stream cannot be trusted after that). With a token, the first line must be
 ``AUTH <token>`` (answered ``OK``; anything else gets ``ERR`` and the connection closes), within
-``auth_s`` seconds. Idle connections close after ``idle_s`` seconds; at most ``max_clients``
+``auth_s`` seconds; without a token an ``AUTH`` line is answered ``OK`` (nothing to check). Idle
+connections close after ``idle_s`` seconds; at most ``max_clients``
 connections are served at once and at most ``max_per_peer`` from one address (others get
 ``ERR busy`` and are closed), so idle sockets from one local process cannot lock the robot out.
 A last line cut off by the end of the stream (no newline) is not answered: it may be incomplete.
@@ -613,7 +614,14 @@ class LineServer:
                     word = line.split(None, 1)[0].upper().decode("ascii", "replace") if line.strip() else ""
                     if isinstance(writer, _Worded):
                         writer.kind = word  # the ur count of this line's replies (CAL's 4, others' 6)
-                    if word in self.commands:
+                    if (
+                        word == "AUTH"
+                    ):  # a program that always sends its token: checked again (OK without one)
+                        if not self._token_ok(line):
+                            writer.write(b"ERR send 'AUTH <token>' first; closing\n")
+                            return
+                        writer.write(b"OK\n")
+                    elif word in self.commands:
                         writer.write(await self._command(word, line))
                     elif word in MISSING:
                         writer.write(f"ERR {MISSING[word]}\n".encode())
@@ -641,13 +649,18 @@ class LineServer:
                 line = got or b""
         except TimeoutError:
             pass
-        given = line.strip()[5:] if line[:5].upper() == b"AUTH " else b""
         assert self.token is not None  # _auth runs only with a token
-        if hmac.compare_digest(given.strip(), self.token):
+        if self._token_ok(line):
             writer.write(b"OK\n")
             return True
         writer.write(b"ERR send 'AUTH <token>' first; closing\n")
         return False
+
+    def _token_ok(self, line: bytes) -> bool:
+        """``AUTH <token>`` with this server's token (any ``AUTH`` line when it has none: a robot program
+        that always authenticates talks to a loopback server without a token too)."""
+        given = line.strip()[5:] if line[:5].upper() == b"AUTH " else b""
+        return self.token is None or hmac.compare_digest(given.strip(), self.token)
 
 
 _NUMBER_START = b"0123456789+-."
