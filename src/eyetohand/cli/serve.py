@@ -9,10 +9,17 @@ from __future__ import annotations
 import os
 import sys
 
+TOKEN_IN_PS = (
+    "warning: --token on the command line is visible to every user of this machine (ps, /proc); "
+    "give it with --token-file FILE or EYETOHAND_TOKEN instead"
+)
+
 
 def cmd_serve(args) -> int:
     from eyetohand.server import check_options, default_data_dir, serve
 
+    if args.token:  # on the command line: every user of this machine reads it in `ps`
+        print(TOKEN_IN_PS, file=sys.stderr)
     args.token = args.token or os.environ.get("EYETOHAND_TOKEN") or None
     # ---- --token-file (http worktree): the token read from a file, so no process listing shows it
     if getattr(args, "token_file", None) is not None:
