@@ -19,6 +19,7 @@ from typing import Any
 from fastapi import FastAPI
 
 from eyetohand._version import __version__
+from eyetohand.core import AuthBackoff
 from eyetohand.server.core import Jobs
 from eyetohand.server.middleware import BodyLimit, DatabaseGuard, HostGuard, SameOrigin, TokenGuard
 from eyetohand.server.responses import install_handlers
@@ -65,6 +66,7 @@ def create_app(
     create_db: bool = True,
     sign_key: bytes | None = None,
     require_signed: bool = False,
+    auth_backoff: AuthBackoff | None = None,
 ) -> FastAPI:
     """The app over the database in ``data_dir``. ``token``: required on /api/ when set.
     ``allowed_hosts``: accepted Host header names (None: any). ``max_pso_work``: the largest
@@ -73,7 +75,7 @@ def create_app(
     when ``data_dir`` has none (``serve`` passes True only at a first start); once open, a database
     deleted or replaced under the app answers 503 and is never recreated. ``sign_key``: checks
     signed calibration files on import and signs exports; ``require_signed``: imports must be signed
-    with it."""
+    with it. ``auth_backoff``: failed tokens per address (``serve`` shares one with TCP and OPC UA)."""
     limits = Limits(
         max_body_bytes=max_body_bytes,
         max_fit_body_bytes=min(max_fit_body_bytes, max_body_bytes),
@@ -134,7 +136,7 @@ def create_app(
     app.add_middleware(mapping.FastMap, service=service)
     app.add_middleware(BodyLimit, limit_for=limit_for)
     app.add_middleware(DatabaseGuard, check=service.store.check_same_file)
-    app.add_middleware(TokenGuard, token=token)
+    app.add_middleware(TokenGuard, token=token, backoff=auth_backoff)
     app.add_middleware(SameOrigin)
     if allowed_hosts is not None:
         app.add_middleware(HostGuard, hosts=allowed_hosts)

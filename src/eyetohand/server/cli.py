@@ -14,7 +14,7 @@ import socket
 from collections.abc import Callable
 from pathlib import Path
 
-from eyetohand.core import InputError
+from eyetohand.core import AuthBackoff, InputError
 
 
 class ServeError(InputError):
@@ -275,9 +275,9 @@ def one_calibration(server_fn, wanted: str | None) -> dict:
     return {"begin_rule": collection_rule(server_fn, wanted), "served_fn": served_for_check(server_fn)}
 
 
-def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
+def tcp_options(args, commands: dict, busy_replies: dict, backoff: AuthBackoff | None = None) -> dict:
     """The LineServer's options from ``serve``'s: the command handlers, their busy replies, the robot's
-    reserved addresses and the first-line grace."""
+    reserved addresses, the first-line grace and the failed-AUTH backoff (shared with HTTP, OPC UA)."""
     from eyetohand.core import MM_DEG
     from eyetohand.server.tcp import FIRST_LINE_S
 
@@ -288,6 +288,7 @@ def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
         "first_line_s": getattr(args, "tcp_first_line_s", None) or FIRST_LINE_S,
         "reply_format": getattr(args, "reply_format", None) or "plain",
         "units": getattr(args, "output_units", None) or MM_DEG,
+        "auth_backoff": backoff,
     }
 
 
@@ -300,16 +301,33 @@ def _not_a_cancellation(record: logging.LogRecord) -> bool:
 async def _serve(args, data_dir) -> None:
     loops: list = []  # the line service's loop thread, stopped however _run_serve ends
     try:
-        await _run_serve(args, data_dir, loops)
+        # failed tokens per address: one count for TCP AUTH, HTTP and the OPC UA user token
+        await _run_serve(args, data_dir, loops, AuthBackoff())
     finally:
         for t in loops:
             t.stop()
 
 
-async def _run_serve(args, data_dir, loops: list) -> None:
+def _http_app(args, data_dir: Path, fresh_db: bool, backoff: AuthBackoff):
+    """The workbench's app with ``serve``'s options (``fresh_db``: a first start may create the
+    database; ``backoff``: failed tokens per address, shared with TCP and OPC UA)."""
+    from eyetohand.server.app import create_app
+
+    return create_app(
+        data_dir,
+        token=args.token,
+        db_wait_s=args.db_wait,
+        allowed_hosts=allowed_hosts(args),
+        create_db=fresh_db,
+        sign_key=getattr(args, "sign_key_bytes", None),
+        require_signed=bool(getattr(args, "require_signed", False)),
+        auth_backoff=backoff,
+    )
+
+
+async def _run_serve(args, data_dir, loops: list, backoff: AuthBackoff) -> None:
     import uvicorn
 
-    from eyetohand.server.app import create_app
     from eyetohand.server.storage import DB_NAME, Store
     from eyetohand.server.tcp import LineServer, LoopThread, SameFile, StoredCalibration
 
@@ -386,7 +404,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             raise ServeError(str(exc).splitlines()[0]) from None
         assert served is not None  # _served_calibration ran for --tcp
         line_server = LineServer(
-            served, host, port, token=args.token, **tcp_options(args, commands, busy_replies)
+            served, host, port, token=args.token, **tcp_options(args, commands, busy_replies, backoff)
         )
         try:
             await tcp_loop.call(line_server.start())
@@ -415,18 +433,11 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             poll=line_server is None,
             locate=None if locator is None else locator.locate,
             http_sock=http_sock,
+            auth_backoff=backoff,
         )
         loops.append(plc_loop)
 
-    app = create_app(
-        data_dir,
-        token=args.token,
-        db_wait_s=args.db_wait,
-        allowed_hosts=allowed_hosts(args),
-        create_db=fresh_db,
-        sign_key=getattr(args, "sign_key_bytes", None),
-        require_signed=bool(getattr(args, "require_signed", False)),
-    )
+    app = _http_app(args, data_dir, fresh_db, backoff)
     if collector is not None:
         from eyetohand.server.routes.collect import CameraView
 
@@ -458,7 +469,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             store.close()
 
 
-async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
+async def _start_plc(args, current, served, *, poll: bool, locate, http_sock, auth_backoff=None):
     """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
     service's served calibration when there is one, else ``served``, followed by polling when
     ``poll``); print their start-up lines. Returns (the services, their loop)."""
@@ -473,6 +484,7 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
         opcua=parse_hostport(args.opcua, "--opcua") if getattr(args, "opcua", None) else None,
         token=args.token,
         locate=locate,
+        auth_backoff=auth_backoff,
     )
     plc_loop = LoopThread("eyetohand-plc")
     try:

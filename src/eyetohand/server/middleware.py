@@ -4,8 +4,10 @@ JSON error body without reading more of the request than it needs."""
 from __future__ import annotations
 
 import hmac
+import math
 from collections.abc import Callable
 
+from eyetohand.core import AuthBackoff
 from eyetohand.server.responses import error_response, send_response
 
 JSON_TYPES = (b"application/json",)
@@ -77,11 +79,14 @@ class BodyLimit:
 
 
 class TokenGuard:
-    """With a token set, every /api/ request needs ``Authorization: Bearer <token>``."""
+    """With a token set, every /api/ request needs ``Authorization: Bearer <token>``. After repeated
+    wrong tokens from one address (``backoff``), its requests get 429 with ``Retry-After``, unjudged,
+    until the delay is over."""
 
-    def __init__(self, app, token: str | None):
+    def __init__(self, app, token: str | None, backoff: AuthBackoff | None = None):
         self.app = app
         self.token = token.encode() if token else None
+        self.backoff = AuthBackoff() if backoff is None else backoff
 
     async def __call__(self, scope, receive, send):
         if (
@@ -90,9 +95,26 @@ class TokenGuard:
             and scope["path"].startswith("/api/")
             and scope["path"] != "/api/health"
         ):
+            client = scope.get("client")
+            addr = str(client[0]) if client else "?"
+            wait_s = self.backoff.wait_s(addr)
+            if wait_s > 0:
+                retry = str(math.ceil(wait_s))
+                return await send_response(
+                    send,
+                    error_response(
+                        429,
+                        f"too many wrong tokens from {addr}: the next request is judged in {retry} s",
+                        "Authorization",
+                        headers={"Retry-After": retry},
+                    ),
+                )
             auth = dict(scope.get("headers") or []).get(b"authorization", b"")
             given = auth[7:].strip() if auth[:7].lower() == b"bearer " else b""
-            if not hmac.compare_digest(given, self.token):
+            if hmac.compare_digest(given, self.token):
+                self.backoff.succeeded(addr)
+            else:
+                self.backoff.failed(addr, "HTTP token")
                 return await send_response(
                     send,
                     error_response(

@@ -33,6 +33,7 @@ class PlcServices:
         opcua: tuple[str, int] | None = None,
         token: str | None = None,
         locate: Callable[..., Any] | None = None,
+        auth_backoff: Any = None,
     ):
         self.source = source
         self.locate = locate  # the camera's LOCATE (Locator.locate), None without --camera
@@ -41,7 +42,11 @@ class PlcServices:
             if modbus is None
             else ModbusService(source, *modbus, word_order=word_order, allow_from=allow_from, locate=locate)
         )
-        self.opcua = None if opcua is None else OpcUaService(source, *opcua, token=token, locate=locate)
+        self.opcua = (
+            None
+            if opcua is None
+            else OpcUaService(source, *opcua, token=token, locate=locate, auth_backoff=auth_backoff)
+        )
         self.starting = ""  # the server being started (an OSError names it)
         self._poller: asyncio.Task | None = None
 

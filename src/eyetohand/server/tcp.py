@@ -41,7 +41,7 @@ from eyetohand.cell import (
     line_count,
     line_numbers,
 )
-from eyetohand.core import MM_DEG, InputError, OutputUnits
+from eyetohand.core import MM_DEG, AuthBackoff, InputError, OutputUnits
 from eyetohand.geometry import check_symmetry
 
 MAX_LINE = 256
@@ -446,8 +446,11 @@ class LineServer:
         first_line_s: float = FIRST_LINE_S,
         reply_format: str = "plain",
         units: OutputUnits = MM_DEG,
+        auth_backoff: AuthBackoff | None = None,
     ):
         self.replies = LineReplies(reply_format, units)  # how every reply is worded (cell/replies.py)
+        # failed AUTH per address (serve shares one with HTTP and OPC UA)
+        self.auth_backoff = AuthBackoff() if auth_backoff is None else auth_backoff
         self.source: FixedCalibration | StoredCalibration | PendingCalibration = (
             FixedCalibration(cal) if isinstance(cal, Calibration) else cal
         )
@@ -572,7 +575,7 @@ class LineServer:
         writer.transport.set_write_buffer_limits(high=WRITE_HIGH)
         lines = _Lines()
         try:
-            if self.token is not None and not await self._auth(reader, writer, lines):
+            if self.token is not None and not await self._auth(reader, writer, lines, addr):
                 return
             await self._serve_lines(reader, writer, lines)
         except (ConnectionError, asyncio.CancelledError):
@@ -637,7 +640,9 @@ class LineServer:
         finally:
             idle.close()
 
-    async def _auth(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines: _Lines) -> bool:
+    async def _auth(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines: _Lines, addr: str
+    ) -> bool:
         line = b""
         try:
             async with asyncio.timeout(min(self.auth_s, self.idle_s)):
@@ -650,9 +655,21 @@ class LineServer:
         except TimeoutError:
             pass
         assert self.token is not None  # _auth runs only with a token
+        if not line:
+            writer.write(b"ERR send 'AUTH <token>' first; closing\n")
+            return False  # no attempt (nothing said): not counted
+        wait_s = self.auth_backoff.wait_s(addr)
+        if wait_s > 0:  # too many failures from this address: refused without looking at the token
+            writer.write(
+                f"ERR send 'AUTH <token>' first: too many failed attempts from {addr}, the next is "
+                f"judged in {math.ceil(wait_s)} s; closing\n".encode()
+            )
+            return False
         if self._token_ok(line):
+            self.auth_backoff.succeeded(addr)
             writer.write(b"OK\n")
             return True
+        self.auth_backoff.failed(addr, "TCP AUTH")
         writer.write(b"ERR send 'AUTH <token>' first; closing\n")
         return False
 
