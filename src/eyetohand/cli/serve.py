@@ -54,6 +54,21 @@ def read_token_file(path: str, given: bool) -> str:
     return lines[0].strip()
 
 
+def add_opcua_certificate_options(p) -> None:
+    """``--opcua-cert FILE`` and ``--opcua-key FILE``: the plant's certificate for OPC UA's secured
+    endpoints (default: one made at the first start in DATA/opcua/)."""
+    p.add_argument(
+        "--opcua-cert",
+        metavar="FILE",
+        default=None,
+        help="OPC UA server certificate (PEM or DER, with an application URI); default: one made at "
+        "the first start in DATA/opcua/",
+    )
+    p.add_argument(
+        "--opcua-key", metavar="FILE", default=None, help="the private key of --opcua-cert (PEM or DER)"
+    )
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "serve",
@@ -109,8 +124,9 @@ def register(sub) -> None:
         metavar="HOST:PORT",
         default=None,
         help="also serve OPC UA on opc.tcp://HOST:PORT/eyetohand/ (docs/plc.md); anonymous on "
-        "loopback, else user 'eyetohand' with --token as password",
+        "loopback, else user 'eyetohand' with --token as password (off loopback only encrypted)",
     )
+    add_opcua_certificate_options(p)
     p.add_argument(
         "--calibration",
         metavar="REF",

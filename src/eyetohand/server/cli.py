@@ -157,12 +157,31 @@ def check_plc_options(args) -> None:
                 f"--opcua {opcua}: a non-loopback address needs --token T (OPC UA user "
                 "'eyetohand', the token as password); refusing to start"
             )
+    check_opcua_certificate(args, opcua)
     for flag, given in (("--modbus", modbus), ("--opcua", opcua)):
         if given and not args.calibration and not (args.tcp and getattr(args, "camera", None)):
             raise ServeError(
                 f"{flag} needs --calibration NAME, id:N or FILE.json (the calibration to serve), or "
                 "--tcp with --camera (a collection creates it)"
             )
+
+
+def check_opcua_certificate(args, opcua: str | None) -> None:
+    """``--opcua-cert/--opcua-key``: both or neither, with ``--opcua``; the pair read and checked now,
+    before anything binds (``args.opcua_security``; None: the data folder's own, made at start)."""
+    cert, key = getattr(args, "opcua_cert", None), getattr(args, "opcua_key", None)
+    args.opcua_security = None
+    if (cert or key) and not opcua:
+        raise ServeError("--opcua-cert/--opcua-key are the OPC UA server's: give --opcua HOST:PORT too")
+    if bool(cert) != bool(key):
+        raise ServeError("--opcua-cert and --opcua-key go together: the certificate and its private key")
+    if cert and key:
+        from eyetohand.server.opcua_cert import ServerCertificate
+
+        try:
+            args.opcua_security = ServerCertificate.from_files(cert, key)
+        except InputError as exc:
+            raise ServeError(str(exc)) from None
 
 
 # ---- --sign-key / --require-signed / --allow-host (the http worktree; one block for easy merges)
@@ -434,6 +453,7 @@ async def _run_serve(args, data_dir, loops: list, backoff: AuthBackoff) -> None:
             locate=None if locator is None else locator.locate,
             http_sock=http_sock,
             auth_backoff=backoff,
+            data_dir=data_dir,
         )
         loops.append(plc_loop)
 
@@ -469,12 +489,25 @@ async def _run_serve(args, data_dir, loops: list, backoff: AuthBackoff) -> None:
             store.close()
 
 
-async def _start_plc(args, current, served, *, poll: bool, locate, http_sock, auth_backoff=None):
+async def _start_plc(
+    args, current, served, *, poll: bool, locate, http_sock, auth_backoff=None, data_dir: Path | None = None
+):
     """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
     service's served calibration when there is one, else ``served``, followed by polling when
-    ``poll``); print their start-up lines. Returns (the services, their loop)."""
+    ``poll``); print their start-up lines. Returns (the services, their loop). OPC UA's certificate:
+    ``--opcua-cert/--opcua-key``, else the one in ``data_dir``/opcua (created at the first start)."""
+    from eyetohand.server.opcua_cert import ServerCertificate, reachable_addresses
     from eyetohand.server.plc import PlcServices
     from eyetohand.server.tcp import LoopThread
+
+    security = getattr(args, "opcua_security", None)
+    if getattr(args, "opcua", None) and security is None and data_dir is not None:
+        try:
+            host = parse_hostport(args.opcua, "--opcua")[0]
+            security = ServerCertificate.in_folder(Path(data_dir) / "opcua", reachable_addresses(host))
+        except (InputError, OSError) as exc:
+            http_sock.close()
+            raise ServeError(f"--opcua: the server certificate: {exc}") from None
 
     plc = PlcServices(
         current,
@@ -485,6 +518,7 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock, au
         token=args.token,
         locate=locate,
         auth_backoff=auth_backoff,
+        security=security,
     )
     plc_loop = LoopThread("eyetohand-plc")
     try:

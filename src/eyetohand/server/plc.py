@@ -17,6 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 from eyetohand.cell import ModbusService, OpcUaService
+from eyetohand.server.opcua_cert import ServerCertificate
 
 
 class PlcServices:
@@ -34,7 +35,9 @@ class PlcServices:
         token: str | None = None,
         locate: Callable[..., Any] | None = None,
         auth_backoff: Any = None,
+        security: ServerCertificate | None = None,
     ):
+        self.security = security  # OPC UA's certificate (server/opcua_cert.py)
         self.source = source
         self.locate = locate  # the camera's LOCATE (Locator.locate), None without --camera
         self.modbus = (
@@ -45,7 +48,9 @@ class PlcServices:
         self.opcua = (
             None
             if opcua is None
-            else OpcUaService(source, *opcua, token=token, locate=locate, auth_backoff=auth_backoff)
+            else OpcUaService(
+                source, *opcua, token=token, locate=locate, auth_backoff=auth_backoff, security=security
+            )
         )
         self.starting = ""  # the server being started (an OSError names it)
         self._poller: asyncio.Task | None = None
@@ -90,6 +95,13 @@ class PlcServices:
         if self.opcua is not None:
             auth = "user 'eyetohand' + token" if self.opcua.token else "anonymous (loopback)"
             out.append(f"OPC UA: {self.opcua.url} Calibration.ImageToRobot ({auth}) with {what}")
+            sec = self.security
+            if sec is not None:
+                made = "created now; " if sec.created else ""
+                out.append(
+                    f"OPC UA: certificate {sec.path} ({made}SHA-1 {sec.thumbprint}) for Sign and "
+                    "SignAndEncrypt with Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss"
+                )
             if self.locate is not None:
                 out.append(f"OPC UA: {self.opcua.url} Calibration.Locate finds parts with the camera")
         return out

@@ -21,9 +21,9 @@ object ``Calibration`` with
 Without ``token`` the server takes anonymous sessions (for loopback; ``eyetohand serve`` refuses
 another address without one); with it, only user :data:`USER` with the token as password. With a
 ``certificate`` (:class:`Security`) the endpoints are None plus :data:`SECURE_POLICIES`, each in Sign
-and SignAndEncrypt; a client off loopback is then accepted only when its password did not cross in
-clear (a SignAndEncrypt channel, or the user token encrypted with the server's certificate, as the
-Sign endpoints ask). Without one: None only (docs/plc.md).
+and SignAndEncrypt; a client off loopback is then accepted only on a secured channel with its password
+protected (SignAndEncrypt, or Sign with the user token encrypted with the server's certificate, as
+the Sign endpoints ask); a None channel only from loopback. Without one: None only (docs/plc.md).
 """
 
 from __future__ import annotations
@@ -95,9 +95,12 @@ SECURE_POLICIES = (
 class Security(Protocol):
     """The server's application instance certificate (``eyetohand.server`` makes one)."""
 
-    certificate_der: bytes
-    private_key_pem: bytes
-    application_uri: str
+    @property
+    def certificate_der(self) -> bytes: ...
+    @property
+    def private_key_pem(self) -> bytes: ...
+    @property
+    def application_uri(self) -> str: ...
 
 
 class OpcUaService:
@@ -144,7 +147,7 @@ class OpcUaService:
         server.set_server_name("eyetohand")
         sec = self.security
         if users is not None:
-            _note_peers(server, users, need_protection=sec is not None)
+            _note_peers(server, users)
         if sec is not None:
             await server.load_certificate(sec.certificate_der, "der")
             await server.load_private_key(sec.private_key_pem, None, "pem")
@@ -314,15 +317,16 @@ def _user_manager(token: str, backoff: AuthBackoff):
     return Users()
 
 
-def _note_peers(server: Any, users: Any, *, need_protection: bool) -> None:
+def _note_peers(server: Any, users: Any) -> None:
     """Tell ``users`` the client address of each session whose user token is checked, and whether its
     password crossed the network protected: asyncua's ActivateSession (asyncua 2.x,
     ``InternalSession.activate_session``) calls the server's ``decrypt_user_token(isession, token)``
     and then, with no await between, ``get_user``; the session's ``name`` is its connection's peer
     name (host, port), and the connection (``bserver.clients``, the processor's ``_connection``)
-    knows its channel's security mode. ``need_protection``: a peer off loopback must have sent the
-    password on a SignAndEncrypt channel or encrypted with the server's certificate. Wrapped on this
-    server only."""
+    knows its channel's security mode. A peer off loopback is accepted only on a secured channel (a
+    None channel's session could be taken over after it is activated) with the password protected:
+    SignAndEncrypt, or Sign with the user token encrypted with the server's certificate (what the Sign
+    endpoints' token policy asks). Wrapped on this server only."""
     from asyncua import ua
 
     iserver = server.iserver
@@ -331,16 +335,16 @@ def _note_peers(server: Any, users: Any, *, need_protection: bool) -> None:
     def decrypt_noting_peer(isession, token):
         name = getattr(isession, "name", None)
         users.peer = str(name[0]) if isinstance(name, tuple) and name else "?"
-        encrypted_channel = any(
-            p.processor.session is isession
-            and p.processor._connection.security_policy.Mode == ua.MessageSecurityMode.SignAndEncrypt
+        modes = [
+            p.processor._connection.security_policy.Mode
             for p in (server.bserver.clients if server.bserver is not None else ())
-        )
+            if p.processor.session is isession
+        ]
+        mode = modes[0] if modes else ua.MessageSecurityMode.None_
         users.protected = (
-            not need_protection
-            or _is_loopback(users.peer)
-            or encrypted_channel
-            or bool(getattr(token, "EncryptionAlgorithm", None))
+            _is_loopback(users.peer)
+            or mode == ua.MessageSecurityMode.SignAndEncrypt
+            or (mode == ua.MessageSecurityMode.Sign and bool(getattr(token, "EncryptionAlgorithm", None)))
         )
         return decrypt(isession, token)
 
