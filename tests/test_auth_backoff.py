@@ -174,3 +174,19 @@ def test_opcua_user_token_is_held_back(server):
     asyncio.run(run())
     assert b"too many failed attempts" in tcp_auth(server.tcp_port, TOKEN)
     assert tcp_auth(server.tcp_port, TOKEN, source="127.0.0.3") == b"OK\n"
+
+
+def test_no_token_tried_is_not_counted(server):
+    """A first line that is not AUTH (a robot program without the token) and HTTP requests without a
+    token are refused but are no guesses: many of them leave the address free for the right token."""
+    for _ in range(3 * FREE_FAILURES):
+        with socket.create_connection(
+            ("127.0.0.1", server.tcp_port), timeout=20, source_address=("127.0.0.6", 0)
+        ) as s:
+            s.sendall(b"600,900\n")
+            assert s.makefile("rb").readline() == b"ERR send 'AUTH <token>' first; closing\n"
+    assert tcp_auth(server.tcp_port, TOKEN, source="127.0.0.6") == b"OK\n"
+    with httpx.Client(base_url=server.url, transport=httpx.HTTPTransport(local_address="127.0.0.6")) as c:
+        for _ in range(3 * FREE_FAILURES):
+            assert c.get("/api/calibrations").status_code == 401
+        assert c.get("/api/calibrations", headers={"Authorization": f"Bearer {TOKEN}"}).status_code == 200

@@ -97,7 +97,9 @@ class TokenGuard:
         ):
             client = scope.get("client")
             addr = str(client[0]) if client else "?"
-            wait_s = self.backoff.wait_s(addr)
+            auth = dict(scope.get("headers") or []).get(b"authorization", b"")
+            given = auth[7:].strip() if auth[:7].lower() == b"bearer " else b""
+            wait_s = self.backoff.wait_s(addr) if given else 0.0  # no token tried: not held back
             if wait_s > 0:
                 retry = str(math.ceil(wait_s))
                 return await send_response(
@@ -109,12 +111,11 @@ class TokenGuard:
                         headers={"Retry-After": retry},
                     ),
                 )
-            auth = dict(scope.get("headers") or []).get(b"authorization", b"")
-            given = auth[7:].strip() if auth[:7].lower() == b"bearer " else b""
             if hmac.compare_digest(given, self.token):
                 self.backoff.succeeded(addr)
             else:
-                self.backoff.failed(addr, "HTTP token")
+                if given:  # a token tried and wrong (none at all is no guess: not counted)
+                    self.backoff.failed(addr, "HTTP token")
                 return await send_response(
                     send,
                     error_response(

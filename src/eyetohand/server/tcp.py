@@ -10,6 +10,7 @@ connections close after ``idle_s`` seconds; at most ``max_clients``
 connections are served at once and at most ``max_per_peer`` from one address (others get
 ``ERR busy`` and are closed), so idle sockets from one local process cannot lock the robot out.
 A last line cut off by the end of the stream (no newline) is not answered: it may be incomplete.
+Wrong tokens are held back per source address (``auth_backoff``, :class:`eyetohand.core.AuthBackoff`).
 
 ``VERSION`` answers what is in force: ``OK <name>,<version>,<created_utc>`` for a stored calibration,
 ``OK <path>,<sha256 of the file>`` for a file. A stored calibration is followed: the service polls
@@ -655,9 +656,9 @@ class LineServer:
         except TimeoutError:
             pass
         assert self.token is not None  # _auth runs only with a token
-        if not line:
+        if line[:5].upper() != b"AUTH ":
             writer.write(b"ERR send 'AUTH <token>' first; closing\n")
-            return False  # no attempt (nothing said): not counted
+            return False  # no token tried (nothing said, or another line first): not counted
         wait_s = self.auth_backoff.wait_s(addr)
         if wait_s > 0:  # too many failures from this address: refused without looking at the token
             writer.write(
