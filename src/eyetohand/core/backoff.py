@@ -73,6 +73,8 @@ class AuthBackoff:
     def wait_s(self, address: str) -> float:
         """Seconds before an attempt from ``address`` is judged (0: judge it now). An attempt made
         while this is positive is to be refused without looking at its token."""
+        if address not in self._failures:  # the common case, without the lock (one dict lookup)
+            return 0.0
         now = self.clock()
         with self._lock:
             f = self._failures.get(address)
@@ -108,6 +110,8 @@ class AuthBackoff:
 
     def succeeded(self, address: str) -> None:
         """``address`` authenticated: its failures are forgotten."""
+        if address not in self._failures:  # the common case, without the lock
+            return
         with self._lock:
             self._failures.pop(address, None)
 
