@@ -6,7 +6,9 @@ are taken from its own text and replayed against ``eyetohand serve --camera sim:
 3x3 collection; the virtual table holds 12 parts, some outside the calibrated region. One cycle per
 program: LOCATE, then LOCATE NEXT until DONE; each part the program accepts is "picked" on a side
 connection (``SIM PICK``, standing in for the gripper) and must be there; the next LOCATE then finds
-only the parts outside the region (count 0), which the program never gets.
+only the parts outside the region (count 0), which the program never gets. Each server runs with
+``--token`` the program's own token, and each program's first line is its ``AUTH`` (read out of its
+text by test_robot_programs.program_auth).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from test_robot_programs import (
     krl_sread_reals,
     one,
     program,
+    program_auth,
     rapid_string,
     rapid_strtoval,
     spel_line_input,
@@ -62,23 +65,28 @@ def calibrated(tmp_path_factory):
 
 
 class Cell:
-    """The server on the calibrated data, 12 parts on its table, and a side connection (the gripper)."""
+    """The server on the calibrated data (``--token`` the program's), 12 parts on its table, a side
+    connection (the gripper), and the program's connection after its AUTH."""
 
-    def __init__(self, root, *extra: str):
+    def __init__(self, root, rel: str, *extra: str):
+        auth = program_auth(rel)
         self.srv = ServeProcess(
             root / "data",
             "--camera",
             f"sim:{root / 'cell.toml'}?seed={SEED}",
             "--calibration",
             "cell1",
+            "--token",
+            auth.token,
             *extra,
         )
-        self.side = TcpLink("127.0.0.1", self.srv.tcp_port, timeout_s=60)
+        self.side = TcpLink("127.0.0.1", self.srv.tcp_port, timeout_s=60, token=auth.token)
         # with --reply-format ur every reply on every connection is bracketed, the simulator's too
         self.ok = "(1," if "ur" in extra else "OK "
         placed = self.side.send(f"SIM PARTS 12,3,10,{Z}")
         assert placed == ("(1,12,0,0,0,0)" if "ur" in extra else "OK 12"), placed
         self.wire = Wire(self.srv.tcp_port)
+        assert auth.ok(reply := auth.exchange(self.wire)), reply
         self.picked: list[str] = []
 
     def grip(self, x: float, y: float) -> None:
@@ -120,7 +128,7 @@ def test_ur_pick(calibrated):
     assert line_end == b"\r\n" and n_read == 6
     assert 'cmd("LOCATE NEXT")' in text and "r[6] < 0 or r[6] > MAX_SIGMA" in text
     assert "down = p[r[2], r[3], r[4] + TOOL_DZ," in text  # metres as answered: no conversion
-    cell = Cell(calibrated, *serve_opts)
+    cell = Cell(calibrated, "ur/eyetohand_pick.script", *serve_opts)
     try:
 
         def cmd(line: str) -> list[float]:
@@ -159,7 +167,7 @@ def test_abb_pick(calibrated):
     line_end = bytes(int(h, 16) for h in re.findall(r"\\([0-9A-F]{2})", escapes))
     one(r"ParseNums\(reply, 2\)", text)
     one(r"ParseNums\(reply, 5\)", text)
-    cell = Cell(calibrated)
+    cell = Cell(calibrated, "abb/EyetohandPick.mod")
     try:
 
         def command(c: str) -> str:
@@ -193,7 +201,7 @@ def test_fanuc_pick(calibrated):
     max_sigma = float(one(r"MAX_SIGMA = ([\d.]+)", text).group(1))
     one(r"WRITE sock \(line, CR\)", text)
     reply_len = int(one(r"reply : STRING\[(\d+)\]", text).group(1))
-    cell = Cell(calibrated)
+    cell = Cell(calibrated, "fanuc/eth_pick.kl")
     try:
 
         def send_cmd(line: str) -> str:
@@ -227,7 +235,7 @@ def test_kuka_pick(calibrated):
     fmts = re.findall(r'SREAD\(reply\[\], st, offset, "([^"]+)"', src)
     assert fmts == ["%f,%f", "%f,%f,%f,%f,%f"], fmts
     max_sigma = float(one(r"MAX_SIGMA = ([\d.]+)", src).group(1))
-    cell = Cell(calibrated)
+    cell = Cell(calibrated, "kuka/eyetohand_pick.src")
     try:
 
         def command(line: str) -> str:
@@ -263,7 +271,7 @@ def test_epson_pick(calibrated):
     max_sigma = float(one(r"MAX_SIGMA = ([\d.]+)", text).group(1))
     one(r"If gCount <> 2 Then GoTo Fail", text)
     one(r"If gCount <> 5 Then GoTo Fail", text)
-    cell = Cell(calibrated)
+    cell = Cell(calibrated, "epson/EyetohandPick.prg")
     try:
 
         def cmd(line: str) -> tuple[str, list[float]]:

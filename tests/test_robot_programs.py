@@ -7,6 +7,11 @@ below (the manual's rule in its docstring). What each program sends — the BEGI
 the line end, the number format — is read out of the program's own text, so a program that drifts
 fails here. The plan is cut from grid:5x5 to grid:3x3 (the same exchange, shorter).
 
+The token: every program's first line is ``AUTH <token>`` with the token written at its top
+(:func:`program_auth` reads the token, the bytes and the program's own test of the reply out of its
+text); the replays run against a server started with ``--token`` that token, and every program is
+shown stopping on a wrong token (code -14) and talking to a server without a token.
+
 Also: robot_client.py's documented ``--rect -40,...`` form and a clean Ctrl-C.
 """
 
@@ -20,6 +25,9 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -198,6 +206,200 @@ def spel_val(s: str) -> float:
     return float(m.group()) if m else 0.0
 
 
+def rapid_read_line(wire: Wire) -> str:
+    """EyetohandCollect.mod's ReadLine: SocketReceive \\ReadNoOfBytes:=1 up to LF, CR dropped, 80 kept."""
+    line = ""
+    while (ch := wire.read_byte()) != b"\n":
+        if ch != b"\r" and len(line) < 80:
+            line = rapid_string(line + ch.decode("ascii"))
+    return line
+
+
+def karel_read_line(wire: Wire, reply_len: int) -> str:
+    """eth_cal.kl's read_line: byte by byte to LF, CR dropped, cut to the STRING's length."""
+    return wire.read_until(b"\n")[:-1].replace(b"\r", b"").decode("ascii")[:reply_len]
+
+
+# ---- the token: AUTH first, as each program sends it -------------------------------------------------
+
+PROGRAMS = [
+    "ur/eyetohand_collect.script",
+    "ur/eyetohand_pick.script",
+    "abb/EyetohandCollect.mod",
+    "abb/EyetohandPick.mod",
+    "fanuc/eth_cal.kl",
+    "fanuc/eth_pick.kl",
+    "kuka/eyetohand_collect.src",
+    "kuka/eyetohand_pick.src",
+    "epson/EyetohandCollect.prg",
+    "epson/EyetohandPick.prg",
+]
+
+
+@dataclass
+class Auth:
+    """A program's AUTH exchange, read out of its text: its token, the sends that put the line on the
+    wire, how it reads the reply and its own two tests of it (OK; the refused token)."""
+
+    token: str
+    sends: list[bytes]
+    read: Callable[[Wire], object]
+    ok: Callable[[object], bool]
+    refused: Callable[[object], bool]
+    ur: bool = False
+
+    def exchange(self, wire: Wire) -> object:
+        for data in self.sends:
+            wire.send(data)
+        return self.read(wire)
+
+
+def first_before(text: str, auth_call: str, *others: str) -> None:
+    """The program authenticates before any other command (``auth_call`` comes first in its code)."""
+    at = text.index(auth_call)
+    assert all(at < text.index(o) for o in others), (auth_call, others)
+
+
+def program_auth(rel: str, cr_item: bytes = b"\r\n") -> Auth:
+    """What ``rel`` sends as its first line and how it judges the reply (``cr_item``: the bytes taken
+    for KAREL's CR item, which the manual leaves open)."""
+    text = program(rel)
+    kind = rel.split("/")[0]
+    if kind == "ur":
+        token = one(r'^\s*TOKEN = "([^"]+)"', text, re.M).group(1)
+        if rel.endswith("collect.script"):
+            body = one(r"def auth\(\):(.*?)\n  end\n", text, re.S).group(1)
+            one(r'socket_send_string\(str_cat\("AUTH ", TOKEN\), "cam"\)', body)
+            code_14 = int(one(r"r\[1\] == (-\d+):", body).group(1))
+            first_before(text, "\n  auth()", "cmd(BEGIN)")
+        else:
+            body = one(r"def cmd\(line\):(.*?)\n  end", text, re.S).group(1)
+            code_14 = int(
+                one(r'r = cmd\(str_cat\("AUTH ", TOKEN\)\)[^\n]*\n\s*if r\[1\] == (-\d+):', text).group(1)
+            )
+            first_before(text, 'cmd(str_cat("AUTH ", TOKEN))', "cmd(LOCATE)")
+        line_end = bytes(int(b) for b in re.findall(r'socket_send_byte\((\d+), "cam"\)', body))
+        n = int(one(r'socket_read_ascii_float\((\d+), "cam"', body).group(1))
+        return Auth(
+            token,
+            [f"AUTH {token}".encode(), *(bytes([b]) for b in line_end)],  # socket_send_string, _byte
+            lambda w: ur_socket_read_ascii_float(w, n),
+            lambda r: r[0] == n and r[1] == 1,  # type: ignore[index]
+            lambda r: r[0] == n and r[1] == code_14,  # type: ignore[index]
+            ur=True,
+        )
+    if kind == "abb":
+        token = one(r'CONST string TOKEN := "([^"]+)";', text).group(1)
+        first_before(
+            text,
+            'Command("AUTH " + TOKEN)',
+            "Command(BEGIN_CMD)" if "Collect" in rel else "Command(LOCATE_CMD)",
+        )
+        escapes = one(r'SocketSend sock \\Str:=cmd \+ "((?:\\[0-9A-F]{2})+)";', text).group(1)
+        line_end = bytes(int(h, 16) for h in re.findall(r"\\([0-9A-F]{2})", escapes)).decode("ascii")
+        n, prefix = one(r'IF Clip\(reply, (\d+)\) = "([^"]+)" Stop\w+\("the vision PC refused', text).groups()
+        return Auth(
+            token,
+            [rapid_string("AUTH " + token + line_end).encode("ascii")],  # SocketSend \Str
+            rapid_read_line,
+            lambda r: r[:2] == "OK",  # type: ignore[index]
+            lambda r: r[: int(n)] == prefix,  # type: ignore[index]
+        )
+    if kind == "fanuc":
+        token = one(r"^\s*TOKEN = '([^']+)'", text, re.M).group(1)
+        first_before(
+            text, "\n  authenticate\n", "send_cmd(BEGIN_CMD)" if "cal" in rel else "send_cmd(LOCATE_CMD)"
+        )
+        one(r"send_cmd\('AUTH ' \+ TOKEN\)", text)
+        n, prefix = one(
+            r"IF SUB_STR\(reply, 1, (\d+)\) = '([^']+)' THEN\s*\n\s*stop_\w+\('the vision PC refused", text
+        ).groups()
+        reply_len = int(one(r"reply : STRING\[(\d+)\]", text).group(1))
+        return Auth(
+            token,
+            [f"AUTH {token}".encode() + cr_item],  # WRITE sock (line, CR)
+            lambda w: karel_read_line(w, reply_len),
+            lambda r: r[:2] == "OK",  # type: ignore[index]
+            lambda r: r[: int(n)] == prefix,  # type: ignore[index]
+        )
+    if kind == "kuka":
+        xml = program("kuka/EyetohandCal.xml")
+        elem = one(r'<RECEIVE>.*<ELEMENT Tag="Reply" Type="STREAM" EOS="([\d,]+)" Size="(\d+)"', xml, re.S)
+        eos, size = bytes(int(b) for b in elem.group(1).split(",")), int(elem.group(2))
+        token = one(r'StrCopy\(cmd\[\], "AUTH ([^"]+)"\)', text).group(1)
+        first_before(
+            text,
+            'StrCopy(cmd[], "AUTH ',
+            'StrCopy(cmd[], "CAL BEGIN' if "collect" in rel else 'StrCopy(cmd[], "LOCATE ',
+        )
+        prefix = one(
+            r'StrFind\(1, reply\[\], "([^"]+)", #CASE_SENS\) == 1 THEN\s*\n'
+            r'\s*MsgNotify\("eyetohand: the vision PC refused',
+            text,
+        ).group(1)
+        return Auth(
+            token,
+            [eki_send(f"AUTH {token}".encode().ljust(128, b"\0"), eos)],  # one EKI_Send
+            lambda w: eki_receive(w, eos, size).rstrip("\r\n"),
+            lambda r: r.startswith("OK"),  # type: ignore[attr-defined]
+            lambda r: r.startswith(prefix),  # type: ignore[attr-defined]
+        )
+    assert kind == "epson", rel
+    token = one(r'token\$ = "([^"]+)"', text).group(1)
+    terminator = {"CR": b"\r", "LF": b"\n", "CRLF": b"\r\n"}[
+        one(r'SetNet #201, "[\d.]+", \d+, (CRLF|CR|LF),', text).group(1)
+    ]
+    first_before(text, 'Cmd("AUTH " + token$)', 'Cmd("CAL BEGIN' if "Collect" in rel else 'Cmd("LOCATE ')
+    prefix = one(r'If InStr\(gReply\$, "([^"]+)"\) = 1 Then gReply\$ = "the vision PC refused', text).group(1)
+    return Auth(
+        token,
+        [f"AUTH {token}".encode() + terminator],  # Print #201
+        lambda w: spel_line_input(w, terminator).rstrip("\r"),
+        lambda r: r[:2] == "OK",  # type: ignore[index]
+        lambda r: r.startswith(prefix),  # type: ignore[attr-defined]
+    )
+
+
+@pytest.fixture(scope="module")
+def servers(tmp_path_factory, cell_file):
+    """Four servers: with a token none of the programs has, and without one; plain and ur replies."""
+    root = tmp_path_factory.mktemp("auth")
+    out = {}
+    try:
+        for ur in (False, True):
+            fmt = ("--reply-format", "ur") if ur else ()
+            out[ur, "wrong"] = serve(root / f"w{ur}", cell_file, "--token", "not-the-program-token", *fmt)
+            out[ur, None] = serve(root / f"n{ur}", cell_file, *fmt)
+        yield out
+    finally:
+        for srv in out.values():
+            srv.stop()
+
+
+@pytest.mark.parametrize("rel", PROGRAMS)
+def test_program_stops_on_a_wrong_token_and_talks_without_one(rel, servers):
+    """A wrong token: the program's own test of the reply says "refused" (code -14 in ur, the AUTH
+    refusal in plain) and the server closes; a server without a token answers the same AUTH with OK."""
+    auth = program_auth(rel)
+    assert len(auth.token) >= 8 and auth.token != "not-the-program-token"
+    wire = Wire(servers[auth.ur, "wrong"].tcp_port, timeout_s=20)
+    try:
+        reply = auth.exchange(wire)
+        assert auth.refused(reply) and not auth.ok(reply), reply
+        rest = wire.buf  # (ur: the reply's line end after the ")" it reads to)
+        while chunk := wire.sock.recv(100):  # the server closes: recv gives b"" (the 20 s timeout: no)
+            rest += chunk
+        assert rest.strip() == b"", rest
+    finally:
+        wire.close()
+    wire = Wire(servers[auth.ur, None].tcp_port, timeout_s=20)
+    try:
+        reply = auth.exchange(wire)
+        assert auth.ok(reply) and not auth.refused(reply), reply
+    finally:
+        wire.close()
+
+
 # ---- the programs, replayed --------------------------------------------------------------------------
 
 
@@ -211,9 +413,11 @@ def test_ur_script(tmp_path, cell_file):
     line_end = bytes(int(b) for b in re.findall(r'socket_send_byte\((\d+), "cam"\)', cmd_def))
     assert line_end == b"\r\n"
     n_read = int(one(r'socket_read_ascii_float\((\d+), "cam"', cmd_def).group(1))
-    srv = serve(tmp_path, cell_file, "--reply-format", "ur")
+    auth = program_auth("ur/eyetohand_collect.script")
+    srv = serve(tmp_path, cell_file, "--reply-format", "ur", "--token", auth.token)
     wire = Wire(srv.tcp_port)
     try:
+        assert auth.ok(r := auth.exchange(wire)), r
 
         def cmd(line: str) -> list[float]:
             wire.send(line.encode("ascii"))  # socket_send_string: no line end
@@ -242,22 +446,18 @@ def test_ur_script(tmp_path, cell_file):
         r = cmd("CAL END")
         assert r[1] == 1 and r[2] == N_RECORDED and 0 < r[3] < 0.5, r
         assert skipped == []  # -5 would be: outside the image
-        assert wire.sent[:3] == [begin.encode(), b"\r", b"\n"]
+        assert wire.sent[:6] == [f"AUTH {auth.token}".encode(), b"\r", b"\n", begin.encode(), b"\r", b"\n"]
     finally:
         wire.close()
         srv.stop()
 
 
 def abb_run(wire: Wire, begin: str, line_end: bytes, dec: int) -> dict:
-    """EyetohandCollect.mod's main loop on the wire, with RAPID's string rules."""
+    """EyetohandCollect.mod's main loop on the wire (AUTH first), with RAPID's string rules."""
     messages: list[str] = []
-
-    def read_line() -> str:  # ReadLine: SocketReceive \ReadNoOfBytes:=1 up to LF, CR dropped, 80 kept
-        line = ""
-        while (ch := wire.read_byte()) != b"\n":
-            if ch != b"\r" and len(line) < 80:
-                line = rapid_string(line + ch.decode("ascii"))
-        return line
+    auth = program_auth("abb/EyetohandCollect.mod")
+    assert auth.ok(reply := auth.exchange(wire)), reply
+    read_line = partial(rapid_read_line, wire)
 
     def clip(s: str, n: int) -> str:
         return s if len(s) <= n else s[:n]
@@ -310,7 +510,7 @@ def test_abb_rapid(tmp_path, cell_file):
     assert len(dec) == 1
     # the END reply as RAPID would have parsed it before: the model's name is not a num
     assert rapid_strtoval("homography-radial") is None
-    srv = serve(tmp_path, cell_file)
+    srv = serve(tmp_path, cell_file, "--token", program_auth("abb/EyetohandCollect.mod").token)
     wire = Wire(srv.tcp_port)
     try:
         out = abb_run(wire, begin, line_end, dec.pop())
@@ -318,7 +518,7 @@ def test_abb_rapid(tmp_path, cell_file):
         assert re.fullmatch(rf"OK [a-z-]+,{N_RECORDED},\d+\.\d{{4}},\d+\.\d{{4}}", out["end"]), out
         assert out["messages"][:-1] == [], out["messages"]
         assert out["messages"][-1] == f"eyetohand: calibrated: {out['end']}"
-        assert wire.sent[0] == begin.encode() + b"\r\n" and all(s.endswith(b"\r\n") for s in wire.sent)
+        assert wire.sent[1] == begin.encode() + b"\r\n" and all(s.endswith(b"\r\n") for s in wire.sent)
     finally:
         wire.close()
         srv.stop()
@@ -331,7 +531,7 @@ def test_abb_rapid_skips_a_pose_outside_the_view(tmp_path, cell_file):
     begin = short_plan(one(r'CONST string BEGIN_CMD := "([^"]+)";', text).group(1))
     begin = re.sub(r",grid:3x3,[-0-9.,]+,([0-9.]+)$", f",grid:3x3,{OUTSIDE_RECT},\\1", begin)
     assert OUTSIDE_RECT in begin, begin
-    srv = serve(tmp_path, cell_file)
+    srv = serve(tmp_path, cell_file, "--token", program_auth("abb/EyetohandCollect.mod").token)
     wire = Wire(srv.tcp_port)
     try:
         out = abb_run(wire, begin, b"\r\n", 4)
@@ -345,9 +545,11 @@ def test_abb_rapid_skips_a_pose_outside_the_view(tmp_path, cell_file):
         srv.stop()
 
 
-def test_fanuc_karel(tmp_path, cell_file):
-    """FANUC: WRITE (line, CR) sends the line with the CR item's line end (CR LF); replies are read
-    byte by byte to LF into STRING[128]; CNV_STR_REAL reads NEXT's numbers; END's reply is only shown."""
+@pytest.mark.parametrize("cr_item", [b"\r\n", b"\r", b"\n"], ids=["crlf", "cr", "lf"])
+def test_fanuc_karel(tmp_path, cell_file, cr_item):
+    """FANUC: WRITE (line, CR) sends the line ended by the CR item — a CR, LF or CR LF (the manual's
+    text we have does not say which bytes; the exchange works with each); replies are read byte by
+    byte to LF into STRING[128]; CNV_STR_REAL reads NEXT's numbers; END's reply is only shown."""
     text = program("fanuc/eth_cal.kl")
     begin = short_plan(one(r"BEGIN_CMD = '([^']+)'", text).group(1))
     assert int(one(r"SERVER_PORT = (\d+)", text).group(1)) == 5000
@@ -359,16 +561,17 @@ def test_fanuc_karel(tmp_path, cell_file):
     assert "$GROUP[1].$UTOOL = " in text and "$GROUP[1].$UFRAME = " in text
     length, digits = (int(v) for v in one(r"CNV_REAL_STR\(v, (\d+), (\d+), s\)", text).groups())
     reply_len = int(one(r"reply : STRING\[(\d+)\]", text).group(1))
-    srv = serve(tmp_path, cell_file)
+    auth = program_auth("fanuc/eth_cal.kl", cr_item)
+    srv = serve(tmp_path, cell_file, "--token", auth.token)
     wire = Wire(srv.tcp_port)
     try:
 
         def send_cmd(line: str) -> tuple[bool, str]:
-            wire.send(line.encode("ascii") + b"\r\n")
-            raw = wire.read_until(b"\n")[:-1].replace(b"\r", b"")
-            reply = raw.decode("ascii")[:reply_len]
+            wire.send(line.encode("ascii") + cr_item)
+            reply = karel_read_line(wire, reply_len)
             return reply[:2] == "OK", reply
 
+        assert auth.ok(r := auth.exchange(wire)), r
         assert send_cmd(begin)[0]
         n, skipped = 0, []
         while True:
@@ -413,9 +616,11 @@ def test_kuka_eki(tmp_path, cell_file):
     begin = short_plan(one(r'StrCopy\(cmd\[\], "(CAL BEGIN [^"]+)"\)', src).group(1))
     point_fmt = one(r'SWRITE\(cmd\[\], st, offset, "([^"]+)"', src).group(1)
     sread = one(r'offset = (\d+)\s*;[^\n]*\n\s*SREAD\(reply\[\], st, offset, "([^"]+)"', src)
-    srv = serve(tmp_path, cell_file)
+    auth = program_auth("kuka/eyetohand_collect.src")
+    srv = serve(tmp_path, cell_file, "--token", auth.token)
     wire = Wire(srv.tcp_port)
     try:
+        assert auth.ok(r := auth.exchange(wire)), r
 
         def command(line: str) -> tuple[bool, str]:
             wire.send(eki_send(line.encode("ascii").ljust(128, b"\0"), eos))  # cmd[128] after StrClear
@@ -459,9 +664,11 @@ def test_epson_spel(tmp_path, cell_file):
     fmt = one(r'FmtStr\$\(v, "([^"]+)"\)', text).group(1)
     assert not re.search(r"CP (On|Off)\s*(?:'.*)?$", text.split("CP Off\n", 1)[1], re.M)
     assert not re.search(r"\bXY\(", code(text, "'")) and "Move Here :X(x) :Y(y) :Z(z)" in text
-    srv = serve(tmp_path, cell_file)
+    auth = program_auth("epson/EyetohandCollect.prg")
+    srv = serve(tmp_path, cell_file, "--token", auth.token)
     wire = Wire(srv.tcp_port)
     try:
+        assert auth.ok(r := auth.exchange(wire)), r
 
         def cmd(line: str) -> tuple[bool, str, list[float]]:
             wire.send(line.encode("ascii") + terminator)  # Print #201, line$
@@ -502,13 +709,18 @@ def test_epson_spel(tmp_path, cell_file):
 
 def test_robot_client_documented_negative_rect(tmp_path, cell_file):
     """The form ``--rect -40,570,60,650`` (a value that starts with '-'; README's rectangle no longer
-    does) is accepted; its corner (-40,650) is outside this cell's view, so 8 of 9 are recorded."""
-    srv = serve(tmp_path, cell_file)
+    does) is accepted; its corner (-40,650) is outside this cell's view, so 8 of 9 are recorded. The
+    token from ``--token-file``: AUTH is the first line."""
+    token_file = tmp_path / "token"
+    token_file.write_text("s3cret-robot-token\n")
+    srv = serve(tmp_path, cell_file, "--token-file", str(token_file))
     try:
         client = subprocess.run(
             [
                 sys.executable,
                 str(ROBOTS / "robot_client.py"),
+                "--token-file",
+                str(token_file),
                 "--tcp",
                 f"127.0.0.1:{srv.tcp_port}",
                 "--name",
@@ -532,6 +744,27 @@ def test_robot_client_documented_negative_rect(tmp_path, cell_file):
         assert sent[0] == f"CAL BEGIN cell1,{PLAN},-40.0000,570.0000,60.0000,650.0000,150.0000"
     finally:
         srv.stop()
+
+
+@pytest.mark.parametrize("script", ["robot_client.py", "pick_client.py"])
+@pytest.mark.parametrize("reply_format", ["plain", "ur"])
+def test_python_clients_stop_on_a_wrong_token(script, reply_format, servers):
+    """EYETOHAND_TOKEN wrong: one line on stderr that names the refused token and where to set it,
+    exit status 2, no traceback (plain "ERR send 'AUTH..." and ur "(-14,...)" alike)."""
+    srv = servers[reply_format == "ur", "wrong"]
+    client = subprocess.run(
+        [sys.executable, str(ROBOTS / script), "--tcp", f"127.0.0.1:{srv.tcp_port}"]
+        + (
+            ["--name", "cell1", "--rect", "0,570,70,650", "--z", "150"] if script == "robot_client.py" else []
+        ),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**src_env(), "EYETOHAND_TOKEN": "a-wrong-token-here"},
+    )
+    assert client.returncode == 2, client.stdout + client.stderr
+    assert "Traceback" not in client.stderr and client.stderr.strip().count("\n") == 0, client.stderr
+    assert "refused the token (AUTH, code -14)" in client.stderr and "EYETOHAND_TOKEN" in client.stderr
 
 
 def test_robot_client_ctrl_c_is_one_line_and_130():

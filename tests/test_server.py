@@ -1519,3 +1519,29 @@ def test_a_word_given_twice_on_a_mapping_line_is_refused(client):
     assert tcp_answer(cal, b"600,900,sigma,allow,sigma").startswith(b"ERR sigma given twice")
     assert tcp_answer(cal, b"600,900,angle_deg=5").startswith(b"ERR unknown word 'angle_deg=5'")
     assert not tcp_answer(cal, b"600,900,a=10,s=2,t=5,sigma,allow").startswith(b"ERR")
+
+
+def test_token_on_the_command_line_warns_once(tmp_path):
+    """--token T: one warning line that the token shows in ps, naming --token-file and EYETOHAND_TOKEN;
+    --token-file: none."""
+    from helpers import SMALL_CELL_TOML
+
+    from eyetohand.cli.serve import TOKEN_IN_PS
+
+    cell = tmp_path / "cell.toml"
+    cell.write_text(SMALL_CELL_TOML)
+    camera = ("--camera", f"sim:{cell}")
+    srv = ServeProcess(tmp_path / "a", *camera, "--token", "s3cret-token")
+    try:
+        warned = [ln for ln in srv.out if "visible to every user" in ln]
+        assert warned == [TOKEN_IN_PS + "\n"], srv.out
+        assert "--token-file FILE" in TOKEN_IN_PS and "EYETOHAND_TOKEN" in TOKEN_IN_PS
+    finally:
+        srv.stop()
+    token_file = tmp_path / "token"
+    token_file.write_text("s3cret-token\n")
+    srv = ServeProcess(tmp_path / "b", *camera, "--token-file", str(token_file))
+    try:
+        assert not any("visible to every user" in ln for ln in srv.out), srv.out
+    finally:
+        srv.stop()

@@ -446,6 +446,38 @@ def test_look_alike_names_and_duplicate_keys_are_refused(server):
         assert state(c) == before
 
 
+def test_deep_bodies_and_weak_or_long_if_match_are_refused_with_the_field(server):
+    """A body nested 990 levels deep (was 500, RecursionError) is 400 naming the body, on the mapping
+    route and a write; If-Match W/"<the current tag>" (strong comparison, RFC 9110 13.1.1; it was taken
+    as the tag) and an If-Match over 1024 characters (was 422, no field) are 400 naming If-Match;
+    nothing changes."""
+    srv, _ = server
+    with httpx.Client(base_url=srv.url, timeout=30) as c:
+        before = state(c)
+        for depth in (990, 5000):
+            deep = "[" * depth + "]" * depth
+            for path, body in (
+                ("/api/calibrations/1/image-to-robot", '{"points": ' + deep + "}"),
+                ("/api/calibrations/1/image-to-robot", deep),
+                ("/api/calibrations", '{"name": "deep", "model": "homography", "pairs": ' + deep + "}"),
+                ("/api/calibrations/1/rollback", '{"version": ' + deep + "}"),
+            ):
+                r = c.post(path, content=body.encode(), headers={"Content-Type": "application/json"})
+                assert r.status_code == 400 and r.json()["field"] == "body", (depth, path, r.text)
+        tag = c.get("/api/calibrations/1").headers["ETag"]
+        for if_match in (f"W/{tag}", f'"x", W/{tag}', ", ".join([tag] * 80)):
+            for method, path, body in (
+                ("PATCH", "/api/calibrations/1", {"name": "renamed"}),
+                ("POST", "/api/calibrations/1/rollback", {"version": 1}),
+                ("DELETE", "/api/calibrations/1", None),
+            ):
+                r = c.request(method, path, json=body, headers={"If-Match": if_match})
+                assert r.status_code == 400 and r.json()["field"] == "If-Match", (if_match[:20], r.text)
+                words = r.json()["error"]
+                assert ("weak ETag" in words) if "W/" in if_match else ("more than 1024" in words), words
+        assert state(c) == before
+
+
 def test_the_token_can_come_from_a_file_not_the_command_line(tmp_path):
     seed(tmp_path / "data")
     token = "s3cret-token-" + os.urandom(6).hex()

@@ -20,6 +20,9 @@ Example (a calibrated server: ``eyetohand serve --tcp 127.0.0.1:5000 --camera si
 
     python examples/robots/pick_client.py --tcp 127.0.0.1:5000 --range 8,12 --z 150 --picks 20 \\
         --sim-parts 12
+
+The token (a service beyond loopback needs one): ``EYETOHAND_TOKEN`` or ``--token-file FILE``, sent as
+the first line ``AUTH <token>``, as robot_client.py does; a refused token stops it (exit 2).
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from robot_client import TcpLink  # noqa: E402
+from robot_client import connect  # noqa: E402
 
 
 class PickRobot:
@@ -123,12 +126,15 @@ def main(argv=None) -> int:
     p.add_argument("--diameter", type=float, default=10.0, help="virtual parts' diameter (mm)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--timeout", type=float, default=30.0, help="socket timeout (s)")
+    p.add_argument(
+        "--token-file", metavar="FILE", help="the server's token (one line); default $EYETOHAND_TOKEN"
+    )
     args = p.parse_args(argv)
     host, _, port = args.tcp.rpartition(":")
     dmin = dmax = None
     if args.range:
         dmin, dmax = (float(v) for v in args.range.split(","))
-    link = TcpLink(host, int(port), args.timeout)
+    link = connect(p, host, int(port), args.timeout, args.token_file)
     try:
         robot = PickRobot(
             link.send,

@@ -19,11 +19,17 @@ Example (a server started with ``eyetohand serve --tcp 127.0.0.1:5000 --camera s
 
     python examples/robots/robot_client.py --tcp 127.0.0.1:5000 --name cell1 \\
         --plan grid:5x5 --rect 0,570,70,650 --z 150
+
+The token: a service on any address but loopback needs one, and the first line is then
+``AUTH <token>``. The client takes it from ``EYETOHAND_TOKEN`` (:data:`TOKEN`, as the server does), or
+``--token-file FILE`` (one line), never from the command line (``ps`` shows it); without one it sends
+no AUTH. A refused token stops the client with one line and exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import socket
 import sys
@@ -32,14 +38,34 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+#: the vision side's token (``serve --token-file`` / ``EYETOHAND_TOKEN``); None: send no AUTH
+TOKEN = os.environ.get("EYETOHAND_TOKEN") or None
+
+
+class TokenRefused(ConnectionError):
+    """The server refused ``AUTH <token>`` (code -14 in the ur reply format) and closed."""
+
 
 class TcpLink:
-    """One TCP connection: ``send(line) -> reply`` (CR LF out, LF or CR LF in), with a timeout."""
+    """One TCP connection: ``send(line) -> reply`` (CR LF out, LF or CR LF in), with a timeout. With
+    ``token``, its first line is ``AUTH <token>``; a refusal raises :class:`TokenRefused`."""
 
-    def __init__(self, host: str, port: int, timeout_s: float = 30.0, line_end: str = "\r\n"):
+    def __init__(
+        self, host: str, port: int, timeout_s: float = 30.0, line_end: str = "\r\n", token: str | None = None
+    ):
         self.sock = socket.create_connection((host, port), timeout=timeout_s)
         self.line_end = line_end
         self._buf = b""
+        if token is not None:
+            try:
+                reply = self.send(f"AUTH {token}")
+            except ConnectionError:
+                reply = "(no reply)"
+            if reply not in ("OK", "(1,0,0,0,0,0)"):
+                self.close()
+                if reply.startswith(("ERR send 'AUTH", "(-14,")):  # the AUTH refusal, plain or ur
+                    raise TokenRefused(f"the server at {host}:{port} refused the token (AUTH, code -14)")
+                raise ConnectionError(f"AUTH was answered {reply!r}")
 
     def send(self, line: str) -> str:
         self.sock.sendall((line + self.line_end).encode("ascii"))
@@ -160,6 +186,33 @@ def _join_negative_values(argv: list[str], options: tuple[str, ...]) -> list[str
     return out
 
 
+def read_token(parser: argparse.ArgumentParser, token_file: str | None) -> str | None:
+    """The token from ``--token-file`` (its one line), else :data:`TOKEN`; a bad file: exit 2."""
+    if token_file is None:
+        return TOKEN
+    try:
+        lines = [ln.strip() for ln in Path(token_file).read_text().splitlines() if ln.strip()]
+    except (OSError, UnicodeDecodeError) as exc:
+        parser.error(f"--token-file {token_file}: cannot read it ({exc})")
+    if len(lines) != 1:
+        parser.error(f"--token-file {token_file}: expected one line holding the token")
+    return lines[0]
+
+
+def connect(
+    parser: argparse.ArgumentParser, host: str, port: int, timeout_s: float, token_file: str | None
+) -> TcpLink:
+    """The connection, authenticated when there is a token; a refused token: one line, exit 2."""
+    try:
+        return TcpLink(host, port, timeout_s, token=read_token(parser, token_file))
+    except TokenRefused as exc:
+        print(
+            f"{parser.prog}: {exc}; set EYETOHAND_TOKEN or --token-file to the server's token",
+            file=sys.stderr,
+        )
+        sys.exit(2)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--tcp", required=True, metavar="HOST:PORT")
@@ -172,6 +225,9 @@ def main(argv=None) -> int:
     p.add_argument("--cell", metavar="CELL.toml", help="the virtual cell (with --folder)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--timeout", type=float, default=30.0, help="socket timeout (s)")
+    p.add_argument(
+        "--token-file", metavar="FILE", help="the server's token (one line); default $EYETOHAND_TOKEN"
+    )
     args = p.parse_args(_join_negative_values(sys.argv[1:] if argv is None else list(argv), ("--rect",)))
     host, _, port = args.tcp.rpartition(":")
     rect = [float(v) for v in args.rect.split(",")]
@@ -182,7 +238,7 @@ def main(argv=None) -> int:
         from eyetohand.sim.cell import load_cell
 
         camera = FolderCamera(args.folder, load_cell(args.cell), args.seed)
-    link = TcpLink(host, int(port), args.timeout)
+    link = connect(p, host, int(port), args.timeout, args.token_file)
     try:
         robot = VirtualRobot(link.send, camera, log=lambda a, b: print(f"> {a}\n< {b}"))
         out = robot.run_plan(args.name, args.plan, rect, args.z, model=args.model)

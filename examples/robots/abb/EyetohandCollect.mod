@@ -3,7 +3,11 @@ MODULE EyetohandCollect
     ! or Socket Messaging). UNTESTED on a controller: no ABB controller here (its exchange with the
     ! real server is replayed by tests/test_robot_programs.py). Read examples/robots/README.md first.
     !
-    ! Vision side: eyetohand serve --tcp 0.0.0.0:5000 --camera URI
+    ! Vision side: eyetohand serve --tcp 0.0.0.0:5000 --camera URI --token-file FILE
+    ! The token: a service on any address but loopback needs one (serve --token-file FILE or
+    ! EYETOHAND_TOKEN) and the first line is then AUTH <token>: set TOKEN below to the same text (a
+    ! server without a token answers AUTH with OK too). A wrong token: the program stops and says so
+    ! (the server answers "ERR send 'AUTH <token>' first; closing", code -14, and closes).
     !
     ! Manual references: "Technical reference manual - RAPID Instructions, Functions and Data
     ! types" (3HAC050917), by the built-in's name; "Application manual - Controller software"
@@ -28,6 +32,7 @@ MODULE EyetohandCollect
 
     CONST string HOST := "192.168.125.10";   ! the vision PC
     CONST num PORT := 5000;
+    CONST string TOKEN := "change-me-eyetohand";   ! the vision side's token (at most 73 characters)
     CONST string BEGIN_CMD := "CAL BEGIN cell1,grid:5x5,0,570,70,650,150";
     CONST num TIMEOUT_S := 30;
     PERS tooldata tCalTarget := [TRUE, [[0, 0, 120], [1, 0, 0, 0]], [0.5, [0, 0, 50], [1, 0, 0, 0], 0, 0, 0]];
@@ -43,6 +48,11 @@ MODULE EyetohandCollect
         SocketClose sock;                              ! SocketClose
         SocketCreate sock;                             ! SocketCreate
         SocketConnect sock, HOST, PORT \Time:=10;      ! SocketConnect
+        ! the first line: AUTH <token>; a wrong token gets "ERR send 'AUTH <token>' first; closing"
+        IF NOT Command("AUTH " + TOKEN) THEN
+            IF Clip(reply, 8) = "ERR send" StopCal("the vision PC refused the token (AUTH): set TOKEN");
+            StopCal(reply);
+        ENDIF
         IF NOT Command(BEGIN_CMD) StopCal(reply);
         p := CRobT(\Tool:=tCalTarget \WObj:=wCal);     ! CRobT
         WHILE TRUE DO

@@ -4,7 +4,9 @@ MODULE EyetohandPick
     ! controller here (its exchange with the real server is replayed by tests/test_pick_programs.py).
     ! Read examples/robots/README.md first.
     !
-    ! Vision side: eyetohand serve --tcp 0.0.0.0:5000 --camera URI --calibration cell1
+    ! Vision side: eyetohand serve --tcp 0.0.0.0:5000 --camera URI --calibration cell1 --token-file FILE
+    ! The token: AUTH <token> first, as in EyetohandCollect.mod (TOKEN below); a wrong one stops the
+    ! program with a message.
     !   LOCATE 8,12  -> OK <count>,<outside>   (parts outside the calibrated region: only counted)
     !   LOCATE NEXT  -> OK <x>,<y>,<z>,<rz>,<sigma>   or OK DONE when every part is handed out
     !
@@ -23,6 +25,7 @@ MODULE EyetohandPick
 
     CONST string HOST := "192.168.125.10";   ! the vision PC
     CONST num PORT := 5000;
+    CONST string TOKEN := "change-me-eyetohand";   ! the vision side's token (at most 73 characters)
     CONST string LOCATE_CMD := "LOCATE 8,12";
     CONST num TIMEOUT_S := 30;
     CONST num APPROACH := 50;
@@ -43,6 +46,11 @@ MODULE EyetohandPick
         SocketClose sock;                              ! SocketClose
         SocketCreate sock;                             ! SocketCreate
         SocketConnect sock, HOST, PORT \Time:=10;      ! SocketConnect
+        ! the first line: AUTH <token>; a wrong token gets "ERR send 'AUTH <token>' first; closing"
+        IF NOT Command("AUTH " + TOKEN) THEN
+            IF Clip(reply, 8) = "ERR send" StopPick("the vision PC refused the token (AUTH): set TOKEN");
+            StopPick(reply);
+        ENDIF
         WHILE TRUE DO
             MoveL pClear, v500, fine, tGripper \WObj:=wCal;   ! out of the view before the picture
             IF NOT Command(LOCATE_CMD) StopPick(reply);

@@ -2,7 +2,11 @@
 ' UNTESTED on a controller: no Epson controller here (its exchange with the real server is replayed
 ' by tests/test_robot_programs.py). Read examples/robots/README.md first.
 '
-' Vision side: eyetohand serve --tcp 0.0.0.0:5000 --camera URI
+' Vision side: eyetohand serve --tcp 0.0.0.0:5000 --camera URI --token-file FILE
+' The token: a service on any address but loopback needs one (serve --token-file FILE or
+' EYETOHAND_TOKEN) and the first line is then AUTH <token>: set token$ below, beside the address and
+' port, to the same text (a server without a token answers AUTH with OK too). A wrong token is
+' answered "ERR send 'AUTH <token>' first; closing" (code -14): the program stops and says so.
 ' Controller set-up (EPSON RC+: Setup > System Configuration > Controller > TCP/IP), port #201:
 '   IP address = the vision PC, TCP/IP port = 5000, Terminate = LF, Protocol = TCP
 '   (the SetNet line below sets the same from the program).
@@ -32,8 +36,9 @@ Global Integer gCount
 
 Function CalCollect
     Real x, y, z
-    String cmd$
+    String cmd$, token$
 
+    token$ = "change-me-eyetohand"   ' the vision side's token (serve --token-file / EYETOHAND_TOKEN)
     SetNet #201, "192.168.0.10", 5000, LF, NONE, 0
     OpenNet #201 As Client
     WaitNet #201, 10
@@ -42,6 +47,11 @@ Function CalCollect
         Exit Function
     EndIf
     CP Off
+    ' the first line: AUTH <token>; a wrong token is answered ERR send ... (code -14) and closed
+    If Not Cmd("AUTH " + token$) Then
+        If InStr(gReply$, "ERR send") = 1 Then gReply$ = "the vision PC refused the token (AUTH): set token$"
+        GoTo Fail
+    EndIf
 
     If Not Cmd("CAL BEGIN cell1,grid:5x5,0,570,70,650,150") Then GoTo Fail
 

@@ -2,7 +2,8 @@
 ' parts, pick each one, again. UNTESTED on a controller: no Epson controller here (its exchange with
 ' the real server is replayed by tests/test_pick_programs.py). Read examples/robots/README.md first.
 '
-' Vision side: eyetohand serve --tcp 0.0.0.0:5000 --camera URI --calibration cell1
+' Vision side: eyetohand serve --tcp 0.0.0.0:5000 --camera URI --calibration cell1 --token-file FILE
+'   (the first line: AUTH <token>, token$ below, as in EyetohandCollect.prg; a wrong token stops it)
 '   LOCATE 8,12  -> OK <count>,<outside>   (parts outside the calibrated region: only counted)
 '   LOCATE NEXT  -> OK <x>,<y>,<z>,<rz>,<sigma>   or OK DONE when every part is handed out
 ' Controller set-up as for EyetohandCollect.prg (port #201, Terminate = LF).
@@ -27,10 +28,12 @@ Global Integer gCount
 Function PickLoop
     Real x, y, z, sigma
     Real APPROACH, TOOL_DZ, MAX_SIGMA
+    String token$
 
     APPROACH = 50
     TOOL_DZ = -2
     MAX_SIGMA = 0.2
+    token$ = "change-me-eyetohand"   ' the vision side's token (serve --token-file / EYETOHAND_TOKEN)
     SetNet #201, "192.168.0.10", 5000, LF, NONE, 0
     OpenNet #201 As Client
     WaitNet #201, 10
@@ -39,6 +42,11 @@ Function PickLoop
         Exit Function
     EndIf
     CP Off
+    ' the first line: AUTH <token>; a wrong token is answered ERR send ... (code -14) and closed
+    If Not Cmd("AUTH " + token$) Then
+        If InStr(gReply$, "ERR send") = 1 Then gReply$ = "the vision PC refused the token (AUTH): set token$"
+        GoTo Fail
+    EndIf
     Tool 1
 
     Do

@@ -9,10 +9,17 @@ from __future__ import annotations
 import os
 import sys
 
+TOKEN_IN_PS = (
+    "warning: --token on the command line is visible to every user of this machine (ps, /proc); "
+    "give it with --token-file FILE or EYETOHAND_TOKEN instead"
+)
+
 
 def cmd_serve(args) -> int:
     from eyetohand.server import DEFAULT_TOKEN_NAME, check_options, default_data_dir, serve
 
+    if args.token:  # on the command line: every user of this machine reads it in `ps`
+        print(TOKEN_IN_PS, file=sys.stderr)
     args.token = args.token or os.environ.get("EYETOHAND_TOKEN") or None
     args.tokens = None if args.token is None else {DEFAULT_TOKEN_NAME: args.token}
     # ---- --token-file (http worktree): the token read from a file, so no process listing shows it
@@ -76,6 +83,21 @@ def read_token_file(path: str, given: bool) -> dict[str, str]:
     return tokens
 
 
+def add_opcua_certificate_options(p) -> None:
+    """``--opcua-cert FILE`` and ``--opcua-key FILE``: the plant's certificate for OPC UA's secured
+    endpoints (default: one made at the first start in DATA/opcua/)."""
+    p.add_argument(
+        "--opcua-cert",
+        metavar="FILE",
+        default=None,
+        help="OPC UA server certificate (PEM or DER, with an application URI); default: one made at "
+        "the first start in DATA/opcua/",
+    )
+    p.add_argument(
+        "--opcua-key", metavar="FILE", default=None, help="the private key of --opcua-cert (PEM or DER)"
+    )
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "serve",
@@ -132,8 +154,9 @@ def register(sub) -> None:
         metavar="HOST:PORT",
         default=None,
         help="also serve OPC UA on opc.tcp://HOST:PORT/eyetohand/ (docs/plc.md); anonymous on "
-        "loopback, else user 'eyetohand' with --token as password",
+        "loopback, else user 'eyetohand' with --token as password (off loopback only encrypted)",
     )
+    add_opcua_certificate_options(p)
     p.add_argument(
         "--calibration",
         metavar="REF",

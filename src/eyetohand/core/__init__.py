@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from eyetohand.core.backoff import AuthBackoff
 from eyetohand.core.errors import DegenerateError, InputError
 from eyetohand.core.io import (
     atomic_write_bytes,
@@ -41,6 +42,7 @@ else:  # the CSV reader on first use (eyetohand.core.lazy): `eyetohand apply` re
     __getattr__, __dir__ = lazy_exports(__name__, {"csvtext": ("CsvTable", "read_csv")})
 
 __all__ = [
+    "AuthBackoff",
     "ANGLE_UNITS",
     "LENGTH_UNITS",
     "MM_DEG",

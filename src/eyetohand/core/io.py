@@ -50,9 +50,10 @@ def check_output_path(path: str | os.PathLike) -> Path:
     return path
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, mode: int | None = None) -> Path:
     """Write ``data`` to ``path`` so that readers see either the old file or the whole new one.
-    Only a regular file (or nothing) at ``path`` is replaced."""
+    Only a regular file (or nothing) at ``path`` is replaced. ``mode``: the new file's permissions
+    (e.g. 0o600 for a private key: set before the file appears under its name), else 0666 less umask."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
@@ -70,7 +71,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             fh.flush()
             os.fsync(fh.fileno())
         # mkstemp creates 0600; give the file the mode an ordinary open() would (0666 less umask)
-        os.chmod(tmp, 0o666 & ~_umask())
+        os.chmod(tmp, 0o666 & ~_umask() if mode is None else mode)
         os.replace(tmp, path)
     except BaseException:
         try:

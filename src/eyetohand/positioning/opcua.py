@@ -19,8 +19,11 @@ object ``Calibration`` with
   and ``BadResourceUnavailable`` without an image (no camera served, or the grab timed out).
 
 Without ``token`` the server takes anonymous sessions (for loopback; ``eyetohand serve`` refuses
-another address without one); with it, only user :data:`USER` with the token as password. Security
-policy None: the password crosses the network as the client sends it (docs/plc.md).
+another address without one); with it, only user :data:`USER` with the token as password. With a
+``certificate`` (:class:`Security`) the endpoints are None plus :data:`SECURE_POLICIES`, each in Sign
+and SignAndEncrypt; a client off loopback is then accepted only on a secured channel with its password
+protected (SignAndEncrypt, or Sign with the user token encrypted with the server's certificate, as
+the Sign endpoints ask); a None channel only from loopback. Without one: None only (docs/plc.md).
 """
 
 from __future__ import annotations
@@ -30,8 +33,9 @@ import hmac
 import logging
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
+from eyetohand.core import AuthBackoff
 from eyetohand.positioning.locate import NO_CAMERA, refused
 from eyetohand.positioning.mapping import Status, map_point
 from eyetohand.positioning.served import Served
@@ -79,6 +83,29 @@ def state_of(source: Served) -> str:
     return "Error" if problem is not None and problem.broken else "NoCalibration"
 
 
+#: the secured endpoints offered with a certificate (asyncua's SecurityPolicyType names), each policy in
+#: Sign and SignAndEncrypt (OPC 10000-7 security policy profiles)
+SECURE_POLICIES = (
+    "Basic256Sha256_Sign",
+    "Basic256Sha256_SignAndEncrypt",
+    "Aes128Sha256RsaOaep_Sign",
+    "Aes128Sha256RsaOaep_SignAndEncrypt",
+    "Aes256Sha256RsaPss_Sign",
+    "Aes256Sha256RsaPss_SignAndEncrypt",
+)
+
+
+class Security(Protocol):
+    """The server's application instance certificate (``eyetohand.server`` makes one)."""
+
+    @property
+    def certificate_der(self) -> bytes: ...
+    @property
+    def private_key_pem(self) -> bytes: ...
+    @property
+    def application_uri(self) -> str: ...
+
+
 class OpcUaService:
     """The ``Calibration`` object served on ``host:port``; ``source()`` returns the served calibration in
     force. ``await start()`` on the loop that is to run it, then ``await close()``."""
@@ -91,8 +118,12 @@ class OpcUaService:
         *,
         token: str | None = None,
         locate: Callable[..., Any] | None = None,
+        auth_backoff: AuthBackoff | None = None,
+        security: Security | None = None,
     ):
         self.source = source
+        self.security = security  # the certificate for the Sign / SignAndEncrypt endpoints
+        self.auth_backoff = AuthBackoff() if auth_backoff is None else auth_backoff  # per address
         self.locate = locate  # (dmin_mm, dmax_mm, z_mm) -> LocateResult, blocking; None: no camera
         self.host = host
         self.port = port
@@ -112,11 +143,22 @@ class OpcUaService:
 
         logging.getLogger("asyncua").setLevel(logging.ERROR)  # its per-call INFO lines, and the
         # warning that policy None sends passwords in plain text (said in docs/plc.md)
-        server = Server(user_manager=_user_manager(self.token) if self.token else None)
+        users = _user_manager(self.token, self.auth_backoff) if self.token else None
+        server = Server(user_manager=users)
         await server.init()
         server.set_endpoint(self.url)
         server.set_server_name("eyetohand")
-        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        sec = self.security
+        if users is not None:
+            _note_peers(server, users)
+        if sec is not None:
+            await server.load_certificate(sec.certificate_der, "der")
+            await server.load_private_key(sec.private_key_pem, None, "pem")
+            await server.set_application_uri(sec.application_uri)
+        server.set_security_policy(
+            [ua.SecurityPolicyType.NoSecurity]
+            + ([getattr(ua.SecurityPolicyType, p) for p in SECURE_POLICIES] if sec is not None else [])
+        )
         server.set_identity_tokens([ua.UserNameIdentityToken] if self.token else [ua.AnonymousIdentityToken])
         idx = await server.register_namespace(NAMESPACE)
         obj = await server.nodes.objects.add_object(idx, "Calibration")
@@ -247,18 +289,76 @@ def _arguments(spec) -> list:
     return out
 
 
-def _user_manager(token: str):
-    """asyncua's user manager: the one user :data:`USER` with the token as password."""
+def _user_manager(token: str, backoff: AuthBackoff):
+    """asyncua's user manager: the one user :data:`USER` with the token as password. After repeated
+    failures from one address (``backoff``), that address's attempts are refused unjudged until the
+    delay is over (BadUserAccessDenied, as a wrong password). ``peer``: the address of the session
+    being activated, set by :func:`_note_peers` (asyncua's get_user is not told it)."""
     from asyncua.crypto.permission_rules import User, UserRole
     from asyncua.server.user_managers import UserManager
 
     secret = token.encode()
 
     class Users(UserManager):
+        peer = "?"
+        protected = True  # the password did not cross the network in clear (set by _note_peers)
+
         def get_user(self, iserver, username=None, password=None, certificate=None):
+            addr = self.peer
+            if not self.protected:  # off loopback in clear: refused unjudged (a guess is not told)
+                return None
+            if backoff.wait_s(addr) > 0:
+                return None
             given = password.encode() if isinstance(password, str) else (password or b"")
             if username == USER and hmac.compare_digest(given, secret):
+                backoff.succeeded(addr)
                 return User(role=UserRole.User, name=username)
+            backoff.failed(addr, "OPC UA user")
             return None
 
     return Users()
+
+
+def _note_peers(server: Any, users: Any) -> None:
+    """Tell ``users`` the client address of each session whose user token is checked, and whether its
+    password crossed the network protected: asyncua's ActivateSession (asyncua 2.x,
+    ``InternalSession.activate_session``) calls the server's ``decrypt_user_token(isession, token)``
+    and then, with no await between, ``get_user``; the session's ``name`` is its connection's peer
+    name (host, port), and the connection (``bserver.clients``, the processor's ``_connection``)
+    knows its channel's security mode. A peer off loopback is accepted only on a secured channel (a
+    None channel's session could be taken over after it is activated) with the password protected:
+    SignAndEncrypt, or Sign with the user token encrypted with the server's certificate (what the Sign
+    endpoints' token policy asks). Wrapped on this server only."""
+    from asyncua import ua
+
+    iserver = server.iserver
+    decrypt = iserver.decrypt_user_token
+
+    def decrypt_noting_peer(isession, token):
+        name = getattr(isession, "name", None)
+        users.peer = str(name[0]) if isinstance(name, tuple) and name else "?"
+        modes = [
+            p.processor._connection.security_policy.Mode
+            for p in (server.bserver.clients if server.bserver is not None else ())
+            if p.processor.session is isession
+        ]
+        mode = modes[0] if modes else ua.MessageSecurityMode.None_
+        users.protected = (
+            _is_loopback(users.peer)
+            or mode == ua.MessageSecurityMode.SignAndEncrypt
+            or (mode == ua.MessageSecurityMode.Sign and bool(getattr(token, "EncryptionAlgorithm", None)))
+        )
+        return decrypt(isession, token)
+
+    iserver.decrypt_user_token = decrypt_noting_peer
+
+
+def _is_loopback(addr: str) -> bool:
+    import ipaddress
+
+    try:
+        ip = ipaddress.ip_address(addr)
+    except ValueError:
+        return False
+    mapped = ip.ipv4_mapped if isinstance(ip, ipaddress.IPv6Address) else None
+    return (mapped or ip).is_loopback

@@ -14,8 +14,10 @@ import asyncio
 from collections.abc import Callable
 from typing import Any
 
+from eyetohand.core import AuthBackoff
 from eyetohand.positioning.modbus import ModbusService
 from eyetohand.positioning.opcua import OpcUaService
+from eyetohand.positioning.opcua_cert import ServerCertificate
 from eyetohand.positioning.served import Served
 from eyetohand.positioning.tcp import POLL_S
 
@@ -34,7 +36,10 @@ class PlcServices:
         opcua: tuple[str, int] | None = None,
         token: str | None = None,
         locate: Callable[..., Any] | None = None,
+        auth_backoff: AuthBackoff | None = None,
+        security: ServerCertificate | None = None,
     ):
+        self.security = security  # OPC UA's certificate (positioning/opcua_cert.py)
         self.source = source
         self.locate = locate  # the camera's LOCATE (Locator.locate), None without --camera
         self.modbus = (
@@ -42,7 +47,13 @@ class PlcServices:
             if modbus is None
             else ModbusService(source, *modbus, word_order=word_order, allow_from=allow_from, locate=locate)
         )
-        self.opcua = None if opcua is None else OpcUaService(source, *opcua, token=token, locate=locate)
+        self.opcua = (
+            None
+            if opcua is None
+            else OpcUaService(
+                source, *opcua, token=token, locate=locate, auth_backoff=auth_backoff, security=security
+            )
+        )
         self.starting = ""  # the server being started (an OSError names it)
         self._poller: asyncio.Task | None = None
 
@@ -84,6 +95,13 @@ class PlcServices:
         if self.opcua is not None:
             auth = "user 'eyetohand' + token" if self.opcua.token else "anonymous (loopback)"
             out.append(f"OPC UA: {self.opcua.url} Calibration.ImageToRobot ({auth}) with {what}")
+            sec = self.security
+            if sec is not None:
+                made = "created now; " if sec.created else ""
+                out.append(
+                    f"OPC UA: certificate {sec.path} ({made}SHA-1 {sec.thumbprint}) for Sign and "
+                    "SignAndEncrypt with Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss"
+                )
             if self.locate is not None:
                 out.append(f"OPC UA: {self.opcua.url} Calibration.Locate finds parts with the camera")
         return out

@@ -5,10 +5,12 @@ ended by ``\n``; the server answers ``x,y,z`` (robot mm, full precision) or ``ER
 line per line, in order. Lines longer than :data:`MAX_LINE` bytes are refused and the connection is
 closed (the stream cannot be trusted after that). With a token, the first line must be
 ``AUTH <token>`` (answered ``OK``; anything else gets ``ERR`` and the connection closes), within
-``auth_s`` seconds. Idle connections close after ``idle_s`` seconds; at most ``max_clients``
+``auth_s`` seconds; without a token an ``AUTH`` line is answered ``OK`` (nothing to check). Idle
+connections close after ``idle_s`` seconds; at most ``max_clients``
 connections are served at once and at most ``max_per_peer`` from one address (others get
 ``ERR busy`` and are closed), so idle sockets from one local process cannot lock the robot out.
 A last line cut off by the end of the stream (no newline) is not answered: it may be incomplete.
+Wrong tokens are held back per source address (``auth_backoff``, :class:`eyetohand.core.AuthBackoff`).
 
 ``VERSION`` answers what is in force: ``OK <name>,<version>,<created_utc>`` for a stored calibration,
 ``OK <path>,<sha256 of the file>`` for a file. A stored calibration is followed: the service polls
@@ -37,7 +39,7 @@ from eyetohand.cell import (
     line_count,
     line_numbers,
 )
-from eyetohand.core import MM_DEG, InputError, OutputUnits
+from eyetohand.core import MM_DEG, AuthBackoff, InputError, OutputUnits
 from eyetohand.geometry import check_symmetry
 from eyetohand.positioning.served import FixedCalibration, Served
 
@@ -249,8 +251,11 @@ class LineServer:
         first_line_s: float = FIRST_LINE_S,
         reply_format: str = "plain",
         units: OutputUnits = MM_DEG,
+        auth_backoff: AuthBackoff | None = None,
     ):
         self.replies = LineReplies(reply_format, units)  # how every reply is worded (cell/replies.py)
+        # failed AUTH per address (serve shares one with HTTP and OPC UA)
+        self.auth_backoff = AuthBackoff() if auth_backoff is None else auth_backoff
         self.source: Served = FixedCalibration(cal) if isinstance(cal, Calibration) else cal
         self.poll_s = poll_s
         self._poller: _Poller | None = None
@@ -375,7 +380,7 @@ class LineServer:
         writer.transport.set_write_buffer_limits(high=WRITE_HIGH)
         lines = _Lines()
         try:
-            if self.token is not None and not await self._auth(reader, writer, lines):
+            if self.token is not None and not await self._auth(reader, writer, lines, addr):
                 return
             await self._serve_lines(reader, writer, lines)
         except (ConnectionError, asyncio.CancelledError):
@@ -417,7 +422,14 @@ class LineServer:
                     word = line.split(None, 1)[0].upper().decode("ascii", "replace") if line.strip() else ""
                     if isinstance(writer, _Worded):
                         writer.kind = word  # the ur count of this line's replies (CAL's 4, others' 6)
-                    if word in self.commands:
+                    if (
+                        word == "AUTH"
+                    ):  # a program that always sends its token: checked again (OK without one)
+                        if not self._token_ok(line):
+                            writer.write(b"ERR send 'AUTH <token>' first; closing\n")
+                            return
+                        writer.write(b"OK\n")
+                    elif word in self.commands:
                         writer.write(await self._command(word, line))
                     elif word in MISSING:
                         writer.write(f"ERR {MISSING[word]}\n".encode())
@@ -433,7 +445,9 @@ class LineServer:
         finally:
             idle.close()
 
-    async def _auth(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines: _Lines) -> bool:
+    async def _auth(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines: _Lines, addr: str
+    ) -> bool:
         line = b""
         try:
             async with asyncio.timeout(min(self.auth_s, self.idle_s)):
@@ -445,13 +459,30 @@ class LineServer:
                 line = got or b""
         except TimeoutError:
             pass
-        given = line.strip()[5:] if line[:5].upper() == b"AUTH " else b""
         assert self.token is not None  # _auth runs only with a token
-        if hmac.compare_digest(given.strip(), self.token):
+        if line[:5].upper() != b"AUTH ":
+            writer.write(b"ERR send 'AUTH <token>' first; closing\n")
+            return False  # no token tried (nothing said, or another line first): not counted
+        wait_s = self.auth_backoff.wait_s(addr)
+        if wait_s > 0:  # too many failures from this address: refused without looking at the token
+            writer.write(
+                f"ERR send 'AUTH <token>' first: too many failed attempts from {addr}, the next is "
+                f"judged in {math.ceil(wait_s)} s; closing\n".encode()
+            )
+            return False
+        if self._token_ok(line):
+            self.auth_backoff.succeeded(addr)
             writer.write(b"OK\n")
             return True
+        self.auth_backoff.failed(addr, "TCP AUTH")
         writer.write(b"ERR send 'AUTH <token>' first; closing\n")
         return False
+
+    def _token_ok(self, line: bytes) -> bool:
+        """``AUTH <token>`` with this server's token (any ``AUTH`` line when it has none: a robot program
+        that always authenticates talks to a loopback server without a token too)."""
+        given = line.strip()[5:] if line[:5].upper() == b"AUTH " else b""
+        return self.token is None or hmac.compare_digest(given.strip(), self.token)
 
 
 _NUMBER_START = b"0123456789+-."

@@ -20,6 +20,7 @@ from typing import Any
 from fastapi import FastAPI
 
 from eyetohand._version import __version__
+from eyetohand.core import AuthBackoff
 from eyetohand.server.core import Jobs
 from eyetohand.server.middleware import BodyLimit, DatabaseGuard, HostGuard, SameOrigin, TokenGuard
 from eyetohand.server.plant import CellBeat, beat
@@ -81,6 +82,7 @@ def create_app(
     sign_key: bytes | None = None,
     require_signed: bool = False,
     heartbeat: Callable[[], CellBeat] | None = None,
+    auth_backoff: AuthBackoff | None = None,
 ) -> FastAPI:
     """The app over the database in ``data_dir`` (or the store a ``sqlite:PATH`` or
     ``postgresql://…`` reference names: docs/store.md). ``token``: required on /api/ when set; a
@@ -92,7 +94,8 @@ def create_app(
     deleted or replaced under the app answers 503 and is never recreated. ``sign_key``: checks
     signed calibration files on import and signs exports; ``require_signed``: imports must be signed
     with it. ``heartbeat``: what this server is and follows, registered in the store every few
-    seconds (``serve`` passes it; the plant view lists it)."""
+    seconds (``serve`` passes it; the plant view lists it). ``auth_backoff``: failed tokens per
+    address (``serve`` shares one with TCP and OPC UA)."""
     limits = Limits(
         max_body_bytes=max_body_bytes,
         max_fit_body_bytes=min(max_fit_body_bytes, max_body_bytes),
@@ -157,7 +160,7 @@ def create_app(
     app.add_middleware(mapping.FastMap, service=service)
     app.add_middleware(BodyLimit, limit_for=limit_for)
     app.add_middleware(DatabaseGuard, check=service.store.check_same_file)
-    app.add_middleware(TokenGuard, token=token)
+    app.add_middleware(TokenGuard, token=token, backoff=auth_backoff)
     app.add_middleware(SameOrigin)
     if allowed_hosts is not None:
         app.add_middleware(HostGuard, hosts=allowed_hosts)

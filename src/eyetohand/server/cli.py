@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from eyetohand.core import InputError
+from eyetohand.core import AuthBackoff, InputError
 
 if TYPE_CHECKING:
     from eyetohand.positioning import Served
@@ -201,12 +201,31 @@ def check_plc_options(args) -> None:
                 f"--opcua {opcua}: a non-loopback address needs --token T (OPC UA user "
                 "'eyetohand', the token as password); refusing to start"
             )
+    check_opcua_certificate(args, opcua)
     for flag, given in (("--modbus", modbus), ("--opcua", opcua)):
         if given and not args.calibration and not (args.tcp and getattr(args, "camera", None)):
             raise ServeError(
                 f"{flag} needs --calibration NAME, id:N or FILE.json (the calibration to serve), or "
                 "--tcp with --camera (a collection creates it)"
             )
+
+
+def check_opcua_certificate(args, opcua: str | None) -> None:
+    """``--opcua-cert/--opcua-key``: both or neither, with ``--opcua``; the pair read and checked now,
+    before anything binds (``args.opcua_security``; None: the data folder's own, made at start)."""
+    cert, key = getattr(args, "opcua_cert", None), getattr(args, "opcua_key", None)
+    args.opcua_security = None
+    if (cert or key) and not opcua:
+        raise ServeError("--opcua-cert/--opcua-key are the OPC UA server's: give --opcua HOST:PORT too")
+    if bool(cert) != bool(key):
+        raise ServeError("--opcua-cert and --opcua-key go together: the certificate and its private key")
+    if cert and key:
+        from eyetohand.positioning.opcua_cert import ServerCertificate
+
+        try:
+            args.opcua_security = ServerCertificate.from_files(cert, key)
+        except InputError as exc:
+            raise ServeError(str(exc)) from None
 
 
 # ---- --sign-key / --require-signed / --allow-host (the http worktree; one block for easy merges)
@@ -332,9 +351,9 @@ def one_calibration(server_fn, wanted: str | None) -> dict:
     return {"begin_rule": collection_rule(server_fn, wanted), "served_fn": served_for_check(server_fn)}
 
 
-def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
+def tcp_options(args, commands: dict, busy_replies: dict, backoff: AuthBackoff | None = None) -> dict:
     """The LineServer's options from ``serve``'s: the command handlers, their busy replies, the robot's
-    reserved addresses and the first-line grace."""
+    reserved addresses, the first-line grace and the failed-AUTH backoff (shared with HTTP, OPC UA)."""
     from eyetohand.core import MM_DEG
     from eyetohand.positioning import FIRST_LINE_S
 
@@ -345,6 +364,7 @@ def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
         "first_line_s": getattr(args, "tcp_first_line_s", None) or FIRST_LINE_S,
         "reply_format": getattr(args, "reply_format", None) or "plain",
         "units": getattr(args, "output_units", None) or MM_DEG,
+        "auth_backoff": backoff,
     }
 
 
@@ -357,13 +377,14 @@ def _not_a_cancellation(record: logging.LogRecord) -> bool:
 async def _serve(args, data_dir) -> None:
     loops: list = []  # the line service's loop thread, stopped however _run_serve ends
     try:
-        await _run_serve(args, data_dir, loops)
+        # failed tokens per address: one count for TCP AUTH, HTTP and the OPC UA user token
+        await _run_serve(args, data_dir, loops, AuthBackoff())
     finally:
         for t in loops:
             t.stop()
 
 
-async def _run_serve(args, data_dir, loops: list) -> None:
+async def _run_serve(args, data_dir, loops: list, backoff: AuthBackoff) -> None:
     import uvicorn
 
     from eyetohand.positioning import LineServer, LoopThread
@@ -442,7 +463,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                 store.close()
             raise ServeError(str(exc).splitlines()[0]) from None
         line_server = LineServer(
-            served, host, port, token=args.token, **tcp_options(args, commands, busy_replies)
+            served, host, port, token=args.token, **tcp_options(args, commands, busy_replies, backoff)
         )
         try:
             await tcp_loop.call(line_server.start())
@@ -471,10 +492,14 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             poll=line_server is None,
             locate=None if locator is None else locator.locate,
             http_sock=http_sock,
+            auth_backoff=backoff,
+            data_dir=data_dir,
         )
         loops.append(plc_loop)
 
-    app = _make_app(args, ref, fresh_db, http_sock, lambda: line_server.source if line_server else served)
+    app = _make_app(
+        args, ref, fresh_db, http_sock, lambda: line_server.source if line_server else served, backoff
+    )
     if collector is not None:
         from eyetohand.server.routes.collect import CameraView
 
@@ -506,11 +531,24 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             store.close()
 
 
-async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
+async def _start_plc(
+    args, current, served, *, poll: bool, locate, http_sock, auth_backoff=None, data_dir: Path | None = None
+):
     """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
     service's served calibration when there is one, else ``served``, followed by polling when
-    ``poll``); print their start-up lines. Returns (the services, their loop)."""
+    ``poll``); print their start-up lines. Returns (the services, their loop). OPC UA's certificate:
+    ``--opcua-cert/--opcua-key``, else the one in ``data_dir``/opcua (created at the first start)."""
     from eyetohand.positioning import LoopThread, PlcServices
+    from eyetohand.positioning.opcua_cert import ServerCertificate, reachable_addresses
+
+    security = getattr(args, "opcua_security", None)
+    if getattr(args, "opcua", None) and security is None and data_dir is not None:
+        try:
+            host = parse_hostport(args.opcua, "--opcua")[0]
+            security = ServerCertificate.in_folder(Path(data_dir) / "opcua", reachable_addresses(host))
+        except (InputError, OSError) as exc:
+            http_sock.close()
+            raise ServeError(f"--opcua: the server certificate: {exc}") from None
 
     plc = PlcServices(
         current,
@@ -520,6 +558,8 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
         opcua=parse_hostport(args.opcua, "--opcua") if getattr(args, "opcua", None) else None,
         token=args.token,
         locate=locate,
+        auth_backoff=auth_backoff,
+        security=security,
     )
     plc_loop = LoopThread("eyetohand-plc")
     try:
@@ -588,9 +628,10 @@ def cell_heartbeat(args, http_sock, source_fn):
     return beat
 
 
-def _make_app(args, ref, fresh_db: bool, http_sock, source_fn):
+def _make_app(args, ref, fresh_db: bool, http_sock, source_fn, backoff: AuthBackoff):
     """The workbench's app on the store ``ref`` (beating as :func:`cell_heartbeat`); a store that
-    cannot be opened is one :class:`ServeError` line (exit 2)."""
+    cannot be opened is one :class:`ServeError` line (exit 2). ``backoff``: failed tokens per address,
+    shared with TCP and OPC UA."""
     from eyetohand.server.app import create_app
     from eyetohand.server.storage import StorageError
     from eyetohand.server.stores import StoreRefError
@@ -605,6 +646,7 @@ def _make_app(args, ref, fresh_db: bool, http_sock, source_fn):
             sign_key=getattr(args, "sign_key_bytes", None),
             require_signed=bool(getattr(args, "require_signed", False)),
             heartbeat=cell_heartbeat(args, http_sock, source_fn),
+            auth_backoff=backoff,
         )
     except (StorageError, StoreRefError) as exc:  # unreachable, a newer schema: one line (exit 2)
         http_sock.close()

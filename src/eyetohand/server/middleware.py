@@ -4,8 +4,10 @@ JSON error body without reading more of the request than it needs."""
 from __future__ import annotations
 
 import hmac
+import math
 from collections.abc import Callable, Mapping
 
+from eyetohand.core import AuthBackoff
 from eyetohand.server.audit import DEFAULT_TOKEN_NAME, acting_as
 from eyetohand.server.responses import error_response, send_response
 
@@ -80,13 +82,16 @@ class BodyLimit:
 class TokenGuard:
     """With a token set, every /api/ request needs ``Authorization: Bearer <token>``. ``token``: one
     token, or names to tokens (``--token-file`` lines ``name:token``); the changes a request makes
-    are audited under its token's name (:func:`~eyetohand.server.audit.acting_as`)."""
+    are audited under its token's name (:func:`~eyetohand.server.audit.acting_as`). After repeated
+    wrong tokens from one address (``backoff``), its requests get 429 with ``Retry-After``, unjudged,
+    until the delay is over."""
 
-    def __init__(self, app, token: str | Mapping[str, str] | None):
+    def __init__(self, app, token: str | Mapping[str, str] | None, backoff: AuthBackoff | None = None):
         self.app = app
         named = {DEFAULT_TOKEN_NAME: token} if isinstance(token, str) else dict(token or {})
         self.tokens = [(name, t.encode()) for name, t in named.items() if t]
         self.token = self.tokens[0][1] if self.tokens else None
+        self.backoff = AuthBackoff() if backoff is None else backoff
 
     async def __call__(self, scope, receive, send):
         if (
@@ -95,11 +100,29 @@ class TokenGuard:
             and scope["path"].startswith("/api/")
             and scope["path"] != "/api/health"
         ):
+            client = scope.get("client")
+            addr = str(client[0]) if client else "?"
             auth = dict(scope.get("headers") or []).get(b"authorization", b"")
             given = auth[7:].strip() if auth[:7].lower() == b"bearer " else b""
+            wait_s = self.backoff.wait_s(addr) if given else 0.0  # no token tried: not held back
+            if wait_s > 0:
+                retry = str(math.ceil(wait_s))
+                return await send_response(
+                    send,
+                    error_response(
+                        429,
+                        f"too many wrong tokens from {addr}: the next request is judged in {retry} s",
+                        "Authorization",
+                        headers={"Retry-After": retry},
+                    ),
+                )
             # every token compared (no early exit: the time does not tell which one came close)
             matched = [name for name, t in self.tokens if hmac.compare_digest(given, t)]
-            if not matched:
+            if matched:
+                self.backoff.succeeded(addr)
+            else:
+                if given:  # a token tried and wrong (none at all is no guess: not counted)
+                    self.backoff.failed(addr, "HTTP token")
                 return await send_response(
                     send,
                     error_response(

@@ -10,6 +10,7 @@ from fastapi import Path as PathParam
 from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException
 
+from eyetohand.server.core import ApiError
 from eyetohand.server.service import Service
 
 
@@ -21,15 +22,44 @@ Svc = Annotated[Service, Depends(get_service)]
 CalId = Annotated[int, PathParam(ge=1, le=2**62, description="calibration id")]
 VersionQ = Annotated[int | None, Query(ge=1, le=2**62, description="version (default: current)")]
 JobId = Annotated[str, PathParam(min_length=1, max_length=64, description="job id")]
-IfMatch = Annotated[
-    str | None,
-    Header(
-        alias="If-Match",
-        max_length=1024,
-        description="the ETag of the state this change was decided on (from a GET or a write's "
-        "answer); 412 with the current version when it is not current any more",
-    ),
-]
+MAX_IF_MATCH = 1024  # characters of an If-Match value (a few ETags; one is ~70)
+
+
+def if_match_header(
+    value: Annotated[
+        str | None,
+        Header(
+            alias="If-Match",
+            description="the ETag of the state this change was decided on (from a GET or a write's "
+            "answer); 412 with the current version when it is not current any more; a weak ETag "
+            "(W/...) or a value over 1024 characters: 400",
+        ),
+    ] = None,
+) -> str | None:
+    """The ``If-Match`` header, refused (400 naming it) when longer than :data:`MAX_IF_MATCH` or when it
+    holds a weak ETag: If-Match compares strongly (RFC 9110, 13.1.1), so ``W/"…"`` never matches and
+    taking it as the strong tag would pass a condition the client did not set."""
+    if value is None:
+        return None
+    if len(value) > MAX_IF_MATCH:
+        raise ApiError(
+            400,
+            f"If-Match: {len(value)} characters, more than {MAX_IF_MATCH}; send the ETag of a GET or "
+            "of a write's answer",
+            "If-Match",
+        )
+    weak = next((t.strip() for t in value.split(",") if t.strip().startswith("W/")), None)
+    if weak is not None:
+        raise ApiError(
+            400,
+            f"If-Match: {weak[:80]!r} is a weak ETag; If-Match compares ETags strongly (RFC 9110, "
+            "13.1.1): send the ETag as the server gave it, without W/",
+            "If-Match",
+        )
+    return value
+
+
+IfMatch = Annotated[str | None, Depends(if_match_header)]
 
 
 class DuplicateKey(HTTPException):
@@ -56,10 +86,17 @@ def strict_json(body: bytes | bytearray | str) -> Any:
             dups[-1] = (id(d), dups[-1][1])
         return d
 
-    doc = json.loads(body, object_pairs_hook=hook)
+    try:
+        doc = json.loads(body, object_pairs_hook=hook)
+    except RecursionError:  # nested deeper than the parser's stack allows (~1000 levels): a syntax refusal
+        text = body.decode("utf-8", "replace") if isinstance(body, (bytes, bytearray)) else body
+        raise json.JSONDecodeError("nested too deeply", text, 0) from None
     if dups:
         target, key = dups[0]
-        path = _path_of(doc, target, "")
+        try:
+            path = _path_of(doc, target, "")
+        except RecursionError:  # the object is too deep to name its path: its key alone
+            path = None
         raise DuplicateKey(f"{path}.{key}" if path else key, key)
     return doc
 
