@@ -32,8 +32,8 @@ import numpy as np
 from eyetohand.calibration.diff import ALPHA, Difference, Verdict, diff
 from eyetohand.calibration.file import Calibration
 from eyetohand.calibration.fit import calibrate
+from eyetohand.calibration.request import AUTO, resolve_model
 from eyetohand.core import DegenerateError, InputError, PointPairs
-from eyetohand.models import MODELS
 from eyetohand.solve import check_seed
 
 MIN_HALF = 6
@@ -147,8 +147,7 @@ def crossval(
     image_size: tuple[int, int] | None = None,
 ) -> CrossValidation:
     """K random split-half refits of ``model`` on ``pairs`` (see the module's text)."""
-    if model != "auto" and model not in MODELS:
-        raise InputError(f"model: unknown '{model}'; valid models: auto, {', '.join(MODELS)}")
+    choice = resolve_model(model)  # an unknown name refused in the library's words, listing the choices
     if not (isinstance(k, int) and not isinstance(k, bool) and 1 <= k <= MAX_K):
         raise InputError(f"k: expected a whole number of splits from 1 to {MAX_K}, got {k!r}")
     if tolerance_mm is not None and not (math.isfinite(tolerance_mm) and tolerance_mm > 0):
@@ -158,7 +157,7 @@ def crossval(
     if n < 2 * MIN_HALF:
         raise InputError(f"crossval needs at least {2 * MIN_HALF} pairs (two halves of {MIN_HALF}), got {n}")
     reference = calibrate(pairs, "auto", image_size=image_size, loo=False)
-    name = reference.model_name if model == "auto" else model
+    name = reference.model_name if choice is AUTO else choice.name
     full = (
         reference
         if name == reference.model_name

@@ -16,6 +16,7 @@ if TYPE_CHECKING:
     from eyetohand.positioning.mapping import PointResult, Status, map_point
     from eyetohand.positioning.modbus import ModbusService, parse_allow, peer_allowed
     from eyetohand.positioning.opcua import OpcUaService, state_of
+    from eyetohand.positioning.opcua_cert import ServerCertificate, reachable_addresses
     from eyetohand.positioning.plc import PlcServices
     from eyetohand.positioning.served import FixedCalibration, Identity, PendingCalibration, Served
     from eyetohand.positioning.tcp import (
@@ -35,6 +36,7 @@ else:
             "mapping": ("PointResult", "Status", "map_point"),
             "modbus": ("ModbusService", "parse_allow", "peer_allowed"),
             "opcua": ("OpcUaService", "state_of"),
+            "opcua_cert": ("ServerCertificate", "reachable_addresses"),
             "plc": ("PlcServices",),
             "served": ("FixedCalibration", "Identity", "PendingCalibration", "Served"),
             "tcp": (
@@ -50,6 +52,8 @@ else:
     )
 
 __all__ = [
+    "ServerCertificate",
+    "reachable_addresses",
     "FIRST_LINE_S",
     "MAX_LINE",
     "MISSING",

@@ -220,7 +220,7 @@ def check_opcua_certificate(args, opcua: str | None) -> None:
     if bool(cert) != bool(key):
         raise ServeError("--opcua-cert and --opcua-key go together: the certificate and its private key")
     if cert and key:
-        from eyetohand.positioning.opcua_cert import ServerCertificate
+        from eyetohand.positioning import ServerCertificate
 
         try:
             args.opcua_security = ServerCertificate.from_files(cert, key)
@@ -538,8 +538,7 @@ async def _start_plc(
     service's served calibration when there is one, else ``served``, followed by polling when
     ``poll``); print their start-up lines. Returns (the services, their loop). OPC UA's certificate:
     ``--opcua-cert/--opcua-key``, else the one in ``data_dir``/opcua (created at the first start)."""
-    from eyetohand.positioning import LoopThread, PlcServices
-    from eyetohand.positioning.opcua_cert import ServerCertificate, reachable_addresses
+    from eyetohand.positioning import LoopThread, PlcServices, ServerCertificate, reachable_addresses
 
     security = getattr(args, "opcua_security", None)
     if getattr(args, "opcua", None) and security is None and data_dir is not None:
@@ -613,17 +612,15 @@ def cell_heartbeat(args, http_sock, source_fn):
     import datetime as dt
 
     from eyetohand.server.plant import CellBeat
-    from eyetohand.server.tcp import FixedCalibration, StoredCalibration
 
     started = dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
     url = f"http://{args.host}:{http_sock.getsockname()[1]}"
 
     def beat() -> CellBeat:
-        src = source_fn()
-        if isinstance(src, StoredCalibration):
-            return CellBeat.of_this_process(url, src.cal_id, src.name, src.version, started)
-        label = src.label if isinstance(src, FixedCalibration) else ""
-        return CellBeat.of_this_process(url, None, label, None, started)
+        who = source_fn().identity()  # a stored calibration has an id and a version; a file its path
+        if who.cal_id is not None:
+            return CellBeat.of_this_process(url, who.cal_id, who.name, who.version, started)
+        return CellBeat.of_this_process(url, None, who.file, None, started)
 
     return beat
 
