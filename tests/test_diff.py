@@ -171,7 +171,7 @@ def test_crossval_refuses_bad_options():
     with pytest.raises(InputError, match="at least 12 pairs"):
         crossval(pairs, "homography")
     pairs = simulate(FLAT, "grid:5x5", seed=3).pairs
-    with pytest.raises(InputError, match="valid models"):
+    with pytest.raises(InputError, match="unknown model .*choose one of: auto"):
         crossval(pairs, "nonsense")
     with pytest.raises(InputError, match="k: expected"):
         crossval(pairs, "homography", k=0)
@@ -224,7 +224,7 @@ def test_cli_crossval(cal_files, capsys):
     j = json.loads(out)
     assert rc == 0 and j["verdict"] == "consistent" and j["k"] == 3 and j["model"] == "homography"
     rc, _, err = run(capsys, "crossval", cal_files["a_pairs"], "--model", "nope")
-    assert rc == 2 and "valid models" in err
+    assert rc == 2 and "choose one of: auto" in err
     rc, _, err = run(capsys, "crossval", cal_files["a_pairs"], "--tolerance-mm", "0")
     assert rc == 2 and "tolerance" in err
 
