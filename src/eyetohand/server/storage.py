@@ -415,6 +415,12 @@ class Store:
             (_now(), audit.current_user(), action, rec.id, rec.name, before, after, note),
         )
 
+    def audit_event(self, cal_id: int, action: str, version: int | None, note: str) -> None:
+        """Append an audit entry that changes no row (a check made elsewhere: a CAL CHECK over TCP)."""
+        with self._tx() as db, self._errors():
+            rec = self._row(db, cal_id)
+            self._audit(db, action, rec, version, version, note)
+
     def changed_since(self, after: int | None) -> tuple[int, builtins.list[int]]:
         """(the last audit entry's id, the calibrations changed after entry ``after``; None: none,
         only the id). Writes are serialised, so ids become visible in order: nothing is skipped."""
