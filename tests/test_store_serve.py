@@ -81,6 +81,8 @@ def test_http_changes_are_audited_under_the_tokens_names(store_url, cal_files):
         assert "ISO 8601" in r.json()["error"]
         r = c.get("/api/audit", params={"limit": 0}, headers=auth("bob"))
         assert r.status_code == 422
+        r = c.get("/api/audit", params={"calibration": "id:" + "9" * 30}, headers=auth("bob"))
+        assert r.status_code == 422 and r.json()["field"] == "calibration"
         future = c.get("/api/audit", params={"since": "2999-01-01"}, headers=auth("bob")).json()
         assert future == {"entries": [], "next_before": None}
     app.state.store.close()
