@@ -139,9 +139,10 @@ class Follower:
         """LISTEN on the store's channel (its own connection); each notification wakes the poll."""
         import psycopg
 
-        from eyetohand.server.store_pg import CHANNEL, CONNECT_TIMEOUT_S
+        from eyetohand.server.store_pg import CHANNEL, CONNECT_TIMEOUT_S, PgStore
 
-        url = getattr(self.store, "url", "")
+        assert isinstance(self.store, PgStore)  # started for PostgreSQL stores only
+        url = self.store.url
         while not self._stop.is_set():
             try:
                 with psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S) as conn:
