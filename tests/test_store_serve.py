@@ -112,8 +112,9 @@ def test_cli_audit_and_store_copy_both_ways(tmp_path, pg_url, capsys):
     assert main(["store", "copy", src_url, pg_url]) == 0
     assert "copied 1 calibrations, 2 versions, 0 verifications and 2 audit entries" in capsys.readouterr().out
     back_url = f"sqlite:{tmp_path / 'back.db'}"
-    assert main(["store", "copy", pg_url, back_url]) == 0
-    capsys.readouterr()
+    assert main(["store", "copy", pg_url, back_url, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["calibrations"], out["versions"], out["audit"], out["digest"]) == (1, 2, 2, digest)
     for url in (pg_url, back_url):
         t = open_store(url)
         assert store_digest(t) == digest
