@@ -1,8 +1,8 @@
 """Faults of a shared store, with a real `serve --store postgresql://…` process: the database stopped
-as by a crash (pg_ctl -m immediate) and started again under load (32 robot clients mapping over TCP, an office importing versions over
-HTTP), then the server killed with SIGKILL in the middle of the office's writes. Afterwards the versions
-and the audit trail must agree: every acknowledged write is there, numbered without a gap, each with
-its one entry, and nothing half-written."""
+as by a crash (pg_ctl -m immediate) and started again under load (32 robot clients mapping over TCP,
+an office importing versions over HTTP), then the server killed with SIGKILL in the middle of the
+office's writes. Afterwards the versions and the audit trail must agree: every acknowledged write is
+there, numbered without a gap, each with its one entry, and nothing half-written."""
 
 from __future__ import annotations
 
