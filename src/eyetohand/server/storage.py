@@ -13,6 +13,11 @@ start), every connection opens it read-write without ever creating it, and every
 proves that the path still names the file the store opened (:meth:`Store.check_same_file`), so a
 database deleted or replaced under a running server is refused (:class:`DatabaseGone`, 503), never
 silently recreated empty nor served from the unlinked file.
+
+The tables and their versions are in :mod:`~eyetohand.server.schema`; every change appends its audit
+entry in its own transaction (:mod:`~eyetohand.server.audit`). The same class, its SQL unchanged, runs
+on PostgreSQL as :class:`~eyetohand.server.store_pg.PgStore`; :func:`~eyetohand.server.stores.open_store`
+opens either from a reference (docs/store.md).
 """
 
 from __future__ import annotations
