@@ -324,3 +324,10 @@ def test_a_notification_wakes_the_follower_at_once(pg_url):
         f.stop()
         s.close()
         writer.close()
+
+
+def test_an_id_beyond_int64_is_not_found(store):
+    store.create("a", {}, cal(1), [], None)
+    for ref in ("id:" + "9" * 30, "9" * 30):
+        with pytest.raises(NotFound, match="no calibration (with id|named)"):
+            store.find(ref)

@@ -459,6 +459,8 @@ class Store:
         return [(Record(*r[:5]), _version(r[5:])) for r in rows]
 
     def get(self, cal_id: int) -> Record:
+        if not 0 <= cal_id < 2**63:  # no row has it (and SQLite cannot even be asked: int64)
+            raise NotFound(f"no calibration with id {cal_id}")
         rows = self._read(
             "SELECT id, name, created_utc, updated_utc, current_version FROM calibrations WHERE id = ?",
             (cal_id,),
