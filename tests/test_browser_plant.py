@@ -42,6 +42,13 @@ def test_plant_page_makes_a_version_current_with_if_match(tmp_path, paper_pairs)
             row.locator("button").click()
             page.wait_for_selector("#global-err:not([hidden])")
             assert "If-Match" in page.inner_text("#global-err")
+            # one calibration's trail, as the workbench's link opens it
+            c.post("/api/calibrations/import", json={"name": "welder 2", "calibration": cals[0]})
+            page.goto(url + "/plant?calibration=2")
+            page.wait_for_function("document.querySelector('#audit').innerText.includes('welder 2')")
+            assert "press 4" not in page.inner_text("#audit") and "(calibration 2)" in page.inner_text(
+                "#audit-of"
+            )
             shot = tmp_path / "plant.png"
             page.screenshot(path=str(shot), full_page=True)
             keep_screenshot(shot)

@@ -525,6 +525,13 @@ def test_serve_collects_over_tcp_with_the_robot_client(
         assert check.startswith("OK ") and float(check[3:].split(",")[2]) < 0.05, check
         hist = (tmp_path / "data" / "collect" / "cell1.checks.jsonl").read_text().splitlines()
         assert len(hist) == 1 and json.loads(hist[0])["data_sha256"] == cal.data_sha256
+        st = Store(tmp_path / "data")
+        try:  # and the store's audit trail has the check, after the CAL END
+            trail = [(e.user, e.action, e.version_after, e.note) for e in reversed(st.audit())]
+        finally:
+            st.close()
+        assert [t[:3] for t in trail] == [("robot", "cal_end", 1), ("robot", "check", 1)]
+        assert trail[1][3].startswith("CAL CHECK at (") and " mm: error 0.0" in trail[1][3], trail[1][3]
         link.close()
     finally:
         srv.stop()

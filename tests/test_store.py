@@ -298,3 +298,36 @@ def test_store_references():
         StoreRef.parse("mysql://u@h/db")
     with pytest.raises(StoreRefError, match="sqlite: needs a path"):
         StoreRef.parse("sqlite:")
+
+
+def test_a_notification_wakes_the_follower_at_once(pg_url):
+    """On PostgreSQL the follower LISTENs: with a poll every 30 s, another connection's write still
+    reaches it within a second (the payload is only a wake-up: the change is read from the trail)."""
+    import time
+
+    from eyetohand.server.follow import Follower
+
+    s, writer = open_store(pg_url), open_store(pg_url)
+    a = writer.create("a", {}, cal(1), [], None)
+    seen: list[int] = []
+    f = Follower(s, seen.append, poll_s=30.0)
+    f.start()
+    try:
+        time.sleep(1.0)  # the first poll (the last entry seen) and the LISTEN are in place
+        t0 = time.monotonic()
+        writer.add_version(a.id, {}, cal(2), [], None, "elsewhere")
+        while not seen and time.monotonic() - t0 < 5:
+            time.sleep(0.01)
+        assert seen == [a.id] and time.monotonic() - t0 < 1.0
+        assert f.state.reachable and f.last == max(e.id for e in s.audit())
+    finally:
+        f.stop()
+        s.close()
+        writer.close()
+
+
+def test_an_id_beyond_int64_is_not_found(store):
+    store.create("a", {}, cal(1), [], None)
+    for ref in ("id:" + "9" * 30, "9" * 30):
+        with pytest.raises(NotFound, match="no calibration (with id|named)"):
+            store.find(ref)

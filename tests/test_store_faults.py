@@ -1,8 +1,8 @@
 """Faults of a shared store, with a real `serve --store postgresql://…` process: the database stopped
-and started again under load (32 robot clients mapping over TCP, an office importing versions over
-HTTP), then the server killed with SIGKILL in the middle of the office's writes. Afterwards the versions
-and the audit trail must agree: every acknowledged write is there, numbered without a gap, each with
-its one entry, and nothing half-written."""
+as by a crash (pg_ctl -m immediate) and started again under load (32 robot clients mapping over TCP,
+an office importing versions over HTTP), then the server killed with SIGKILL in the middle of the
+office's writes. Afterwards the versions and the audit trail must agree: every acknowledged write is
+there, numbered without a gap, each with its one entry, and nothing half-written."""
 
 from __future__ import annotations
 
@@ -124,7 +124,7 @@ def test_database_restart_under_load_then_kill_9_mid_write(tmp_path, pg_cluster,
         robots = Robots(srv.tcp_port)
         office = Office(srv.url, cal_files)
         time.sleep(1.5)
-        pg_cluster.stop()
+        pg_cluster.stop("immediate")  # as a crash: no shutdown checkpoint, recovery at the restart
         down_at = time.monotonic()
         try:
             time.sleep(2.0)

@@ -81,6 +81,8 @@ def test_http_changes_are_audited_under_the_tokens_names(store_url, cal_files):
         assert "ISO 8601" in r.json()["error"]
         r = c.get("/api/audit", params={"limit": 0}, headers=auth("bob"))
         assert r.status_code == 422
+        r = c.get("/api/audit", params={"calibration": "id:" + "9" * 30}, headers=auth("bob"))
+        assert r.status_code == 422 and r.json()["field"] == "calibration"
         future = c.get("/api/audit", params={"since": "2999-01-01"}, headers=auth("bob")).json()
         assert future == {"entries": [], "next_before": None}
     app.state.store.close()
@@ -110,8 +112,9 @@ def test_cli_audit_and_store_copy_both_ways(tmp_path, pg_url, capsys):
     assert main(["store", "copy", src_url, pg_url]) == 0
     assert "copied 1 calibrations, 2 versions, 0 verifications and 2 audit entries" in capsys.readouterr().out
     back_url = f"sqlite:{tmp_path / 'back.db'}"
-    assert main(["store", "copy", pg_url, back_url]) == 0
-    capsys.readouterr()
+    assert main(["store", "copy", pg_url, back_url, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["calibrations"], out["versions"], out["audit"], out["digest"]) == (1, 2, 2, digest)
     for url in (pg_url, back_url):
         t = open_store(url)
         assert store_digest(t) == digest

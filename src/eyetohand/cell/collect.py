@@ -332,7 +332,10 @@ class Collector:
         keep_images: bool = False,
         begin_rule: Callable[[str], str | None] | None = None,
         served_fn: Callable[[], tuple[str, int | None, Any, str | None]] | None = None,
+        on_check: Callable[[dict], None] | None = None,
     ):
+        """``on_check(record)``: called with each CAL CHECK record once it is kept in the history
+        (``serve`` adds it to its store's audit trail)."""
         if reply_format not in REPLY_FORMATS:
             raise InputError(f"reply format {reply_format!r}: expected one of {', '.join(REPLY_FORMATS)}")
         if not (still_tol_px > 0):
@@ -351,6 +354,7 @@ class Collector:
         self.calibrate_fn = calibrate_fn or default_calibrate
         self.save_fn = save_fn or self._save_file
         self.load_fn = load_fn or self._load_file
+        self.on_check = on_check
         self.replies: ReplyFormat = REPLY_FORMATS[reply_format]()
         self.still_tol_px = float(still_tol_px)
         self.detect_options = dict(detect_options or {})
@@ -867,6 +871,8 @@ class Collector:
             fh.write((json.dumps(rec, allow_nan=False) + "\n").encode())
             fh.flush()
             os.fsync(fh.fileno())
+        if self.on_check is not None:
+            self.on_check(rec)
         return [_f(dx), _f(dy), _f(err)]
 
 

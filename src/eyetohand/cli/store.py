@@ -3,6 +3,8 @@ history from one store to another: SQLite and PostgreSQL, either way). docs/stor
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 from eyetohand.cli.common import CliError, emit_json
 
 
@@ -83,6 +85,9 @@ def cmd_store_copy(args) -> int:
     finally:
         for s in stores:
             s.close()
+    if args.json:
+        emit_json({"src": str(src_ref), "dst": str(dst_ref), **asdict(result)})
+        return 0
     print(
         f"copied {result.calibrations} calibrations, {result.versions} versions, {result.verifications} "
         f"verifications and {result.audit} audit entries from {src_ref} to {dst_ref} "
@@ -113,4 +118,5 @@ def register(sub) -> None:
     )
     c.add_argument("src", metavar="SRC", help="sqlite:PATH, a data folder, or postgresql://USER@HOST:PORT/DB")
     c.add_argument("dst", metavar="DST", help="the same kinds; must hold no calibration yet")
+    c.add_argument("--json", action="store_true", help="print JSON (the counts copied and the digest)")
     c.set_defaults(func=cmd_store_copy)

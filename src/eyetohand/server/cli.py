@@ -322,6 +322,33 @@ def store_save_fn(store, on_saved=None, user: str = "robot"):
     return save
 
 
+def store_check_fn(store, user: str):
+    """``on_check(record)`` for the Collector: a CAL CHECK of a stored calibration audited as
+    ``check`` (its point and error in the note) by ``user``. The record is in the collection's history
+    file already: a store that cannot be written now is logged, the robot still gets its answer."""
+    import logging
+
+    from eyetohand.server.audit import acting_as
+    from eyetohand.server.storage import StorageError
+
+    def on_check(rec: dict) -> None:
+        found = store.by_name(rec["name"]) if rec.get("name") else None
+        if found is None:
+            return
+        x, y, z = rec["xyz_mm"]
+        note = (
+            f"CAL CHECK at ({x:.3f}, {y:.3f}, {z:.3f}) mm: error {rec['error_mm']:.4f} mm "
+            f"(dx {rec['dx_mm']:.4f}, dy {rec['dy_mm']:.4f})"
+        )
+        try:
+            with acting_as(user):
+                store.audit_event(found.id, "check", rec.get("version") or found.current_version, note)
+        except StorageError as exc:
+            logging.getLogger("eyetohand.store").warning("CAL CHECK not audited: %s", exc)
+
+    return on_check
+
+
 def tcp_user(args) -> str:
     """Who the audit trail names for a change made over TCP (CAL END): the name of the token TCP
     accepts (the token file's first), else ``robot``."""
@@ -440,6 +467,7 @@ async def _run_serve(args, data_dir, loops: list, backoff: AuthBackoff) -> None:
                     collect_dir,
                     source,
                     save_fn=store_save_fn(store, on_saved, tcp_user(args)),
+                    on_check=store_check_fn(store, tcp_user(args)),
                     load_fn=store_load_fn(store),
                     calibration=args.calibration,
                     reply_format=args.reply_format,

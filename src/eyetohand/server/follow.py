@@ -69,6 +69,7 @@ class Follower:
         self.poll_s = poll_s
         self.beat, self.beat_s = beat, beat_s
         self._next_beat = 0.0
+        self._failing = ""  # the last unexpected failure, logged once
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -118,7 +119,13 @@ class Follower:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self.poll()
+            try:
+                self.poll()
+                self._failing = ""
+            except Exception as exc:  # noqa: BLE001 - a bug must not end the following: said once, tried again
+                if repr(exc) != self._failing:
+                    self._failing = repr(exc)
+                    LOG.exception("following the store %s failed; trying again", self.store.where)
             if self.beat is not None and time.monotonic() >= self._next_beat and self.state.reachable:
                 self._next_beat = time.monotonic() + self.beat_s
                 try:
@@ -132,9 +139,10 @@ class Follower:
         """LISTEN on the store's channel (its own connection); each notification wakes the poll."""
         import psycopg
 
-        from eyetohand.server.store_pg import CHANNEL, CONNECT_TIMEOUT_S
+        from eyetohand.server.store_pg import CHANNEL, CONNECT_TIMEOUT_S, PgStore
 
-        url = getattr(self.store, "url", "")
+        assert isinstance(self.store, PgStore)  # started for PostgreSQL stores only
+        url = self.store.url
         while not self._stop.is_set():
             try:
                 with psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S) as conn:

@@ -103,8 +103,14 @@ class Service:
         if now is None:
             self.invalidate(cal_id, versions_too=True)
         elif now[1] != had[0]:
+            from eyetohand.core import InputError
+
             ver = self.store.version(cal_id, now[1])
-            cal = Calibration.from_dict(ver.calibration, f"calibration {cal_id} version {ver.version}")
+            try:
+                cal = Calibration.from_dict(ver.calibration, f"calibration {cal_id} version {ver.version}")
+            except InputError:  # unusable: dropped, so the next request reads it and says why
+                self.invalidate(cal_id)
+                return
             self.invalidate(cal_id)
             with self._lock:
                 self._current[cal_id] = (ver.version, cal)

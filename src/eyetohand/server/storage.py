@@ -13,6 +13,11 @@ start), every connection opens it read-write without ever creating it, and every
 proves that the path still names the file the store opened (:meth:`Store.check_same_file`), so a
 database deleted or replaced under a running server is refused (:class:`DatabaseGone`, 503), never
 silently recreated empty nor served from the unlinked file.
+
+The tables and their versions are in :mod:`~eyetohand.server.schema`; every change appends its audit
+entry in its own transaction (:mod:`~eyetohand.server.audit`). The same class, its SQL unchanged, runs
+on PostgreSQL as :class:`~eyetohand.server.store_pg.PgStore`; :func:`~eyetohand.server.stores.open_store`
+opens either from a reference (docs/store.md).
 """
 
 from __future__ import annotations
@@ -415,6 +420,12 @@ class Store:
             (_now(), audit.current_user(), action, rec.id, rec.name, before, after, note),
         )
 
+    def audit_event(self, cal_id: int, action: str, version: int | None, note: str) -> None:
+        """Append an audit entry that changes no row (a check made elsewhere: a CAL CHECK over TCP)."""
+        with self._tx() as db, self._errors():
+            rec = self._row(db, cal_id)
+            self._audit(db, action, rec, version, version, note)
+
     def changed_since(self, after: int | None) -> tuple[int, builtins.list[int]]:
         """(the last audit entry's id, the calibrations changed after entry ``after``; None: none,
         only the id). Writes are serialised, so ids become visible in order: nothing is skipped."""
@@ -448,6 +459,8 @@ class Store:
         return [(Record(*r[:5]), _version(r[5:])) for r in rows]
 
     def get(self, cal_id: int) -> Record:
+        if not 0 <= cal_id < 2**63:  # no row has it (and SQLite cannot even be asked: int64)
+            raise NotFound(f"no calibration with id {cal_id}")
         rows = self._read(
             "SELECT id, name, created_utc, updated_utc, current_version FROM calibrations WHERE id = ?",
             (cal_id,),

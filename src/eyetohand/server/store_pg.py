@@ -115,10 +115,22 @@ class PgStore(Store):
 
     @contextmanager
     def _tx(self) -> Iterator[Any]:
-        """One transaction that holds the store's advisory lock: committed or rolled back whole."""
-        with self._borrow() as conn, self._errors(), conn.transaction():
-            conn.execute("SELECT pg_advisory_xact_lock(%s)", (LOCK_KEY,))
-            yield _Conn(conn)
+        """One transaction that holds the store's advisory lock: committed or rolled back whole. A
+        connection lost during the COMMIT itself leaves the outcome unknown, and says so (a write is
+        not idempotent: sent again blindly, it could add a second version)."""
+        done = False
+        try:
+            with self._borrow() as conn, self._errors(), conn.transaction():
+                conn.execute("SELECT pg_advisory_xact_lock(%s)", (LOCK_KEY,))
+                yield _Conn(conn)
+                done = True
+        except StorageError as exc:
+            if not done or isinstance(exc, Busy | NoSpace):
+                raise
+            raise StorageError(
+                f"the database {self.where} was lost while committing: the change may or may not be "
+                "stored; look at the audit trail (GET /api/audit, eyetohand audit) before sending it again"
+            ) from None
 
     def _read(self, sql: str, args: tuple = ()) -> list:
         with self._borrow() as conn, self._errors():

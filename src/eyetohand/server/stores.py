@@ -156,6 +156,10 @@ def copy_store(src: Store, dst: Store) -> CopyResult:
 
 
 # ------------------------------------------------------------------ audit queries
+MAX_ID = 2**62
+"""The largest calibration id the API takes (as its paths do)."""
+
+
 class QueryError(ValueError):
     """A bad filter of the audit trail; ``field`` names it."""
 
@@ -193,10 +197,14 @@ def audit_query(
     cal_id = cal_name = None
     if calibration is not None:
         ref = calibration.strip()
+        bare = ref[3:].strip() if ref.lower().startswith("id:") else ref
+        if is_id_like(bare) and int(bare) > MAX_ID:
+            raise QueryError(
+                f"calibration: {ref!r} is no calibration's id (ids are at most 2**62)", "calibration"
+            )
         try:
             cal_id = store.find(ref).id
         except NotFound:
-            bare = ref[3:].strip() if ref.lower().startswith("id:") else ref
             if is_id_like(bare):
                 cal_id = int(bare)
             else:

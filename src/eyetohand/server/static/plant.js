@@ -1,7 +1,8 @@
 "use strict";
 // The plant view: GET /api/plant every 5 s; a rollback sends the ETag this page last saw (If-Match).
 const $ = (s) => document.querySelector(s);
-let auditOf = null;
+// ?calibration=ID opens the page on that calibration's trail (the workbench links here)
+let auditOf = Number(new URLSearchParams(location.search).get("calibration")) || null;
 
 function el(tag, attrs, text) {
   const e = document.createElement(tag);
