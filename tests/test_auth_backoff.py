@@ -57,6 +57,13 @@ def test_the_rule_with_a_fake_clock(caplog):
     for i in range(50):  # a spray of addresses: memory stays bounded, the latest kept
         b.failed(f"10.0.0.{i}")
     assert b.remembered == 4
+    v6 = AuthBackoff(free=1, clock=clock)
+    v6.failed("2001:db8:1:2::17")
+    v6.failed("2001:db8:1:2:ffff::1")  # the same /64: one host may use any address in it
+    assert v6.wait_s("2001:db8:1:2::99") > 0 and v6.wait_s("2001:db8:1:3::17") == 0
+    v6.failed("::ffff:10.0.0.7")
+    v6.failed("10.0.0.7")  # IPv4-mapped counts as the IPv4 address
+    assert v6.wait_s("10.0.0.7") > 0
     with pytest.raises(ValueError, match="base_delay_s"):
         AuthBackoff(base_delay_s=0)
 

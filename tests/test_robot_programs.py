@@ -312,7 +312,7 @@ def program_auth(rel: str, cr_item: bytes = b"\r\n") -> Auth:
         )
         one(r"send_cmd\('AUTH ' \+ TOKEN\)", text)
         n, prefix = one(
-            r"IF SUB_STR\(reply, 1, (\d+)\) = '([^']+)' THEN\s*\n\s*stop_\w+\('the vision PC refused", text
+            r"IF SUB_STR\(reply, 1, (\d+)\) = '([^']+)' THEN[^\n]*\n\s*stop_\w+\('the vision PC refused", text
         ).groups()
         reply_len = int(one(r"reply : STRING\[(\d+)\]", text).group(1))
         return Auth(
@@ -333,7 +333,7 @@ def program_auth(rel: str, cr_item: bytes = b"\r\n") -> Auth:
             'StrCopy(cmd[], "CAL BEGIN' if "collect" in rel else 'StrCopy(cmd[], "LOCATE ',
         )
         prefix = one(
-            r'StrFind\(1, reply\[\], "([^"]+)", #CASE_SENS\) == 1 THEN\s*\n'
+            r'StrFind\(1, reply\[\], "([^"]+)", #CASE_SENS\) == 1 THEN[^\n]*\n'
             r'\s*MsgNotify\("eyetohand: the vision PC refused',
             text,
         ).group(1)

@@ -49,6 +49,7 @@ Function CalCollect
     CP Off
     ' the first line: AUTH <token>; a wrong token is answered ERR send ... (code -14) and closed
     If Not Cmd("AUTH " + token$) Then
+        ' InStr: the position of the text, 1 at the start (SPEL+ Language Reference)
         If InStr(gReply$, "ERR send") = 1 Then gReply$ = "the vision PC refused the token (AUTH): set token$"
         GoTo Fail
     EndIf

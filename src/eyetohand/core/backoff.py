@@ -7,7 +7,9 @@ then (the TCP line, HTTP and OPC UA each answer in their own words). So a guesse
 guesses and then about one per ``max_delay_s``, however many connections it opens, while any other
 address is served as before. An address is forgotten ``forget_s`` after its last failure, or when it
 authenticates; at most ``max_addresses`` are remembered (the least recently failed is dropped first),
-so memory stays bounded under a spray of source addresses. ``clock`` is injectable for tests. A burst
+so memory stays bounded under a spray of source addresses. An IPv6 address counts for its /64 (one
+host holds a whole /64 and may pick any address in it); an IPv4-mapped one as the IPv4 address.
+``clock`` is injectable for tests. A burst
 is logged once, when an address starts to be held back, with its count; the refusals that follow are
 not logged one by one.
 
@@ -73,6 +75,7 @@ class AuthBackoff:
     def wait_s(self, address: str) -> float:
         """Seconds before an attempt from ``address`` is judged (0: judge it now). An attempt made
         while this is positive is to be refused without looking at its token."""
+        address = _key(address)
         if address not in self._failures:  # the common case, without the lock (one dict lookup)
             return 0.0
         now = self.clock()
@@ -87,6 +90,7 @@ class AuthBackoff:
 
     def failed(self, address: str, what: str = "authentication") -> None:
         """Count a judged attempt from ``address`` that failed (``what``: for the log line)."""
+        address = _key(address)
         now = self.clock()
         with self._lock:
             f = self._failures.pop(address, None)
@@ -110,6 +114,7 @@ class AuthBackoff:
 
     def succeeded(self, address: str) -> None:
         """``address`` authenticated: its failures are forgotten."""
+        address = _key(address)
         if address not in self._failures:  # the common case, without the lock
             return
         with self._lock:
@@ -119,3 +124,19 @@ class AuthBackoff:
     def remembered(self) -> int:
         """How many addresses are remembered (bounded by ``max_addresses``)."""
         return len(self._failures)
+
+
+def _key(address: str) -> str:
+    """The address an attempt counts for: an IPv4 address (or a name) as it is, an IPv6 one's /64, an
+    IPv4-mapped IPv6 one as its IPv4 address."""
+    if ":" not in address:
+        return address
+    import ipaddress
+
+    try:
+        ip = ipaddress.IPv6Address(address.split("%", 1)[0])
+    except ValueError:
+        return address
+    if ip.ipv4_mapped is not None:
+        return str(ip.ipv4_mapped)
+    return str(ipaddress.IPv6Network(f"{ip}/64", strict=False))
