@@ -81,7 +81,7 @@ def test_bad_spec_and_missing_plate_exit_2(session, tmp_path):
     assert r.returncode == 2
     assert r.stderr.strip() == (
         "error: plate spec 'chessboard:9x6': expected KIND:COLSxROWS:PITCH_MM with KIND one of chessboard, "
-        "circles, acircles (e.g. chessboard:9x6:20)"
+        "circles, acircles, charuco (e.g. chessboard:9x6:20; charuco:9x6:20[:MARKER_MM])"
     )
     ann = tmp_path / "seen.png"
     r = run(

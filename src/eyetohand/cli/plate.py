@@ -116,7 +116,10 @@ def register(sub) -> None:
     )
     p.add_argument("images", nargs="+", metavar="IMAGE", help="the plate's image(s), one per placement")
     p.add_argument(
-        "--plate", required=True, metavar="SPEC", help="chessboard|circles|acircles:COLSxROWS:PITCH_MM"
+        "--plate",
+        required=True,
+        metavar="SPEC",
+        help="chessboard|circles|acircles|charuco:COLSxROWS:PITCH_MM (docs/plate.md)",
     )
     p.add_argument("--touches", metavar="T.csv", help="CSV [image,]u,v,x,y,z[,id]: the touched corners")
     p.add_argument("--check", metavar="C.csv", help="check pairs, not used for fitting")
