@@ -269,6 +269,12 @@ def test_touches_file_errors_name_line_and_field():
         touches_from_text("image,u,v,x,y,z\nc.png,1,2,3,4,5\n", "t.csv", ["a.png", "b.png"])
 
 
+def test_two_images_of_one_name_are_refused():
+    img = np.zeros((8, 8), np.uint8)
+    with pytest.raises(InputError, match=r"plate images: two named 'p.png' \(a/p.png, b/p.png\)"):
+        calibrate_plate([img, img], CHESS, [], names=["a/p.png", "b/p.png"])
+
+
 # ------------------------------------------------------------------ the file
 
 

@@ -110,6 +110,14 @@ def calibrate_plate(
     names = names or [
         str(i) if isinstance(i, (str, os.PathLike)) else f"image {k + 1}" for k, i in enumerate(images)
     ]
+    base = [Path(n).name for n in names]
+    twice = sorted({b for b in base if base.count(b) > 1})
+    if twice:
+        raise InputError(
+            f"plate images: two named {twice[0]!r} "
+            f"({', '.join(n for n in names if Path(n).name == twice[0])}): the touches' image column could "
+            "not tell them apart; rename one"
+        )
     found = [
         PlateImage(Path(name).name, det.image_size, det.uv_px)
         for det, name in (
