@@ -375,3 +375,37 @@ def test_verify_counts_the_touches_error_as_no_motion():
             moved = replace(check, uv_px=check.uv_px + [3.0, 0.0])
             assert verify(cal, moved, 1.0).drift.significant
     assert alarms <= 1  # 0.1 % each under no motion
+
+
+def test_several_placements_give_the_full_camera(tmp_path):
+    """Two placements (the table, a 60 mm block, one tilted): the camera model, which maps other
+    heights; touches name their image; the file proves both placements on load."""
+    spec = "chessboard:9x6:12"
+    sims = [
+        simulate_plate(
+            spec=spec, z_mm=0.0, yaw_deg=10, tilt_deg=0.3, seed=1, render=False, touch_noise_mm=0.02
+        ),
+        simulate_plate(
+            spec=spec, z_mm=60.0, yaw_deg=-25, tilt_deg=6.0, seed=2, render=False, touch_noise_mm=0.02
+        ),
+    ]
+    rng = np.random.default_rng(0)
+    found = [
+        PlateImage(f"p{k}.png", s.camera.image_size, s.true_uv_px + rng.normal(0, 0.02, s.true_uv_px.shape))
+        for k, s in enumerate(sims)
+    ]
+    lines = ["image,u,v,x,y,z"]
+    for k, s in enumerate(sims):
+        lines += [f"p{k}.png," + ",".join(r.split(",")[:5]) for r in s.touches_csv.splitlines()[1:] if r]
+    touches = touches_from_text("\n".join(lines) + "\n", "t.csv", ["p0.png", "p1.png"])
+    cal = calibrate_detected(sims[0].spec, found, touches)
+    assert cal.model_name == "camera" and len(cal.plate.placements) == 2
+    cam = sims[0].camera
+    uv = np.array([[1100.0, 950.0], [1400.0, 1150.0], [1224.0, 1024.0]])
+    for z in (0.0, 30.0, 60.0):  # between and at the placements' heights
+        m = cal.map(uv, z)
+        err = np.linalg.norm((m.xyz_mm - cam.image_to_robot(uv, z))[:, :2], axis=1)
+        assert (err < 4 * m.sigma_mm).all() and err.max() < 0.1, (z, err, m.sigma_mm)
+    cal.save(tmp_path / "cal.json")
+    again = Calibration.load(tmp_path / "cal.json")
+    assert np.array_equal(again.map(uv, 30.0).xyz_mm, cal.map(uv, 30.0).xyz_mm)
