@@ -293,10 +293,16 @@ def test_file_round_trip_proves_the_plate(flat, tmp_path):
     assert d["plate"]["spec"] == CHESS and len(d["plate"]["touches"]) == 4
     from eyetohand.calibration.file import content_sha256
 
-    d["plate"]["touches"][0]["x"] += 0.3  # a touch edited, the file resealed
-    d["content_sha256"] = content_sha256(d)
-    with pytest.raises(InputError, match=r"field 'plate"):
-        Calibration.from_dict(d, "cal.json")
+    for edit, words in (
+        (lambda p: p["touches"][0].__setitem__("x", p["touches"][0]["x"] + 0.3), r"field 'plate"),
+        (lambda p: p.__setitem__("spec", "chessboard:9x6:16"), r"field 'plate"),
+        (lambda p: p.pop("touches"), r"field 'plate' is malformed \(KeyError: 'touches'\)"),
+    ):
+        bad = json.loads(path.read_text())
+        edit(bad["plate"])  # edited, the file resealed
+        bad["content_sha256"] = content_sha256(bad)
+        with pytest.raises(InputError, match=words):
+            Calibration.from_dict(bad, "cal.json")
 
 
 def test_sigma_carries_the_touches(flat):
