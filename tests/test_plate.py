@@ -415,3 +415,32 @@ def test_several_placements_give_the_full_camera(tmp_path):
     cal.save(tmp_path / "cal.json")
     again = Calibration.load(tmp_path / "cal.json")
     assert np.array_equal(again.map(uv, 30.0).xyz_mm, cal.map(uv, 30.0).xyz_mm)
+
+
+def test_one_new_image_recommissions_after_a_bump(tmp_path):
+    """The camera is bumped (0.3 deg, 1 mm), the plate and the touches stand: the new image alone
+    re-commissions the cell (touches reused by corner), the old calibration is off by ~1 mm."""
+    from eyetohand.calibration.plate import touches_again
+    from eyetohand.geometry import rodrigues_to_matrix
+
+    sim = simulate_plate(spec=CHESS, seed=5, touch_noise_mm=0.02, render=False)
+    found = [PlateImage("p.png", sim.camera.image_size, sim.true_uv_px)]
+    cal = calibrate_detected(sim.spec, found, touches_from_text(sim.touches_csv, "t.csv", ["p.png"]))
+    cam = sim.camera
+    bump = rodrigues_to_matrix(np.radians([0.3, -0.2, 0.1]))
+    bumped = cam.with_pose(bump @ cam.R, bump @ cam.t + [1.0, 0.0, 0.5])
+    world = sim.placement.to_robot(sim.spec.points_mm())
+    new_uv = bumped.robot_to_image(world)
+    for order in (new_uv, new_uv[::-1]):  # numbered from either end in the new image
+        touches, note = touches_again(cal, sim.spec, [PlateImage("p.png", cam.image_size, order)])
+        assert "moved" in note
+        again = calibrate_detected(sim.spec, [PlateImage("p.png", cam.image_size, order)], touches)
+        check = pairs_from_text(sim.check_csv, "c.csv")
+        uv = bumped.robot_to_image(check.xyz_mm)
+        err_new = np.linalg.norm((again.map(uv).xyz_mm - check.xyz_mm)[:, :2], axis=1)
+        err_old = np.linalg.norm((cal.map(uv, allow_outside=True).xyz_mm - check.xyz_mm)[:, :2], axis=1)
+        assert err_new.max() < 0.1 and err_old.min() > 5 * err_new.max()
+    with pytest.raises(
+        InputError, match="the earlier calibration's plate is chessboard:9x6:15, not chessboard:9x6:16"
+    ):
+        touches_again(cal, PlateSpec.parse("chessboard:9x6:16"), found)

@@ -45,15 +45,22 @@ def cmd_calibrate_plate(args) -> int:
         check_output_path(args.output)
     if args.annotate:
         _annotate(args, spec)
-        if not args.touches:
+        if not (args.touches or args.touches_from):
             return 0
-    if not args.touches:
+    if args.touches and args.touches_from:
+        raise InputError("calibrate-plate: give --touches T.csv or --touches-from OLD.json, not both")
+    touches = args.touches
+    if args.touches_from:
+        from eyetohand.calibration import Calibration
+
+        touches = Calibration.load(args.touches_from)
+    if not touches:
         raise InputError("calibrate-plate: give --touches T.csv (or --annotate FILE.png to see the corners)")
     check = load_pairs(args.check) if args.check else None
     cal = calibrate_plate(
         args.images,
         spec,
-        args.touches,
+        touches,
         check=check,
         model=args.model,
         tolerance_mm=args.touch_tolerance_mm,
@@ -122,6 +129,11 @@ def register(sub) -> None:
         help="chessboard|circles|acircles|charuco:COLSxROWS:PITCH_MM (docs/plate.md)",
     )
     p.add_argument("--touches", metavar="T.csv", help="CSV [image,]u,v,x,y,z[,id]: the touched corners")
+    p.add_argument(
+        "--touches-from",
+        metavar="OLD.json",
+        help="after a camera bump: the touches of an earlier calibration from this plate, where it lay",
+    )
     p.add_argument("--check", metavar="C.csv", help="check pairs, not used for fitting")
     p.add_argument(
         "--model", default=None, help="model (default: homography-radial on one plane, else camera)"
