@@ -28,7 +28,7 @@ from eyetohand.calibration.file import Calibration
 from eyetohand.calibration.fit import calibrate
 from eyetohand.calibration.plate_record import PlateImage, PlateRecord
 from eyetohand.calibration.touches import TOLERANCE_MM, Touch, load_touches
-from eyetohand.core import InputError, PointPairs
+from eyetohand.core import ROBOT_UNITS, InputError, PointPairs
 from eyetohand.geometry import fit_height_plane
 from eyetohand.vision import PlateSpec, detect_plate
 
@@ -135,6 +135,7 @@ def calibrate_plate(
     touch_noise_mm: float | None = None,
     names: list[str] | None = None,
     loo: bool = False,
+    robot_units: str = "mm",
 ) -> Calibration:
     """A calibration from plate images (paths or arrays) and touches (a CSV path or :class:`Touch`
     list). ``model``: None chooses (module docstring). ``touch_noise_mm``: the robot's pointer noise
@@ -142,8 +143,11 @@ def calibrate_plate(
     ``loo``: also the leave-one-out errors of the corners (slower; they measure the pixel fit, not
     the touches). ``touches`` may be an earlier :class:`Calibration` from this plate: after a bump of the
     camera, new images of the plate where it lay re-commission the cell with its touches
-    (:func:`touches_again`)."""
+    (:func:`touches_again`). ``robot_units``: the touches' x, y, z in mm, m or in (converted to mm).
+    """
     spec = PlateSpec.parse(spec) if isinstance(spec, str) else spec
+    if robot_units not in ROBOT_UNITS:
+        raise InputError(f"robot units {robot_units!r} not known; expected one of {', '.join(ROBOT_UNITS)}")
     if not images:
         raise InputError("no plate images given")
     if not (np.isfinite(tolerance_mm) and tolerance_mm > 0):
@@ -167,11 +171,18 @@ def calibrate_plate(
             (detect_plate(img, spec, name), name) for img, name in zip(images, names, strict=True)
         )
     ]
-    again = None
+    extra_note = None
     if isinstance(touches, Calibration):
-        touches, again = touches_again(touches, spec, found)
-    elif not isinstance(touches, list):
-        touches = load_touches(touches, names)
+        touches, extra_note = touches_again(touches, spec, found)
+    else:
+        if not isinstance(touches, list):
+            touches = load_touches(touches, names)
+        if robot_units != "mm":
+            f = ROBOT_UNITS[robot_units]
+            touches = [
+                replace(t, xyz_mm=(t.xyz_mm[0] * f, t.xyz_mm[1] * f, t.xyz_mm[2] * f)) for t in touches
+            ]
+            extra_note = f"touches: robot x, y, z read in {robot_units} and converted to mm (x {f:g})"
     cal = calibrate_detected(
         spec,
         found,
@@ -182,7 +193,7 @@ def calibrate_plate(
         touch_noise_mm=touch_noise_mm,
         loo=loo,
     )
-    return cal if again is None else replace(cal, notes=(*cal.notes, again))
+    return cal if extra_note is None else replace(cal, notes=(*cal.notes, extra_note))
 
 
 def calibrate_detected(

@@ -7,7 +7,7 @@ import json
 import sys
 
 from eyetohand.cli.common import calibration_summary, emit_json, print_calibration
-from eyetohand.core import InputError, atomic_write_bytes, load_pairs
+from eyetohand.core import ROBOT_UNITS, InputError, atomic_write_bytes, load_pairs
 
 
 def _write_png(path: str, image) -> None:
@@ -56,7 +56,7 @@ def cmd_calibrate_plate(args) -> int:
         touches = Calibration.load(args.touches_from)
     if not touches:
         raise InputError("calibrate-plate: give --touches T.csv (or --annotate FILE.png to see the corners)")
-    check = load_pairs(args.check) if args.check else None
+    check = load_pairs(args.check).scaled_to_mm(args.robot_units) if args.check else None
     cal = calibrate_plate(
         args.images,
         spec,
@@ -66,6 +66,7 @@ def cmd_calibrate_plate(args) -> int:
         tolerance_mm=args.touch_tolerance_mm,
         touch_noise_mm=args.touch_noise_mm,
         loo=args.loo,
+        robot_units=args.robot_units,
     )
     if args.output:
         cal.save(args.output)
@@ -149,6 +150,12 @@ def register(sub) -> None:
         type=float,
         default=0.5,
         help="largest residual a touch may keep (default 0.5)",
+    )
+    p.add_argument(
+        "--robot-units",
+        choices=sorted(ROBOT_UNITS),
+        default="mm",
+        help="units of the touches' (and --check's) x, y, z: converted to mm",
     )
     p.add_argument(
         "--annotate", metavar="FILE.png", help="write the first image with the corners A-D labelled"
