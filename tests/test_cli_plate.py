@@ -81,7 +81,7 @@ def test_bad_spec_and_missing_plate_exit_2(session, tmp_path):
     assert r.returncode == 2
     assert r.stderr.strip() == (
         "error: plate spec 'chessboard:9x6': expected KIND:COLSxROWS:PITCH_MM with KIND one of chessboard, "
-        "circles, acircles (e.g. chessboard:9x6:20)"
+        "circles, acircles, charuco (e.g. chessboard:9x6:20; charuco:9x6:20[:MARKER_MM])"
     )
     ann = tmp_path / "seen.png"
     r = run(
@@ -110,3 +110,26 @@ def test_a_bad_touch_exits_2_naming_it(session, tmp_path):
     )
     assert r.returncode == 2
     assert "the touches do not fit the plate rigidly" in r.stderr and r.stderr.count("\n") == 1
+
+
+def test_touches_in_metres(session, tmp_path):
+    rows = (session / "touches.csv").read_text().splitlines()
+    out = [rows[0]]
+    for r in rows[1:]:
+        u, v, x, y, z, tid = r.split(",")
+        out.append(",".join([u, v, *(f"{float(c) / 1000:.7f}" for c in (x, y, z)), tid]))
+    metres = tmp_path / "touches_m.csv"
+    metres.write_text("\n".join(out) + "\n")
+    args = (
+        "calibrate-plate",
+        str(session / "plate.png"),
+        "--plate",
+        "chessboard:9x6:15",
+        "--touches",
+        str(metres),
+    )
+    r = run(*args)
+    assert r.returncode == 2 and "the touches are 0.001x farther apart than the plate says" in r.stderr
+    r = run(*args, "--robot-units", "m")
+    assert r.returncode == 0, r.stderr
+    assert "robot x, y, z read in m and converted to mm (x 1000)" in r.stderr

@@ -94,6 +94,25 @@ def test_another_count_is_named_with_what_was_seen(chess_sim):
     assert out.shape == (*chess_sim.image.shape, 3)
 
 
+def test_charuco_spec_and_detection_by_id():
+    s = PlateSpec.parse("charuco:9x6:15")
+    assert (s.marker_mm, s.text, s.what) == (11.25, "charuco:9x6:15:11.25", "corners")
+    assert PlateSpec.parse("charuco:9x6:15:10").marker_mm == 10.0
+    with pytest.raises(
+        InputError, match="the marker size must be a number of mm below the square's 15, got 16"
+    ):
+        PlateSpec.parse("charuco:9x6:15:16")
+    with pytest.raises(InputError, match="only a charuco plate has a marker size"):
+        PlateSpec.parse("chessboard:9x6:15:10")
+    sim = simulate_plate(spec="charuco:9x6:15", seed=3)
+    det = detect_plate(sim.image, "charuco:9x6:15")
+    err = np.linalg.norm(det.uv_px - sim.true_uv_px, axis=1)  # numbered by the markers: one order only
+    assert np.sqrt(np.mean(err**2)) < 0.05 and err.max() < 0.1  # 0.020 px measured
+    half = np.ascontiguousarray(sim.image[:, : sim.image.shape[1] // 2])
+    with pytest.raises(PlateNotFound, match=r"charuco:9x6:15:11.25 not found: saw \d+ of its 54 corners"):
+        detect_plate(half, "charuco:9x6:15")
+
+
 def test_no_plate_is_named():
     blank = np.full((480, 640), 128, np.uint8)
     with pytest.raises(PlateNotFound, match=r"saw no chessboard \(0 of 54 corners\)"):
@@ -250,6 +269,12 @@ def test_touches_file_errors_name_line_and_field():
         touches_from_text("image,u,v,x,y,z\nc.png,1,2,3,4,5\n", "t.csv", ["a.png", "b.png"])
 
 
+def test_two_images_of_one_name_are_refused():
+    img = np.zeros((8, 8), np.uint8)
+    with pytest.raises(InputError, match=r"plate images: two named 'p.png' \(a/p.png, b/p.png\)"):
+        calibrate_plate([img, img], CHESS, [], names=["a/p.png", "b/p.png"])
+
+
 # ------------------------------------------------------------------ the file
 
 
@@ -268,10 +293,16 @@ def test_file_round_trip_proves_the_plate(flat, tmp_path):
     assert d["plate"]["spec"] == CHESS and len(d["plate"]["touches"]) == 4
     from eyetohand.calibration.file import content_sha256
 
-    d["plate"]["touches"][0]["x"] += 0.3  # a touch edited, the file resealed
-    d["content_sha256"] = content_sha256(d)
-    with pytest.raises(InputError, match=r"field 'plate"):
-        Calibration.from_dict(d, "cal.json")
+    for edit, words in (
+        (lambda p: p["touches"][0].__setitem__("x", p["touches"][0]["x"] + 0.3), r"field 'plate"),
+        (lambda p: p.__setitem__("spec", "chessboard:9x6:16"), r"field 'plate"),
+        (lambda p: p.pop("touches"), r"field 'plate' is malformed \(KeyError: 'touches'\)"),
+    ):
+        bad = json.loads(path.read_text())
+        edit(bad["plate"])  # edited, the file resealed
+        bad["content_sha256"] = content_sha256(bad)
+        with pytest.raises(InputError, match=words):
+            Calibration.from_dict(bad, "cal.json")
 
 
 def test_sigma_carries_the_touches(flat):
@@ -350,3 +381,66 @@ def test_verify_counts_the_touches_error_as_no_motion():
             moved = replace(check, uv_px=check.uv_px + [3.0, 0.0])
             assert verify(cal, moved, 1.0).drift.significant
     assert alarms <= 1  # 0.1 % each under no motion
+
+
+def test_several_placements_give_the_full_camera(tmp_path):
+    """Two placements (the table, a 60 mm block, one tilted): the camera model, which maps other
+    heights; touches name their image; the file proves both placements on load."""
+    spec = "chessboard:9x6:12"
+    sims = [
+        simulate_plate(
+            spec=spec, z_mm=0.0, yaw_deg=10, tilt_deg=0.3, seed=1, render=False, touch_noise_mm=0.02
+        ),
+        simulate_plate(
+            spec=spec, z_mm=60.0, yaw_deg=-25, tilt_deg=6.0, seed=2, render=False, touch_noise_mm=0.02
+        ),
+    ]
+    rng = np.random.default_rng(0)
+    found = [
+        PlateImage(f"p{k}.png", s.camera.image_size, s.true_uv_px + rng.normal(0, 0.02, s.true_uv_px.shape))
+        for k, s in enumerate(sims)
+    ]
+    lines = ["image,u,v,x,y,z"]
+    for k, s in enumerate(sims):
+        lines += [f"p{k}.png," + ",".join(r.split(",")[:5]) for r in s.touches_csv.splitlines()[1:] if r]
+    touches = touches_from_text("\n".join(lines) + "\n", "t.csv", ["p0.png", "p1.png"])
+    cal = calibrate_detected(sims[0].spec, found, touches)
+    assert cal.model_name == "camera" and len(cal.plate.placements) == 2
+    cam = sims[0].camera
+    uv = np.array([[1100.0, 950.0], [1400.0, 1150.0], [1224.0, 1024.0]])
+    for z in (0.0, 30.0, 60.0):  # between and at the placements' heights
+        m = cal.map(uv, z)
+        err = np.linalg.norm((m.xyz_mm - cam.image_to_robot(uv, z))[:, :2], axis=1)
+        assert (err < 4 * m.sigma_mm).all() and err.max() < 0.1, (z, err, m.sigma_mm)
+    cal.save(tmp_path / "cal.json")
+    again = Calibration.load(tmp_path / "cal.json")
+    assert np.array_equal(again.map(uv, 30.0).xyz_mm, cal.map(uv, 30.0).xyz_mm)
+
+
+def test_one_new_image_recommissions_after_a_bump(tmp_path):
+    """The camera is bumped (0.3 deg, 1 mm), the plate and the touches stand: the new image alone
+    re-commissions the cell (touches reused by corner), the old calibration is off by ~1 mm."""
+    from eyetohand.calibration.plate import touches_again
+    from eyetohand.geometry import rodrigues_to_matrix
+
+    sim = simulate_plate(spec=CHESS, seed=5, touch_noise_mm=0.02, render=False)
+    found = [PlateImage("p.png", sim.camera.image_size, sim.true_uv_px)]
+    cal = calibrate_detected(sim.spec, found, touches_from_text(sim.touches_csv, "t.csv", ["p.png"]))
+    cam = sim.camera
+    bump = rodrigues_to_matrix(np.radians([0.3, -0.2, 0.1]))
+    bumped = cam.with_pose(bump @ cam.R, bump @ cam.t + [1.0, 0.0, 0.5])
+    world = sim.placement.to_robot(sim.spec.points_mm())
+    new_uv = bumped.robot_to_image(world)
+    for order in (new_uv, new_uv[::-1]):  # numbered from either end in the new image
+        touches, note = touches_again(cal, sim.spec, [PlateImage("p.png", cam.image_size, order)])
+        assert "moved" in note
+        again = calibrate_detected(sim.spec, [PlateImage("p.png", cam.image_size, order)], touches)
+        check = pairs_from_text(sim.check_csv, "c.csv")
+        uv = bumped.robot_to_image(check.xyz_mm)
+        err_new = np.linalg.norm((again.map(uv).xyz_mm - check.xyz_mm)[:, :2], axis=1)
+        err_old = np.linalg.norm((cal.map(uv, allow_outside=True).xyz_mm - check.xyz_mm)[:, :2], axis=1)
+        assert err_new.max() < 0.1 and err_old.min() > 5 * err_new.max()
+    with pytest.raises(
+        InputError, match="the earlier calibration's plate is chessboard:9x6:15, not chessboard:9x6:16"
+    ):
+        touches_again(cal, PlateSpec.parse("chessboard:9x6:16"), found)

@@ -85,3 +85,22 @@ def test_a_bad_touch_is_named(client, sim):
     r = client.post("/api/plate/calibrate", json=_body(sim, touches=_file("t.csv", "\n".join(rows).encode())))
     assert r.status_code == 422 and r.json()["field"] == "touches"
     assert "touch B (line 3)" in r.json()["error"]
+
+
+def test_tcp_line_answers_a_plate_calibration(sim):
+    """The TCP line service's answer to ``u,v sigma`` for a plate calibration: its point and its
+    sigma_mm with the touches' error, as the library maps it."""
+    from eyetohand.calibration import calibrate_plate
+    from eyetohand.calibration.touches import touches_from_text
+    from eyetohand.server.tcp import answer
+
+    cal = calibrate_plate(
+        [sim.image], SPEC, touches_from_text(sim.touches_csv, "t.csv", ["p.png"]), names=["p.png"]
+    )
+    u, v = sim.true_uv_px[20]
+    got = [float(x) for x in answer(cal, f"{u:.4f},{v:.4f},sigma".encode()).decode().split(",")]
+    want = cal.map(np.array([[float(f"{u:.4f}"), float(f"{v:.4f}")]]))
+    assert np.allclose(got[:3], want.xyz_mm[0], atol=1e-3) and got[3] == pytest.approx(
+        want.sigma_mm[0], rel=1e-3
+    )
+    assert got[3] > 10 * cal.uncertainty.sigma_mm(cal.model, want.uv_px, want.xyz_mm[:, 2])[0]

@@ -28,7 +28,7 @@ from eyetohand.calibration.file import Calibration
 from eyetohand.calibration.fit import calibrate
 from eyetohand.calibration.plate_record import PlateImage, PlateRecord
 from eyetohand.calibration.touches import TOLERANCE_MM, Touch, load_touches
-from eyetohand.core import InputError, PointPairs
+from eyetohand.core import ROBOT_UNITS, InputError, PointPairs
 from eyetohand.geometry import fit_height_plane
 from eyetohand.vision import PlateSpec, detect_plate
 
@@ -83,10 +83,51 @@ def _check_not_mirrored(record: PlateRecord, centres: list[np.ndarray]) -> None:
             )
 
 
+def touches_again(old: Calibration, spec: PlateSpec, found: list[PlateImage]) -> tuple[list[Touch], str]:
+    """The touches of ``old`` (a calibration from this plate) on new images of the plate where it lay:
+    each touch moved to its corner's pixel in the new image (the camera was bumped, the plate and the
+    robot's readings stand), and a note of how far the corners moved. A chessboard or dot grid may be
+    numbered from its other end in the new image: the numbering nearer the old pixels is taken, and
+    refused when the two are not clearly apart."""
+    rec = old.plate
+    if rec is None:
+        raise InputError("the earlier calibration was not made from a plate: it has no touches to reuse")
+    if rec.spec != spec:
+        raise InputError(f"the earlier calibration's plate is {rec.spec.text}, not {spec.text}")
+    if len(found) != len(rec.images):
+        raise InputError(
+            f"the earlier calibration has {len(rec.images)} plate image(s), {len(found)} given: one new "
+            "image per placement, in the same order"
+        )
+    out: list[Touch] = []
+    moved = []
+    for k, (img, before, pl) in enumerate(zip(found, rec.images, rec.placements, strict=True)):
+        uv = img.uv_px
+        d = float(np.median(np.linalg.norm(uv - before.uv_px, axis=1)))
+        if spec.kind != "charuco":  # a board numbered from its other end
+            d_rev = float(np.median(np.linalg.norm(uv[::-1] - before.uv_px, axis=1)))
+            if d_rev < d:
+                uv, d, d_rev = uv[::-1], d_rev, d
+            if d > 0.25 * d_rev:
+                raise InputError(
+                    f"image {k + 1}: the plate's {spec.what} moved {d:.0f} px since the earlier calibration: "
+                    "too far to tell which is which; touch the corners again"
+                )
+        moved.append(d)
+        mine = [t for t in rec.touches if t.image == k]
+        out += [Touch(tuple(uv[c]), t.xyz_mm, k, t.id, t.line) for t, c in zip(mine, pl.corners, strict=True)]
+    note = (
+        f"touches reused from the earlier calibration by corner; the plate's {spec.what} moved "
+        + ", ".join(f"{m:.2f}" for m in moved)
+        + " px (median) in the image since"
+    )
+    return out, note
+
+
 def calibrate_plate(
     images: list,
     spec: PlateSpec | str,
-    touches: list[Touch] | str | os.PathLike,
+    touches: list[Touch] | str | os.PathLike | Calibration,
     *,
     check: PointPairs | None = None,
     model: str | None = None,
@@ -94,13 +135,19 @@ def calibrate_plate(
     touch_noise_mm: float | None = None,
     names: list[str] | None = None,
     loo: bool = False,
+    robot_units: str = "mm",
 ) -> Calibration:
     """A calibration from plate images (paths or arrays) and touches (a CSV path or :class:`Touch`
     list). ``model``: None chooses (module docstring). ``touch_noise_mm``: the robot's pointer noise
     σ per axis, when known; otherwise estimated from the touches' residuals (never below 0.01 mm).
     ``loo``: also the leave-one-out errors of the corners (slower; they measure the pixel fit, not
-    the touches)."""
+    the touches). ``touches`` may be an earlier :class:`Calibration` from this plate: after a bump of the
+    camera, new images of the plate where it lay re-commission the cell with its touches
+    (:func:`touches_again`). ``robot_units``: the touches' x, y, z in mm, m or in (converted to mm).
+    """
     spec = PlateSpec.parse(spec) if isinstance(spec, str) else spec
+    if robot_units not in ROBOT_UNITS:
+        raise InputError(f"robot units {robot_units!r} not known; expected one of {', '.join(ROBOT_UNITS)}")
     if not images:
         raise InputError("no plate images given")
     if not (np.isfinite(tolerance_mm) and tolerance_mm > 0):
@@ -110,15 +157,33 @@ def calibrate_plate(
     names = names or [
         str(i) if isinstance(i, (str, os.PathLike)) else f"image {k + 1}" for k, i in enumerate(images)
     ]
+    base = [Path(n).name for n in names]
+    twice = sorted({b for b in base if base.count(b) > 1})
+    if twice:
+        raise InputError(
+            f"plate images: two named {twice[0]!r} "
+            f"({', '.join(n for n in names if Path(n).name == twice[0])}): the touches' image column could "
+            "not tell them apart; rename one"
+        )
     found = [
         PlateImage(Path(name).name, det.image_size, det.uv_px)
         for det, name in (
             (detect_plate(img, spec, name), name) for img, name in zip(images, names, strict=True)
         )
     ]
-    if not isinstance(touches, list):
-        touches = load_touches(touches, names)
-    return calibrate_detected(
+    extra_note = None
+    if isinstance(touches, Calibration):
+        touches, extra_note = touches_again(touches, spec, found)
+    else:
+        if not isinstance(touches, list):
+            touches = load_touches(touches, names)
+        if robot_units != "mm":
+            f = ROBOT_UNITS[robot_units]
+            touches = [
+                replace(t, xyz_mm=(t.xyz_mm[0] * f, t.xyz_mm[1] * f, t.xyz_mm[2] * f)) for t in touches
+            ]
+            extra_note = f"touches: robot x, y, z read in {robot_units} and converted to mm (x {f:g})"
+    cal = calibrate_detected(
         spec,
         found,
         touches,
@@ -128,6 +193,7 @@ def calibrate_plate(
         touch_noise_mm=touch_noise_mm,
         loo=loo,
     )
+    return cal if extra_note is None else replace(cal, notes=(*cal.notes, extra_note))
 
 
 def calibrate_detected(
@@ -178,4 +244,4 @@ def calibrate_detected(
     return replace(cal, plate=record, notes=cal.notes + tuple(notes))
 
 
-__all__ = ["calibrate_detected", "calibrate_plate"]
+__all__ = ["calibrate_detected", "calibrate_plate", "touches_again"]

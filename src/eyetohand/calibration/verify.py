@@ -324,7 +324,7 @@ def error_covariance(cal: Calibration, pairs: PointPairs, sigma_mm: np.ndarray) 
     cov = JL @ JL.T
     cov[np.diag_indices(2 * n)] += max(unc.noise_mm**2, 1e-24)
     if cal.plate is not None:  # a plate's touches: one rigid error shared by every point
-        cov += cal.plate.error_covariance_xy(cal.map(pairs.uv_px, z, allow_outside=True).xyz_mm)
+        cov += cal.plate.error_covariance_xy(pairs.xyz_mm)  # at the robot's points: as at the mapped
     return cov
 
 

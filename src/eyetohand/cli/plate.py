@@ -7,7 +7,7 @@ import json
 import sys
 
 from eyetohand.cli.common import calibration_summary, emit_json, print_calibration
-from eyetohand.core import InputError, atomic_write_bytes, load_pairs
+from eyetohand.core import ROBOT_UNITS, InputError, atomic_write_bytes, load_pairs
 
 
 def _write_png(path: str, image) -> None:
@@ -45,20 +45,28 @@ def cmd_calibrate_plate(args) -> int:
         check_output_path(args.output)
     if args.annotate:
         _annotate(args, spec)
-        if not args.touches:
+        if not (args.touches or args.touches_from):
             return 0
-    if not args.touches:
+    if args.touches and args.touches_from:
+        raise InputError("calibrate-plate: give --touches T.csv or --touches-from OLD.json, not both")
+    touches = args.touches
+    if args.touches_from:
+        from eyetohand.calibration import Calibration
+
+        touches = Calibration.load(args.touches_from)
+    if not touches:
         raise InputError("calibrate-plate: give --touches T.csv (or --annotate FILE.png to see the corners)")
-    check = load_pairs(args.check) if args.check else None
+    check = load_pairs(args.check).scaled_to_mm(args.robot_units) if args.check else None
     cal = calibrate_plate(
         args.images,
         spec,
-        args.touches,
+        touches,
         check=check,
         model=args.model,
         tolerance_mm=args.touch_tolerance_mm,
         touch_noise_mm=args.touch_noise_mm,
         loo=args.loo,
+        robot_units=args.robot_units,
     )
     if args.output:
         cal.save(args.output)
@@ -116,9 +124,17 @@ def register(sub) -> None:
     )
     p.add_argument("images", nargs="+", metavar="IMAGE", help="the plate's image(s), one per placement")
     p.add_argument(
-        "--plate", required=True, metavar="SPEC", help="chessboard|circles|acircles:COLSxROWS:PITCH_MM"
+        "--plate",
+        required=True,
+        metavar="SPEC",
+        help="chessboard|circles|acircles|charuco:COLSxROWS:PITCH_MM (docs/plate.md)",
     )
     p.add_argument("--touches", metavar="T.csv", help="CSV [image,]u,v,x,y,z[,id]: the touched corners")
+    p.add_argument(
+        "--touches-from",
+        metavar="OLD.json",
+        help="after a camera bump: the touches of an earlier calibration from this plate, where it lay",
+    )
     p.add_argument("--check", metavar="C.csv", help="check pairs, not used for fitting")
     p.add_argument(
         "--model", default=None, help="model (default: homography-radial on one plane, else camera)"
@@ -134,6 +150,12 @@ def register(sub) -> None:
         type=float,
         default=0.5,
         help="largest residual a touch may keep (default 0.5)",
+    )
+    p.add_argument(
+        "--robot-units",
+        choices=sorted(ROBOT_UNITS),
+        default="mm",
+        help="units of the touches' (and --check's) x, y, z: converted to mm",
     )
     p.add_argument(
         "--annotate", metavar="FILE.png", help="write the first image with the corners A-D labelled"

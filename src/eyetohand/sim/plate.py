@@ -27,7 +27,7 @@ from eyetohand.core import InputError, atomic_write_bytes, atomic_write_text
 from eyetohand.geometry import Camera, rodrigues_to_matrix
 from eyetohand.sim.cell import Cell
 from eyetohand.sim.simulate import true_camera
-from eyetohand.vision import PlateSpec
+from eyetohand.vision import PlateSpec, charuco_board
 
 _STEP = 8
 BLACK, WHITE, BACKGROUND = 0.08, 0.85, 0.35
@@ -99,7 +99,9 @@ def _pattern(spec: PlateSpec, x: np.ndarray, y: np.ndarray, foot: np.ndarray) ->
     lo, hi = spec.outline_mm()
     inside_plate = (_edge(x - lo[0], foot[0]) + 1) * (_edge(hi[0] - x, foot[0]) + 1) / 4
     inside_plate *= (_edge(y - lo[1], foot[1]) + 1) * (_edge(hi[1] - y, foot[1]) + 1) / 4
-    if spec.kind == "chessboard":
+    if spec.kind == "charuco":
+        grey = WHITE + (_charuco(spec, x, y, foot) - 1.0) * (WHITE - BLACK)
+    elif spec.kind == "chessboard":
         # the outer squares' far edges are the board's (below), not the square wave's
         xs, ys = np.clip(x, -0.5 * p, (spec.cols - 0.5) * p), np.clip(y, -0.5 * p, (spec.rows - 0.5) * p)
         kx, ky = np.rint(xs / p), np.rint(ys / p)
@@ -122,6 +124,21 @@ def _pattern(spec: PlateSpec, x: np.ndarray, y: np.ndarray, foot: np.ndarray) ->
         cover = np.clip((radius - d) / float(foot.mean()) + 0.5, 0.0, 1.0)
         grey = WHITE + cover * (BLACK - WHITE)
     return BACKGROUND + inside_plate * (grey - BACKGROUND)
+
+
+def _charuco(spec: PlateSpec, x: np.ndarray, y: np.ndarray, foot: np.ndarray) -> np.ndarray:
+    """OpenCV's image of the ChArUco board (1 white, 0 black) at plate (x, y): drawn at 4 samples per
+    pixel footprint (at most 20 per mm), blurred over the footprint, sampled bilinearly; 1 off the board."""
+    import cv2
+
+    p = spec.pitch_mm
+    ppm = float(min(4.0 / max(float(foot.mean()), 1e-3), 20.0))
+    w, h = round((spec.cols + 1) * p * ppm), round((spec.rows + 1) * p * ppm)
+    board = charuco_board(spec).generateImage((w, h), marginSize=0, borderBits=1).astype(np.float32) / 255
+    board = cv2.GaussianBlur(board, (0, 0), 0.3 * float(foot.mean()) * ppm)
+    bx = ((x + p) * w / ((spec.cols + 1) * p) - 0.5).astype(np.float32)
+    by = ((y + p) * h / ((spec.rows + 1) * p) - 0.5).astype(np.float32)
+    return cv2.remap(board, bx, by, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
 
 
 def render_plate(

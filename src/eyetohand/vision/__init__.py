@@ -17,7 +17,14 @@ if TYPE_CHECKING:
         load_poses,
         pairs_from_detections,
     )
-    from eyetohand.vision.plate import PlateDetection, PlateNotFound, PlateSpec, annotate_plate, detect_plate
+    from eyetohand.vision.plate import (
+        PlateDetection,
+        PlateNotFound,
+        PlateSpec,
+        annotate_plate,
+        charuco_board,
+        detect_plate,
+    )
     from eyetohand.vision.render import Target, render
     from eyetohand.vision.sources import (
         FolderSource,
@@ -33,7 +40,15 @@ else:
         {
             "detect": ("Miss", "annotate", "detect_circles", "detect_target"),
             "images": ("ImageResult", "detect_images", "detect_poses", "load_poses", "pairs_from_detections"),
-            "plate": ("PlateDetection", "PlateNotFound", "PlateSpec", "annotate_plate", "detect_plate"),
+            "plate": (
+                "PlateDetection",
+                "PlateNotFound",
+                "PlateSpec",
+                "annotate_plate",
+                "charuco_board",
+                "charuco_board",
+                "detect_plate",
+            ),
             "render": ("Target", "render"),
             "sources": (
                 "FolderSource",
@@ -60,6 +75,7 @@ __all__ = [
     "Target",
     "annotate",
     "annotate_plate",
+    "charuco_board",
     "detect_circles",
     "detect_images",
     "detect_plate",

@@ -6,6 +6,9 @@ A spec is one string, ``KIND:COLSxROWS:PITCH_MM``:
   20 mm), found by OpenCV's ``findChessboardCornersSB`` (sub-pixel by design: ~0.02 px on a
   rendered plate);
 * ``circles:10x8:25`` — a symmetric grid of dark dots on a light plate, 25 mm apart;
+* ``charuco:9x6:20[:15]`` — a ChArUco board (OpenCV's ``CharucoBoard`` of 10 × 7 squares of 20 mm,
+  ArUco markers of 15 mm — default 0.75 of a square — from ``DICT_5X5_1000``), counted in inner corners
+  as a chessboard; found by ``cv2.aruco.CharucoDetector``, every corner by its id;
 * ``acircles:4x11:20`` — OpenCV's asymmetric grid: ``COLS`` dots per row, ``ROWS`` rows; a dot at
   ((2·c + r mod 2)·p, r·p), so dots of a row are 2p apart and neighbouring rows p apart (OpenCV's
   ``squareSize``). Both found by OpenCV's ``findCirclesGrid`` (blob centroids).
@@ -16,7 +19,6 @@ are numbered as OpenCV orders them, row by row, and named ``r{row}c{col}``.
 
 A plate not found, or found with another count, is refused naming the spec, how many points were seen
 and, when asked, an annotated image of what was found is written (:func:`annotate_plate`).
-ChArUco is not served yet (OpenCV 4.7+ has ``cv2.aruco.CharucoDetector``; see docs/plate.md).
 """
 
 from __future__ import annotations
@@ -29,9 +31,16 @@ import numpy as np
 
 from eyetohand.core import InputError
 
-KINDS = ("chessboard", "circles", "acircles")
-SPEC_FORM = "KIND:COLSxROWS:PITCH_MM with KIND one of chessboard, circles, acircles (e.g. chessboard:9x6:20)"
-_SPEC = re.compile(r"\s*([a-z]+)\s*:\s*(\d+)\s*[xX]\s*(\d+)\s*:\s*([0-9.eE+-]+)\s*\Z")
+KINDS = ("chessboard", "circles", "acircles", "charuco")
+SPEC_FORM = (
+    "KIND:COLSxROWS:PITCH_MM with KIND one of chessboard, circles, acircles, charuco "
+    "(e.g. chessboard:9x6:20; charuco:9x6:20[:MARKER_MM])"
+)
+_SPEC = re.compile(
+    r"\s*([a-z]+)\s*:\s*(\d+)\s*[xX]\s*(\d+)\s*:\s*([0-9.eE+-]+)\s*(?::\s*([0-9.eE+-]+)\s*)?\Z"
+)
+CHARUCO_DICT = "DICT_5X5_1000"
+"""The ArUco dictionary of a ``charuco`` plate (OpenCV's name); markers 0.75 of a square by default."""
 MAX_POINTS_PER_SIDE = 200
 
 
@@ -43,6 +52,7 @@ class PlateSpec:
     cols: int
     rows: int
     pitch_mm: float
+    marker_mm: float | None = None  # charuco: the ArUco markers' side
 
     @classmethod
     def parse(cls, text: str) -> PlateSpec:
@@ -51,6 +61,11 @@ class PlateSpec:
         if m is None:
             raise InputError(f"plate spec {text!r}: expected {SPEC_FORM}")
         kind, cols, rows, pitch = m.group(1), int(m.group(2)), int(m.group(3)), m.group(4)
+        marker = m.group(5)
+        if marker is not None and kind != "charuco":
+            raise InputError(
+                f"plate spec {text!r}: only a charuco plate has a marker size; expected {SPEC_FORM}"
+            )
         if kind not in KINDS:
             raise InputError(f"plate spec {text!r}: unknown kind {kind!r}; choose one of {', '.join(KINDS)}")
         try:
@@ -66,11 +81,23 @@ class PlateSpec:
                 )
         if cols * rows < 6:
             raise InputError(f"plate spec {text!r}: a plate needs at least 6 points, this has {cols * rows}")
-        return cls(kind, cols, rows, pitch_mm)
+        marker_mm = None
+        if kind == "charuco":
+            try:
+                marker_mm = 0.75 * pitch_mm if marker is None else float(marker)
+            except ValueError:
+                marker_mm = math.nan
+            if not (math.isfinite(marker_mm) and 0 < marker_mm < pitch_mm):
+                raise InputError(
+                    f"plate spec {text!r}: the marker size must be a number of mm below the square's "
+                    f"{pitch_mm:g}, got {marker}"
+                )
+        return cls(kind, cols, rows, pitch_mm, marker_mm)
 
     @property
     def text(self) -> str:
-        return f"{self.kind}:{self.cols}x{self.rows}:{self.pitch_mm:g}"
+        marker = f":{self.marker_mm:g}" if self.marker_mm is not None else ""
+        return f"{self.kind}:{self.cols}x{self.rows}:{self.pitch_mm:g}{marker}"
 
     @property
     def n_points(self) -> int:
@@ -79,7 +106,7 @@ class PlateSpec:
     @property
     def what(self) -> str:
         """How messages name the points: corners or dots."""
-        return "corners" if self.kind == "chessboard" else "dots"
+        return "dots" if self.kind in ("circles", "acircles") else "corners"
 
     def points_mm(self) -> np.ndarray:
         """(N, 3) the points in the plate's frame (z = 0), in detection order (row by row)."""
@@ -97,7 +124,7 @@ class PlateSpec:
         around dots)."""
         pts = self.points_mm()[:, :2]
         lo, hi = pts.min(axis=0), pts.max(axis=0)
-        b = (1.5 if self.kind == "chessboard" else 1.0) * self.pitch_mm if border_mm is None else border_mm
+        b = (1.0 if self.what == "dots" else 1.5) * self.pitch_mm if border_mm is None else border_mm
         return lo - b, hi + b
 
     def corner_labels(self) -> dict[str, int]:
@@ -168,6 +195,38 @@ def _reduced(g: np.ndarray) -> tuple[np.ndarray, int]:
     return small, k
 
 
+def charuco_board(spec: PlateSpec):
+    """OpenCV's board of a ``charuco`` spec: (cols + 1) x (rows + 1) squares, :data:`CHARUCO_DICT`; its
+    corner ids run row by row over the inner corners, as :meth:`PlateSpec.points_mm`."""
+    import cv2
+
+    if spec.marker_mm is None:
+        raise InputError(f"plate {spec.text}: not a charuco plate")
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, CHARUCO_DICT))
+    return cv2.aruco.CharucoBoard((spec.cols + 1, spec.rows + 1), spec.pitch_mm, spec.marker_mm, d)
+
+
+def _detect_charuco(g: np.ndarray, spec: PlateSpec, name: str, size) -> PlateDetection:
+    """Every inner corner of a ChArUco plate, by id (its markers fix the numbering: no 180° ambiguity),
+    refined as a chessboard's; fewer is refused naming how many were seen."""
+    import cv2
+
+    corners, ids, _, markers = cv2.aruco.CharucoDetector(charuco_board(spec)).detectBoard(g)
+    n = 0 if ids is None else len(ids)
+    if n != spec.n_points:
+        seen = np.zeros((0, 2)) if corners is None else corners.reshape(-1, 2).astype(float)
+        n_markers = 0 if markers is None else len(markers)
+        raise PlateNotFound(
+            f"plate {spec.text} not found: saw {n} of its {spec.n_points} corners ({n_markers} markers of "
+            f"{CHARUCO_DICT}): is the whole plate in view, and its size and dictionary right?",
+            source=name,
+            seen_px=seen,
+        )
+    uv = np.empty((spec.n_points, 2))
+    uv[ids.ravel()] = corners.reshape(-1, 2)
+    return PlateDetection(spec, _subpixel(g, uv, spec), size, name)
+
+
 def _find_chessboard(g: np.ndarray, spec: PlateSpec) -> np.ndarray | None:
     """The chessboard's corners (N, 2) px roughly (to be refined), or None: found on the image halved
     while it is over 1200 px (4× fewer pixels; the SB detector's time grows with them), then on the
@@ -194,7 +253,10 @@ def _subpixel(g: np.ndarray, corners: np.ndarray, spec: PlateSpec) -> np.ndarray
         np.linalg.norm(np.diff(grid, axis=1), axis=-1).min(),
         np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
     )
-    half = int(np.clip(sp / 4, 2, 25))
+    quarter = 0.25
+    if spec.marker_mm is not None:  # a ChArUco square's marker starts (p - m) / 2 from its corners
+        quarter = min(quarter, 0.8 * (spec.pitch_mm - spec.marker_mm) / 2 / spec.pitch_mm)
+    half = int(np.clip(sp * quarter, 2, 25))
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
     out = cv2.cornerSubPix(g, corners.astype(np.float32).reshape(-1, 1, 2), (half, half), (-1, -1), crit)
     return out.reshape(-1, 2).astype(float)
@@ -209,6 +271,8 @@ def detect_plate(image, spec: PlateSpec | str, name: str | None = None) -> Plate
     g, name = _grey8(image, name)
     size = (int(g.shape[1]), int(g.shape[0]))
     want = f"{spec.cols}x{spec.rows}"
+    if spec.kind == "charuco":
+        return _detect_charuco(g, spec, name, size)
     if spec.kind == "chessboard":
         corners = _find_chessboard(g, spec)
         if corners is not None:
@@ -294,4 +358,13 @@ def annotate_plate(image, spec: PlateSpec, uv_px: np.ndarray, *, found: bool = T
     return out
 
 
-__all__ = ["KINDS", "PlateDetection", "PlateNotFound", "PlateSpec", "annotate_plate", "detect_plate"]
+__all__ = [
+    "CHARUCO_DICT",
+    "KINDS",
+    "charuco_board",
+    "PlateDetection",
+    "PlateNotFound",
+    "PlateSpec",
+    "annotate_plate",
+    "detect_plate",
+]
