@@ -327,3 +327,27 @@ def test_plot_difference_draws_the_ratio_and_vectors(cal_files, capsys, tmp_path
     png = tmp_path / "d.png"
     rc, _, _ = run(capsys, "diff", cal_files["a"], cal_files["moved"], "--plot", png)
     assert rc == 0 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_http_diff_of_two_stored_versions(cal_files, tmp_path):
+    from fastapi.testclient import TestClient
+
+    from eyetohand.server import create_app
+    from eyetohand.server.storage import Store
+
+    store = Store(tmp_path, create=True)
+    rec = store.create("line 3", {}, json.loads(cal_files["a"].read_text()), [], None)
+    store.add_version(rec.id, {}, json.loads(cal_files["moved"].read_text()), [], None, "after the bump")
+    other = store.create("line 4", {}, json.loads(cal_files["b"].read_text()), [], None)
+    store.close()
+    with TestClient(create_app(tmp_path)) as c:
+        r = c.get("/api/diff", params={"a": rec.id, "a_version": 1, "b": rec.id, "b_version": 2})
+        assert r.status_code == 200, r.text
+        j = r.json()
+        assert j["verdict"] == "moved" and j["a"] == {"id": rec.id, "version": 1} and j["b"]["version"] == 2
+        assert j["moved"]["rotation_deg"] == pytest.approx(0.1, abs=0.01)
+        r = c.get("/api/diff", params={"a": rec.id, "a_version": 1, "b": other.id})
+        assert r.status_code == 200 and r.json()["verdict"] == "consistent"
+        assert c.get("/api/diff", params={"a": rec.id, "b": 999}).status_code == 404
+        r = c.get("/api/diff", params={"a": rec.id, "b": "x"})
+        assert r.status_code == 422 and "b" in r.text

@@ -22,7 +22,7 @@ from eyetohand._version import __version__
 from eyetohand.server.core import Jobs
 from eyetohand.server.middleware import BodyLimit, DatabaseGuard, HostGuard, SameOrigin, TokenGuard
 from eyetohand.server.responses import install_handlers
-from eyetohand.server.routes import calibrations, collect, images, jobs, mapping, meta, page, pairs
+from eyetohand.server.routes import calibrations, collect, diff, images, jobs, mapping, meta, page, pairs
 from eyetohand.server.routes.meta import PAPER_PRESET
 from eyetohand.server.schemas import (
     MAX_BODY_BYTES,
@@ -116,7 +116,7 @@ def create_app(
     install_handlers(app)
     # mapping first: a request is matched against the routes in order, and the robot's mapping calls
     # are the hot path (no other route matches their paths; tested)
-    for r in (mapping, page, meta, pairs, calibrations, jobs, collect, images):
+    for r in (mapping, page, meta, pairs, calibrations, jobs, collect, images, diff):
         app.include_router(r.router)
     page.mount_static(app)
 
