@@ -126,6 +126,16 @@ def test_another_plane_height_shows_as_dz():
     assert d.verdict is not Verdict.CONSISTENT  # a different plane maps the same pixel elsewhere
 
 
+def test_a_plane_against_a_range_of_heights_compares_at_the_plane():
+    a = fit(FLAT, 63)
+    sim = simulate(FLAT, "grid:4x4", heights_mm=(150.0, 200.0), seed=64)
+    b = calibrate(sim.pairs, model="dlt3d", check=sim.check, loo=False)
+    d = diff(a, b)
+    assert set(np.round(d.z_mm, 9)) == {150.0}  # the grid and every check point at A's plane
+    assert len(d.uv_px) > d.n_grid  # check points of both heights, mapped at the plane
+    assert d.verdict is Verdict.CONSISTENT, d.summary()
+
+
 def test_refuses_what_it_cannot_compare():
     a = fit(FLAT, 71)
     small = calibrate(

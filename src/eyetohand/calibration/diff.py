@@ -297,6 +297,9 @@ def _check_points(a: Calibration, b: Calibration) -> tuple[np.ndarray, np.ndarra
     if not uvs:
         return np.empty((0, 2)), np.empty(0)
     uv, z = np.vstack(uvs), np.concatenate(zs)
+    heights = common_heights(a, b)
+    if len(heights) == 1 and heights[0][0] is not None:  # a plane against a z range: at the plane
+        z = np.full(len(z), heights[0][0])
     keep = (_region(a, "A").outside_px(uv) == 0) & (_region(b, "B").outside_px(uv) == 0)
     for cal in (a, b):
         r = _region(cal, "")
