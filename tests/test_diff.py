@@ -361,3 +361,13 @@ def test_http_diff_of_two_stored_versions(cal_files, tmp_path):
         assert c.get("/api/diff", params={"a": rec.id, "b": 999}).status_code == 404
         r = c.get("/api/diff", params={"a": rec.id, "b": "x"})
         assert r.status_code == 422 and "b" in r.text
+
+
+def test_a_lens_change_is_model_error_beyond_a_homography():
+    # the lens's focus or distortion changed (k1 −0.08 → −0.12): no homography maps A's answers to B's
+    cell = Cell.default()
+    refocused = cell.with_values(camera={"k1": -0.12})
+    d = diff(fit(cell, 121, "homography-radial"), fit(refocused, 122, "homography-radial"))
+    assert d.verdict is Verdict.MODEL_ERROR, d.summary()
+    assert "lens or focus" in d.reason
+    assert d.layer(LayerName.HOMOGRAPHY).p_value < 1e-4
