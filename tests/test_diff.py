@@ -371,3 +371,14 @@ def test_a_lens_change_is_model_error_beyond_a_homography():
     assert d.verdict is Verdict.MODEL_ERROR, d.summary()
     assert "lens or focus" in d.reason
     assert d.layer(LayerName.HOMOGRAPHY).p_value < 1e-4
+
+
+def test_report_against_an_earlier_calibration(cal_files, capsys, tmp_path):
+    out = tmp_path / "rep"
+    rc, _, _ = run(capsys, "report", cal_files["moved"], "--against", cal_files["a"], "-o", out)
+    html = (out / "index.html").read_text()
+    assert rc == 0 and (out / "against.png").is_file()
+    assert "Compared with" in html and "Verdict: moved" in html
+    assert "Expected accuracy at the check points" in html and "measured check RMS" in html
+    rc, _, err = run(capsys, "report", cal_files["moved"], "--against", tmp_path / "none.json", "-o", out)
+    assert rc == 2 and "none.json" in err
