@@ -136,6 +136,19 @@ def test_a_plane_against_a_range_of_heights_compares_at_the_plane():
     assert d.verdict is Verdict.CONSISTENT, d.summary()
 
 
+def test_a_base_raised_1mm_is_moved_in_z():
+    # the robot's base raised 1 mm: every command 1 mm higher for the same target, the pixels unchanged
+    from eyetohand.core import PointPairs
+
+    sim = simulate(FLAT, "grid:5x5", seed=65)
+    a = calibrate(sim.pairs, model="homography", loo=False)
+    p = sim.pairs
+    raised = PointPairs.from_arrays(p.uv_px, p.xyz_mm + [0.0, 0.0, 1.0], list(p.ids), source="raised")
+    d = diff(a, calibrate(raised, model="homography", loo=False))
+    assert d.verdict is Verdict.MOVED and d.motion.dz_mm == pytest.approx(1.0, abs=1e-9)
+    assert "higher" in d.reason and d.motion.shift_mm < 1e-6
+
+
 def test_refuses_what_it_cannot_compare():
     a = fit(FLAT, 71)
     small = calibrate(

@@ -44,6 +44,7 @@ import numpy as np
 
 from eyetohand.calibration.file import Calibration
 from eyetohand.core import InputError
+from eyetohand.geometry import PLANE_TOLERANCE_MM
 from eyetohand.models import HeightRule
 from eyetohand.solve import param_jacobian
 
@@ -508,6 +509,9 @@ def diff(a: Calibration, b: Calibration, *, grid_side: int = GRID_SIDE, alpha: f
     layers = (layer(LayerName.RAW, None), *(layer(k, v) for k, v in bases.items()))
     motion, scale_ppm = _motion(pa, pb, w, centre)
     verdict, reason = _verdict(layers, motion, scale_ppm, alpha)
+    if verdict is Verdict.CONSISTENT and abs(motion.dz_mm) > PLANE_TOLERANCE_MM:
+        # two planes' heights are the commanded z of their pairs, exact: a different one is a move
+        verdict, reason = Verdict.MOVED, f"the plane is {motion.dz_mm:+.3g} mm higher in B; x, y agree"
     if verdict is Verdict.CONSISTENT:
         noisier = _noisier(a, b, alpha)
         if noisier:
