@@ -374,6 +374,8 @@ def test_http_diff_of_two_stored_versions(cal_files, tmp_path):
         assert c.get("/api/diff", params={"a": rec.id, "b": 999}).status_code == 404
         r = c.get("/api/diff", params={"a": rec.id, "b": "x"})
         assert r.status_code == 422 and "b" in r.text
+        r = c.get("/api/diff.png", params={"a": rec.id, "a_version": 1, "b": rec.id, "width": 400})
+        assert r.status_code == 200 and r.content[:4] == b"\x89PNG" and r.headers["X-Verdict"] == "moved"
 
 
 def test_a_lens_change_is_model_error_beyond_a_homography():
