@@ -397,3 +397,25 @@ def test_report_against_an_earlier_calibration(cal_files, capsys, tmp_path):
     assert "Expected accuracy at the check points" in html and "measured check RMS" in html
     rc, _, err = run(capsys, "report", cal_files["moved"], "--against", tmp_path / "none.json", "-o", out)
     assert rc == 2 and "none.json" in err
+
+
+def test_split_halves_keep_every_height_and_angle():
+    from eyetohand.calibration.crossval import split_halves
+
+    pairs = simulate(FLAT, "grid:3x3", heights_mm=(150.0, 200.0), angles_deg=(0.0, 90.0, 180.0), seed=5).pairs
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        a, b = split_halves(pairs, rng)
+        assert len(np.intersect1d(a, b)) == 0 and len(a) + len(b) == len(pairs.uv_px)
+        assert abs(len(a) - len(b)) <= 4
+        for half in (a, b):
+            assert set(np.round(pairs.xyz_mm[half, 2], 3)) == {150.0, 200.0}
+        # the two turned pairs (90°, 180°) are dealt one to each half: both halves can find the tool offset
+        turned = np.flatnonzero(pairs.angle_deg != 0.0)
+        assert len(turned) == 2 and len(np.intersect1d(a, turned)) == 1 == len(np.intersect1d(b, turned))
+
+
+def test_crossval_on_two_heights():
+    pairs = simulate(FLAT, "grid:4x4", heights_mm=(150.0, 200.0), seed=7).pairs
+    cv = crossval(pairs, "dlt3d", k=3, seed=2)
+    assert cv.verdict is Verdict.CONSISTENT, cv.summary()
