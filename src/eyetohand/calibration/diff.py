@@ -218,7 +218,7 @@ class Difference:
             f"{len(self.uv_px) - self.n_grid} check): RMS {self.rms_mm:.4g} mm, p95 {self.p95_mm:.4g} mm, "
             f"max {self.max_mm:.4g} mm",
             f"ratio |difference| / combined sigma: median {self.ratio_median:.3g} "
-            f"(≈ 0.7–0.8 when the two agree; combined sigma median {self.sigma_median_mm:.3g} mm)",
+            f"(typically 0.5–1.4 when the two agree; combined sigma median {self.sigma_median_mm:.3g} mm)",
             f"rigid motion A → B: {self.motion.describe()}; scale {self.scale_ppm:+.1f} ppm",
             "layers (RMS left, mean squared ratio, p): "
             + "; ".join(f"{x.name} {x.rms_mm:.3g} mm q {x.q:.3g} p {x.p_value:.2g}" for x in self.layers),

@@ -27,7 +27,10 @@ def against_section(doc: Document, cal: Calibration, earlier: Calibration, label
         [
             ["points compared", f"{len(d.uv_px)} ({d.n_grid} grid, {len(d.uv_px) - d.n_grid} check)"],
             ["difference RMS / p95 / max", f"{d.rms_mm:.4f} / {d.p95_mm:.4f} / {d.max_mm:.4f} mm"],
-            ["median |difference| / combined sigma", f"{d.ratio_median:.3g} (≈ 0.7–0.8 when the two agree)"],
+            [
+                "median |difference| / combined sigma",
+                f"{d.ratio_median:.3g} (typically 0.5–1.4 when the two agree)",
+            ],
             ["rigid motion (earlier → this)", m.describe()],
             ["scale", f"{d.scale_ppm:+.1f} ppm"],
         ]
