@@ -393,7 +393,7 @@ def test_report_against_an_earlier_calibration(cal_files, capsys, tmp_path):
     rc, _, _ = run(capsys, "report", cal_files["moved"], "--against", cal_files["a"], "-o", out)
     html = (out / "index.html").read_text()
     assert rc == 0 and (out / "against.png").is_file()
-    assert "Compared with" in html and "Verdict: moved" in html
+    assert "Compared with" in html and "Verdict: moved" in html and 'href="#against"' in html
     assert "Expected accuracy at the check points" in html and "measured check RMS" in html
     rc, _, err = run(capsys, "report", cal_files["moved"], "--against", tmp_path / "none.json", "-o", out)
     assert rc == 2 and "none.json" in err

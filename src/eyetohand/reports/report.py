@@ -121,6 +121,7 @@ def build_report(
     doc.add(
         '<nav><a href="#summary">summary</a><a href="#accuracy">accuracy</a><a href="#plots">plots</a>'
         + ('<a href="#drift">drift</a>' if history is not None else "")
+        + ('<a href="#against">compared</a>' if against is not None else "")
         + '<a href="#points">per point</a><a href="#fit">fit</a><a href="#params">parameters</a></nav>'
     )
     _summary(doc, cal, ev, extra)
