@@ -126,6 +126,29 @@ def test_another_plane_height_shows_as_dz():
     assert d.verdict is not Verdict.CONSISTENT  # a different plane maps the same pixel elsewhere
 
 
+def test_a_plane_against_a_range_of_heights_compares_at_the_plane():
+    a = fit(FLAT, 63)
+    sim = simulate(FLAT, "grid:4x4", heights_mm=(150.0, 200.0), seed=64)
+    b = calibrate(sim.pairs, model="dlt3d", check=sim.check, loo=False)
+    d = diff(a, b)
+    assert set(np.round(d.z_mm, 9)) == {150.0}  # the grid and every check point at A's plane
+    assert len(d.uv_px) > d.n_grid  # check points of both heights, mapped at the plane
+    assert d.verdict is Verdict.CONSISTENT, d.summary()
+
+
+def test_a_base_raised_1mm_is_moved_in_z():
+    # the robot's base raised 1 mm: every command 1 mm higher for the same target, the pixels unchanged
+    from eyetohand.core import PointPairs
+
+    sim = simulate(FLAT, "grid:5x5", seed=65)
+    a = calibrate(sim.pairs, model="homography", loo=False)
+    p = sim.pairs
+    raised = PointPairs.from_arrays(p.uv_px, p.xyz_mm + [0.0, 0.0, 1.0], list(p.ids), source="raised")
+    d = diff(a, calibrate(raised, model="homography", loo=False))
+    assert d.verdict is Verdict.MOVED and d.motion.dz_mm == pytest.approx(1.0, abs=1e-9)
+    assert "higher" in d.reason and d.motion.shift_mm < 1e-6
+
+
 def test_refuses_what_it_cannot_compare():
     a = fit(FLAT, 71)
     small = calibrate(
@@ -311,7 +334,7 @@ def test_verify_failure_names_the_motion():
     v = verify(cal, fresh, 0.2)
     assert not v.passed and v.cause == "drift"
     line = v.describe()
-    assert "the camera moved 1" in line and "mm at" in line and "°" in line
+    assert "the camera moved 1" in line and "mm at +0.09" in line  # the turn as the camera made it: +0.1°
     shift = float(np.hypot(*v.drift.shift_mm))
     assert shift == pytest.approx(1.0, abs=0.1)  # |(0.8, -0.6)| plus the turn's share at the centre
 
@@ -327,3 +350,72 @@ def test_plot_difference_draws_the_ratio_and_vectors(cal_files, capsys, tmp_path
     png = tmp_path / "d.png"
     rc, _, _ = run(capsys, "diff", cal_files["a"], cal_files["moved"], "--plot", png)
     assert rc == 0 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_http_diff_of_two_stored_versions(cal_files, tmp_path):
+    from fastapi.testclient import TestClient
+
+    from eyetohand.server import create_app
+    from eyetohand.server.storage import Store
+
+    store = Store(tmp_path, create=True)
+    rec = store.create("line 3", {}, json.loads(cal_files["a"].read_text()), [], None)
+    store.add_version(rec.id, {}, json.loads(cal_files["moved"].read_text()), [], None, "after the bump")
+    other = store.create("line 4", {}, json.loads(cal_files["b"].read_text()), [], None)
+    store.close()
+    with TestClient(create_app(tmp_path)) as c:
+        r = c.get("/api/diff", params={"a": rec.id, "a_version": 1, "b": rec.id, "b_version": 2})
+        assert r.status_code == 200, r.text
+        j = r.json()
+        assert j["verdict"] == "moved" and j["a"] == {"id": rec.id, "version": 1} and j["b"]["version"] == 2
+        assert j["moved"]["rotation_deg"] == pytest.approx(0.1, abs=0.01)
+        r = c.get("/api/diff", params={"a": rec.id, "a_version": 1, "b": other.id})
+        assert r.status_code == 200 and r.json()["verdict"] == "consistent"
+        assert c.get("/api/diff", params={"a": rec.id, "b": 999}).status_code == 404
+        r = c.get("/api/diff", params={"a": rec.id, "b": "x"})
+        assert r.status_code == 422 and "b" in r.text
+        r = c.get("/api/diff.png", params={"a": rec.id, "a_version": 1, "b": rec.id, "width": 400})
+        assert r.status_code == 200 and r.content[:4] == b"\x89PNG" and r.headers["X-Verdict"] == "moved"
+
+
+def test_a_lens_change_is_model_error_beyond_a_homography():
+    # the lens's focus or distortion changed (k1 −0.08 → −0.12): no homography maps A's answers to B's
+    cell = Cell.default()
+    refocused = cell.with_values(camera={"k1": -0.12})
+    d = diff(fit(cell, 121, "homography-radial"), fit(refocused, 122, "homography-radial"))
+    assert d.verdict is Verdict.MODEL_ERROR, d.summary()
+    assert "lens or focus" in d.reason
+    assert d.layer(LayerName.HOMOGRAPHY).p_value < 1e-4
+
+
+def test_report_against_an_earlier_calibration(cal_files, capsys, tmp_path):
+    out = tmp_path / "rep"
+    rc, _, _ = run(capsys, "report", cal_files["moved"], "--against", cal_files["a"], "-o", out)
+    html = (out / "index.html").read_text()
+    assert rc == 0 and (out / "against.png").is_file()
+    assert "Compared with" in html and "Verdict: moved" in html and 'href="#against"' in html
+    assert "Expected accuracy at the check points" in html and "measured check RMS" in html
+    rc, _, err = run(capsys, "report", cal_files["moved"], "--against", tmp_path / "none.json", "-o", out)
+    assert rc == 2 and "none.json" in err
+
+
+def test_split_halves_keep_every_height_and_angle():
+    from eyetohand.calibration.crossval import split_halves
+
+    pairs = simulate(FLAT, "grid:3x3", heights_mm=(150.0, 200.0), angles_deg=(0.0, 90.0, 180.0), seed=5).pairs
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        a, b = split_halves(pairs, rng)
+        assert len(np.intersect1d(a, b)) == 0 and len(a) + len(b) == len(pairs.uv_px)
+        assert abs(len(a) - len(b)) <= 4
+        for half in (a, b):
+            assert set(np.round(pairs.xyz_mm[half, 2], 3)) == {150.0, 200.0}
+        # the two turned pairs (90°, 180°) are dealt one to each half: both halves can find the tool offset
+        turned = np.flatnonzero(pairs.angle_deg != 0.0)
+        assert len(turned) == 2 and len(np.intersect1d(a, turned)) == 1 == len(np.intersect1d(b, turned))
+
+
+def test_crossval_on_two_heights():
+    pairs = simulate(FLAT, "grid:4x4", heights_mm=(150.0, 200.0), seed=7).pairs
+    cv = crossval(pairs, "dlt3d", k=3, seed=2)
+    assert cv.verdict is Verdict.CONSISTENT, cv.summary()

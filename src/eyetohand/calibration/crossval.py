@@ -128,6 +128,17 @@ class CrossValidation:
         return "\n".join(lines)
 
 
+def split_halves(pairs: PointPairs, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Two random halves (sorted indices), each with its share of every height and tool angle: the pairs
+    grouped by (z to 1 µm, angle), each group shuffled, and the groups dealt alternately to the halves
+    (a half with one height only, or without the turned pairs, would not fit the same model)."""
+    z = np.round(pairs.xyz_mm[:, 2], 3)
+    ang = np.zeros(len(z)) if pairs.angle_deg is None else np.round(np.asarray(pairs.angle_deg, float), 6)
+    keys = np.unique(np.column_stack([z, ang]), axis=0, return_inverse=True)[1].reshape(-1)
+    dealt = np.concatenate([rng.permutation(np.flatnonzero(keys == g)) for g in range(int(keys.max()) + 1)])
+    return np.sort(dealt[0::2]), np.sort(dealt[1::2])
+
+
 def _rescaled(cal: Calibration, noise_mm: float, dof: int) -> Calibration:
     """The calibration with its uncertainty put on the reference noise (covariance ∝ noise²)."""
     unc = cal.uncertainty
@@ -146,7 +157,8 @@ def crossval(
     tolerance_mm: float | None = None,
     image_size: tuple[int, int] | None = None,
 ) -> CrossValidation:
-    """K random split-half refits of ``model`` on ``pairs`` (see the module's text)."""
+    """K random split-half refits of ``model`` on ``pairs`` (see the module's text; the halves keep
+    every height and tool angle: :func:`split_halves`)."""
     choice = resolve_model(model)  # an unknown name refused in the library's words, listing the choices
     if not (isinstance(k, int) and not isinstance(k, bool) and 1 <= k <= MAX_K):
         raise InputError(f"k: expected a whole number of splits from 1 to {MAX_K}, got {k!r}")
@@ -169,8 +181,7 @@ def crossval(
     rng = np.random.default_rng(seed)
     splits = []
     for i in range(k):
-        order = rng.permutation(n)
-        halves = (np.sort(order[: n // 2]), np.sort(order[n // 2 :]))
+        halves = split_halves(pairs, rng)
         try:
             a, b = (
                 _rescaled(
@@ -182,7 +193,8 @@ def crossval(
             )
             splits.append(diff(a, b))
         except (InputError, DegenerateError) as exc:
-            raise InputError(f"split {i + 1}: a half of {n // 2} pairs cannot be compared: {exc}") from None
+            sizes = f"{len(halves[0])} and {len(halves[1])}"
+            raise InputError(f"split {i + 1}: halves of {sizes} pairs cannot be compared: {exc}") from None
     p_med = float(np.median([d.layers[0].p_value for d in splits]))
     if p_med < ALPHA:
         verdict = Verdict.MODEL_ERROR

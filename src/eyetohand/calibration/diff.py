@@ -44,6 +44,7 @@ import numpy as np
 
 from eyetohand.calibration.file import Calibration
 from eyetohand.core import InputError
+from eyetohand.geometry import PLANE_TOLERANCE_MM
 from eyetohand.models import HeightRule
 from eyetohand.solve import param_jacobian
 
@@ -217,7 +218,7 @@ class Difference:
             f"{len(self.uv_px) - self.n_grid} check): RMS {self.rms_mm:.4g} mm, p95 {self.p95_mm:.4g} mm, "
             f"max {self.max_mm:.4g} mm",
             f"ratio |difference| / combined sigma: median {self.ratio_median:.3g} "
-            f"(≈ 0.7–0.8 when the two agree; combined sigma median {self.sigma_median_mm:.3g} mm)",
+            f"(typically 0.5–1.4 when the two agree; combined sigma median {self.sigma_median_mm:.3g} mm)",
             f"rigid motion A → B: {self.motion.describe()}; scale {self.scale_ppm:+.1f} ppm",
             "layers (RMS left, mean squared ratio, p): "
             + "; ".join(f"{x.name} {x.rms_mm:.3g} mm q {x.q:.3g} p {x.p_value:.2g}" for x in self.layers),
@@ -297,6 +298,9 @@ def _check_points(a: Calibration, b: Calibration) -> tuple[np.ndarray, np.ndarra
     if not uvs:
         return np.empty((0, 2)), np.empty(0)
     uv, z = np.vstack(uvs), np.concatenate(zs)
+    heights = common_heights(a, b)
+    if len(heights) == 1 and heights[0][0] is not None:  # a plane against a z range: at the plane
+        z = np.full(len(z), heights[0][0])
     keep = (_region(a, "A").outside_px(uv) == 0) & (_region(b, "B").outside_px(uv) == 0)
     for cal in (a, b):
         r = _region(cal, "")
@@ -505,6 +509,9 @@ def diff(a: Calibration, b: Calibration, *, grid_side: int = GRID_SIDE, alpha: f
     layers = (layer(LayerName.RAW, None), *(layer(k, v) for k, v in bases.items()))
     motion, scale_ppm = _motion(pa, pb, w, centre)
     verdict, reason = _verdict(layers, motion, scale_ppm, alpha)
+    if verdict is Verdict.CONSISTENT and abs(motion.dz_mm) > PLANE_TOLERANCE_MM:
+        # two planes' heights are the commanded z of their pairs, exact: a different one is a move
+        verdict, reason = Verdict.MOVED, f"the plane is {motion.dz_mm:+.3g} mm higher in B; x, y agree"
     if verdict is Verdict.CONSISTENT:
         noisier = _noisier(a, b, alpha)
         if noisier:

@@ -185,10 +185,10 @@ class Verification:
             return f"PASS ({tight})"
         head = f"FAIL: {n_out} point(s) beyond {tol}"
         if self.cause == "drift":
-            d = self.drift
+            d = self.drift  # fitted to predicted − measured: the motion since is its opposite
             return (
-                f"{head}; the camera moved {float(np.hypot(*d.shift_mm)):.3g} mm at {d.rotation_deg:+.3g}° "
-                f"(scale {100 * d.scale_change:+.3g} %; see above)"
+                f"{head}; the camera moved {float(np.hypot(*d.shift_mm)):.3g} mm at {-d.rotation_deg:+.3g}° "
+                f"(scale {-100 * d.scale_change:+.3g} %; see above)"
             )
         if self.cause == "calibration error":
             return (

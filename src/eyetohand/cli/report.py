@@ -23,7 +23,13 @@ def cmd_report(args) -> int:
     history = load_history(args.history) if args.history else None
     if args.history:
         extra["check history"] = str(args.history)
-    path = write_report(args.output, cal, check, train, extra, history=history, limit_mm=args.limit)
+    against = None
+    if args.against:
+        against = (Calibration.load(args.against), str(args.against))
+        extra["compared with"] = str(args.against)
+    path = write_report(
+        args.output, cal, check, train, extra, history=history, limit_mm=args.limit, against=against
+    )
     print(path)
     return 0
 
@@ -48,6 +54,12 @@ def register(sub) -> None:
         metavar="MM",
         type=float,
         help="the drift plot's limit line (default: the tolerance the history records)",
+    )
+    p.add_argument(
+        "--against",
+        metavar="EARLIER.json",
+        help="an earlier calibration of the same camera: a section says whether this one agrees, or "
+        "the camera moved, the scale changed or a model is wrong (eyetohand diff)",
     )
     p.add_argument("-o", "--output", metavar="DIR", required=True, help="report folder (index.html + PNGs)")
     p.set_defaults(func=cmd_report)

@@ -24,6 +24,7 @@ import numpy as np
 
 from eyetohand.calibration import Calibration, as_fitted
 from eyetohand.core import InputError, PointPairs
+from eyetohand.reports.diff_section import against_section, budget_section
 from eyetohand.reports.html import Document, mm, write_folder
 from eyetohand.reports.sections import (
     fit_table,
@@ -96,6 +97,7 @@ def build_report(
     title: str | None = None,
     history: Sequence[Mapping] | None = None,
     limit_mm: float | None = None,
+    against: tuple[Calibration, str] | None = None,
 ) -> tuple[str, dict[str, bytes]]:
     """The report of one calibration, in memory: ``(index.html text, {png name: bytes})``.
 
@@ -105,7 +107,8 @@ def build_report(
     are shown as "given pairs" with a warning. ``extra``: more name → value rows for the header.
     ``history``: the calibration's checks (verification entries, CAL CHECK records: see
     :func:`eyetohand.reports.plots.plot_drift`), drawn over time in a "Drift" section against
-    ``limit_mm`` (default: the tolerance they record).
+    ``limit_mm`` (default: the tolerance they record). ``against``: an earlier calibration and its
+    label, compared with this one in a section (``calibration.diff``).
     """
     cal = calibration
     if not isinstance(cal, Calibration):
@@ -116,13 +119,17 @@ def build_report(
     doc.add(
         '<nav><a href="#summary">summary</a><a href="#accuracy">accuracy</a><a href="#plots">plots</a>'
         + ('<a href="#drift">drift</a>' if history is not None else "")
+        + ('<a href="#against">compared</a>' if against is not None else "")
         + '<a href="#points">per point</a><a href="#fit">fit</a><a href="#params">parameters</a></nav>'
     )
     _summary(doc, cal, ev, extra)
     _accuracy(doc, cal, ev)
+    budget_section(doc, cal)
     _plots(doc, cal, ev, check_pairs, train_pairs)
     if history is not None:
         _drift(doc, history, limit_mm)
+    if against is not None:
+        against_section(doc, cal, *against)
     doc.h2("Per point residuals", "points")
     if ev.check is not None:
         doc.h3("Check points")
@@ -476,6 +483,7 @@ def write_report(
     *,
     history: Sequence[Mapping] | None = None,
     limit_mm: float | None = None,
+    against: tuple[Calibration, str] | None = None,
 ) -> Path:
     """Write the report of ``calibration`` into ``out_dir``; returns the path of ``index.html``.
 
@@ -486,6 +494,6 @@ def write_report(
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
     text, files = build_report(
-        calibration, check_pairs, train_pairs, extra, history=history, limit_mm=limit_mm
+        calibration, check_pairs, train_pairs, extra, history=history, limit_mm=limit_mm, against=against
     )
     return write_folder(out, text, files)

@@ -29,6 +29,7 @@ from eyetohand.server.routes import (
     audit,
     calibrations,
     collect,
+    diff,
     images,
     jobs,
     mapping,
@@ -142,7 +143,7 @@ def create_app(
     install_handlers(app)
     # mapping first: a request is matched against the routes in order, and the robot's mapping calls
     # are the hot path (no other route matches their paths; tested)
-    for r in (mapping, page, meta, pairs, calibrations, jobs, collect, images, plate, audit, plant):
+    for r in (mapping, page, meta, pairs, calibrations, jobs, collect, images, diff, plate, audit, plant):
         app.include_router(r.router)
     page.mount_static(app)
 
