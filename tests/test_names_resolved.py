@@ -135,9 +135,21 @@ class _Watched(dict):
         return super().get(key, default)
 
 
-@pytest.mark.parametrize("model", ["homography", "auto"])
-def test_fitting_a_request_looks_no_name_up(paper_pairs, monkeypatch, model):
-    train, check = paper_pairs
+def _nine_plus_two():
+    """Pairs at three tool angles ("9 + 2": the fit estimates the tool offset first) and check pairs."""
+    from eyetohand.sim.cell import Cell
+    from eyetohand.sim.simulate import simulate
+
+    cell = Cell.default().with_values(robot={"tcp_offset_mm": [0.35, -0.2]})
+    sim = simulate(cell, "grid:3x3", (150.0,), n_check=10, angles_deg=(0.0, 90.0, 180.0), seed=4)
+    return sim.pairs, sim.check
+
+
+@pytest.mark.parametrize(
+    ("model", "turns"), [("homography", False), ("auto", False), ("auto", True), ("affine", True)]
+)
+def test_fitting_a_request_looks_no_name_up(paper_pairs, monkeypatch, model, turns):
+    train, check = _nine_plus_two() if turns else paper_pairs
     request = FitRequest.from_names(model, "lm", "l2", seed=0)
     watched = {
         "models": _Watched(models_module.MODELS),
