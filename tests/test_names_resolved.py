@@ -146,11 +146,20 @@ def _nine_plus_two():
 
 
 @pytest.mark.parametrize(
-    ("model", "turns"), [("homography", False), ("auto", False), ("auto", True), ("affine", True)]
+    ("model", "optimizer", "objective", "turns"),
+    [
+        ("homography", "lm", "l2", False),
+        ("auto", "lm", "l2", False),
+        ("auto", "lm", "l2", True),
+        ("affine", "lm", "huber", True),
+        ("paper", "hybrid-pso", "l2", False),  # leave-one-out by lm: the swarm's cheaper solver
+        ("auto", "pso", "linf", False),  # by linear: lm cannot minimise linf
+    ],
 )
-def test_fitting_a_request_looks_no_name_up(paper_pairs, monkeypatch, model, turns):
+def test_fitting_a_request_looks_no_name_up(paper_pairs, monkeypatch, model, optimizer, objective, turns):
     train, check = _nine_plus_two() if turns else paper_pairs
-    request = FitRequest.from_names(model, "lm", "l2", seed=0)
+    swarm = {"n_particles": 12, "iterations": 5} if optimizer.endswith("pso") else {}
+    request = FitRequest.from_names(model, optimizer, objective, seed=0, **swarm)
     watched = {
         "models": _Watched(models_module.MODELS),
         "solvers": _Watched(solvers_module.SOLVERS),
@@ -164,9 +173,9 @@ def test_fitting_a_request_looks_no_name_up(paper_pairs, monkeypatch, model, tur
     cal = calibrate_request(request, train, check=check)
     assert {k: w.asked for k, w in watched.items()} == {k: [] for k in watched}
     monkeypatch.undo()
-    want = calibrate(train, model, "lm", "l2", check=check, seed=0)  # the names' path: the same fit
+    want = calibrate(train, model, optimizer, objective, check=check, seed=0, **swarm)  # by names
     assert np.array_equal(cal.model.params, want.model.params) and cal.loo == want.loo
-    assert cal.fit.objective == "l2" and cal.fit.optimizer == "lm"  # the file still stores names
+    assert (cal.fit.optimizer, cal.fit.objective) == (optimizer, objective)  # the file stores names
 
 
 @pytest.mark.parametrize("name", OBJECTIVES)
