@@ -135,10 +135,31 @@ class _Watched(dict):
         return super().get(key, default)
 
 
-@pytest.mark.parametrize("model", ["homography", "auto"])
-def test_fitting_a_request_looks_no_name_up(paper_pairs, monkeypatch, model):
-    train, check = paper_pairs
-    request = FitRequest.from_names(model, "lm", "l2", seed=0)
+def _nine_plus_two():
+    """Pairs at three tool angles ("9 + 2": the fit estimates the tool offset first) and check pairs."""
+    from eyetohand.sim.cell import Cell
+    from eyetohand.sim.simulate import simulate
+
+    cell = Cell.default().with_values(robot={"tcp_offset_mm": [0.35, -0.2]})
+    sim = simulate(cell, "grid:3x3", (150.0,), n_check=10, angles_deg=(0.0, 90.0, 180.0), seed=4)
+    return sim.pairs, sim.check
+
+
+@pytest.mark.parametrize(
+    ("model", "optimizer", "objective", "turns"),
+    [
+        ("homography", "lm", "l2", False),
+        ("auto", "lm", "l2", False),
+        ("auto", "lm", "l2", True),
+        ("affine", "lm", "huber", True),
+        ("paper", "hybrid-pso", "l2", False),  # leave-one-out by lm: the swarm's cheaper solver
+        ("auto", "pso", "linf", False),  # by linear: lm cannot minimise linf
+    ],
+)
+def test_fitting_a_request_looks_no_name_up(paper_pairs, monkeypatch, model, optimizer, objective, turns):
+    train, check = _nine_plus_two() if turns else paper_pairs
+    swarm = {"n_particles": 12, "iterations": 5} if optimizer.endswith("pso") else {}
+    request = FitRequest.from_names(model, optimizer, objective, seed=0, **swarm)
     watched = {
         "models": _Watched(models_module.MODELS),
         "solvers": _Watched(solvers_module.SOLVERS),
@@ -152,9 +173,9 @@ def test_fitting_a_request_looks_no_name_up(paper_pairs, monkeypatch, model):
     cal = calibrate_request(request, train, check=check)
     assert {k: w.asked for k, w in watched.items()} == {k: [] for k in watched}
     monkeypatch.undo()
-    want = calibrate(train, model, "lm", "l2", check=check, seed=0)  # the names' path: the same fit
+    want = calibrate(train, model, optimizer, objective, check=check, seed=0, **swarm)  # by names
     assert np.array_equal(cal.model.params, want.model.params) and cal.loo == want.loo
-    assert cal.fit.objective == "l2" and cal.fit.optimizer == "lm"  # the file still stores names
+    assert (cal.fit.optimizer, cal.fit.objective) == (optimizer, objective)  # the file stores names
 
 
 @pytest.mark.parametrize("name", OBJECTIVES)

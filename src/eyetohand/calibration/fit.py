@@ -62,6 +62,12 @@ from eyetohand.solve import (
     stats_from_residuals,
 )
 
+# the tool offset's fits, resolved once: on l2, auto choosing its model with lm (calibrate's
+# defaults), the offset fitted in closed form
+TCP_OBJECTIVE = get_objective("l2")
+TCP_CHOICE_SOLVER = get_solver("lm")
+TCP_SOLVER = get_solver("linear")
+
 AUTO_ALPHA = 0.02  # significance level of the nested-model F-test that admits more fitted numbers
 SPARE_EQUATIONS = 8
 LOO_MAX_PAIRS = 40
@@ -533,13 +539,12 @@ def tcp_offset_for(
     if not isinstance(choice, AutoModel):
         cls = choice
     elif has_turns(pairs):  # (pairs without turns are refused below, before any fit)
-        lm, l2 = get_solver("lm"), get_objective("l2")
-        cls = _select(reference_pairs(pairs), lm, l2, image_size=image_size, seed=seed).model
-    linear = get_solver("linear")
+        ref = reference_pairs(pairs)
+        cls = _select(ref, TCP_CHOICE_SOLVER, TCP_OBJECTIVE, image_size=image_size, seed=seed).model
 
     def fit_linear(p: PointPairs) -> Model:
         assert cls is not None  # estimate_tcp_offset fits only pairs with turns
-        return fit_model(p, cls, linear, image_size=image_size)[0]
+        return fit_model(p, cls, TCP_SOLVER, TCP_OBJECTIVE, image_size=image_size)[0]
 
     return estimate_tcp_offset(pairs, fit_linear)  # refuses pairs without turns, saying what they lack
 

@@ -52,15 +52,18 @@ class Problem:
 
 @dataclass(frozen=True)
 class Solver:
-    """A refinement method: ``run(problem, seed=, callback=, **options) -> (model, FitInfo)``, with the
-    facts its callers act on (they ask the solver, never compare its name)."""
+    """A refinement method: ``run(problem, solver=, seed=, callback=, **options) -> (model, FitInfo)``
+    (``solver``: this one), with the facts its callers act on (they ask the solver, never compare its
+    name)."""
 
     name: str
     run: Callable[..., tuple[Model, FitInfo]]
     objectives: tuple[str, ...]
     options: tuple[str, ...] = ()
     summary: str = ""
-    cv_solver: str | None = None  # cheaper solver used for cross-validation refits (None: itself)
+    cv_solvers: tuple[Solver, ...] = ()
+    """Cheaper solvers for cross-validation refits, the first that minimises the objective (none:
+    itself)."""
     is_swarm: bool = False
     """A particle swarm: calls ``callback(iteration, best, x)`` after every iteration (progress, cancel)
     and evaluates a swarm of candidates per iteration (:meth:`candidates`, :func:`check_swarm_size`)."""
@@ -96,16 +99,13 @@ class Solver:
     def for_cross_validation(self, objective: Objective) -> Solver:
         """The solver whose refits score held-out pairs: the swarms' are too slow to repeat n times,
         so they use ``lm`` (smooth objectives) or ``linear``."""
-        if self.cv_solver is None:
-            return self
-        cheaper = SOLVERS[self.cv_solver]
-        return cheaper if cheaper.minimises(objective) else SOLVERS["linear"]
+        return next((s for s in self.cv_solvers if s.minimises(objective)), self)
 
 
 # ---------------------------------------------------------------- the solvers
 
 
-def _linear(problem: Problem, **_):
+def _linear(problem: Problem, **_):  # (solver, seed, callback: unused)
     f = float(problem.fitness(problem.model.params[None])[0])
     return problem.model, FitInfo(
         optimizer="linear",
@@ -177,77 +177,85 @@ def _lm(problem: Problem, **_):
     )
 
 
-def _swarm(kind: str):
-    def run(problem: Problem, *, seed=None, callback=None, n_particles: int = 200, iterations: int = 150):
-        model = problem.model
-        check_swarm_size(kind, n_particles, len(problem.uv_px))
-        t0 = time.perf_counter()
-        # each element alone moves the mapped points by 1/sqrt(D) mm RMS, the swarm ~1 mm (docs/pso.md)
-        sigma = param_scale(
-            model, problem.uv_px, problem.xyz_mm[:, 2], step_mm=PSO_SPREAD_MM / np.sqrt(model.n_params)
-        )
-        from eyetohand.solve.optimize import hybrid_pso, pso
+def _swarm(
+    problem: Problem,
+    *,
+    solver: Solver,
+    seed=None,
+    callback=None,
+    n_particles: int = 200,
+    iterations: int = 150,
+):
+    """The particle swarm ``solver`` (hybrid or plain, :attr:`Solver.hybrid`) on ``problem``."""
+    model = problem.model
+    check_swarm_size(solver, n_particles, len(problem.uv_px))
+    t0 = time.perf_counter()
+    # each element alone moves the mapped points by 1/sqrt(D) mm RMS, the swarm ~1 mm (docs/pso.md)
+    sigma = param_scale(
+        model, problem.uv_px, problem.xyz_mm[:, 2], step_mm=PSO_SPREAD_MM / np.sqrt(model.n_params)
+    )
+    from eyetohand.solve.optimize import hybrid_pso, pso
 
-        fn = hybrid_pso if SOLVERS[kind].hybrid else pso
-        res = fn(
-            problem.fitness,
-            model.params,
-            sigma,
-            n_particles=n_particles,
-            iterations=iterations,
-            seed=seed,
-            callback=callback,
-        )
-        return model.with_params(res.x), FitInfo(
-            optimizer=kind,
-            objective=problem.objective.name,
-            fitness=float(res.fun),
-            history=tuple(float(v) for v in res.history),
-            nfev=int(res.nfev),
-            nit=int(res.nit),
-            seconds=time.perf_counter() - t0,
-            seed=int(seed) if isinstance(seed, (int, np.integer)) else None,
-            message=str(res.message),
-            extra=problem.extra(),
-        )
-
-    return run
+    fn = hybrid_pso if solver.hybrid else pso
+    res = fn(
+        problem.fitness,
+        model.params,
+        sigma,
+        n_particles=n_particles,
+        iterations=iterations,
+        seed=seed,
+        callback=callback,
+    )
+    return model.with_params(res.x), FitInfo(
+        optimizer=solver.name,
+        objective=problem.objective.name,
+        fitness=float(res.fun),
+        history=tuple(float(v) for v in res.history),
+        nfev=int(res.nfev),
+        nit=int(res.nit),
+        seconds=time.perf_counter() - t0,
+        seed=int(seed) if isinstance(seed, (int, np.integer)) else None,
+        message=str(res.message),
+        extra=problem.extra(),
+    )
 
 
+_LINEAR = Solver(
+    "linear",
+    _linear,
+    OBJECTIVES,
+    summary="the model's closed-form (normalised linear) estimate",
+    is_linear=True,
+)
+_LM = Solver(
+    "lm",
+    _lm,
+    SMOOTH_OBJECTIVES,
+    summary="Levenberg–Marquardt on the robot-space residuals",
+    is_least_squares=True,
+)
 SOLVERS: dict[str, Solver] = {
     s.name: s
     for s in (
-        Solver(
-            "linear",
-            _linear,
-            OBJECTIVES,
-            summary="the model's closed-form (normalised linear) estimate",
-            is_linear=True,
-        ),
-        Solver(
-            "lm",
-            _lm,
-            SMOOTH_OBJECTIVES,
-            summary="Levenberg–Marquardt on the robot-space residuals",
-            is_least_squares=True,
-        ),
+        _LINEAR,
+        _LM,
         Solver(
             "hybrid-pso",
-            _swarm("hybrid-pso"),
+            _swarm,
             OBJECTIVES,
             ("n_particles", "iterations"),
             "the paper's hybrid particle swarm (PSO + crossover + mutation)",
-            cv_solver="lm",
+            cv_solvers=(_LM, _LINEAR),
             is_swarm=True,
             hybrid=True,
         ),
         Solver(
             "pso",
-            _swarm("pso"),
+            _swarm,
             OBJECTIVES,
             ("n_particles", "iterations"),
             "plain particle swarm (the ablation)",
-            cv_solver="lm",
+            cv_solvers=(_LM, _LINEAR),
             is_swarm=True,
         ),
     )
@@ -289,7 +297,7 @@ SWARM_MAX_BYTES = 4 * 2**30
 at once, ~``4 × candidates × pairs × 3 × 8`` bytes of arrays."""
 
 
-def check_swarm_size(kind: str, n_particles: int, n_pairs: int) -> None:
+def check_swarm_size(kind: str | Solver, n_particles: int, n_pairs: int) -> None:
     """Refuses (:class:`InputError`) a swarm (the solver called ``kind``) whose one iteration would need
     more than :data:`SWARM_MAX_BYTES` — with how many particles would fit — instead of a MemoryError."""
     solver = get_solver(kind)
@@ -381,7 +389,7 @@ def refine(
         )
     problem = Problem(model, uv, xyz, obj, huber_delta_mm(np.linalg.norm(start, axis=1)))
     own = {k: v for k, v in options.items() if k in solver.options}
-    return solver.run(problem, seed=seed, callback=callback, **own)
+    return solver.run(problem, solver=solver, seed=seed, callback=callback, **own)
 
 
 def param_scale(model, uv_px, z_mm, step_mm: float = 1.0) -> np.ndarray:
