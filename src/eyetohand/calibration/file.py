@@ -15,6 +15,7 @@ import os
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,7 +26,6 @@ from eyetohand.calibration.fields import (
 )
 from eyetohand.calibration.horizon import horizon_clear
 from eyetohand.calibration.mapped import Mapped
-from eyetohand.calibration.plate_record import PlateRecord
 from eyetohand.calibration.proof import SCHEMA, SCHEMA_VERSION, content_sha256, corrected
 from eyetohand.calibration.proof import V1_FIELDS as V1_FIELDS  # where the schema was read before
 from eyetohand.calibration.signing import signature_of
@@ -46,6 +46,9 @@ from eyetohand.geometry import (
 )
 from eyetohand.models import HeightRule, Model
 from eyetohand.solve import Uncertainty
+
+if TYPE_CHECKING:
+    from eyetohand.calibration.plate_record import PlateRecord  # a plate file's record, loaded for one only
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,6 @@ from eyetohand.calibration.fields import (
     rel_tol,
     same,
 )
-from eyetohand.calibration.plate_record import PlateRecord
 from eyetohand.calibration.signing import check_signature
 from eyetohand.core import (
     FitInfo,
@@ -372,6 +371,9 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
         if extra["region"] is None:
             raise InputError("field 'region' missing: a calibration must record where it was calibrated")
         if d.get("plate") is not None:
+            # only a plate file loads the plate's modules (its spec, the touches): apply of others stays lean
+            from eyetohand.calibration.plate_record import PlateRecord
+
             pairs = extra["pairs"]
             extra["plate"] = PlateRecord.from_dict(
                 d["plate"], pairs if isinstance(pairs, PointPairs) else None

@@ -40,9 +40,7 @@ else:
                 "ConveyorSetup",
                 "sightings_from_text",
                 "simulate_conveyor",
-                "simulate_plate",
                 "write_conveyor_simulation",
-                "write_plate_simulation",
             ),
             "parts": (
                 "Part",
