@@ -150,3 +150,39 @@ def test_no_transport_asks_which_kind_it_serves():
 
 def test_the_kind_check_finds_one():
     assert _kind_checks(ast.parse("if isinstance(src, (int, StoredCalibration)):\n    pass\n")) == [1]
+
+
+def _err_decoders(tree: ast.AST) -> list[int]:
+    """Lines that read an ``ERR`` reply's text: ``x.startswith("ERR…")``, ``x[:3] == "ERR"`` and
+    ``"ERR" in x`` style tests of a str or bytes constant starting with ERR."""
+
+    def err(node) -> bool:
+        return (
+            isinstance(node, ast.Constant)
+            and isinstance(node.value, str | bytes)
+            and node.value[:3] in ("ERR", b"ERR")
+        )
+
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+            if node.func.attr in ("startswith", "removeprefix") and node.args and err(node.args[0]):
+                out.append(node.lineno)
+        elif isinstance(node, ast.Compare) and (err(node.left) or any(err(c) for c in node.comparators)):
+            out.append(node.lineno)
+    return out
+
+
+def test_no_module_reads_an_err_reply_for_its_meaning():
+    """A refusal's kind travels as a code (Refusal, CommandError): no library module decodes ERR text."""
+    bad = []
+    for path in sorted(SRC.rglob("*.py")):
+        bad += [
+            f"{path.relative_to(SRC)} line {n}" for n in _err_decoders(ast.parse(path.read_text("utf-8")))
+        ]
+    assert not bad, "ERR text read back for a meaning: " + ", ".join(bad)
+
+
+def test_the_err_check_finds_one():
+    code = 'if text.startswith("ERR"):\n    pass\nok = data[:3] == b"ERR"\n'
+    assert _err_decoders(ast.parse(code)) == [1, 3]

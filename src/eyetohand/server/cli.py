@@ -380,11 +380,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                 )
                 busy_replies["CAL"] = collector.refuse
             if conveyor:
-                from eyetohand.cell import BeltProtocol
-
-                belt = BeltProtocol(
-                    conveyor, source=source, store_dir=args.collect_dir or (data_dir / "collect")
-                )
+                belt = open_belt(args, conveyor, source, data_dir)
                 commands["BELT"] = belt.handle
         except InputError as exc:
             http_sock.close()
@@ -507,6 +503,19 @@ def add_locate(commands: dict, source, served, args):
     if isinstance(source, SimSource):
         commands["SIM"] = lambda line: sim_command(source, line)
     return locator
+
+
+def open_belt(args, conveyor, source, data_dir: Path):
+    """The BELT commands' protocol over ``--conveyor`` (its refusals in the line service's format)."""
+    from eyetohand.cell import BeltProtocol, LineReplies
+    from eyetohand.core import MM_DEG
+
+    return BeltProtocol(
+        conveyor,
+        source=source,
+        store_dir=args.collect_dir or (data_dir / "collect"),
+        replies=LineReplies(args.reply_format, getattr(args, "output_units", None) or MM_DEG),
+    )
 
 
 def units_note(args) -> str:
