@@ -105,7 +105,7 @@ def test_same_numbers_on_apply_http_and_the_tcp_line(setup, capsys):
 
 
 def test_a_unit_not_known_is_refused_with_the_same_words_everywhere(setup, capsys):
-    from eyetohand.server.cli import ServeError, check_options
+    from eyetohand.server.startup import ServeError, check_options
 
     root, path, _, u, v = setup
     for given, words in BAD:

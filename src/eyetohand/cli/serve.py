@@ -1,7 +1,7 @@
 """``eyetohand serve``: the calibration workbench (web page + JSON API) and the positioning service (TCP
 lines, Modbus TCP, OPC UA).
 
-Parses the options and calls :func:`eyetohand.server.cli.serve`; the server is imported only when
+Parses the options and calls :func:`eyetohand.server.startup.serve`; the server is imported only when
 the command runs (its dependencies are the heaviest of the package)."""
 
 from __future__ import annotations
