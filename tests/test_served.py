@@ -186,3 +186,46 @@ def test_no_module_reads_an_err_reply_for_its_meaning():
 def test_the_err_check_finds_one():
     code = 'if text.startswith("ERR"):\n    pass\nok = data[:3] == b"ERR"\n'
     assert _err_decoders(ast.parse(code)) == [1, 3]
+
+
+def test_serve_options_become_one_typed_config(cal, tmp_path):
+    """check_options turns serve's parsed options into one frozen ServeConfig, addresses parsed, the
+    calibration file proved and loaded once; the start-up wiring reads only it."""
+    import dataclasses
+
+    from eyetohand.cli import build_parser
+    from eyetohand.core import output_units
+    from eyetohand.server.config import ServeConfig
+    from eyetohand.server.startup import check_options
+
+    path = cal.save(tmp_path / "cell.json")
+    argv = ["serve", "--tcp", "127.0.0.1:7001", "--calibration", str(path), "--units", "m"]
+    argv += ["--modbus", "127.0.0.1:5020", "--robot-address", "10.0.0.9", "--reply-format", "ur"]
+    cfg = check_options(build_parser().parse_args(argv))
+    assert isinstance(cfg, ServeConfig)
+    assert (cfg.tcp, cfg.modbus, cfg.opcua, cfg.plc_wanted) == (
+        ("127.0.0.1", 7001),
+        ("127.0.0.1", 5020),
+        None,
+        True,
+    )
+    assert (cfg.reply_format, cfg.units, cfg.robot_addresses) == (
+        "ur",
+        output_units("m", None),
+        ("10.0.0.9",),
+    )
+    assert cfg.calibration_file is not None
+    assert cfg.calibration_file.identity().file == str(path.resolve())
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.port = 1  # type: ignore[misc]
+
+
+def test_the_start_up_wiring_reads_no_namespace():
+    """After check_options, serve's wiring takes the ServeConfig: no ``args.`` nor ``getattr(args``
+    past it in server/startup.py (the checks before it read the namespace they check)."""
+    text = (SRC / "server" / "startup.py").read_text(encoding="utf-8")
+    wiring = text[text.index("def allowed_hosts(") :]
+    wiring = wiring.replace(
+        wiring[wiring.index("def _plc_wanted(") : wiring.index("def _served_calibration(")], ""
+    )
+    assert "args." not in wiring and "getattr(args" not in wiring

@@ -18,10 +18,10 @@ def cmd_serve(args) -> int:
     if getattr(args, "token_file", None) is not None:
         args.token = read_token_file(args.token_file, given=args.token is not None)
     # ---- end --token-file
-    check_options(args)
+    config = check_options(args)  # the options as one typed value, checked once
     data_dir = args.data or default_data_dir()
     try:
-        serve(args, data_dir)
+        serve(config, data_dir)
     except OSError as exc:
         print(f"error: cannot serve: {exc}", file=sys.stderr)
         return 2

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from eyetohand.core import InputError
+from eyetohand.server.config import ServeConfig, ServeError, is_loopback, parse_hostport
 
 if TYPE_CHECKING:
     from eyetohand.positioning import Served
@@ -23,28 +24,9 @@ if TYPE_CHECKING:
     from eyetohand.server.stored import SameFile
 
 
-class ServeError(InputError):
-    """Bad ``serve`` options (exit 2)."""
-
-
-def is_loopback(host: str) -> bool:
-    if host.lower() == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
-
-
-def parse_hostport(text: str, flag: str = "--tcp") -> tuple[str, int]:
-    host, sep, port = text.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ServeError(f"{flag}: expected HOST:PORT (e.g. 127.0.0.1:7001), got {text!r}")
-    return host.strip("[]"), int(port)
-
-
-def check_options(args) -> None:
-    """Refuse unsafe or incomplete option sets before anything binds."""
+def check_options(args) -> ServeConfig:
+    """Refuse unsafe or incomplete option sets before anything binds; the checked options as one
+    typed value (what :func:`serve` takes)."""
     check_signing_options(args)  # --sign-key, --require-signed: before --calibration FILE is read
     if not 0 <= args.port <= 65535:
         raise ServeError(f"--port: expected 0..65535 (0: any free port), got {args.port}")
@@ -105,6 +87,7 @@ def check_options(args) -> None:
                 args.calibration_file = signed_file(FixedCalibration, path, args)
             except InputError as exc:
                 raise ServeError(f"--calibration: {exc}") from None
+    return ServeConfig.from_args(args)
 
 
 def check_line_options(args) -> None:
@@ -201,16 +184,16 @@ def signed_file(fixed_cls, path, args):
     return fixed_cls(cal, str(p.resolve()), hashlib.sha256(p.read_bytes()).hexdigest())
 
 
-def allowed_hosts(args) -> list[str] | None:
+def allowed_hosts(cfg: ServeConfig) -> list[str] | None:
     """The Host names HTTP answers: on a loopback address the loopback names, the bound address and
     every ``--allow-host``; elsewhere any (None) unless ``--allow-host`` names them (then those, the
     bound address and the loopback names)."""
     from eyetohand.server.app import LOOPBACK_HOSTS
 
-    extra = [h.strip().lower() for h in getattr(args, "allow_host", None) or () if h.strip()]
-    if not is_loopback(args.host) and not extra:
+    extra = [h.strip().lower() for h in cfg.allow_hosts if h.strip()]
+    if not is_loopback(cfg.host) and not extra:
         return None
-    host = args.host.lower()
+    host = cfg.host.lower()
     bound = [host, f"[{host}]"] if ":" in host and not host.startswith("[") else [host]
     return [*LOOPBACK_HOSTS, *bound, *extra]
 
@@ -281,19 +264,19 @@ def one_calibration(server_fn, wanted: str | None) -> dict:
     return {"begin_rule": collection_rule(server_fn, wanted), "served_fn": served_for_check(server_fn)}
 
 
-def tcp_options(args, commands: dict, busy_replies: dict) -> dict:
-    """The LineServer's options from ``serve``'s: the command handlers, their busy replies, the robot's
-    reserved addresses and the first-line grace."""
-    from eyetohand.core import MM_DEG
+def tcp_options(cfg: ServeConfig, commands: dict, busy_replies: dict) -> dict:
+    """The LineServer's options from ``serve``'s: the token, the command handlers, their busy replies,
+    the robot's reserved addresses, the first-line grace, the reply format and units."""
     from eyetohand.positioning import FIRST_LINE_S
 
     return {
+        "token": cfg.token,
         "commands": commands,
         "busy_replies": busy_replies,
-        "robot_addresses": getattr(args, "robot_address", None) or (),
-        "first_line_s": getattr(args, "tcp_first_line_s", None) or FIRST_LINE_S,
-        "reply_format": getattr(args, "reply_format", None) or "plain",
-        "units": getattr(args, "output_units", None) or MM_DEG,
+        "robot_addresses": cfg.robot_addresses,
+        "first_line_s": cfg.first_line_s or FIRST_LINE_S,
+        "reply_format": cfg.reply_format,
+        "units": cfg.units,
     }
 
 
@@ -303,16 +286,16 @@ def _not_a_cancellation(record: logging.LogRecord) -> bool:
     return not isinstance(exc, asyncio.CancelledError | KeyboardInterrupt)
 
 
-async def _serve(args, data_dir) -> None:
+async def _serve(cfg: ServeConfig, data_dir) -> None:
     loops: list = []  # the line service's loop thread, stopped however _run_serve ends
     try:
-        await _run_serve(args, data_dir, loops)
+        await _run_serve(cfg, data_dir, loops)
     finally:
         for t in loops:
             t.stop()
 
 
-async def _run_serve(args, data_dir, loops: list) -> None:
+async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     import uvicorn
 
     from eyetohand.positioning import LineServer, LoopThread
@@ -320,19 +303,19 @@ async def _run_serve(args, data_dir, loops: list) -> None:
     from eyetohand.server.storage import DB_NAME, Store
     from eyetohand.server.stored import SameFile, StoredCalibration
 
-    http_sock = bind_http(args.host, args.port)
+    http_sock = bind_http(cfg.host, cfg.port)
     # the database is created only at a first start: later, a missing one is an error, never a new one
     fresh_db = not (Path(data_dir) / DB_NAME).exists()
     tcp_loop: LoopThread | None = None
     line_server = collector = source = belt = app = locator = None
     data_dir = Path(data_dir)
-    camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
+    camera, conveyor = cfg.camera, cfg.conveyor
     store = served = None
     same_file: SameFile | None = None
-    if args.tcp or _plc_wanted(args):
-        served, store, same_file = _served_calibration(args, data_dir, camera, http_sock, create=fresh_db)
-    if args.tcp:
-        host, port = parse_hostport(args.tcp)
+    if cfg.tcp or cfg.plc_wanted:
+        served, store, same_file = _served_calibration(cfg, data_dir, camera, http_sock, create=fresh_db)
+    if cfg.tcp is not None:
+        host, port = cfg.tcp
         assert served is not None  # _served_calibration ran for --tcp
         what = served.describe()
         commands: dict[str, Callable[[str], str]] = {}
@@ -351,7 +334,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
 
                 def on_saved(saved_rec, new_cal) -> None:
                     # the collected calibration is what the mapping lines use from now on
-                    wanted = args.calibration or saved_rec.name
+                    wanted = cfg.calibration or saved_rec.name
                     if line_server is not None and saved_rec.name == wanted and store is not None:
                         current = line_server.source
                         if current.identity().cal_id == saved_rec.id:
@@ -362,45 +345,43 @@ async def _run_serve(args, data_dir, loops: list) -> None:
                         app.state.service.invalidate(saved_rec.id)
 
                 if store is None:
-                    store = Store(data_dir, wait_s=args.db_wait, create=fresh_db)
+                    store = Store(data_dir, wait_s=cfg.db_wait_s, create=fresh_db)
                     same_file = SameFile(store)
-                collect_dir = args.collect_dir or (data_dir / "collect")
+                collect_dir = cfg.collect_dir or (data_dir / "collect")
                 collector = Collector(
                     collect_dir,
                     source,
                     save_fn=store_save_fn(store, on_saved),
                     load_fn=store_load_fn(store),
-                    calibration=args.calibration,
-                    reply_format=args.reply_format,
-                    **one_calibration(lambda: line_server, args.calibration),
+                    calibration=cfg.calibration,
+                    reply_format=cfg.reply_format,
+                    **one_calibration(lambda: line_server, cfg.calibration),
                 )
                 commands["CAL"] = collector.handle
                 locator = add_locate(
-                    commands, source, lambda: line_server.source if line_server else served, args
+                    commands, source, lambda: line_server.source if line_server else served, cfg
                 )
                 busy_replies["CAL"] = collector.refuse
             if conveyor:
-                belt = open_belt(args, conveyor, source, data_dir)
+                belt = open_belt(cfg, source, data_dir)
                 commands["BELT"] = belt.handle
         except InputError as exc:
             http_sock.close()
             if store is not None:
                 store.close()
             raise ServeError(str(exc).splitlines()[0]) from None
-        line_server = LineServer(
-            served, host, port, token=args.token, **tcp_options(args, commands, busy_replies)
-        )
+        line_server = LineServer(served, host, port, **tcp_options(cfg, commands, busy_replies))
         try:
             await tcp_loop.call(line_server.start())
         except OSError as exc:
             http_sock.close()
-            raise ServeError(f"--tcp {args.tcp}: cannot listen there ({exc.strerror or exc})") from None
-        what += units_note(args)
+            raise ServeError(f"--tcp {cfg.tcp_text}: cannot listen there ({exc.strerror or exc})") from None
+        what += units_note(cfg)
         print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with {what}", flush=True)
         if collector is not None:
             print(
                 f"TCP: 'CAL …' lines collect with camera {camera} (journal {collector.journal.path}, "
-                f"replies {args.reply_format})",
+                f"replies {cfg.reply_format})",
                 flush=True,
             )
         if belt is not None:
@@ -409,9 +390,9 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             print(f"TCP: 'LOCATE …' lines find parts with camera {camera}{sim_note(commands)}", flush=True)
 
     plc = plc_loop = None
-    if _plc_wanted(args):
+    if cfg.plc_wanted:
         plc, plc_loop = await _start_plc(
-            args,
+            cfg,
             lambda: line_server.source if line_server is not None else served,
             served,
             poll=line_server is None,
@@ -422,23 +403,23 @@ async def _run_serve(args, data_dir, loops: list) -> None:
 
     app = create_app(
         data_dir,
-        token=args.token,
-        db_wait_s=args.db_wait,
-        allowed_hosts=allowed_hosts(args),
+        token=cfg.token,
+        db_wait_s=cfg.db_wait_s,
+        allowed_hosts=allowed_hosts(cfg),
         create_db=fresh_db,
-        sign_key=getattr(args, "sign_key_bytes", None),
-        require_signed=bool(getattr(args, "require_signed", False)),
+        sign_key=cfg.sign_key,
+        require_signed=cfg.require_signed,
     )
     if collector is not None:
         from eyetohand.server.routes.collect import CameraView
 
         app.state.collect = CameraView(collector, source)
     port = http_sock.getsockname()[1]
-    print(f"workbench: http://{args.host}:{port}/  (API docs: /docs; data: {data_dir})", flush=True)
+    print(f"workbench: http://{cfg.host}:{port}/  (API docs: /docs; data: {data_dir})", flush=True)
     from eyetohand.server.protocol import GuardedH11Protocol  # head and body deadlines (slowloris)
 
     config = uvicorn.Config(
-        app, log_level=args.log_level, timeout_graceful_shutdown=5, http=GuardedH11Protocol
+        app, log_level=cfg.log_level, timeout_graceful_shutdown=5, http=GuardedH11Protocol
     )
     # after Config (it configures uvicorn's loggers): Ctrl-C while the app starts cancels uvicorn's
     # lifespan task, which it logs as an ERROR with two tracebacks; the command ends with one line
@@ -460,7 +441,7 @@ async def _run_serve(args, data_dir, loops: list) -> None:
             store.close()
 
 
-async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
+async def _start_plc(cfg: ServeConfig, current, served, *, poll: bool, locate, http_sock):
     """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
     service's served calibration when there is one, else ``served``, followed by polling when
     ``poll``); print their start-up lines. Returns (the services, their loop)."""
@@ -468,11 +449,11 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
 
     plc = PlcServices(
         current,
-        modbus=parse_hostport(args.modbus, "--modbus") if getattr(args, "modbus", None) else None,
-        word_order=getattr(args, "modbus_word_order", None) or "big",
-        allow_from=getattr(args, "modbus_allow", None),
-        opcua=parse_hostport(args.opcua, "--opcua") if getattr(args, "opcua", None) else None,
-        token=args.token,
+        modbus=cfg.modbus,
+        word_order=cfg.modbus_word_order,
+        allow_from=list(cfg.modbus_allow) or None,
+        opcua=cfg.opcua,
+        token=cfg.token,
         locate=locate,
     )
     plc_loop = LoopThread("eyetohand-plc")
@@ -488,42 +469,38 @@ async def _start_plc(args, current, served, *, poll: bool, locate, http_sock):
 
 
 # ---- LOCATE and the sim: camera's SIM lines (the locate worktree; one block for easy merges)
-def add_locate(commands: dict, source, served, args):
+def add_locate(commands: dict, source, served, cfg: ServeConfig):
     """The camera's :class:`~eyetohand.cell.Locator`, its line command ``LOCATE`` added to
     ``commands`` (and, for a ``sim:`` camera, ``SIM``: parts on the virtual table). ``served()``: the
     calibration in force, read at every LOCATE."""
-    from eyetohand.core import MM_DEG
     from eyetohand.positioning import Locator
     from eyetohand.sim import SimSource, sim_command
 
-    locator = Locator(
-        source, served, reply_format=args.reply_format, units=getattr(args, "output_units", None) or MM_DEG
-    )
+    locator = Locator(source, served, reply_format=cfg.reply_format, units=cfg.units)
     commands["LOCATE"] = locator.handle
     if isinstance(source, SimSource):
         commands["SIM"] = lambda line: sim_command(source, line)
     return locator
 
 
-def open_belt(args, conveyor, source, data_dir: Path):
+def open_belt(cfg: ServeConfig, source, data_dir: Path):
     """The BELT commands' protocol over ``--conveyor`` (its refusals in the line service's format)."""
     from eyetohand.cell import BeltProtocol, LineReplies
-    from eyetohand.core import MM_DEG
 
     return BeltProtocol(
-        conveyor,
+        cfg.conveyor,
         source=source,
-        store_dir=args.collect_dir or (data_dir / "collect"),
-        replies=LineReplies(args.reply_format, getattr(args, "output_units", None) or MM_DEG),
+        store_dir=cfg.collect_dir or (data_dir / "collect"),
+        replies=LineReplies(cfg.reply_format, cfg.units),
     )
 
 
-def units_note(args) -> str:
+def units_note(cfg: ServeConfig) -> str:
     """The start-up line's note of the line service's words and units, when not plain mm and deg."""
-    u = getattr(args, "output_units", None)
-    parts = [] if u is None or u.is_default else [f"answers in {u.length} and {u.angle}"]
-    if getattr(args, "reply_format", "plain") != "plain":
-        parts.append(f"replies {args.reply_format}")
+    u = cfg.units
+    parts = [] if u.is_default else [f"answers in {u.length} and {u.angle}"]
+    if cfg.reply_format != "plain":
+        parts.append(f"replies {cfg.reply_format}")
     return f" ({'; '.join(parts)})" if parts else ""
 
 
@@ -539,7 +516,7 @@ def _plc_wanted(args) -> bool:
 
 
 def _served_calibration(
-    args, data_dir: Path, camera, http_sock, *, create: bool
+    cfg: ServeConfig, data_dir: Path, camera, http_sock, *, create: bool
 ) -> tuple[Served, Store | None, SameFile | None]:
     """(the served-calibration object, the store or None, its :class:`SameFile` or None) for
     ``--calibration``: a file (proved by
@@ -550,23 +527,23 @@ def _served_calibration(
     from eyetohand.server.storage import DB_NAME, Ambiguous, NotFound, StorageError, Store
     from eyetohand.server.stored import SameFile, StoredCalibration
 
-    fixed = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
+    fixed = cfg.calibration_file  # a file, proved intact by check_options
     if fixed is not None:
         return fixed, None, None
     # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
-    if args.calibration and not camera and not (data_dir / DB_NAME).is_file():
+    if cfg.calibration and not camera and not (data_dir / DB_NAME).is_file():
         http_sock.close()
         raise ServeError(
-            f"--calibration: {args.calibration!r} not found: no calibrations are stored "
+            f"--calibration: {cfg.calibration!r} not found: no calibrations are stored "
             f"in {data_dir} yet (no {DB_NAME}); save one in the workbench first"
         )
-    store = Store(data_dir, wait_s=args.db_wait, create=create)
+    store = Store(data_dir, wait_s=cfg.db_wait_s, create=create)
     same_file = SameFile(store)  # the database file as opened: TCP refuses once it is another
-    served: Served = PendingCalibration(args.calibration)
+    served: Served = PendingCalibration(cfg.calibration)
     try:
-        if args.calibration:
+        if cfg.calibration:
             try:
-                rec = store.find(args.calibration)
+                rec = store.find(cfg.calibration)
                 served = StoredCalibration(store, rec.id, same_file)
             except NotFound:
                 if not camera:  # with a camera, CAL BEGIN <name> … CAL END creates it
@@ -599,8 +576,8 @@ def bind_http(host: str, port: int) -> socket.socket:
     return sock
 
 
-def serve(args, data_dir) -> None:
-    """Run the workbench (and the TCP service with ``args.tcp``) until stopped; ``args`` as parsed by
-    ``eyetohand serve`` (:mod:`eyetohand.cli.serve`), already checked by :func:`check_options`.
+def serve(cfg: ServeConfig, data_dir) -> None:
+    """Run the workbench (and the TCP service with ``cfg.tcp``) until stopped; ``cfg`` what
+    :func:`check_options` returned for ``eyetohand serve``'s options (:mod:`eyetohand.cli.serve`).
     Raises ``OSError`` when an address cannot be bound."""
-    asyncio.run(_serve(args, data_dir))
+    asyncio.run(_serve(cfg, data_dir))
