@@ -12,14 +12,16 @@ import ipaddress
 import logging
 import socket
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from eyetohand.core import InputError
 from eyetohand.server.config import ServeConfig, ServeError, is_loopback, parse_hostport
 
 if TYPE_CHECKING:
-    from eyetohand.positioning import Served
+    from eyetohand.cell import BeltProtocol, Collector
+    from eyetohand.positioning import LineServer, Locator, LoopThread, PlcServices, Served
     from eyetohand.server.storage import Store
     from eyetohand.server.stored import SameFile
 
@@ -295,113 +297,69 @@ async def _serve(cfg: ServeConfig, data_dir) -> None:
             t.stop()
 
 
+@dataclass
+class _Started:
+    """What ``serve`` has started so far (closed in reverse by :meth:`close`, however it ends): the
+    store and the served calibration, the line service with its collector, camera, belt and LOCATE,
+    the PLC services, the app. The collection's ``on_saved`` reads it when a calibration is saved."""
+
+    loops: list
+    store: Store | None = None
+    same_file: SameFile | None = None
+    served: Served | None = None
+    line_server: LineServer | None = None
+    tcp_loop: LoopThread | None = None
+    collector: Collector | None = None
+    source: Any = None  # a camera (vision.Source)
+    belt: BeltProtocol | None = None
+    locator: Locator | None = None
+    plc: PlcServices | None = None
+    plc_loop: LoopThread | None = None
+    app: Any = None  # the FastAPI app
+
+    def current(self) -> Served:
+        """The calibration the services serve now (the line service's, which a collection may change)."""
+        if self.line_server is not None:
+            return self.line_server.source
+        assert self.served is not None  # read only once _served_calibration ran
+        return self.served
+
+    async def close(self) -> None:
+        if self.plc is not None and self.plc_loop is not None:
+            await self.plc_loop.call(self.plc.close())
+        if self.line_server is not None and self.tcp_loop is not None:
+            self.tcp_loop.loop.call_soon_threadsafe(self.line_server.close)
+            self.tcp_loop.stop()  # before the collector and the store it uses are closed
+        for part in (self.collector, self.source, self.store):
+            if part is not None:
+                part.close()
+
+
 async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     import uvicorn
 
-    from eyetohand.positioning import LineServer, LoopThread
     from eyetohand.server.app import create_app
-    from eyetohand.server.storage import DB_NAME, Store
-    from eyetohand.server.stored import SameFile, StoredCalibration
+    from eyetohand.server.storage import DB_NAME
 
     http_sock = bind_http(cfg.host, cfg.port)
     # the database is created only at a first start: later, a missing one is an error, never a new one
     fresh_db = not (Path(data_dir) / DB_NAME).exists()
-    tcp_loop: LoopThread | None = None
-    line_server = collector = source = belt = app = locator = None
     data_dir = Path(data_dir)
-    camera, conveyor = cfg.camera, cfg.conveyor
-    store = served = None
-    same_file: SameFile | None = None
+    run = _Started(loops)
     if cfg.tcp or cfg.plc_wanted:
-        served, store, same_file = _served_calibration(cfg, data_dir, camera, http_sock, create=fresh_db)
-    if cfg.tcp is not None:
-        host, port = cfg.tcp
-        assert served is not None  # _served_calibration ran for --tcp
-        what = served.describe()
-        commands: dict[str, Callable[[str], str]] = {}
-        busy_replies: dict[str, Callable[[str], str]] = {}
-        # the line service runs on a loop of its own: the robot's lines never wait behind HTTP work
-        tcp_loop = LoopThread()
-        loops.append(tcp_loop)
-        loop = tcp_loop.loop  # follow() is called on it from a collection's thread
-        try:
-            if camera:
-                import eyetohand.sim  # noqa: F401  (the interfaces offer the virtual cell's sim: camera)
-                from eyetohand.cell import Collector
-                from eyetohand.vision import open_source
-
-                source = open_source(camera)
-
-                def on_saved(saved_rec, new_cal) -> None:
-                    # the collected calibration is what the mapping lines use from now on
-                    wanted = cfg.calibration or saved_rec.name
-                    if line_server is not None and saved_rec.name == wanted and store is not None:
-                        current = line_server.source
-                        if current.identity().cal_id == saved_rec.id:
-                            current.poll()  # at once, not at the next poll
-                        else:
-                            line_server.follow(StoredCalibration(store, saved_rec.id, same_file), loop)
-                    if app is not None:  # the workbench's cache of current versions
-                        app.state.service.invalidate(saved_rec.id)
-
-                if store is None:
-                    store = Store(data_dir, wait_s=cfg.db_wait_s, create=fresh_db)
-                    same_file = SameFile(store)
-                collect_dir = cfg.collect_dir or (data_dir / "collect")
-                collector = Collector(
-                    collect_dir,
-                    source,
-                    save_fn=store_save_fn(store, on_saved),
-                    load_fn=store_load_fn(store),
-                    calibration=cfg.calibration,
-                    reply_format=cfg.reply_format,
-                    **one_calibration(lambda: line_server, cfg.calibration),
-                )
-                commands["CAL"] = collector.handle
-                locator = add_locate(
-                    commands, source, lambda: line_server.source if line_server else served, cfg
-                )
-                busy_replies["CAL"] = collector.refuse
-            if conveyor:
-                belt = open_belt(cfg, source, data_dir)
-                commands["BELT"] = belt.handle
-        except InputError as exc:
-            http_sock.close()
-            if store is not None:
-                store.close()
-            raise ServeError(str(exc).splitlines()[0]) from None
-        line_server = LineServer(served, host, port, **tcp_options(cfg, commands, busy_replies))
-        try:
-            await tcp_loop.call(line_server.start())
-        except OSError as exc:
-            http_sock.close()
-            raise ServeError(f"--tcp {cfg.tcp_text}: cannot listen there ({exc.strerror or exc})") from None
-        what += units_note(cfg)
-        print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with {what}", flush=True)
-        if collector is not None:
-            print(
-                f"TCP: 'CAL …' lines collect with camera {camera} (journal {collector.journal.path}, "
-                f"replies {cfg.reply_format})",
-                flush=True,
-            )
-        if belt is not None:
-            print(f"TCP: 'BELT …' lines map with conveyor {conveyor}", flush=True)
-        if locator is not None:
-            print(f"TCP: 'LOCATE …' lines find parts with camera {camera}{sim_note(commands)}", flush=True)
-
-    plc = plc_loop = None
-    if cfg.plc_wanted:
-        plc, plc_loop = await _start_plc(
-            cfg,
-            lambda: line_server.source if line_server is not None else served,
-            served,
-            poll=line_server is None,
-            locate=None if locator is None else locator.locate,
-            http_sock=http_sock,
+        run.served, run.store, run.same_file = _served_calibration(
+            cfg, data_dir, cfg.camera, http_sock, create=fresh_db
         )
-        loops.append(plc_loop)
+    if cfg.tcp is not None:
+        await _start_tcp(cfg, run, data_dir, http_sock, fresh_db)
+    if cfg.plc_wanted:
+        locate = None if run.locator is None else run.locator.locate
+        run.plc, run.plc_loop = await _start_plc(
+            cfg, run.current, run.served, poll=run.line_server is None, locate=locate, http_sock=http_sock
+        )
+        loops.append(run.plc_loop)
 
-    app = create_app(
+    run.app = app = create_app(
         data_dir,
         token=cfg.token,
         db_wait_s=cfg.db_wait_s,
@@ -410,10 +368,10 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
         sign_key=cfg.sign_key,
         require_signed=cfg.require_signed,
     )
-    if collector is not None:
+    if run.collector is not None:
         from eyetohand.server.routes.collect import CameraView
 
-        app.state.collect = CameraView(collector, source)
+        app.state.collect = CameraView(run.collector, run.source)
     port = http_sock.getsockname()[1]
     print(f"workbench: http://{cfg.host}:{port}/  (API docs: /docs; data: {data_dir})", flush=True)
     from eyetohand.server.protocol import GuardedH11Protocol  # head and body deadlines (slowloris)
@@ -428,17 +386,94 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     try:
         await server.serve(sockets=[http_sock])
     finally:
-        if plc is not None and plc_loop is not None:
-            await plc_loop.call(plc.close())
-        if line_server is not None and tcp_loop is not None:
-            tcp_loop.loop.call_soon_threadsafe(line_server.close)
-            tcp_loop.stop()  # before the collector and the store it uses are closed
-        if collector is not None:
-            collector.close()
-        if source is not None:
-            source.close()
-        if store is not None:
-            store.close()
+        await run.close()
+
+
+async def _start_tcp(cfg: ServeConfig, run: _Started, data_dir: Path, http_sock, fresh_db: bool) -> None:
+    """Start the line service (and its CAL, BELT and LOCATE commands) on a loop of its own: the robot's
+    lines never wait behind HTTP work. Prints its start-up lines; a refusal closes ``http_sock``."""
+    from eyetohand.positioning import LineServer, LoopThread
+
+    assert cfg.tcp is not None and run.served is not None  # _served_calibration ran for --tcp
+    host, port = cfg.tcp
+    what = run.served.describe()
+    commands: dict[str, Callable[[str], str]] = {}
+    busy_replies: dict[str, Callable[[str], str]] = {}
+    run.tcp_loop = LoopThread()
+    run.loops.append(run.tcp_loop)
+    try:
+        if cfg.camera:
+            _open_collection(cfg, run, data_dir, fresh_db, commands, busy_replies)
+        if cfg.conveyor:
+            run.belt = open_belt(cfg, run.source, data_dir)
+            commands["BELT"] = run.belt.handle
+    except InputError as exc:
+        http_sock.close()
+        if run.store is not None:
+            run.store.close()
+        raise ServeError(str(exc).splitlines()[0]) from None
+    run.line_server = LineServer(run.served, host, port, **tcp_options(cfg, commands, busy_replies))
+    try:
+        await run.tcp_loop.call(run.line_server.start())
+    except OSError as exc:
+        http_sock.close()
+        raise ServeError(f"--tcp {cfg.tcp_text}: cannot listen there ({exc.strerror or exc})") from None
+    what += units_note(cfg)
+    print(f"TCP: {host}:{run.line_server.port} maps 'u,v[,z]' lines with {what}", flush=True)
+    if run.collector is not None:
+        print(
+            f"TCP: 'CAL …' lines collect with camera {cfg.camera} (journal {run.collector.journal.path}, "
+            f"replies {cfg.reply_format})",
+            flush=True,
+        )
+    if run.belt is not None:
+        print(f"TCP: 'BELT …' lines map with conveyor {cfg.conveyor}", flush=True)
+    if run.locator is not None:
+        print(f"TCP: 'LOCATE …' lines find parts with camera {cfg.camera}{sim_note(commands)}", flush=True)
+
+
+def _open_collection(
+    cfg: ServeConfig, run: _Started, data_dir: Path, fresh_db: bool, commands: dict, busy_replies: dict
+) -> None:
+    """``--camera``: the camera, the CAL collection (saving into the store, after which the mapping lines
+    serve what it saved) and LOCATE, added to ``commands``."""
+    import eyetohand.sim  # noqa: F401  (the interfaces offer the virtual cell's sim: camera)
+    from eyetohand.cell import Collector
+    from eyetohand.server.storage import Store
+    from eyetohand.server.stored import SameFile, StoredCalibration
+    from eyetohand.vision import open_source
+
+    assert cfg.camera is not None and run.tcp_loop is not None
+    run.source = open_source(cfg.camera)
+    loop = run.tcp_loop.loop  # follow() is called on it from a collection's thread
+
+    def on_saved(saved_rec, new_cal) -> None:
+        # the collected calibration is what the mapping lines use from now on
+        wanted = cfg.calibration or saved_rec.name
+        if run.line_server is not None and saved_rec.name == wanted and run.store is not None:
+            current = run.line_server.source
+            if current.identity().cal_id == saved_rec.id:
+                current.poll()  # at once, not at the next poll
+            else:
+                run.line_server.follow(StoredCalibration(run.store, saved_rec.id, run.same_file), loop)
+        if run.app is not None:  # the workbench's cache of current versions
+            run.app.state.service.invalidate(saved_rec.id)
+
+    if run.store is None:
+        run.store = Store(data_dir, wait_s=cfg.db_wait_s, create=fresh_db)
+        run.same_file = SameFile(run.store)
+    run.collector = Collector(
+        cfg.collect_dir or (data_dir / "collect"),
+        run.source,
+        save_fn=store_save_fn(run.store, on_saved),
+        load_fn=store_load_fn(run.store),
+        calibration=cfg.calibration,
+        reply_format=cfg.reply_format,
+        **one_calibration(lambda: run.line_server, cfg.calibration),
+    )
+    commands["CAL"] = run.collector.handle
+    run.locator = add_locate(commands, run.source, run.current, cfg)
+    busy_replies["CAL"] = run.collector.refuse
 
 
 async def _start_plc(cfg: ServeConfig, current, served, *, poll: bool, locate, http_sock):
