@@ -58,8 +58,9 @@ from pathlib import Path
 
 import numpy as np
 
-from eyetohand.cell.collect import NAME_RE, JsonlJournal, utc_now
+from eyetohand.cell.collect import NAME_RE
 from eyetohand.cell.conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor
+from eyetohand.cell.journal import JsonlJournal, utc_now
 from eyetohand.cell.line import CommandError, ErrorCode, Refusal, ascii_reason, line_count, line_numbers
 from eyetohand.cell.replies import PLAIN, LineReplies
 from eyetohand.core import InputError
