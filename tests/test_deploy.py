@@ -11,7 +11,7 @@ import pytest
 from helpers import ROOT
 
 from eyetohand.cli import build_parser
-from eyetohand.server.cli import check_options
+from eyetohand.server.startup import check_options
 
 UNIT = ROOT / "examples" / "deploy" / "eyetohand.service"
 INSTALLED = "/opt/eyetohand/bin/eyetohand"  # where docs/deploy.md installs it

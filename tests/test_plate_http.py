@@ -90,10 +90,9 @@ def test_a_bad_touch_is_named(client, sim):
 def test_tcp_line_answers_a_plate_calibration(sim):
     """The TCP line service's answer to ``u,v sigma`` for a plate calibration: its point and its
     sigma_mm with the touches' error, as the library maps it."""
-    from eyetohand.positioning import answer
-
     from eyetohand.calibration import calibrate_plate
     from eyetohand.calibration.touches import touches_from_text
+    from eyetohand.positioning import answer
 
     cal = calibrate_plate(
         [sim.image], SPEC, touches_from_text(sim.touches_csv, "t.csv", ["p.png"]), names=["p.png"]

@@ -34,7 +34,7 @@ from eyetohand.positioning import (
     peer_allowed,
 )
 from eyetohand.positioning import registers as R
-from eyetohand.server.cli import ServeError, check_options
+from eyetohand.server.startup import ServeError, check_options
 from eyetohand.server.storage import Store
 
 TOKEN = "plc-token-123"

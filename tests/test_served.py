@@ -150,3 +150,82 @@ def test_no_transport_asks_which_kind_it_serves():
 
 def test_the_kind_check_finds_one():
     assert _kind_checks(ast.parse("if isinstance(src, (int, StoredCalibration)):\n    pass\n")) == [1]
+
+
+def _err_decoders(tree: ast.AST) -> list[int]:
+    """Lines that read an ``ERR`` reply's text: ``x.startswith("ERR…")``, ``x[:3] == "ERR"`` and
+    ``"ERR" in x`` style tests of a str or bytes constant starting with ERR."""
+
+    def err(node) -> bool:
+        return (
+            isinstance(node, ast.Constant)
+            and isinstance(node.value, str | bytes)
+            and node.value[:3] in ("ERR", b"ERR")
+        )
+
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+            if node.func.attr in ("startswith", "removeprefix") and node.args and err(node.args[0]):
+                out.append(node.lineno)
+        elif isinstance(node, ast.Compare) and (err(node.left) or any(err(c) for c in node.comparators)):
+            out.append(node.lineno)
+    return out
+
+
+def test_no_module_reads_an_err_reply_for_its_meaning():
+    """A refusal's kind travels as a code (Refusal, CommandError): no library module decodes ERR text."""
+    bad = []
+    for path in sorted(SRC.rglob("*.py")):
+        bad += [
+            f"{path.relative_to(SRC)} line {n}" for n in _err_decoders(ast.parse(path.read_text("utf-8")))
+        ]
+    assert not bad, "ERR text read back for a meaning: " + ", ".join(bad)
+
+
+def test_the_err_check_finds_one():
+    code = 'if text.startswith("ERR"):\n    pass\nok = data[:3] == b"ERR"\n'
+    assert _err_decoders(ast.parse(code)) == [1, 3]
+
+
+def test_serve_options_become_one_typed_config(cal, tmp_path):
+    """check_options turns serve's parsed options into one frozen ServeConfig, addresses parsed, the
+    calibration file proved and loaded once; the start-up wiring reads only it."""
+    import dataclasses
+
+    from eyetohand.cli import build_parser
+    from eyetohand.core import output_units
+    from eyetohand.server.config import ServeConfig
+    from eyetohand.server.startup import check_options
+
+    path = cal.save(tmp_path / "cell.json")
+    argv = ["serve", "--tcp", "127.0.0.1:7001", "--calibration", str(path), "--units", "m"]
+    argv += ["--modbus", "127.0.0.1:5020", "--robot-address", "10.0.0.9", "--reply-format", "ur"]
+    cfg = check_options(build_parser().parse_args(argv))
+    assert isinstance(cfg, ServeConfig)
+    assert (cfg.tcp, cfg.modbus, cfg.opcua, cfg.plc_wanted) == (
+        ("127.0.0.1", 7001),
+        ("127.0.0.1", 5020),
+        None,
+        True,
+    )
+    assert (cfg.reply_format, cfg.units, cfg.robot_addresses) == (
+        "ur",
+        output_units("m", None),
+        ("10.0.0.9",),
+    )
+    assert cfg.calibration_file is not None
+    assert cfg.calibration_file.identity().file == str(path.resolve())
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.port = 1  # type: ignore[misc]
+
+
+def test_the_start_up_wiring_reads_no_namespace():
+    """After check_options, serve's wiring takes the ServeConfig: no ``args.`` nor ``getattr(args``
+    past it in server/startup.py (the checks before it read the namespace they check)."""
+    text = (SRC / "server" / "startup.py").read_text(encoding="utf-8")
+    wiring = text[text.index("def allowed_hosts(") :]
+    wiring = wiring.replace(
+        wiring[wiring.index("def _plc_wanted(") : wiring.index("def _served_calibration(")], ""
+    )
+    assert "args." not in wiring and "getattr(args" not in wiring

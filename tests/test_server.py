@@ -813,7 +813,7 @@ def _serve_args(**kw):
 
 
 def test_serve_calibration_option_file_id_or_name(tmp_path):
-    from eyetohand.server.cli import ServeError, calibration_path, check_options
+    from eyetohand.server.startup import ServeError, calibration_path, check_options
 
     f = _cal_file(tmp_path)
     args = _serve_args(calibration=str(f))

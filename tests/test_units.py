@@ -21,12 +21,12 @@ from helpers import PAPER, ServeProcess, records
 from test_robot_programs import Wire, ur_socket_read_ascii_float
 
 from eyetohand.calibration import Calibration
-from eyetohand.cell import UR_ERROR_CODES, ErrorCode, LineReplies, reason_code
+from eyetohand.cell import UR_ERROR_CODES, ErrorCode, LineReplies
 from eyetohand.cli import main as cli_main
 from eyetohand.core import InputError, output_units
-from eyetohand.positioning import MISSING, LineServer, answer
+from eyetohand.positioning import MISSING, LineServer, PendingCalibration, answer
 from eyetohand.server.app import create_app
-from eyetohand.server.stored import SameFile
+from eyetohand.server.stored import SameFile, StoredCalibration
 
 M_RAD = output_units("m", "rad")
 BAD = [
@@ -105,7 +105,7 @@ def test_same_numbers_on_apply_http_and_the_tcp_line(setup, capsys):
 
 
 def test_a_unit_not_known_is_refused_with_the_same_words_everywhere(setup, capsys):
-    from eyetohand.server.cli import ServeError, check_options
+    from eyetohand.server.startup import ServeError, check_options
 
     root, path, _, u, v = setup
     for given, words in BAD:
@@ -205,20 +205,25 @@ def test_ur_transport_refusals_in_process(setup):
     asyncio.run(run())
 
 
-def test_the_transport_words_have_their_codes(tmp_path):
-    """Each refusal the line service words itself maps to its code (reason_code's table), from the
-    texts the service really writes."""
+def test_the_transport_refusals_carry_their_codes(tmp_path):
+    """Each refusal the line service makes is a Refusal with its code where it is made (the served
+    calibration's problem, a service not started), worded by the reply format — in ``ur`` the code,
+    in ``plain`` the same words as before; an ERR text that reaches ``wire`` is never read for a kind."""
     f = tmp_path / "db.sqlite"
     f.write_text("")
     same = SameFile(argparse.Namespace(path=f))
     os.unlink(f)
-    assert reason_code(str(same.problem())) is ErrorCode.DATABASE
-    assert reason_code("calibration 'cell1' was deleted") is ErrorCode.NO_CALIBRATION
-    assert reason_code("calibration 'cell1' version 3 cannot be used: x") is ErrorCode.NO_CALIBRATION
-    assert reason_code("no calibration to map with: none is served") is ErrorCode.NO_CALIBRATION
-    assert all(reason_code(w) is ErrorCode.NOT_SERVED for w in MISSING.values())
-    assert reason_code("busy: too many clients, try again later") is ErrorCode.BUSY
-    assert reason_code("line longer than 256 bytes; closing") is ErrorCode.LINE_TOO_LONG
-    assert reason_code("no line for 10 s; closing") is ErrorCode.IDLE
-    assert reason_code("u: 'abc' is not a number") is ErrorCode.OTHER
+    stored = object.__new__(StoredCalibration)  # a followed calibration whose database is deleted
+    stored.same_file, stored.error = same, None
+    gone = stored.problem()
+    assert gone is not None and gone.code is ErrorCode.DATABASE
+    assert gone.reason.startswith("database replaced or missing: ")
+    assert PendingCalibration(None).problem().code is ErrorCode.NO_CALIBRATION  # type: ignore[union-attr]
+    ur, plain = LineReplies("ur"), LineReplies("plain")
+    assert ur.refusal(gone) == b"(-16,0,0,0,0,0)\n" and ur.refusal(gone, "CAL") == b"(-16,0,0,0)\n"
+    assert plain.refusal(gone) == f"ERR {gone.reason}\n".encode()
+    # words that once decided a code now decide nothing: only the Refusal's code does
+    assert ur.wire(b"ERR no calibration to map with\n") == b"(-1,0,0,0,0,0)\n"
+    assert ur.wire(b"ERR busy: too many clients\n", "CAL") == b"(-1,0,0,0)\n"
+    assert set(MISSING) == {"CAL", "BELT"}
     assert len(set(UR_ERROR_CODES.values())) == len(ErrorCode)  # one number per kind

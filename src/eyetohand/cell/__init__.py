@@ -38,7 +38,6 @@ if TYPE_CHECKING:
         UR_OK,
         LineReplies,
         mapping_code,
-        reason_code,
         ur_line,
         ur_number,
     )
@@ -81,7 +80,6 @@ else:
                 "UR_OK",
                 "LineReplies",
                 "mapping_code",
-                "reason_code",
                 "ur_line",
                 "ur_number",
             ),
@@ -121,5 +119,4 @@ __all__ = [
     "mapping_code",
     "parse_numbers",
     "parse_plan",
-    "reason_code",
 ]

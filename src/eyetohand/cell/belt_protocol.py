@@ -58,9 +58,11 @@ from pathlib import Path
 
 import numpy as np
 
-from eyetohand.cell.collect import NAME_RE, JsonlJournal, utc_now
+from eyetohand.cell.collect import NAME_RE
 from eyetohand.cell.conveyor import ConveyorCalibration, Encoder, Session, calibrate_conveyor
-from eyetohand.cell.line import CommandError, ErrorCode, ascii_reason, line_count, line_numbers
+from eyetohand.cell.journal import JsonlJournal, utc_now
+from eyetohand.cell.line import CommandError, ErrorCode, Refusal, ascii_reason, line_count, line_numbers
+from eyetohand.cell.replies import PLAIN, LineReplies
 from eyetohand.core import InputError
 from eyetohand.geometry import check_symmetry
 
@@ -110,11 +112,13 @@ class BeltProtocol:
         store_dir: str | os.PathLike | None = None,
         encoder: Encoder | None = None,
         detect_options: dict | None = None,
+        replies: LineReplies = PLAIN,
     ):
         if conveyor is not None and not isinstance(conveyor, ConveyorCalibration):
             conveyor = ConveyorCalibration.load(conveyor)
         self.conveyor: ConveyorCalibration | None = conveyor
         self.source = source
+        self.replies = replies  # the server's reply format: its refusals are worded (and coded) here
         self.encoder = encoder or (conveyor.encoder if conveyor is not None else Encoder())
         self.detect_options = dict(detect_options or {})
         self.dir = Path(store_dir) if store_dir is not None else None
@@ -159,19 +163,23 @@ class BeltProtocol:
             try:
                 line = line.decode("ascii")
             except UnicodeDecodeError:
-                return "ERR not ASCII text"
+                return self._refused(ErrorCode.OTHER, "not ASCII text")
         text = line.rstrip("\r\n").strip()
         with self._lock:
             try:
                 fields = self._dispatch(text)
             except CommandError as exc:
-                return f"ERR {ascii_reason(str(exc))}"
+                return self._refused(exc.code, str(exc))
             except InputError as exc:  # one part per line: its index says nothing (as on the TCP line)
                 reason = exc.reason if exc.index is not None else str(exc)
-                return f"ERR {ascii_reason(reason.splitlines()[0])}"
+                return self._refused(ErrorCode.OTHER, reason.splitlines()[0])
             except Exception as exc:  # a camera or a fit that breaks: still one ERR line
-                return f"ERR {ascii_reason(f'internal error: {type(exc).__name__}: {exc}')}"
+                return self._refused(ErrorCode.OTHER, f"internal error: {type(exc).__name__}: {exc}")
         return "OK" + (" " + ",".join(fields) if fields else "")
+
+    def _refused(self, code: ErrorCode, reason: str) -> str:
+        """A refusal in the server's reply format: ``ERR <reason>``, or its code in ``ur``."""
+        return self.replies.refusal_line(Refusal(code, ascii_reason(reason)), "BELT")
 
     def _dispatch(self, text: str) -> list[str]:
         words = text.split(None, 1)

@@ -62,7 +62,6 @@ lost; a torn last line (a kill in mid-write) is cut off.
 from __future__ import annotations
 
 import contextlib
-import datetime as _dt
 import hashlib
 import json
 import math
@@ -70,179 +69,25 @@ import os
 import re
 import sqlite3
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
+from eyetohand.cell.cal_replies import REPLY_FORMATS, UR_STATES, PlainReplies, ReplyFormat, URReplies
+from eyetohand.cell.journal import SQLITE_SUFFIXES, JsonlJournal, SqliteJournal, utc_now
 from eyetohand.cell.line import UR_ERROR_CODES, CommandError, ErrorCode, ascii_reason, line_numbers
-from eyetohand.cell.replies import UR_COUNTS, ur_line, ur_number
 from eyetohand.core import InputError
 
 STILL_TOL_PX = 0.2
 POSE_MATCH_MM = 0.01
 REPEAT_MATCH_MM = 1e-3
 NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
-UR_STATES = {"none": 0, "collecting": 1, "calibrated": 2, "aborted": 3}
 UR_ERROR_OTHER = UR_ERROR_CODES[ErrorCode.OTHER]
-SQLITE_SUFFIXES = (".db", ".sqlite", ".sqlite3")
-
-
-# ------------------------------------------------------------------ reply formats
-
-
-class ReplyFormat(Protocol):
-    """How a :class:`Collector` words its replies (one line each, no line end)."""
-
-    name: str
-
-    def ok(self, command: str, fields: Sequence[str], planned: int) -> str:
-        """A command done: ``command`` the CAL word (``POINT``, ``STATUS``, ...), ``fields`` its reply
-        fields as the plain format sends them, ``planned`` the open collection's planned poses."""
-        ...
-
-    def done(self) -> str:
-        """``CAL NEXT`` with every planned pose recorded or failed."""
-        ...
-
-    def error(self, exc: CommandError) -> str:
-        """A command refused."""
-        ...
-
-
-class PlainReplies:
-    """``OK [fields]``, ``OK DONE`` and ``ERR <reason>`` (the reason in ASCII: :func:`ascii_reason`)."""
-
-    name = "plain"
-
-    def ok(self, command: str, fields: Sequence[str], planned: int) -> str:
-        return "OK" + (" " + ",".join(fields) if fields else "")
-
-    def done(self) -> str:
-        return "OK DONE"
-
-    def error(self, exc: CommandError) -> str:
-        return f"ERR {ascii_reason(str(exc))}"
-
-
-class URReplies:
-    """Four numbers ``(status,a,b,c)`` for URScript's ``socket_read_ascii_float(4)`` (module docstring):
-    status 1 and the fields for OK, 0 for DONE, the refusal's :data:`UR_ERROR_CODES` number for ERR."""
-
-    name = "ur"
-
-    def ok(self, command: str, fields: Sequence[str], planned: int) -> str:
-        if command == "END":  # the model's name is not a number: it is in the journal
-            nums = [float(f) for f in fields[1:]]
-        elif command == "STATUS":  # name,n,state -> n,state number,planned poses
-            nums = [float(fields[1]), UR_STATES[fields[2]], planned]
-        else:
-            nums = [float(f) for f in fields]
-        return self._line([1, *nums])
-
-    def done(self) -> str:
-        return self._line([0])
-
-    def error(self, exc: CommandError) -> str:
-        return self._line([UR_ERROR_CODES[exc.code]])
-
-    @staticmethod
-    def _line(nums: list[float]) -> str:
-        """``(status,a,b,c)``: the ur format's one formatter (:func:`eyetohand.cell.replies.ur_line`)."""
-        return ur_line(int(nums[0]), [ur_number(v) for v in nums[1:]], UR_COUNTS["CAL"])
-
-
-#: the reply formats by name (``Collector(reply_format=...)``, ``serve --reply-format``)
-REPLY_FORMATS: dict[str, type[ReplyFormat]] = {"plain": PlainReplies, "ur": URReplies}
-
-
-# ------------------------------------------------------------------ journals
-
-
-class JsonlJournal:
-    """Append-only JSON lines with fsync; a torn last line is cut off when opened."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._records = []
-        if path.exists():
-            data = path.read_bytes()
-            cut = data.rfind(b"\n") + 1
-            if cut < len(data):  # killed in mid-write: drop the partial record
-                with open(path, "r+b") as fh:
-                    fh.truncate(cut)
-                    fh.flush()
-                    os.fsync(fh.fileno())
-            for k, line in enumerate(data[:cut].splitlines(), start=1):
-                if line.strip():
-                    try:
-                        self._records.append(json.loads(line))
-                    except json.JSONDecodeError:
-                        raise InputError(f"{path} line {k}: not a journal record (invalid JSON)") from None
-        # unbuffered: a write that fails leaves nothing behind in a buffer for a later write to flush
-        self._fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-
-    def records(self) -> list[dict]:
-        return list(self._records)
-
-    def append(self, rec: dict) -> None:
-        """Write and fsync one record, or raise ``OSError`` with the file as it was (a record written
-        in part is cut off again): a refused command leaves no record, now or later."""
-        data = (json.dumps(rec, allow_nan=False, separators=(",", ":")) + "\n").encode()
-        size = os.fstat(self._fd).st_size
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(self._fd, view) :]
-            os.fsync(self._fd)
-        except OSError:
-            try:
-                os.ftruncate(self._fd, size)
-                os.fsync(self._fd)
-            except OSError:
-                pass  # a torn tail is cut off when the journal is opened again
-            raise
-        self._records.append(rec)
-
-    def close(self) -> None:
-        os.close(self._fd)
-
-
-class _SqliteJournal:
-    """The same records in one SQLite table (WAL, synchronous=FULL: a commit survives a crash)."""
-
-    def __init__(self, path: Path):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self.path = path
-        self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.execute(
-            "CREATE TABLE IF NOT EXISTS collect_journal "
-            "(seq INTEGER PRIMARY KEY AUTOINCREMENT, record TEXT NOT NULL)"
-        )
-
-    def records(self) -> list[dict]:
-        return [json.loads(r) for (r,) in self._db.execute("SELECT record FROM collect_journal ORDER BY seq")]
-
-    def append(self, rec: dict) -> None:
-        with self._db:
-            self._db.execute(
-                "INSERT INTO collect_journal (record) VALUES (?)",
-                (json.dumps(rec, allow_nan=False, separators=(",", ":")),),
-            )
-
-    def close(self) -> None:
-        self._db.close()
 
 
 # ------------------------------------------------------------------ helpers
-
-
-def utc_now() -> str:
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
 
 
 def _f(x: float) -> str:
@@ -341,10 +186,10 @@ class Collector:
         if not (still_tol_px > 0):
             raise InputError(f"still_tol_px: expected a positive number of px, got {still_tol_px!r}")
         store = Path(store)
-        self.journal: _SqliteJournal | JsonlJournal
+        self.journal: SqliteJournal | JsonlJournal
         if store.suffix.lower() in SQLITE_SUFFIXES:
             self.dir = store.parent
-            self.journal = _SqliteJournal(store)
+            self.journal = SqliteJournal(store)
         else:
             if store.exists() and not store.is_dir():
                 raise InputError(f"{store}: exists and is not a folder")
@@ -585,7 +430,7 @@ class Collector:
 
     # -- BEGIN
     def _begin(self, args: list[str]) -> list:
-        from eyetohand.models import get_model
+        from eyetohand.calibration import resolve_model
 
         if not args or not args[0]:
             raise CommandError("CAL BEGIN: expected <name>[,<plan>,<x0>,<y0>,<x1>,<y1>,<z>][,<model>]")
@@ -615,11 +460,10 @@ class Collector:
         why = self.begin_rule(name) if self.begin_rule is not None else None
         if why:
             raise CommandError(f"CAL BEGIN {name}: {why}")
-        if model != "auto":
-            try:
-                get_model(model)
-            except InputError as exc:
-                raise CommandError(f"CAL BEGIN: {exc}") from None
+        try:
+            resolve_model(model)  # "auto" or a model's name; another refused listing the choices
+        except InputError as exc:
+            raise CommandError(f"CAL BEGIN: {exc}") from None
         s = self.session
         if s is not None and s.state == "collecting":
             same = (

@@ -29,8 +29,9 @@ MAX_REASON = 200
 
 class ErrorCode(enum.Enum):
     """What kind of refusal a :class:`CommandError` (or any ``ERR`` line) is, set where it is raised
-    (its value names the kind in words; CAL's and the transport's reasons of a kind start with them, the
-    mapping line's kinds are the library's exception types: ``eyetohand.cell.replies.mapping_code``).
+    (its value names the kind in words; it is set where the refusal is made — a :class:`Refusal` or a
+    :class:`CommandError` — never read back from a reply's words; the mapping line's kinds are the
+    library's exception types: ``eyetohand.cell.replies.mapping_code``).
     A reply format that cannot send the reason sends this instead: the ``ur`` format a negative number
     per kind, :data:`UR_ERROR_CODES` (docs/collection.md has the table)."""
 

@@ -22,7 +22,9 @@ brackets, separated by commas, e.g. ``(1.414, 3.14159, 1.616, 0.0)``, at most 30
   they are all plain decimals and fit, else ``(1,0,0,0,0,0)`` (VERSION's name is not a number);
 - every refusal: ``(code,0,0,0,0,0)`` (``(code,0,0,0)`` for CAL), the code of
   :data:`eyetohand.cell.line.UR_ERROR_CODES` — the mapping line's from the library's exception
-  (:func:`mapping_code`), the transport's from its own words (:func:`reason_code`);
+  (:func:`mapping_code`), every other from the :class:`~eyetohand.cell.line.Refusal` (or
+  :class:`~eyetohand.cell.line.CommandError`) it was raised as (:meth:`LineReplies.refusal`): no
+  reply's words are read back for their kind;
 - a refusal that answers no command (``busy`` when connecting, ``idle``, a line too long) comes in the
   count of the connection's last command (6 before any).
 
@@ -34,7 +36,7 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 
-from eyetohand.cell.line import UR_ERROR_CODES, ErrorCode, ascii_reason
+from eyetohand.cell.line import UR_ERROR_CODES, ErrorCode, Refusal, ascii_reason
 from eyetohand.core import MM_DEG, InputError, OutputUnits
 
 UR_FIELDS = 6  # (status,a,b,c,d,e): every ur reply but CAL's
@@ -43,19 +45,6 @@ UR_OK, UR_OUTSIDE, UR_DONE = 1, 2, 0
 NO_SIGMA = -1.0
 DECIMALS = {"mm": 4, "m": 7, "deg": 4, "rad": 7}  # ur's fixed-point decimals per unit (0.1 um)
 _PLAIN_NUMBER = re.compile(r"-?\d+(?:\.\d+)?")
-# the transport's reasons, by the words they start with (the line service's own, tested each)
-_REASONS = (
-    ("busy", ErrorCode.BUSY),
-    ("line longer than", ErrorCode.LINE_TOO_LONG),
-    ("send 'AUTH", ErrorCode.AUTH),
-    ("idle for", ErrorCode.IDLE),
-    ("no line for", ErrorCode.IDLE),
-    ("database replaced or missing", ErrorCode.DATABASE),
-    ("no calibration", ErrorCode.NO_CALIBRATION),
-    ("no camera:", ErrorCode.NOT_SERVED),
-    ("no conveyor:", ErrorCode.NOT_SERVED),
-)
-_NO_CALIBRATION = re.compile(r"calibration '.*' (was deleted|version \d+ cannot be used)")
 REPLY_FORMATS = ("plain", "ur")
 
 
@@ -70,15 +59,6 @@ def mapping_code(exc: InputError) -> ErrorCode:
     if exc.index is not None and exc.field is None:
         return ErrorCode.OUTSIDE_REGION
     return ErrorCode.OTHER
-
-
-def reason_code(reason: str) -> ErrorCode:
-    """The kind of an ``ERR <reason>`` the line service wrote itself (its words are in this module's
-    table, one test each); OTHER for anything else (a malformed line)."""
-    for words, code in _REASONS:
-        if reason.startswith(words):
-            return code
-    return ErrorCode.NO_CALIBRATION if _NO_CALIBRATION.match(reason) else ErrorCode.OTHER
 
 
 def ur_number(v: float, decimals: int = 4) -> str:
@@ -155,17 +135,28 @@ class LineReplies:
         reason = exc.reason if exc.index is not None else str(exc)
         return f"ERR {ascii_reason(reason.splitlines()[0])}\n".encode()
 
+    def refusal_line(self, refusal: Refusal, kind: str = "") -> str:
+        """A refusal's line (no line end): ``ERR <its reason>`` (as given: the caller made it one ASCII
+        line) in ``plain``; in ``ur`` its code, in the count of the command ``kind`` (its first word,
+        upper case; '' for a mapping line or none)."""
+        if self.ur:
+            return ur_line(UR_ERROR_CODES[refusal.code], (), UR_COUNTS.get(kind, UR_FIELDS))
+        return f"ERR {refusal.reason}"
+
+    def refusal(self, refusal: Refusal, kind: str = "") -> bytes:
+        """:meth:`refusal_line` with its line end, as the wire carries it."""
+        return (self.refusal_line(refusal, kind) + "\n").encode("ascii", "replace")
+
     def wire(self, data: bytes, kind: str = "") -> bytes:
-        """A reply line as it goes on the wire: as it is in ``plain`` (and when already bracketed);
-        in ``ur``, an ``ERR``/``OK`` line in brackets with the count of the command ``kind`` (its
-        first word, upper case; '' for a mapping line or none)."""
+        """A reply line as it goes on the wire: as it is in ``plain`` (and when already bracketed: a
+        refusal is worded by :meth:`refusal` where it is made, with its code); in ``ur``, an ``OK`` line
+        in brackets with the count of the command ``kind`` (its first word, upper case; '' for a
+        mapping line or none), and any other text (a command that words its own refusals, as SIM)
+        the code of :attr:`ErrorCode.OTHER` — its words are never read for a kind."""
         if not self.ur or data[:1] == b"(":
             return data
         count = UR_COUNTS.get(kind, UR_FIELDS)
         text = data.decode("ascii", "replace").strip()
-        if text.startswith("ERR"):
-            code = reason_code(text[3:].strip())
-            return (ur_line(UR_ERROR_CODES[code], (), count) + "\n").encode()
         if text == "OK" or text.startswith("OK "):
             fields = [f.strip() for f in text[3:].split(",")] if text[3:].strip() else []
             if len(fields) > count - 1 or not all(_PLAIN_NUMBER.fullmatch(f) for f in fields):
@@ -187,7 +178,6 @@ __all__ = [
     "UR_COUNTS",
     "UR_FIELDS",
     "mapping_code",
-    "reason_code",
     "ur_line",
     "ur_number",
 ]

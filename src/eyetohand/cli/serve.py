@@ -1,7 +1,7 @@
 """``eyetohand serve``: the calibration workbench (web page + JSON API) and the positioning service (TCP
 lines, Modbus TCP, OPC UA).
 
-Parses the options and calls :func:`eyetohand.server.cli.serve`; the server is imported only when
+Parses the options and calls :func:`eyetohand.server.startup.serve`; the server is imported only when
 the command runs (its dependencies are the heaviest of the package)."""
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ def cmd_serve(args) -> int:
         args.tokens = read_token_file(args.token_file, given=args.token is not None)
         args.token = next(iter(args.tokens.values()))  # TCP and OPC UA: the file's first token
     # ---- end --token-file
-    check_options(args)
+    config = check_options(args)  # the options as one typed value, checked once
     data_dir = args.data or default_data_dir()
     try:
-        serve(args, data_dir)
+        serve(config, data_dir)
     except OSError as exc:
         print(f"error: cannot serve: {exc}", file=sys.stderr)
         return 2

@@ -34,7 +34,9 @@ from eyetohand.calibration import Calibration
 from eyetohand.cell import (
     PLAIN_REPLIES,
     CommandError,
+    ErrorCode,
     LineReplies,
+    Refusal,
     ascii_reason,
     line_count,
     line_numbers,
@@ -44,6 +46,8 @@ from eyetohand.geometry import check_symmetry
 from eyetohand.positioning.served import FixedCalibration, Served
 
 MAX_LINE = 256
+AUTH_FIRST = "send 'AUTH <token>' first; closing"
+"""The refusal of a connection that did not authenticate (code AUTH, -14 in ``ur``)."""
 MAX_CLIENTS = 256
 MAX_PER_PEER = 64
 IDLE_S = 300.0
@@ -71,6 +75,7 @@ MISSING = {  # a command word of a service this server was not started with -> w
 
 
 USAGE = "send u,v[,z][,a=ANGLE][,s=N][,t=DEG][,allow][,sigma] or VERSION"
+TOO_LONG = f"line longer than {MAX_LINE} bytes; closing"
 POLL_S = 0.25
 
 
@@ -120,17 +125,19 @@ def answer(cal: Calibration, line: bytes, replies: LineReplies = PLAIN_REPLIES) 
     try:
         text = line.decode("ascii").strip()
     except UnicodeDecodeError:
-        return f"ERR not ASCII text; {USAGE}\n".encode()
+        return replies.refusal(_usage("not ASCII text"))
     if not text:
-        return f"ERR empty line; {USAGE}\n".encode()
+        return replies.refusal(_usage("empty line"))
     parts = [p.strip() for p in text.split(",")]
     nums = [p for p in parts if "=" not in p and p.lower() not in ("allow", "sigma")]
     words = [p.lower() for p in parts[len(nums) :]]
     if parts[: len(nums)] != nums or len(nums) not in (2, 3):
-        return f"ERR {len(nums)} numbers; expected 2 or 3 (u,v or u,v,z) before any words; {USAGE}\n".encode()
+        return replies.refusal(
+            _usage(f"{len(nums)} numbers; expected 2 or 3 (u,v or u,v,z) before any words")
+        )
     vals = []
     for name, p in zip("uvz", nums, strict=False):
-        x, err = _number(name, p)
+        x, err = _number(name, p, replies)
         if err:
             return err
         vals.append(x)
@@ -139,13 +146,13 @@ def answer(cal: Calibration, line: bytes, replies: LineReplies = PLAIN_REPLIES) 
         key, _, text_value = w.partition("=")
         option = w if w in ("allow", "sigma") else _WORDS.get(key)
         if option is None:
-            return f"ERR unknown word {w[:20]!r}; {USAGE}\n".encode()
+            return replies.refusal(_usage(f"unknown word {w[:20]!r}"))
         if option in opts:
-            return f"ERR {key} given twice; {USAGE}\n".encode()  # which one was meant is not guessed
+            return replies.refusal(_usage(f"{key} given twice"))  # which one was meant is not guessed
         if w in ("allow", "sigma"):
             opts[w] = True
             continue
-        x, err = _number(key, text_value)
+        x, err = _number(key, text_value, replies)
         if err:
             return err
         opts[_WORDS[key]] = x
@@ -155,13 +162,18 @@ def answer(cal: Calibration, line: bytes, replies: LineReplies = PLAIN_REPLIES) 
 _WORDS = {"a": "angle_deg", "s": "symmetry", "t": "tool_rz_offset_deg"}
 
 
-def _number(name: str, text: str) -> tuple[float, bytes | None]:
-    """A finite plain decimal, or the ERR line that refuses it: the rule and words of every line
+def _usage(what: str) -> Refusal:
+    """A malformed mapping line's refusal: what is wrong, then how a line goes."""
+    return Refusal(ErrorCode.OTHER, f"{what}; {USAGE}")
+
+
+def _number(name: str, text: str, replies: LineReplies) -> tuple[float, bytes | None]:
+    """A finite plain decimal, or the reply that refuses it: the rule and words of every line
     protocol's numbers (:func:`eyetohand.cell.line_numbers`)."""
     try:
         return line_numbers([text], (name,), None)[0], None
     except CommandError as exc:
-        return 0.0, f"ERR {exc}\n".encode()
+        return 0.0, replies.refusal(Refusal(exc.code, str(exc)))
 
 
 def _mapped_line(cal: Calibration, vals: list[float], opts: dict, replies: LineReplies) -> bytes:
@@ -188,6 +200,10 @@ def _mapped_line(cal: Calibration, vals: list[float], opts: dict, replies: LineR
         m.sigma_mm[0] if want_sigma and m.sigma_mm is not None else None,
         bool(m.inside[0]),
     )
+
+
+def _busy(reason: str) -> Refusal:
+    return Refusal(ErrorCode.BUSY, reason)
 
 
 class _Lines:
@@ -300,14 +316,14 @@ class LineServer:
         """The answer to one line with the calibration in force (``VERSION`` names it)."""
         src = self.source
         problem = src.problem()
-        if line.strip().upper() == b"VERSION":
-            text = src.version_line() if problem is None else f"ERR {ascii_reason(problem.reason)}"
-            return text.encode("ascii", "replace") + b"\n"
         cal = src.cal
+        if problem is None and cal is None:  # a Served that says nothing is wrong but has nothing
+            problem = Refusal(ErrorCode.NO_CALIBRATION, "no calibration to map with")
         if problem is not None:
-            return f"ERR {ascii_reason(problem.reason)}\n".encode()
-        if cal is None:  # a Served that says nothing is wrong but has nothing to map with
-            return b"ERR no calibration to map with\n"
+            return self.replies.refusal(Refusal(problem.code, ascii_reason(problem.reason)))
+        if line.strip().upper() == b"VERSION":
+            return src.version_line().encode("ascii", "replace") + b"\n"
+        assert cal is not None
         return answer(cal, line, self.replies)
 
     async def serve_forever(self) -> None:
@@ -323,17 +339,17 @@ class LineServer:
         if self.server is not None:
             self.server.close()
 
-    def _admit(self, addr: str) -> str | None:
-        """Take a slot for a new connection from ``addr``, or the ERR line that refuses it."""
+    def _admit(self, addr: str) -> Refusal | None:
+        """Take a slot for a new connection from ``addr``, or the refusal of it."""
         if addr in self.robot_addresses:
             if self.robots >= ROBOT_SLOTS:
-                return f"ERR busy: {ROBOT_SLOTS} connections from the robot's address {addr} already"
+                return _busy(f"busy: {ROBOT_SLOTS} connections from the robot's address {addr} already")
             self.robots += 1
             return None
         if self.clients >= self.max_clients:
-            return "ERR busy: too many clients, try again later"
+            return _busy("busy: too many clients, try again later")
         if self.per_peer.get(addr, 0) >= self.max_per_peer:
-            return f"ERR busy: {self.max_per_peer} connections from {addr} already"
+            return _busy(f"busy: {self.max_per_peer} connections from {addr} already")
         self.clients += 1
         self.per_peer[addr] = self.per_peer.get(addr, 0) + 1
         return None
@@ -355,7 +371,7 @@ class LineServer:
         if self.pending >= self.max_pending:
             reason = f"busy: {self.pending} commands are waiting for the camera or conveyor; try again later"
             busy = self.busy_replies.get(word)
-            reply = busy(reason) if busy is not None else f"ERR {reason}"
+            reply = busy(reason) if busy is not None else self.replies.refusal_line(_busy(reason), word)
         else:
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(COMMAND_WORKERS, thread_name_prefix="eyetohand-cmd")
@@ -374,7 +390,7 @@ class LineServer:
         addr = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
         refused = self._admit(addr)
         if refused is not None:
-            writer.write(refused.encode() + b"\n")
+            writer.write(self.replies.refusal(refused))
             await _close(writer)
             return
         writer.transport.set_write_buffer_limits(high=WRITE_HIGH)
@@ -400,13 +416,15 @@ class LineServer:
                 line = lines.next()
                 if line is None:
                     if len(lines.buf) > MAX_LINE:
-                        writer.write(f"ERR line longer than {MAX_LINE} bytes; closing\n".encode())
+                        writer.write(self._refusal(writer, ErrorCode.LINE_TOO_LONG, TOO_LONG))
                         return
                     wait_s = self.idle_s if spoken else min(self.idle_s, self.first_line_s)
                     data = await idle.read(reader, wait_s)
                     if data is None:
                         what = "idle" if spoken else "no line"
-                        writer.write(f"ERR {what} for {wait_s:g} s; closing\n".encode())
+                        writer.write(
+                            self._refusal(writer, ErrorCode.IDLE, f"{what} for {wait_s:g} s; closing")
+                        )
                         return
                     if not data:
                         return  # end of stream; a last line without its end may be cut: no answer
@@ -414,7 +432,7 @@ class LineServer:
                     continue
                 spoken = True
                 if len(line) > MAX_LINE:
-                    writer.write(f"ERR line longer than {MAX_LINE} bytes; closing\n".encode())
+                    writer.write(self._refusal(writer, ErrorCode.LINE_TOO_LONG, TOO_LONG))
                     return
                 if not worded and line[:1] in _NUMBER_START:
                     writer.write(self.reply(line))
@@ -426,13 +444,13 @@ class LineServer:
                         word == "AUTH"
                     ):  # a program that always sends its token: checked again (OK without one)
                         if not self._token_ok(line):
-                            writer.write(b"ERR send 'AUTH <token>' first; closing\n")
+                            writer.write(self._refusal(writer, ErrorCode.AUTH, AUTH_FIRST))
                             return
                         writer.write(b"OK\n")
                     elif word in self.commands:
                         writer.write(await self._command(word, line))
                     elif word in MISSING:
-                        writer.write(f"ERR {MISSING[word]}\n".encode())
+                        writer.write(self._refusal(writer, ErrorCode.NOT_SERVED, MISSING[word]))
                     else:
                         writer.write(self.reply(line))
                 # returns at once unless this client's unsent answers are over WRITE_HIGH: then only this
@@ -444,6 +462,12 @@ class LineServer:
                     await asyncio.sleep(0)
         finally:
             idle.close()
+
+    def _refusal(self, writer, code: ErrorCode, reason: str) -> bytes:
+        """One of the service's own refusals, worded for ``writer``'s connection (in ``ur``, in the count
+        of its last command word)."""
+        kind = writer.kind if isinstance(writer, _Worded) else ""
+        return self.replies.refusal(Refusal(code, reason), kind)
 
     async def _auth(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines: _Lines, addr: str
@@ -461,21 +485,22 @@ class LineServer:
             pass
         assert self.token is not None  # _auth runs only with a token
         if line[:5].upper() != b"AUTH ":
-            writer.write(b"ERR send 'AUTH <token>' first; closing\n")
+            writer.write(self.replies.refusal(Refusal(ErrorCode.AUTH, AUTH_FIRST)))
             return False  # no token tried (nothing said, or another line first): not counted
         wait_s = self.auth_backoff.wait_s(addr)
         if wait_s > 0:  # too many failures from this address: refused without looking at the token
-            writer.write(
-                f"ERR send 'AUTH <token>' first: too many failed attempts from {addr}, the next is "
-                f"judged in {math.ceil(wait_s)} s; closing\n".encode()
+            why = (
+                f"send 'AUTH <token>' first: too many failed attempts from {addr}, the next is "
+                f"judged in {math.ceil(wait_s)} s; closing"
             )
+            writer.write(self.replies.refusal(Refusal(ErrorCode.AUTH, why)))
             return False
         if self._token_ok(line):
             self.auth_backoff.succeeded(addr)
             writer.write(b"OK\n")
             return True
         self.auth_backoff.failed(addr, "TCP AUTH")
-        writer.write(b"ERR send 'AUTH <token>' first; closing\n")
+        writer.write(self.replies.refusal(Refusal(ErrorCode.AUTH, AUTH_FIRST)))
         return False
 
     def _token_ok(self, line: bytes) -> bool:

@@ -7,7 +7,7 @@ Needs the ``fastapi`` and ``uvicorn`` packages. ``create_app(data_dir, token=Non
 from __future__ import annotations
 
 from eyetohand.server.audit import DEFAULT_TOKEN_NAME
-from eyetohand.server.cli import check_options, serve
+from eyetohand.server.startup import check_options, serve
 from eyetohand.server.storage import StorageError, default_data_dir
 from eyetohand.server.stores import (
     QueryError,

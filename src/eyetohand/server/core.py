@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import enum
 import json
 import threading
 import time
@@ -35,6 +36,10 @@ class ApiError(Exception):
         self.message = message
         self.field = field
         self.line = line
+
+    def to_dict(self) -> dict:
+        """The JSON body's fields (``status`` too, for a job's ``error``)."""
+        return {"status": self.status, "error": self.message, "field": self.field, "line": self.line}
 
 
 def input_error(exc: InputError, default_field: str | None = None, status: int = 422) -> ApiError:
@@ -260,10 +265,17 @@ def finish_fit(job: Job, fitted: Fitted, optimizer: str) -> None:
         job.history = [_finite(h) for h in fitted.calibration.fit.history]
 
 
+class JobKind(enum.StrEnum):
+    """What a job does (its JSON ``kind``: the value)."""
+
+    FIT = "fit"
+    COMPARE = "compare"
+
+
 @dataclass
 class Job:
     id: str
-    kind: str
+    kind: JobKind
     iterations: int
     status: str = "queued"
     phase: str = "waiting for a free worker"
@@ -273,7 +285,7 @@ class Job:
     finished: float | None = None
     fitted: Fitted | None = None
     compare: list[dict] | None = None
-    error: dict | None = None
+    error: ApiError | None = None  # why it failed (the API's error, a 500 for anything unexpected)
     saved: dict | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
     done: threading.Event = field(default_factory=threading.Event)
@@ -320,7 +332,7 @@ class Job:
             "progress": self.progress(),
             "result": self.fitted.summary() if (self.fitted and self.status == "done") else None,
             "compare": self.compare,
-            "error": self.error,
+            "error": None if self.error is None else self.error.to_dict(),
             "saved": self.saved,
         }
 
@@ -348,7 +360,7 @@ class Jobs:
             )
         return job
 
-    def submit(self, kind: str, work, iterations: int = 0) -> Job:
+    def submit(self, kind: JobKind, work, iterations: int = 0) -> Job:
         with self._lock:
             pending = sum(1 for j in self._jobs.values() if j.status in ("queued", "running"))
             if pending >= self.max_pending:
@@ -377,15 +389,10 @@ class Jobs:
             else:
                 job.status, job.phase = "done", "done"
         except ApiError as exc:
-            job.status, job.phase = "failed", "failed"
-            job.error = {"status": exc.status, "error": exc.message, "field": exc.field, "line": exc.line}
+            job.status, job.phase, job.error = "failed", "failed", exc
         except Exception as exc:  # noqa: BLE001 - a job must report, not vanish
             job.status, job.phase = "failed", "failed"
-            job.error = {
-                "status": 500,
-                "error": f"internal error: {type(exc).__name__}: {exc}",
-                "field": None,
-            }
+            job.error = ApiError(500, f"internal error: {type(exc).__name__}: {exc}")
         finally:
             job.finished = time.monotonic()
             job.done.set()
@@ -410,7 +417,7 @@ class Jobs:
             fitted = fit(opts, fit_progress(job, opts.model, opts.optimizer, opts.iterations))
             finish_fit(job, fitted, opts.optimizer)
 
-        return self.submit("fit", work, opts.iterations if pso else 0)
+        return self.submit(JobKind.FIT, work, opts.iterations if pso else 0)
 
     def compare_job(self, pairs: PointPairs, check: PointPairs, seed: int) -> Job:
         from eyetohand.calibration import compare
@@ -434,7 +441,7 @@ class Jobs:
                 if "check_errors_mm" in r:
                     r["check_errors_mm"] = [_finite(e) for e in r["check_errors_mm"]]
 
-        return self.submit("compare", work)
+        return self.submit(JobKind.COMPARE, work)
 
     def shutdown(self) -> None:
         """Cancel queued and running jobs and wait for the worker (a later submit starts a new one)."""

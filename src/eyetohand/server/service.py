@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 from eyetohand.calibration import Calibration
 from eyetohand.core import PointPairs
 from eyetohand.server import core
-from eyetohand.server.core import ApiError, Fitted, Job, Jobs
+from eyetohand.server.core import ApiError, Fitted, Job, JobKind, Jobs
 from eyetohand.server.schemas import FitOptions, ImagesCalibrate
 from eyetohand.server.storage import Record, Store, Version, require_match
 
@@ -294,16 +294,16 @@ class Service:
     def wait_fit(self, opts: FitOptions) -> Fitted:
         job = self.jobs.fit_job(opts)
         job.done.wait()
-        if job.error:
+        if job.error is not None:
             e = job.error
-            raise ApiError(e["status"], e["error"], e.get("field"), e.get("line"))
+            raise ApiError(e.status, e.message, e.field, e.line)
         if job.fitted is None:
             raise ApiError(409, "the fit was cancelled")
         return job.fitted
 
     def finished_fit(self, job_id: str) -> Fitted:
         job = self.jobs.get(job_id)
-        if job.kind != "fit":
+        if job.kind is not JobKind.FIT:
             raise ApiError(409, f"job {job_id} is a {job.kind} job, not a fit", "id")
         if job.status != "done" or job.fitted is None:
             raise ApiError(409, f"job {job_id} is {job.status}, it has no calibration to use", "id")
@@ -360,7 +360,7 @@ class Service:
         def work(job: Job) -> None:
             _images_work(job, req, poses_bytes, files, run)
 
-        job = self.jobs.submit("fit", work, req.iterations if pso else 0)
+        job = self.jobs.submit(JobKind.FIT, work, req.iterations if pso else 0)
         with self._lock:
             self._image_runs[job.id] = run
             while len(self._image_runs) > self.jobs.keep:

@@ -12,39 +12,23 @@ import ipaddress
 import logging
 import socket
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from eyetohand.core import AuthBackoff, InputError
+from eyetohand.server.config import ServeConfig, ServeError, is_loopback, parse_hostport
 
 if TYPE_CHECKING:
-    from eyetohand.positioning import Served
+    from eyetohand.cell import BeltProtocol, Collector
+    from eyetohand.positioning import LineServer, Locator, LoopThread, PlcServices, Served
     from eyetohand.server.storage import Store
     from eyetohand.server.stored import SameFile
 
 
-class ServeError(InputError):
-    """Bad ``serve`` options (exit 2)."""
-
-
-def is_loopback(host: str) -> bool:
-    if host.lower() == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
-
-
-def parse_hostport(text: str, flag: str = "--tcp") -> tuple[str, int]:
-    host, sep, port = text.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ServeError(f"{flag}: expected HOST:PORT (e.g. 127.0.0.1:7001), got {text!r}")
-    return host.strip("[]"), int(port)
-
-
-def check_options(args) -> None:
-    """Refuse unsafe or incomplete option sets before anything binds."""
+def check_options(args) -> ServeConfig:
+    """Refuse unsafe or incomplete option sets before anything binds; the checked options as one
+    typed value (what :func:`serve` takes)."""
     check_signing_options(args)  # --sign-key, --require-signed: before --calibration FILE is read
     check_store_option(args)
     if not 0 <= args.port <= 65535:
@@ -106,6 +90,7 @@ def check_options(args) -> None:
                 args.calibration_file = signed_file(FixedCalibration, path, args)
             except InputError as exc:
                 raise ServeError(f"--calibration: {exc}") from None
+    return ServeConfig.from_args(args)
 
 
 def check_store_option(args) -> None:
@@ -124,21 +109,21 @@ def check_store_option(args) -> None:
             )
 
 
-def store_ref(args, data_dir):
+def store_ref(cfg: ServeConfig, data_dir):
     """The store ``serve`` uses: ``--store``, else the SQLite database in the data folder."""
     from eyetohand.server.stores import StoreRef
 
-    return StoreRef.parse(getattr(args, "store", None) or data_dir)
+    return StoreRef.parse(cfg.store or data_dir)
 
 
-def open_store_or_refuse(ref, args, *, create: bool, http_sock=None):
+def open_store_or_refuse(ref, cfg: ServeConfig, *, create: bool, http_sock=None):
     """The store ``ref`` names; a store that cannot be opened (unreachable, a newer schema, psycopg
     missing) is one :class:`ServeError` line naming it (``http_sock`` closed first)."""
     from eyetohand.server.storage import StorageError
     from eyetohand.server.stores import StoreRefError, open_store
 
     try:
-        return open_store(ref, args.db_wait, create=create)
+        return open_store(ref, cfg.db_wait_s, create=create)
     except (StorageError, StoreRefError) as exc:
         if http_sock is not None:
             http_sock.close()
@@ -258,16 +243,16 @@ def signed_file(fixed_cls, path, args):
     return fixed_cls(cal, str(p.resolve()), hashlib.sha256(p.read_bytes()).hexdigest())
 
 
-def allowed_hosts(args) -> list[str] | None:
+def allowed_hosts(cfg: ServeConfig) -> list[str] | None:
     """The Host names HTTP answers: on a loopback address the loopback names, the bound address and
     every ``--allow-host``; elsewhere any (None) unless ``--allow-host`` names them (then those, the
     bound address and the loopback names)."""
     from eyetohand.server.app import LOOPBACK_HOSTS
 
-    extra = [h.strip().lower() for h in getattr(args, "allow_host", None) or () if h.strip()]
-    if not is_loopback(args.host) and not extra:
+    extra = [h.strip().lower() for h in cfg.allow_hosts if h.strip()]
+    if not is_loopback(cfg.host) and not extra:
         return None
-    host = args.host.lower()
+    host = cfg.host.lower()
     bound = [host, f"[{host}]"] if ":" in host and not host.startswith("[") else [host]
     return [*LOOPBACK_HOSTS, *bound, *extra]
 
@@ -326,8 +311,6 @@ def store_check_fn(store, user: str):
     """``on_check(record)`` for the Collector: a CAL CHECK of a stored calibration audited as
     ``check`` (its point and error in the note) by ``user``. The record is in the collection's history
     file already: a store that cannot be written now is logged, the robot still gets its answer."""
-    import logging
-
     from eyetohand.server.audit import acting_as
     from eyetohand.server.storage import StorageError
 
@@ -349,11 +332,10 @@ def store_check_fn(store, user: str):
     return on_check
 
 
-def tcp_user(args) -> str:
+def tcp_user(cfg: ServeConfig) -> str:
     """Who the audit trail names for a change made over TCP (CAL END): the name of the token TCP
     accepts (the token file's first), else ``robot``."""
-    tokens = getattr(args, "tokens", None)
-    return next(iter(tokens)) if tokens else "robot"
+    return next(iter(cfg.tokens)) if cfg.tokens else "robot"
 
 
 def store_load_fn(store):
@@ -378,19 +360,22 @@ def one_calibration(server_fn, wanted: str | None) -> dict:
     return {"begin_rule": collection_rule(server_fn, wanted), "served_fn": served_for_check(server_fn)}
 
 
-def tcp_options(args, commands: dict, busy_replies: dict, backoff: AuthBackoff | None = None) -> dict:
-    """The LineServer's options from ``serve``'s: the command handlers, their busy replies, the robot's
-    reserved addresses, the first-line grace and the failed-AUTH backoff (shared with HTTP, OPC UA)."""
-    from eyetohand.core import MM_DEG
+def tcp_options(
+    cfg: ServeConfig, commands: dict, busy_replies: dict, backoff: AuthBackoff | None = None
+) -> dict:
+    """The LineServer's options from ``serve``'s: the token, the command handlers, their busy replies,
+    the robot's reserved addresses, the first-line grace, the reply format and units, and the
+    failed-AUTH backoff (shared with HTTP and OPC UA)."""
     from eyetohand.positioning import FIRST_LINE_S
 
     return {
+        "token": cfg.token,
         "commands": commands,
         "busy_replies": busy_replies,
-        "robot_addresses": getattr(args, "robot_address", None) or (),
-        "first_line_s": getattr(args, "tcp_first_line_s", None) or FIRST_LINE_S,
-        "reply_format": getattr(args, "reply_format", None) or "plain",
-        "units": getattr(args, "output_units", None) or MM_DEG,
+        "robot_addresses": cfg.robot_addresses,
+        "first_line_s": cfg.first_line_s or FIRST_LINE_S,
+        "reply_format": cfg.reply_format,
+        "units": cfg.units,
         "auth_backoff": backoff,
     }
 
@@ -401,143 +386,99 @@ def _not_a_cancellation(record: logging.LogRecord) -> bool:
     return not isinstance(exc, asyncio.CancelledError | KeyboardInterrupt)
 
 
-async def _serve(args, data_dir) -> None:
+async def _serve(cfg: ServeConfig, data_dir) -> None:
     loops: list = []  # the line service's loop thread, stopped however _run_serve ends
     try:
-        # failed tokens per address: one count for TCP AUTH, HTTP and the OPC UA user token
-        await _run_serve(args, data_dir, loops, AuthBackoff())
+        await _run_serve(cfg, data_dir, loops)
     finally:
         for t in loops:
             t.stop()
 
 
-async def _run_serve(args, data_dir, loops: list, backoff: AuthBackoff) -> None:
+@dataclass
+class _Started:
+    """What ``serve`` has started so far (closed in reverse by :meth:`close`, however it ends): the
+    store and the served calibration, the line service with its collector, camera, belt and LOCATE,
+    the PLC services, the app. The collection's ``on_saved`` reads it when a calibration is saved."""
+
+    loops: list
+    # failed tokens per address: one count for TCP AUTH, HTTP and the OPC UA user token
+    backoff: AuthBackoff = field(default_factory=AuthBackoff)
+    store: Store | None = None
+    same_file: SameFile | None = None
+    served: Served | None = None
+    line_server: LineServer | None = None
+    tcp_loop: LoopThread | None = None
+    collector: Collector | None = None
+    source: Any = None  # a camera (vision.Source)
+    belt: BeltProtocol | None = None
+    locator: Locator | None = None
+    plc: PlcServices | None = None
+    plc_loop: LoopThread | None = None
+    app: Any = None  # the FastAPI app
+
+    def current_or_none(self) -> Served | None:
+        """What the services serve now, or None when none is served (the workbench alone)."""
+        return self.line_server.source if self.line_server is not None else self.served
+
+    def current(self) -> Served:
+        """The calibration the services serve now (the line service's, which a collection may change)."""
+        if self.line_server is not None:
+            return self.line_server.source
+        assert self.served is not None  # read only once _served_calibration ran
+        return self.served
+
+    async def close(self) -> None:
+        if self.plc is not None and self.plc_loop is not None:
+            await self.plc_loop.call(self.plc.close())
+        if self.line_server is not None and self.tcp_loop is not None:
+            self.tcp_loop.loop.call_soon_threadsafe(self.line_server.close)
+            self.tcp_loop.stop()  # before the collector and the store it uses are closed
+        for part in (self.collector, self.source, self.store):
+            if part is not None:
+                part.close()
+
+
+async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     import uvicorn
 
-    from eyetohand.positioning import LineServer, LoopThread
-    from eyetohand.server.stored import SameFile, StoredCalibration
-
-    http_sock = bind_http(args.host, args.port)
+    http_sock = bind_http(cfg.host, cfg.port)
     # the database is created only at a first start: later, a missing one is an error, never a new one
-    ref = store_ref(args, data_dir)
+    ref = store_ref(cfg, data_dir)
     fresh_db = not ref.exists()
-    tcp_loop: LoopThread | None = None
-    line_server = collector = source = belt = app = locator = None
     data_dir = Path(data_dir)
-    camera, conveyor = getattr(args, "camera", None), getattr(args, "conveyor", None)
-    store = served = None
-    same_file: SameFile | None = None
-    if args.tcp or _plc_wanted(args):
-        served, store, same_file = _served_calibration(args, ref, camera, http_sock, create=fresh_db)
-    if args.tcp:
-        host, port = parse_hostport(args.tcp)
-        assert served is not None  # _served_calibration ran for --tcp
-        what = served.describe()
-        commands: dict[str, Callable[[str], str]] = {}
-        busy_replies: dict[str, Callable[[str], str]] = {}
-        # the line service runs on a loop of its own: the robot's lines never wait behind HTTP work
-        tcp_loop = LoopThread()
-        loops.append(tcp_loop)
-        loop = tcp_loop.loop  # follow() is called on it from a collection's thread
-        try:
-            if camera:
-                import eyetohand.sim  # noqa: F401  (the interfaces offer the virtual cell's sim: camera)
-                from eyetohand.cell import Collector
-                from eyetohand.vision import open_source
-
-                source = open_source(camera)
-
-                def on_saved(saved_rec, new_cal) -> None:
-                    # the collected calibration is what the mapping lines use from now on
-                    wanted = args.calibration or saved_rec.name
-                    if line_server is not None and saved_rec.name == wanted and store is not None:
-                        current = line_server.source
-                        if current.identity().cal_id == saved_rec.id:
-                            current.poll()  # at once, not at the next poll
-                        else:
-                            line_server.follow(StoredCalibration(store, saved_rec.id, same_file), loop)
-                    if app is not None:  # the workbench's cache of current versions
-                        app.state.service.invalidate(saved_rec.id)
-
-                if store is None:
-                    store = open_store_or_refuse(ref, args, create=fresh_db, http_sock=http_sock)
-                    same_file = SameFile(store)
-                collect_dir = args.collect_dir or (data_dir / "collect")
-                collector = Collector(
-                    collect_dir,
-                    source,
-                    save_fn=store_save_fn(store, on_saved, tcp_user(args)),
-                    on_check=store_check_fn(store, tcp_user(args)),
-                    load_fn=store_load_fn(store),
-                    calibration=args.calibration,
-                    reply_format=args.reply_format,
-                    **one_calibration(lambda: line_server, args.calibration),
-                )
-                commands["CAL"] = collector.handle
-                locator = add_locate(
-                    commands, source, lambda: line_server.source if line_server else served, args
-                )
-                busy_replies["CAL"] = collector.refuse
-            if conveyor:
-                from eyetohand.cell import BeltProtocol
-
-                belt = BeltProtocol(
-                    conveyor, source=source, store_dir=args.collect_dir or (data_dir / "collect")
-                )
-                commands["BELT"] = belt.handle
-        except InputError as exc:
-            http_sock.close()
-            if store is not None:
-                store.close()
-            raise ServeError(str(exc).splitlines()[0]) from None
-        line_server = LineServer(
-            served, host, port, token=args.token, **tcp_options(args, commands, busy_replies, backoff)
+    run = _Started(loops)
+    if cfg.tcp or cfg.plc_wanted:
+        run.served, run.store, run.same_file = _served_calibration(
+            cfg, ref, cfg.camera, http_sock, create=fresh_db
         )
-        try:
-            await tcp_loop.call(line_server.start())
-        except OSError as exc:
-            http_sock.close()
-            raise ServeError(f"--tcp {args.tcp}: cannot listen there ({exc.strerror or exc})") from None
-        what += units_note(args)
-        print(f"TCP: {host}:{line_server.port} maps 'u,v[,z]' lines with {what}", flush=True)
-        if collector is not None:
-            print(
-                f"TCP: 'CAL …' lines collect with camera {camera} (journal {collector.journal.path}, "
-                f"replies {args.reply_format})",
-                flush=True,
-            )
-        if belt is not None:
-            print(f"TCP: 'BELT …' lines map with conveyor {conveyor}", flush=True)
-        if locator is not None:
-            print(f"TCP: 'LOCATE …' lines find parts with camera {camera}{sim_note(commands)}", flush=True)
-
-    plc = plc_loop = None
-    if _plc_wanted(args):
-        plc, plc_loop = await _start_plc(
-            args,
-            lambda: line_server.source if line_server is not None else served,
-            served,
-            poll=line_server is None,
-            locate=None if locator is None else locator.locate,
+    if cfg.tcp is not None:
+        await _start_tcp(cfg, run, data_dir, ref, http_sock, fresh_db)
+    if cfg.plc_wanted:
+        locate = None if run.locator is None else run.locator.locate
+        run.plc, run.plc_loop = await _start_plc(
+            cfg,
+            run.current,
+            run.served,
+            poll=run.line_server is None,
+            locate=locate,
             http_sock=http_sock,
-            auth_backoff=backoff,
+            auth_backoff=run.backoff,
             data_dir=data_dir,
         )
-        loops.append(plc_loop)
+        loops.append(run.plc_loop)
 
-    app = _make_app(
-        args, ref, fresh_db, http_sock, lambda: line_server.source if line_server else served, backoff
-    )
-    if collector is not None:
+    run.app = app = _make_app(cfg, ref, fresh_db, http_sock, run.current_or_none, run.backoff)
+    if run.collector is not None:
         from eyetohand.server.routes.collect import CameraView
 
-        app.state.collect = CameraView(collector, source)
+        app.state.collect = CameraView(run.collector, run.source)
     port = http_sock.getsockname()[1]
-    print(f"workbench: http://{args.host}:{port}/  (API docs: /docs; data: {data_dir})", flush=True)
+    print(f"workbench: http://{cfg.host}:{port}/  (API docs: /docs; data: {data_dir})", flush=True)
     from eyetohand.server.protocol import GuardedH11Protocol  # head and body deadlines (slowloris)
 
     config = uvicorn.Config(
-        app, log_level=args.log_level, timeout_graceful_shutdown=5, http=GuardedH11Protocol
+        app, log_level=cfg.log_level, timeout_graceful_shutdown=5, http=GuardedH11Protocol
     )
     # after Config (it configures uvicorn's loggers): Ctrl-C while the app starts cancels uvicorn's
     # lifespan task, which it logs as an ERROR with two tracebacks; the command ends with one line
@@ -546,21 +487,115 @@ async def _run_serve(args, data_dir, loops: list, backoff: AuthBackoff) -> None:
     try:
         await server.serve(sockets=[http_sock])
     finally:
-        if plc is not None and plc_loop is not None:
-            await plc_loop.call(plc.close())
-        if line_server is not None and tcp_loop is not None:
-            tcp_loop.loop.call_soon_threadsafe(line_server.close)
-            tcp_loop.stop()  # before the collector and the store it uses are closed
-        if collector is not None:
-            collector.close()
-        if source is not None:
-            source.close()
-        if store is not None:
-            store.close()
+        await run.close()
+
+
+async def _start_tcp(cfg: ServeConfig, run: _Started, data_dir: Path, ref, http_sock, fresh_db: bool) -> None:
+    """Start the line service (and its CAL, BELT and LOCATE commands) on a loop of its own: the robot's
+    lines never wait behind HTTP work. Prints its start-up lines; a refusal closes ``http_sock``."""
+    from eyetohand.positioning import LineServer, LoopThread
+
+    assert cfg.tcp is not None and run.served is not None  # _served_calibration ran for --tcp
+    host, port = cfg.tcp
+    what = run.served.describe()
+    commands: dict[str, Callable[[str], str]] = {}
+    busy_replies: dict[str, Callable[[str], str]] = {}
+    run.tcp_loop = LoopThread()
+    run.loops.append(run.tcp_loop)
+    try:
+        if cfg.camera:
+            _open_collection(cfg, run, data_dir, ref, http_sock, fresh_db, commands, busy_replies)
+        if cfg.conveyor:
+            run.belt = open_belt(cfg, run.source, data_dir)
+            commands["BELT"] = run.belt.handle
+    except InputError as exc:
+        http_sock.close()
+        if run.store is not None:
+            run.store.close()
+        raise ServeError(str(exc).splitlines()[0]) from None
+    run.line_server = LineServer(
+        run.served, host, port, **tcp_options(cfg, commands, busy_replies, run.backoff)
+    )
+    try:
+        await run.tcp_loop.call(run.line_server.start())
+    except OSError as exc:
+        http_sock.close()
+        raise ServeError(f"--tcp {cfg.tcp_text}: cannot listen there ({exc.strerror or exc})") from None
+    what += units_note(cfg)
+    print(f"TCP: {host}:{run.line_server.port} maps 'u,v[,z]' lines with {what}", flush=True)
+    if run.collector is not None:
+        print(
+            f"TCP: 'CAL …' lines collect with camera {cfg.camera} (journal {run.collector.journal.path}, "
+            f"replies {cfg.reply_format})",
+            flush=True,
+        )
+    if run.belt is not None:
+        print(f"TCP: 'BELT …' lines map with conveyor {cfg.conveyor}", flush=True)
+    if run.locator is not None:
+        print(f"TCP: 'LOCATE …' lines find parts with camera {cfg.camera}{sim_note(commands)}", flush=True)
+
+
+def _open_collection(
+    cfg: ServeConfig,
+    run: _Started,
+    data_dir: Path,
+    ref,
+    http_sock,
+    fresh_db: bool,
+    commands: dict,
+    busy_replies: dict,
+) -> None:
+    """``--camera``: the camera, the CAL collection (saving into the store, after which the mapping lines
+    serve what it saved) and LOCATE, added to ``commands``."""
+    import eyetohand.sim  # noqa: F401  (the interfaces offer the virtual cell's sim: camera)
+    from eyetohand.cell import Collector
+    from eyetohand.server.stored import SameFile, StoredCalibration
+    from eyetohand.vision import open_source
+
+    assert cfg.camera is not None and run.tcp_loop is not None
+    run.source = open_source(cfg.camera)
+    loop = run.tcp_loop.loop  # follow() is called on it from a collection's thread
+
+    def on_saved(saved_rec, new_cal) -> None:
+        # the collected calibration is what the mapping lines use from now on
+        wanted = cfg.calibration or saved_rec.name
+        if run.line_server is not None and saved_rec.name == wanted and run.store is not None:
+            current = run.line_server.source
+            if current.identity().cal_id == saved_rec.id:
+                current.poll()  # at once, not at the next poll
+            else:
+                run.line_server.follow(StoredCalibration(run.store, saved_rec.id, run.same_file), loop)
+        if run.app is not None:  # the workbench's cache of current versions
+            run.app.state.service.invalidate(saved_rec.id)
+
+    if run.store is None:
+        run.store = open_store_or_refuse(ref, cfg, create=fresh_db, http_sock=http_sock)
+        run.same_file = SameFile(run.store)
+    run.collector = Collector(
+        cfg.collect_dir or (data_dir / "collect"),
+        run.source,
+        save_fn=store_save_fn(run.store, on_saved, tcp_user(cfg)),
+        on_check=store_check_fn(run.store, tcp_user(cfg)),
+        load_fn=store_load_fn(run.store),
+        calibration=cfg.calibration,
+        reply_format=cfg.reply_format,
+        **one_calibration(lambda: run.line_server, cfg.calibration),
+    )
+    commands["CAL"] = run.collector.handle
+    run.locator = add_locate(commands, run.source, run.current, cfg)
+    busy_replies["CAL"] = run.collector.refuse
 
 
 async def _start_plc(
-    args, current, served, *, poll: bool, locate, http_sock, auth_backoff=None, data_dir: Path | None = None
+    cfg: ServeConfig,
+    current,
+    served,
+    *,
+    poll: bool,
+    locate,
+    http_sock,
+    auth_backoff: AuthBackoff | None = None,
+    data_dir: Path | None = None,
 ):
     """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
     service's served calibration when there is one, else ``served``, followed by polling when
@@ -568,22 +603,23 @@ async def _start_plc(
     ``--opcua-cert/--opcua-key``, else the one in ``data_dir``/opcua (created at the first start)."""
     from eyetohand.positioning import LoopThread, PlcServices, ServerCertificate, reachable_addresses
 
-    security = getattr(args, "opcua_security", None)
-    if getattr(args, "opcua", None) and security is None and data_dir is not None:
+    security = cfg.opcua_security
+    if cfg.opcua is not None and security is None and data_dir is not None:
         try:
-            host = parse_hostport(args.opcua, "--opcua")[0]
-            security = ServerCertificate.in_folder(Path(data_dir) / "opcua", reachable_addresses(host))
+            security = ServerCertificate.in_folder(
+                Path(data_dir) / "opcua", reachable_addresses(cfg.opcua[0])
+            )
         except (InputError, OSError) as exc:
             http_sock.close()
             raise ServeError(f"--opcua: the server certificate: {exc}") from None
 
     plc = PlcServices(
         current,
-        modbus=parse_hostport(args.modbus, "--modbus") if getattr(args, "modbus", None) else None,
-        word_order=getattr(args, "modbus_word_order", None) or "big",
-        allow_from=getattr(args, "modbus_allow", None),
-        opcua=parse_hostport(args.opcua, "--opcua") if getattr(args, "opcua", None) else None,
-        token=args.token,
+        modbus=cfg.modbus,
+        word_order=cfg.modbus_word_order,
+        allow_from=list(cfg.modbus_allow) or None,
+        opcua=cfg.opcua,
+        token=cfg.token,
         locate=locate,
         auth_backoff=auth_backoff,
         security=security,
@@ -601,29 +637,38 @@ async def _start_plc(
 
 
 # ---- LOCATE and the sim: camera's SIM lines (the locate worktree; one block for easy merges)
-def add_locate(commands: dict, source, served, args):
+def add_locate(commands: dict, source, served, cfg: ServeConfig):
     """The camera's :class:`~eyetohand.cell.Locator`, its line command ``LOCATE`` added to
     ``commands`` (and, for a ``sim:`` camera, ``SIM``: parts on the virtual table). ``served()``: the
     calibration in force, read at every LOCATE."""
-    from eyetohand.core import MM_DEG
     from eyetohand.positioning import Locator
     from eyetohand.sim import SimSource, sim_command
 
-    locator = Locator(
-        source, served, reply_format=args.reply_format, units=getattr(args, "output_units", None) or MM_DEG
-    )
+    locator = Locator(source, served, reply_format=cfg.reply_format, units=cfg.units)
     commands["LOCATE"] = locator.handle
     if isinstance(source, SimSource):
         commands["SIM"] = lambda line: sim_command(source, line)
     return locator
 
 
-def units_note(args) -> str:
+def open_belt(cfg: ServeConfig, source, data_dir: Path):
+    """The BELT commands' protocol over ``--conveyor`` (its refusals in the line service's format)."""
+    from eyetohand.cell import BeltProtocol, LineReplies
+
+    return BeltProtocol(
+        cfg.conveyor,
+        source=source,
+        store_dir=cfg.collect_dir or (data_dir / "collect"),
+        replies=LineReplies(cfg.reply_format, cfg.units),
+    )
+
+
+def units_note(cfg: ServeConfig) -> str:
     """The start-up line's note of the line service's words and units, when not plain mm and deg."""
-    u = getattr(args, "output_units", None)
-    parts = [] if u is None or u.is_default else [f"answers in {u.length} and {u.angle}"]
-    if getattr(args, "reply_format", "plain") != "plain":
-        parts.append(f"replies {args.reply_format}")
+    u = cfg.units
+    parts = [] if u.is_default else [f"answers in {u.length} and {u.angle}"]
+    if cfg.reply_format != "plain":
+        parts.append(f"replies {cfg.reply_format}")
     return f" ({'; '.join(parts)})" if parts else ""
 
 
@@ -634,29 +679,31 @@ def sim_note(commands: dict) -> str:
 # ---- end of the LOCATE block
 
 
-def cell_heartbeat(args, http_sock, source_fn):
+def cell_heartbeat(cfg: ServeConfig, http_sock, source_fn):
     """The plant view's heartbeat of this serve (:class:`~eyetohand.server.plant.CellBeat`): its
-    HTTP address and what its robots are answered with now (``source_fn()``: the served calibration)."""
+    HTTP address and what its robots are answered with now (``source_fn()``: the served calibration,
+    None for the workbench alone)."""
     import datetime as dt
 
     from eyetohand.server.plant import CellBeat
 
     started = dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
-    url = f"http://{args.host}:{http_sock.getsockname()[1]}"
+    url = f"http://{cfg.host}:{http_sock.getsockname()[1]}"
 
     def beat() -> CellBeat:
-        who = source_fn().identity()  # a stored calibration has an id and a version; a file its path
-        if who.cal_id is not None:
+        src = source_fn()
+        who = src.identity() if src is not None else None  # a stored calibration: its id and version
+        if who is not None and who.cal_id is not None:
             return CellBeat.of_this_process(url, who.cal_id, who.name, who.version, started)
-        return CellBeat.of_this_process(url, None, who.file, None, started)
+        return CellBeat.of_this_process(url, None, who.file if who is not None else "", None, started)
 
     return beat
 
 
-def _make_app(args, ref, fresh_db: bool, http_sock, source_fn, backoff: AuthBackoff):
-    """The workbench's app on the store ``ref`` (beating as :func:`cell_heartbeat`); a store that
-    cannot be opened is one :class:`ServeError` line (exit 2). ``backoff``: failed tokens per address,
-    shared with TCP and OPC UA."""
+def _make_app(cfg: ServeConfig, ref, fresh_db: bool, http_sock, source_fn, backoff: AuthBackoff):
+    """The workbench's app on the store ``ref`` (beating as :func:`cell_heartbeat`; ``backoff``: failed
+    tokens per address, shared with TCP and OPC UA); a store that cannot be opened is one
+    :class:`ServeError` line (exit 2)."""
     from eyetohand.server.app import create_app
     from eyetohand.server.storage import StorageError
     from eyetohand.server.stores import StoreRefError
@@ -664,13 +711,13 @@ def _make_app(args, ref, fresh_db: bool, http_sock, source_fn, backoff: AuthBack
     try:
         return create_app(
             ref,
-            token=getattr(args, "tokens", None) or args.token,
-            db_wait_s=args.db_wait,
-            allowed_hosts=allowed_hosts(args),
+            token=cfg.tokens or cfg.token,
+            db_wait_s=cfg.db_wait_s,
+            allowed_hosts=allowed_hosts(cfg),
             create_db=fresh_db,
-            sign_key=getattr(args, "sign_key_bytes", None),
-            require_signed=bool(getattr(args, "require_signed", False)),
-            heartbeat=cell_heartbeat(args, http_sock, source_fn),
+            sign_key=cfg.sign_key,
+            require_signed=cfg.require_signed,
+            heartbeat=cell_heartbeat(cfg, http_sock, source_fn),
             auth_backoff=backoff,
         )
     except (StorageError, StoreRefError) as exc:  # unreachable, a newer schema: one line (exit 2)
@@ -683,7 +730,7 @@ def _plc_wanted(args) -> bool:
 
 
 def _served_calibration(
-    args, ref, camera, http_sock, *, create: bool
+    cfg: ServeConfig, ref, camera, http_sock, *, create: bool
 ) -> tuple[Served, Store | None, SameFile | None]:
     """(the served-calibration object, the store or None, its :class:`SameFile` or None) for
     ``--calibration``: a file (proved by
@@ -694,23 +741,23 @@ def _served_calibration(
     from eyetohand.server.storage import Ambiguous, NotFound, StorageError
     from eyetohand.server.stored import SameFile, StoredCalibration
 
-    fixed = getattr(args, "calibration_file", None)  # a file, proved intact by check_options
+    fixed = cfg.calibration_file  # a file, proved intact by check_options
     if fixed is not None:
         return fixed, None, None
     # a look-up must not create an empty database (with a camera, CAL END creates the calibration)
-    if args.calibration and not camera and not ref.exists():
+    if cfg.calibration and not camera and not ref.exists():
         http_sock.close()
         raise ServeError(
-            f"--calibration: {args.calibration!r} not found: no calibrations are stored "
+            f"--calibration: {cfg.calibration!r} not found: no calibrations are stored "
             f"in {ref.path.parent} yet (no {ref.path.name}); save one in the workbench first"
         )
-    store = open_store_or_refuse(ref, args, create=create, http_sock=http_sock)
+    store = open_store_or_refuse(ref, cfg, create=create, http_sock=http_sock)
     same_file = SameFile(store)  # the database file as opened: TCP refuses once it is another
-    served: Served = PendingCalibration(args.calibration)
+    served: Served = PendingCalibration(cfg.calibration)
     try:
-        if args.calibration:
+        if cfg.calibration:
             try:
-                rec = store.find(args.calibration)
+                rec = store.find(cfg.calibration)
                 served = StoredCalibration(store, rec.id, same_file)
             except NotFound:
                 if not camera:  # with a camera, CAL BEGIN <name> … CAL END creates it
@@ -743,8 +790,8 @@ def bind_http(host: str, port: int) -> socket.socket:
     return sock
 
 
-def serve(args, data_dir) -> None:
-    """Run the workbench (and the TCP service with ``args.tcp``) until stopped; ``args`` as parsed by
-    ``eyetohand serve`` (:mod:`eyetohand.cli.serve`), already checked by :func:`check_options`.
+def serve(cfg: ServeConfig, data_dir) -> None:
+    """Run the workbench (and the TCP service with ``cfg.tcp``) until stopped; ``cfg`` what
+    :func:`check_options` returned for ``eyetohand serve``'s options (:mod:`eyetohand.cli.serve`).
     Raises ``OSError`` when an address cannot be bound."""
-    asyncio.run(_serve(args, data_dir))
+    asyncio.run(_serve(cfg, data_dir))
