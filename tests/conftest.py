@@ -100,6 +100,9 @@ NUMERIC_FILES = {
 # so a test's timing never measures the other worker's load.
 SERIAL_FILES = {"test_faults.py", "test_truth_tcp.py", "test_truth_http.py", "test_render.py"}
 
+# The long studies (many seeds, many sessions: their assertion is a statistic) carry @pytest.mark.long
+# in their files: `make test` leaves them out, `make test-long` (and so .ci/run) runs them.
+
 
 def pytest_collection_modifyitems(items):
     """The numeric marker on NUMERIC_FILES' tests. And: Schemathesis (4.x) names each API operation's case

@@ -219,8 +219,7 @@ MAX_PAIRS = 20_000
 """Most pairs a pairs file (or an HTTP request) holds by default: a calibration plan is 9-100 points,
 a dense collection thousands (a 7x7 grid at 40 tool angles is 1960, an automated grid or a conveyor
 session more); far past this a file is a mix-up (a log, an image list). Raised per command with
-``--max-pairs`` (``max_pairs=`` in the library). 20 000 pairs load and fit in about a second
-(docs/performance.md, "Scale")."""
+``--max-pairs`` (``max_pairs=`` in the library). Cost of 20 000 pairs: docs/performance.md, "Scale"."""
 
 
 def pair_count_refusal(n: int, max_pairs: int) -> str:
