@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint format bench clean browser systemd-analyze aravis postgres floors
+.PHONY: setup demo test test-long lint format bench clean browser systemd-analyze aravis postgres floors
 
 # setup.py builds the compiled parts (src/eyetohand/models/_rows.c, solve/_swarm.c, geometry/_hull.c) into the source tree
 $(STAMP): pyproject.toml setup.py src/eyetohand/models/_rows.c src/eyetohand/solve/_swarm.c src/eyetohand/geometry/_hull.c src/eyetohand/_buffers.h
@@ -60,14 +60,19 @@ systemd-analyze:
 # built once); the tests that assert latency or deadlines (marker `serial`, tests/conftest.py) run
 # afterwards on their own, so no timing measures the other worker's load. `make test
 # PYTEST_PARALLEL=` runs everything serially. docs/performance.md has the suite's times.
+# The long studies (marker `long`: many seeds, many sessions) are left out of `make test` and run by
+# `make test-long`, which .ci/run runs after it: every test runs in CI.
 PYTEST_PARALLEL ?= -n auto --dist loadfile
 
 test: $(STAMP) aravis postgres browser systemd-analyze
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/mypy
-	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -m "not serial"
-	$(BIN)/python -m pytest -m serial
+	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -m "not serial and not long"
+	$(BIN)/python -m pytest -m "serial and not long"
+
+test-long: $(STAMP)
+	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -m long
 
 # The stated floors, tested: a second venv with every `>=` floor of pyproject.toml pinned exactly
 # (.ci/floors.py), and the tests that reach each floored package (NumPy, SciPy, OpenCV, Matplotlib
@@ -102,7 +107,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_server.py
 	$(BIN)/python benchmarks/bench_map.py --quick
 	$(BIN)/python benchmarks/bench_startup.py
-	$(BIN)/python benchmarks/bench_scale.py --sizes 20 200 2000 --models homography
+	$(BIN)/python benchmarks/bench_scale.py --sizes 20 200 2000 20000 --models homography auto
 	$(BIN)/python benchmarks/bench_lens.py
 	$(BIN)/python benchmarks/bench_conveyor.py
 	$(BIN)/python benchmarks/bench_fit.py --quick

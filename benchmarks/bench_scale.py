@@ -1,7 +1,8 @@
 """Time and peak memory of ``eyetohand calibrate`` against the pair count (issue 12: linear growth).
 
-For 20, 200, 2000 simulated pairs (a tilted camera over one plane, 0.1 px noise; 2000 is the CLI's
-cap, ``core.MAX_PAIRS``: more is refused before parsing) each model in
+For 20, 200, 2000 (and, in ``make bench``, 20 000) simulated pairs (a tilted camera over one plane,
+0.1 px noise; 20 000 is the default cap, ``core.MAX_PAIRS``: more is refused before parsing unless
+``--max-pairs`` raises it) each model in
 ``--models`` (default homography, auto) is calibrated in a child process by the CLI, measured with
 ``/usr/bin/time -v`` (peak resident memory) and the wall clock; the table prints the growth per
 10× pairs (≈ 10 is linear; the child's ~100 MB of interpreter and libraries is included).

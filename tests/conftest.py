@@ -107,6 +107,9 @@ SERIAL_FILES = {
     "test_store_faults.py",
 }
 
+# The long studies (many seeds, many sessions: their assertion is a statistic) carry @pytest.mark.long
+# in their files: `make test` leaves them out, `make test-long` (and so .ci/run) runs them.
+
 
 def pytest_collection_modifyitems(items):
     """The numeric marker on NUMERIC_FILES' tests. And: Schemathesis (4.x) names each API operation's case

@@ -158,6 +158,7 @@ def _limit_cell_pairs(k1: float, n: int, sigma_px: float, sigma_r_mm: float, rng
     return PointPairs.from_arrays(uv, np.column_stack([xy, xyz[:, 2]])), cell.size_px
 
 
+@pytest.mark.long
 def test_auto_adds_a_lens_only_when_the_data_support_it():
     """Issue 31 part 1: on a lens-free cell with 9 pairs, 'lowest held-out error wins' took the lens model
     in 22–24 % of trials; the nested F-test keeps the homography in at least 90 % of 30 seeded trials,
@@ -175,6 +176,7 @@ def test_auto_adds_a_lens_only_when_the_data_support_it():
         assert "F-test" in cal.selection["reason"]
 
 
+@pytest.mark.long
 def test_models_that_do_not_nest_are_compared_by_a_non_nested_test():
     """auto's F-test holds only between a model and one it nests (the homography and the affine map);
     the camera (a lens, no skew) does not nest dlt3d (skew, no lens). The F-test between them took the

@@ -108,6 +108,7 @@ def test_pick_at_far_end_of_window_within_2x_static_calibration_at_camera(must_s
     assert pick < 0.02
 
 
+@pytest.mark.long
 def test_the_latch_uncertainty_is_honest():
     """The touches of a part share its sighting's errors (count quantisation, latch jitter, detection):
     the iid covariance reported the latch delay to 0.17 count where 30 sessions scattered by 0.28;

@@ -8,6 +8,7 @@ be written (NaN statistics)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from synth import make_camera, random_pairs
 
 from eyetohand import Calibration, InputError, calibrate
@@ -38,6 +39,7 @@ def _cell(rng: np.random.Generator, trial: int):
     return PointPairs.from_arrays(uv, pairs.xyz_mm), check, None if trial % 2 else cam["size"]
 
 
+@pytest.mark.long
 def test_random_cells_fit_or_are_refused_and_what_fits_round_trips(tmp_path):
     rng = np.random.default_rng(21)
     fitted = refused = 0

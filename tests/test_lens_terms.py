@@ -75,6 +75,7 @@ def test_a_file_without_lens_terms_loads_as_k1_k2_and_the_centre_round_trips():
     assert model_from_dict(old).fitted_constants == ("k1", "k2")
 
 
+@pytest.mark.long
 @pytest.mark.parametrize("case", [(-0.08, (0.0, 0.0)), (0.0, (0.0, 0.0))])
 def test_sigma_fit_part_is_honest(case):
     """The fit part of sigma_mm, √(sigma² − c·noise²), against the map's own error over 40 trials of a

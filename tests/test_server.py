@@ -22,10 +22,10 @@ from hypothesis import HealthCheck, settings
 from eyetohand import InputError, load_pairs
 from eyetohand.calibration.file import Calibration
 from eyetohand.cli import main as cli_main
+from eyetohand.core import MAX_PAIRS
 from eyetohand.positioning import MAX_LINE, LineServer
 from eyetohand.positioning import answer as tcp_answer
 from eyetohand.server.app import LOOPBACK_HOSTS, MAX_POINTS, create_app
-from eyetohand.server.schemas import MAX_PAIRS
 from eyetohand.server.storage import Store
 
 PAIRS = records(PAPER / "calibration_points.csv")
@@ -151,7 +151,7 @@ def test_openapi_schema_is_precise(client):
     pair = spec["components"]["schemas"]["PairIn"]
     assert set(pair["required"]) == {"u", "v", "x", "y"} and pair["additionalProperties"] is False
     create_req = spec["components"]["schemas"]["CreateCalibration"]
-    assert create_req["properties"]["pairs"]["maxItems"] == MAX_PAIRS
+    assert create_req["properties"]["max_pairs"]["default"] == MAX_PAIRS  # the cap a request may raise
     assert "paper" in create_req["properties"]["model"]["enum"]
     body = paths["/api/calibrations/{cal_id}/image-to-robot"]["post"]["requestBody"]
     assert body["content"]["application/json"]["schema"]["properties"]["points"]["maxItems"] == MAX_POINTS

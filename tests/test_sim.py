@@ -191,6 +191,7 @@ def test_robot_errors_and_noise_come_from_the_cell():
 # ---------------------------------------------------------------- planner
 
 
+@pytest.mark.long
 def test_planner_predicts_the_rms_of_independent_sessions():
     """grid:5x5 at 150 and 200 mm: the planner's predicted check RMS against the median of 10
     independent sessions (simulate → calibrate --model auto → check), other seeds."""

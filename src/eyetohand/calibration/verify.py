@@ -328,9 +328,32 @@ def error_covariance(cal: Calibration, pairs: PointPairs, sigma_mm: np.ndarray) 
     return cov
 
 
+def _inverse_products(cal: Calibration, pairs: PointPairs, sigma_mm: np.ndarray):
+    """``X ↦ S⁻¹ X`` for the covariance ``S`` of :func:`error_covariance`, without forming it: ``S`` is
+    a diagonal ``D`` plus the low-rank ``U Uᵀ`` (U = J L, 2N × k parameters), so by Woodbury
+    ``S⁻¹ = D⁻¹ − D⁻¹ U (I + Uᵀ D⁻¹ U)⁻¹ Uᵀ D⁻¹``: memory O(N k), not the (2N)² of ``S`` (20 000 pairs
+    would be 12.8 GB)."""
+    n = len(pairs)
+    unc = cal.uncertainty
+    if unc is None:
+        d = np.repeat(np.maximum(np.asarray(sigma_mm, float), 1e-12) ** 2 / 2.0, 2)
+        return lambda X: X / (d if X.ndim == 1 else d[:, None])
+    J = param_jacobian(cal.model, pairs.uv_px, pairs.xyz_mm[:, 2])[:, :2, :].reshape(2 * n, -1)
+    U = J @ unc.factor
+    d_inv = 1.0 / max(unc.noise_mm**2, 1e-24)
+    small = np.linalg.cholesky(np.eye(U.shape[1]) + d_inv * (U.T @ U))
+
+    def solve(X: np.ndarray) -> np.ndarray:
+        inner = np.linalg.solve(small.T, np.linalg.solve(small, d_inv * (U.T @ X)))
+        return d_inv * (X - U @ inner)
+
+    return solve
+
+
 def fit_drift(cal: Calibration, pairs: PointPairs, err_xy: np.ndarray, sigma_mm: np.ndarray) -> Drift:
     """Generalised least squares of the similarity (shift, rotation, scale) to the errors, with their
-    covariance under "nothing moved" (:func:`error_covariance`), and its test."""
+    covariance under "nothing moved" (:func:`error_covariance`, applied as its inverse by
+    :func:`_inverse_products`), and its test."""
     q = pairs.xyz_mm[:, :2]
     c = q.mean(axis=0)
     d = q - c
@@ -341,12 +364,9 @@ def fit_drift(cal: Calibration, pairs: PointPairs, err_xy: np.ndarray, sigma_mm:
     A[0::2, 2], A[1::2, 2] = -d[:, 1], d[:, 0]  # θ · R90 d
     A[0::2, 3], A[1::2, 3] = d[:, 0], d[:, 1]  # s · d
     e = err_xy.reshape(-1)
-    S = error_covariance(cal, pairs, sigma_mm)
-    # whiten with the covariance's Cholesky factor: S = G Gᵀ, then ordinary least squares
-    G = np.linalg.cholesky(0.5 * (S + S.T))
-    Aw = np.linalg.solve(G, A)
-    ew = np.linalg.solve(G, e)
-    N = Aw.T @ Aw
+    inv_S = _inverse_products(cal, pairs, sigma_mm)
+    N = A.T @ inv_S(A)
+    N = 0.5 * (N + N.T)
     rank = np.linalg.matrix_rank(N)
     if rank < 4:
         raise InputError(
@@ -354,7 +374,7 @@ def fit_drift(cal: Calibration, pairs: PointPairs, err_xy: np.ndarray, sigma_mm:
             "cannot tell a rotation or scale change from a shift"
         )
     cov = np.linalg.inv(N)
-    beta = cov @ (Aw.T @ ew)
+    beta = cov @ (A.T @ inv_S(e))
     chi2 = float(beta @ N @ beta)
     zs = beta / np.sqrt(np.diag(cov))
     # The covariance is the training noise s² times a known matrix (C ∝ s² too), and s² is an
@@ -364,7 +384,8 @@ def fit_drift(cal: Calibration, pairs: PointPairs, err_xy: np.ndarray, sigma_mm:
     # by F (4, dof_t + 2N − 4): the chi-square reported is the rescaled one, against 4 F.
     dof_t = cal.uncertainty.dof if cal.uncertainty is not None else 0
     dof_f = 2 * n - 4
-    rss = float(np.sum((ew - Aw @ beta) ** 2))
+    r = e - A @ beta
+    rss = float(r @ inv_S(r))
     dof_all = dof_t + dof_f
     phi = (dof_t + rss) / dof_all if dof_all > 0 else 1.0
     phi = max(phi, 1e-12)

@@ -11,6 +11,7 @@ from eyetohand.calibration import Calibration, load_sign_key
 from eyetohand.cli.common import (
     CliError,
     add_fit_options,
+    add_max_pairs_option,
     add_orientation_options,
     emit_json,
     fit_request,
@@ -50,8 +51,12 @@ def cmd_calibrate(args) -> int:
     if args.output:  # before any work: a fit must not be lost to an output that cannot be written
         check_output_path(args.output)
     request = fit_request(args)  # the options before the files: a bad one is refused first
-    pairs = load_pairs(args.pairs).scaled_to_mm(args.robot_units)
-    check = load_pairs(args.check).scaled_to_mm(args.robot_units) if args.check else None
+    pairs = load_pairs(args.pairs, max_pairs=args.max_pairs).scaled_to_mm(args.robot_units)
+    check = (
+        load_pairs(args.check, max_pairs=args.max_pairs).scaled_to_mm(args.robot_units)
+        if args.check
+        else None
+    )
     print_notes(check)  # the training pairs' notes are the calibration's own, printed with it
     rc = run_calibration(args, pairs, check, request=request)
     if rc == 0 and key is not None:
@@ -74,7 +79,7 @@ def _sign_key(args) -> bytes | None:
 
 def cmd_evaluate(args) -> int:
     cal = Calibration.load(args.calibration)
-    pairs = load_pairs(args.pairs)
+    pairs = load_pairs(args.pairs, max_pairs=args.max_pairs)
     print_notes(pairs)
     from eyetohand.calibration import evaluate_pairs  # here: `apply` needs none of calibration.checking
 
@@ -176,8 +181,8 @@ def _warn_outside(m) -> None:
 def cmd_compare(args) -> int:
     from eyetohand.calibration import compare, format_compare
 
-    pairs = load_pairs(args.pairs)
-    check = load_pairs(args.check)
+    pairs = load_pairs(args.pairs, max_pairs=args.max_pairs)
+    check = load_pairs(args.check, max_pairs=args.max_pairs)
     print_notes(pairs, check)
     rows = compare(pairs, check, image_size=parse_image_size(args.image_size), seed=args.seed)
     if args.json:
@@ -198,6 +203,7 @@ def register(sub) -> None:
         help="units of the robot x, y, z in the pairs (and --check): converted to mm before fitting",
     )
     add_fit_options(p)
+    add_max_pairs_option(p)
     p.add_argument(
         "--sign-key",
         metavar="FILE",
@@ -219,6 +225,7 @@ def register(sub) -> None:
         help="evaluate pairs outside the calibrated region or heights too (a warning counts them)",
     )
     p.add_argument("--json", action="store_true", help="the statistics and 'warnings' as one JSON object")
+    add_max_pairs_option(p)
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("apply", help="map image points to robot points")
@@ -259,4 +266,5 @@ def register(sub) -> None:
     p.add_argument("--image-size", metavar="WxH")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", action="store_true")
+    add_max_pairs_option(p)
     p.set_defaults(func=cmd_compare)

@@ -7,7 +7,7 @@ import json
 import sys
 from typing import TYPE_CHECKING
 
-from eyetohand.core import InputError
+from eyetohand.core import MAX_PAIRS, InputError
 from eyetohand.models import MODEL_CHOICES
 from eyetohand.solve import OBJECTIVES, OPTIMIZERS
 
@@ -27,6 +27,28 @@ def parse_image_size(text: str | None):
     except ValueError:
         raise CliError(f"--image-size: expected WxH in pixels (e.g. 2448x2048), got {text!r}") from None
     return (w, h)
+
+
+def _pair_cap(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return n
+
+
+def add_max_pairs_option(p: argparse.ArgumentParser) -> None:
+    """``--max-pairs N``: the most pairs a pairs file of the command may hold (a mix-up's refusal)."""
+    p.add_argument(
+        "--max-pairs",
+        type=_pair_cap,
+        default=MAX_PAIRS,
+        metavar="N",
+        help=f"refuse a pairs file of more than N pairs, counted before parsing (default {MAX_PAIRS}: "
+        "far more is usually a mix-up, e.g. a log; raise it for one large collection)",
+    )
 
 
 def add_fit_options(p: argparse.ArgumentParser) -> None:

@@ -6,14 +6,15 @@ import argparse
 
 from eyetohand.calibration import Calibration
 from eyetohand.cli.calibrate import print_notes
+from eyetohand.cli.common import add_max_pairs_option
 from eyetohand.core import load_pairs
 from eyetohand.reports import load_history, write_report
 
 
 def cmd_report(args) -> int:
     cal = Calibration.load(args.calibration)
-    check = load_pairs(args.check) if args.check else None
-    train = load_pairs(args.pairs) if args.pairs else None
+    check = load_pairs(args.check, max_pairs=args.max_pairs) if args.check else None
+    train = load_pairs(args.pairs, max_pairs=args.max_pairs) if args.pairs else None
     print_notes(check, train)
     extra = {"calibration file": str(args.calibration)}
     if args.pairs:
@@ -62,4 +63,5 @@ def register(sub) -> None:
         "the camera moved, the scale changed or a model is wrong (eyetohand diff)",
     )
     p.add_argument("-o", "--output", metavar="DIR", required=True, help="report folder (index.html + PNGs)")
+    add_max_pairs_option(p)
     p.set_defaults(func=cmd_report)

@@ -6,14 +6,14 @@ import sys
 
 from eyetohand.calibration import Calibration, append_history, check_tolerance, verify
 from eyetohand.cli.calibrate import print_notes, print_warnings
-from eyetohand.cli.common import emit_json
+from eyetohand.cli.common import add_max_pairs_option, emit_json
 from eyetohand.core import load_pairs
 
 
 def cmd_verify(args) -> int:
     tol = check_tolerance(args.tolerance)
     cal = Calibration.load(args.calibration)
-    pairs = load_pairs(args.pairs)
+    pairs = load_pairs(args.pairs, max_pairs=args.max_pairs)
     print_notes(pairs)
     v = verify(cal, pairs, tol)
     print_warnings(v.warnings)
@@ -64,4 +64,5 @@ def register(sub) -> None:
     p.add_argument(
         "--no-history", action="store_true", help="do not append to CAL.json.history.jsonl beside the file"
     )
+    add_max_pairs_option(p)
     p.set_defaults(func=cmd_verify)

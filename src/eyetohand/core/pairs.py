@@ -198,50 +198,89 @@ class PointPairs:
         return buf.getvalue()
 
 
-def load_pairs(path: str | os.PathLike) -> PointPairs:
+def load_pairs(path: str | os.PathLike, *, max_pairs: int | None = None) -> PointPairs:
     """Load pairs from a CSV file (header names the columns) or a JSON file (``{"pairs": [...]}``).
 
     CSV: columns ``u,v,x,y`` required, ``z``, ``id`` and ``angle`` optional, in any order; other
-    columns are ignored. A missing ``z`` means the plane z = 0 (recorded in ``notes``).
+    columns are ignored. A missing ``z`` means the plane z = 0 (recorded in ``notes``). More than
+    ``max_pairs`` pairs (default :data:`MAX_PAIRS`) are refused before parsing
+    (:func:`check_pair_count`).
     """
     path = Path(path)
     name = str(path)
     text = read_pairs_text(path)
-    check_pair_count(text, name)
+    check_pair_count(text, name, max_pairs)
     if path.suffix.lower() == ".json":
         return _parse_json(text, name)
-    return pairs_from_text(text, name)
+    return _parse_csv(text, name)
 
 
-MAX_PAIRS = 2_000
-"""Most pairs a pairs file (or an HTTP request) may hold: a calibration plan is 9-100 points; far past
-this a file is a mix-up (a log, an image list), and reading millions of rows costs gigabytes."""
+MAX_PAIRS = 20_000
+"""Most pairs a pairs file (or an HTTP request) holds by default: a calibration plan is 9-100 points,
+a dense collection thousands (a 7x7 grid at 40 tool angles is 1960, an automated grid or a conveyor
+session more); far past this a file is a mix-up (a log, an image list). Raised per command with
+``--max-pairs`` (``max_pairs=`` in the library). Cost of 20 000 pairs: docs/performance.md, "Scale"."""
 
 
-def check_pair_count(text: str, source: str) -> None:
-    """Refuse a text that holds more than :data:`MAX_PAIRS` pairs, counted before it is parsed (so a
-    3-million-row file is refused in a second, not after 2 GB of rows): CSV lines that are not blank,
-    less the header; for JSON, the ``"u"`` keys (every pair has one)."""
-    if text.lstrip().startswith(("{", "[")):
+def pair_count_refusal(n: int, max_pairs: int) -> str:
+    """The words refusing ``n`` pairs over the cap ``max_pairs``: the same on every interface (CLI and
+    HTTP), naming the option that raises the cap."""
+    return (
+        f"{n} pairs, more than {max_pairs} (a calibration needs 9-100, a dense collection thousands); "
+        "raise --max-pairs (a request's max_pairs) if this is one collection, else is this the right file?"
+    )
+
+
+def check_max_pairs(max_pairs: int) -> int:
+    """``max_pairs`` when it is a whole number >= 1, else an :class:`InputError` saying so."""
+    if isinstance(max_pairs, bool) or not isinstance(max_pairs, int) or max_pairs < 1:
+        raise InputError(f"max_pairs: expected a whole number >= 1, got {max_pairs!r}")
+    return max_pairs
+
+
+def check_pair_count(text: str, source: str, max_pairs: int | None = None) -> None:
+    """Refuse a text that holds more than ``max_pairs`` (default :data:`MAX_PAIRS`) pairs, counted
+    before it is parsed (so a 3-million-row file is refused in a second, not after 2 GB of rows): CSV
+    lines that are not blank, less the header; for JSON, the ``"u"`` keys (every pair has one). The
+    count walks the text's lines one at a time (no list of them)."""
+    cap = MAX_PAIRS if max_pairs is None else check_max_pairs(max_pairs)
+    if _JSON_START.match(text):  # not text.lstrip(): a copy of a 90 MB text
         n = text.count('"u"')
-    elif text.count("\n") + text.count("\r") <= MAX_PAIRS:  # at most this many lines: nothing to count
+    elif text.count("\n") + text.count("\r") <= cap:  # at most this many lines: nothing to count
         return
     else:
-        n = sum(1 for line in text.splitlines() if line.strip()) - 1
-    if n > MAX_PAIRS:
-        raise InputError(
-            f"{source}: {n} pairs, expected at most {MAX_PAIRS} (a calibration needs 9-100; is this "
-            "the right file?)"
-        )
+        n = _count_rows(text) - 1
+    if n > cap:
+        raise InputError(f"{source}: {pair_count_refusal(n, cap)}")
 
 
-def pairs_from_text(text: str, source: str = "<text>") -> PointPairs:
+_JSON_START = re.compile(r"\s*[\[{]")
+_COUNT_CHUNK = 1 << 20
+
+
+def _count_rows(text: str) -> int:
+    """Lines of ``text`` that are not blank (split on any line break, as the CSV reader does), a
+    slice of about 1 MiB at a time: the memory of one slice's lines, not of every line's."""
+    n, start, size = 0, 0, len(text)
+    while start < size:
+        end = min(start + _COUNT_CHUNK, size)
+        while end < size and text[end - 1] not in "\r\n":  # end the slice after a line break
+            end += 1
+        if end < size and text[end - 1] == "\r" and text[end] == "\n":  # keep CR LF whole
+            end += 1
+        n += sum(1 for line in text[start:end].splitlines() if line.strip())
+        start = end
+    return n
+
+
+def pairs_from_text(text: str, source: str = "<text>", *, max_pairs: int | None = None) -> PointPairs:
     """Pairs from CSV or JSON text (a paste, an upload), with the same rules and messages as
-    :func:`load_pairs`; ``source`` names it in errors."""
+    :func:`load_pairs` (the cap ``max_pairs`` included); ``source`` names it in errors."""
     if "\x00" in text:
         raise InputError(f"{source}: binary data, expected CSV or JSON text")
     if not text.strip():
         raise InputError(f"{source}: empty, expected a header line 'u,v,x,y[,z][,id]' and rows")
+    check_pair_count(text, source, max_pairs)
     if text.lstrip().startswith(("{", "[")):
         return _parse_json(text, source)
     return _parse_csv(text, source)

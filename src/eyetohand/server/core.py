@@ -60,13 +60,14 @@ def to_pairs(records, label: str) -> PointPairs:
     return dataclasses.replace(pairs, source=label, notes=notes)
 
 
-def parse_text(text: str, source: str) -> PointPairs:
-    """Pairs from CSV or JSON text, with the same rules and messages as ``eyetohand calibrate``."""
+def parse_text(text: str, source: str, max_pairs: int | None = None) -> PointPairs:
+    """Pairs from CSV or JSON text, with the same rules and messages as ``eyetohand calibrate``
+    (its ``--max-pairs`` cap as ``max_pairs``)."""
     from eyetohand.core import pairs_from_text
 
     name = source.strip() or "pasted"
     try:
-        return pairs_from_text(text, name)
+        return pairs_from_text(text, name, max_pairs=max_pairs)
     except InputError as exc:
         # the request field is the text; an entry of a JSON text is named inside it
         fld = "text" if exc.index is None else f"text: {exc.field_path}"
@@ -126,7 +127,7 @@ def fit(opts: FitOptions, callback=None) -> Fitted:
             "(degenerate geometry?); try another model",
             "pairs",
         ) from None
-    request = opts.model_dump(exclude={"pairs", "check", "name", "note"})
+    request = opts.model_dump(exclude={"pairs", "check", "name", "note", "max_pairs"})
     return Fitted(cal, pairs, check, tuple(opts.exclude), request)
 
 

@@ -4,11 +4,20 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictBool, WithJsonSchema
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    ValidationInfo,
+    WithJsonSchema,
+    field_validator,
+)
 from pydantic import Strict as StrictType
 
 from eyetohand.calibration import MAX_IMAGE_SIDE_PX, check_image_size, check_target_diameter, resolve_model
-from eyetohand.core import MAX_PAIRS, InputError
+from eyetohand.core import MAX_PAIRS, InputError, pair_count_refusal
 from eyetohand.geometry import check_symmetry
 from eyetohand.models import MODEL_CHOICES
 from eyetohand.server.storage import clean_text, is_id_like
@@ -28,6 +37,8 @@ MAX_POINTS = 1_000_000
 """Most image points in one image-to-robot request; more gets 413."""
 """Most point pairs (or check pairs) in one fit request. Measured on a 2-core machine: ``auto``
 on 2 000 pairs holds the fit worker ~21 s at ~440 MiB; 5 000 took ~3 min at 1.9 GiB."""
+MAX_PAIRS_CAP = 1_000_000
+"""Highest ``max_pairs`` a request may ask for (the body limits bound it first)."""
 MAX_FIT_BODY_BYTES = 4 * 1024 * 1024
 """Largest body of a fit (and every other non-mapping) request: 2 × 2 000 pairs with 64-character
 ids, indented, fit in 2 MiB; larger is refused (413) from Content-Length, before parsing."""
@@ -163,6 +174,28 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+class PairsCapped(Strict):
+    """A request with pair lists (``pairs``, ``check``): each holds at most ``max_pairs`` pairs, refused
+    with the words of the CLI's ``--max-pairs`` (:func:`eyetohand.core.pair_count_refusal`). Declared
+    first, so it is validated before the lists that read it."""
+
+    max_pairs: Annotated[int, StrictType()] = Field(
+        MAX_PAIRS,
+        ge=1,
+        le=MAX_PAIRS_CAP,
+        description="refuse a list of more pairs than this (far more is usually a mix-up); raise it "
+        "for one large collection, as the CLI's --max-pairs",
+    )
+
+    @field_validator("pairs", "check", check_fields=False)
+    @classmethod
+    def _capped(cls, v, info: ValidationInfo):
+        cap = info.data.get("max_pairs")
+        if v is not None and cap is not None and len(v) > cap:
+            raise ValueError(pair_count_refusal(len(v), cap))
+        return v
+
+
 class PairIn(Strict):
     """One point pair: the image centre (u, v) in px and the robot position (x, y, z) in mm."""
 
@@ -174,18 +207,16 @@ class PairIn(Strict):
     z: Finite | None = Field(None, description="robot z, mm (all pairs or none; none means z = 0)")
 
 
-class FitOptions(Strict):
-    pairs: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS, description="calibration pairs")
-    check: list[PairIn] | None = Field(
-        None, min_length=1, max_length=MAX_PAIRS, description="check pairs, not used for fitting"
-    )
+class FitOptions(PairsCapped):
+    pairs: list[PairIn] = Field(min_length=1, description="calibration pairs")
+    check: list[PairIn] | None = Field(None, min_length=1, description="check pairs, not used for fitting")
     model: ModelName = Field("auto", description="transform model; 'auto' picks by cross-validation")
     optimizer: OptimizerName = Field("lm", description="solver refining the model")
     objective: ObjectiveName = Field("l2", description="robot-space objective (mm)")
     seed: Seed | None = Field(None, description="seed of the stochastic solvers")
     exclude: list[Annotated[str, Field(max_length=64), AfterValidator(_pair_id)]] = Field(
         default_factory=list,
-        max_length=MAX_PAIRS,
+        max_length=MAX_PAIRS_CAP,
         description="ids of pairs left out of the fit (their errors are still reported)",
     )
     particles: Particles = Field(200, description="swarm size (pso, hybrid-pso)")
@@ -229,8 +260,8 @@ class ImportCalibration(Strict):
     note: Note = "imported"
 
 
-class VerifyRequest(Strict):
-    pairs: list[PairIn] = Field(min_length=3, max_length=MAX_PAIRS, description="freshly measured pairs")
+class VerifyRequest(PairsCapped):
+    pairs: list[PairIn] = Field(min_length=3, description="freshly measured pairs")
     tolerance_mm: Finite = Field(gt=0, description="largest error (mm) a point may have to pass")
 
 
@@ -283,7 +314,7 @@ class MapResponse(BaseModel):
     inside: list[bool] = Field(description="whether each point lies in the calibrated region")
 
 
-class ParseRequest(Strict):
+class ParseRequest(PairsCapped):
     text: str = Field(
         min_length=1,
         max_length=MAX_TEXT_CHARS,
@@ -426,17 +457,17 @@ class VersionList(BaseModel):
     versions: list[VersionBrief]
 
 
-class EvaluateRequest(Strict):
-    pairs: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
+class EvaluateRequest(PairsCapped):
+    pairs: list[PairIn] = Field(min_length=1)
     allow_outside: bool = Field(
         False,
         description="evaluate pairs outside the calibrated region or heights too (a warning counts them)",
     )
 
 
-class CompareRequest(Strict):
-    pairs: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
-    check: list[PairIn] = Field(min_length=1, max_length=MAX_PAIRS)
+class CompareRequest(PairsCapped):
+    pairs: list[PairIn] = Field(min_length=1)
+    check: list[PairIn] = Field(min_length=1)
     seed: Seed = 0
 
 
@@ -514,15 +545,13 @@ class UploadedFile(Strict):
     data_base64: Base64
 
 
-class ImagesCalibrate(Strict):
+class ImagesCalibrate(PairsCapped):
     """`eyetohand calibrate-images` from the page: the poses CSV (``image,x,y[,z][,angle]``) and the
     image files it names, detected one by one in the job queue, then fitted."""
 
     poses: UploadedFile = Field(description="the poses CSV file, bytes as uploaded (UTF-8 expected)")
     images: list[UploadedFile] = Field(min_length=1, max_length=MAX_IMAGES, description="the image files")
-    check: list[PairIn] | None = Field(
-        None, min_length=1, max_length=MAX_PAIRS, description="check pairs, not used for fitting"
-    )
+    check: list[PairIn] | None = Field(None, min_length=1, description="check pairs, not used for fitting")
     polarity: Literal["auto", "dark", "bright"] = "auto"
     diameter_px: Finite | None = Field(None, description="expected target diameter, px")
     model: ModelName = Field("auto", description="transform model; 'auto' picks by cross-validation")

@@ -14,7 +14,7 @@ router = APIRouter(tags=["pairs"], route_class=StrictJsonRoute)
 @router.post("/api/pairs/parse", response_model=ParseResponse)
 def parse_pairs(req: ParseRequest):
     """Read CSV or JSON text of point pairs with the rules of `eyetohand calibrate`."""
-    p = core.parse_text(req.text, req.source)
+    p = core.parse_text(req.text, req.source, req.max_pairs)
     return {
         "source": p.source,
         "n": len(p),
