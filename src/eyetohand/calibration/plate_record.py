@@ -96,12 +96,19 @@ class PlateRecord:
         """(2N, 2N) covariance of the x, y errors (x0, y0, x1, …) the touches put on the points
         ``xyz_mm`` (N, 3): one rigid error shared by all of them, so correlated from point to point
         (the diagonal is :meth:`placement_variance_mm2`)."""
+        F = self.error_factor_xy(xyz_mm)
+        return F @ F.T
+
+    def error_factor_xy(self, xyz_mm: np.ndarray) -> np.ndarray:
+        """(2N, 6 P) ``F`` with ``F Fᵀ`` = :meth:`error_covariance_xy` (P placements): its low-rank form,
+        for a solve that never forms the (2N)² matrix (verify's drift test on many pairs)."""
         X = np.asarray(xyz_mm, float).reshape(-1, 3)
-        out = np.zeros((2 * len(X), 2 * len(X)))
+        parts = []
         for p in self.placements:
             B = rigid_jacobian(X, p.fit.centre_mm)[:, :2].reshape(2 * len(X), 6)
-            out += B @ p.covariance @ B.T
-        return out / len(self.placements) ** 2
+            w, V = np.linalg.eigh(0.5 * (p.covariance + p.covariance.T))  # PSD: no Cholesky
+            parts.append(B @ (V * np.sqrt(np.clip(w, 0.0, None))))
+        return np.hstack(parts) / len(self.placements)
 
     def to_dict(self) -> dict:
         return {

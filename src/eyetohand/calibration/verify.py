@@ -340,6 +340,8 @@ def _inverse_products(cal: Calibration, pairs: PointPairs, sigma_mm: np.ndarray)
         return lambda X: X / (d if X.ndim == 1 else d[:, None])
     J = param_jacobian(cal.model, pairs.uv_px, pairs.xyz_mm[:, 2])[:, :2, :].reshape(2 * n, -1)
     U = J @ unc.factor
+    if cal.plate is not None:  # a plate's touches: one rigid error shared by every point (low rank too)
+        U = np.hstack([U, cal.plate.error_factor_xy(pairs.xyz_mm)])
     d_inv = 1.0 / max(unc.noise_mm**2, 1e-24)
     small = np.linalg.cholesky(np.eye(U.shape[1]) + d_inv * (U.T @ U))
 
