@@ -167,3 +167,56 @@ def test_database_restart_under_load_then_kill_9_mid_write(tmp_path, pg_cluster,
     # every acknowledged write is there (a write in flight at the kill may or may not be: never half)
     assert set(office.acknowledged) <= set(versions)
     assert len(versions) - 1 in (len(office.acknowledged), len(office.acknowledged) + 1)
+
+
+def test_opcua_says_when_the_store_is_unreachable_and_keeps_mapping(tmp_path, pg_cluster, pg_url, cal_files):
+    """OPC UA's ``StoreState`` (asyncua's own Client against a real serve): ``Connected``, then
+    ``Unreachable`` while the database is stopped — ``State`` stays ``Ready`` and ImageToRobot still
+    answers with the version in force — and ``Connected`` again within 5 s of its return."""
+    import asyncio
+
+    from asyncua import Client
+
+    store = open_store(pg_url)
+    store.create("cell", {"source": "import"}, cal_files[0], [], None)
+    store.close()
+    srv = ServeProcess(
+        tmp_path / "data", "--store", pg_url, "--calibration", "cell", "--opcua", "127.0.0.1:0"
+    )
+    opcua_url = next(x for x in srv.out if x.startswith("OPC UA:")).split()[2]
+    u, v = (float(x) for x in POINT.split(","))
+
+    async def until(node, want: str, within_s: float) -> float:
+        start = time.monotonic()
+        while (got := await node.read_value()) != want:
+            assert time.monotonic() - start < within_s, f"StoreState still {got!r}, not {want!r}"
+            await asyncio.sleep(0.1)
+        return time.monotonic() - start
+
+    async def run() -> None:
+        async with Client(opcua_url, timeout=10) as client:
+            ns = await client.get_namespace_index("urn:eyetohand")
+            cal = await client.nodes.root.get_child(["0:Objects", f"{ns}:Calibration"])
+            store_state = await cal.get_child(f"{ns}:StoreState")
+            state = await cal.get_child(f"{ns}:State")
+            await until(store_state, "Connected", 5)
+            before = await cal.call_method(f"{ns}:ImageToRobot", u, v, float("nan"))
+            pg_cluster.stop("immediate")
+            try:
+                down_s = await until(store_state, "Unreachable", 10)
+                assert await state.read_value() == "Ready"
+                during = await cal.call_method(f"{ns}:ImageToRobot", u, v, float("nan"))
+                assert during == before  # the version in force, unchanged
+                health = httpx.get(srv.url + "/api/health").json()
+                assert health["store"]["reachable"] is False, health
+            finally:
+                pg_cluster.start()
+            up_s = await until(store_state, "Connected", 5)
+            print(f"StoreState: Unreachable after {down_s:.2f} s, Connected again after {up_s:.2f} s")
+            assert httpx.get(srv.url + "/api/health").json()["store"]["reachable"] is True
+            assert await cal.call_method(f"{ns}:ImageToRobot", u, v, float("nan")) == before
+
+    try:
+        asyncio.run(run())
+    finally:
+        srv.stop(signal.SIGKILL)

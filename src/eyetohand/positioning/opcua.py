@@ -4,7 +4,9 @@ object ``Calibration`` with
 
 - variables ``Name`` (String), ``Version`` (UInt32), ``CheckRmsMm`` (Double, NaN without check
   points), ``State`` (String: ``Ready``, ``NoCalibration``, ``Error``), refreshed every
-  :data:`REFRESH_S` seconds from the served calibration (a new version shows within a second);
+  :data:`REFRESH_S` seconds from the served calibration (a new version shows within a second), and
+  ``StoreState`` (String: ``Connected``, ``Unreachable`` — the calibration in force keeps answering —,
+  ``Unknown`` without a store followed; :func:`store_state_of`) from ``store_reachable()``;
 - the method ``ImageToRobot(u_px, v_px, z_mm) → (x_mm, y_mm, z_mm, sigma_mm)`` (all Double; ``z_mm``
   NaN: the calibration's own height; ``sigma_mm`` NaN when it carries no uncertainty), the mapping
   call of :func:`.mapping.map_point`. A refusal is a Bad status code — ``BadOutOfRange`` outside the
@@ -83,6 +85,16 @@ def state_of(source: Served) -> str:
     return "Error" if problem is not None and problem.broken else "NoCalibration"
 
 
+#: ``StoreState``'s values: the store followed (``store_reachable()`` True / False / None)
+STORE_STATES = {True: "Connected", False: "Unreachable", None: "Unknown"}
+
+
+def store_state_of(store_reachable: Callable[[], bool | None] | None) -> str:
+    """``Connected`` (the store of calibrations is read), ``Unreachable`` (it cannot be: the version in
+    force keeps answering, changes wait for it) or ``Unknown`` (no store followed, or not yet)."""
+    return STORE_STATES[None if store_reachable is None else store_reachable()]
+
+
 #: the secured endpoints offered with a certificate (asyncua's SecurityPolicyType names), each policy in
 #: Sign and SignAndEncrypt (OPC 10000-7 security policy profiles)
 SECURE_POLICIES = (
@@ -108,7 +120,9 @@ class Security(Protocol):
 
 class OpcUaService:
     """The ``Calibration`` object served on ``host:port``; ``source()`` returns the served calibration in
-    force. ``await start()`` on the loop that is to run it, then ``await close()``."""
+    force; ``store_reachable()`` whether the store it follows can be read now (True / False; None: no
+    store followed; the server's is what ``/api/health`` says). ``await start()`` on the loop that is
+    to run it, then ``await close()``."""
 
     def __init__(
         self,
@@ -120,8 +134,10 @@ class OpcUaService:
         locate: Callable[..., Any] | None = None,
         auth_backoff: AuthBackoff | None = None,
         security: Security | None = None,
+        store_reachable: Callable[[], bool | None] | None = None,
     ):
         self.source = source
+        self.store_reachable = store_reachable  # cheap: read every REFRESH_S
         self.security = security  # the certificate for the Sign / SignAndEncrypt endpoints
         self.auth_backoff = AuthBackoff() if auth_backoff is None else auth_backoff  # per address
         self.locate = locate  # (dmin_mm, dmax_mm, z_mm) -> LocateResult, blocking; None: no camera
@@ -167,6 +183,7 @@ class OpcUaService:
             ("Version", 0, ua.VariantType.UInt32),
             ("CheckRmsMm", math.nan, ua.VariantType.Double),
             ("State", "NoCalibration", ua.VariantType.String),
+            ("StoreState", "Unknown", ua.VariantType.String),
         ):
             self.nodes[name] = await obj.add_variable(idx, name, ua.Variant(value, kind))
         await obj.add_method(
@@ -197,11 +214,12 @@ class OpcUaService:
         name, version = ident.name, ident.version
         cal = src.cal
         rms = float(cal.check.rms_mm) if cal is not None and cal.check is not None else math.nan
-        shown = (name, version, rms, state_of(src))
+        shown = (name, version, rms, state_of(src), store_state_of(self.store_reachable))
         if shown == self._shown:
             return
-        kinds = (ua.VariantType.String, ua.VariantType.UInt32, ua.VariantType.Double, ua.VariantType.String)
-        for key, value, kind in zip(("Name", "Version", "CheckRmsMm", "State"), shown, kinds, strict=True):
+        text, uint, double = ua.VariantType.String, ua.VariantType.UInt32, ua.VariantType.Double
+        keys = ("Name", "Version", "CheckRmsMm", "State", "StoreState")
+        for key, value, kind in zip(keys, shown, (text, uint, double, text, text), strict=True):
             await self.nodes[key].write_value(ua.Variant(value, kind))
         self._shown = shown
 

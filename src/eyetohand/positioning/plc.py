@@ -24,7 +24,8 @@ from eyetohand.positioning.tcp import POLL_S
 
 class PlcServices:
     """The Modbus server on ``modbus`` and/or the OPC UA server on ``opcua`` ((host, port) each, or
-    None), as ``eyetohand serve`` parsed and checked them."""
+    None), as ``eyetohand serve`` parsed and checked them. ``store_reachable()``: whether the store
+    of calibrations can be read now (OPC UA's ``StoreState``; :class:`~.opcua.OpcUaService`)."""
 
     def __init__(
         self,
@@ -38,6 +39,7 @@ class PlcServices:
         locate: Callable[..., Any] | None = None,
         auth_backoff: AuthBackoff | None = None,
         security: ServerCertificate | None = None,
+        store_reachable: Callable[[], bool | None] | None = None,
     ):
         self.security = security  # OPC UA's certificate (positioning/opcua_cert.py)
         self.source = source
@@ -51,7 +53,13 @@ class PlcServices:
             None
             if opcua is None
             else OpcUaService(
-                source, *opcua, token=token, locate=locate, auth_backoff=auth_backoff, security=security
+                source,
+                *opcua,
+                token=token,
+                locate=locate,
+                auth_backoff=auth_backoff,
+                security=security,
+                store_reachable=store_reachable,
             )
         )
         self.starting = ""  # the server being started (an OSError names it)

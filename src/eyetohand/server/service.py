@@ -125,6 +125,10 @@ class Service:
             self.follower = Follower(self.store, self.refresh, beat=beat)
             self.follower.start()
 
+    def store_reachable(self) -> bool | None:
+        """Whether the store can be read now, as ``/api/health`` says it (None: not followed yet)."""
+        return None if self.follower is None else self.follower.state.reachable
+
     def store_state(self) -> dict:
         """The store's state for ``/api/health``: reachable, or since when not and why."""
         if self.follower is None:

@@ -22,6 +22,7 @@ from eyetohand.server.config import ServeConfig, ServeError, is_loopback, parse_
 if TYPE_CHECKING:
     from eyetohand.cell import BeltProtocol, Collector
     from eyetohand.positioning import LineServer, Locator, LoopThread, PlcServices, Served
+    from eyetohand.server.service import Service
     from eyetohand.server.storage import Store
     from eyetohand.server.stored import SameFile
 
@@ -416,6 +417,11 @@ class _Started:
     plc: PlcServices | None = None
     plc_loop: LoopThread | None = None
     app: Any = None  # the FastAPI app
+    service: Service | None = None  # the app's (its store followed: /api/health, OPC UA StoreState)
+
+    def store_reachable(self) -> bool | None:
+        """Whether the store can be read now, as ``/api/health`` says (None until the app follows it)."""
+        return None if self.service is None else self.service.store_reachable()
 
     def current_or_none(self) -> Served | None:
         """What the services serve now, or None when none is served (the workbench alone)."""
@@ -465,10 +471,12 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
             http_sock=http_sock,
             auth_backoff=run.backoff,
             data_dir=data_dir,
+            store_reachable=run.store_reachable,
         )
         loops.append(run.plc_loop)
 
     run.app = app = _make_app(cfg, ref, fresh_db, http_sock, run.current_or_none, run.backoff)
+    run.service = app.state.service
     if run.collector is not None:
         from eyetohand.server.routes.collect import CameraView
 
@@ -596,10 +604,12 @@ async def _start_plc(
     http_sock,
     auth_backoff: AuthBackoff | None = None,
     data_dir: Path | None = None,
+    store_reachable: Callable[[], bool | None] | None = None,
 ):
     """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
     service's served calibration when there is one, else ``served``, followed by polling when
-    ``poll``); print their start-up lines. Returns (the services, their loop). OPC UA's certificate:
+    ``poll``; ``store_reachable()``: OPC UA's ``StoreState``); print their start-up lines. Returns
+    (the services, their loop). OPC UA's certificate:
     ``--opcua-cert/--opcua-key``, else the one in ``data_dir``/opcua (created at the first start)."""
     from eyetohand.positioning import LoopThread, PlcServices, ServerCertificate, reachable_addresses
 
@@ -623,6 +633,7 @@ async def _start_plc(
         locate=locate,
         auth_backoff=auth_backoff,
         security=security,
+        store_reachable=store_reachable,
     )
     plc_loop = LoopThread("eyetohand-plc")
     try:
