@@ -326,6 +326,58 @@ def test_a_notification_wakes_the_follower_at_once(pg_url):
         writer.close()
 
 
+def test_a_notification_wakes_the_line_service_at_once(pg_url, paper_pairs):
+    """The TCP line service polls every 30 s here, but the follower's notification wakes it
+    (``LineServer.wake``, as ``serve`` wires it): another connection's new version is answered to a
+    robot's ``VERSION`` within a second."""
+    import asyncio
+    import socket
+    import time
+
+    from eyetohand import calibrate
+    from eyetohand.core import PointPairs
+    from eyetohand.positioning import LineServer, LoopThread
+    from eyetohand.server.follow import Follower
+    from eyetohand.server.stored import StoredCalibration
+
+    pairs, _ = paper_pairs
+    shifted = PointPairs(pairs.uv_px, pairs.xyz_mm + [5.0, 0.0, 0.0], pairs.ids)
+    cals = [calibrate(p, model="homography", optimizer="lm", loo=False).to_dict() for p in (pairs, shifted)]
+    s, writer, follow_store = open_store(pg_url), open_store(pg_url), open_store(pg_url)
+    a = writer.create("a", {}, cals[0], [], None)
+    loop = LoopThread("test-tcp")
+    server = LineServer(StoredCalibration(s, a.id), "127.0.0.1", 0, poll_s=30.0)
+    f = Follower(follow_store, lambda _cal_id: server.wake(), poll_s=30.0)
+
+    def version() -> str:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=5) as sock:
+            sock.sendall(b"VERSION\n")
+            return sock.makefile().readline().strip()
+
+    try:
+        asyncio.run(_call_on(loop, server.start()))
+        f.start()
+        time.sleep(1.0)  # the follower's first poll and its LISTEN are in place
+        assert version().startswith("OK a,1,")
+        t0 = time.monotonic()
+        writer.add_version(a.id, {}, cals[1], [], None, "elsewhere")
+        while not version().startswith("OK a,2,") and time.monotonic() - t0 < 5:
+            time.sleep(0.02)
+        took_s = time.monotonic() - t0
+        print(f"line service answered the new version {took_s:.3f} s after the write")
+        assert version().startswith("OK a,2,") and took_s < 1.0, took_s
+    finally:
+        f.stop()
+        loop.loop.call_soon_threadsafe(server.close)
+        loop.stop()
+        for st in (s, writer, follow_store):
+            st.close()
+
+
+async def _call_on(loop, coro):
+    return await loop.call(coro)
+
+
 def test_an_id_beyond_int64_is_not_found(store):
     store.create("a", {}, cal(1), [], None)
     for ref in ("id:" + "9" * 30, "9" * 30):

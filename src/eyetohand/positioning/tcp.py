@@ -87,18 +87,28 @@ class _Poller:
     def __init__(self, server: LineServer, poll_s: float):
         self.server, self.poll_s = server, poll_s
         self._stop = threading.Event()
+        self._wake = threading.Event()
         self._thread = threading.Thread(target=self._run, name="eyetohand-tcp-poll", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        while not self._stop.wait(self.poll_s):
+        while True:
+            self._wake.wait(self.poll_s)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
             try:
                 self.server.source.poll()
             except Exception:  # noqa: BLE001 - a poll that breaks is tried again, never ends the thread
                 pass
 
+    def wake(self) -> None:
+        """Poll now rather than at the end of the wait (a change notified by the store)."""
+        self._wake.set()
+
     def stop(self) -> None:
         self._stop.set()
+        self._wake.set()
 
 
 def answer(cal: Calibration, line: bytes, replies: LineReplies = PLAIN_REPLIES) -> bytes:
@@ -301,6 +311,13 @@ class LineServer:
         self.server = await asyncio.start_server(self._client, self.host, self.port, limit=MAX_LINE)
         self.port = self.server.sockets[0].getsockname()[1]
         self._poller = _Poller(self, self.poll_s)
+
+    def wake(self) -> None:
+        """Poll the served calibration now (callable from any thread): the store said something
+        changed (``serve`` wires its follower's notifications here); the timed poll stays, as the
+        fallback."""
+        if self._poller is not None:
+            self._poller.wake()
 
     def follow(self, source: Served, loop: asyncio.AbstractEventLoop | None = None) -> None:
         """Serve (and follow) ``source`` from now on: after a collection created the calibration.

@@ -61,6 +61,8 @@ class Service:
         self._generation: dict[int, int] = {}
         self._image_runs: OrderedDict[str, dict] = OrderedDict()  # job id -> its detections
         self.follower: Follower | None = None  # started with the app (start_following)
+        # told the id of each calibration the follower sees changed (serve: the line service's wake)
+        self.change_listeners: list[Callable[[int], None]] = []
 
     # ------------------------------------------------------------ cache
     def cached(self, cal_id: int, version: int | None = None) -> tuple[int, Calibration] | None:
@@ -122,8 +124,15 @@ class Service:
         from eyetohand.server.follow import Follower
 
         if self.follower is None:
-            self.follower = Follower(self.store, self.refresh, beat=beat)
+            self.follower = Follower(self.store, self._changed, beat=beat)
             self.follower.start()
+
+    def _changed(self, cal_id: int) -> None:
+        """What the follower reports: the listeners told first (a wake-up: cheap, never a read), then
+        the cache refreshed."""
+        for listener in self.change_listeners:
+            listener(cal_id)
+        self.refresh(cal_id)
 
     def store_reachable(self) -> bool | None:
         """Whether the store can be read now, as ``/api/health`` says it (None: not followed yet)."""

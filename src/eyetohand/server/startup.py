@@ -477,6 +477,9 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
 
     run.app = app = _make_app(cfg, ref, fresh_db, http_sock, run.current_or_none, run.backoff)
     run.service = app.state.service
+    line_server = run.line_server
+    if line_server is not None:  # a change the store notifies reaches the robots' lines at once
+        run.service.change_listeners.append(lambda _cal_id: line_server.wake())
     if run.collector is not None:
         from eyetohand.server.routes.collect import CameraView
 
