@@ -1191,12 +1191,13 @@ function fillDiffControl(id, d) {
 }
 async function showDiff() {
   clearError("#diff-err");
+  $("#diff-verdict").hidden = true;
   const q = `a=${diffId}&b=${diffId}&a_version=${$("#diff-a").value}&b_version=${$("#diff-b").value}`;
   const r = await api("GET", `/api/diff?${q}`);
   if (!r.ok) { showError("#diff-err", r.data); $("#diff-verdict").hidden = true; $("#diff-fig").hidden = true; return; }
   const d = r.data, m = d.moved;
   $("#diff-verdict").textContent = `${d.verdict}: ${d.reason} — rms ${fmt(d.rms_mm)} mm, p95 ${fmt(d.p95_mm)} mm, max ${fmt(d.max_mm)} mm, median ratio ${fmt(d.ratio_median, 2)}`
-    + (m ? `; moved dx ${fmt(m.dx_mm)} dy ${fmt(m.dy_mm)} dz ${fmt(m.dz_mm)} mm, ${fmt(m.rotation_deg, 4)}°` : "");
+    + (m ? `; fitted motion dx ${fmt(m.dx_mm)} dy ${fmt(m.dy_mm)} dz ${fmt(m.dz_mm)} mm, ${fmt(m.rotation_deg, 4)}°` : "");
   $("#diff-verdict").hidden = false;
   const p = await loadPlot("#diff-img", `/api/diff.png?${q}&width=${plotWidth()}`);
   if (p.stale) return;
