@@ -1033,6 +1033,7 @@ async function showVersions(id) {
   const d = r.data;
   $("#versions-block").hidden = false;
   $("#versions-name").textContent = `“${d.name}” (current: version ${d.current_version})`;
+  fillDiffControl(id, d);
   const tb = $("#versions-table tbody");
   tb.innerHTML = "";
   for (const v of d.versions.slice().reverse()) {
@@ -1173,3 +1174,34 @@ async function init() {
 // The token (when the server asks for one) is kept in this page only, never stored.
 $("#token").addEventListener("change", () => { $("#global-err").hidden = true; init(); });
 init();
+
+// compare two versions of one calibration (GET /api/diff): default the one in force against the previous
+let diffId = null;
+function fillDiffControl(id, d) {
+  diffId = id;
+  const nums = d.versions.map((v) => v.version);
+  const prev = nums.filter((n) => n < d.current_version).pop() ?? nums[0];
+  for (const [sel, pick] of [["#diff-a", prev], ["#diff-b", d.current_version]]) {
+    const s = $(sel);
+    s.innerHTML = "";
+    for (const n of nums) s.appendChild(el("option", { value: String(n) }, `v${n}`));
+    s.value = String(pick);
+  }
+  $("#diff-verdict").hidden = true; $("#diff-fig").hidden = true; clearError("#diff-err");
+}
+async function showDiff() {
+  clearError("#diff-err");
+  $("#diff-verdict").hidden = true;
+  const q = `a=${diffId}&b=${diffId}&a_version=${$("#diff-a").value}&b_version=${$("#diff-b").value}`;
+  const r = await api("GET", `/api/diff?${q}`);
+  if (!r.ok) { showError("#diff-err", r.data); $("#diff-verdict").hidden = true; $("#diff-fig").hidden = true; return; }
+  const d = r.data, m = d.moved;
+  $("#diff-verdict").textContent = `${d.verdict}: ${d.reason} — rms ${fmt(d.rms_mm)} mm, p95 ${fmt(d.p95_mm)} mm, max ${fmt(d.max_mm)} mm, median ratio ${fmt(d.ratio_median, 2)}`
+    + (m ? `; fitted motion dx ${fmt(m.dx_mm)} dy ${fmt(m.dy_mm)} dz ${fmt(m.dz_mm)} mm, ${fmt(m.rotation_deg, 4)}°` : "");
+  $("#diff-verdict").hidden = false;
+  const p = await loadPlot("#diff-img", `/api/diff.png?${q}&width=${plotWidth()}`);
+  if (p.stale) return;
+  if (!p.ok) { showError("#diff-err", { error: p.error, field: null }); }
+  $("#diff-fig").hidden = !p.ok;
+}
+$("#diff-go").addEventListener("click", showDiff);
