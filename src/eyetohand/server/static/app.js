@@ -1034,6 +1034,7 @@ async function showVersions(id) {
   $("#versions-block").hidden = false;
   $("#versions-name").textContent = `“${d.name}” (current: version ${d.current_version})`;
   fillDiffControl(id, d);
+  showAudit(id);
   const tb = $("#versions-table tbody");
   tb.innerHTML = "";
   for (const v of d.versions.slice().reverse()) {
@@ -1205,3 +1206,23 @@ async function showDiff() {
   $("#diff-fig").hidden = !p.ok;
 }
 $("#diff-go").addEventListener("click", showDiff);
+
+// who changed this calibration, when and why (GET /api/audit, newest first)
+async function showAudit(id) {
+  clearError("#audit-err");
+  const tb = $("#audit-table tbody");
+  tb.innerHTML = "";
+  const r = await api("GET", `/api/audit?calibration=id:${id}&limit=20`);
+  if (!r.ok) { showError("#audit-err", r.data); return; }
+  for (const e of r.data.entries) {
+    const tr = el("tr");
+    tr.appendChild(td(e.utc.replace("T", " ").slice(0, 19), "text"));
+    tr.appendChild(td(e.user, "text"));
+    tr.appendChild(td(e.action.replace("_", " "), "text"));
+    tr.appendChild(td(e.version_before === null ? "" : String(e.version_before)));
+    tr.appendChild(td(e.version_after === null ? "" : String(e.version_after)));
+    tr.appendChild(td(e.note, "text"));
+    tb.appendChild(tr);
+  }
+  $("#audit-more").hidden = r.data.next_before === null;
+}
