@@ -213,6 +213,12 @@ def run_calibration(args, pairs, check, extra: dict | None = None, request: FitR
     request = fit_request(args) if request is None else request
     progress = progress_callback(args.optimizer, args.iterations or 150) if request.is_swarm else None
     cal = calibrate_request(request, pairs, check=check, callback=progress)
+    return finish_calibration(args, cal, extra)
+
+
+def finish_calibration(args, cal, extra: dict | None = None) -> int:
+    """The end of every command that makes a calibration (calibrate, calibrate-images, calibrate-plate):
+    save it to ``-o``, its notes and warnings on stderr, the summary (``--json``: with ``extra``)."""
     if args.output:
         cal.save(args.output)
     for note in cal.notes:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import sys
 
-from eyetohand.cli.common import calibration_summary, emit_json, print_calibration
+from eyetohand.cli.common import finish_calibration
 from eyetohand.core import ROBOT_UNITS, InputError, atomic_write_bytes, load_pairs
 
 
@@ -68,27 +68,14 @@ def cmd_calibrate_plate(args) -> int:
         loo=args.loo,
         robot_units=args.robot_units,
     )
-    if args.output:
-        cal.save(args.output)
-    for note in cal.notes:
-        print(f"note: {note}", file=sys.stderr)
-    for warning in cal.warnings:
-        print(f"warning: {warning}", file=sys.stderr)
-    if args.json:
-        out = calibration_summary(cal)
-        out["plate"] = {
-            "spec": spec.text,
-            "placements": [
-                {"image": p.image + 1, "rms_mm": p.fit.rms_mm, "noise_mm": p.noise_mm, "scale": p.fit.scale}
-                for p in (cal.plate.placements if cal.plate else ())
-            ],
-        }
-        if args.output:
-            out["output"] = str(args.output)
-        emit_json(out)
-    else:
-        print_calibration(cal, args.output)
-    return 0
+    plate = {
+        "spec": spec.text,
+        "placements": [
+            {"image": p.image + 1, "rms_mm": p.fit.rms_mm, "noise_mm": p.noise_mm, "scale": p.fit.scale}
+            for p in (cal.plate.placements if cal.plate else ())
+        ],
+    }
+    return finish_calibration(args, cal, {"plate": plate})
 
 
 def cmd_simulate_plate(args) -> int:
