@@ -33,6 +33,7 @@ from eyetohand.calibration.diff import ALPHA, Difference, Verdict, diff
 from eyetohand.calibration.file import Calibration
 from eyetohand.calibration.fit import calibrate
 from eyetohand.calibration.request import AUTO, resolve_model
+from eyetohand.calibration.verify import check_tolerance
 from eyetohand.core import DegenerateError, InputError, PointPairs
 from eyetohand.solve import check_seed
 
@@ -162,8 +163,8 @@ def crossval(
     choice = resolve_model(model)  # an unknown name refused in the library's words, listing the choices
     if not (isinstance(k, int) and not isinstance(k, bool) and 1 <= k <= MAX_K):
         raise InputError(f"k: expected a whole number of splits from 1 to {MAX_K}, got {k!r}")
-    if tolerance_mm is not None and not (math.isfinite(tolerance_mm) and tolerance_mm > 0):
-        raise InputError(f"tolerance: expected a positive number of mm, got {tolerance_mm!r}")
+    if tolerance_mm is not None:
+        tolerance_mm = check_tolerance(tolerance_mm)  # verify's rule and words (a bool or text refused too)
     seed = check_seed(seed)
     n = len(pairs.uv_px)
     if n < 2 * MIN_HALF:
