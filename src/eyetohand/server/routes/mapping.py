@@ -176,11 +176,15 @@ async def read_body(request: Request) -> bytes | bytearray:
     return buf
 
 
-async def map_body(request: Request) -> tuple[MapRequest, np.ndarray]:
-    body = await read_body(request)
+async def parsed(body: bytes | bytearray) -> tuple[MapRequest, np.ndarray]:
+    """:func:`parse_map_body`, inline for a small body, off the loop for a large one."""
     if len(body) <= INLINE_BYTES:
         return parse_map_body(body)
     return await run_in_threadpool(parse_map_body, body)
+
+
+async def map_body(request: Request) -> tuple[MapRequest, np.ndarray]:
+    return await parsed(await read_body(request))
 
 
 def request_units(req: MapRequest) -> OutputUnits:
@@ -333,7 +337,11 @@ class FastMap:
     unchanged, the body read here handed on: a query (``version``), another id spelling, a body over
     :data:`INLINE_BYTES` or in pieces, more than :data:`INLINE_POINTS` points, a calibration not cached,
     and every refusal or failure (re-done by the route, so each keeps its one path, status and words).
-    Installed innermost: every guard (Host, Origin, token, database, body size) runs before it."""
+    Installed innermost: every guard (Host, Origin, token, database, body size) runs before it.
+
+    The calibration is taken from the cache once the body has arrived, never before: a body that
+    comes seconds after its headers is answered with the version in force then (a DELETE or a
+    rollback meanwhile is not undone by a request that was already on its way)."""
 
     def __init__(self, app, service):
         self.app = app
@@ -349,12 +357,14 @@ class FastMap:
             return await self.app(scope, receive, send)
         m = _CAL_MAP_PATH.fullmatch(scope["path"])
         cal_id = int(m.group(1)) if m is not None else 0
-        hit = self.service.cached(cal_id) if 0 < cal_id <= _MAX_ID else None
-        if hit is None:
+        if not 0 < cal_id <= _MAX_ID or self.service.cached(cal_id) is None:  # a miss: the route reads it
             return await self.app(scope, receive, send)
         msg = await receive()
         body = msg.get("body", b"")
-        if msg["type"] == "http.request" and not msg.get("more_body", False) and len(body) <= INLINE_BYTES:
+        complete = msg["type"] == "http.request" and not msg.get("more_body", False)
+        # taken now that the body is here: what is in force when the request is complete
+        hit = self.service.cached(cal_id) if complete and len(body) <= INLINE_BYTES else None
+        if hit is not None:
             try:
                 req, pts = parse_map_body(body)
                 content = _work(hit[1], req, pts, cal_id, hit[0]) if len(pts) <= INLINE_POINTS else None
@@ -380,11 +390,12 @@ class FastMap:
 async def image_to_robot(cal_id: CalId, request: Request, version: VersionQ = None):
     """Map image points (px) to robot points (mm) with a stored calibration."""
     svc = request.app.state.service
+    body = await read_body(request)  # first: the calibration in force is the one once the body is here
     hit = svc.cached(cal_id, version)
     if hit is None:
         ver, cal = await run_in_threadpool(svc.calibration, cal_id, version)
         hit = (ver.version, cal)
-    req, pts = await map_body(request)
+    req, pts = await parsed(body)
     return await mapped(hit[1], req, pts, cal_id, hit[0])
 
 
