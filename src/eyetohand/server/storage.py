@@ -113,12 +113,33 @@ def etag_of(cal_id: int, version: int, name: str) -> str:
     return f'"{cal_id}.{version}.{digest}"'
 
 
+class WeakTag(ValueError):
+    """An ``If-Match`` holding a weak ETag (``W/"…"``): refused, never compared (HTTP answers 400)."""
+
+
+def weak_tag_refusal(if_match: str) -> str | None:
+    """Why ``if_match`` is refused when it holds a weak ETag, else None: If-Match compares strongly
+    (RFC 9110, 13.1.1), so ``W/"…"`` never matches, and taking it as the strong tag would pass a
+    condition the client did not set. The words of every interface (the HTTP header's too)."""
+    weak = next((t.strip() for t in if_match.split(",") if t.strip().startswith("W/")), None)
+    if weak is None:
+        return None
+    return (
+        f"If-Match: {weak[:80]!r} is a weak ETag; If-Match compares ETags strongly (RFC 9110, "
+        "13.1.1): send the ETag as the server gave it, without W/"
+    )
+
+
 def require_match(rec: Record, if_match: str | None) -> None:
     """:class:`Conflict` unless ``if_match`` (an ``If-Match`` value: ETags separated by commas, or
-    ``*``; None: no condition) names ``rec``'s current state."""
+    ``*``; None: no condition) names ``rec``'s current state; :class:`WeakTag` when it holds a weak
+    ETag (:func:`weak_tag_refusal`)."""
     if if_match is None:
         return
-    given = [t.strip().removeprefix("W/") for t in if_match.split(",")]
+    weak = weak_tag_refusal(if_match)
+    if weak is not None:
+        raise WeakTag(weak)
+    given = [t.strip() for t in if_match.split(",")]
     if "*" in given or rec.etag in given:
         return
     raise Conflict(

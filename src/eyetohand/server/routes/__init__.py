@@ -12,6 +12,7 @@ from starlette.exceptions import HTTPException
 
 from eyetohand.server.core import ApiError
 from eyetohand.server.service import Service
+from eyetohand.server.storage import weak_tag_refusal
 
 
 def get_service(request: Request) -> Service:
@@ -48,14 +49,9 @@ def if_match_header(
             "of a write's answer",
             "If-Match",
         )
-    weak = next((t.strip() for t in value.split(",") if t.strip().startswith("W/")), None)
+    weak = weak_tag_refusal(value)  # the store's require_match refuses it with the same words
     if weak is not None:
-        raise ApiError(
-            400,
-            f"If-Match: {weak[:80]!r} is a weak ETag; If-Match compares ETags strongly (RFC 9110, "
-            "13.1.1): send the ETag as the server gave it, without W/",
-            "If-Match",
-        )
+        raise ApiError(400, weak, "If-Match")
     return value
 
 
