@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 from eyetohand.server.storage import StorageError, Store
 
-POLL_S = 0.5
+POLL_S = 0.25  # as the TCP line service's poll: every interface follows within the same ~0.25 s
 LOG = logging.getLogger("eyetohand.store")
 
 
@@ -77,6 +77,9 @@ class Follower:
         self.state = StoreState(store.where, store.dialect, True)
 
     def start(self) -> None:
+        """The first poll now (the trail's last entry is where following starts: a change made between
+        this and the first request is then seen), then the threads."""
+        self._step()
         self._threads.append(threading.Thread(target=self._run, name="eyetohand-follow", daemon=True))
         if self.store.dialect == "postgresql":
             self._threads.append(threading.Thread(target=self._listen, name="eyetohand-listen", daemon=True))
@@ -117,15 +120,18 @@ class Follower:
             now = _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
             self.state = StoreState(self.store.where, self.store.dialect, False, now, reason, self.last)
 
+    def _step(self) -> None:
+        try:
+            self.poll()
+            self._failing = ""
+        except Exception as exc:  # noqa: BLE001 - a bug must not end the following: said once, tried again
+            if repr(exc) != self._failing:
+                self._failing = repr(exc)
+                LOG.exception("following the store %s failed; trying again", self.store.where)
+
     def _run(self) -> None:
         while not self._stop.is_set():
-            try:
-                self.poll()
-                self._failing = ""
-            except Exception as exc:  # noqa: BLE001 - a bug must not end the following: said once, tried again
-                if repr(exc) != self._failing:
-                    self._failing = repr(exc)
-                    LOG.exception("following the store %s failed; trying again", self.store.where)
+            self._step()
             if self.beat is not None and time.monotonic() >= self._next_beat and self.state.reachable:
                 self._next_beat = time.monotonic() + self.beat_s
                 try:

@@ -96,15 +96,19 @@ class Service:
     def refresh(self, cal_id: int) -> None:
         """A change made elsewhere (:class:`~eyetohand.server.follow.Follower`): the cached current
         version replaced by the one now in force (read and decoded before the old one is dropped, so
-        a store that fails meanwhile leaves the version in force), or dropped when it was deleted."""
+        a store that fails meanwhile leaves the version in force), or every cached version dropped when
+        the calibration was deleted. The generation moves first, so a request that read the store
+        before the change cannot put what it read into the cache after it."""
         with self._lock:
+            gen = self._generation[cal_id] = self._generation.get(cal_id, 0) + 1
             had = self._current.get(cal_id)
-        if had is None:
+            pinned = had is not None or any(k[0] == cal_id for k in self._by_version)
+        if not pinned:
             return  # nothing cached: the next request reads it
         now = self.store.current(cal_id)
         if now is None:
             self.invalidate(cal_id, versions_too=True)
-        elif now[1] != had[0]:
+        elif had is not None and now[1] != had[0]:
             from eyetohand.core import InputError
 
             ver = self.store.version(cal_id, now[1])
@@ -113,10 +117,15 @@ class Service:
             except InputError:  # unusable: dropped, so the next request reads it and says why
                 self.invalidate(cal_id)
                 return
-            self.invalidate(cal_id)
             with self._lock:
+                if self._generation.get(cal_id, 0) != gen:  # a write here meanwhile: it dropped its own
+                    self._current.pop(cal_id, None)
+                    return
                 self._current[cal_id] = (ver.version, cal)
                 self._by_version[(cal_id, ver.version)] = cal
+                self._by_version.move_to_end((cal_id, ver.version))
+                while len(self._by_version) > self.CACHE_SIZE:
+                    self._by_version.popitem(last=False)
 
     def start_following(self, beat: Callable[[], None] | None = None) -> None:
         """Follow the store's changes (the app's start-up): see :mod:`~eyetohand.server.follow`;
