@@ -1,11 +1,11 @@
-"""Two real `eyetohand serve` processes on one data folder (the default SQLite store): whatever one writes,
-every interface of the other maps with the version in force in the store (issue 40: A's HTTP answered
-the old version indefinitely, 500 mm away from its TCP line; after a delete, A's mapping still answered
-200 with the deleted version).
+"""Two real `eyetohand serve` processes on one data folder (the default SQLite store), and on one
+PostgreSQL database: whatever one writes, every interface of the other maps with the version in force
+in the store (issue 40: A's HTTP answered the old version indefinitely, 500 mm away from its TCP line;
+after a delete, A's mapping still answered 200 with the deleted version).
 
 A serves HTTP (the fast path: one point; the route: 2500 points, a body the fast path hands on), the TCP
 line, Modbus (pymodbus's client) and OPC UA (asyncua's client) with ``--calibration cell``; B, on the
-same ``--data``, posts a version 500 mm away in x, then rolls back, then deletes. After each write every
+same store, posts a version 500 mm away in x, then rolls back, then deletes. After each write every
 interface of A is polled until it answers with the new state, under a deadline (no fixed sleeps); the
 delays measured are printed (``-s``)."""
 
@@ -180,16 +180,21 @@ def _follow(a: Interfaces, want, what: str) -> dict[str, float]:
     return took
 
 
-def test_every_interface_of_a_follows_what_b_writes(tmp_path, cal_dicts):
+@pytest.mark.parametrize("kind", ["data folder", "postgresql"])
+def test_every_interface_of_a_follows_what_b_writes(tmp_path, cal_dicts, kind, request):
+    """On one ``--data`` folder (the default SQLite store), and on one PostgreSQL database (``--store``:
+    the plant's shared store; each process has its own data folder there)."""
     data = tmp_path / "data"
-    store = open_store(data, create=True)
+    where = ["--store", request.getfixturevalue("pg_url")] if kind == "postgresql" else []
+    store = open_store(where[1] if where else data, create=True)
     try:
         pairs = pairs_from_records(records(PAPER / "calibration_points.csv")).to_records()
         cid = store.create("cell", {"source": "import"}, cal_dicts[0], pairs, None).id
     finally:
         store.close()
-    a = ServeProcess(data, "--calibration", "cell", "--modbus", "127.0.0.1:0", "--opcua", "127.0.0.1:0")
-    b = ServeProcess(data, "--calibration", "cell")
+    serving = [*where, "--calibration", "cell"]
+    a = ServeProcess(data, *serving, "--modbus", "127.0.0.1:0", "--opcua", "127.0.0.1:0")
+    b = ServeProcess(data if not where else tmp_path / "data-b", *serving)
     probe = None
     try:
         from eyetohand.calibration import Calibration
