@@ -186,3 +186,82 @@ def test_token_file_roles(tmp_path, text, roles):
     f.write_text(text)
     _, got = read_token_roles(str(f), given=False)
     assert {k: r.label for k, r in got.items()} == roles
+
+
+def test_the_line_and_plc_services_refuse_an_unsigned_version_in_the_same_words(tmp_path):
+    """What TCP, Modbus and OPC UA map with (server/stored.py): the current version, refused while it
+    waits for a signature (Modbus register 101 and OPC UA: status NO_CALIBRATION, the HTTP words as
+    its reason), served at the next poll once a signer signed it."""
+    from eyetohand.core import Actor, acting_as
+    from eyetohand.positioning import Status, map_point
+    from eyetohand.server.signatures import SigningPolicy
+    from eyetohand.server.stored import StoredCalibration
+
+    with app_client(tmp_path, sign_key=KEY, require_signed=True) as c:
+        cid = c.post("/api/calibrations", json=fit_body("cell"), headers=bearer("otto")).json()["id"]
+        http = map_x(c, cid).json()["error"]
+        store = c.app.state.service.store  # type: ignore[attr-defined]
+        served = StoredCalibration(store, cid, signing=SigningPolicy(KEY, True))  # starts: waits
+        res = map_point(served, *UV[0])
+        assert res.status == Status.NO_CALIBRATION and res.reason == http, (res, http)
+        assert served.problem() is not None and served.problem().broken  # OPC UA State: Error
+        with acting_as(Actor("sam", Role.SIGNER)):
+            SigningPolicy(KEY, True).sign(store, store.version(cid, 1))
+        served.poll()
+        assert map_point(served, *UV[0]).status == Status.OK
+        # without --require-signed the same unsigned version is served as before
+        c.post(f"/api/calibrations/{cid}/versions", json=refit_body(1.0), headers=bearer("otto"))
+        served.poll()
+        assert map_point(served, *UV[0]).status == Status.NO_CALIBRATION
+        assert map_point(StoredCalibration(store, cid, signing=SigningPolicy(KEY, False)), *UV[0]).ok
+
+
+def test_tcp_takes_every_named_token_and_its_role(tmp_path):
+    """The line service: AUTH with any holder's token (not only the first); CAL refused to a viewer in
+    the HTTP guard's words (the connection stays open); a command acts as the connection's holder; a
+    later AUTH with another holder's token is refused."""
+    import asyncio
+
+    from eyetohand import calibrate, load_pairs
+    from eyetohand.core import current_actor
+    from eyetohand.positioning import LineServer
+
+    cal = calibrate(load_pairs(PAPER / "calibration_points.csv"), model="homography", optimizer="lm")
+
+    async def talk(srv: LineServer, *lines: str) -> list[str]:
+        reader, writer = await asyncio.open_connection("127.0.0.1", srv.port)
+        out = []
+        for line in lines:
+            writer.write(line.encode() + b"\n")
+            await writer.drain()
+            out.append((await reader.readline()).decode().strip())
+        writer.close()
+        return out
+
+    async def main() -> list[list[str]]:
+        srv = LineServer(
+            cal,
+            "127.0.0.1",
+            0,
+            token=TokenTable(TOKENS, ROLES),
+            commands={"CAL": lambda line: f"OK {line} by {current_actor().name}"},
+            command_roles={"CAL": Role.OPERATOR},
+        )
+        await srv.start()
+        try:
+            return [
+                await talk(srv, f"AUTH {TOKENS['vera']}", "CAL BEGIN x", "1000,800"),
+                await talk(srv, f"AUTH {TOKENS['otto']}", "CAL BEGIN x", f"AUTH {TOKENS['sam']}"),
+                await talk(srv, f"AUTH {TOKENS['sam']}", "CAL BEGIN y"),
+            ]
+        finally:
+            srv.close()
+
+    vera, otto, sam = asyncio.run(main())
+    assert (
+        vera[0] == "OK" and vera[1] == "ERR token 'vera' has role viewer; CAL needs role operator or signer"
+    )
+    assert not vera[2].startswith("ERR"), vera  # still open, and a viewer maps
+    assert otto[:2] == ["OK", "OK CAL BEGIN x by otto"]
+    assert otto[2].startswith("ERR send 'AUTH"), otto  # one connection, one holder
+    assert sam == ["OK", "OK CAL BEGIN y by sam"]

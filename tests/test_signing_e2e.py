@@ -52,6 +52,14 @@ def tcp_x(port: int, who: str = "vera") -> str:
     return tcp_lines(port, TOKENS[who][1], f"{UV[0]:g},{UV[1]:g}")[0]
 
 
+def sign_cli(tmp_path, url: str, who: str) -> subprocess.CompletedProcess:
+    """``eyetohand sign cell --server URL --token-file F`` (the current version) as ``who``."""
+    own = tmp_path / f"{who}.token"
+    own.write_text(TOKENS[who][1] + "\n")
+    cmd = [sys.executable, "-m", "eyetohand.cli", "sign", "cell", "--server", url, "--token-file", str(own)]
+    return subprocess.run(cmd, capture_output=True, text=True, env=src_env(), timeout=60)
+
+
 def until(check, timeout_s: float = 5.0):
     """``check()``'s value once it is truthy (the line service follows the store within ~1 s)."""
     deadline = time.monotonic() + timeout_s
@@ -99,11 +107,18 @@ def test_signing_is_an_act_and_require_signed_covers_what_is_served(tmp_path):
             r = c.get("/api/calibrations/1/export", headers=headers("vera"))
             assert "signature" not in r.json() and r.headers["X-Signature"].startswith("unsigned"), r.headers
             unsigned_export = r.json()
-            for who in ("otto", "vera"):
-                r = c.post("/api/calibrations/1/versions/2/sign", headers=headers(who))
-                assert r.status_code == 403 and "needs role signer" in r.json()["error"], r.text
-            r = c.post("/api/calibrations/1/versions/2/sign", headers=headers("sam"))
-            assert r.status_code == 200 and r.json()["signature"]["signed_by"] == "sam", r.text
+            r = c.post("/api/calibrations/1/versions/2/sign", headers=headers("vera"))
+            assert r.status_code == 403 and "needs role signer" in r.json()["error"], r.text
+            run = sign_cli(tmp_path, srv.url, "otto")  # the CLI path: an operator is refused
+            assert run.returncode == 2 and run.stderr.strip() == (
+                f"error: {srv.url}: 403 token 'otto' has role operator; POST /api/calibrations/1/versions/2/"
+                "sign needs role signer (field Authorization)"
+            ), run
+            assert c.get("/api/calibrations/1", headers=headers("vera")).json()["signature"] is None
+            run = sign_cli(tmp_path, srv.url, "sam")
+            assert run.returncode == 0 and run.stdout.startswith(
+                "signed calibration 'cell' version 2 as sam"
+            ), run
             line = until(lambda: not (ln := tcp_x(srv.tcp_port)).startswith("ERR") and ln)
             x_signed = float(line.split(",")[0])
             assert abs(x_signed - (x_true + 100.0)) < 0.5, (x_true, x_signed)  # the signed version, served
