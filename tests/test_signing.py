@@ -265,3 +265,17 @@ def test_tcp_takes_every_named_token_and_its_role(tmp_path):
     assert otto[:2] == ["OK", "OK CAL BEGIN x by otto"]
     assert otto[2].startswith("ERR send 'AUTH"), otto  # one connection, one holder
     assert sam == ["OK", "OK CAL BEGIN y by sam"]
+
+
+def test_opcua_takes_every_named_token():
+    """The OPC UA user check: user 'eyetohand' with any holder's token, or the holder's own name with
+    its token (the session is that holder); a name with another holder's token is refused."""
+    from eyetohand.core import AuthBackoff
+    from eyetohand.positioning.opcua import _user_manager
+
+    users = _user_manager(TokenTable(TOKENS, ROLES), AuthBackoff())
+    assert users.get_user(None, "eyetohand", TOKENS["vera"]).name == "vera"
+    assert users.get_user(None, "eyetohand", TOKENS["otto"]).name == "otto"
+    assert users.get_user(None, "sam", TOKENS["sam"]).name == "sam"
+    assert users.get_user(None, "vera", TOKENS["sam"]) is None
+    assert users.get_user(None, "eyetohand", "wrong-token") is None
