@@ -14,8 +14,11 @@ import time
 import httpx
 from fastapi.testclient import TestClient
 from helpers import PAPER, ServeProcess, records, src_env
+from pymodbus.client import ModbusTcpClient
 
 from eyetohand.core import Role, TokenTable
+from eyetohand.positioning import Status
+from eyetohand.positioning import registers as R
 from eyetohand.server.app import create_app
 
 PAIRS = records(PAPER / "calibration_points.csv")
@@ -60,6 +63,30 @@ def sign_cli(tmp_path, url: str, who: str) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, capture_output=True, text=True, env=src_env(), timeout=60)
 
 
+def modbus_port(srv: ServeProcess) -> int:
+    line = next(x for x in srv.out if x.startswith("Modbus"))
+    return int(line.split()[1].rsplit(":", 1)[1].split("/")[0])
+
+
+_ids = iter(range(1, 60000))
+
+
+def modbus_map(client: ModbusTcpClient) -> dict:
+    """One mapping through the register map (docs/plc.md): the inputs, a new request id, then the
+    result block once it echoes the id."""
+    req_id = next(_ids)
+    regs = R.encode_request(R.Request(req_id, UV[0], UV[1], None, None, False), "big")
+    assert not client.write_registers(1, regs[1:], device_id=1).isError()
+    assert not client.write_registers(0, [req_id], device_id=1).isError()
+    deadline = time.monotonic() + 5
+    while True:
+        r = client.read_holding_registers(R.RESULT_ID, count=R.RESULT_END - R.RESULT_ID, device_id=1)
+        out = R.decode_result(list(r.registers), "big")
+        if out["request_id"] == req_id:
+            return out
+        assert time.monotonic() < deadline, out
+
+
 def until(check, timeout_s: float = 5.0):
     """``check()``'s value once it is truthy (the line service follows the store within ~1 s)."""
     deadline = time.monotonic() + timeout_s
@@ -89,9 +116,11 @@ def test_signing_is_an_act_and_require_signed_covers_what_is_served(tmp_path):
         assert r.status_code == 201 and r.json()["signature"] is None, r.text
         assert c.post("/api/calibrations/1/versions/1/sign", headers=headers("sam")).status_code == 200
 
-    srv = ServeProcess(data, *opts, "--calibration", "cell")
+    srv = ServeProcess(data, *opts, "--calibration", "cell", "--modbus", "127.0.0.1:0")
     try:
         assert srv.tcp_port is not None
+        plc = ModbusTcpClient("127.0.0.1", port=modbus_port(srv), timeout=5)
+        assert plc.connect()
         true_line = tcp_x(srv.tcp_port)  # any named token authenticates on TCP (not only the first)
         assert not true_line.startswith("ERR"), true_line
         x_true = float(true_line.split(",")[0])
@@ -104,6 +133,7 @@ def test_signing_is_an_act_and_require_signed_covers_what_is_served(tmp_path):
             assert words.startswith("calibration 'cell' version 2 waits for a signature")
             line = until(lambda: (ln := tcp_x(srv.tcp_port)).startswith("ERR") and ln)
             assert line == f"ERR {words}", (line, words)  # one rule, one wording
+            assert modbus_map(plc)["status"] == Status.NO_CALIBRATION  # the PLC: no usable calibration
             r = c.get("/api/calibrations/1/export", headers=headers("vera"))
             assert "signature" not in r.json() and r.headers["X-Signature"].startswith("unsigned"), r.headers
             unsigned_export = r.json()
@@ -124,6 +154,8 @@ def test_signing_is_an_act_and_require_signed_covers_what_is_served(tmp_path):
             assert abs(x_signed - (x_true + 100.0)) < 0.5, (x_true, x_signed)  # the signed version, served
             r = c.post("/api/calibrations/1/image-to-robot", json={"points": [UV]}, headers=headers("vera"))
             assert r.status_code == 200 and abs(r.json()["points"][0][0] - x_signed) < 1e-6, r.text
+            got = until(lambda: (m := modbus_map(plc))["status"] == Status.OK and m)
+            assert got and abs(got["x"] - x_signed) <= 0.0005 + 1e-9, got  # µm registers
             r = c.get("/api/calibrations/1/export", headers=headers("vera"))
             assert r.headers["X-Signature"].startswith("signed by sam"), r.headers
             signed_export = r.json()
@@ -134,6 +166,7 @@ def test_signing_is_an_act_and_require_signed_covers_what_is_served(tmp_path):
                 ("sam", "sign", 1),
                 ("otto", "create", 1),
             ]
+        plc.close()
     finally:
         srv.stop()
 
