@@ -119,6 +119,10 @@ def test_signing_is_an_act_and_require_signed_covers_what_is_served(tmp_path):
     srv = ServeProcess(data, *opts, "--calibration", "cell", "--modbus", "127.0.0.1:0")
     try:
         assert srv.tcp_port is not None
+        access = next(x for x in srv.out if x.startswith("access: "))
+        assert access.startswith("access: tokens otto (operator), sam (signer), vera (viewer); signing key ")
+        assert "--require-signed: only signed versions are mapped with" in access
+        assert not any(t in "".join(srv.out) for _, t in TOKENS.values())  # names and roles, never a token
         plc = ModbusTcpClient("127.0.0.1", port=modbus_port(srv), timeout=5)
         assert plc.connect()
         true_line = tcp_x(srv.tcp_port)  # any named token authenticates on TCP (not only the first)

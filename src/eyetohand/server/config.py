@@ -86,6 +86,21 @@ class ServeConfig:
 
         return SigningPolicy(self.sign_key, self.require_signed)
 
+    def access_line(self) -> str | None:
+        """The start-up line that says who may do what (the holders' names and roles, never a token)
+        and how signing stands; None without tokens or key."""
+        from eyetohand.calibration import key_id
+
+        parts = []
+        if self.token_table:
+            holders = ", ".join(f"{a.name} ({a.role.label})" for a, _ in self.token_table.entries)
+            parts.append(f"tokens {holders}")
+        if self.sign_key is not None:
+            parts.append(f"signing key {key_id(self.sign_key)} (a signer signs versions)")
+        if self.require_signed:
+            parts.append("--require-signed: only signed versions are mapped with")
+        return ("access: " + "; ".join(parts)) if parts else None
+
     @property
     def plc_wanted(self) -> bool:
         return self.modbus is not None or self.opcua is not None

@@ -490,6 +490,8 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
         app.state.collect = CameraView(run.collector, run.source)
     port = http_sock.getsockname()[1]
     print(f"workbench: http://{cfg.host}:{port}/  (API docs: /docs; data: {data_dir})", flush=True)
+    if (access := cfg.access_line()) is not None:
+        print(access, flush=True)
     from eyetohand.server.protocol import GuardedH11Protocol  # head and body deadlines (slowloris)
 
     config = uvicorn.Config(
