@@ -3,10 +3,11 @@
 Two `eyetohand serve` processes on loopback, each with one stored calibration fitted on the paper pairs:
 A without signing options, B with `--sign-key K --require-signed` and the version signed by a signer.
 One HTTP client (keep-alive) per server sends REQUESTS single-point `image-to-robot` calls per round,
-alternating A and B in rounds (each first in every other round); reported: the p50 of each and the ratio B / A (a proved version costs a
-set look-up per request; the proof itself, HMAC-SHA256 of the calibration JSON, is paid once per
-version and process). Also the proof's own time in this process (`SigningPolicy.refusal`, min of 5 x
-200), and B's answer while the newest version waits for a signature (HTTP 409) against A's 200.
+alternating A and B in rounds (each first in every other round); reported: the p50 of each and the
+ratio B / A (a proved version costs a set look-up per request; the proof itself, HMAC-SHA256 of the
+calibration JSON, is paid once per version and process). Also the proof's own time in this process
+(`SigningPolicy.refusal`, min of 5 x 200), and B's answer while the newest version waits for a
+signature (HTTP 409).
 """
 
 from __future__ import annotations
