@@ -207,7 +207,9 @@ def test_a_database_of_the_first_schema_is_migrated_keeping_its_rows(ref, store)
         import psycopg
 
         conn = psycopg.connect(ref, autocommit=True)
-        for t in ("cells", "audit", "schema_version", "verifications", "versions", "calibrations"):
+        for t in ("signatures", "cells", "audit", "schema_version", "verifications"):
+            conn.execute(f"DROP TABLE {t}")
+        for t in ("versions", "calibrations"):
             conn.execute(f"DROP TABLE {t}")
         conn.execute("DROP FUNCTION eyetohand_refuse")
 

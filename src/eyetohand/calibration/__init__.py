@@ -34,7 +34,7 @@ if TYPE_CHECKING:
         check_image_size,
         resolve_model,
     )
-    from eyetohand.calibration.signing import load_sign_key
+    from eyetohand.calibration.signing import check_signature, key_id, load_sign_key, signature_of
     from eyetohand.calibration.touches import Touch, load_touches, touches_from_text
     from eyetohand.calibration.verify import append_history, check_tolerance, verify
 else:
@@ -69,7 +69,7 @@ else:
             "plate": ("calibrate_detected", "calibrate_plate"),
             "plate_record": ("PlateImage",),
             "touches": ("Touch", "load_touches", "touches_from_text"),
-            "signing": ("load_sign_key",),
+            "signing": ("check_signature", "key_id", "load_sign_key", "signature_of"),
             "verify": ("append_history", "check_tolerance", "verify"),
         },
     )
@@ -111,6 +111,9 @@ __all__ = [
     "fit_corrected",
     "format_compare",
     "load_sign_key",
+    "check_signature",
+    "key_id",
+    "signature_of",
     "load_touches",
     "mixup",
     "projected_centres_px",

@@ -35,6 +35,7 @@ COMMAND_MODULES = (
     "eyetohand.cli.verify",
     "eyetohand.cli.diff",
     "eyetohand.cli.store",
+    "eyetohand.cli.sign",
 )
 
 
@@ -61,6 +62,7 @@ _COMMANDS = {
     "crossval": "eyetohand.cli.diff",
     "audit": "eyetohand.cli.store",
     "store": "eyetohand.cli.store",
+    "sign": "eyetohand.cli.sign",
 }
 
 

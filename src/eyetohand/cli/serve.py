@@ -23,9 +23,10 @@ def cmd_serve(args) -> int:
     args.token = args.token or os.environ.get("EYETOHAND_TOKEN") or None
     args.tokens = None if args.token is None else {DEFAULT_TOKEN_NAME: args.token}
     # ---- --token-file (http worktree): the token read from a file, so no process listing shows it
+    args.roles = None  # a token without a role: operator
     if getattr(args, "token_file", None) is not None:
-        args.tokens = read_token_file(args.token_file, given=args.token is not None)
-        args.token = next(iter(args.tokens.values()))  # TCP and OPC UA: the file's first token
+        args.tokens, args.roles = read_token_roles(args.token_file, given=args.token is not None)
+        args.token = next(iter(args.tokens.values()))  # the file's first (TCP and OPC UA take every one)
     # ---- end --token-file
     config = check_options(args)  # the options as one typed value, checked once
     data_dir = args.data or default_data_dir()
@@ -38,12 +39,20 @@ def cmd_serve(args) -> int:
 
 
 def read_token_file(path: str, given: bool) -> dict[str, str]:
-    """The named tokens in ``path``: lines ``name:token`` (a name of letters, digits, ``._@-``; the
-    token after the first colon), or one line holding a token alone (named ``default``). Blank lines
-    and ``#`` comments are left out; refused with --token too."""
+    """The named tokens in ``path`` (their roles left out): see :func:`read_token_roles`."""
+    return read_token_roles(path, given)[0]
+
+
+def read_token_roles(path: str, given: bool) -> tuple[dict[str, str], dict]:
+    """The named tokens in ``path`` and their roles (:class:`eyetohand.core.Role`): lines
+    ``name:token`` (role operator, as before roles existed) or ``name:role:token`` with role one of
+    viewer, operator, signer (a name of letters, digits, ``._@-``; the token after the colon that
+    ends the name, or the role); or one line holding a token alone (named ``default``, operator).
+    Blank lines and ``#`` comments are left out; refused with --token too."""
     import re
 
     from eyetohand.cli.common import CliError
+    from eyetohand.core import ROLE_NAMES, Role
     from eyetohand.server import DEFAULT_TOKEN_NAME
 
     if given:
@@ -62,14 +71,19 @@ def read_token_file(path: str, given: bool) -> dict[str, str]:
     if not lines:
         raise CliError(f"--token-file {path}: expected one line holding the token, or lines 'name:token'")
     if len(lines) == 1 and ":" not in lines[0][1]:
-        return {DEFAULT_TOKEN_NAME: lines[0][1]}
+        return {DEFAULT_TOKEN_NAME: lines[0][1]}, {DEFAULT_TOKEN_NAME: Role.OPERATOR}
     tokens: dict[str, str] = {}
+    roles: dict[str, Role] = {}
     for n, ln in lines:
         name, sep, token = (part.strip() for part in ln.partition(":"))
+        role = Role.OPERATOR
+        word, sep2, rest = token.partition(":")
+        if sep2 and word.strip().lower() in ROLE_NAMES:  # name:role:token
+            role, token = Role.parse(word), rest.strip()
         if not sep or not re.fullmatch(r"[A-Za-z0-9._@-]{1,64}", name) or not token:
             raise CliError(
-                f"--token-file {path} line {n}: expected 'name:token' (a name of letters, digits and "
-                "._@- , then the token)"
+                f"--token-file {path} line {n}: expected 'name:token' or 'name:role:token' (a name of "
+                f"letters, digits and ._@- ; a role of {', '.join(ROLE_NAMES)}; then the token)"
             )
         if name in tokens:
             raise CliError(f"--token-file {path} line {n}: the name {name!r} is given twice")
@@ -80,7 +94,8 @@ def read_token_file(path: str, given: bool) -> dict[str, str]:
                 f"--token-file {path} line {n}: the token of {name!r} is shorter than 8 characters"
             )
         tokens[name] = token
-    return tokens
+        roles[name] = role
+    return tokens, roles
 
 
 def add_opcua_certificate_options(p) -> None:
@@ -221,7 +236,8 @@ def register(sub) -> None:
         metavar="FILE",
         default=None,
         help="read the tokens from FILE instead of --token, so no process listing shows them: lines "
-        "'name:token' (the name is the user in the audit trail), or one line holding one token",
+        "'name:token' or 'name:role:token' (the name is the user in the audit trail; role viewer, "
+        "operator (default) or signer: docs/server.md), or one line holding one token",
     )
     p.add_argument(
         "--allow-host",
@@ -236,12 +252,14 @@ def register(sub) -> None:
         metavar="FILE",
         default=None,
         help="HMAC-SHA256 key (>= 16 bytes) that checks signed calibration files (--calibration FILE, "
-        "imports) and signs exports (eyetohand calibrate --sign-key FILE signs files)",
+        "imports) and that a token of role signer signs stored versions with (POST "
+        "/api/calibrations/ID/versions/N/sign; eyetohand sign); an export carries a version's signature",
     )
     p.add_argument(
         "--require-signed",
         action="store_true",
-        help="refuse calibration files not signed with --sign-key (--calibration FILE and imports)",
+        help="serve only what is signed with --sign-key: a --calibration file must be signed; a stored "
+        "version (fit, collection, plate, import) is kept but not mapped with until a signer signs it",
     )
     # ---- end of the http worktree's options
     p.set_defaults(func=cmd_serve)

@@ -5,6 +5,16 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from eyetohand.core.actor import (
+    DEFAULT_TOKEN_NAME,
+    NOBODY,
+    ROLE_NAMES,
+    Actor,
+    Role,
+    TokenTable,
+    acting_as,
+    current_actor,
+)
 from eyetohand.core.backoff import AuthBackoff
 from eyetohand.core.errors import DegenerateError, InputError
 from eyetohand.core.io import (
@@ -44,6 +54,14 @@ else:  # the CSV reader on first use (eyetohand.core.lazy): `eyetohand apply` re
     __getattr__, __dir__ = lazy_exports(__name__, {"csvtext": ("CsvTable", "read_csv")})
 
 __all__ = [
+    "Actor",
+    "DEFAULT_TOKEN_NAME",
+    "TokenTable",
+    "NOBODY",
+    "ROLE_NAMES",
+    "Role",
+    "acting_as",
+    "current_actor",
     "AuthBackoff",
     "ANGLE_UNITS",
     "LENGTH_UNITS",

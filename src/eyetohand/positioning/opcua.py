@@ -31,13 +31,12 @@ the Sign endpoints ask); a None channel only from loopback. Without one: None on
 from __future__ import annotations
 
 import asyncio
-import hmac
 import logging
 import math
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from eyetohand.core import AuthBackoff
+from eyetohand.core import AuthBackoff, TokenTable
 from eyetohand.positioning.locate import NO_CAMERA, refused
 from eyetohand.positioning.mapping import Status, map_point
 from eyetohand.positioning.served import Served
@@ -130,7 +129,7 @@ class OpcUaService:
         host: str,
         port: int,
         *,
-        token: str | None = None,
+        token: str | TokenTable | None = None,
         locate: Callable[..., Any] | None = None,
         auth_backoff: AuthBackoff | None = None,
         security: Security | None = None,
@@ -307,15 +306,16 @@ def _arguments(spec) -> list:
     return out
 
 
-def _user_manager(token: str, backoff: AuthBackoff):
-    """asyncua's user manager: the one user :data:`USER` with the token as password. After repeated
+def _user_manager(token: str | TokenTable, backoff: AuthBackoff):
+    """asyncua's user manager: user :data:`USER` with any of the server's tokens as password, or a
+    token's name (``--token-file``) with its own token; the session is that token's holder. After repeated
     failures from one address (``backoff``), that address's attempts are refused unjudged until the
     delay is over (BadUserAccessDenied, as a wrong password). ``peer``: the address of the session
     being activated, set by :func:`_note_peers` (asyncua's get_user is not told it)."""
     from asyncua.crypto.permission_rules import User, UserRole
     from asyncua.server.user_managers import UserManager
 
-    secret = token.encode()
+    table = TokenTable.of(token)
 
     class Users(UserManager):
         peer = "?"
@@ -328,9 +328,10 @@ def _user_manager(token: str, backoff: AuthBackoff):
             if backoff.wait_s(addr) > 0:
                 return None
             given = password.encode() if isinstance(password, str) else (password or b"")
-            if username == USER and hmac.compare_digest(given, secret):
+            holder = table.match(given)  # every token compared, whatever the user name
+            if holder is not None and username in (USER, holder.name):
                 backoff.succeeded(addr)
-                return User(role=UserRole.User, name=username)
+                return User(role=UserRole.User, name=holder.name)
             backoff.failed(addr, "OPC UA user")
             return None
 

@@ -14,7 +14,7 @@ import asyncio
 from collections.abc import Callable
 from typing import Any
 
-from eyetohand.core import AuthBackoff
+from eyetohand.core import AuthBackoff, TokenTable
 from eyetohand.positioning.modbus import ModbusService
 from eyetohand.positioning.opcua import OpcUaService
 from eyetohand.positioning.opcua_cert import ServerCertificate
@@ -35,7 +35,7 @@ class PlcServices:
         word_order: str = "big",
         allow_from: list | None = None,
         opcua: tuple[str, int] | None = None,
-        token: str | None = None,
+        token: str | TokenTable | None = None,
         locate: Callable[..., Any] | None = None,
         auth_backoff: AuthBackoff | None = None,
         security: ServerCertificate | None = None,
@@ -101,7 +101,9 @@ class PlcServices:
                     "Modbus: flag bit 3 (register 9) LOCATEs parts with the camera -> registers 200..321"
                 )
         if self.opcua is not None:
-            auth = "user 'eyetohand' + token" if self.opcua.token else "anonymous (loopback)"
+            auth = (
+                "user 'eyetohand' (or a token's name) + token" if self.opcua.token else "anonymous (loopback)"
+            )
             out.append(f"OPC UA: {self.opcua.url} Calibration.ImageToRobot ({auth}) with {what}")
             sec = self.security
             if sec is not None:

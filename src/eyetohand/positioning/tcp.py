@@ -21,7 +21,7 @@ effect within a second and a deleted calibration answers ``ERR calibration '<nam
 from __future__ import annotations
 
 import asyncio
-import hmac
+import contextvars
 import math
 import threading
 from collections.abc import Callable
@@ -41,7 +41,17 @@ from eyetohand.cell import (
     line_count,
     line_numbers,
 )
-from eyetohand.core import MM_DEG, AuthBackoff, InputError, OutputUnits
+from eyetohand.core import (
+    MM_DEG,
+    Actor,
+    AuthBackoff,
+    InputError,
+    OutputUnits,
+    Role,
+    TokenTable,
+    acting_as,
+    current_actor,
+)
 from eyetohand.geometry import check_symmetry
 from eyetohand.positioning.served import FixedCalibration, Served
 
@@ -266,7 +276,8 @@ class LineServer:
         *,
         max_clients: int = MAX_CLIENTS,
         idle_s: float = IDLE_S,
-        token: str | None = None,
+        token: str | TokenTable | None = None,
+        command_roles: dict[str, Role] | None = None,
         max_per_peer: int = MAX_PER_PEER,
         auth_s: float = AUTH_S,
         poll_s: float = POLL_S,
@@ -296,7 +307,9 @@ class LineServer:
         self.max_per_peer = max_per_peer
         self.auth_s = auth_s
         self.per_peer: dict[str, int] = {}
-        self.token = token.encode() if token else None
+        # every named token (AUTH with any; the connection then acts as its holder: the audit names it)
+        self.tokens = TokenTable.of(token)
+        self.command_roles = {k.upper(): r for k, r in (command_roles or {}).items()}
         self.host = host
         self.port = port
         self.max_clients = max_clients
@@ -395,7 +408,9 @@ class LineServer:
             self.pending += 1
             try:
                 loop = asyncio.get_running_loop()
-                reply = await loop.run_in_executor(self._pool, handler, line.decode("ascii", "replace"))
+                ctx = contextvars.copy_context()  # the command acts as the connection's token holder
+                text = line.decode("ascii", "replace")
+                reply = await loop.run_in_executor(self._pool, ctx.run, handler, text)
             finally:
                 self.pending -= 1
         return reply.encode("ascii", "replace") + b"\n"
@@ -413,9 +428,11 @@ class LineServer:
         writer.transport.set_write_buffer_limits(high=WRITE_HIGH)
         lines = _Lines()
         try:
-            if self.token is not None and not await self._auth(reader, writer, lines, addr):
+            actor = await self._auth(reader, writer, lines, addr) if self.tokens else current_actor()
+            if actor is None:
                 return
-            await self._serve_lines(reader, writer, lines)
+            with acting_as(actor):
+                await self._serve_lines(reader, writer, lines)
         except (ConnectionError, asyncio.CancelledError):
             pass
         finally:
@@ -423,7 +440,7 @@ class LineServer:
             await _close(writer)
 
     async def _serve_lines(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines) -> None:
-        spoken = self.token is not None  # AUTH was the first line
+        spoken = bool(self.tokens)  # AUTH was the first line
         burst = 0
         idle = _IdleLimit()
         # a mapping line (a digit, sign or point first) names no command: its word is not looked up
@@ -464,6 +481,8 @@ class LineServer:
                             writer.write(self._refusal(writer, ErrorCode.AUTH, AUTH_FIRST))
                             return
                         writer.write(b"OK\n")
+                    elif word in self.commands and (why := self._role_refusal(word)) is not None:
+                        writer.write(self._refusal(writer, ErrorCode.AUTH, why))
                     elif word in self.commands:
                         writer.write(await self._command(word, line))
                     elif word in MISSING:
@@ -488,7 +507,8 @@ class LineServer:
 
     async def _auth(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines: _Lines, addr: str
-    ) -> bool:
+    ) -> Actor | None:
+        """The holder of the token of the connection's first line ``AUTH <token>``, or None (refused)."""
         line = b""
         try:
             async with asyncio.timeout(min(self.auth_s, self.idle_s)):
@@ -500,10 +520,9 @@ class LineServer:
                 line = got or b""
         except TimeoutError:
             pass
-        assert self.token is not None  # _auth runs only with a token
         if line[:5].upper() != b"AUTH ":
             writer.write(self.replies.refusal(Refusal(ErrorCode.AUTH, AUTH_FIRST)))
-            return False  # no token tried (nothing said, or another line first): not counted
+            return None  # no token tried (nothing said, or another line first): not counted
         wait_s = self.auth_backoff.wait_s(addr)
         if wait_s > 0:  # too many failures from this address: refused without looking at the token
             why = (
@@ -511,20 +530,33 @@ class LineServer:
                 f"judged in {math.ceil(wait_s)} s; closing"
             )
             writer.write(self.replies.refusal(Refusal(ErrorCode.AUTH, why)))
-            return False
-        if self._token_ok(line):
+            return None
+        actor = self._holder(line)
+        if actor is not None:
             self.auth_backoff.succeeded(addr)
             writer.write(b"OK\n")
-            return True
+            return actor
         self.auth_backoff.failed(addr, "TCP AUTH")
         writer.write(self.replies.refusal(Refusal(ErrorCode.AUTH, AUTH_FIRST)))
-        return False
+        return None
 
     def _token_ok(self, line: bytes) -> bool:
-        """``AUTH <token>`` with this server's token (any ``AUTH`` line when it has none: a robot program
-        that always authenticates talks to a loopback server without a token too)."""
+        """``AUTH <token>`` with one of this server's tokens (any ``AUTH`` line when it has none: a robot
+        program that always authenticates talks to a loopback server without a token too); a later
+        ``AUTH`` with another holder's token is refused (a connection acts for one holder)."""
+        if not self.tokens:
+            return True
+        return self._holder(line) == current_actor()
+
+    def _holder(self, line: bytes) -> Actor | None:
+        """The holder of the token in ``AUTH <token>`` (None: no such token)."""
         given = line.strip()[5:] if line[:5].upper() == b"AUTH " else b""
-        return self.token is None or hmac.compare_digest(given.strip(), self.token)
+        return self.tokens.match(given.strip())
+
+    def _role_refusal(self, word: str) -> str | None:
+        """Why this connection's holder may not send command ``word`` (``command_roles``), or None."""
+        needed = self.command_roles.get(word)
+        return None if needed is None else current_actor().refusal(needed, word)
 
 
 _NUMBER_START = b"0123456789+-."

@@ -20,7 +20,7 @@ from typing import Any
 from fastapi import FastAPI
 
 from eyetohand._version import __version__
-from eyetohand.core import AuthBackoff
+from eyetohand.core import AuthBackoff, TokenTable
 from eyetohand.server.core import Jobs
 from eyetohand.server.middleware import BodyLimit, DatabaseGuard, HostGuard, SameOrigin, TokenGuard
 from eyetohand.server.plant import CellBeat, beat
@@ -38,6 +38,7 @@ from eyetohand.server.routes import (
     pairs,
     plant,
     plate,
+    signing,
 )
 from eyetohand.server.routes.meta import PAPER_PRESET
 from eyetohand.server.schemas import (
@@ -71,7 +72,7 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 
 def create_app(
     data_dir: str | os.PathLike | StoreRef,
-    token: str | Mapping[str, str] | None = None,
+    token: str | Mapping[str, str] | TokenTable | None = None,
     *,
     allowed_hosts: list[str] | None = None,
     max_body_bytes: int = MAX_BODY_BYTES,
@@ -87,7 +88,8 @@ def create_app(
 ) -> FastAPI:
     """The app over the database in ``data_dir`` (or the store a ``sqlite:PATH`` or
     ``postgresql://…`` reference names: docs/store.md). ``token``: required on /api/ when set; a
-    mapping of names to tokens accepts each, and audits a change under its token's name.
+    mapping of names to tokens accepts each, and audits a change under its token's name; a
+    :class:`~eyetohand.core.TokenTable` adds each token's role (what it may do: middleware.required_role).
     ``allowed_hosts``: accepted Host header names (None: any). ``max_pso_work``: the largest
     particles × iterations a PSO fit may ask for (422 beyond). ``db_wait_s``: how long a write
     waits for another connection's lock before answering 503. ``create_db``: create the database
@@ -145,6 +147,7 @@ def create_app(
     # are the hot path (no other route matches their paths; tested)
     for r in (mapping, page, meta, pairs, calibrations, jobs, collect, images, diff, plate, audit, plant):
         app.include_router(r.router)
+    app.include_router(signing.router)
     page.mount_static(app)
 
     def limit_for(path: str) -> int:

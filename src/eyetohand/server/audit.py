@@ -4,18 +4,18 @@ Every write of the store appends one entry in the same transaction as the change
 change without its entry, nor an entry without its change); entries are never changed or removed
 (the tables' triggers refuse it: :mod:`eyetohand.server.schema`).
 
-Who: the name of the token the request came with (``--token-file`` lines ``name:token``), set for
-the request by the token guard with :func:`acting_as`; a write made outside a request (a collection's
+Who: the name of the token the request came with (``--token-file`` lines ``name:token`` or
+``name:role:token``), set for the request by the token guard, or for a TCP connection by its ``AUTH``
+line, with :func:`acting_as` (:mod:`eyetohand.core.actor`); a write made outside a request (a collection's
 CAL END on the TCP service, a command-line tool) names what made it.
 """
 
 from __future__ import annotations
 
-import contextvars
 import datetime as _dt
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass
+
+from eyetohand.core import DEFAULT_TOKEN_NAME, NOBODY, acting_as, current_actor
 
 ACTIONS = (
     "create",  # a new calibration from a fit
@@ -26,30 +26,16 @@ ACTIONS = (
     "rename",
     "delete",
     "check",  # a verification's result kept in the history
+    "sign",  # a signer signed a version with the server's key (the act --require-signed waits for)
 )
 
-DEFAULT_TOKEN_NAME = "default"
-"""The name of a token given alone (``--token``, or a token file of one line without a name)."""
-
-DEFAULT_USER = "local"
+DEFAULT_USER = NOBODY.name
 """Who a write is by when nothing says otherwise (no token is required: a loopback workbench)."""
-
-_ACTOR: contextvars.ContextVar[str] = contextvars.ContextVar("eyetohand_actor", default=DEFAULT_USER)
 
 
 def current_user() -> str:
-    """The name the writes made now are audited under."""
-    return _ACTOR.get()
-
-
-@contextmanager
-def acting_as(user: str) -> Iterator[None]:
-    """Audit the writes made inside (in this context: this request, this thread) under ``user``."""
-    token = _ACTOR.set(user)
-    try:
-        yield
-    finally:
-        _ACTOR.reset(token)
+    """The name the writes made now are audited under (the acting token's name: core's actor)."""
+    return current_actor().name
 
 
 def action_of(request: dict, new: bool) -> str:
@@ -141,3 +127,17 @@ def parse_utc(text: str, what: str) -> str:
     if t.tzinfo is None:
         t = t.replace(tzinfo=_dt.UTC)
     return t.astimezone(_dt.UTC).isoformat(timespec="milliseconds")
+
+
+__all__ = [
+    "ACTIONS",
+    "DEFAULT_TOKEN_NAME",
+    "DEFAULT_USER",
+    "AuditEntry",
+    "AuditQuery",
+    "acting_as",
+    "action_of",
+    "check_note",
+    "current_user",
+    "parse_utc",
+]

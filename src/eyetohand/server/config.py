@@ -10,10 +10,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from eyetohand.core import MM_DEG, InputError, OutputUnits
+from eyetohand.core import MM_DEG, InputError, OutputUnits, Role, TokenTable
 
 if TYPE_CHECKING:
     from eyetohand.positioning import FixedCalibration, ServerCertificate
+    from eyetohand.server.signatures import SigningPolicy
 
 
 class ServeError(InputError):
@@ -43,8 +44,9 @@ class ServeConfig:
 
     host: str = "127.0.0.1"
     port: int = 8765
-    token: str | None = None  # what TCP and OPC UA take (the token file's first)
-    tokens: Mapping[str, str] | None = None  # names to tokens (--token-file name:token): HTTP, the audit
+    token: str | None = None  # the token file's first (one is given: a network address may be served)
+    tokens: Mapping[str, str] | None = None  # names to tokens (--token-file): every interface, the audit
+    roles: Mapping[str, Role] | None = None  # names to roles (--token-file name:role:token; else operator)
     store: str | None = None  # --store as given (None: the data folder's SQLite database)
     db_wait_s: float = 5.0
     log_level: str = "info"
@@ -73,6 +75,33 @@ class ServeConfig:
     opcua_security: ServerCertificate | None = None  # --opcua-cert/--opcua-key (None: the data folder's)
 
     @property
+    def token_table(self) -> TokenTable:
+        """Every named token with its role, as HTTP, TCP and OPC UA check them (empty: none needed)."""
+        return TokenTable.of(self.tokens or self.token, self.roles)
+
+    @property
+    def signing(self) -> SigningPolicy:
+        """The key stored versions are signed with and whether only signed ones are served."""
+        from eyetohand.server.signatures import SigningPolicy
+
+        return SigningPolicy(self.sign_key, self.require_signed)
+
+    def access_line(self) -> str | None:
+        """The start-up line that says who may do what (the holders' names and roles, never a token)
+        and how signing stands; None without tokens or key."""
+        from eyetohand.calibration import key_id
+
+        parts = []
+        if self.token_table:
+            holders = ", ".join(f"{a.name} ({a.role.label})" for a, _ in self.token_table.entries)
+            parts.append(f"tokens {holders}")
+        if self.sign_key is not None:
+            parts.append(f"signing key {key_id(self.sign_key)} (a signer signs versions)")
+        if self.require_signed:
+            parts.append("--require-signed: only signed versions are mapped with")
+        return ("access: " + "; ".join(parts)) if parts else None
+
+    @property
     def plc_wanted(self) -> bool:
         return self.modbus is not None or self.opcua is not None
 
@@ -88,6 +117,7 @@ class ServeConfig:
             port=args.port,
             token=args.token,
             tokens=ns.get("tokens"),
+            roles=ns.get("roles"),
             store=ns.get("store"),
             db_wait_s=args.db_wait,
             log_level=ns.get("log_level") or "info",

@@ -1,14 +1,13 @@
-"""ASGI guards in front of the routes: body size and type, token, Host. Each answers with the API's
-JSON error body without reading more of the request than it needs."""
+"""ASGI guards in front of the routes: body size and type, token and its role, Host. Each answers with
+the API's JSON error body without reading more of the request than it needs."""
 
 from __future__ import annotations
 
-import hmac
 import math
+import re
 from collections.abc import Callable, Mapping
 
-from eyetohand.core import AuthBackoff
-from eyetohand.server.audit import DEFAULT_TOKEN_NAME, acting_as
+from eyetohand.core import AuthBackoff, Role, TokenTable, acting_as
 from eyetohand.server.responses import error_response, send_response
 
 JSON_TYPES = (b"application/json",)
@@ -79,23 +78,43 @@ class BodyLimit:
             await send_response(send, error_response(413, too_big, "body"))
 
 
-class TokenGuard:
-    """With a token set, every /api/ request needs ``Authorization: Bearer <token>``. ``token``: one
-    token, or names to tokens (``--token-file`` lines ``name:token``); the changes a request makes
-    are audited under its token's name (:func:`~eyetohand.server.audit.acting_as`). After repeated
-    wrong tokens from one address (``backoff``), its requests get 429 with ``Retry-After``, unjudged,
-    until the delay is over."""
+# the POSTs that change nothing (a mapping, an evaluation, a parse): a viewer may send them
+_READ_POSTS = re.compile(
+    r"/api/(calibrations/\d+/(image-to-robot|evaluate)|jobs/[^/]+/image-to-robot|pairs/parse)"
+)
+_SIGN = re.compile(r"/api/calibrations/\d+/versions/\d+/sign")
 
-    def __init__(self, app, token: str | Mapping[str, str] | None, backoff: AuthBackoff | None = None):
+
+def required_role(method: str, path: str) -> Role:
+    """The least role that may send ``method path`` (docs/server.md "Tokens, roles and signing"):
+    signer to sign a version; viewer to read (GET, HEAD) and to map or evaluate (the POSTs that store
+    nothing); operator for every other request — so a route added later needs an operator unless it
+    is named here."""
+    if _SIGN.fullmatch(path):
+        return Role.SIGNER
+    if method in ("GET", "HEAD", "OPTIONS") or (method == "POST" and _READ_POSTS.fullmatch(path)):
+        return Role.VIEWER
+    return Role.OPERATOR
+
+
+class TokenGuard:
+    """With tokens set, every /api/ request needs ``Authorization: Bearer <token>`` of one of them
+    (``token``: one token, names to tokens, or a :class:`~eyetohand.core.TokenTable` with roles), and
+    its token's role must allow the request (:func:`required_role`; else 403 naming both). The
+    request then acts as that token's holder (:func:`~eyetohand.core.acting_as`): its changes are
+    audited under the name. After repeated wrong tokens from one address (``backoff``), its
+    requests get 429 with ``Retry-After``, unjudged, until the delay is over."""
+
+    def __init__(
+        self, app, token: str | Mapping[str, str] | TokenTable | None, backoff: AuthBackoff | None = None
+    ):
         self.app = app
-        named = {DEFAULT_TOKEN_NAME: token} if isinstance(token, str) else dict(token or {})
-        self.tokens = [(name, t.encode()) for name, t in named.items() if t]
-        self.token = self.tokens[0][1] if self.tokens else None
+        self.table = TokenTable.of(token)
         self.backoff = AuthBackoff() if backoff is None else backoff
 
     async def __call__(self, scope, receive, send):
         if (
-            self.token
+            self.table
             and scope["type"] == "http"
             and scope["path"].startswith("/api/")
             and scope["path"] != "/api/health"
@@ -116,11 +135,8 @@ class TokenGuard:
                         headers={"Retry-After": retry},
                     ),
                 )
-            # every token compared (no early exit: the time does not tell which one came close)
-            matched = [name for name, t in self.tokens if hmac.compare_digest(given, t)]
-            if matched:
-                self.backoff.succeeded(addr)
-            else:
+            actor = self.table.match(given)
+            if actor is None:
                 if given:  # a token tried and wrong (none at all is no guess: not counted)
                     self.backoff.failed(addr, "HTTP token")
                 return await send_response(
@@ -131,7 +147,12 @@ class TokenGuard:
                         "Authorization",
                     ),
                 )
-            with acting_as(matched[0]):
+            self.backoff.succeeded(addr)
+            method, path = scope["method"], scope["path"]
+            refused = actor.refusal(required_role(method, path), f"{method} {path}")
+            if refused is not None:
+                return await send_response(send, error_response(403, refused, "Authorization"))
+            with acting_as(actor):
                 return await self.app(scope, receive, send)
         return await self.app(scope, receive, send)
 

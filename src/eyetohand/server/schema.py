@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-LATEST = 3
+LATEST = 4
 """The schema version this program reads and writes."""
 
 # (the SQL each step runs, per dialect); step N takes a database from version N-1 to N
@@ -74,6 +74,23 @@ _SQLITE: dict[int, tuple[str, ...]] = {
             version INTEGER,
             started_utc TEXT NOT NULL,
             seen_utc TEXT NOT NULL)""",
+    ),
+    4: (
+        # a version's signature: the act of a signer (or carried by an imported file, or by the version
+        # a rollback copied); a version has at most one, never changed (removed with its calibration)
+        """CREATE TABLE signatures (
+            calibration_id INTEGER NOT NULL,
+            version INTEGER NOT NULL,
+            utc TEXT NOT NULL,
+            signer TEXT NOT NULL,
+            origin TEXT NOT NULL,
+            key_id TEXT NOT NULL,
+            mac TEXT NOT NULL,
+            PRIMARY KEY (calibration_id, version),
+            FOREIGN KEY (calibration_id, version) REFERENCES versions(calibration_id, version)
+                ON DELETE CASCADE)""",
+        """CREATE TRIGGER signatures_immutable BEFORE UPDATE ON signatures
+            BEGIN SELECT RAISE(ABORT, 'signatures are immutable'); END""",
     ),
 }
 
@@ -136,6 +153,21 @@ _PG: dict[int, tuple[str, ...]] = {
             started_utc TEXT NOT NULL,
             seen_utc TEXT NOT NULL)""",
     ),
+    4: (
+        """CREATE TABLE signatures (
+            calibration_id BIGINT NOT NULL,
+            version INTEGER NOT NULL,
+            utc TEXT NOT NULL,
+            signer TEXT NOT NULL,
+            origin TEXT NOT NULL,
+            key_id TEXT NOT NULL,
+            mac TEXT NOT NULL,
+            PRIMARY KEY (calibration_id, version),
+            FOREIGN KEY (calibration_id, version) REFERENCES versions(calibration_id, version)
+                ON DELETE CASCADE)""",
+        """CREATE TRIGGER signatures_immutable BEFORE UPDATE ON signatures FOR EACH ROW
+            EXECUTE FUNCTION eyetohand_refuse('signatures are immutable')""",
+    ),
 }
 
 STEPS: dict[str, dict[int, tuple[str, ...]]] = {"sqlite": _SQLITE, "postgresql": _PG}
@@ -178,6 +210,11 @@ COPIED: tuple[tuple[str, tuple[str, ...], str], ...] = (
             "note",
         ),
         "id",
+    ),
+    (
+        "signatures",
+        ("calibration_id", "version", "utc", "signer", "origin", "key_id", "mac"),
+        "calibration_id, version",
     ),
 )
 

@@ -400,6 +400,13 @@ class Summary(BaseModel):
     vectors: dict[str, list[VectorOut]]
 
 
+class SignatureOut(BaseModel):
+    signed_by: str = Field(description="the signer's token name (an import: who imported the signed file)")
+    signed_utc: str
+    origin: str = Field(description="sign (a signer's act), import (carried by the file), rollback (copied)")
+    key_id: str
+
+
 class CalibrationOut(BaseModel):
     id: int
     name: str
@@ -413,6 +420,10 @@ class CalibrationOut(BaseModel):
     note: str
     request: dict[str, Any]
     summary: Summary
+    signature: SignatureOut | None = Field(None, description="the version's signature (None: unsigned)")
+    waits_for_signature: bool = Field(
+        False, description="serve --require-signed and this version is unsigned: it is not mapped with"
+    )
 
 
 class CalibrationDetail(CalibrationOut):
@@ -445,6 +456,7 @@ class VersionBrief(BaseModel):
     fitness_mm: float | None
     train_rms_mm: float
     check_rms_mm: float | None
+    signature: SignatureOut | None = None
 
 
 class VersionList(BaseModel):

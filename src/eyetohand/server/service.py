@@ -16,10 +16,11 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from eyetohand.calibration import Calibration
-from eyetohand.core import PointPairs
+from eyetohand.core import PointPairs, TokenTable
 from eyetohand.server import core
 from eyetohand.server.core import ApiError, Fitted, Job, JobKind, Jobs
 from eyetohand.server.schemas import FitOptions, ImagesCalibrate
+from eyetohand.server.signatures import SigningPolicy
 from eyetohand.server.storage import Record, Store, Version, require_match
 
 if TYPE_CHECKING:
@@ -44,14 +45,16 @@ class Service:
         store: Store,
         jobs: Jobs,
         limits: Limits,
-        token: str | Mapping[str, str] | None,
+        token: str | Mapping[str, str] | TokenTable | None,
         *,
         sign_key: bytes | None = None,
         require_signed: bool = False,
     ):
         self.store = store
-        self.sign_key = sign_key  # proves signed calibration files (imports); signs exports
-        self.require_signed = require_signed  # imports must be signed with sign_key
+        self.sign_key = sign_key  # proves signed files (imports); what a signer signs versions with
+        self.require_signed = require_signed  # only signed versions are mapped with
+        self.signing = SigningPolicy(sign_key, require_signed)
+        self._signed: set[tuple[int, int]] = set()  # versions proved signed (a signature never goes)
         self.jobs = jobs
         self.limits = limits
         self.auth = token is not None
@@ -69,9 +72,40 @@ class Service:
         """(version, calibration) from memory, or None (then call :meth:`calibration` off the loop)."""
         with self._lock:
             if version is None:
-                return self._current.get(cal_id)
-            cal = self._by_version.get((cal_id, version))
-            return None if cal is None else (version, cal)
+                hit = self._current.get(cal_id)
+            else:
+                cal = self._by_version.get((cal_id, version))
+                hit = None if cal is None else (version, cal)
+            if hit is not None and self.require_signed and (cal_id, hit[0]) not in self._signed:
+                return None  # not proved signed yet: the route proves it, or refuses (served())
+            return hit
+
+    def served(self, cal_id: int, version: int | None = None) -> tuple[Version, Calibration]:
+        """What a mapping request maps with: :meth:`calibration`, and with ``--require-signed`` only
+        a version signed with the key (else 409 naming ``signature``, in the words every interface
+        uses: :func:`~eyetohand.server.signatures.waits_for_signature`). Blocking."""
+        ver, cal = self.calibration(cal_id, version)
+        if self.require_signed and (cal_id, ver.version) not in self._signed:
+            why = self.signing.refusal(self.store, self.store.get(cal_id).name, ver)
+            if why is not None:
+                raise ApiError(409, why, "signature")
+            with self._lock:
+                self._signed.add((cal_id, ver.version))
+        return ver, cal
+
+    def sign(self, cal_id: int, version: int) -> dict:
+        """Sign ``version`` with the server's key as the acting holder (the route checked its role):
+        the version's view. 409 when the server has no key or the version is signed already."""
+        from eyetohand.server.storage import AlreadySigned
+
+        ver = self.store.version(cal_id, version)
+        try:
+            self.signing.sign(self.store, ver)
+        except AlreadySigned as exc:
+            raise ApiError(409, str(exc), "version") from None
+        except ValueError as exc:
+            raise ApiError(409, str(exc), "sign_key") from None
+        return self.out(cal_id, version)
 
     def calibration(self, cal_id: int, version: int | None = None) -> tuple[Version, Calibration]:
         """The stored version and its decoded calibration (decoded once, then cached). Blocking."""
@@ -160,6 +194,7 @@ class Service:
             if versions_too:
                 for key in [k for k in self._by_version if k[0] == cal_id]:
                     del self._by_version[key]
+                self._signed -= {k for k in self._signed if k[0] == cal_id}
 
     # ------------------------------------------------------------ views
     def out(
@@ -187,10 +222,17 @@ class Service:
             "note": ver.note,
             "request": ver.request,
             "summary": core.summarize(cal, pairs, check, excluded),
+            **self._signature_view(ver),
         }
         if detail:
             d.update(pairs=ver.pairs, check=ver.check, calibration=ver.calibration)
         return d
+
+    def _signature_view(self, ver: Version) -> dict:
+        """The view's ``signature`` and ``waits_for_signature`` of a version."""
+        sig = self.store.signature(ver.calibration_id, ver.version)
+        waits = self.require_signed and self.signing.proves(ver, sig) is not None
+        return {"signature": None if sig is None else sig.to_dict(), "waits_for_signature": waits}
 
     def brief_list(self) -> list[dict]:
         rows = []
@@ -269,16 +311,16 @@ class Service:
     ) -> tuple[dict, bool]:
         """Store a calibration file's JSON (proved intact first: 422 naming what is wrong) as a new
         calibration called ``name``, or as a new version of the one that has that name. Returns the
-        stored calibration's view and whether it was created.
+        stored calibration's view and whether it was created. A signature is checked with the key
+        (422 when made with another key or not of the content) and carried by the stored version;
+        an unsigned file is stored unsigned (with ``--require-signed``: not served until signed).
 
         Atomic: what is stored is proved to decode (exactly as every later read decodes it) before
         the one transaction that stores it; a refused file changes nothing."""
         from eyetohand.core import InputError
 
         try:
-            cal = Calibration.from_dict(
-                calibration, "calibration", sign_key=self.sign_key, require_signed=self.require_signed
-            )
+            cal = Calibration.from_dict(calibration, "calibration", sign_key=self.sign_key)
             body = cal.to_dict()
             Calibration.from_dict(body, "calibration")  # what the store will hand back, proved now
         except InputError as exc:
@@ -290,13 +332,23 @@ class Service:
             "objective": cal.fit.objective,
         }
         pairs, check = _records(cal.pairs), _records(cal.check_pairs)
+        carried = self.signing.carried(body, calibration.get("signature"))  # never signed here
         rec = self.store.by_name(name)
         if rec is None:
-            rec = self.store.create(name, request, body, pairs or [], check, note=note or "imported")
+            rec = self.store.create(
+                name, request, body, pairs or [], check, note=note or "imported", signature=carried
+            )
             return self.out(rec.id, rec=rec), True
         try:
             rec = self.store.add_version(
-                rec.id, request, body, pairs or [], check, note=note or "imported", if_match=if_match
+                rec.id,
+                request,
+                body,
+                pairs or [],
+                check,
+                note=note or "imported",
+                if_match=if_match,
+                signature=carried,
             )
         finally:
             self.invalidate(rec.id)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from eyetohand.core import AuthBackoff, InputError
+from eyetohand.core import AuthBackoff, InputError, Role, current_actor
 from eyetohand.server.config import ServeConfig, ServeError, is_loopback, parse_hostport
 
 if TYPE_CHECKING:
@@ -281,12 +281,13 @@ def calibration_path(ref: str):
 
 def store_save_fn(store, on_saved=None, user: str = "robot"):
     """``save_fn(name, cal)`` for the Collector: a new version of calibration ``name`` in the
-    server's database (a new calibration when the name is new), audited as ``cal_end`` by ``user``
-    (the TCP token's name); ``on_saved(record, cal)`` after."""
+    server's database (a new calibration when the name is new), audited as ``cal_end`` by the TCP
+    connection's token holder (its ``AUTH``), else ``user``; ``on_saved(record, cal)`` after."""
     from eyetohand.server.audit import acting_as
 
     def save(name: str, cal) -> None:
-        with acting_as(user):
+        actor = current_actor()
+        with acting_as(actor if actor.named else user):
             _save(name, cal)
 
     def _save(name: str, cal) -> None:
@@ -310,8 +311,9 @@ def store_save_fn(store, on_saved=None, user: str = "robot"):
 
 def store_check_fn(store, user: str):
     """``on_check(record)`` for the Collector: a CAL CHECK of a stored calibration audited as
-    ``check`` (its point and error in the note) by ``user``. The record is in the collection's history
-    file already: a store that cannot be written now is logged, the robot still gets its answer."""
+    ``check`` (its point and error in the note) by the connection's token holder, else ``user``. The
+    record is in the collection's history file already: a store that cannot be written now is logged,
+    the robot still gets its answer."""
     from eyetohand.server.audit import acting_as
     from eyetohand.server.storage import StorageError
 
@@ -325,7 +327,8 @@ def store_check_fn(store, user: str):
             f"(dx {rec['dx_mm']:.4f}, dy {rec['dy_mm']:.4f})"
         )
         try:
-            with acting_as(user):
+            actor = current_actor()
+            with acting_as(actor if actor.named else user):
                 store.audit_event(found.id, "check", rec.get("version") or found.current_version, note)
         except StorageError as exc:
             logging.getLogger("eyetohand.store").warning("CAL CHECK not audited: %s", exc)
@@ -334,9 +337,9 @@ def store_check_fn(store, user: str):
 
 
 def tcp_user(cfg: ServeConfig) -> str:
-    """Who the audit trail names for a change made over TCP (CAL END): the name of the token TCP
-    accepts (the token file's first), else ``robot``."""
-    return next(iter(cfg.tokens)) if cfg.tokens else "robot"
+    """Who the audit trail names for a change made over TCP (CAL END) when the connection named no
+    token holder (a server without tokens): ``robot``."""
+    return "robot"
 
 
 def store_load_fn(store):
@@ -370,7 +373,8 @@ def tcp_options(
     from eyetohand.positioning import FIRST_LINE_S
 
     return {
-        "token": cfg.token,
+        "token": cfg.token_table or None,
+        "command_roles": {"CAL": Role.OPERATOR},  # a viewer maps and locates, never collects
         "commands": commands,
         "busy_replies": busy_replies,
         "robot_addresses": cfg.robot_addresses,
@@ -486,6 +490,8 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
         app.state.collect = CameraView(run.collector, run.source)
     port = http_sock.getsockname()[1]
     print(f"workbench: http://{cfg.host}:{port}/  (API docs: /docs; data: {data_dir})", flush=True)
+    if (access := cfg.access_line()) is not None:
+        print(access, flush=True)
     from eyetohand.server.protocol import GuardedH11Protocol  # head and body deadlines (slowloris)
 
     config = uvicorn.Config(
@@ -575,7 +581,8 @@ def _open_collection(
             if current.identity().cal_id == saved_rec.id:
                 current.poll()  # at once, not at the next poll
             else:
-                run.line_server.follow(StoredCalibration(run.store, saved_rec.id, run.same_file), loop)
+                stored = StoredCalibration(run.store, saved_rec.id, run.same_file, cfg.signing)
+                run.line_server.follow(stored, loop)
         if run.app is not None:  # the workbench's cache of current versions
             run.app.state.service.invalidate(saved_rec.id)
 
@@ -632,7 +639,7 @@ async def _start_plc(
         word_order=cfg.modbus_word_order,
         allow_from=list(cfg.modbus_allow) or None,
         opcua=cfg.opcua,
-        token=cfg.token,
+        token=cfg.token_table or None,
         locate=locate,
         auth_backoff=auth_backoff,
         security=security,
@@ -725,7 +732,7 @@ def _make_app(cfg: ServeConfig, ref, fresh_db: bool, http_sock, source_fn, backo
     try:
         return create_app(
             ref,
-            token=cfg.tokens or cfg.token,
+            token=cfg.token_table or None,
             db_wait_s=cfg.db_wait_s,
             allowed_hosts=allowed_hosts(cfg),
             create_db=fresh_db,
@@ -772,7 +779,7 @@ def _served_calibration(
         if cfg.calibration:
             try:
                 rec = store.find(cfg.calibration)
-                served = StoredCalibration(store, rec.id, same_file)
+                served = StoredCalibration(store, rec.id, same_file, cfg.signing)
             except NotFound:
                 if not camera:  # with a camera, CAL BEGIN <name> … CAL END creates it
                     raise

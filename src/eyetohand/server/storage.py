@@ -259,6 +259,40 @@ class Version:
 
 
 @dataclass(frozen=True)
+class Signature:
+    """A version's signature: the HMAC-SHA256 (``key_id``, ``mac``: the file format's ``signature``
+    field) of its calibration JSON under a server's key, with who (``signer``) and when (``utc``).
+    ``origin``: ``sign`` (a signer's act), ``import`` (carried by an imported signed file, ``signer``
+    the importing token's holder) or ``rollback`` (the signature of the version a rollback copied)."""
+
+    calibration_id: int
+    version: int
+    utc: str
+    signer: str
+    origin: str
+    key_id: str
+    mac: str
+
+    ALG = "hmac-sha256"
+
+    def file_field(self) -> dict:
+        """The calibration file's ``signature`` field."""
+        return {"alg": self.ALG, "key_id": self.key_id, "mac": self.mac}
+
+    def to_dict(self) -> dict:
+        return {
+            "signed_by": self.signer,
+            "signed_utc": self.utc,
+            "origin": self.origin,
+            "key_id": self.key_id,
+        }
+
+
+class AlreadySigned(ValueError):
+    """The version has a signature already (a version is signed once)."""
+
+
+@dataclass(frozen=True)
 class Record:
     id: int
     name: str
@@ -457,6 +491,64 @@ class Store:
             return after, []
         return int(rows[-1][0]), list(dict.fromkeys(int(c) for _, c in rows if c is not None))
 
+    # ------------------------------------------------------------------ signatures
+    def sign(self, cal_id: int, version: int, key_id: str, mac: str) -> Signature:
+        """Store the signature a signer (the acting token's holder) made of ``version``, audited as
+        ``sign`` in the same transaction; :class:`AlreadySigned` when it has one, :class:`NotFound`
+        when there is no such version."""
+        with self._tx() as db, self._errors():
+            rec = self._row(db, cal_id)
+            if not db.execute(
+                "SELECT 1 FROM versions WHERE calibration_id = ? AND version = ?", (cal_id, version)
+            ).fetchall():
+                raise NotFound(
+                    f"calibration {cal_id} has no version {version} (versions 1..{rec.current_version})"
+                )
+            if self._signature(db, cal_id, version) is not None:
+                raise AlreadySigned(f"calibration {rec.name!r} version {version} is signed already")
+            sig = self._insert_signature(db, cal_id, version, (key_id, mac, "sign"))
+            self._audit(db, "sign", rec, version, version, f"signed version {version} (key {key_id})")
+        return sig
+
+    def signature(self, cal_id: int, version: int) -> Signature | None:
+        """The version's signature, or None (unsigned)."""
+        rows = self._read(
+            "SELECT calibration_id, version, utc, signer, origin, key_id, mac FROM signatures "
+            "WHERE calibration_id = ? AND version = ?",
+            (cal_id, version),
+        )
+        return _signature(rows[0]) if rows else None
+
+    def signatures(self, cal_id: int) -> dict[int, Signature]:
+        """Every signed version of a calibration: version -> its signature."""
+        rows = self._read(
+            "SELECT calibration_id, version, utc, signer, origin, key_id, mac FROM signatures "
+            "WHERE calibration_id = ? ORDER BY version",
+            (cal_id,),
+        )
+        return {int(r[1]): _signature(r) for r in rows}
+
+    @staticmethod
+    def _signature(db, cal_id: int, version: int) -> Signature | None:
+        row = db.execute(
+            "SELECT calibration_id, version, utc, signer, origin, key_id, mac FROM signatures "
+            "WHERE calibration_id = ? AND version = ?",
+            (cal_id, version),
+        ).fetchone()
+        return None if row is None else _signature(row)
+
+    @staticmethod
+    def _insert_signature(db, cal_id: int, version: int, carried: tuple[str, str, str]) -> Signature:
+        """Insert (key_id, mac, origin) as the version's signature, signed by the acting holder."""
+        key_id, mac, origin = carried
+        sig = Signature(cal_id, version, _now(), audit.current_user(), origin, key_id, mac)
+        db.execute(
+            "INSERT INTO signatures (calibration_id, version, utc, signer, origin, key_id, mac) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (cal_id, version, sig.utc, sig.signer, origin, key_id, mac),
+        )
+        return sig
+
     def audit(self, query: AuditQuery | None = None) -> builtins.list[AuditEntry]:
         """Audit entries, newest first (see :class:`~eyetohand.server.audit.AuditQuery`)."""
         q = query or AuditQuery()
@@ -586,9 +678,11 @@ class Store:
         note: str = "created",
         *,
         action: str | None = None,
+        signature: tuple[str, str, str] | None = None,
     ) -> Record:
         """A new calibration with its version 1. ``action``: its audit action (default from
-        ``request["source"]``: :func:`~eyetohand.server.audit.action_of`)."""
+        ``request["source"]``: :func:`~eyetohand.server.audit.action_of`). ``signature``: (key_id,
+        mac, origin) the version carries (an imported signed file), stored in the same transaction."""
         now = _now()
         try:
             with self._tx() as db, self._errors():
@@ -601,6 +695,8 @@ class Store:
                     ).fetchall()[0][0]
                 )
                 self._insert_version(db, cal_id, 1, now, note, request, calibration, pairs, check)
+                if signature is not None:
+                    self._insert_signature(db, cal_id, 1, signature)
                 rec = Record(cal_id, name, now, now, 1)
                 self._audit(db, action or audit.action_of(request, new=True), rec, None, 1, note)
         except self._integrity_error:
@@ -618,11 +714,12 @@ class Store:
         if_match: str | None = None,
         *,
         action: str | None = None,
+        signature: tuple[str, str, str] | None = None,
     ) -> Record:
-        """Add a version and make it current. Returns the record as this transaction left it: its
-        ``current_version`` is the version this call created (never one a concurrent call added
-        after the commit). ``if_match``: see :meth:`_row` (:class:`Conflict`, nothing written).
-        ``action``: its audit action (default from ``request["source"]``)."""
+        """Add a version and make it current (``signature``: see :meth:`create`). Returns the record
+        as this transaction left it: its ``current_version`` is the version this call created (never
+        one a concurrent call added after the commit). ``if_match``: see :meth:`_row` (:class:`Conflict`,
+        nothing written). ``action``: its audit action (default from ``request["source"]``)."""
         now = _now()
         with self._tx() as db, self._errors():
             rec = self._row(db, cal_id, if_match)
@@ -631,6 +728,8 @@ class Store:
             ).fetchone()[0]
             new = int(latest) + 1
             self._insert_version(db, cal_id, new, now, note, request, calibration, pairs, check)
+            if signature is not None:
+                self._insert_signature(db, cal_id, new, signature)
             db.execute(
                 "UPDATE calibrations SET current_version = ?, updated_utc = ? WHERE id = ?",
                 (new, now, cal_id),
@@ -643,8 +742,10 @@ class Store:
 
     def rollback(self, cal_id: int, version: int, if_match: str | None = None) -> Record:
         """Make a copy of ``version`` the new current version (the history keeps everything); the
-        record names the version this call created."""
+        record names the version this call created. The copy carries the signature of ``version``
+        (the same content, signed), origin ``rollback``."""
         old = self.version(cal_id, version)
+        sig = self.signature(cal_id, version)
         return self.add_version(
             cal_id,
             old.request,
@@ -654,6 +755,7 @@ class Store:
             note=f"rollback to version {version}",
             if_match=if_match,
             action="rollback",
+            signature=None if sig is None else (sig.key_id, sig.mac, "rollback"),
         )
 
     def rename(self, cal_id: int, name: str, if_match: str | None = None) -> Record:
@@ -703,6 +805,7 @@ class Store:
             rec = self._row(db, cal_id, if_match)
             self._audit(db, "delete", rec, rec.current_version, None, f"deleted {rec.name!r}")
             db.execute("DELETE FROM verifications WHERE calibration_id = ?", (cal_id,))
+            db.execute("DELETE FROM signatures WHERE calibration_id = ?", (cal_id,))
             db.execute("DELETE FROM versions WHERE calibration_id = ?", (cal_id,))
             cur = db.execute("DELETE FROM calibrations WHERE id = ?", (cal_id,))
             if cur.rowcount == 0:
@@ -742,3 +845,8 @@ def _version(row) -> Version:
         json.loads(pairs),
         None if check is None else json.loads(check),
     )
+
+
+def _signature(row) -> Signature:
+    cid, ver, utc, signer, origin, key_id, mac = row
+    return Signature(int(cid), int(ver), utc, signer, origin, key_id, mac)

@@ -15,6 +15,7 @@ from eyetohand.calibration import Calibration
 from eyetohand.cell import MAX_REASON, ErrorCode, Refusal
 from eyetohand.core import InputError
 from eyetohand.positioning import Identity
+from eyetohand.server.signatures import SigningPolicy
 from eyetohand.server.storage import NotFound, StorageError
 
 if TYPE_CHECKING:
@@ -66,11 +67,18 @@ class StoredCalibration:
     """The current version of a stored calibration, refreshed by :meth:`poll` (blocking: the line
     server runs it on a thread of its own). A deleted calibration sets ``error``, and so does a
     database file replaced or deleted under the server (``same_file``, until the path names the opened
-    file again); a database that cannot be read for a moment keeps the version in force."""
+    file again); a database that cannot be read for a moment keeps the version in force. With
+    ``signing`` requiring signatures (``--require-signed``) an unsigned current version is refused in
+    the words HTTP uses (:func:`~eyetohand.server.signatures.waits_for_signature`) until it is signed
+    (the next poll after the signature serves it)."""
 
-    def __init__(self, store, cal_id: int, same_file: SameFile | None = None):
+    def __init__(
+        self, store, cal_id: int, same_file: SameFile | None = None, signing: SigningPolicy | None = None
+    ):
         self.store = store
         self.same_file = same_file or SameFile(store)
+        self.signing = signing
+        self.waiting = False  # the current version waits for a signature
         self.cal_id = cal_id
         self.cal: Calibration | None = None
         self.error: Refusal | None = None
@@ -78,7 +86,7 @@ class StoredCalibration:
         self.version = 0
         self.created_utc = ""
         self.poll()
-        if self.cal is None:
+        if self.cal is None and not self.waiting:  # one waiting for a signer is served once signed
             raise InputError(self.error.reason if self.error else f"no calibration with id {cal_id}")
 
     def version_line(self) -> str:
@@ -116,6 +124,7 @@ class StoredCalibration:
                 return
             ver = self.store.version(self.cal_id, version)
             cal = Calibration.from_dict(ver.calibration, f"calibration {name!r} version {version}")
+            unsigned = None if self.signing is None else self.signing.refusal(self.store, name, ver)
         except NotFound:
             self.error = self._deleted()
             self.cal = None
@@ -126,6 +135,11 @@ class StoredCalibration:
             why = f"calibration '{self.name}' version {version} cannot be used: {exc}"[:MAX_REASON]
             self.error = Refusal(ErrorCode.NO_CALIBRATION, why, broken=True)
             self.cal = None
+            return
+        self.waiting = unsigned is not None
+        if unsigned is not None:  # stored, not in force: nothing is mapped with it until it is signed
+            self.error = Refusal(ErrorCode.NO_CALIBRATION, unsigned[:MAX_REASON], broken=True)
+            self.cal, self.version, self.created_utc = None, ver.version, ver.created_utc
             return
         # one assignment each, read by the event loop between lines (the GIL makes them atomic)
         self.cal, self.version, self.created_utc, self.error = cal, ver.version, ver.created_utc, None

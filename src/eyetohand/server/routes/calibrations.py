@@ -90,7 +90,8 @@ def delete_calibration(cal_id: CalId, svc: Svc, if_match: IfMatch = None):
 @router.get("/api/calibrations/{cal_id}/versions", response_model=VersionList)
 def list_versions(cal_id: CalId, svc: Svc, response: Response):
     rec = svc.store.get(cal_id)
-    versions = [v.brief() for v in svc.store.versions(cal_id)]
+    signed = {n: sig.to_dict() for n, sig in svc.store.signatures(cal_id).items()}
+    versions = [{**v.brief(), "signature": signed.get(v.version)} for v in svc.store.versions(cal_id)]
     current = versions[-1]["version"] if versions else rec.current_version
     if current != rec.current_version:  # a version was added between the two reads: name that one
         rec = svc.store.get(cal_id)
@@ -124,19 +125,34 @@ def rollback(cal_id: CalId, req: Rollback, svc: Svc, response: Response, if_matc
     "/api/calibrations/{cal_id}/export",
     responses={
         200: {
-            "description": "the calibration file (JSON), as `eyetohand apply` reads it",
+            "description": "the calibration file (JSON), as `eyetohand apply` reads it; `X-Signature` "
+            "says whether it is signed, by whom and when",
             "content": {"application/json": {}},
         }
     },
 )
 def export(cal_id: CalId, svc: Svc, version: VersionQ = None):
+    """A version as a calibration file: with its signature when a signer signed it (or it came
+    signed), else unsigned — an export never signs (``X-Signature`` says which)."""
+    from eyetohand.server.signatures import export_text
+
     rec = svc.store.get(cal_id)
     ver, cal = svc.calibration(cal_id, version)
+    sig = svc.store.signature(cal_id, ver.version)
     safe = re.sub(r"[^A-Za-z0-9._-]+", "_", rec.name).strip("._")[:60] or "calibration"
+    said = (
+        f"unsigned: version {ver.version} is not signed (a signer signs it: POST "
+        f"/api/calibrations/{cal_id}/versions/{ver.version}/sign)"
+        if sig is None
+        else f"signed by {sig.signer} at {sig.utc} ({sig.origin}; key {sig.key_id})"
+    )
     return Response(
-        cal.to_json(svc.sign_key),  # signed with the server's --sign-key
+        export_text(ver, cal, sig),
         media_type="application/json",
-        headers={"Content-Disposition": f'attachment; filename="{safe}-v{ver.version}.json"'},
+        headers={
+            "Content-Disposition": f'attachment; filename="{safe}-v{ver.version}.json"',
+            "X-Signature": said.encode("ascii", "replace").decode(),
+        },
     )
 
 

@@ -31,6 +31,7 @@ from eyetohand.server.core import ApiError
 from eyetohand.server.responses import api_error_of_validation
 from eyetohand.server.routes import CalId, DuplicateKey, JobId, StrictJsonRoute, VersionQ, strict_json
 from eyetohand.server.schemas import MAX_POINTS, MapRequest, MapResponse
+from eyetohand.server.signatures import job_waits_for_signature
 
 INLINE_BYTES = 64 * 1024
 INLINE_POINTS = 2000
@@ -393,7 +394,7 @@ async def image_to_robot(cal_id: CalId, request: Request, version: VersionQ = No
     body = await read_body(request)  # first: the calibration in force is the one once the body is here
     hit = svc.cached(cal_id, version)
     if hit is None:
-        ver, cal = await run_in_threadpool(svc.calibration, cal_id, version)
+        ver, cal = await run_in_threadpool(svc.served, cal_id, version)  # --require-signed: signed only
         hit = (ver.version, cal)
     req, pts = await parsed(body)
     return await mapped(hit[1], req, pts, cal_id, hit[0])
@@ -402,6 +403,9 @@ async def image_to_robot(cal_id: CalId, request: Request, version: VersionQ = No
 @router.post("/api/jobs/{job_id}/image-to-robot", response_model=MapResponse, openapi_extra=MAP_OPENAPI)
 async def job_image_to_robot(job_id: JobId, request: Request):
     """Map image points (px) to robot points (mm) with a finished, unsaved fit."""
-    fitted = request.app.state.service.finished_fit(job_id)
+    svc = request.app.state.service
+    fitted = svc.finished_fit(job_id)
+    if svc.require_signed:  # an unsaved fit is signed by nobody
+        raise ApiError(409, job_waits_for_signature(job_id), "signature")
     req, pts = await map_body(request)
     return await mapped(fitted.calibration, req, pts)
