@@ -34,6 +34,10 @@ a CR LF line is ignored). Every reply is one line, ``OK …`` or ``ERR <reason>`
     (``save_fn``) → ``OK <model>,<n>,<loo_rms_mm>,<loo_max_mm>`` (leave-one-out errors of the fit);
     or ``ERR <reason>`` with every point kept, for more POINTs and another END.
 ``CAL ABORT`` → ``OK`` (the points are dropped from the session; the journal keeps them).
+``CAL PLATE <spec>[,<name>]``, ``CAL TOUCH <label>,<x>,<y>,<z>``, then ``CAL END``
+    A plate commissioning session instead of a collection: one image of a calibration plate, the robot's
+    touches of its corners (:mod:`eyetohand.cell.plate_session`). ABORT, STATUS and the journal serve
+    both kinds of session; NEXT and POINT are a collection's, TOUCH a plate session's.
 ``CAL STATUS`` → ``OK <name>,<n>,<state>``; state ``none`` (no collection yet: name ``-``),
     ``collecting``, ``calibrated`` (after a successful END) or ``aborted``.
 ``CAL CHECK <x>,<y>,<z>``
@@ -56,7 +60,13 @@ it cannot read the count it asked for.
 (store a path ending ``.db``/``.sqlite``/``.sqlite3``; WAL, synchronous=FULL). A record holds the
 pose, the detection, and the SHA-256 of the image (optionally the image: ``keep_images``). A new
 Collector on the same store replays the journal and continues the open collection with nothing
-lost; a torn last line (a kill in mid-write) is cut off.
+lost; a torn last line (a kill in mid-write) is cut off. ``CAL END`` journals its intent before it
+stores the version and its end after (:mod:`eyetohand.cell.end_store`): a resent END after a crash
+between the two stores nothing twice, and a failed journal write after the store still answers OK.
+
+The parts: the session's state (:mod:`eyetohand.cell.session`), the target's grab
+(:mod:`eyetohand.cell.grab`), END's store (:mod:`eyetohand.cell.end_store`), the plate's commands
+(:mod:`eyetohand.cell.plate_session`); this module is the protocol over them.
 """
 
 from __future__ import annotations
@@ -69,18 +79,22 @@ import os
 import re
 import sqlite3
 import threading
+import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from eyetohand.cell import plate_session
 from eyetohand.cell.cal_replies import REPLY_FORMATS, UR_STATES, PlainReplies, ReplyFormat, URReplies
-from eyetohand.cell.journal import SQLITE_SUFFIXES, JsonlJournal, SqliteJournal, utc_now
+from eyetohand.cell.end_store import EndStore
+from eyetohand.cell.grab import STILL_TOL_PX, TargetGrabber
+from eyetohand.cell.journal import SQLITE_SUFFIXES, Journal, JsonlJournal, SqliteJournal, utc_now
 from eyetohand.cell.line import UR_ERROR_CODES, CommandError, ErrorCode, ascii_reason, line_numbers
+from eyetohand.cell.session import PLATE, Session, apply
 from eyetohand.core import InputError
 
-STILL_TOL_PX = 0.2
 POSE_MATCH_MM = 0.01
 REPEAT_MATCH_MM = 1e-3
 NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
@@ -116,32 +130,6 @@ def default_calibrate(pairs, model: str, image_size):
     return calibrate(pairs, model=model, image_size=image_size, seed=0)
 
 
-def _classify(det) -> CommandError:
-    """The refusal of a detection that found no target, by its kind (``det.miss``, a
-    :class:`eyetohand.vision.Miss`), in its words."""
-    from eyetohand.vision import Miss
-
-    r = det.reason.removeprefix("no target found: ")
-    if det.miss is Miss.AMBIGUOUS:
-        return CommandError(det.reason, ErrorCode.AMBIGUOUS)
-    if det.miss is Miss.CUT_BY_BORDER:
-        return CommandError(f"outside the image: {r}", ErrorCode.OUTSIDE_IMAGE)
-    return CommandError(f"target not found: {r}", ErrorCode.TARGET_NOT_FOUND)
-
-
-class _Session:
-    def __init__(self, rec: dict):
-        self.begin = rec
-        self.name = rec["name"]
-        self.model = rec.get("model", "auto")
-        self.poses = np.array(rec["poses"], float).reshape(-1, 3)
-        self.done = np.zeros(len(self.poses), bool)
-        self.failed = np.zeros(len(self.poses), bool)
-        self.points: list[dict] = []
-        self.state = "collecting"
-        self.result: dict | None = None
-
-
 # ------------------------------------------------------------------ the collector
 
 
@@ -159,7 +147,9 @@ class Collector:
     ``begin_rule(name)``: why a collection for ``name`` is refused at BEGIN, or None (the server: only
     the calibration its mapping lines serve). ``served_fn() -> (name, version, cal, error)``: the
     calibration CHECK checks instead of ``load_fn(calibration)`` (the server: the one its mapping lines
-    use, so a check and a mapping answer never come from two calibrations).
+    use, so a check and a mapping answer never come from two calibrations). ``journal``: where the
+    records go instead of the store's own (a :class:`~eyetohand.cell.journal.Journal`; the tests' seam
+    for a failing write).
     """
 
     def __init__(
@@ -178,41 +168,54 @@ class Collector:
         begin_rule: Callable[[str], str | None] | None = None,
         served_fn: Callable[[], tuple[str, int | None, Any, str | None]] | None = None,
         on_check: Callable[[dict], None] | None = None,
+        journal: Journal | None = None,
     ):
         """``on_check(record)``: called with each CAL CHECK record once it is kept in the history
         (``serve`` adds it to its store's audit trail)."""
         if reply_format not in REPLY_FORMATS:
             raise InputError(f"reply format {reply_format!r}: expected one of {', '.join(REPLY_FORMATS)}")
-        if not (still_tol_px > 0):
-            raise InputError(f"still_tol_px: expected a positive number of px, got {still_tol_px!r}")
+        self.grabber = TargetGrabber(source, still_tol_px, detect_options)
         store = Path(store)
-        self.journal: SqliteJournal | JsonlJournal
+        self.journal: Journal
         if store.suffix.lower() in SQLITE_SUFFIXES:
             self.dir = store.parent
-            self.journal = SqliteJournal(store)
+            self.journal = journal or SqliteJournal(store)
         else:
             if store.exists() and not store.is_dir():
                 raise InputError(f"{store}: exists and is not a folder")
             self.dir = store
-            self.journal = JsonlJournal(store / "collect.jsonl")
+            self.journal = journal or JsonlJournal(store / "collect.jsonl")
         self.source = source
         self.calibrate_fn = calibrate_fn or default_calibrate
         self.save_fn = save_fn or self._save_file
         self.load_fn = load_fn or self._load_file
         self.on_check = on_check
         self.replies: ReplyFormat = REPLY_FORMATS[reply_format]()
-        self.still_tol_px = float(still_tol_px)
-        self.detect_options = dict(detect_options or {})
         self.keep_images = keep_images
         self.calibration_name = calibration
         self.begin_rule = begin_rule
         self.served_fn = served_fn
         self.image_size: tuple[int, int] | None = None
-        self.last_grab: tuple | None = None  # (image, Detection, utc) of the last POINT/CHECK grab
         self._lock = threading.Lock()  # one command at a time; a live view takes it only when free
-        self.session: _Session | None = None
+        self.session: Session | None = None
         for rec in self.journal.records():
             self._apply(rec)
+        self.end_store = EndStore(
+            self._record, lambda rec: self._apply({**rec, "utc": utc_now()}), self.save_fn, self.load_fn
+        )
+
+    @property
+    def still_tol_px(self) -> float:
+        return self.grabber.still_tol_px
+
+    @property
+    def detect_options(self) -> dict:
+        return self.grabber.detect_options
+
+    @property
+    def last_grab(self) -> tuple | None:
+        """(image, Detection, utc) of the last POINT/CHECK grab (the workbench's live view)."""
+        return self.grabber.last_grab
 
     # ---------------------------------------------------------------- files
     def _save_file(self, name: str, cal) -> None:
@@ -261,29 +264,11 @@ class Collector:
         self._apply(rec)
 
     def _apply(self, rec: dict) -> None:
-        op = rec["op"]
-        s = self.session
-        if op == "begin":
-            self.session = _Session(rec)
+        self.session = apply(self.session, rec)
+        if rec["op"] in ("begin", "plate"):
             self.calibration_name = rec["name"]
-        elif op == "point" and s is not None:
-            s.points.append(rec)
-            if rec.get("pose_index") is not None:
-                s.done[rec["pose_index"]] = True
-            if rec.get("image_size"):
-                self.image_size = tuple(rec["image_size"])
-        elif op == "miss" and s is not None and rec.get("pose_index") is not None:
-            s.failed[rec["pose_index"]] = True
-        elif op == "end" and s is not None:
-            s.state, s.result = "calibrated", rec
-        elif op == "abort" and s is not None:
-            s.state, s.points = "aborted", []
-        elif op in ("drop", "keep") and s is not None:
-            for p in s.points:
-                if p["n"] == rec["n"]:
-                    p["dropped"] = op == "drop"
-                    if p.get("pose_index") is not None:
-                        s.done[p["pose_index"]] = op == "keep"
+        if rec["op"] == "point" and rec.get("image_size"):
+            self.image_size = tuple(rec["image_size"])
 
     @property
     def reply_format(self) -> str:
@@ -300,8 +285,8 @@ class Collector:
         ``"dropped": True`` and is left out of the fit)."""
         return [] if self.session is None else list(self.session.points)
 
-    def _active(self, s: _Session) -> list[dict]:
-        return [p for p in s.points if not p.get("dropped")]
+    def _active(self, s: Session) -> list[dict]:
+        return s.active()
 
     def drop(self, n: int, keep: bool = False) -> dict:
         """Leave point ``n`` out of the fit (``keep``: take it back in), journaled like a command.
@@ -329,6 +314,8 @@ class Collector:
                     "result": None,
                     "calibration": self.calibration_name,
                 }
+            if s.kind == PLATE:
+                return {**plate_session.status(s), "calibration": self.calibration_name}
             poses = [
                 {
                     "index": i,
@@ -408,7 +395,9 @@ class Collector:
         """The command word and its reply fields (None: NEXT has no pose left)."""
         words = text.split(None, 2)
         if len(words) < 2 or words[0].upper() != "CAL":
-            raise CommandError("unknown command; expected CAL BEGIN|NEXT|POINT|END|ABORT|STATUS|CHECK")
+            raise CommandError(
+                "unknown command; expected CAL BEGIN|NEXT|POINT|END|ABORT|STATUS|CHECK|PLATE|TOUCH"
+            )
         cmd = words[1].upper()
         args = [a.strip() for a in words[2].split(",")] if len(words) > 2 else []
         handler = {
@@ -419,10 +408,13 @@ class Collector:
             "ABORT": self._abort,
             "STATUS": self._status,
             "CHECK": self._check,
+            "PLATE": self._plate,
+            "TOUCH": self._touch,
         }.get(cmd)
         if handler is None:
             raise CommandError(
-                f"unknown command CAL {cmd[:20]}; expected BEGIN, NEXT, POINT, END, ABORT, STATUS or CHECK"
+                f"unknown command CAL {cmd[:20]}; expected BEGIN, NEXT, POINT, END, ABORT, STATUS, CHECK, "
+                "PLATE or TOUCH"
             )
         if cmd in ("NEXT", "END", "ABORT", "STATUS") and args:
             raise CommandError(f"CAL {cmd} takes no fields")
@@ -467,32 +459,84 @@ class Collector:
         s = self.session
         if s is not None and s.state == "collecting":
             same = (
-                s.name == name
+                s.kind != PLATE
+                and s.name == name
                 and s.begin.get("plan") == plan
                 and s.begin.get("rect") == rect
                 and s.model == model
             )
             if same:
                 return []  # resume
-            raise CommandError(
-                f"busy: collection '{s.name}' is open with {len(s.points)} points; "
-                "send CAL END or CAL ABORT first",
-                ErrorCode.BUSY,
-            )
+            self._busy(s)
         self._record(
-            {"op": "begin", "name": name, "plan": plan, "rect": rect, "model": model, "poses": poses}
+            {
+                "op": "begin",
+                "name": name,
+                "session": uuid.uuid4().hex,
+                "plan": plan,
+                "rect": rect,
+                "model": model,
+                "poses": poses,
+            }
         )
         return []
 
-    def _open(self) -> _Session:
+    @staticmethod
+    def _busy(s: Session) -> None:
+        what = "plate session" if s.kind == PLATE else "collection"
+        raise CommandError(
+            f"busy: {what} '{s.name}' is open with {len(s.points)} "
+            + ("touches" if s.kind == PLATE else "points")
+            + "; send CAL END or CAL ABORT first",
+            ErrorCode.BUSY,
+        )
+
+    def _open(self, kind: str | None = None) -> Session:
+        """The open session (of ``kind``, when given), or the refusal."""
         s = self.session
         if s is None or s.state != "collecting":
             raise CommandError("no collection open; send CAL BEGIN <name> first", ErrorCode.NO_COLLECTION)
+        if kind == PLATE and s.kind != PLATE:
+            raise CommandError(
+                f"collection '{s.name}' is open, not a plate session: CAL TOUCH follows CAL PLATE <spec>",
+                ErrorCode.NO_COLLECTION,
+            )
+        if kind is not None and kind != PLATE and s.kind == PLATE:
+            raise CommandError(
+                f"plate session '{s.name}' is open: send CAL TOUCH <label>,<x>,<y>,<z> for its corners, "
+                "then CAL END",
+                ErrorCode.NO_COLLECTION,
+            )
         return s
+
+    # -- PLATE, TOUCH (eyetohand.cell.plate_session)
+    def _plate(self, args: list[str]) -> list:
+        spec, name = plate_session.parse_plate(args, self.calibration_name)
+        if not NAME_RE.match(name):
+            raise CommandError(f"CAL PLATE: name {name[:30]!r}: use letters, digits, _ - . (at most 64)")
+        why = self.begin_rule(name) if self.begin_rule is not None else None
+        if why:
+            raise CommandError(f"CAL PLATE {name}: {why}")
+        s = self.session
+        if s is not None and s.state == "collecting":
+            if s.kind == PLATE and plate_session.same_plate(s, spec, name):
+                return plate_session.plate_reply(s)  # resume: no new grab
+            self._busy(s)
+        found = plate_session.grab_plate(self.source, spec, self.dir, name)
+        self._record({"op": "plate", "name": name, "session": uuid.uuid4().hex, **found})
+        assert self.session is not None
+        return plate_session.plate_reply(self.session)
+
+    def _touch(self, args: list[str]) -> list:
+        s = self._open(PLATE)
+        rec, reply = plate_session.touch(s, args)
+        if rec is not None:
+            self._record(rec)
+        return reply
 
     # -- NEXT
     def _next(self, args) -> list[str] | None:
-        s = self._open()
+        s = self._open("collection")
         if not len(s.poses):
             raise CommandError(  # the code the ur replies have always sent for it
                 "no collection plan: CAL BEGIN was given no plan; send your own POINTs",
@@ -505,43 +549,11 @@ class Collector:
 
     # -- acquisition
     def _acquire(self, xyz, angle):
-        """Two grabs at the pose, the target in both → ((u, v), detection, image)."""
-        from eyetohand.vision import GrabTimeout, detect_target
-
-        try:
-            self.source.set_robot_pose(*xyz, angle)
-            img1, _ = self.source.grab()
-            img2, _ = self.source.grab()
-        except GrabTimeout as exc:
-            raise CommandError(f"timeout: {exc}", ErrorCode.TIMEOUT) from None
-        d1 = detect_target(img1, name="grab 1", **self.detect_options)
-        self.last_grab = (img1, d1, utc_now())
-        if not d1.ok:
-            raise _classify(d1)
-        assert d1.u is not None and d1.v is not None and d1.diameter_px is not None  # found: all set
-        r = 2.0 * d1.diameter_px + 8
-        h, w = img2.shape[:2]
-        x = int(max(0, math.floor(d1.u - r)))
-        y = int(max(0, math.floor(d1.v - r)))
-        roi = (x, y, int(min(w, math.ceil(d1.u + r)) - x), int(min(h, math.ceil(d1.v + r)) - y))
-        opts = {**self.detect_options, "diameter_px": d1.diameter_px, "refine": "edge"}
-        try:
-            d2 = detect_target(img2, name="grab 2", roi=roi, **opts)
-        except InputError:
-            d2 = None
-        if d2 is None or not d2.ok:
-            raise CommandError("moving: the target was not found again in the second grab", ErrorCode.MOVING)
-        assert d2.u is not None and d2.v is not None
-        shift = math.hypot(d2.u - d1.u, d2.v - d1.v)
-        if shift > self.still_tol_px:
-            raise CommandError(
-                f"moving: the target moved {shift:.2f} px between two grabs "
-                f"(tolerance {self.still_tol_px:g} px)",
-                ErrorCode.MOVING,
-            )
-        self.image_size = (int(w), int(h))
-        self.last_grab = (img1, d1, utc_now())
-        return (float(d1.u), float(d1.v)), d1, img1, shift
+        """Two grabs at the pose, the target in both (:class:`~eyetohand.cell.grab.TargetGrabber`)
+        → ((u, v), detection, image, shift px)."""
+        g = self.grabber.acquire(xyz, angle)
+        self.image_size = g.image_size
+        return g.uv_px, g.detection, g.image, g.shift_px
 
     # -- POINT
     def _point(self, args: list[str]) -> list:
@@ -549,7 +561,7 @@ class Collector:
             raise CommandError(f"CAL POINT: {len(args)} fields; expected <x>,<y>,<z>[,<angle>]")
         vals = line_numbers(args[:3], ("x", "y", "z"), "CAL POINT", "mm")
         vals += line_numbers(args[3:], ("angle",), "CAL POINT", "deg")
-        s = self._open()
+        s = self._open("collection")
         xyz, angle = vals[:3], (vals[3] if len(vals) == 4 else 0.0)
         for k, p in enumerate(s.points):
             if p.get("dropped"):
@@ -615,7 +627,7 @@ class Collector:
         """The current collection's points as :class:`~eyetohand.core.pairs.PointPairs`."""
         from eyetohand.core import PointPairs
 
-        s = self._open()
+        s = self._open("collection")
         pts = self._active(s)
         if not pts:
             raise CommandError("fit failed: no points recorded", ErrorCode.FIT_FAILED)
@@ -630,6 +642,17 @@ class Collector:
 
     def _end(self, args) -> list:
         s = self._open()
+        settled = self.end_store.settle(s)  # an END stored before a crash or a failed journal write
+        if settled is not None:
+            return list(settled["reply"])
+        if s.kind == PLATE:
+            cal, result = plate_session.fit_plate(s)
+        else:
+            cal, result = self._fit_collection(s)
+        return list(self.end_store.store(s, cal, result)["reply"])
+
+    def _fit_collection(self, s: Session):
+        """The collection's calibration and its END record's fields (``reply``: the reply's)."""
         pairs = self.pairs()
         try:
             cal = self.calibrate_fn(pairs, s.model, self.image_size)
@@ -640,19 +663,14 @@ class Collector:
                 f"fit failed: {len(pairs)} points are too few to fit and cross-check model {cal.model_name}",
                 ErrorCode.FIT_FAILED,
             )
-        self.save_fn(s.name, cal)
-        self._record(
-            {
-                "op": "end",
-                "name": s.name,
-                "model": cal.model_name,
-                "n": len(pairs),
-                "loo_rms_mm": cal.loo.rms_mm,
-                "loo_max_mm": cal.loo.max_mm,
-                "data_sha256": cal.data_sha256,
-            }
-        )
-        return [cal.model_name, str(len(pairs)), _f(cal.loo.rms_mm), _f(cal.loo.max_mm)]
+        result = {
+            "model": cal.model_name,
+            "n": len(pairs),
+            "loo_rms_mm": cal.loo.rms_mm,
+            "loo_max_mm": cal.loo.max_mm,
+        }
+        reply = [cal.model_name, str(len(pairs)), _f(cal.loo.rms_mm), _f(cal.loo.max_mm)]
+        return cal, {**result, "reply": reply}
 
     def _abort(self, args) -> list:
         s = self._open()
