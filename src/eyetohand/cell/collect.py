@@ -52,8 +52,8 @@ reply becomes exactly four numbers in brackets ``(status,a,b,c)``: status 1 for 
 a negative code for ERR (the refusal's kind, ``CommandError.code``, numbered by :data:`UR_ERROR_CODES`),
 fields padded with 0 — NEXT ``(1,x,y,z)``, POINT ``(1,n,u,v)``, END ``(1,n,loo_rms,loo_max)`` (the
 model's name is in the journal), STATUS ``(1,n,state,planned)`` with the state as :data:`UR_STATES`,
-CHECK ``(1,dx,dy,error)``. A fixed count matters: ``socket_read_ascii_float`` answers ``[0, nan…]`` when
-it cannot read the count it asked for.
+CHECK ``(1,dx,dy,error)``, PLATE ``(1,points,4,0)``, TOUCH ``(1,n,u,v)``. A fixed count matters:
+``socket_read_ascii_float`` answers ``[0, nan…]`` when it cannot read the count it asked for.
 
 **Persistence.** Every state change is appended to a journal *before* the reply is sent and
 ``fsync``-ed: a JSONL file ``<store>/collect.jsonl`` (store a folder), or a table in an SQLite file
@@ -73,9 +73,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
-import math
-import os
 import re
 import sqlite3
 import threading
@@ -88,6 +85,7 @@ import numpy as np
 
 from eyetohand.cell import plate_session
 from eyetohand.cell.cal_replies import REPLY_FORMATS, UR_STATES, PlainReplies, ReplyFormat, URReplies
+from eyetohand.cell.checks import CheckHistory, check_record
 from eyetohand.cell.end_store import EndStore
 from eyetohand.cell.grab import STILL_TOL_PX, TargetGrabber
 from eyetohand.cell.journal import SQLITE_SUFFIXES, Journal, JsonlJournal, SqliteJournal, utc_now
@@ -186,6 +184,7 @@ class Collector:
             self.dir = store
             self.journal = journal or JsonlJournal(store / "collect.jsonl")
         self.source = source
+        self.checks = CheckHistory(self.dir)
         self.calibrate_fn = calibrate_fn or default_calibrate
         self.save_fn = save_fn or self._save_file
         self.load_fn = load_fn or self._load_file
@@ -228,14 +227,11 @@ class Collector:
         return Calibration.load(path) if path.exists() else None
 
     def history_path(self, name: str) -> Path:
-        return self.dir / f"{name}.checks.jsonl"
+        return self.checks.path(name)
 
     def history(self, name: str) -> list[dict]:
         """The verification history of calibration ``name`` (CAL CHECK records, oldest first)."""
-        path = self.history_path(name)
-        if not path.exists():
-            return []
-        return [json.loads(x) for x in path.read_text(encoding="utf-8").splitlines() if x.strip()]
+        return self.checks.records(name)
 
     def close(self) -> None:
         self.journal.close()
@@ -316,44 +312,7 @@ class Collector:
                 }
             if s.kind == PLATE:
                 return {**plate_session.status(s), "calibration": self.calibration_name}
-            poses = [
-                {
-                    "index": i,
-                    "xyz_mm": [float(v) for v in p],
-                    "done": bool(s.done[i]),
-                    "failed": bool(s.failed[i]),
-                }
-                for i, p in enumerate(s.poses)
-            ]
-            points = [
-                {
-                    "n": p["n"],
-                    "xyz_mm": p["xyz_mm"],
-                    "angle_deg": p["angle_deg"],
-                    "u": p["u"],
-                    "v": p["v"],
-                    "pose_index": p.get("pose_index"),
-                    "still_shift_px": p["still_shift_px"],
-                    "dropped": bool(p.get("dropped")),
-                    "utc": p.get("utc"),
-                    "detection": {
-                        k: p["detection"].get(k)
-                        for k in ("diameter_px", "score", "rms_px", "contrast", "blur_px", "method")
-                        if k in p["detection"]
-                    },
-                }
-                for p in s.points
-            ]
-            return {
-                "name": s.name,
-                "state": s.state,
-                "model": s.model,
-                "plan": s.begin.get("plan"),
-                "poses": poses,
-                "points": points,
-                "result": s.result,
-                "calibration": self.calibration_name,
-            }
+            return {**s.status(), "calibration": self.calibration_name}
 
     # ---------------------------------------------------------------- protocol
     @contextlib.contextmanager
@@ -704,38 +663,11 @@ class Collector:
                     ErrorCode.NO_CALIBRATION,
                 )
         uv, det, img, _ = self._acquire(xyz, 0.0)
-        with np.errstate(all="ignore"):
-            got = cal.image_to_robot(np.array([uv]), xyz[2])[0]
-        if not np.isfinite(got).all():
-            raise CommandError(
-                "target not found: the centre maps to no finite robot point", ErrorCode.TARGET_NOT_FOUND
-            )
-        dx, dy = float(got[0] - xyz[0]), float(got[1] - xyz[1])
-        err = math.hypot(dx, dy)
-        rec = {
-            "utc": utc_now(),
-            "name": name,
-            "version": version,
-            "calibration_created_utc": cal.created_utc,
-            "data_sha256": cal.data_sha256,
-            "xyz_mm": xyz,
-            "u": uv[0],
-            "v": uv[1],
-            "mapped_mm": [float(v) for v in got],
-            "dx_mm": dx,
-            "dy_mm": dy,
-            "error_mm": err,
-            "image_sha256": hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest(),
-        }
-        path = self.history_path(name)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "ab") as fh:
-            fh.write((json.dumps(rec, allow_nan=False) + "\n").encode())
-            fh.flush()
-            os.fsync(fh.fileno())
+        rec = check_record(name, version, cal, xyz, uv, img)
+        self.checks.append(rec)
         if self.on_check is not None:
             self.on_check(rec)
-        return [_f(dx), _f(dy), _f(err)]
+        return [_f(rec["dx_mm"]), _f(rec["dy_mm"]), _f(rec["error_mm"])]
 
 
 __all__ = [

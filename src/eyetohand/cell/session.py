@@ -57,6 +57,47 @@ class Session:
         """The points (touches) not dropped."""
         return [p for p in self.points if not p.get("dropped")]
 
+    def status(self) -> dict:
+        """A collection as JSON-ready data (the workbench's collection view): plan poses with done/failed
+        flags, the points with their detections, the fit result of the last END."""
+        poses = [
+            {
+                "index": i,
+                "xyz_mm": [float(v) for v in p],
+                "done": bool(self.done[i]),
+                "failed": bool(self.failed[i]),
+            }
+            for i, p in enumerate(self.poses)
+        ]
+        points = [
+            {
+                "n": p["n"],
+                "xyz_mm": p["xyz_mm"],
+                "angle_deg": p["angle_deg"],
+                "u": p["u"],
+                "v": p["v"],
+                "pose_index": p.get("pose_index"),
+                "still_shift_px": p["still_shift_px"],
+                "dropped": bool(p.get("dropped")),
+                "utc": p.get("utc"),
+                "detection": {
+                    k: p["detection"].get(k)
+                    for k in ("diameter_px", "score", "rms_px", "contrast", "blur_px", "method")
+                    if k in p["detection"]
+                },
+            }
+            for p in self.points
+        ]
+        return {
+            "name": self.name,
+            "state": self.state,
+            "model": self.model,
+            "plan": self.begin.get("plan"),
+            "poses": poses,
+            "points": points,
+            "result": self.result,
+        }
+
 
 def apply(session: Session | None, rec: dict) -> Session | None:
     """The session after journal record ``rec`` (a BEGIN or PLATE starts a new one)."""
