@@ -73,7 +73,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import re
 import sqlite3
 import threading
 import uuid
@@ -83,9 +82,10 @@ from typing import Any
 
 import numpy as np
 
-from eyetohand.cell import plate_session
+from eyetohand.cell import collection_session, plate_session
 from eyetohand.cell.cal_replies import REPLY_FORMATS, UR_STATES, PlainReplies, ReplyFormat, URReplies
 from eyetohand.cell.checks import CheckHistory, check_record
+from eyetohand.cell.collection_session import NAME_RE, plan_poses
 from eyetohand.cell.end_store import EndStore
 from eyetohand.cell.grab import STILL_TOL_PX, TargetGrabber
 from eyetohand.cell.journal import SQLITE_SUFFIXES, Journal, JsonlJournal, SqliteJournal, utc_now
@@ -93,9 +93,6 @@ from eyetohand.cell.line import UR_ERROR_CODES, CommandError, ErrorCode, ascii_r
 from eyetohand.cell.session import PLATE, Session, apply
 from eyetohand.core import InputError
 
-POSE_MATCH_MM = 0.01
-REPEAT_MATCH_MM = 1e-3
-NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 UR_ERROR_OTHER = UR_ERROR_CODES[ErrorCode.OTHER]
 
 
@@ -104,22 +101,6 @@ UR_ERROR_OTHER = UR_ERROR_CODES[ErrorCode.OTHER]
 
 def _f(x: float) -> str:
     return f"{float(x):.4f}"
-
-
-def plan_poses(plan: str, x0: float, y0: float, x1: float, y1: float, z: float) -> np.ndarray:
-    """The poses (n, 3) mm of ``plan`` over the rectangle x0..x1, y0..y1 at height z, in the order
-    :meth:`Collector` hands them out (a grid snakes: every other row reversed)."""
-    from eyetohand.cell.plans import parse_plan
-
-    p = parse_plan(plan)
-    q = p.layout_px((1001, 1001), 0.0, np.random.default_rng(0)) / 1000.0  # unit square
-    if p.kind == "grid":
-        q = q.reshape(p.rows, p.cols, 2)
-        q[1::2] = q[1::2, ::-1]
-        q = q.reshape(-1, 2)
-    xs = x0 + (x1 - x0) * q[:, 0]
-    ys = y0 + (y1 - y0) * q[:, 1]
-    return np.column_stack([xs, ys, np.full(len(q), float(z))])
 
 
 def default_calibrate(pairs, model: str, image_size):
@@ -379,65 +360,20 @@ class Collector:
             raise CommandError(f"CAL {cmd} takes no fields")
         return cmd, handler(args)
 
-    # -- BEGIN
+    # -- BEGIN, NEXT, POINT (eyetohand.cell.collection_session)
     def _begin(self, args: list[str]) -> list:
-        from eyetohand.calibration import resolve_model
-
-        if not args or not args[0]:
-            raise CommandError("CAL BEGIN: expected <name>[,<plan>,<x0>,<y0>,<x1>,<y1>,<z>][,<model>]")
-        name = args[0]
-        if not NAME_RE.match(name):
-            raise CommandError(f"CAL BEGIN: name {name[:30]!r}: use letters, digits, _ - . (at most 64)")
-        model, plan, rect, poses = "auto", None, None, []
-        rest = args[1:]
-        if len(rest) in (6, 7):
-            plan = rest[0]
-            x0, y0, x1, y1, z = line_numbers(rest[1:6], ("x0", "y0", "x1", "y1", "z"), "CAL BEGIN", "mm")
-            if x0 == x1 and y0 == y1:
-                raise CommandError("CAL BEGIN: the plan's rectangle has no area (x0 = x1 and y0 = y1)")
-            try:
-                poses = plan_poses(plan, x0, y0, x1, y1, z).tolist()
-            except InputError as exc:
-                raise CommandError(f"CAL BEGIN: {exc}") from None
-            rect = [x0, y0, x1, y1, z]
-            rest = rest[6:]
-        if len(rest) == 1:
-            model = rest[0]
-        elif rest:
-            raise CommandError(
-                f"CAL BEGIN: {len(args)} fields; expected <name>[,<model>] or "
-                "<name>,<plan>,<x0>,<y0>,<x1>,<y1>,<z>[,<model>]"
-            )
+        fields = collection_session.parse_begin(args)
+        name = fields["name"]
         why = self.begin_rule(name) if self.begin_rule is not None else None
         if why:
             raise CommandError(f"CAL BEGIN {name}: {why}")
-        try:
-            resolve_model(model)  # "auto" or a model's name; another refused listing the choices
-        except InputError as exc:
-            raise CommandError(f"CAL BEGIN: {exc}") from None
+        collection_session.check_model(fields["model"])
         s = self.session
         if s is not None and s.state == "collecting":
-            same = (
-                s.kind != PLATE
-                and s.name == name
-                and s.begin.get("plan") == plan
-                and s.begin.get("rect") == rect
-                and s.model == model
-            )
-            if same:
+            if collection_session.same_begin(s, fields):
                 return []  # resume
             self._busy(s)
-        self._record(
-            {
-                "op": "begin",
-                "name": name,
-                "session": uuid.uuid4().hex,
-                "plan": plan,
-                "rect": rect,
-                "model": model,
-                "poses": poses,
-            }
-        )
+        self._record({"op": "begin", "session": uuid.uuid4().hex, **fields})
         return []
 
     @staticmethod
@@ -493,65 +429,26 @@ class Collector:
             self._record(rec)
         return reply
 
-    # -- NEXT
     def _next(self, args) -> list[str] | None:
-        s = self._open("collection")
-        if not len(s.poses):
-            raise CommandError(  # the code the ur replies have always sent for it
-                "no collection plan: CAL BEGIN was given no plan; send your own POINTs",
-                ErrorCode.NO_COLLECTION,
-            )
-        left = np.flatnonzero(~(s.done | s.failed))
-        if not len(left):
-            return None
-        return [_f(v) for v in s.poses[left[0]]]
+        return collection_session.next_pose(self._open("collection"))
 
-    # -- acquisition
-    def _acquire(self, xyz, angle):
-        """Two grabs at the pose, the target in both (:class:`~eyetohand.cell.grab.TargetGrabber`)
-        → ((u, v), detection, image, shift px)."""
-        g = self.grabber.acquire(xyz, angle)
-        self.image_size = g.image_size
-        return g.uv_px, g.detection, g.image, g.shift_px
-
-    # -- POINT
     def _point(self, args: list[str]) -> list:
-        if len(args) not in (3, 4):
-            raise CommandError(f"CAL POINT: {len(args)} fields; expected <x>,<y>,<z>[,<angle>]")
-        vals = line_numbers(args[:3], ("x", "y", "z"), "CAL POINT", "mm")
-        vals += line_numbers(args[3:], ("angle",), "CAL POINT", "deg")
+        xyz, angle, angle_given = collection_session.parse_point(args)
         s = self._open("collection")
-        xyz, angle = vals[:3], (vals[3] if len(vals) == 4 else 0.0)
-        for k, p in enumerate(s.points):
-            if p.get("dropped"):
-                continue
-            if (
-                max(abs(a - b) for a, b in zip(p["xyz_mm"], xyz, strict=True)) <= REPEAT_MATCH_MM
-                and abs(p["angle_deg"] - angle) <= REPEAT_MATCH_MM
-            ):
-                return [str(k + 1), _f(p["u"]), _f(p["v"])]
-        idx = None
-        if len(s.poses):
-            d = np.abs(s.poses - np.array(xyz)).max(axis=1)
-            j = int(np.argmin(d))
-            idx = j if d[j] <= POSE_MATCH_MM else None
+        again = collection_session.repeat_reply(s, xyz, angle)
+        if again is not None:
+            return again
+        idx = collection_session.pose_index(s, xyz)
         try:
-            uv, det, img, shift = self._acquire(xyz, angle)
+            grab = self.grabber.acquire(xyz, angle)
         except CommandError as exc:
             if idx is not None and not s.done[idx]:
-                self._record(
-                    {
-                        "op": "miss",
-                        "pose_index": idx,
-                        "xyz_mm": xyz,
-                        "angle_deg": angle,
-                        "reason": ascii_reason(str(exc)),
-                    }
-                )
+                miss = {"op": "miss", "pose_index": idx, "xyz_mm": xyz, "angle_deg": angle}
+                self._record({**miss, "reason": ascii_reason(str(exc))})
             raise
+        self.image_size = grab.image_size
         n = len(s.points) + 1
-        assert self.image_size is not None  # _acquire grabbed: the camera's size is known
-        digest = hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
+        digest = hashlib.sha256(np.ascontiguousarray(grab.image).tobytes()).hexdigest()
         image_file = None
         if self.keep_images:
             import cv2
@@ -559,45 +456,16 @@ class Collector:
             from eyetohand.core import atomic_write_bytes
 
             rel = Path("images") / s.name / f"{n:04d}_{digest[:12]}.png"
-            atomic_write_bytes(self.dir / rel, cv2.imencode(".png", img)[1].tobytes())
+            atomic_write_bytes(self.dir / rel, cv2.imencode(".png", grab.image)[1].tobytes())
             image_file = str(rel)
-        self._record(
-            {
-                "op": "point",
-                "name": s.name,
-                "n": n,
-                "xyz_mm": xyz,
-                "angle_deg": angle,
-                "angle_given": len(vals) == 4,
-                "pose_index": idx,
-                "u": uv[0],
-                "v": uv[1],
-                "still_shift_px": shift,
-                "image_sha256": digest,
-                "image_file": image_file,
-                "image_size": list(self.image_size),
-                "detection": det.to_dict(),
-            }
-        )
-        return [str(n), _f(uv[0]), _f(uv[1])]
+        rec = collection_session.point_record(s, xyz, angle, angle_given, idx, grab, digest, image_file)
+        self._record(rec)
+        return [str(n), _f(grab.uv_px[0]), _f(grab.uv_px[1])]
 
     # -- END
     def pairs(self):
         """The current collection's points as :class:`~eyetohand.core.pairs.PointPairs`."""
-        from eyetohand.core import PointPairs
-
-        s = self._open("collection")
-        pts = self._active(s)
-        if not pts:
-            raise CommandError("fit failed: no points recorded", ErrorCode.FIT_FAILED)
-        uv = np.array([[p["u"], p["v"]] for p in pts])
-        xyz = np.array([p["xyz_mm"] for p in pts])
-        angles = None
-        if any(p["angle_given"] for p in pts):
-            angles = np.array([p["angle_deg"] for p in pts])
-        return PointPairs.from_arrays(
-            uv, xyz, [str(p["n"]) for p in pts], source=f"collection {s.name}", angle_deg=angles
-        )
+        return collection_session.pairs(self._open("collection"))
 
     def _end(self, args) -> list:
         s = self._open()
@@ -607,29 +475,8 @@ class Collector:
         if s.kind == PLATE:
             cal, result = plate_session.fit_plate(s)
         else:
-            cal, result = self._fit_collection(s)
+            cal, result = collection_session.fit_collection(s, self.calibrate_fn, self.image_size)
         return list(self.end_store.store(s, cal, result)["reply"])
-
-    def _fit_collection(self, s: Session):
-        """The collection's calibration and its END record's fields (``reply``: the reply's)."""
-        pairs = self.pairs()
-        try:
-            cal = self.calibrate_fn(pairs, s.model, self.image_size)
-        except InputError as exc:
-            raise CommandError(f"fit failed: {len(pairs)} points: {exc}", ErrorCode.FIT_FAILED) from None
-        if cal.loo is None:
-            raise CommandError(
-                f"fit failed: {len(pairs)} points are too few to fit and cross-check model {cal.model_name}",
-                ErrorCode.FIT_FAILED,
-            )
-        result = {
-            "model": cal.model_name,
-            "n": len(pairs),
-            "loo_rms_mm": cal.loo.rms_mm,
-            "loo_max_mm": cal.loo.max_mm,
-        }
-        reply = [cal.model_name, str(len(pairs)), _f(cal.loo.rms_mm), _f(cal.loo.max_mm)]
-        return cal, {**result, "reply": reply}
 
     def _abort(self, args) -> list:
         s = self._open()
@@ -662,8 +509,9 @@ class Collector:
                     + (f": '{name}' has none yet" if name else "; send CAL BEGIN … CAL END first"),
                     ErrorCode.NO_CALIBRATION,
                 )
-        uv, det, img, _ = self._acquire(xyz, 0.0)
-        rec = check_record(name, version, cal, xyz, uv, img)
+        grab = self.grabber.acquire(xyz, 0.0)
+        self.image_size = grab.image_size
+        rec = check_record(name, version, cal, xyz, grab.uv_px, grab.image)
         self.checks.append(rec)
         if self.on_check is not None:
             self.on_check(rec)
@@ -680,6 +528,7 @@ __all__ = [
     "PlainReplies",
     "ReplyFormat",
     "URReplies",
+    "NAME_RE",
     "default_calibrate",
     "plan_poses",
 ]
