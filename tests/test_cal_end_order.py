@@ -181,3 +181,27 @@ def test_a_collection_killed_after_its_store_is_not_stored_twice(tmp_path, cell_
         assert again.handle("CAL END").startswith("OK ")
         assert (store / "c1.json").stat().st_mtime_ns == first  # not written again
         assert ops(store)[-2:] == ["ending", "end"]
+
+
+def test_the_servers_store_settles_a_pending_end(tmp_path, cell_file, touches):
+    """With the server's own save/load (a version in its database, read back and proven), the intent's
+    data hash finds the version a killed END stored: one version, not two."""
+    from eyetohand.server.startup import store_load_fn, store_save_fn
+    from eyetohand.server.storage import Store
+
+    db = Store(tmp_path / "data", create=True)
+    try:
+        store = tmp_path / "s"
+        source = open_source(f"sim:{cell_file}?seed=5")
+        source.show_plate(SPEC, 1)
+        kw = {"calibration": "cell1", "save_fn": store_save_fn(db), "load_fn": store_load_fn(db)}
+        col = Collector(store, source, journal=FaultyJournal(store / "collect.jsonl", "end", Crash()), **kw)
+        plate_session(col, touches)
+        with pytest.raises(Crash):
+            col.handle("CAL END")
+        col.close()
+        with Collector(store, source, **kw) as again:
+            assert again.handle("CAL END").startswith("OK homography-radial,4,")
+        assert [v.version for v in db.versions(db.find("cell1").id)] == [1]
+    finally:
+        db.close()
