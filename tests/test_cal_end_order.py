@@ -205,3 +205,18 @@ def test_the_servers_store_settles_a_pending_end(tmp_path, cell_file, touches):
         assert [v.version for v in db.versions(db.find("cell1").id)] == [1]
     finally:
         db.close()
+
+
+def test_points_added_after_a_killed_end_are_fitted_not_settled(tmp_path, cell_file, touches):
+    """A pending END settles only the points it was about: a touch added after the crash makes the next
+    END fit and store a new version with it."""
+    store, versions = tmp_path / "s", Versions()
+    col = collector(store, cell_file, versions, FaultyJournal(store / "collect.jsonl", "end", Crash()))
+    plate_session(col, touches[:3])
+    with pytest.raises(Crash):
+        col.handle("CAL END")
+    col.close()
+    with collector(store, cell_file, versions) as again:
+        assert again.handle(touches[3]).startswith("OK 4,")
+        assert again.handle("CAL END").startswith("OK homography-radial,4,")
+    assert len(versions.saved) == 2 and len(versions.saved[1][1].plate.touches) == 4
