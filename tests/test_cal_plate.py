@@ -179,3 +179,18 @@ def test_a_restarted_server_continues_the_plate_session(tmp_path, cell_file, tru
         assert c.handle(f"CAL PLATE {SPEC}") == "OK 54,A,B,C,D"  # the robot program restarted
         assert c.handle(f"CAL TOUCH D,{reading(world, CORNERS['D'], rng)}").startswith("OK 4,")
         assert c.handle("CAL END").startswith("OK homography-radial,4,")
+
+
+def test_a_dropped_touch_can_be_touched_again(col, truth):
+    """The workbench drops a touch (Collector.drop): its corner may be touched again; END fits the new one."""
+    sim, world = truth
+    rng = np.random.default_rng(8)
+    assert col.handle(f"CAL PLATE {SPEC}") == "OK 54,A,B,C,D"
+    for label in "ABC":
+        assert col.handle(f"CAL TOUCH {label},{reading(world, CORNERS[label], rng)}").startswith("OK ")
+    assert col.handle("CAL TOUCH D,1,2,3").startswith("OK 4,")  # a bad reading
+    assert col.handle("CAL END").startswith("ERR fit failed: ")
+    col.drop(4)
+    assert col.handle(f"CAL TOUCH D,{reading(world, CORNERS['D'], rng)}").startswith("OK 5,")
+    r = col.handle("CAL END")
+    assert r.startswith("OK homography-radial,4,"), r
