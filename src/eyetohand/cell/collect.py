@@ -90,7 +90,7 @@ from eyetohand.cell.end_store import EndStore
 from eyetohand.cell.grab import STILL_TOL_PX, TargetGrabber
 from eyetohand.cell.journal import SQLITE_SUFFIXES, Journal, JsonlJournal, SqliteJournal, utc_now
 from eyetohand.cell.line import UR_ERROR_CODES, CommandError, ErrorCode, ascii_reason, line_numbers
-from eyetohand.cell.session import PLATE, Session, apply
+from eyetohand.cell.session import COLLECTION, PLATE, Session, apply
 from eyetohand.core import InputError
 
 UR_ERROR_OTHER = UR_ERROR_CODES[ErrorCode.OTHER]
@@ -430,11 +430,11 @@ class Collector:
         return reply
 
     def _next(self, args) -> list[str] | None:
-        return collection_session.next_pose(self._open("collection"))
+        return collection_session.next_pose(self._open(COLLECTION))
 
     def _point(self, args: list[str]) -> list:
         xyz, angle, angle_given = collection_session.parse_point(args)
-        s = self._open("collection")
+        s = self._open(COLLECTION)
         again = collection_session.repeat_reply(s, xyz, angle)
         if again is not None:
             return again
@@ -465,7 +465,7 @@ class Collector:
     # -- END
     def pairs(self):
         """The current collection's points as :class:`~eyetohand.core.pairs.PointPairs`."""
-        return collection_session.pairs(self._open("collection"))
+        return collection_session.pairs(self._open(COLLECTION))
 
     def _end(self, args) -> list:
         s = self._open()
