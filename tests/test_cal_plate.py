@@ -107,7 +107,8 @@ def test_every_refusal_in_its_words_and_nothing_stored(col, truth, tmp_path, cel
     stored = tmp_path / "store" / "cell1.json"
     h = col.handle
     assert h("CAL TOUCH A,1,2,3") == "ERR no collection open; send CAL BEGIN <name> first"
-    assert h("CAL PLATE").startswith("ERR CAL PLATE: expected <spec>[,<name>]")
+    assert h("CAL PLATE").startswith("ERR CAL PLATE: expected <spec>[,<name>[,<placement>]]")
+    assert h(f"CAL PLATE {SPEC},cell1,0") == "ERR CAL PLATE: placement '0': expected a whole number 1..20"
     assert h("CAL PLATE chessboard:9x6").startswith("ERR CAL PLATE: plate spec 'chessboard:9x6': expected")
     assert h(f"CAL PLATE {SPEC},bad name!").startswith("ERR CAL PLATE: name 'bad name!'")
     assert h("CAL PLATE chessboard:8x6:15").startswith(
@@ -194,3 +195,39 @@ def test_a_dropped_touch_can_be_touched_again(col, truth):
     assert col.handle(f"CAL TOUCH D,{reading(world, CORNERS['D'], rng)}").startswith("OK 5,")
     r = col.handle("CAL END")
     assert r.startswith("OK homography-radial,4,"), r
+
+
+def test_two_placements_measure_the_camera_and_map_both_heights(tmp_path, cell_file):
+    """CAL PLATE <spec>,<name>,2 adds an image of the plate moved (40 mm higher, tilted 4 deg); the
+    touches after it touch its corners; END fits the camera model, which maps both heights."""
+    cell = load_cell(cell_file)
+    sims = [
+        simulate_plate(cell, SPEC, seed=PLATE_SEED, render=False, n_check=40, z_mm=z, tilt_deg=t)
+        for z, t in ((0.0, 0.3), (40.0, 4.0))
+    ]
+    rng = np.random.default_rng(9)
+    source = open_source(f"sim:{cell_file}?seed=5")
+    with Collector(tmp_path / "s", source, calibration="cell1") as c:
+        r = c.handle(f"CAL PLATE {SPEC},cell1,2")
+        assert r == "ERR CAL PLATE: placement 2: no plate session is open; placement 1 opens one", r
+        for k, (sim, (z, t)) in enumerate(zip(sims, ((0.0, 0.3), (40.0, 4.0)), strict=True), start=1):
+            source.show_plate(SPEC, PLATE_SEED, z, t)
+            assert c.handle(f"CAL PLATE {SPEC},cell1,{k}") == "OK 54,A,B,C,D"
+            world = sim.placement.to_robot(sim.spec.points_mm())
+            for label, i in CORNERS.items():
+                r = c.handle(f"CAL TOUCH {label},{reading(world, i, rng)}")
+                u, v = (float(x) for x in r.split(",")[1:])
+                assert np.hypot(u - sim.true_uv_px[i, 0], v - sim.true_uv_px[i, 1]) < 0.2, r
+        assert c.handle(f"CAL PLATE {SPEC},cell1,2") == "OK 54,A,B,C,D"  # taken: resumes, no grab
+        r = c.handle(f"CAL PLATE {SPEC},cell1,4")
+        assert r == "ERR CAL PLATE: placement 4: this session has 2; the next is 3", r
+        assert c.status()["placements"] == 2
+        end = c.handle("CAL END")
+        assert end.startswith("OK camera,8,"), end
+    cal = Calibration.load(tmp_path / "s" / "cell1.json")
+    assert cal.plate is not None and len(cal.plate.placements) == 2
+    for sim in sims:
+        check = np.loadtxt(sim.check_csv.splitlines()[1:], delimiter=",", usecols=range(5))
+        m = cal.map(check[:, :2], check[:, 4])
+        err = np.linalg.norm(m.xyz_mm[:, :2] - check[:, 2:4], axis=1)
+        assert m.sigma_mm is not None and np.all(err < 4 * m.sigma_mm), (err.max(), m.sigma_mm.min())

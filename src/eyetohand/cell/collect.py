@@ -406,7 +406,7 @@ class Collector:
 
     # -- PLATE, TOUCH (eyetohand.cell.plate_session)
     def _plate(self, args: list[str]) -> list:
-        spec, name = plate_session.parse_plate(args, self.calibration_name)
+        spec, name, placement = plate_session.parse_plate(args, self.calibration_name)
         if not NAME_RE.match(name):
             raise CommandError(f"CAL PLATE: name {name[:30]!r}: use letters, digits, _ - . (at most 64)")
         why = self.begin_rule(name) if self.begin_rule is not None else None
@@ -414,9 +414,22 @@ class Collector:
             raise CommandError(f"CAL PLATE {name}: {why}")
         s = self.session
         if s is not None and s.state == "collecting":
-            if s.kind == PLATE and plate_session.same_plate(s, spec, name):
+            if s.kind != PLATE or not plate_session.same_plate(s, spec, name):
+                self._busy(s)
+            taken = len(s.images)
+            if placement <= taken:
                 return plate_session.plate_reply(s)  # resume: no new grab
-            self._busy(s)
+            if placement > taken + 1:
+                raise CommandError(
+                    f"CAL PLATE: placement {placement}: this session has {taken}; the next is {taken + 1}"
+                )
+            found = plate_session.grab_plate(self.source, spec, self.dir, name)
+            self._record({"op": "plate_image", "name": name, "placement": placement, **found})
+            return plate_session.plate_reply(s)
+        if placement != 1:
+            raise CommandError(
+                f"CAL PLATE: placement {placement}: no plate session is open; placement 1 opens one"
+            )
         found = plate_session.grab_plate(self.source, spec, self.dir, name)
         self._record({"op": "plate", "name": name, "session": uuid.uuid4().hex, **found})
         assert self.session is not None

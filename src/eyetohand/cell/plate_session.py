@@ -2,12 +2,15 @@
 on the work plane, the robot touches a few of its corners with a pointer, ``CAL END`` fits and stores a
 version (docs/plate.md has the method, docs/collection.md "Plate and touches" the protocol).
 
-``CAL PLATE <spec>[,<name>]``
+``CAL PLATE <spec>[,<name>[,<placement>]]``
     Grab one image, detect the plate ``<spec>`` (``chessboard:9x6:15``, as ``calibrate-plate --plate``),
     keep the image (``images/<name>/plate_<sha>.png`` in the collection's folder) → ``OK <n>,A,B,C,D``:
     the plate's point count and the corners to touch (the labels docs/plate.md and the annotated image
     use; ``r{row}c{col}`` ids name any other). ``<name>``: the calibration (default: the server's
-    ``--calibration``). One image, one placement of the plate: another image is another session.
+    ``--calibration``). ``<placement>`` (default 1): 1 opens the session; 2, 3, … add another image of
+    the plate moved (on a block, tilted), whose own corners the following TOUCHes touch — placements at
+    several heights measure the full camera (``camera`` model; docs/plate.md). A placement already
+    taken resumes (no new grab).
 ``CAL TOUCH <label>,<x>,<y>,<z>`` (or ``<label> <x>,<y>,<z>``)
     The pointer's tip on corner ``<label>`` (A–D, or an id ``r2c5``) reads (x, y, z) mm → ``OK <n>,<u>,<v>``
     (touches so far, the corner's pixel). Refused: an unknown label, a reading not a finite number of mm,
@@ -32,7 +35,8 @@ from eyetohand.cell.session import Session
 from eyetohand.core import InputError
 
 REPEAT_MATCH_MM = 1e-3
-PLATE_USAGE = "CAL PLATE: expected <spec>[,<name>], e.g. CAL PLATE chessboard:9x6:15,cell1"
+MAX_PLACEMENTS = 20
+PLATE_USAGE = "CAL PLATE: expected <spec>[,<name>[,<placement>]], e.g. CAL PLATE chessboard:9x6:15,cell1"
 TOUCH_USAGE = "CAL TOUCH: expected <label>,<x>,<y>,<z> (label A-D or a corner id such as r0c0)"
 
 
@@ -41,19 +45,27 @@ def _f(x: float) -> str:
 
 
 def parse_plate(args: list[str], default_name: str | None):
-    """(spec, name) of ``CAL PLATE``'s fields, refused in the protocol's words."""
+    """(spec, name, placement) of ``CAL PLATE``'s fields, refused in the protocol's words."""
     from eyetohand.vision import PlateSpec
 
-    if not args or not args[0] or len(args) > 2:
+    if not args or not args[0] or len(args) > 3:
         raise CommandError(PLATE_USAGE)
+    placement = 1
+    if len(args) == 3:
+        k = args[2]
+        if not (k.isdigit() and 1 <= int(k) <= MAX_PLACEMENTS):
+            raise CommandError(
+                f"CAL PLATE: placement {k[:20]!r}: expected a whole number 1..{MAX_PLACEMENTS}"
+            )
+        placement = int(k)
     try:
         spec = PlateSpec.parse(args[0])
     except InputError as exc:
         raise CommandError(f"CAL PLATE: {exc}") from None
-    name = args[1] if len(args) == 2 and args[1] else default_name
+    name = args[1] if len(args) >= 2 and args[1] else default_name
     if not name:
         raise CommandError("CAL PLATE: no calibration name (the server has no --calibration): " + PLATE_USAGE)
-    return spec, name
+    return spec, name, placement
 
 
 def grab_plate(source, spec, keep_dir: Path, name: str) -> dict:
@@ -123,9 +135,10 @@ def touch(s: Session, args: list[str]) -> tuple[dict | None, list[str]]:
     spec = PlateSpec.parse(s.begin["spec"])
     i, label = _corner(spec, args[0])
     xyz = line_numbers(args[1:], ("x", "y", "z"), f"CAL TOUCH {label}", "mm")
-    uv = s.begin["uv_px"][i]
+    image = len(s.images) - 1  # the latest placement's corners
+    uv = s.images[image]["uv_px"][i]
     for p in s.active():
-        if p["corner"] != i:
+        if p["corner"] != i or p.get("image", 0) != image:
             continue
         if max(abs(a - b) for a, b in zip(p["xyz_mm"], xyz, strict=True)) <= REPEAT_MATCH_MM:
             return None, [str(p["n"]), _f(p["u"]), _f(p["v"])]
@@ -140,6 +153,7 @@ def touch(s: Session, args: list[str]) -> tuple[dict | None, list[str]]:
         "name": s.name,
         "n": n,
         "label": label,
+        "image": image,
         "corner": i,
         "corner_id": spec.ids()[i],
         "u": float(uv[0]),
@@ -156,20 +170,26 @@ def fit_plate(s: Session):
     from eyetohand.vision import PlateSpec
 
     spec = PlateSpec.parse(s.begin["spec"])
-    image = PlateImage(
-        Path(s.begin["image_file"]).name,
-        (int(s.begin["image_size"][0]), int(s.begin["image_size"][1])),
-        np.array(s.begin["uv_px"], float).reshape(-1, 2),
-    )
-    touches = [Touch((p["u"], p["v"]), tuple(p["xyz_mm"]), 0, p["label"], p["n"]) for p in s.active()]
+    images = [
+        PlateImage(
+            f"{k + 1}:{Path(im['image_file']).name}",
+            (int(im["image_size"][0]), int(im["image_size"][1])),
+            np.array(im["uv_px"], float).reshape(-1, 2),
+        )
+        for k, im in enumerate(s.images)
+    ]
+    touches = [
+        Touch((p["u"], p["v"]), tuple(p["xyz_mm"]), int(p.get("image", 0)), p["label"], p["n"])
+        for p in s.active()
+    ]
     try:
-        cal = calibrate_detected(spec, [image], touches)
+        cal = calibrate_detected(spec, images, touches)
     except InputError as exc:
         raise CommandError(f"fit failed: {exc}", ErrorCode.FIT_FAILED) from None
     assert cal.plate is not None  # calibrate_detected keeps its plate record
-    fit = cal.plate.placements[0].fit
-    rms = fit.rms_mm
-    worst = float(np.max(np.linalg.norm(fit.residuals_mm, axis=1)))
+    res = np.concatenate([np.linalg.norm(pl.fit.residuals_mm, axis=1) for pl in cal.plate.placements])
+    rms = float(np.sqrt(np.mean(res**2)))
+    worst = float(np.max(res))
     result = {"model": cal.model_name, "n": len(touches), "touch_rms_mm": rms, "touch_max_mm": worst}
     return cal, {**result, "reply": [cal.model_name, str(len(touches)), _f(rms), _f(worst)]}
 
@@ -180,14 +200,16 @@ def status(s: Session) -> dict:
     from eyetohand.vision import PlateSpec
 
     spec = PlateSpec.parse(s.begin["spec"])
-    uv = s.begin["uv_px"]
+    latest = s.images[-1]
+    uv = latest["uv_px"]
     return {
         "name": s.name,
         "kind": "plate",
         "state": s.state,
         "plate": spec.text,
-        "image_file": s.begin["image_file"],
-        "image_size": s.begin["image_size"],
+        "placements": len(s.images),
+        "image_file": latest["image_file"],
+        "image_size": latest["image_size"],
         "corners": [
             {"label": k, "id": spec.ids()[i], "u": uv[i][0], "v": uv[i][1]}
             for k, i in spec.corner_labels().items()
@@ -195,6 +217,7 @@ def status(s: Session) -> dict:
         "poses": [],
         "points": [
             {k: p.get(k) for k in ("n", "label", "corner_id", "u", "v", "xyz_mm", "utc")}
+            | {"placement": int(p.get("image", 0)) + 1}
             | {"dropped": bool(p.get("dropped"))}
             for p in s.points
         ],

@@ -27,6 +27,7 @@ class Session:
     begin: dict
     kind: str = COLLECTION
     points: list[dict] = field(default_factory=list)  # POINT records (collection) or TOUCH records (plate)
+    images: list[dict] = field(default_factory=list)  # a plate session's placements: PLATE, then PLATE k
     state: str = "collecting"  # collecting, calibrated, aborted
     result: dict | None = None  # the END record
     pending: dict | None = None  # an ``ending`` record not yet followed by its ``end``
@@ -38,7 +39,14 @@ class Session:
     def from_record(cls, rec: dict) -> Session:
         kind = PLATE if rec["op"] == "plate" else COLLECTION
         poses = np.array(rec.get("poses", []), float).reshape(-1, 3)
-        return cls(rec, kind, poses=poses, done=np.zeros(len(poses), bool), failed=np.zeros(len(poses), bool))
+        return cls(
+            rec,
+            kind,
+            images=[rec] if kind == PLATE else [],
+            poses=poses,
+            done=np.zeros(len(poses), bool),
+            failed=np.zeros(len(poses), bool),
+        )
 
     @property
     def name(self) -> str:
@@ -111,6 +119,8 @@ def apply(session: Session | None, rec: dict) -> Session | None:
         s.points.append(rec)
         if rec.get("pose_index") is not None:
             s.done[rec["pose_index"]] = True
+    elif op == "plate_image":
+        s.images.append(rec)
     elif op == "miss" and rec.get("pose_index") is not None:
         s.failed[rec["pose_index"]] = True
     elif op == "ending":

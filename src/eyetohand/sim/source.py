@@ -44,13 +44,13 @@ class SimSource(Source):
         self.scene, self._part_grabs, self._parts_seed = "parts", 0, int(seed)
         return placed
 
-    def show_plate(self, spec: str, seed: int = 0) -> int:
+    def show_plate(self, spec: str, seed: int = 0, z_mm: float | None = None, tilt_deg: float = 0.3) -> int:
         """A plate ``spec`` lying under the camera (:func:`eyetohand.sim.plate.simulate_plate` with this
-        cell and ``seed``: its placement and touches are that function's); the next grabs show it.
-        Returns the plate's point count."""
+        cell, ``seed``, ``z_mm`` (default the belt's) and ``tilt_deg``: its placement and touches are that
+        function's); the next grabs show it. Returns the plate's point count."""
         from eyetohand.sim.plate import simulate_plate
 
-        sim = simulate_plate(self.cell, spec, seed=seed, n_check=0)
+        sim = simulate_plate(self.cell, spec, seed=seed, n_check=0, z_mm=z_mm, tilt_deg=tilt_deg)
         assert sim.image is not None
         self._plate_image, self.scene = sim.image, "plate"
         return sim.spec.n_points
