@@ -34,7 +34,7 @@ a CR LF line is ignored). Every reply is one line, ``OK …`` or ``ERR <reason>`
     (``save_fn``) → ``OK <model>,<n>,<loo_rms_mm>,<loo_max_mm>`` (leave-one-out errors of the fit);
     or ``ERR <reason>`` with every point kept, for more POINTs and another END.
 ``CAL ABORT`` → ``OK`` (the points are dropped from the session; the journal keeps them).
-``CAL PLATE <spec>[,<name>]``, ``CAL TOUCH <label>,<x>,<y>,<z>``, then ``CAL END``
+``CAL PLATE <spec>[,<name>[,<placement>]]``, ``CAL TOUCH <label>,<x>,<y>,<z>``, then ``CAL END``
     A plate commissioning session instead of a collection: one image of a calibration plate, the robot's
     touches of its corners (:mod:`eyetohand.cell.plate_session`). ABORT, STATUS and the journal serve
     both kinds of session; NEXT and POINT are a collection's, TOUCH a plate session's.
