@@ -59,6 +59,8 @@ class URReplies:
             nums = [float(f) for f in fields[1:]]
         elif command == "STATUS":  # name,n,state -> n,state number,planned poses
             nums = [float(fields[1]), UR_STATES[fields[2]], planned]
+        elif command == "PLATE":  # points,A,B,C,D -> points, corners to touch (labels are not numbers)
+            nums = [float(fields[0]), len(fields) - 1]
         else:
             nums = [float(f) for f in fields]
         return self._line([1, *nums])

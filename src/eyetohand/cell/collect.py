@@ -34,6 +34,10 @@ a CR LF line is ignored). Every reply is one line, ``OK …`` or ``ERR <reason>`
     (``save_fn``) → ``OK <model>,<n>,<loo_rms_mm>,<loo_max_mm>`` (leave-one-out errors of the fit);
     or ``ERR <reason>`` with every point kept, for more POINTs and another END.
 ``CAL ABORT`` → ``OK`` (the points are dropped from the session; the journal keeps them).
+``CAL PLATE <spec>[,<name>[,<placement>]]``, ``CAL TOUCH <label>,<x>,<y>,<z>``, then ``CAL END``
+    A plate commissioning session instead of a collection: one image of a calibration plate, the robot's
+    touches of its corners (:mod:`eyetohand.cell.plate_session`). ABORT, STATUS and the journal serve
+    both kinds of session; NEXT and POINT are a collection's, TOUCH a plate session's.
 ``CAL STATUS`` → ``OK <name>,<n>,<state>``; state ``none`` (no collection yet: name ``-``),
     ``collecting``, ``calibrated`` (after a successful END) or ``aborted``.
 ``CAL CHECK <x>,<y>,<z>``
@@ -48,42 +52,47 @@ reply becomes exactly four numbers in brackets ``(status,a,b,c)``: status 1 for 
 a negative code for ERR (the refusal's kind, ``CommandError.code``, numbered by :data:`UR_ERROR_CODES`),
 fields padded with 0 — NEXT ``(1,x,y,z)``, POINT ``(1,n,u,v)``, END ``(1,n,loo_rms,loo_max)`` (the
 model's name is in the journal), STATUS ``(1,n,state,planned)`` with the state as :data:`UR_STATES`,
-CHECK ``(1,dx,dy,error)``. A fixed count matters: ``socket_read_ascii_float`` answers ``[0, nan…]`` when
-it cannot read the count it asked for.
+CHECK ``(1,dx,dy,error)``, PLATE ``(1,points,4,0)``, TOUCH ``(1,n,u,v)``. A fixed count matters:
+``socket_read_ascii_float`` answers ``[0, nan…]`` when it cannot read the count it asked for.
 
 **Persistence.** Every state change is appended to a journal *before* the reply is sent and
 ``fsync``-ed: a JSONL file ``<store>/collect.jsonl`` (store a folder), or a table in an SQLite file
 (store a path ending ``.db``/``.sqlite``/``.sqlite3``; WAL, synchronous=FULL). A record holds the
 pose, the detection, and the SHA-256 of the image (optionally the image: ``keep_images``). A new
 Collector on the same store replays the journal and continues the open collection with nothing
-lost; a torn last line (a kill in mid-write) is cut off.
+lost; a torn last line (a kill in mid-write) is cut off. ``CAL END`` journals its intent before it
+stores the version and its end after (:mod:`eyetohand.cell.end_store`): a resent END after a crash
+between the two stores nothing twice, and a failed journal write after the store still answers OK.
+
+The parts: the session's state (:mod:`eyetohand.cell.session`), the target's grab
+(:mod:`eyetohand.cell.grab`), END's store (:mod:`eyetohand.cell.end_store`), the plate's commands
+(:mod:`eyetohand.cell.plate_session`); this module is the protocol over them.
 """
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
-import math
-import os
-import re
 import sqlite3
 import threading
+import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from eyetohand.cell import collection_session, plate_session
 from eyetohand.cell.cal_replies import REPLY_FORMATS, UR_STATES, PlainReplies, ReplyFormat, URReplies
-from eyetohand.cell.journal import SQLITE_SUFFIXES, JsonlJournal, SqliteJournal, utc_now
+from eyetohand.cell.checks import CheckHistory, check_record
+from eyetohand.cell.collection_session import NAME_RE, plan_poses
+from eyetohand.cell.end_store import EndStore
+from eyetohand.cell.grab import STILL_TOL_PX, TargetGrabber
+from eyetohand.cell.journal import SQLITE_SUFFIXES, Journal, JsonlJournal, SqliteJournal, utc_now
 from eyetohand.cell.line import UR_ERROR_CODES, CommandError, ErrorCode, ascii_reason, line_numbers
+from eyetohand.cell.session import COLLECTION, PLATE, Session, apply
 from eyetohand.core import InputError
 
-STILL_TOL_PX = 0.2
-POSE_MATCH_MM = 0.01
-REPEAT_MATCH_MM = 1e-3
-NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 UR_ERROR_OTHER = UR_ERROR_CODES[ErrorCode.OTHER]
 
 
@@ -94,52 +103,10 @@ def _f(x: float) -> str:
     return f"{float(x):.4f}"
 
 
-def plan_poses(plan: str, x0: float, y0: float, x1: float, y1: float, z: float) -> np.ndarray:
-    """The poses (n, 3) mm of ``plan`` over the rectangle x0..x1, y0..y1 at height z, in the order
-    :meth:`Collector` hands them out (a grid snakes: every other row reversed)."""
-    from eyetohand.cell.plans import parse_plan
-
-    p = parse_plan(plan)
-    q = p.layout_px((1001, 1001), 0.0, np.random.default_rng(0)) / 1000.0  # unit square
-    if p.kind == "grid":
-        q = q.reshape(p.rows, p.cols, 2)
-        q[1::2] = q[1::2, ::-1]
-        q = q.reshape(-1, 2)
-    xs = x0 + (x1 - x0) * q[:, 0]
-    ys = y0 + (y1 - y0) * q[:, 1]
-    return np.column_stack([xs, ys, np.full(len(q), float(z))])
-
-
 def default_calibrate(pairs, model: str, image_size):
     from eyetohand.calibration import calibrate
 
     return calibrate(pairs, model=model, image_size=image_size, seed=0)
-
-
-def _classify(det) -> CommandError:
-    """The refusal of a detection that found no target, by its kind (``det.miss``, a
-    :class:`eyetohand.vision.Miss`), in its words."""
-    from eyetohand.vision import Miss
-
-    r = det.reason.removeprefix("no target found: ")
-    if det.miss is Miss.AMBIGUOUS:
-        return CommandError(det.reason, ErrorCode.AMBIGUOUS)
-    if det.miss is Miss.CUT_BY_BORDER:
-        return CommandError(f"outside the image: {r}", ErrorCode.OUTSIDE_IMAGE)
-    return CommandError(f"target not found: {r}", ErrorCode.TARGET_NOT_FOUND)
-
-
-class _Session:
-    def __init__(self, rec: dict):
-        self.begin = rec
-        self.name = rec["name"]
-        self.model = rec.get("model", "auto")
-        self.poses = np.array(rec["poses"], float).reshape(-1, 3)
-        self.done = np.zeros(len(self.poses), bool)
-        self.failed = np.zeros(len(self.poses), bool)
-        self.points: list[dict] = []
-        self.state = "collecting"
-        self.result: dict | None = None
 
 
 # ------------------------------------------------------------------ the collector
@@ -159,7 +126,9 @@ class Collector:
     ``begin_rule(name)``: why a collection for ``name`` is refused at BEGIN, or None (the server: only
     the calibration its mapping lines serve). ``served_fn() -> (name, version, cal, error)``: the
     calibration CHECK checks instead of ``load_fn(calibration)`` (the server: the one its mapping lines
-    use, so a check and a mapping answer never come from two calibrations).
+    use, so a check and a mapping answer never come from two calibrations). ``journal``: where the
+    records go instead of the store's own (a :class:`~eyetohand.cell.journal.Journal`; the tests' seam
+    for a failing write).
     """
 
     def __init__(
@@ -178,41 +147,55 @@ class Collector:
         begin_rule: Callable[[str], str | None] | None = None,
         served_fn: Callable[[], tuple[str, int | None, Any, str | None]] | None = None,
         on_check: Callable[[dict], None] | None = None,
+        journal: Journal | None = None,
     ):
         """``on_check(record)``: called with each CAL CHECK record once it is kept in the history
         (``serve`` adds it to its store's audit trail)."""
         if reply_format not in REPLY_FORMATS:
             raise InputError(f"reply format {reply_format!r}: expected one of {', '.join(REPLY_FORMATS)}")
-        if not (still_tol_px > 0):
-            raise InputError(f"still_tol_px: expected a positive number of px, got {still_tol_px!r}")
+        self.grabber = TargetGrabber(source, still_tol_px, detect_options)
         store = Path(store)
-        self.journal: SqliteJournal | JsonlJournal
+        self.journal: Journal
         if store.suffix.lower() in SQLITE_SUFFIXES:
             self.dir = store.parent
-            self.journal = SqliteJournal(store)
+            self.journal = journal or SqliteJournal(store)
         else:
             if store.exists() and not store.is_dir():
                 raise InputError(f"{store}: exists and is not a folder")
             self.dir = store
-            self.journal = JsonlJournal(store / "collect.jsonl")
+            self.journal = journal or JsonlJournal(store / "collect.jsonl")
         self.source = source
+        self.checks = CheckHistory(self.dir)
         self.calibrate_fn = calibrate_fn or default_calibrate
         self.save_fn = save_fn or self._save_file
         self.load_fn = load_fn or self._load_file
         self.on_check = on_check
         self.replies: ReplyFormat = REPLY_FORMATS[reply_format]()
-        self.still_tol_px = float(still_tol_px)
-        self.detect_options = dict(detect_options or {})
         self.keep_images = keep_images
         self.calibration_name = calibration
         self.begin_rule = begin_rule
         self.served_fn = served_fn
         self.image_size: tuple[int, int] | None = None
-        self.last_grab: tuple | None = None  # (image, Detection, utc) of the last POINT/CHECK grab
         self._lock = threading.Lock()  # one command at a time; a live view takes it only when free
-        self.session: _Session | None = None
+        self.session: Session | None = None
         for rec in self.journal.records():
             self._apply(rec)
+        self.end_store = EndStore(
+            self._record, lambda rec: self._apply({**rec, "utc": utc_now()}), self.save_fn, self.load_fn
+        )
+
+    @property
+    def still_tol_px(self) -> float:
+        return self.grabber.still_tol_px
+
+    @property
+    def detect_options(self) -> dict:
+        return self.grabber.detect_options
+
+    @property
+    def last_grab(self) -> tuple | None:
+        """(image, Detection, utc) of the last POINT/CHECK grab (the workbench's live view)."""
+        return self.grabber.last_grab
 
     # ---------------------------------------------------------------- files
     def _save_file(self, name: str, cal) -> None:
@@ -225,14 +208,11 @@ class Collector:
         return Calibration.load(path) if path.exists() else None
 
     def history_path(self, name: str) -> Path:
-        return self.dir / f"{name}.checks.jsonl"
+        return self.checks.path(name)
 
     def history(self, name: str) -> list[dict]:
         """The verification history of calibration ``name`` (CAL CHECK records, oldest first)."""
-        path = self.history_path(name)
-        if not path.exists():
-            return []
-        return [json.loads(x) for x in path.read_text(encoding="utf-8").splitlines() if x.strip()]
+        return self.checks.records(name)
 
     def close(self) -> None:
         self.journal.close()
@@ -261,29 +241,11 @@ class Collector:
         self._apply(rec)
 
     def _apply(self, rec: dict) -> None:
-        op = rec["op"]
-        s = self.session
-        if op == "begin":
-            self.session = _Session(rec)
+        self.session = apply(self.session, rec)
+        if rec["op"] in ("begin", "plate"):
             self.calibration_name = rec["name"]
-        elif op == "point" and s is not None:
-            s.points.append(rec)
-            if rec.get("pose_index") is not None:
-                s.done[rec["pose_index"]] = True
-            if rec.get("image_size"):
-                self.image_size = tuple(rec["image_size"])
-        elif op == "miss" and s is not None and rec.get("pose_index") is not None:
-            s.failed[rec["pose_index"]] = True
-        elif op == "end" and s is not None:
-            s.state, s.result = "calibrated", rec
-        elif op == "abort" and s is not None:
-            s.state, s.points = "aborted", []
-        elif op in ("drop", "keep") and s is not None:
-            for p in s.points:
-                if p["n"] == rec["n"]:
-                    p["dropped"] = op == "drop"
-                    if p.get("pose_index") is not None:
-                        s.done[p["pose_index"]] = op == "keep"
+        if rec["op"] == "point" and rec.get("image_size"):
+            self.image_size = tuple(rec["image_size"])
 
     @property
     def reply_format(self) -> str:
@@ -300,8 +262,8 @@ class Collector:
         ``"dropped": True`` and is left out of the fit)."""
         return [] if self.session is None else list(self.session.points)
 
-    def _active(self, s: _Session) -> list[dict]:
-        return [p for p in s.points if not p.get("dropped")]
+    def _active(self, s: Session) -> list[dict]:
+        return s.active()
 
     def drop(self, n: int, keep: bool = False) -> dict:
         """Leave point ``n`` out of the fit (``keep``: take it back in), journaled like a command.
@@ -329,44 +291,9 @@ class Collector:
                     "result": None,
                     "calibration": self.calibration_name,
                 }
-            poses = [
-                {
-                    "index": i,
-                    "xyz_mm": [float(v) for v in p],
-                    "done": bool(s.done[i]),
-                    "failed": bool(s.failed[i]),
-                }
-                for i, p in enumerate(s.poses)
-            ]
-            points = [
-                {
-                    "n": p["n"],
-                    "xyz_mm": p["xyz_mm"],
-                    "angle_deg": p["angle_deg"],
-                    "u": p["u"],
-                    "v": p["v"],
-                    "pose_index": p.get("pose_index"),
-                    "still_shift_px": p["still_shift_px"],
-                    "dropped": bool(p.get("dropped")),
-                    "utc": p.get("utc"),
-                    "detection": {
-                        k: p["detection"].get(k)
-                        for k in ("diameter_px", "score", "rms_px", "contrast", "blur_px", "method")
-                        if k in p["detection"]
-                    },
-                }
-                for p in s.points
-            ]
-            return {
-                "name": s.name,
-                "state": s.state,
-                "model": s.model,
-                "plan": s.begin.get("plan"),
-                "poses": poses,
-                "points": points,
-                "result": s.result,
-                "calibration": self.calibration_name,
-            }
+            if s.kind == PLATE:
+                return {**plate_session.status(s), "calibration": self.calibration_name}
+            return {**s.status(), "calibration": self.calibration_name}
 
     # ---------------------------------------------------------------- protocol
     @contextlib.contextmanager
@@ -408,7 +335,9 @@ class Collector:
         """The command word and its reply fields (None: NEXT has no pose left)."""
         words = text.split(None, 2)
         if len(words) < 2 or words[0].upper() != "CAL":
-            raise CommandError("unknown command; expected CAL BEGIN|NEXT|POINT|END|ABORT|STATUS|CHECK")
+            raise CommandError(
+                "unknown command; expected CAL BEGIN|NEXT|POINT|END|ABORT|STATUS|CHECK|PLATE|TOUCH"
+            )
         cmd = words[1].upper()
         args = [a.strip() for a in words[2].split(",")] if len(words) > 2 else []
         handler = {
@@ -419,168 +348,120 @@ class Collector:
             "ABORT": self._abort,
             "STATUS": self._status,
             "CHECK": self._check,
+            "PLATE": self._plate,
+            "TOUCH": self._touch,
         }.get(cmd)
         if handler is None:
             raise CommandError(
-                f"unknown command CAL {cmd[:20]}; expected BEGIN, NEXT, POINT, END, ABORT, STATUS or CHECK"
+                f"unknown command CAL {cmd[:20]}; expected BEGIN, NEXT, POINT, END, ABORT, STATUS, CHECK, "
+                "PLATE or TOUCH"
             )
         if cmd in ("NEXT", "END", "ABORT", "STATUS") and args:
             raise CommandError(f"CAL {cmd} takes no fields")
         return cmd, handler(args)
 
-    # -- BEGIN
+    # -- BEGIN, NEXT, POINT (eyetohand.cell.collection_session)
     def _begin(self, args: list[str]) -> list:
-        from eyetohand.calibration import resolve_model
-
-        if not args or not args[0]:
-            raise CommandError("CAL BEGIN: expected <name>[,<plan>,<x0>,<y0>,<x1>,<y1>,<z>][,<model>]")
-        name = args[0]
-        if not NAME_RE.match(name):
-            raise CommandError(f"CAL BEGIN: name {name[:30]!r}: use letters, digits, _ - . (at most 64)")
-        model, plan, rect, poses = "auto", None, None, []
-        rest = args[1:]
-        if len(rest) in (6, 7):
-            plan = rest[0]
-            x0, y0, x1, y1, z = line_numbers(rest[1:6], ("x0", "y0", "x1", "y1", "z"), "CAL BEGIN", "mm")
-            if x0 == x1 and y0 == y1:
-                raise CommandError("CAL BEGIN: the plan's rectangle has no area (x0 = x1 and y0 = y1)")
-            try:
-                poses = plan_poses(plan, x0, y0, x1, y1, z).tolist()
-            except InputError as exc:
-                raise CommandError(f"CAL BEGIN: {exc}") from None
-            rect = [x0, y0, x1, y1, z]
-            rest = rest[6:]
-        if len(rest) == 1:
-            model = rest[0]
-        elif rest:
-            raise CommandError(
-                f"CAL BEGIN: {len(args)} fields; expected <name>[,<model>] or "
-                "<name>,<plan>,<x0>,<y0>,<x1>,<y1>,<z>[,<model>]"
-            )
+        fields = collection_session.parse_begin(args)
+        name = fields["name"]
         why = self.begin_rule(name) if self.begin_rule is not None else None
         if why:
             raise CommandError(f"CAL BEGIN {name}: {why}")
-        try:
-            resolve_model(model)  # "auto" or a model's name; another refused listing the choices
-        except InputError as exc:
-            raise CommandError(f"CAL BEGIN: {exc}") from None
+        collection_session.check_model(fields["model"])
         s = self.session
         if s is not None and s.state == "collecting":
-            same = (
-                s.name == name
-                and s.begin.get("plan") == plan
-                and s.begin.get("rect") == rect
-                and s.model == model
-            )
-            if same:
+            if collection_session.same_begin(s, fields):
                 return []  # resume
-            raise CommandError(
-                f"busy: collection '{s.name}' is open with {len(s.points)} points; "
-                "send CAL END or CAL ABORT first",
-                ErrorCode.BUSY,
-            )
-        self._record(
-            {"op": "begin", "name": name, "plan": plan, "rect": rect, "model": model, "poses": poses}
-        )
+            self._busy(s)
+        self._record({"op": "begin", "session": uuid.uuid4().hex, **fields})
         return []
 
-    def _open(self) -> _Session:
+    @staticmethod
+    def _busy(s: Session) -> None:
+        what = "plate session" if s.kind == PLATE else "collection"
+        raise CommandError(
+            f"busy: {what} '{s.name}' is open with {len(s.points)} "
+            + ("touches" if s.kind == PLATE else "points")
+            + "; send CAL END or CAL ABORT first",
+            ErrorCode.BUSY,
+        )
+
+    def _open(self, kind: str | None = None) -> Session:
+        """The open session (of ``kind``, when given), or the refusal."""
         s = self.session
         if s is None or s.state != "collecting":
             raise CommandError("no collection open; send CAL BEGIN <name> first", ErrorCode.NO_COLLECTION)
-        return s
-
-    # -- NEXT
-    def _next(self, args) -> list[str] | None:
-        s = self._open()
-        if not len(s.poses):
-            raise CommandError(  # the code the ur replies have always sent for it
-                "no collection plan: CAL BEGIN was given no plan; send your own POINTs",
+        if kind == PLATE and s.kind != PLATE:
+            raise CommandError(
+                f"collection '{s.name}' is open, not a plate session: CAL TOUCH follows CAL PLATE <spec>",
                 ErrorCode.NO_COLLECTION,
             )
-        left = np.flatnonzero(~(s.done | s.failed))
-        if not len(left):
-            return None
-        return [_f(v) for v in s.poses[left[0]]]
-
-    # -- acquisition
-    def _acquire(self, xyz, angle):
-        """Two grabs at the pose, the target in both → ((u, v), detection, image)."""
-        from eyetohand.vision import GrabTimeout, detect_target
-
-        try:
-            self.source.set_robot_pose(*xyz, angle)
-            img1, _ = self.source.grab()
-            img2, _ = self.source.grab()
-        except GrabTimeout as exc:
-            raise CommandError(f"timeout: {exc}", ErrorCode.TIMEOUT) from None
-        d1 = detect_target(img1, name="grab 1", **self.detect_options)
-        self.last_grab = (img1, d1, utc_now())
-        if not d1.ok:
-            raise _classify(d1)
-        assert d1.u is not None and d1.v is not None and d1.diameter_px is not None  # found: all set
-        r = 2.0 * d1.diameter_px + 8
-        h, w = img2.shape[:2]
-        x = int(max(0, math.floor(d1.u - r)))
-        y = int(max(0, math.floor(d1.v - r)))
-        roi = (x, y, int(min(w, math.ceil(d1.u + r)) - x), int(min(h, math.ceil(d1.v + r)) - y))
-        opts = {**self.detect_options, "diameter_px": d1.diameter_px, "refine": "edge"}
-        try:
-            d2 = detect_target(img2, name="grab 2", roi=roi, **opts)
-        except InputError:
-            d2 = None
-        if d2 is None or not d2.ok:
-            raise CommandError("moving: the target was not found again in the second grab", ErrorCode.MOVING)
-        assert d2.u is not None and d2.v is not None
-        shift = math.hypot(d2.u - d1.u, d2.v - d1.v)
-        if shift > self.still_tol_px:
+        if kind is not None and kind != PLATE and s.kind == PLATE:
             raise CommandError(
-                f"moving: the target moved {shift:.2f} px between two grabs "
-                f"(tolerance {self.still_tol_px:g} px)",
-                ErrorCode.MOVING,
+                f"plate session '{s.name}' is open: send CAL TOUCH <label>,<x>,<y>,<z> for its corners, "
+                "then CAL END",
+                ErrorCode.NO_COLLECTION,
             )
-        self.image_size = (int(w), int(h))
-        self.last_grab = (img1, d1, utc_now())
-        return (float(d1.u), float(d1.v)), d1, img1, shift
+        return s
 
-    # -- POINT
+    # -- PLATE, TOUCH (eyetohand.cell.plate_session)
+    def _plate(self, args: list[str]) -> list:
+        spec, name, placement = plate_session.parse_plate(args, self.calibration_name)
+        if not NAME_RE.match(name):
+            raise CommandError(f"CAL PLATE: name {name[:30]!r}: use letters, digits, _ - . (at most 64)")
+        why = self.begin_rule(name) if self.begin_rule is not None else None
+        if why:
+            raise CommandError(f"CAL PLATE {name}: {why}")
+        s = self.session
+        if s is not None and s.state == "collecting":
+            if s.kind != PLATE or not plate_session.same_plate(s, spec, name):
+                self._busy(s)
+            taken = len(s.images)
+            if placement <= taken:
+                return plate_session.plate_reply(s)  # resume: no new grab
+            if placement > taken + 1:
+                raise CommandError(
+                    f"CAL PLATE: placement {placement}: this session has {taken}; the next is {taken + 1}"
+                )
+            found = plate_session.grab_plate(self.source, spec, self.dir, name)
+            self._record({"op": "plate_image", "name": name, "placement": placement, **found})
+            return plate_session.plate_reply(s)
+        if placement != 1:
+            raise CommandError(
+                f"CAL PLATE: placement {placement}: no plate session is open; placement 1 opens one"
+            )
+        found = plate_session.grab_plate(self.source, spec, self.dir, name)
+        self._record({"op": "plate", "name": name, "session": uuid.uuid4().hex, **found})
+        assert self.session is not None
+        return plate_session.plate_reply(self.session)
+
+    def _touch(self, args: list[str]) -> list:
+        s = self._open(PLATE)
+        rec, reply = plate_session.touch(s, args)
+        if rec is not None:
+            self._record(rec)
+        return reply
+
+    def _next(self, args) -> list[str] | None:
+        return collection_session.next_pose(self._open(COLLECTION))
+
     def _point(self, args: list[str]) -> list:
-        if len(args) not in (3, 4):
-            raise CommandError(f"CAL POINT: {len(args)} fields; expected <x>,<y>,<z>[,<angle>]")
-        vals = line_numbers(args[:3], ("x", "y", "z"), "CAL POINT", "mm")
-        vals += line_numbers(args[3:], ("angle",), "CAL POINT", "deg")
-        s = self._open()
-        xyz, angle = vals[:3], (vals[3] if len(vals) == 4 else 0.0)
-        for k, p in enumerate(s.points):
-            if p.get("dropped"):
-                continue
-            if (
-                max(abs(a - b) for a, b in zip(p["xyz_mm"], xyz, strict=True)) <= REPEAT_MATCH_MM
-                and abs(p["angle_deg"] - angle) <= REPEAT_MATCH_MM
-            ):
-                return [str(k + 1), _f(p["u"]), _f(p["v"])]
-        idx = None
-        if len(s.poses):
-            d = np.abs(s.poses - np.array(xyz)).max(axis=1)
-            j = int(np.argmin(d))
-            idx = j if d[j] <= POSE_MATCH_MM else None
+        xyz, angle, angle_given = collection_session.parse_point(args)
+        s = self._open(COLLECTION)
+        again = collection_session.repeat_reply(s, xyz, angle)
+        if again is not None:
+            return again
+        idx = collection_session.pose_index(s, xyz)
         try:
-            uv, det, img, shift = self._acquire(xyz, angle)
+            grab = self.grabber.acquire(xyz, angle)
         except CommandError as exc:
             if idx is not None and not s.done[idx]:
-                self._record(
-                    {
-                        "op": "miss",
-                        "pose_index": idx,
-                        "xyz_mm": xyz,
-                        "angle_deg": angle,
-                        "reason": ascii_reason(str(exc)),
-                    }
-                )
+                miss = {"op": "miss", "pose_index": idx, "xyz_mm": xyz, "angle_deg": angle}
+                self._record({**miss, "reason": ascii_reason(str(exc))})
             raise
+        self.image_size = grab.image_size
         n = len(s.points) + 1
-        assert self.image_size is not None  # _acquire grabbed: the camera's size is known
-        digest = hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest()
+        digest = hashlib.sha256(np.ascontiguousarray(grab.image).tobytes()).hexdigest()
         image_file = None
         if self.keep_images:
             import cv2
@@ -588,71 +469,27 @@ class Collector:
             from eyetohand.core import atomic_write_bytes
 
             rel = Path("images") / s.name / f"{n:04d}_{digest[:12]}.png"
-            atomic_write_bytes(self.dir / rel, cv2.imencode(".png", img)[1].tobytes())
+            atomic_write_bytes(self.dir / rel, cv2.imencode(".png", grab.image)[1].tobytes())
             image_file = str(rel)
-        self._record(
-            {
-                "op": "point",
-                "name": s.name,
-                "n": n,
-                "xyz_mm": xyz,
-                "angle_deg": angle,
-                "angle_given": len(vals) == 4,
-                "pose_index": idx,
-                "u": uv[0],
-                "v": uv[1],
-                "still_shift_px": shift,
-                "image_sha256": digest,
-                "image_file": image_file,
-                "image_size": list(self.image_size),
-                "detection": det.to_dict(),
-            }
-        )
-        return [str(n), _f(uv[0]), _f(uv[1])]
+        rec = collection_session.point_record(s, xyz, angle, angle_given, idx, grab, digest, image_file)
+        self._record(rec)
+        return [str(n), _f(grab.uv_px[0]), _f(grab.uv_px[1])]
 
     # -- END
     def pairs(self):
         """The current collection's points as :class:`~eyetohand.core.pairs.PointPairs`."""
-        from eyetohand.core import PointPairs
-
-        s = self._open()
-        pts = self._active(s)
-        if not pts:
-            raise CommandError("fit failed: no points recorded", ErrorCode.FIT_FAILED)
-        uv = np.array([[p["u"], p["v"]] for p in pts])
-        xyz = np.array([p["xyz_mm"] for p in pts])
-        angles = None
-        if any(p["angle_given"] for p in pts):
-            angles = np.array([p["angle_deg"] for p in pts])
-        return PointPairs.from_arrays(
-            uv, xyz, [str(p["n"]) for p in pts], source=f"collection {s.name}", angle_deg=angles
-        )
+        return collection_session.pairs(self._open(COLLECTION))
 
     def _end(self, args) -> list:
         s = self._open()
-        pairs = self.pairs()
-        try:
-            cal = self.calibrate_fn(pairs, s.model, self.image_size)
-        except InputError as exc:
-            raise CommandError(f"fit failed: {len(pairs)} points: {exc}", ErrorCode.FIT_FAILED) from None
-        if cal.loo is None:
-            raise CommandError(
-                f"fit failed: {len(pairs)} points are too few to fit and cross-check model {cal.model_name}",
-                ErrorCode.FIT_FAILED,
-            )
-        self.save_fn(s.name, cal)
-        self._record(
-            {
-                "op": "end",
-                "name": s.name,
-                "model": cal.model_name,
-                "n": len(pairs),
-                "loo_rms_mm": cal.loo.rms_mm,
-                "loo_max_mm": cal.loo.max_mm,
-                "data_sha256": cal.data_sha256,
-            }
-        )
-        return [cal.model_name, str(len(pairs)), _f(cal.loo.rms_mm), _f(cal.loo.max_mm)]
+        settled = self.end_store.settle(s)  # an END stored before a crash or a failed journal write
+        if settled is not None:
+            return list(settled["reply"])
+        if s.kind == PLATE:
+            cal, result = plate_session.fit_plate(s)
+        else:
+            cal, result = collection_session.fit_collection(s, self.calibrate_fn, self.image_size)
+        return list(self.end_store.store(s, cal, result)["reply"])
 
     def _abort(self, args) -> list:
         s = self._open()
@@ -685,39 +522,13 @@ class Collector:
                     + (f": '{name}' has none yet" if name else "; send CAL BEGIN … CAL END first"),
                     ErrorCode.NO_CALIBRATION,
                 )
-        uv, det, img, _ = self._acquire(xyz, 0.0)
-        with np.errstate(all="ignore"):
-            got = cal.image_to_robot(np.array([uv]), xyz[2])[0]
-        if not np.isfinite(got).all():
-            raise CommandError(
-                "target not found: the centre maps to no finite robot point", ErrorCode.TARGET_NOT_FOUND
-            )
-        dx, dy = float(got[0] - xyz[0]), float(got[1] - xyz[1])
-        err = math.hypot(dx, dy)
-        rec = {
-            "utc": utc_now(),
-            "name": name,
-            "version": version,
-            "calibration_created_utc": cal.created_utc,
-            "data_sha256": cal.data_sha256,
-            "xyz_mm": xyz,
-            "u": uv[0],
-            "v": uv[1],
-            "mapped_mm": [float(v) for v in got],
-            "dx_mm": dx,
-            "dy_mm": dy,
-            "error_mm": err,
-            "image_sha256": hashlib.sha256(np.ascontiguousarray(img).tobytes()).hexdigest(),
-        }
-        path = self.history_path(name)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "ab") as fh:
-            fh.write((json.dumps(rec, allow_nan=False) + "\n").encode())
-            fh.flush()
-            os.fsync(fh.fileno())
+        grab = self.grabber.acquire(xyz, 0.0)
+        self.image_size = grab.image_size
+        rec = check_record(name, version, cal, xyz, grab.uv_px, grab.image)
+        self.checks.append(rec)
         if self.on_check is not None:
             self.on_check(rec)
-        return [_f(dx), _f(dy), _f(err)]
+        return [_f(rec["dx_mm"]), _f(rec["dy_mm"]), _f(rec["error_mm"])]
 
 
 __all__ = [
@@ -730,6 +541,7 @@ __all__ = [
     "PlainReplies",
     "ReplyFormat",
     "URReplies",
+    "NAME_RE",
     "default_calibrate",
     "plan_poses",
 ]

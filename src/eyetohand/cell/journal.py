@@ -9,6 +9,7 @@ import json
 import os
 import sqlite3
 from pathlib import Path
+from typing import Protocol
 
 from eyetohand.core import InputError
 
@@ -17,6 +18,23 @@ SQLITE_SUFFIXES = (".db", ".sqlite", ".sqlite3")
 
 def utc_now() -> str:
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
+
+
+class Journal(Protocol):
+    """What a collection writes its records to: every record written (and fsync-ed) whole or not at all;
+    ``path`` the file."""
+
+    path: Path
+
+    def records(self) -> list[dict]:
+        """The records written so far, oldest first."""
+        ...
+
+    def append(self, rec: dict) -> None:
+        """Write one record durably, or raise ``OSError`` / ``sqlite3.Error`` with nothing written."""
+        ...
+
+    def close(self) -> None: ...
 
 
 class JsonlJournal:
@@ -97,4 +115,4 @@ class SqliteJournal:
         self._db.close()
 
 
-__all__ = ["SQLITE_SUFFIXES", "JsonlJournal", "SqliteJournal", "utc_now"]
+__all__ = ["SQLITE_SUFFIXES", "Journal", "JsonlJournal", "SqliteJournal", "utc_now"]

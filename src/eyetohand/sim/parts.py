@@ -16,7 +16,9 @@ The ``sim:`` camera (:class:`eyetohand.sim.SimSource`) shows this scene after ``
 robot's target again after the next ``set_robot_pose`` (a collection); ``eyetohand serve --camera
 sim:…`` offers the line command ``SIM`` (:func:`sim_command`): ``SIM PARTS n[,seed[,diameter[,z]]]``
 → ``OK <n placed>``; ``SIM PICK x,y`` → ``OK <dx>,<dy>,<miss>`` (mm, the landing minus the part's
-centre, and its length) or ``ERR nothing to pick at x,y: …``; ``SIM LEFT`` → ``OK <parts left>``.
+centre, and its length) or ``ERR nothing to pick at x,y: …``; ``SIM LEFT`` → ``OK <parts left>``;
+``SIM PLATE spec[,seed[,z_mm[,tilt_deg]]]`` → ``OK <points>``: a calibration plate lies under the camera
+(``CAL PLATE``).
 A simulator's command only: a real cell has gravity and a gripper for this.
 """
 
@@ -179,7 +181,10 @@ class PartsTable:
 
 # ---------------------------------------------------------------- the SIM line command
 
-SIM_USAGE = "expected SIM PARTS n[,seed[,diameter_mm[,z_mm]]], SIM PICK x,y or SIM LEFT"
+SIM_USAGE = (
+    "expected SIM PARTS n[,seed[,diameter_mm[,z_mm]]], SIM PICK x,y, SIM LEFT or "
+    "SIM PLATE spec[,seed[,z_mm[,tilt_deg]]]"
+)
 
 
 def sim_command(source, line: str) -> str:
@@ -206,6 +211,14 @@ def sim_command(source, line: str) -> str:
                 return f"ERR nothing to pick at {x:.3f},{y:.3f}: {why}"
             _, dx, dy = got
             return f"OK {dx:.4f},{dy:.4f},{math.hypot(dx, dy):.4f}"
+        if cmd == "PLATE" and 1 <= len(args) <= 4:
+            vals = line_numbers(args[1:], ("seed", "z_mm", "tilt_deg"), "SIM PLATE")
+            seed = line_count(vals[0]) if vals else 0
+            if not isinstance(seed, int):
+                raise CommandError("SIM PLATE: seed must be a whole number")
+            z = vals[1] if len(vals) > 1 else None
+            tilt = vals[2] if len(vals) > 2 else 0.3
+            return f"OK {source.show_plate(args[0], seed, z, tilt)}"
         if cmd == "LEFT" and not args:
             return f"OK {len(source.parts_table.parts)}"
         raise CommandError(SIM_USAGE)

@@ -1,9 +1,11 @@
 """The virtual cell as a camera source: ``sim:CELL.toml`` (or ``sim:`` for the built-in cell), registered
 with :mod:`eyetohand.vision.sources` when :mod:`eyetohand.sim` is imported.
 
-Two scenes: the robot's calibration target where ``set_robot_pose`` puts it (a collection), or parts
-on the table after ``place_parts`` (a pick loop, :mod:`eyetohand.sim.parts`); each call switches to
-its scene, so a collection always sees an empty table and a ``LOCATE`` no robot in the view."""
+Three scenes: the robot's calibration target where ``set_robot_pose`` puts it (a collection), parts
+on the table after ``place_parts`` (a pick loop, :mod:`eyetohand.sim.parts`), or a calibration plate
+lying under the camera after ``show_plate`` (a plate session, ``CAL PLATE``: :mod:`eyetohand.sim.plate`
+renders it, placed as ``simulate_plate`` places it for the same cell, spec and seed); each call switches
+to its scene, so a collection always sees an empty table and a ``LOCATE`` no robot in the view."""
 
 from __future__ import annotations
 
@@ -25,7 +27,8 @@ class SimSource(Source):
         self.cell = load_cell(path or None)
         self.cell_camera = CellCamera(self.cell, seed)
         self.parts_table = PartsTable(self.cell, self.cell_camera.camera)
-        self.scene = "target"  # or "parts"
+        self.scene = "target"  # or "parts", "plate"
+        self._plate_image: np.ndarray | None = None
         self._part_grabs = 0
         self._parts_seed = 0
 
@@ -41,11 +44,24 @@ class SimSource(Source):
         self.scene, self._part_grabs, self._parts_seed = "parts", 0, int(seed)
         return placed
 
+    def show_plate(self, spec: str, seed: int = 0, z_mm: float | None = None, tilt_deg: float = 0.3) -> int:
+        """A plate ``spec`` lying under the camera (:func:`eyetohand.sim.plate.simulate_plate` with this
+        cell, ``seed``, ``z_mm`` (default the belt's) and ``tilt_deg``: its placement and touches are that
+        function's); the next grabs show it. Returns the plate's point count."""
+        from eyetohand.sim.plate import simulate_plate
+
+        sim = simulate_plate(self.cell, spec, seed=seed, n_check=0, z_mm=z_mm, tilt_deg=tilt_deg)
+        assert sim.image is not None
+        self._plate_image, self.scene = sim.image, "plate"
+        return sim.spec.n_points
+
     def pick(self, x_mm: float, y_mm: float):
         """The robot picks at (x, y): :meth:`PartsTable.pick`."""
         return self.parts_table.pick(x_mm, y_mm)
 
     def _grab(self):
+        if self.scene == "plate" and self._plate_image is not None:
+            return self._plate_image.copy(), time.time()
         if self.scene == "parts":
             seq = np.random.SeedSequence([self.cell_camera.noise_seed, 3, self._parts_seed, self._part_grabs])
             self._part_grabs += 1
