@@ -35,7 +35,7 @@ if TYPE_CHECKING:
         resolve_model,
     )
     from eyetohand.calibration.signing import load_sign_key
-    from eyetohand.calibration.touches import Touch, load_touches, touches_from_text
+    from eyetohand.calibration.touches import Touch, load_touches, snap, snap_radius_px, touches_from_text
     from eyetohand.calibration.verify import append_history, check_tolerance, verify
 else:
     __getattr__, __dir__ = lazy_exports(
@@ -68,7 +68,7 @@ else:
             ),
             "plate": ("calibrate_detected", "calibrate_plate"),
             "plate_record": ("PlateImage",),
-            "touches": ("Touch", "load_touches", "touches_from_text"),
+            "touches": ("Touch", "load_touches", "snap", "snap_radius_px", "touches_from_text"),
             "signing": ("load_sign_key",),
             "verify": ("append_history", "check_tolerance", "verify"),
         },
@@ -116,6 +116,8 @@ __all__ = [
     "projected_centres_px",
     "recorded_diameter_mm",
     "resolve_model",
+    "snap",
+    "snap_radius_px",
     "touches_from_text",
     "verify",
 ]

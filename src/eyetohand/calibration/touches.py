@@ -160,11 +160,16 @@ class Placement:
         return self.fit.covariance(self.noise_mm)
 
 
+def snap_radius_px(spacing_px: float) -> float:
+    """How far (px) a touch's pixel may be from its corner, for corners ``spacing_px`` apart."""
+    return min(SNAP_FRACTION * spacing_px, SNAP_MAX_PX)
+
+
 def snap(touches: list[Touch], uv_px: np.ndarray, spacing_px: float, spec: PlateSpec) -> list[int]:
     """The detected corner (index) each touch's pixel is on; refused naming the touch when none is
     within ``SNAP_FRACTION`` of the spacing, or two touches share one."""
     ids = spec.ids()
-    radius = min(SNAP_FRACTION * spacing_px, SNAP_MAX_PX)
+    radius = snap_radius_px(spacing_px)
     out: list[int] = []
     for t in touches:
         d = np.linalg.norm(uv_px - np.array(t.uv_px), axis=1)
@@ -295,5 +300,6 @@ __all__ = [
     "load_touches",
     "place",
     "snap",
+    "snap_radius_px",
     "touches_from_text",
 ]
