@@ -229,3 +229,28 @@ def test_the_budget_holds_the_touches_error_over_cells():
         want.append(b.map_rms_mm)  # the simulation's check points are exact
     ratio = float(np.sqrt(np.mean(np.square(meas)) / np.mean(np.square(want))))
     assert 0.7 <= ratio <= 1.4, ratio
+
+
+class _Camera:
+    """The camera view's ``still()`` (as test_figure_routes.py stands it in): the image, or why none."""
+
+    def __init__(self, img):
+        self.img = img
+
+    def still(self):
+        return self.img, "live" if self.img is not None else "no image yet"
+
+
+def test_grab_gives_the_cameras_image_to_detect(tmp_path, sim):
+    app = create_app(tmp_path / "data")
+    with TestClient(app) as c:
+        app.state.collect = cam = _Camera(None)
+        r = c.get("/api/plate/grab.png")
+        assert r.status_code == 409 and r.json()["error"] == "the camera gave no image: no image yet"
+        cam.img = sim.image
+        r = c.get("/api/plate/grab.png")
+        assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+        got = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(got, sim.image)  # lossless
+        d = c.post("/api/plate/detect", json={"plate": SPEC, "image": _file("grab.png", r.content)})
+        assert d.status_code == 200 and len(d.json()["uv_px"]) == 54
