@@ -79,7 +79,8 @@ def test_plate_flow_upload_touch_fit_save(tmp_path):
         for i in range(4):
             for k, c in enumerate("xyz"):
                 rows.nth(i).locator(f"input.t{c}").fill(f"{touched.xyz_mm[i, k]:.3f}")
-        # a fifth touch: a click between corners is refused in the fit's words, then one beside r1c1 snaps
+        # a fifth touch: a click between corners is refused in the fit's words, then one beside r1c4 snaps
+        # (off both diagonals, so that a touch off the plane is named below)
         page.click("#plate-add")
         assert rows.count() == 5 and rows.nth(4).locator("input.tid").input_value() == "E"
         g = sim.true_uv_px
@@ -89,12 +90,20 @@ def test_plate_flow_upload_touch_fit_save(tmp_path):
         err = page.inner_text("#plate-err")
         assert err.startswith("touch E (line 6): (u, v) = (") and "(snap radius 10.0 px)" in err, err
         assert rows.nth(4).locator("td").nth(3).inner_text() == "click it"
-        _click_image_px(page, g[10, 0] + 3, g[10, 1] - 2)
-        _wait_state(page, "touch E: corner r1c1")
+        _click_image_px(page, g[13, 0] + 3, g[13, 1] - 2)
+        _wait_state(page, "touch E: corner r1c4")
         assert page.is_hidden("#plate-err")
-        assert rows.nth(4).locator("td").nth(3).inner_text() == "r1c1"
+        assert rows.nth(4).locator("td").nth(3).inner_text() == "r1c4"
         for k, c in enumerate("xyz"):
-            rows.nth(4).locator(f"input.t{c}").fill(f"{world[10, k] + 0.03:.3f}")
+            rows.nth(4).locator(f"input.t{c}").fill(f"{world[13, k] + 0.03:.3f}")
+        # a touch 6 mm off the plate's plane: the fit refuses it, naming the touch and its CSV line
+        rows.nth(3).locator("input.tz").fill(f"{touched.xyz_mm[3, 2] + 6:.3f}")
+        page.click("#plate-fit")
+        page.wait_for_selector("#plate-fit-err:not([hidden])", timeout=SLOW)
+        err = page.inner_text("#plate-fit-err")
+        assert re.match(r"touch D \(line 5\) is 5\.\d\d mm off the plane of the other touches", err), err
+        assert page.is_hidden("#sec-result")
+        rows.nth(3).locator("input.tz").fill(f"{touched.xyz_mm[3, 2]:.3f}")
         # fit with check points: the result section, its expected-accuracy line, the check statistics
         page.set_input_files("#plate-check", str(tmp_path / "check.csv"))
         page.wait_for_selector("#plate-check-count:has-text('20 check points')")
@@ -117,6 +126,7 @@ def test_plate_flow_upload_touch_fit_save(tmp_path):
         page.fill("#save-name", "cell 1 plate")
         page.click("#save-new")
         page.wait_for_selector("#save-state:has-text('saved as')", timeout=SLOW)
+        page.wait_for_selector("#saved-table tbody tr")  # the list reloaded after the save
         assert page.locator("#saved-table tbody tr").count() == 1
         u, v = check.uv_px[0]
         page.select_option("#map-source", label="cell 1 plate (id 1, v1)")

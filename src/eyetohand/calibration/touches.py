@@ -257,7 +257,8 @@ def _blame(touches, P, X, fit: RigidFit, spec: PlateSpec, corners, image: int, t
             if len(found) > 1:
                 raise InputError(
                     f"image {image + 1}: the touches are not on one plane: one is {abs(normal):.2f} mm off "
-                    f"the plane of the other {n - 1} ({n} touches cannot tell which; a 5th would): touched "
+                    f"the plane of the other {n - 1} ({n} touches cannot tell which; "
+                    f"{'a 5th' if n == 4 else 'another touch, away from these,'} would): touched "
                     "above or below the plate (its edge, a block, the pointer not down)?"
                 )
             raise InputError(
