@@ -175,3 +175,52 @@ def test_importing_a_file_keeps_its_bytes(tmp_path):
         assert page.is_hidden("#saved-err"), page.inner_text("#saved-err")
         assert page.inner_text("#saved-table tbody tr td.name") == "line 2"
         assert page.problems == []
+
+
+def test_two_placements_each_touched_on_its_own_image(tmp_path):
+    """Two images of one plate (on the table, z 0; on a 60 mm block, yawed): the second image's touches
+    are clicked on it (the view switched), the fit uses both placements (model camera: several heights)."""
+    from eyetohand.sim import Cell
+
+    cell = Cell.default().with_values(camera={"tilt_deg": 6.0, "yaw_deg": 20.0})
+    sims = [
+        simulate_plate(cell, SPEC, z_mm=z, yaw_deg=yaw, tilt_deg=0.4, seed=40 + k, touch_noise_mm=0.05)
+        for k, (z, yaw) in enumerate(((0.0, 10.0), (60.0, -15.0)))
+    ]
+    for k, s in enumerate(sims):
+        cv2.imwrite(str(tmp_path / f"p{k + 1}.png"), s.image)
+    touched = [pairs_from_text(s.touches_csv, "t.csv") for s in sims]
+    with (
+        workbench_thread(tmp_path / "data") as url,
+        chromium_page(1400, 1000, allowed_console=ANSWERED) as page,
+    ):
+        page.goto(url)
+        page.wait_for_selector("#server-status:has-text('server v')")
+        page.set_input_files("#plate-files", [str(tmp_path / "p1.png"), str(tmp_path / "p2.png")])
+        page.wait_for_selector("#plate-count:has-text('2 images, plate found in 2')", timeout=SLOW)
+        rows = page.locator("#plate-touches tbody tr")
+        assert rows.count() == 4  # A-D of the first image
+        for i in range(4):
+            assert rows.nth(i).locator("td").nth(2).inner_text() == "1: p1.png"
+            for k, c in enumerate("xyz"):
+                rows.nth(i).locator(f"input.t{c}").fill(f"{touched[0].xyz_mm[i, k]:.3f}")
+        page.select_option("#plate-view", "1")
+        _wait_state(page, "p2.png: 54 corners found")
+        assert page.get_attribute("#plate-canvas", "data-labels") == "A r0c0,B r0c8,C r5c8,D r5c0"
+        for i in range(4):  # the second image's A-D: a new row each, clicked on its corner
+            page.click("#plate-add")
+            u, v = touched[1].uv_px[i]
+            _click_image_px(page, u + 2, v + 1)
+            _wait_state(page, f"touch {'EFGH'[i]}: corner {['r0c0', 'r0c8', 'r5c8', 'r5c0'][i]}")
+            row = rows.nth(4 + i)
+            assert row.locator("td").nth(2).inner_text() == "2: p2.png"
+            for k, c in enumerate("xyz"):
+                row.locator(f"input.t{c}").fill(f"{touched[1].xyz_mm[i, k]:.3f}")
+        page.click("#plate-fit")
+        page.wait_for_selector("#sec-result:not([hidden])", timeout=SLOW)
+        assert "model camera" in page.inner_text("#result-title")
+        assert "108 pairs" in page.inner_text("#result-title")
+        state = page.inner_text("#plate-fit-state")
+        assert "image 1: touches fit RMS" in state and "image 2: touches fit RMS" in state, state
+        assert page.inner_text("#result-accuracy").startswith("expected accuracy at the training pixels")
+        assert page.problems == []
