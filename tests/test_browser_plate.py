@@ -207,6 +207,12 @@ def test_two_placements_each_touched_on_its_own_image(tmp_path):
         page.select_option("#plate-view", "1")
         _wait_state(page, "p2.png: 54 corners found")
         assert page.get_attribute("#plate-canvas", "data-labels") == "A r0c0,B r0c8,C r5c8,D r5c0"
+        with page.expect_download(timeout=SLOW) as dl:  # the image as --annotate draws it
+            page.click("#plate-annotated")
+        assert dl.value.suggested_filename == "p2-annotated.png"
+        drawn = cv2.imread(dl.value.path())
+        assert drawn.shape == sims[1].image.shape + (3,)
+        assert (drawn[..., 0] != drawn[..., 2]).sum() > 1000  # coloured: the grid and the A-D labels drawn
         for i in range(4):  # the second image's A-D: a new row each, clicked on its corner
             page.click("#plate-add")
             u, v = touched[1].uv_px[i]

@@ -115,6 +115,7 @@ function plateShowView() {
   sel.value = String(plate.view);
   $("#plate-view-box").hidden = plate.images.length < 2;
   const im = plate.images[plate.view];
+  $("#plate-annotated").hidden = !im;
   if (im && im.err && im.err.field !== "plate") showError("#plate-err", im.err);
   else if (im && im.det) {
     clearError("#plate-err");
@@ -171,6 +172,18 @@ function plateDraw() {
     g.beginPath(); g.moveTo(x - 4 * r, y); g.lineTo(x + 4 * r, y); g.moveTo(x, y - 4 * r); g.lineTo(x, y + 4 * r); g.stroke();
     if (!d.labels.some((l) => l.label === t.id && l.u === t.u && l.v === t.v)) label(t.id, x + 3.5 * r, y + 8 * r, "#7CFC00");
   });
+}
+
+// the image as `calibrate-plate --annotate` draws it (the server draws it: the same code), downloaded
+async function plateAnnotated() {
+  const im = plate.images[plate.view];
+  if (!im) return;
+  const r = await api("POST", "/api/plate/detect", { plate: plateSpec(), image: { name: im.name, data_base64: await fileBase64(im.blob) }, annotated: true });
+  const b64 = r.data && r.data.annotated_png_base64;
+  if (!b64) { showError("#plate-err", r.data || { error: "no annotated image" }); return; }
+  const bytes = Uint8Array.from(atob(b64), (ch) => ch.charCodeAt(0));
+  const a = el("a", { href: URL.createObjectURL(new Blob([bytes], { type: "image/png" })), download: im.name.replace(/\.[^.]*$/, "") + "-annotated.png" });
+  document.body.appendChild(a); a.click(); a.remove();
 }
 
 // a click: the nearest detected corner, snapped by the server (the fit's rule), for the active row
@@ -349,6 +362,7 @@ $("#plate-detect").addEventListener("click", () => { plate.rows = []; plateDetec
 $("#plate-view").addEventListener("change", () => { plate.view = Number($("#plate-view").value); plateShowView(); });
 $("#plate-canvas").addEventListener("click", plateClick);
 $("#plate-add").addEventListener("click", plateAddRow);
+$("#plate-annotated").addEventListener("click", plateAnnotated);
 $("#plate-csv").addEventListener("input", plateButtons);
 $("#plate-check").addEventListener("change", plateLoadCheck);
 $("#plate-fit").addEventListener("click", plateFit);
