@@ -35,7 +35,7 @@ if TYPE_CHECKING:
         resolve_model,
     )
     from eyetohand.calibration.signing import check_signature, key_id, load_sign_key, signature_of
-    from eyetohand.calibration.touches import Touch, load_touches, touches_from_text
+    from eyetohand.calibration.touches import Touch, load_touches, snap, snap_radius_px, touches_from_text
     from eyetohand.calibration.verify import append_history, check_tolerance, verify
 else:
     __getattr__, __dir__ = lazy_exports(
@@ -68,7 +68,7 @@ else:
             ),
             "plate": ("calibrate_detected", "calibrate_plate"),
             "plate_record": ("PlateImage",),
-            "touches": ("Touch", "load_touches", "touches_from_text"),
+            "touches": ("Touch", "load_touches", "snap", "snap_radius_px", "touches_from_text"),
             "signing": ("check_signature", "key_id", "load_sign_key", "signature_of"),
             "verify": ("append_history", "check_tolerance", "verify"),
         },
@@ -119,6 +119,8 @@ __all__ = [
     "projected_centres_px",
     "recorded_diameter_mm",
     "resolve_model",
+    "snap",
+    "snap_radius_px",
     "touches_from_text",
     "verify",
 ]

@@ -7,7 +7,10 @@ times the local scale (mm/px), the robot's repeatability and the target's (or a 
 together — the residuals cannot tell them apart, so the budget states ``s`` both ways: as pixels at
 the local scale if it all came from the detector, as mm if it all came from the robot. The expected
 check RMS is the RMS over the check points of ``sqrt(fit² + c·s²)`` (``sigma_mm``), or of the fit
-part alone for check points that carry no measurement noise (a simulation's are exact). Measured
+part alone for check points that carry no measurement noise (a simulation's are exact). A plate's
+calibration adds the error its touches put on every point alike (the placement's rigid fit,
+:meth:`PlateRecord.placement_variance_mm2`, as ``sigma_mm`` does): part of the map's own error,
+stated apart. Measured
 check RMS well above both says something the budget does not hold: a mix-up, a moved camera, a
 model that does not fit (``eyetohand crossval``).
 """
@@ -30,6 +33,12 @@ class ErrorBudget:
     fit_rms_mm: float  # the map's own error, RMS over the points the budget is for
     where: str  # "check points" or "training pixels"
     measured_rms_mm: float | None
+    touches_rms_mm: float = 0.0  # a plate's placement by its touches, RMS over the same points
+
+    @property
+    def map_rms_mm(self) -> float:
+        """The map's own error: the fit's ⊕ the touches' (a plate's)."""
+        return float(np.hypot(self.fit_rms_mm, self.touches_rms_mm))
 
     @property
     def measurement_mm(self) -> float:
@@ -38,7 +47,7 @@ class ErrorBudget:
 
     @property
     def expected_rms_mm(self) -> float:
-        return float(np.hypot(self.fit_rms_mm, self.measurement_mm))
+        return float(np.hypot(self.map_rms_mm, self.measurement_mm))
 
     @property
     def noise_px(self) -> float:
@@ -50,6 +59,7 @@ class ErrorBudget:
             "noise_px_equivalent": self.noise_px,
             "scale_mm_per_px": self.scale_mm_per_px,
             "fit_rms_mm": self.fit_rms_mm,
+            "touches_rms_mm": self.touches_rms_mm,
             "measurement_rms_mm": self.measurement_mm,
             "expected_rms_mm": self.expected_rms_mm,
             "measured_rms_mm": self.measured_rms_mm,
@@ -57,9 +67,14 @@ class ErrorBudget:
         }
 
     def describe(self) -> str:
+        touches = (
+            f" ⊕ the plate's placement by the touches {self.touches_rms_mm:.4f} mm"
+            if self.touches_rms_mm
+            else ""
+        )
         head = (
             f"expected accuracy at the {self.where}: RMS {self.expected_rms_mm:.4f} mm = the fit's own "
-            f"{self.fit_rms_mm:.4f} mm ⊕ a measurement's noise {self.measurement_mm:.4f} mm "
+            f"{self.fit_rms_mm:.4f} mm{touches} ⊕ a measurement's noise {self.measurement_mm:.4f} mm "
             f"(residual noise {self.noise_mm:.4f} mm per axis: {self.noise_px:.3g} px at "
             f"{self.scale_mm_per_px:.4g} mm/px if all from detection, or robot repeatability and target "
             "noise together)"
@@ -69,7 +84,7 @@ class ErrorBudget:
         return (
             f"{head}; measured check RMS {self.measured_rms_mm:.4f} mm "
             f"({self.measured_rms_mm / max(self.expected_rms_mm, 1e-12):.2f}× expected; exact check points "
-            f"would show the fit's own {self.fit_rms_mm:.4f} mm)"
+            f"would show the {'map' if self.touches_rms_mm else 'fit'}'s own {self.map_rms_mm:.4f} mm)"
         )
 
 
@@ -88,6 +103,7 @@ def error_budget(cal: Calibration) -> ErrorBudget | None:
     zs = xyz[:, 2] if cal.model.height_rule is not HeightRule.COMPUTED else np.zeros(len(uv))
     sigma = unc.sigma_mm(cal.model, uv, zs)
     fit2 = np.maximum(sigma**2 - unc.n_coords * unc.noise_mm**2, 0.0)
+    touch2 = np.zeros(1) if cal.plate is None else cal.plate.placement_variance_mm2(xyz, unc.n_coords)
     return ErrorBudget(
         unc.noise_mm,
         unc.n_coords,
@@ -95,4 +111,5 @@ def error_budget(cal: Calibration) -> ErrorBudget | None:
         float(np.sqrt(np.mean(fit2))),
         where,
         None if cal.check is None else cal.check.rms_mm,
+        float(np.sqrt(np.mean(touch2))),
     )

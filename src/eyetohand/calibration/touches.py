@@ -160,11 +160,16 @@ class Placement:
         return self.fit.covariance(self.noise_mm)
 
 
+def snap_radius_px(spacing_px: float) -> float:
+    """How far (px) a touch's pixel may be from its corner, for corners ``spacing_px`` apart."""
+    return min(SNAP_FRACTION * spacing_px, SNAP_MAX_PX)
+
+
 def snap(touches: list[Touch], uv_px: np.ndarray, spacing_px: float, spec: PlateSpec) -> list[int]:
     """The detected corner (index) each touch's pixel is on; refused naming the touch when none is
     within ``SNAP_FRACTION`` of the spacing, or two touches share one."""
     ids = spec.ids()
-    radius = min(SNAP_FRACTION * spacing_px, SNAP_MAX_PX)
+    radius = snap_radius_px(spacing_px)
     out: list[int] = []
     for t in touches:
         d = np.linalg.norm(uv_px - np.array(t.uv_px), axis=1)
@@ -252,7 +257,8 @@ def _blame(touches, P, X, fit: RigidFit, spec: PlateSpec, corners, image: int, t
             if len(found) > 1:
                 raise InputError(
                     f"image {image + 1}: the touches are not on one plane: one is {abs(normal):.2f} mm off "
-                    f"the plane of the other {n - 1} ({n} touches cannot tell which; a 5th would): touched "
+                    f"the plane of the other {n - 1} ({n} touches cannot tell which; "
+                    f"{'a 5th' if n == 4 else 'another touch, away from these,'} would): touched "
                     "above or below the plate (its edge, a block, the pointer not down)?"
                 )
             raise InputError(
@@ -295,5 +301,6 @@ __all__ = [
     "load_touches",
     "place",
     "snap",
+    "snap_radius_px",
     "touches_from_text",
 ]

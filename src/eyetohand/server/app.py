@@ -155,7 +155,7 @@ def create_app(
             return limits.max_body_bytes
         if path == "/api/pairs/parse":
             return limits.max_parse_body_bytes
-        if path in ("/api/images/calibrate", "/api/plate/calibrate"):  # images as base64
+        if path in ("/api/images/calibrate", "/api/plate/calibrate", "/api/plate/detect"):  # base64 images
             return limits.max_body_bytes
         return limits.max_fit_body_bytes
 

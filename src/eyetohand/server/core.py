@@ -156,6 +156,20 @@ def _stats(s: Stats | None) -> dict | None:
     return None if s is None else s.to_dict()
 
 
+def expected_accuracy(cal: Calibration) -> dict | None:
+    """The error budget as ``calibrate`` prints it (``line``) and its figures; None without an
+    uncertainty record."""
+    from eyetohand.calibration import error_budget
+
+    b = error_budget(cal)
+    if b is None:
+        return None
+    return {
+        **{k: v if isinstance(v, str) or v is None else _finite(v) for k, v in b.to_dict().items()},
+        "line": b.describe(),
+    }
+
+
 def summarize(cal: Calibration, pairs: PointPairs, check: PointPairs | None, excluded=()) -> dict:
     """The fit's summary; ``pairs`` and ``check`` as given (detected), their per-pair errors taken in
     the form the calibration was fitted on (centres corrected when it records a target diameter)."""
@@ -180,6 +194,7 @@ def summarize(cal: Calibration, pairs: PointPairs, check: PointPairs | None, exc
         "excluded_ids": list(excluded),
         "notes": list(cal.notes),
         "selection": cal.selection,
+        "expected_accuracy": expected_accuracy(cal),
         "train": cal.train.to_dict(),
         "loo": _stats(cal.loo),
         "check": _stats(cal.check),

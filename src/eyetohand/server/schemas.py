@@ -376,6 +376,21 @@ class VectorOut(BaseModel):
     dv_px: float | None
 
 
+class ExpectedAccuracy(BaseModel):
+    """The error budget (``calibration.error_budget``): what the check error should be, and why."""
+
+    line: str = Field(description="as eyetohand calibrate prints it")
+    where: str = Field(description="check points, or training pixels without them")
+    expected_rms_mm: float | None
+    measured_rms_mm: float | None
+    fit_rms_mm: float | None = Field(description="the fit's own error there")
+    touches_rms_mm: float | None = Field(description="a plate's placement by its touches (0 without)")
+    measurement_rms_mm: float | None
+    noise_mm: float | None = Field(description="the residual noise per axis")
+    noise_px_equivalent: float | None
+    scale_mm_per_px: float | None
+
+
 class Summary(BaseModel):
     """A fitted calibration: how it was made and how good it is (all errors in mm)."""
 
@@ -393,6 +408,7 @@ class Summary(BaseModel):
     excluded_ids: list[str]
     notes: list[str]
     selection: dict[str, Any] | None
+    expected_accuracy: ExpectedAccuracy | None = Field(None, description="None without an uncertainty record")
     train: StatsOut
     loo: StatsOut | None
     check: StatsOut | None

@@ -60,6 +60,10 @@ function renumber() {
 }
 function td(text, cls) { const c = el("td", cls ? { class: cls } : {}, text); return c; }
 
+// A JSON body sent as written: a calibration file's text goes to the server byte for byte. JSON.parse then
+// JSON.stringify would turn 0.0 into 0 and 1.0 into 1, and the file's content hash would no longer match.
+class RawJson { constructor(text) { this.text = text; } }
+
 // `ifMatchId`: a calibration this request changes: sends the ETag this page last saw of it as If-Match,
 // so a change made meanwhile (another tab, another user) answers 412 instead of being overwritten
 async function api(method, path, body, ifMatchId) {
@@ -69,7 +73,7 @@ async function api(method, path, body, ifMatchId) {
   if (method !== "GET") headers["X-Requested-With"] = "eyetohand";  // the server refuses cross-site POSTs
   if (ifMatchId !== undefined && state.etags[ifMatchId]) headers["If-Match"] = state.etags[ifMatchId];
   const opts = { method, headers };
-  if (body !== undefined) { headers["Content-Type"] = "application/json"; opts.body = JSON.stringify(body); }
+  if (body !== undefined) { headers["Content-Type"] = "application/json"; opts.body = body instanceof RawJson ? body.text : JSON.stringify(body); }
   let resp;
   try { resp = await fetch(path, opts); }
   catch (e) { return { ok: false, status: 0, data: { error: "cannot reach the server (" + e.message + ")", field: null } }; }
@@ -392,6 +396,7 @@ function reportFitError(err) {
 
 function startJob(id, req, images = false) {
   state.job = id;
+  state.plateFit = null;
   state.imagesJob = images;
   state.history = [];
   state.iterations = req.optimizer.includes("pso") ? (req.iterations || 150) : 0;
@@ -566,6 +571,9 @@ function showResult(sum, saved) {
   statsRow(tb, "leave-one-out", sum.loo);
   statsRow(tb, "check points", sum.check);
   statsRow(tb, "excluded pairs", sum.excluded);
+  // the expected accuracy (the error budget) as `eyetohand calibrate` prints it, for every fit
+  const acc = sum.expected_accuracy;
+  $("#result-accuracy").textContent = acc ? acc.line : "expected accuracy: not known (the calibration records no uncertainty)";
   const notes = $("#result-notes");
   notes.innerHTML = "";
   for (const n of sum.notes) notes.appendChild(el("li", {}, n));
@@ -773,6 +781,7 @@ async function saveResult(asVersion) {
     body.name = $("#save-name").value.trim();
     if (!body.name) { showError("#save-err", { error: "name: give the calibration a name", field: "name" }, "#sec-save"); return; }
   }
+  if (state.plateFit && !state.job) { await savePlateFit(asVersion, body.note); return; }  // plate.js
   const r = await api("POST", `/api/jobs/${state.job}/save`, body, asVersion ? body.calibration_id : undefined);
   if (!r.ok) { showError("#save-err", r.data, "#sec-save"); return; }
   const d = r.data;
@@ -954,10 +963,12 @@ async function importFile() {
   clearError("#saved-err");
   const f = $("#import-file").files[0];
   if (!f) { showError("#saved-err", { error: "choose a calibration file (.json) to import", field: "file" }); return; }
-  let cal;
-  try { cal = JSON.parse(await f.text()); } catch (e) { showError("#saved-err", { error: `${f.name}: not JSON (${e.message})` }); return; }
+  const text = await f.text();
+  try { JSON.parse(text); } catch (e) { showError("#saved-err", { error: `${f.name}: not JSON (${e.message})` }); return; }
   const name = $("#import-name").value.trim() || f.name.replace(/\.json$/i, "");
-  const r = await api("POST", "/api/calibrations/import", { name, calibration: cal, note: `imported ${f.name}`.slice(0, 200) });
+  const note = `imported ${f.name}`.slice(0, 200);
+  const body = `{"name": ${JSON.stringify(name)}, "note": ${JSON.stringify(note)}, "calibration": ${text}}`;
+  const r = await api("POST", "/api/calibrations/import", new RawJson(body));
   if (!r.ok) { showError("#saved-err", r.data); return; }
   await refreshSaved();
 }
@@ -1022,6 +1033,7 @@ async function openSaved(id, version) {
   for (const k of ["particles", "iterations", "seed"]) $("#" + k).value = req[k] ?? "";
   $("#preset").value = "custom";
   state.job = null;
+  state.plateFit = null;
   showResult(d.summary, { id: d.id, name: d.name, version: d.version });
   $("#save-target").value = String(d.id);
   $("#sec-result").scrollIntoView({ behavior: "smooth" });
@@ -1113,9 +1125,11 @@ function updateButtons() {
   $("#run-hint").textContent = state.pairs ? "" : "load calibration pairs first, or detect them from images (section 1)";
   const pso = $("#optimizer").value.includes("pso");
   document.querySelectorAll("label.pso").forEach((l) => { l.style.opacity = pso ? 1 : 0.45; l.querySelector("input").disabled = !pso; });
-  const unsaved = state.job && state.result && !state.resultSaved;
-  $("#save-new").disabled = !(state.job && state.result);
-  $("#save-version").disabled = !(state.job && state.result) || !state.saved.length;
+  const fitted = (state.job && state.result) || state.plateFit;  // a fit job's result, or a plate fit's
+  const unsaved = fitted && !state.resultSaved;
+  $("#save-new").disabled = !fitted;
+  $("#save-version").disabled = !fitted || !state.saved.length;
+  $("#refit").disabled = Boolean(state.plateFit);  // a plate's pairs are its corners: refit from the plate
   if (unsaved) $("#save-state").textContent = "not saved yet";
   $("#compare-state").textContent = state.pairs && state.check ? "ready: takes a few seconds (16 fits)" : "needs calibration pairs and check points";
 }
