@@ -10,12 +10,14 @@ numbers, and leave everything else to :func:`map_points`. :class:`~eyetohand.cal
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from eyetohand.calibration.horizon import beyond_horizon
 from eyetohand.calibration.mapped import Mapped, all_finite
+from eyetohand.calibration.points import check_part_diameter, corrected_at_use, mix_refusal
 from eyetohand.core import MAX_ABS_ANGLE_DEG, InputError, angle_refusal
 from eyetohand.geometry import check_symmetry, image_angle_to_rz, local_jacobian, wrap_deg
 from eyetohand.models import HeightRule, as_uv, one_point
@@ -24,8 +26,15 @@ if TYPE_CHECKING:
     from eyetohand.calibration.file import Calibration
 
 
-def image_to_robot(cal: Calibration, uv_px, z=None, *, allow_outside: bool = False) -> np.ndarray:
+def image_to_robot(
+    cal: Calibration, uv_px, z=None, *, allow_outside: bool = False, part_diameter_mm=None
+) -> np.ndarray:
     """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
+    if part_diameter_mm is not None or cal.image_points.circle_centres:  # points.py's rule: map's path
+        m = map_points(
+            cal, uv_px, z, allow_outside=allow_outside, with_sigma=False, part_diameter_mm=part_diameter_mm
+        )
+        return m.xyz_mm
     one = map_one(cal, uv_px, z)
     if one is not None:
         return one[1]
@@ -105,10 +114,38 @@ def map_points(
     symmetry: int = 1,
     tool_rz_offset_deg: float | None = None,
     with_sigma: bool = True,
+    part_diameter_mm=None,
 ) -> Mapped:
     """``cal.map``: pixels (and image angles) to robot points (and rz), guarded — the one path that
     checks everything and names every refusal (:meth:`Calibration.map
     <eyetohand.calibration.Calibration.map>` says what each option does)."""
+    if part_diameter_mm is not None or cal.image_points.circle_centres:
+        opts = {"angle_deg": angle_deg, "allow_outside": allow_outside, "symmetry": symmetry}
+        return _map_detections(cal, uv_px, z, part_diameter_mm, with_sigma, tool_rz_offset_deg, opts)
+    return _guarded(
+        cal,
+        uv_px,
+        z,
+        angle_deg=angle_deg,
+        allow_outside=allow_outside,
+        symmetry=symmetry,
+        tool_rz_offset_deg=tool_rz_offset_deg,
+        with_sigma=with_sigma,
+    )
+
+
+def _guarded(
+    cal: Calibration,
+    uv_px,
+    z=None,
+    *,
+    angle_deg=None,
+    allow_outside: bool = False,
+    symmetry: int = 1,
+    tool_rz_offset_deg: float | None = None,
+    with_sigma: bool = True,
+) -> Mapped:
+    """:func:`map_points` of the pixels as given (the calibration's own kind of point)."""
     s = check_symmetry(symmetry)  # checked with or without an angle: one rule on every interface
     if tool_rz_offset_deg is not None:  # likewise
         why = angle_refusal(float(tool_rz_offset_deg))
@@ -168,6 +205,25 @@ def map_points(
             rz = rz + float(tool_rz_offset_deg) - cal.local_frame().u_axis_rz_deg
         rz = wrap_deg(rz, s)
     return Mapped(uv, xyz, rz, _sigma(cal, uv, xyz, with_sigma), inside, outside)
+
+
+def _map_detections(cal: Calibration, uv_px, z, part_diameter_mm, with_sigma: bool, tool_rz, opts) -> Mapped:
+    """:func:`map_points` with a part's diameter, or of a circle-centre calibration: the pixels
+    made the points the calibration maps first (:mod:`~eyetohand.calibration.points`), or refused."""
+    d = check_part_diameter(part_diameter_mm)
+    if d == 0.0:  # the pixels are the points' own images: as given, no rule
+        return _guarded(cal, uv_px, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
+    uv = as_uv(uv_px)
+    zz = None if z is None else np.broadcast_to(np.asarray(z, float), (len(uv),))
+    if zz is not None and not np.isfinite(zz).all():  # refused by the guard, in its words
+        return _guarded(cal, uv, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
+    if d is None:  # a circle-centre calibration fed detections as given: mapped only where that is harmless
+        m = _guarded(cal, uv, z, tool_rz_offset_deg=tool_rz, with_sigma=True, **opts)
+        mix_refusal(cal, uv, zz, m.xyz_mm, m.sigma_mm)
+        return m if with_sigma else dataclasses.replace(m, sigma_mm=None)
+    centres = corrected_at_use(cal, uv, zz, d)
+    m = _guarded(cal, centres, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
+    return dataclasses.replace(m, uv_px=uv)  # answered for the detections as given
 
 
 def _sigma(cal: Calibration, uv: np.ndarray, xyz: np.ndarray, wanted: bool) -> np.ndarray | None:
