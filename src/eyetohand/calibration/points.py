@@ -96,8 +96,7 @@ def check_part_diameter(value) -> float | None:
         got = f"{float(value):g}" if ok else repr(value)
         raise InputError(
             f"{OPTION} must be a finite number of mm, 0 or above (0: the pixel is the point's own "
-            f"image), got {got}",
-            field=OPTION,
+            f"image), got {got}"
         )
     return float(value)
 

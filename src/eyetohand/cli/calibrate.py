@@ -103,6 +103,7 @@ def cmd_apply(args) -> int:
         "allow_outside": args.allow_outside,
         "symmetry": args.symmetry,
         "tool_rz_offset_deg": args.tool_rz_offset,
+        "part_diameter_mm": args.part_diameter_mm,
     }
     if args.uv is not None:
         if args.input:
@@ -243,6 +244,15 @@ def register(sub) -> None:
         "--allow-outside",
         action="store_true",
         help="map points outside the calibrated region too (flagged inside = false)",
+    )
+    p.add_argument(
+        "--part-diameter-mm",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="the circular part's diameter (mm, whatever --units says): its detected centres are "
+        "corrected for perspective as a calibration fitted with --target-diameter-mm needs "
+        "(0: the points are their own images)",
     )
     p.add_argument(
         "--json", action="store_true", help="JSON with every point's u v x y z [rz] sigma_mm inside"

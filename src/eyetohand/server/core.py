@@ -202,9 +202,11 @@ def map_points(
     tool_rz_offset_deg=None,
     allow_outside: bool = False,
     sigma: bool = True,
+    part_diameter_mm: float | None = None,
 ):
     """(N, 2) px → the calibration's guarded :class:`~eyetohand.calibration.file.Mapped`, with the
-    request's ``z`` (None, a number, or one per point) and ``angles`` (one per point)."""
+    request's ``z`` (None, a number, or one per point), ``angles`` (one per point) and the part's
+    diameter (``Calibration.map``'s ``part_diameter_mm``)."""
     if isinstance(z, list):
         if len(z) != len(points):
             raise ApiError(
@@ -225,6 +227,7 @@ def map_points(
                 tool_rz_offset_deg=tool_rz_offset_deg,
                 allow_outside=allow_outside,
                 with_sigma=sigma,
+                part_diameter_mm=part_diameter_mm,
             )
     except InputError as exc:
         raise ApiError(422, str(exc), exc.field_path or "z") from None

@@ -213,6 +213,7 @@ def _map(cal: Calibration, req: MapRequest, pts: np.ndarray) -> Mapped:
             tool_rz_offset_deg=req.tool_rz_offset_deg,
             allow_outside=req.allow_outside,
             sigma=req.sigma,
+            part_diameter_mm=req.part_diameter_mm,
         )
 
     n = len(pts)

@@ -1,0 +1,177 @@
+"""Issue 40, the pick's answer with a corrected calibration: a calibration fitted with a target
+diameter says it maps circle centres (``image_points``, proven on load); at use the part's diameter
+corrects each detection on every interface (library, ``apply``, HTTP, the TCP line, LOCATE), and a
+detection mapped without it is refused in the same words where its bias exceeds the point's
+predicted error. A simulated 25° cell: 20 mm targets rendered and detected for the fit, 12 mm parts
+rendered and detected at use."""
+
+from __future__ import annotations
+
+import csv
+import json
+import socket
+
+import httpx
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from helpers import ServeProcess
+from synth import detect_rendered, limit_view, plane_grid
+
+from eyetohand import Calibration, PointPairs
+from eyetohand.calibration import FitRequest, calibrate_request
+from eyetohand.calibration.proof import content_sha256
+from eyetohand.cli import main
+from eyetohand.core import InputError
+from eyetohand.server.app import create_app
+
+SIZE = (1920, 1200)
+TILT_DEG = 25.0
+TARGET_MM = 20.0
+PART_MM = 12.0
+REFUSAL = "a detection mapped as given is"
+
+
+@pytest.fixture(scope="module")
+def cell():
+    """(camera, circle-centre calibration, as-detected calibration, parts' plane points, their
+    detected centres): the 5×5 training targets and the 4×4 parts rendered and found by the detector."""
+    cam = limit_view(TILT_DEG, 800.0, SIZE)
+    train = plane_grid(cam, 5, 0.1, 0.9)
+    pairs = PointPairs.from_arrays(detect_rendered(cam, train, TARGET_MM, np.random.default_rng(40)), train)
+
+    def fit(diameter):
+        req = FitRequest.from_names("homography", image_size=SIZE, loo=False, target_diameter_mm=diameter)
+        return calibrate_request(req, pairs)
+
+    parts = plane_grid(cam, 4, 0.2, 0.8)
+    found = detect_rendered(cam, parts, PART_MM, np.random.default_rng(41))
+    return cam, fit(TARGET_MM), fit(None), parts, found
+
+
+def pick_rms_um(xyz_mm: np.ndarray, parts: np.ndarray) -> float:
+    return 1000 * float(np.sqrt(((xyz_mm[:, :2] - parts[:, :2]) ** 2).sum(axis=1).mean()))
+
+
+def test_the_file_says_which_point_it_maps_and_proves_it(cell, tmp_path):
+    _, cal, raw, _, _ = cell
+    assert cal.image_points.circle_diameter_mm == TARGET_MM and not raw.image_points.circle_centres
+    d = cal.to_dict()
+    assert d["image_points"] == {"kind": "circle_centre", "diameter_mm": TARGET_MM}
+    assert "image_points" not in raw.to_dict()  # a file without a diameter: its fields as before
+    back = Calibration.load(cal.save(tmp_path / "c.json"))
+    assert back.image_points == cal.image_points
+    # a file written before the field (its fit record holds the diameter) reads as circle centres
+    old = {k: v for k, v in d.items() if k != "image_points"}
+    old["content_sha256"] = content_sha256(old)
+    assert Calibration.from_dict(old).image_points.circle_diameter_mm == TARGET_MM
+    # the field must agree with the fit record, and cannot be added to an as-detected file
+    for bad, words in (
+        (dict(d, image_points={"kind": "circle_centre", "diameter_mm": 10.0}), "image_points.diameter_mm"),
+        (dict(raw.to_dict(), image_points={"kind": "circle_centre", "diameter_mm": 20.0}), "image_points"),
+    ):
+        bad["content_sha256"] = content_sha256(bad)
+        with pytest.raises(InputError, match=words):
+            Calibration.from_dict(bad)
+
+
+def test_an_as_detected_calibration_maps_bit_for_bit_as_before(cell):
+    _, _, raw, _, found = cell
+    want = raw.model.image_to_robot(found)
+    assert np.array_equal(raw.map(found).xyz_mm, want)
+    assert np.array_equal(raw.image_to_robot(found), want)
+    assert np.array_equal(raw.map(found[:1]).xyz_mm, want[:1])
+    assert np.array_equal(raw.map(found, part_diameter_mm=0.0).xyz_mm, want)
+    with pytest.raises(InputError, match="fitted without target_diameter_mm"):
+        raw.map(found, part_diameter_mm=PART_MM)
+
+
+def test_the_diameter_brings_the_pick_to_the_noise_floor(cell):
+    cam, cal, _, parts, found = cell
+    floor = pick_rms_um(cal.map(cam.robot_to_image(parts), part_diameter_mm=0.0).xyz_mm, parts)
+    given = pick_rms_um(cal.map(found, part_diameter_mm=PART_MM).xyz_mm, parts)
+    as_given = pick_rms_um(cal.map(found, part_diameter_mm=0.0).xyz_mm, parts)
+    print(
+        f"pick RMS um: exact centres {floor:.2f}, diameter given {given:.2f}, mapped as given {as_given:.2f}"
+    )
+    # r² sin θ / Z = 36 · 0.423 / 800 mm = 19 µm of bias; the detector's noise is ~1 µm
+    assert as_given > 12.0, as_given
+    assert given < floor + 3.0, (given, floor)
+    assert as_given > 4 * given, (as_given, given)
+    m = cal.map(found, part_diameter_mm=PART_MM)
+    assert np.array_equal(m.uv_px, found)  # answered for the detections as given
+    assert np.array_equal(cal.image_to_robot(found, part_diameter_mm=PART_MM), m.xyz_mm)
+
+
+def test_without_the_diameter_the_bias_is_named_and_refused(cell):
+    _, cal, _, parts, found = cell
+    with pytest.raises(InputError) as refused:
+        cal.map(found)
+    exc = refused.value
+    assert exc.field_path == "points[0].part_diameter_mm"
+    assert REFUSAL in exc.reason and "give part_diameter_mm" in exc.reason
+    bias_mm = float(exc.reason.split(REFUSAL)[1].split("mm")[0])
+    bound_mm = float(exc.reason.split("predicted error")[1].split("mm")[0])
+    assert bias_mm > bound_mm > 0
+    # the bias named is the calibration's own target's at that point (20 mm: r² sin θ / Z ≈ 53 µm)
+    assert 0.03 < bias_mm < 0.08, bias_mm
+    with pytest.raises(InputError, match=REFUSAL):
+        cal.image_to_robot(found[:1])
+    with pytest.raises(InputError, match="part_diameter_mm must be a finite number of mm, 0 or above"):
+        cal.map(found, part_diameter_mm=-1.0)
+
+
+def test_every_interface_answers_the_same_numbers_and_words(cell, tmp_path, capsys):
+    _, cal, _, _, found = cell
+    path = cal.save(tmp_path / "pick.json")
+    want = cal.map(found, part_diameter_mm=PART_MM)
+    with pytest.raises(InputError) as refused:
+        cal.map(found)
+    words = refused.value.reason
+
+    # CLI apply: the option; without it exit 2 and the library's words
+    table = tmp_path / "found.csv"
+    with table.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["u", "v"])
+        w.writerows(found.tolist())
+    assert main(["apply", str(path), str(table), "--part-diameter-mm", str(PART_MM), "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)["points"]
+    assert np.array_equal([[p["x"], p["y"], p["z"]] for p in got], want.xyz_mm)
+    assert main(["apply", str(path), str(table)]) == 2
+    assert words in capsys.readouterr().err
+
+    data = tmp_path / "data"
+    app = create_app(data)
+    with TestClient(app) as c:
+        r = c.post(
+            "/api/calibrations/import", json={"name": "pick", "calibration": json.loads(path.read_text())}
+        )
+        assert r.status_code in (200, 201), r.text
+        cal_id = r.json()["id"]
+    app.state.store.close()
+    srv = ServeProcess(data, "--calibration", "pick", log_level="error")
+    try:
+        url = f"{srv.url}/api/calibrations/{cal_id}/image-to-robot"
+        r = httpx.post(url, json={"points": found.tolist(), "part_diameter_mm": PART_MM}, timeout=30)
+        assert r.status_code == 200, r.text
+        assert np.array_equal(r.json()["points"], want.xyz_mm)
+        r = httpx.post(url, json={"points": found.tolist()}, timeout=30)
+        assert r.status_code == 422, r.text
+        assert r.json()["field"] == "points[0].part_diameter_mm" and words in r.json()["error"]
+        r = httpx.post(url, json={"points": found.tolist(), "part_diameter_mm": -2}, timeout=30)
+        assert r.status_code == 422 and r.json()["field"] == "part_diameter_mm", r.text
+
+        with socket.create_connection(("127.0.0.1", srv.tcp_port), timeout=30) as s:
+            f = s.makefile("rwb")
+            for (u, v), xyz in zip(found[:4].tolist(), want.xyz_mm[:4], strict=True):
+                f.write(f"{u!r},{v!r},d={PART_MM}\n".encode())
+                f.flush()
+                reply = f.readline().decode().strip()
+                assert np.allclose([float(x) for x in reply.split(",")], xyz, rtol=0, atol=1e-9), reply
+            u, v = found[0].tolist()
+            f.write(f"{u!r},{v!r}\n".encode())
+            f.flush()
+            assert f.readline().decode().strip() == f"ERR {words}"
+    finally:
+        srv.stop()
