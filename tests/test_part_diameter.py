@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import socket
+import time
 from types import SimpleNamespace
 
 import httpx
@@ -17,6 +18,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from helpers import ServeProcess
+from pymodbus.client import ModbusTcpClient
 from synth import detect_rendered, limit_view, plane_grid
 
 from eyetohand import Calibration, PointPairs
@@ -25,6 +27,7 @@ from eyetohand.calibration.proof import content_sha256
 from eyetohand.cli import main
 from eyetohand.core import InputError
 from eyetohand.positioning import FixedCalibration, Status, locate_parts, map_point
+from eyetohand.positioning import registers as R
 from eyetohand.server.app import create_app
 from eyetohand.sim.parts import Part as SimPart
 from eyetohand.sim.parts import PartsTable
@@ -154,7 +157,7 @@ def test_every_interface_answers_the_same_numbers_and_words(cell, tmp_path, caps
         assert r.status_code in (200, 201), r.text
         cal_id = r.json()["id"]
     app.state.store.close()
-    srv = ServeProcess(data, "--calibration", "pick", log_level="error")
+    srv = ServeProcess(data, "--calibration", "pick", "--modbus", "127.0.0.1:0", log_level="error")
     try:
         url = f"{srv.url}/api/calibrations/{cal_id}/image-to-robot"
         r = httpx.post(url, json={"points": found.tolist(), "part_diameter_mm": PART_MM}, timeout=30)
@@ -177,6 +180,42 @@ def test_every_interface_answers_the_same_numbers_and_words(cell, tmp_path, caps
             f.write(f"{u!r},{v!r}\n".encode())
             f.flush()
             assert f.readline().decode().strip() == f"ERR {words}"
+
+        # Modbus (pymodbus's client): registers 10-11 the diameter in µm with flag bit 4; without, status 3
+        line = next(x for x in srv.out if x.startswith("Modbus:"))
+        modbus = ModbusTcpClient(
+            "127.0.0.1", port=int(line.split()[1].rsplit(":", 1)[1].split("/")[0]), timeout=5
+        )
+        assert modbus.connect()
+        try:
+            for k, diameter in enumerate((PART_MM, None)):
+                u, v = found[k].tolist()
+                regs = R.encode_request(R.Request(500 + k, u, v, None, None, False, diameter))
+                assert not modbus.write_registers(1, regs[1:], device_id=1).isError()
+                assert not modbus.write_registers(0, [500 + k], device_id=1).isError()
+                deadline = time.monotonic() + 10
+                while True:
+                    r = modbus.read_holding_registers(
+                        R.RESULT_ID, count=R.RESULT_END - R.RESULT_ID, device_id=1
+                    )
+                    out = R.decode_result(r.registers)
+                    if out["request_id"] == 500 + k:
+                        break
+                    assert time.monotonic() < deadline, out
+                if diameter is None:
+                    assert out["status"] == int(Status.BAD_INPUT), out
+                    continue
+                # the library's answer for the pixels as the registers carry them (0.001 px), to 1 µm
+                m = cal.map(
+                    np.array([[round(u * 1000) / 1000, round(v * 1000) / 1000]]), part_diameter_mm=PART_MM
+                )
+                assert out["status"] == 0, out
+                assert (
+                    abs(out["x"] - m.xyz_mm[0, 0]) <= 0.0005 + 1e-9
+                    and abs(out["y"] - m.xyz_mm[0, 1]) <= 0.0005 + 1e-9
+                )
+        finally:
+            modbus.close()
     finally:
         srv.stop()
 
