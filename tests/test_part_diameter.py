@@ -7,6 +7,7 @@ rendered and detected at use."""
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import json
 import socket
@@ -157,7 +158,9 @@ def test_every_interface_answers_the_same_numbers_and_words(cell, tmp_path, caps
         assert r.status_code in (200, 201), r.text
         cal_id = r.json()["id"]
     app.state.store.close()
-    srv = ServeProcess(data, "--calibration", "pick", "--modbus", "127.0.0.1:0", log_level="error")
+    srv = ServeProcess(
+        data, "--calibration", "pick", "--modbus", "127.0.0.1:0", "--opcua", "127.0.0.1:0", log_level="error"
+    )
     try:
         url = f"{srv.url}/api/calibrations/{cal_id}/image-to-robot"
         r = httpx.post(url, json={"points": found.tolist(), "part_diameter_mm": PART_MM}, timeout=30)
@@ -216,8 +219,44 @@ def test_every_interface_answers_the_same_numbers_and_words(cell, tmp_path, caps
                 )
         finally:
             modbus.close()
+
+        # OPC UA (asyncua's client): ImageToRobotPart with the diameter; ImageToRobot refused in the words
+        url = next(x for x in srv.out if x.startswith("OPC UA:")).split()[2]
+        part, plain = asyncio.run(_opcua_calls(url, found[0].tolist()))
+        assert part[0].is_good() and np.allclose(part[1][:3], want.xyz_mm[0], rtol=0, atol=1e-9), part
+        assert plain[0].name == "BadInvalidArgument" and plain[2] == words, plain
     finally:
         srv.stop()
+
+
+async def _opcua_calls(url: str, uv: list[float]):
+    """(status, outputs, reason) of ImageToRobotPart(u, v, NaN, 12) and of ImageToRobot(u, v, NaN)."""
+    from asyncua import Client, ua
+
+    async with Client(url, timeout=10) as client:
+        ns = await client.get_namespace_index("urn:eyetohand")
+        obj = await client.nodes.root.get_child(["0:Objects", f"{ns}:Calibration"])
+        out = []
+        for name, args in (
+            ("ImageToRobotPart", [*uv, float("nan"), PART_MM]),
+            ("ImageToRobot", [*uv, float("nan")]),
+        ):
+            method = await obj.get_child(f"{ns}:{name}")
+            req = ua.CallMethodRequest(
+                ObjectId=obj.nodeid,
+                MethodId=method.nodeid,
+                InputArguments=[ua.Variant(float(a)) for a in args],
+            )
+            (res,) = await client.uaclient.call([req])
+            diags = res.InputArgumentDiagnosticInfos or []
+            out.append(
+                (
+                    res.StatusCode,
+                    [v.Value for v in res.OutputArguments or []],
+                    diags[0].AdditionalInfo if diags else None,
+                )
+            )
+        return out
 
 
 def test_locate_corrects_each_part_by_its_measured_size(cell):
