@@ -30,7 +30,8 @@ def image_to_robot(
     cal: Calibration, uv_px, z=None, *, allow_outside: bool = False, part_diameter_mm=None
 ) -> np.ndarray:
     """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
-    if part_diameter_mm is not None or cal.image_points.circle_centres:  # points.py's rule: map's path
+    # a part's diameter, or a calibration of circle centres: points.py's rule, through map's path
+    if part_diameter_mm is not None or cal.image_points.circle_diameter_mm is not None:
         m = map_points(
             cal, uv_px, z, allow_outside=allow_outside, with_sigma=False, part_diameter_mm=part_diameter_mm
         )
@@ -119,7 +120,7 @@ def map_points(
     """``cal.map``: pixels (and image angles) to robot points (and rz), guarded — the one path that
     checks everything and names every refusal (:meth:`Calibration.map
     <eyetohand.calibration.Calibration.map>` says what each option does)."""
-    if part_diameter_mm is not None or cal.image_points.circle_centres:
+    if part_diameter_mm is not None or cal.image_points.circle_diameter_mm is not None:
         opts = {"angle_deg": angle_deg, "allow_outside": allow_outside, "symmetry": symmetry}
         return _map_detections(cal, uv_px, z, part_diameter_mm, with_sigma, tool_rz_offset_deg, opts)
     return _guarded(
