@@ -25,10 +25,12 @@ from synth import detect_rendered, limit_view, plane_grid
 from eyetohand import Calibration, PointPairs
 from eyetohand.calibration import FitRequest, calibrate_request
 from eyetohand.calibration.proof import content_sha256
+from eyetohand.cell import LineReplies
 from eyetohand.cli import main
-from eyetohand.core import InputError
+from eyetohand.core import InputError, output_units
 from eyetohand.positioning import FixedCalibration, Status, locate_parts, map_point
 from eyetohand.positioning import registers as R
+from eyetohand.positioning.tcp import answer
 from eyetohand.server.app import create_app
 from eyetohand.sim.parts import Part as SimPart
 from eyetohand.sim.parts import PartsTable
@@ -307,3 +309,37 @@ def test_a_plc_mapping_gets_the_refusal_in_the_same_words(cell):
     assert res.status is Status.BAD_INPUT and res.reason == refused.value.reason
     ok = map_point(served, u, v, part_diameter_mm=PART_MM)
     assert ok.ok and ok.xyz_mm == tuple(cal.map(found[:1], part_diameter_mm=PART_MM).xyz_mm[0].tolist())
+
+
+def test_the_tcp_word_takes_the_lines_length_unit_and_is_checked(cell):
+    """``d=`` is a length like the line's z: in m on a server answering in m; refused when negative,
+    given twice, or on an as-detected calibration, in the library's words."""
+    _, cal, raw, _, found = cell
+    u, v = found[0].tolist()
+    want = cal.map(found[:1], part_diameter_mm=PART_MM).xyz_mm[0]
+    in_m = LineReplies("plain", output_units("m"))
+    got = answer(cal, f"{u!r},{v!r},d={PART_MM / 1000!r}".encode(), in_m).decode().strip()
+    assert np.allclose([float(x) * 1000 for x in got.split(",")], want, rtol=0, atol=1e-6), got
+    mm = answer(cal, f"{u!r},{v!r},d={PART_MM!r}".encode()).decode().strip()
+    assert np.allclose([float(x) for x in mm.split(",")], want, rtol=0, atol=1e-9), mm
+    assert (
+        answer(cal, f"{u!r},{v!r},d=-1".encode())
+        .decode()
+        .startswith("ERR part_diameter_mm must be a finite number of mm, 0 or above")
+    )
+    assert "d given twice" in answer(cal, f"{u!r},{v!r},d=12,d=12".encode()).decode()
+    assert "fitted without target_diameter_mm" in answer(raw, f"{u!r},{v!r},d=12".encode()).decode()
+    as_given = answer(cal, f"{u!r},{v!r},d=0".encode()).decode().strip()  # 0: mapped as given
+    assert np.allclose(
+        [float(x) for x in as_given.split(",")], cal.map(found[:1], part_diameter_mm=0.0).xyz_mm[0]
+    )
+
+
+def test_modbus_registers_carry_the_diameter_and_locate_refuses_it():
+    req = R.Request(9, 812.5, 640.25, None, None, False, 12.5)
+    regs = R.encode_request(req)
+    assert len(regs) == R.REQUEST_END == 12 and regs[R.FLAGS] & R.FLAG_DIAMETER
+    assert R.decode_request(regs) == req
+    old = R.encode_request(R.Request(9, 812.5, 640.25, None, None, False))
+    assert old[: R.FLAGS + 1] == regs[: R.FLAGS] + [0] and R.decode_request(old).part_diameter_mm is None
+    assert R.FLAG_DIAMETER & R.LOCATE_REFUSED and "part diameter (bit 4" in R.LOCATE_FLAGS
