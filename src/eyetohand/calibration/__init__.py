@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from eyetohand.calibration.fit import calibrate, calibrate_request
     from eyetohand.calibration.plate import calibrate_detected, calibrate_plate
     from eyetohand.calibration.plate_record import PlateImage
-    from eyetohand.calibration.points import ImagePoints, check_part_diameter
+    from eyetohand.calibration.points import PointKind, check_part_diameter
     from eyetohand.calibration.request import (
         AUTO,
         MAX_IMAGE_SIDE_PX,
@@ -58,7 +58,7 @@ else:
             "diff": ("Difference", "Motion", "Verdict", "diff"),
             "export": ("FORMATS", "export_text"),
             "file": ("Calibration", "Mapped"),
-            "points": ("ImagePoints", "check_part_diameter"),
+            "points": ("PointKind", "check_part_diameter"),
             "fit": ("calibrate", "calibrate_request"),
             "request": (
                 "AUTO",
@@ -86,7 +86,7 @@ __all__ = [
     "Evaluation",
     "FORMATS",
     "FitRequest",
-    "ImagePoints",
+    "PointKind",
     "MAX_IMAGE_SIDE_PX",
     "Mapped",
     "Motion",

@@ -27,7 +27,7 @@ from eyetohand.calibration.fields import (
 from eyetohand.calibration.horizon import horizon_clear
 from eyetohand.calibration.mapped import Mapped
 from eyetohand.calibration.points import FIELD as IMAGE_POINTS_FIELD
-from eyetohand.calibration.points import ImagePoints
+from eyetohand.calibration.points import PointKind
 from eyetohand.calibration.proof import SCHEMA, SCHEMA_VERSION, content_sha256, corrected
 from eyetohand.calibration.proof import V1_FIELDS as V1_FIELDS  # where the schema was read before
 from eyetohand.calibration.signing import signature_of
@@ -82,10 +82,10 @@ class Calibration:
         return self.model.name
 
     @cached_property
-    def image_points(self) -> ImagePoints:
+    def image_points(self) -> PointKind:
         """Which image point this calibration maps: as detected, or a circle's centre (fitted with a
         target diameter; :mod:`~eyetohand.calibration.points`)."""
-        return ImagePoints.of_fit(self.fit)
+        return PointKind.of_fit(self.fit)
 
     @property
     def fitted_pairs(self) -> PointPairs | None:

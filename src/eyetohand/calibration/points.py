@@ -1,4 +1,4 @@
-"""Which image point a calibration maps (:class:`ImagePoints`), and a detection made that point at use.
+"""Which image point a calibration maps (:class:`PointKind`), and a detection made that point at use.
 
 A calibration fitted with a target diameter (``FitRequest.target_diameter_mm``; :mod:`.circles`) maps
 where the centre of a circle projects, not the centre of its image (an ellipse, on a tilted view). Its
@@ -45,7 +45,7 @@ OPTION = "part_diameter_mm"
 
 
 @dataclass(frozen=True)
-class ImagePoints:
+class PointKind:
     """What the pixels a calibration maps are: ``circle_diameter_mm`` None — image points as
     detected; a number — where the centre of a circle of that diameter (mm) projects."""
 
@@ -56,11 +56,11 @@ class ImagePoints:
         return self.circle_diameter_mm is not None
 
     @classmethod
-    def of_fit(cls, fit: FitInfo) -> ImagePoints:
+    def of_fit(cls, fit: FitInfo) -> PointKind:
         """What a fit record says: its ``target_diameter_mm`` (:func:`~.circles.fit_corrected`)."""
         value = fit.extra.get("target_diameter_mm")
         if value is None:
-            return IMAGE_POINTS
+            return AS_DETECTED
         if (
             isinstance(value, bool)
             or not isinstance(value, (int, float))
@@ -84,7 +84,7 @@ class ImagePoints:
         return f"the centres of {self.circle_diameter_mm:g} mm circles"
 
 
-IMAGE_POINTS = ImagePoints()
+AS_DETECTED = PointKind()
 
 
 def check_part_diameter(value) -> float | None:
@@ -107,7 +107,7 @@ def corrected_at_use(cal: Calibration, uv: np.ndarray, z, diameter_mm: float) ->
     detected, or where its maps give no finite image of such a circle."""
     if not cal.image_points.circle_centres:
         raise InputError(
-            f"this calibration maps {IMAGE_POINTS.describe()} (fitted without target_diameter_mm), so a "
+            f"this calibration maps {AS_DETECTED.describe()} (fitted without target_diameter_mm), so a "
             f"part's diameter cannot correct them: map without {OPTION} (or 0), or calibrate with a "
             "target diameter",
             field=OPTION,
