@@ -34,6 +34,7 @@ from eyetohand.positioning.tcp import answer
 from eyetohand.server.app import create_app
 from eyetohand.sim.parts import Part as SimPart
 from eyetohand.sim.parts import PartsTable
+from eyetohand.vision.render import circle_truth
 
 SIZE = (1920, 1200)
 TILT_DEG = 25.0
@@ -343,3 +344,48 @@ def test_modbus_registers_carry_the_diameter_and_locate_refuses_it():
     old = R.encode_request(R.Request(9, 812.5, 640.25, None, None, False))
     assert old[: R.FLAGS + 1] == regs[: R.FLAGS] + [0] and R.decode_request(old).part_diameter_mm is None
     assert R.FLAG_DIAMETER & R.LOCATE_REFUSED and "part diameter (bit 4" in R.LOCATE_FLAGS
+
+
+def test_one_diameter_per_point_on_every_interface_that_takes_a_table(cell, tmp_path, capsys):
+    """Parts of two sizes (8 and 16 mm, their renderer's exact ellipse centres) and one point given as
+    its own image (0): the library with one diameter per point, ``apply``'s ``part_diameter_mm``
+    column and HTTP's list answer the same numbers; a wrong count is refused with the field."""
+    cam, cal, _, parts, _ = cell
+    sizes = np.where(np.arange(len(parts)) % 2 == 0, 8.0, 16.0)
+    uv = np.array([circle_truth(cam, X, d).ellipse_centre_px for X, d in zip(parts, sizes, strict=True)])
+    uv[3], sizes[3] = cam.robot_to_image(parts[3:4])[0], 0.0  # a point's own image
+    m = cal.map(uv, part_diameter_mm=sizes)
+    assert pick_rms_um(m.xyz_mm, parts) < 2.0, pick_rms_um(m.xyz_mm, parts)
+    for k in (0, 1, 3):
+        one = cal.map(uv[k : k + 1], part_diameter_mm=float(sizes[k])).xyz_mm[0]
+        assert np.allclose(m.xyz_mm[k], one, rtol=0, atol=1e-9)
+    with pytest.raises(InputError, match="15 diameters for 16 points") as wrong:
+        cal.map(uv, part_diameter_mm=sizes[:-1])
+    assert wrong.value.field == "part_diameter_mm"
+    with pytest.raises(InputError, match=r"part_diameter_mm\[2\] must be a finite number"):
+        cal.map(uv, part_diameter_mm=np.where(np.arange(16) == 2, -1.0, 8.0))
+
+    path = cal.save(tmp_path / "pick.json")
+    table = tmp_path / "found.csv"
+    with table.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["id", "u", "v", "part_diameter_mm"])
+        w.writerows([[f"p{k}", *uv[k].tolist(), sizes[k]] for k in range(len(uv))])
+    assert main(["apply", str(path), str(table), "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)["points"]
+    assert np.array_equal([[p["x"], p["y"], p["z"]] for p in got], m.xyz_mm)
+    assert main(["apply", str(path), str(table), "--part-diameter-mm", "8"]) == 2
+    assert "part_diameter_mm column; --part-diameter-mm would contradict it" in capsys.readouterr().err
+
+    app = create_app(tmp_path / "data")
+    with TestClient(app) as c:
+        r = c.post(
+            "/api/calibrations/import", json={"name": "pick", "calibration": json.loads(path.read_text())}
+        )
+        url = f"/api/calibrations/{r.json()['id']}/image-to-robot"
+        r = c.post(url, json={"points": uv.tolist(), "part_diameter_mm": sizes.tolist()})
+        assert r.status_code == 200 and np.array_equal(r.json()["points"], m.xyz_mm), r.text
+        r = c.post(url, json={"points": uv.tolist(), "part_diameter_mm": sizes[:-1].tolist()})
+        assert r.status_code == 422 and r.json()["field"] == "part_diameter_mm", r.text
+        assert "15 diameters for 16 points" in r.json()["error"]
+    app.state.store.close()

@@ -45,14 +45,17 @@ def check_target_diameter(value) -> float | None:
     return float(value)
 
 
-def ellipse_centres_px(robot_to_image, centre_mm, diameter_mm: float, n: int = OUTLINE_POINTS) -> np.ndarray:
+def ellipse_centres_px(robot_to_image, centre_mm, diameter_mm, n: int = OUTLINE_POINTS) -> np.ndarray:
     """(N, 2) centres of the image ellipses of circles of ``diameter_mm`` centred at ``centre_mm``
     (N, 3) parallel to the robot's x-y plane, through ``robot_to_image`` ((M, 3) mm → (M, 2) px; any
     map, lens included): the least-squares conic through ``n`` projected outline points of each
-    circle, all circles' outlines mapped in one call and fitted in one batched SVD."""
+    circle, all circles' outlines mapped in one call and fitted in one batched SVD. ``diameter_mm``:
+    one for all, or (N,) one per circle."""
     c = np.asarray(centre_mm, float).reshape(-1, 3)
     th = 2 * np.pi * np.arange(n) / n
-    r = diameter_mm / 2
+    r = (
+        np.asarray(diameter_mm, float).reshape(-1, 1) / 2 if np.ndim(diameter_mm) else diameter_mm / 2
+    )  # or one each
     ring = np.empty((len(c), n, 3))
     ring[..., 0] = c[:, None, 0] + r * np.cos(th)
     ring[..., 1] = c[:, None, 1] + r * np.sin(th)
@@ -69,7 +72,7 @@ def ellipse_centres_px(robot_to_image, centre_mm, diameter_mm: float, n: int = O
 
 
 def projected_centres_px(
-    uv_px, diameter_mm: float, z_mm, image_to_robot, robot_to_image, iterations: int = ITERATIONS
+    uv_px, diameter_mm, z_mm, image_to_robot, robot_to_image, iterations: int = ITERATIONS
 ) -> np.ndarray:
     """Detected ellipse centres ``uv_px`` (N, 2) moved to where the circles' centres project: the
     bias (ellipse centre − projected centre) that ``robot_to_image`` predicts for a circle of

@@ -148,7 +148,7 @@ class Calibration:
 
     # ------------------------------------------------------------ mapping (calibration/guard.py)
     def image_to_robot(
-        self, uv_px, z=None, *, allow_outside: bool = False, part_diameter_mm: float | None = None
+        self, uv_px, z=None, *, allow_outside: bool = False, part_diameter_mm=None
     ) -> np.ndarray:
         """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
         return guard.image_to_robot(
@@ -165,7 +165,7 @@ class Calibration:
         symmetry: int = 1,
         tool_rz_offset_deg: float | None = None,
         with_sigma: bool = True,
-        part_diameter_mm: float | None = None,
+        part_diameter_mm=None,
     ) -> Mapped:
         """Map pixels (and image angles) to robot points (and rz), guarded.
 
@@ -179,11 +179,12 @@ class Calibration:
         ``angle_deg``: image angles (deg, from +u towards +v) → ``rz_deg`` (see
         :mod:`eyetohand.geometry.orientation`), folded by ``symmetry``; ``tool_rz_offset_deg`` makes rz the
         gripper's command.
-        ``part_diameter_mm``: the diameter of the circular part whose detected (ellipse) centres
-        ``uv_px`` are, for a calibration of circle centres (:attr:`image_points`): each is moved to
-        where the circle's centre projects before it is mapped (0: the pixels are the points' own
-        images, mapped as given). Without it such a calibration refuses a detection where the bias
-        there exceeds the point's predicted error (:mod:`~eyetohand.calibration.points`).
+        ``part_diameter_mm``: the diameter (mm; one, or (N,) one per point) of the circular part
+        whose detected (ellipse) centres ``uv_px`` are, for a calibration of circle centres
+        (:attr:`image_points`): each is moved to where the circle's centre projects before it is
+        mapped (0: the pixels are the points' own images, mapped as given). Without it such a
+        calibration refuses a detection where the bias there exceeds the point's predicted error
+        (:mod:`~eyetohand.calibration.points`).
         """
         return guard.map_points(
             self,

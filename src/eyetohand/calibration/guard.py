@@ -212,9 +212,13 @@ def _map_detections(cal: Calibration, uv_px, z, part_diameter_mm, with_sigma: bo
     """:func:`map_points` with a part's diameter, or of a circle-centre calibration: the pixels
     made the points the calibration maps first (:mod:`~eyetohand.calibration.points`), or refused."""
     d = check_part_diameter(part_diameter_mm)
-    if d == 0.0:  # the pixels are the points' own images: as given, no rule
+    if d is not None and not np.any(d):  # the pixels are the points' own images: as given, no rule
         return _guarded(cal, uv_px, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
     uv = as_uv(uv_px)
+    if isinstance(d, np.ndarray) and len(d) != len(uv):
+        raise InputError(
+            f"{len(d)} diameters for {len(uv)} points; give one, or one per point", field="part_diameter_mm"
+        )
     zz = None if z is None else np.broadcast_to(np.asarray(z, float), (len(uv),))
     if zz is not None and not np.isfinite(zz).all():  # refused by the guard, in its words
         return _guarded(cal, uv, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
@@ -222,7 +226,10 @@ def _map_detections(cal: Calibration, uv_px, z, part_diameter_mm, with_sigma: bo
         m = _guarded(cal, uv, z, tool_rz_offset_deg=tool_rz, with_sigma=True, **opts)
         mix_refusal(cal, uv, zz, m.xyz_mm, m.sigma_mm)
         return m if with_sigma else dataclasses.replace(m, sigma_mm=None)
-    centres = corrected_at_use(cal, uv, zz, d)
+    rows = np.flatnonzero(np.broadcast_to(d, (len(uv),)) > 0)  # 0: that point as given
+    centres = uv.copy()
+    dd = d[rows] if isinstance(d, np.ndarray) else d
+    centres[rows] = corrected_at_use(cal, uv[rows], None if zz is None else zz[rows], dd, rows)
     m = _guarded(cal, centres, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
     return dataclasses.replace(m, uv_px=uv)  # answered for the detections as given
 

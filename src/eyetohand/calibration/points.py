@@ -87,23 +87,39 @@ class PointKind:
 AS_DETECTED = PointKind()
 
 
-def check_part_diameter(value) -> float | None:
-    """A part's diameter (mm) at use as a float: a finite number, 0 or above (0: a point), or None."""
+def check_part_diameter(value) -> float | np.ndarray | None:
+    """A part's diameter (mm) at use: a finite number, 0 or above (0: a point), as a float; a list or
+    1-D array of them (one per point) as a float array; or None."""
     if value is None:
         return None
+    if isinstance(value, (list, tuple, np.ndarray)):
+        if np.ndim(value) != 1:
+            raise InputError(f"{OPTION} must be one number of mm or a list of them (one per point)")
+        if isinstance(value, np.ndarray) and value.dtype.kind in "fiu":  # checked in one pass
+            d = value.astype(float)
+            bad = np.flatnonzero(~(d >= 0) | ~np.isfinite(d))
+            if bad.size:
+                _check_one(float(d[bad[0]]), f"{OPTION}[{int(bad[0])}]")
+            return d
+        return np.array([_check_one(v, f"{OPTION}[{i}]") for i, v in enumerate(value)], float)
+    return _check_one(value, OPTION)
+
+
+def _check_one(value, name: str) -> float:
     ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
     if not ok or not math.isfinite(float(value)) or float(value) < 0:
         got = f"{float(value):g}" if ok else repr(value)
         raise InputError(
-            f"{OPTION} must be a finite number of mm, 0 or above (0: the pixel is the point's own "
+            f"{name} must be a finite number of mm, 0 or above (0: the pixel is the point's own "
             f"image), got {got}"
         )
     return float(value)
 
 
-def corrected_at_use(cal: Calibration, uv: np.ndarray, z, diameter_mm: float) -> np.ndarray:
-    """Detected centres ``uv`` (N, 2) of circles of ``diameter_mm`` > 0 moved to where their centres
-    project, with ``cal``'s own maps; refused (naming why) by a calibration of image points as
+def corrected_at_use(cal: Calibration, uv: np.ndarray, z, diameter_mm, rows: np.ndarray) -> np.ndarray:
+    """Detected centres ``uv`` (N, 2) of circles of ``diameter_mm`` > 0 (one, or (N,) one each) moved to
+    where their centres project, with ``cal``'s own maps; refused (naming why, and the point by its
+    index in ``rows``: where these N are in the request) by a calibration of image points as
     detected, or where its maps give no finite image of such a circle."""
     if not cal.image_points.circle_centres:
         raise InputError(
@@ -118,10 +134,11 @@ def corrected_at_use(cal: Calibration, uv: np.ndarray, z, diameter_mm: float) ->
     bad = np.flatnonzero(~np.isfinite(out).all(axis=1))
     if bad.size:
         i = int(bad[0])
+        d = float(np.broadcast_to(diameter_mm, (len(uv),))[i])
         raise InputError(
             f"(u, v) = ({uv[i, 0]:g}, {uv[i, 1]:g}) px: the calibration's map gives no finite image of a "
-            f"{diameter_mm:g} mm circle there, so its centre cannot be corrected",
-            index=i,
+            f"{d:g} mm circle there, so its centre cannot be corrected",
+            index=int(rows[i]),
             field=OPTION,
             label="points",
         )

@@ -301,9 +301,10 @@ class MapRequest(Strict):
         False, description="map points outside the calibrated region too (flagged inside=false)"
     )
     sigma: StrictBool = Field(True, description="compute each point's predicted error sigma_mm")
-    part_diameter_mm: PartDiameter | None = Field(
+    part_diameter_mm: PartDiameter | list[PartDiameter] | None = Field(
         None,
-        description="the circular part's diameter (mm, whatever units says): its detected centres are "
+        description="the circular part's diameter (mm, whatever units says; one, or one per point): its "
+        "detected centres are "
         "corrected for perspective as the calibration's circle centres were (0: the points are the "
         "points' own images); a circle-centre calibration refuses detections without it where the bias "
         "exceeds their predicted error",
