@@ -148,7 +148,8 @@ def fit_corrected(
     note = (
         f"centres corrected for a {diameter:g} mm circle's perspective bias (RMS shift "
         f"{record['centre_shift_px_rms']:.3g} px): this calibration maps where a circle's centre "
-        "projects; correct a detection of the same target before mapping it (corrected_centres_px)"
+        "projects; correct a detection of the same target before mapping it: give the part's diameter "
+        "at use (part_diameter_mm; apply --part-diameter-mm, TCP d=)"
     )
     fit_info = dataclasses.replace(cal.fit, extra={**cal.fit.extra, **record})
     return dataclasses.replace(cal, fit=fit_info, notes=(*cal.notes, note))
