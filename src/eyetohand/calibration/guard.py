@@ -31,11 +31,12 @@ def image_to_robot(
 ) -> np.ndarray:
     """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
     # a part's diameter, or a calibration of circle centres: points.py's rule, through map's path
+    # (0 for every point: the pixels as given, by the fast paths below)
     if part_diameter_mm is not None or cal.image_points.circle_diameter_mm is not None:
-        m = map_points(
-            cal, uv_px, z, allow_outside=allow_outside, with_sigma=False, part_diameter_mm=part_diameter_mm
-        )
-        return m.xyz_mm
+        d = check_part_diameter(part_diameter_mm)
+        if d is None or np.any(d):
+            m = map_points(cal, uv_px, z, allow_outside=allow_outside, with_sigma=False, part_diameter_mm=d)
+            return m.xyz_mm
     one = map_one(cal, uv_px, z)
     if one is not None:
         return one[1]
@@ -43,7 +44,7 @@ def image_to_robot(
         many = map_many(cal, uv_px, z)
         if many is not None:
             return many
-    return map_points(cal, uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm
+    return _guarded(cal, uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm  # as given
 
 
 def map_many(cal: Calibration, uv_px, z) -> np.ndarray | None:
@@ -72,7 +73,7 @@ def map_many(cal: Calibration, uv_px, z) -> np.ndarray | None:
         few = np.empty(0, np.intp) if sc.mask is None else np.flatnonzero(sc.mask)
     if len(few):
         try:
-            map_points(cal, uv[few], None if zq is None else zq[few], with_sigma=False)
+            _guarded(cal, uv[few], None if zq is None else zq[few], with_sigma=False)
         except InputError:
             return None  # map refuses one of them: let it name the first one among all
     try:
