@@ -8,9 +8,10 @@ without the field maps image points as detected (every file before it, and every
 diameter: their bytes and mappings are unchanged). A file of the round before the field that records
 a target diameter reads as a circle-centre calibration: its fit record proves what its pairs are.
 
-At use, one rule on every interface (``Calibration.map(..., part_diameter_mm=)``, ``apply``'s
-``--part-diameter-mm`` / ``part_diameter_mm`` column, HTTP ``part_diameter_mm``, the TCP line's
-``d=``; LOCATE measures each part's diameter):
+At use, one rule on every interface (``Calibration.map(..., part_diameter_mm=)``, one number or one
+per point; ``apply``'s ``--part-diameter-mm`` or ``part_diameter_mm`` column; HTTP
+``part_diameter_mm``; the TCP line's ``d=``; Modbus registers 10–11 with flag bit 4; OPC UA
+``ImageToRobotPart``; LOCATE measures each part's diameter — docs/limit.md "At use"):
 
 - a part's diameter D > 0 moves each detected (ellipse) centre to where the centre of a circle of
   diameter D projects, with the calibration's own maps (:func:`~.circles.projected_centres_px`),
@@ -20,7 +21,8 @@ At use, one rule on every interface (``Calibration.map(..., part_diameter_mm=)``
 - none given: a circle-centre calibration maps the detection as given only where the bias that it
   predicts there for its own target's diameter is within the point's predicted error (``sigma_mm``;
   the training RMS for a file without uncertainty); beyond, it refuses (:func:`mix_refusal`), in
-  the same words on every interface (CLI exit 2, HTTP 422 with the field, TCP ``ERR``).
+  the same words on every interface (CLI exit 2, HTTP 422 with the field, TCP ``ERR``, Modbus status
+  3, OPC UA ``BadInvalidArgument``).
 """
 
 from __future__ import annotations
