@@ -74,10 +74,11 @@ def rms(a: np.ndarray) -> float:
 
 def check_errors(cal, check: np.ndarray, uv_true: np.ndarray, uv_ellipse: np.ndarray, correct=None):
     """(a) check RMS (mm) of the exact projected centres, (b) of the check targets' ellipse centres,
-    moved by ``correct`` (uv → uv) first when given."""
-    a = cal.image_to_robot(uv_true, allow_outside=True)[:, :2] - check[:, :2]
+    moved by ``correct`` (uv → uv) first when given. The pixels are mapped as given
+    (``part_diameter_mm=0``): this benchmark makes each case's pixels itself, the raw ones included."""
+    a = cal.image_to_robot(uv_true, allow_outside=True, part_diameter_mm=0.0)[:, :2] - check[:, :2]
     uv_b = uv_ellipse if correct is None else correct(uv_ellipse)
-    b = cal.image_to_robot(uv_b, allow_outside=True)[:, :2] - check[:, :2]
+    b = cal.image_to_robot(uv_b, allow_outside=True, part_diameter_mm=0.0)[:, :2] - check[:, :2]
     return rms(a), rms(b)
 
 

@@ -56,7 +56,7 @@ def cells():
 
 
 def check_rms_mm(cal: Calibration, check: np.ndarray, uv_px: np.ndarray) -> float:
-    err = cal.image_to_robot(uv_px, allow_outside=True)[:, :2] - check[:, :2]
+    err = cal.image_to_robot(uv_px, allow_outside=True, part_diameter_mm=0.0)[:, :2] - check[:, :2]
     return float(np.sqrt((err**2).sum(axis=1).mean()))
 
 
@@ -233,6 +233,9 @@ def test_the_correction_at_two_heights(cells, model):
             model, image_size=SIZE, loo=False, seed=0, target_diameter_mm=diameter
         )
         cal = calibrate_request(request, pairs)
-        err = cal.image_to_robot(uv_true, check[:, 2], allow_outside=True)[:, :2] - check[:, :2]
+        err = (
+            cal.image_to_robot(uv_true, check[:, 2], allow_outside=True, part_diameter_mm=0.0)[:, :2]
+            - check[:, :2]
+        )
         errors.append(float(np.sqrt((err**2).sum(axis=1).mean())))
     assert errors[0] > 0.03 and errors[1] < 0.5 * errors[0], errors  # r² sin θ / Z ≈ 43 µm at z = 0

@@ -249,7 +249,7 @@ def test_modbus_every_status_code(stored, points, cal_file):
         allowed = ask(c, u=u - 300, v=v, allow=True)
         assert allowed["status"] == Status.OK  # allow outside (flag bit 2) maps it
         assert ask(c, u=u, v=v, z=plane_z + 50)["status"] == Status.HEIGHT
-        assert ask(c, u=u, v=v, flags=16)["status"] == Status.BAD_INPUT  # reserved flag bits
+        assert ask(c, u=u, v=v, flags=32)["status"] == Status.BAD_INPUT  # reserved flag bits (5..15)
     finally:
         c.close()
 

@@ -287,7 +287,7 @@ def test_cal_and_belt_on_a_server_without_camera_or_conveyor_say_what_is_missing
         )
         assert link.send("600") == (
             "ERR 1 numbers; expected 2 or 3 (u,v or u,v,z) before any words; "
-            "send u,v[,z][,a=ANGLE][,s=N][,t=DEG][,allow][,sigma] or VERSION"
+            "send u,v[,z][,a=ANGLE][,s=N][,t=DEG][,d=DIAMETER][,allow][,sigma] or VERSION"
         )
         link.close()
     finally:

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from eyetohand.calibration.fit import calibrate, calibrate_request
     from eyetohand.calibration.plate import calibrate_detected, calibrate_plate
     from eyetohand.calibration.plate_record import PlateImage
+    from eyetohand.calibration.points import PointKind, check_part_diameter
     from eyetohand.calibration.request import (
         AUTO,
         MAX_IMAGE_SIDE_PX,
@@ -57,6 +58,7 @@ else:
             "diff": ("Difference", "Motion", "Verdict", "diff"),
             "export": ("FORMATS", "export_text"),
             "file": ("Calibration", "Mapped"),
+            "points": ("PointKind", "check_part_diameter"),
             "fit": ("calibrate", "calibrate_request"),
             "request": (
                 "AUTO",
@@ -84,6 +86,7 @@ __all__ = [
     "Evaluation",
     "FORMATS",
     "FitRequest",
+    "PointKind",
     "MAX_IMAGE_SIDE_PX",
     "Mapped",
     "Motion",
@@ -97,6 +100,7 @@ __all__ = [
     "calibrate_plate",
     "calibrate_request",
     "check_image_size",
+    "check_part_diameter",
     "check_target_diameter",
     "check_warnings",
     "check_tolerance",

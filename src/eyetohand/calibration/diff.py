@@ -314,9 +314,9 @@ def _check_points(a: Calibration, b: Calibration) -> tuple[np.ndarray, np.ndarra
 def _answers(cal: Calibration, uv: np.ndarray, z: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) the calibration's guarded answers and (N, D, 2) its maps' parameter factor ``J L``."""
     if _region(cal, "").plane_z_mm is not None:
-        xyz = cal.image_to_robot(uv)
+        xyz = cal.image_to_robot(uv, part_diameter_mm=0.0)  # the maps compared, not detections
     else:
-        xyz = cal.image_to_robot(uv, z)
+        xyz = cal.image_to_robot(uv, z, part_diameter_mm=0.0)
     model = cal.model
     zs = xyz[:, 2] if model.height_rule is not HeightRule.COMPUTED else np.zeros(len(uv))
     unc = cal.uncertainty

@@ -127,7 +127,7 @@ def grid_csv(cal: Calibration, pitch_px: float, z_mm: float | None = None) -> st
             f"model '{model.name}' maps at a given height: give --z MM (calibrated {lo:g}..{hi:g} mm)"
         )
     uv = grid_points(cal, pitch_px)
-    m = cal.map(uv, z_mm)
+    m = cal.map(uv, z_mm, part_diameter_mm=0.0)  # the map's own points, not detections
     head = [
         f"# eyetohand lookup grid, image px -> robot mm (model {model.name}), pitch {pitch_px:g} px",
         f"# pixels: {CONVENTIONS['pixels']}; robot right-handed, z up, mm",

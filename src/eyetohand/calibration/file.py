@@ -26,6 +26,8 @@ from eyetohand.calibration.fields import (
 )
 from eyetohand.calibration.horizon import horizon_clear
 from eyetohand.calibration.mapped import Mapped
+from eyetohand.calibration.points import FIELD as IMAGE_POINTS_FIELD
+from eyetohand.calibration.points import PointKind
 from eyetohand.calibration.proof import SCHEMA, SCHEMA_VERSION, content_sha256, corrected
 from eyetohand.calibration.proof import V1_FIELDS as V1_FIELDS  # where the schema was read before
 from eyetohand.calibration.signing import signature_of
@@ -78,6 +80,12 @@ class Calibration:
     @property
     def model_name(self) -> str:
         return self.model.name
+
+    @cached_property
+    def image_points(self) -> PointKind:
+        """Which image point this calibration maps: as detected, or a circle's centre (fitted with a
+        target diameter; :mod:`~eyetohand.calibration.points`)."""
+        return PointKind.of_fit(self.fit)
 
     @property
     def fitted_pairs(self) -> PointPairs | None:
@@ -139,9 +147,13 @@ class Calibration:
         return f
 
     # ------------------------------------------------------------ mapping (calibration/guard.py)
-    def image_to_robot(self, uv_px, z=None, *, allow_outside: bool = False) -> np.ndarray:
+    def image_to_robot(
+        self, uv_px, z=None, *, allow_outside: bool = False, part_diameter_mm=None
+    ) -> np.ndarray:
         """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
-        return guard.image_to_robot(self, uv_px, z, allow_outside=allow_outside)
+        return guard.image_to_robot(
+            self, uv_px, z, allow_outside=allow_outside, part_diameter_mm=part_diameter_mm
+        )
 
     def map(
         self,
@@ -153,6 +165,7 @@ class Calibration:
         symmetry: int = 1,
         tool_rz_offset_deg: float | None = None,
         with_sigma: bool = True,
+        part_diameter_mm=None,
     ) -> Mapped:
         """Map pixels (and image angles) to robot points (and rz), guarded.
 
@@ -166,6 +179,12 @@ class Calibration:
         ``angle_deg``: image angles (deg, from +u towards +v) → ``rz_deg`` (see
         :mod:`eyetohand.geometry.orientation`), folded by ``symmetry``; ``tool_rz_offset_deg`` makes rz the
         gripper's command.
+        ``part_diameter_mm``: the diameter (mm; one, or (N,) one per point) of the circular part
+        whose detected (ellipse) centres ``uv_px`` are, for a calibration of circle centres
+        (:attr:`image_points`): each is moved to where the circle's centre projects before it is
+        mapped (0: the pixels are the points' own images, mapped as given). Without it such a
+        calibration refuses a detection where the bias there exceeds the point's predicted error
+        (:mod:`~eyetohand.calibration.points`).
         """
         return guard.map_points(
             self,
@@ -176,6 +195,7 @@ class Calibration:
             symmetry=symmetry,
             tool_rz_offset_deg=tool_rz_offset_deg,
             with_sigma=with_sigma,
+            part_diameter_mm=part_diameter_mm,
         )
 
     @cached_property
@@ -194,6 +214,9 @@ class Calibration:
         out = self._base_content()
         if self.plate is not None:  # only then: every other file keeps its fields (and hash)
             out["plate"] = self.plate.to_dict()
+        points = self.image_points.to_dict()
+        if points is not None:  # likewise: only a circle-centre calibration writes it
+            out[IMAGE_POINTS_FIELD] = points
         return out
 
     def _base_content(self) -> dict:

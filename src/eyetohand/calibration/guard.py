@@ -10,12 +10,14 @@ numbers, and leave everything else to :func:`map_points`. :class:`~eyetohand.cal
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from eyetohand.calibration.horizon import beyond_horizon
 from eyetohand.calibration.mapped import Mapped, all_finite
+from eyetohand.calibration.points import check_part_diameter, corrected_at_use, mix_refusal
 from eyetohand.core import MAX_ABS_ANGLE_DEG, InputError, angle_refusal
 from eyetohand.geometry import check_symmetry, image_angle_to_rz, local_jacobian, wrap_deg
 from eyetohand.models import HeightRule, as_uv, one_point
@@ -24,8 +26,17 @@ if TYPE_CHECKING:
     from eyetohand.calibration.file import Calibration
 
 
-def image_to_robot(cal: Calibration, uv_px, z=None, *, allow_outside: bool = False) -> np.ndarray:
+def image_to_robot(
+    cal: Calibration, uv_px, z=None, *, allow_outside: bool = False, part_diameter_mm=None
+) -> np.ndarray:
     """(N, 2) pixels → (N, 3) robot mm, refused outside the calibrated region (see ``map``)."""
+    # a part's diameter, or a calibration of circle centres: points.py's rule, through map's path
+    # (0 for every point: the pixels as given, by the fast paths below)
+    if part_diameter_mm is not None or cal.image_points.circle_diameter_mm is not None:
+        d = check_part_diameter(part_diameter_mm)
+        if d is None or np.any(d):
+            m = map_points(cal, uv_px, z, allow_outside=allow_outside, with_sigma=False, part_diameter_mm=d)
+            return m.xyz_mm
     one = map_one(cal, uv_px, z)
     if one is not None:
         return one[1]
@@ -33,7 +44,7 @@ def image_to_robot(cal: Calibration, uv_px, z=None, *, allow_outside: bool = Fal
         many = map_many(cal, uv_px, z)
         if many is not None:
             return many
-    return map_points(cal, uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm
+    return _guarded(cal, uv_px, z, allow_outside=allow_outside, with_sigma=False).xyz_mm  # as given
 
 
 def map_many(cal: Calibration, uv_px, z) -> np.ndarray | None:
@@ -62,7 +73,7 @@ def map_many(cal: Calibration, uv_px, z) -> np.ndarray | None:
         few = np.empty(0, np.intp) if sc.mask is None else np.flatnonzero(sc.mask)
     if len(few):
         try:
-            map_points(cal, uv[few], None if zq is None else zq[few], with_sigma=False)
+            _guarded(cal, uv[few], None if zq is None else zq[few], with_sigma=False)
         except InputError:
             return None  # map refuses one of them: let it name the first one among all
     try:
@@ -105,10 +116,38 @@ def map_points(
     symmetry: int = 1,
     tool_rz_offset_deg: float | None = None,
     with_sigma: bool = True,
+    part_diameter_mm=None,
 ) -> Mapped:
     """``cal.map``: pixels (and image angles) to robot points (and rz), guarded — the one path that
     checks everything and names every refusal (:meth:`Calibration.map
     <eyetohand.calibration.Calibration.map>` says what each option does)."""
+    if part_diameter_mm is not None or cal.image_points.circle_diameter_mm is not None:
+        opts = {"angle_deg": angle_deg, "allow_outside": allow_outside, "symmetry": symmetry}
+        return _map_detections(cal, uv_px, z, part_diameter_mm, with_sigma, tool_rz_offset_deg, opts)
+    return _guarded(
+        cal,
+        uv_px,
+        z,
+        angle_deg=angle_deg,
+        allow_outside=allow_outside,
+        symmetry=symmetry,
+        tool_rz_offset_deg=tool_rz_offset_deg,
+        with_sigma=with_sigma,
+    )
+
+
+def _guarded(
+    cal: Calibration,
+    uv_px,
+    z=None,
+    *,
+    angle_deg=None,
+    allow_outside: bool = False,
+    symmetry: int = 1,
+    tool_rz_offset_deg: float | None = None,
+    with_sigma: bool = True,
+) -> Mapped:
+    """:func:`map_points` of the pixels as given (the calibration's own kind of point)."""
     s = check_symmetry(symmetry)  # checked with or without an angle: one rule on every interface
     if tool_rz_offset_deg is not None:  # likewise
         why = angle_refusal(float(tool_rz_offset_deg))
@@ -168,6 +207,32 @@ def map_points(
             rz = rz + float(tool_rz_offset_deg) - cal.local_frame().u_axis_rz_deg
         rz = wrap_deg(rz, s)
     return Mapped(uv, xyz, rz, _sigma(cal, uv, xyz, with_sigma), inside, outside)
+
+
+def _map_detections(cal: Calibration, uv_px, z, part_diameter_mm, with_sigma: bool, tool_rz, opts) -> Mapped:
+    """:func:`map_points` with a part's diameter, or of a circle-centre calibration: the pixels
+    made the points the calibration maps first (:mod:`~eyetohand.calibration.points`), or refused."""
+    d = check_part_diameter(part_diameter_mm)
+    if d is not None and not np.any(d):  # the pixels are the points' own images: as given, no rule
+        return _guarded(cal, uv_px, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
+    uv = as_uv(uv_px)
+    if isinstance(d, np.ndarray) and len(d) != len(uv):
+        raise InputError(
+            f"{len(d)} diameters for {len(uv)} points; give one, or one per point", field="part_diameter_mm"
+        )
+    zz = None if z is None else np.broadcast_to(np.asarray(z, float), (len(uv),))
+    if zz is not None and not np.isfinite(zz).all():  # refused by the guard, in its words
+        return _guarded(cal, uv, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
+    if d is None:  # a circle-centre calibration fed detections as given: mapped only where that is harmless
+        m = _guarded(cal, uv, z, tool_rz_offset_deg=tool_rz, with_sigma=True, **opts)
+        mix_refusal(cal, uv, zz, m.xyz_mm, m.sigma_mm)
+        return m if with_sigma else dataclasses.replace(m, sigma_mm=None)
+    rows = np.flatnonzero(np.broadcast_to(d, (len(uv),)) > 0)  # 0: that point as given
+    centres = uv.copy()
+    dd = d[rows] if isinstance(d, np.ndarray) else d
+    centres[rows] = corrected_at_use(cal, uv[rows], None if zz is None else zz[rows], dd, rows)
+    m = _guarded(cal, centres, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
+    return dataclasses.replace(m, uv_px=uv)  # answered for the detections as given
 
 
 def _sigma(cal: Calibration, uv: np.ndarray, xyz: np.ndarray, wanted: bool) -> np.ndarray | None:

@@ -285,7 +285,7 @@ def verify(cal: Calibration, pairs: PointPairs, tolerance_mm: float) -> Verifica
     pairs = as_fitted(cal, pairs)  # a circle target's centres corrected as the fit's were
     z = None if model.height_rule is HeightRule.COMPUTED else pairs.xyz_mm[:, 2]
     try:
-        m = cal.map(pairs.uv_px, z, with_sigma=True)
+        m = cal.map(pairs.uv_px, z, with_sigma=True, part_diameter_mm=0.0)  # centres as fitted
     except InputError as exc:
         raise InputError(f"{pairs.source}: {exc}") from None
     err = m.xyz_mm - pairs.xyz_mm

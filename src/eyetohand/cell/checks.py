@@ -45,7 +45,9 @@ def check_record(name: str, version: int | None, cal, xyz: list[float], uv, img)
     """The check of calibration ``cal`` (``name``, ``version``) at robot point ``xyz`` with the target's
     centre ``uv`` in image ``img``: mapped minus commanded, refused when it maps to no finite point."""
     with np.errstate(all="ignore"):
-        got = cal.image_to_robot(np.array([uv]), xyz[2])[0]
+        got = cal.image_to_robot(  # the target's centre, as a circle-centre calibration was fitted
+            np.array([uv]), xyz[2], part_diameter_mm=cal.image_points.circle_diameter_mm
+        )[0]
     if not np.isfinite(got).all():
         raise CommandError(
             "target not found: the centre maps to no finite robot point", ErrorCode.TARGET_NOT_FOUND

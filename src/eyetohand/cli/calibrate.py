@@ -103,6 +103,7 @@ def cmd_apply(args) -> int:
         "allow_outside": args.allow_outside,
         "symmetry": args.symmetry,
         "tool_rz_offset_deg": args.tool_rz_offset,
+        "part_diameter_mm": args.part_diameter_mm,
     }
     if args.uv is not None:
         if args.input:
@@ -127,6 +128,12 @@ def cmd_apply(args) -> int:
         raise CliError("apply: the input has a z column; --z would contradict it")
     if table.angle_deg is not None and args.angle is not None:
         raise CliError("apply: the input has an angle column; --angle would contradict it")
+    if table.part_diameter_mm is not None and args.part_diameter_mm is not None:
+        raise CliError(
+            "apply: the input has a part_diameter_mm column; --part-diameter-mm would contradict it"
+        )
+    if table.part_diameter_mm is not None:
+        opts["part_diameter_mm"] = table.part_diameter_mm  # one per row
     z = table.z_mm if table.z_mm is not None else args.z  # the input's z column: in --units too
     ang = table.angle_deg if table.angle_deg is not None else args.angle
     m = cal.map(table.uv_px, units.in_length(z), angle_deg=ang, **opts)
@@ -233,7 +240,7 @@ def register(sub) -> None:
     p.add_argument(
         "input",
         nargs="?",
-        help="CSV with u,v [,z] [,angle] ('-': standard input); output: its columns plus "
+        help="CSV with u,v [,z] [,angle] [,part_diameter_mm] ('-': standard input); output: its columns plus "
         "x,y[,z][,rz],sigma_mm,inside",
     )
     p.add_argument("--uv", nargs=2, type=float, metavar=("U", "V"))
@@ -243,6 +250,15 @@ def register(sub) -> None:
         "--allow-outside",
         action="store_true",
         help="map points outside the calibrated region too (flagged inside = false)",
+    )
+    p.add_argument(
+        "--part-diameter-mm",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="the circular part's diameter (mm, whatever --units says): its detected centres are "
+        "corrected for perspective as a calibration fitted with --target-diameter-mm needs "
+        "(0: the points are their own images; a part_diameter_mm column gives one per row)",
     )
     p.add_argument(
         "--json", action="store_true", help="JSON with every point's u v x y z [rz] sigma_mm inside"

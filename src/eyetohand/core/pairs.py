@@ -514,8 +514,9 @@ OUTPUT_COLUMNS = ("x", "y", "z", "rz", "sigma_mm", "inside")
 
 @dataclass(frozen=True, eq=False)
 class ImagePoints:
-    """Image points to map in production: ``uv_px`` (N, 2), optional heights ``z_mm`` (N,) and image
-    angles ``angle_deg`` (N,), and the source table (header and rows) so that the output keeps every
+    """Image points to map in production: ``uv_px`` (N, 2), optional heights ``z_mm`` (N,), image
+    angles ``angle_deg`` (N,) and circular parts' diameters ``part_diameter_mm`` (N,), and the source
+    table (header and rows) so that the output keeps every
     input column (written back with ``,`` and ``.``, whatever the input's dialect: ``notes`` says
     how it was read)."""
 
@@ -525,6 +526,7 @@ class ImagePoints:
     rows: tuple[tuple[str, ...], ...]
     angle_deg: np.ndarray | None = None
     notes: tuple[str, ...] = ()
+    part_diameter_mm: np.ndarray | None = None
 
     def with_columns(self, columns: dict[str, np.ndarray]) -> str:
         """CSV text: the input table with ``columns`` appended (names never already in the input)."""
@@ -545,7 +547,8 @@ def _cell(v) -> str:
 
 
 def load_image_points(path: str | os.PathLike) -> ImagePoints:
-    """Read a CSV with columns ``u,v`` (and optionally ``z``, mm, and ``angle``, deg) to map."""
+    """Read a CSV with columns ``u,v`` (and optionally ``z``, mm, ``angle``, deg, and
+    ``part_diameter_mm``) to map."""
     path = Path(path)
     return image_points_from_text(read_pairs_text(path), str(path))
 
@@ -562,7 +565,9 @@ def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
     missing = [c for c in ("u", "v") if c not in lower]
     if missing:
         raise InputError(
-            f"missing column(s) {', '.join(missing)}; expected u,v[,z][,angle]", source=name, line=first + 1
+            f"missing column(s) {', '.join(missing)}; expected u,v[,z][,angle][,part_diameter_mm]",
+            source=name,
+            line=first + 1,
         )
     clash = [h for h in header if h.lower() in OUTPUT_COLUMNS and h.lower() != "z"]
     if clash:
@@ -574,7 +579,8 @@ def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
     ju, jv = lower.index("u"), lower.index("v")
     jz = lower.index("z") if "z" in lower else None
     ja = lower.index("angle") if "angle" in lower else None
-    uv, z, ang, body = [], [], [], []
+    jd = lower.index("part_diameter_mm") if "part_diameter_mm" in lower else None
+    uv, z, ang, dia, body = [], [], [], [], []
     for k, row in enumerate(rows[first + 1 :], start=first + 2):
         if not row or all(not c.strip() for c in row):
             continue
@@ -586,6 +592,8 @@ def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
             z.append(record_number(row[jz], where, "z"))
         if ja is not None:
             ang.append(record_number(row[ja], where, "angle"))
+        if jd is not None:
+            dia.append(record_number(row[jd], where, "part_diameter_mm"))
         body.append(tuple(row))
     if not uv:
         raise InputError(f"{name}: header only, no data rows")
@@ -596,4 +604,5 @@ def image_points_from_text(text: str, name: str = "<stdin>") -> ImagePoints:
         tuple(body),
         np.array(ang, float) if ja is not None else None,
         () if table.note is None else (table.note,),
+        np.array(dia, float) if jd is not None else None,
     )

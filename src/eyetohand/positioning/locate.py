@@ -13,7 +13,10 @@ What a LOCATE does, every interface alike:
    round feature is). The detector gets the range's middle in px (at the image centre's scale) as
    its size hint when the range spans less than its window (0.7–1.4×), else searches all sizes;
 4. each part's centre mapped by the SAME guarded call as the mapping line
-   (:func:`eyetohand.positioning.map_point`, ``Calibration.map`` with the uncertainty): a part outside
+   (:func:`eyetohand.positioning.map_point`, ``Calibration.map`` with the uncertainty) — by a
+   calibration of circle centres (fitted with a target diameter) with the part's size (mm) of step 3
+   as its ``part_diameter_mm``, so its detected (ellipse) centre is corrected for perspective as the
+   calibration's were (``calibration.points``); a part outside
    the calibrated region is **omitted and counted** (``outside``), never answered; any other refusal
    (a height off the calibration's plane, no calibration) refuses the whole LOCATE with the mapping
    line's words.
@@ -128,7 +131,7 @@ def locate_parts(
         return refused(Status.BAD_INPUT, "z: must be a finite number")
     ranged = dmin_mm is not None and dmax_mm is not None and dmax_mm > 0
     h, w = np.asarray(image).shape[:2]
-    probe = map_point(served, (w - 1) / 2, (h - 1) / 2, z_mm, allow_outside=True)
+    probe = map_point(served, (w - 1) / 2, (h - 1) / 2, z_mm, allow_outside=True, part_diameter_mm=0.0)
     if probe.status not in (Status.OK, Status.OUTSIDE):  # a height off the plane: every part's refusal
         return refused(probe.status, probe.reason)
     hint = None
@@ -143,20 +146,22 @@ def locate_parts(
         return refused(Status.INTERNAL, f"internal error: {exc!r}")
     parts: list[Part] = []
     outside = 0
+    cal = served.cal
+    circles = cal is not None and cal.image_points.circle_centres  # corrected by each part's own size
     for d in found:
         if d.u is None or d.v is None or d.diameter_px is None:
             continue
         scale = _scale_mm_per_px(served, d.u, d.v, d.diameter_px, z_mm)
         if ranged and (scale is None or not dmin_mm <= d.diameter_px * scale <= dmax_mm):  # type: ignore[operator]
             continue
-        res = map_point(served, d.u, d.v, z_mm)
+        size = math.nan if scale is None else d.diameter_px * scale
+        res = map_point(served, d.u, d.v, z_mm, part_diameter_mm=size if circles and scale else None)
         if res.status is Status.OUTSIDE:
             outside += 1
             continue
         if not res.ok:
             return refused(res.status, res.reason)
         sigma = NO_SIGMA if res.sigma_mm is None else res.sigma_mm
-        size = math.nan if scale is None else d.diameter_px * scale
         parts.append(Part((float(d.u), float(d.v)), float(d.diameter_px), size, res.xyz_mm, 0.0, sigma))
     return LocateResult(Status.OK, tuple(parts), outside, image_size=(int(w), int(h)))
 
@@ -166,8 +171,8 @@ def _scale_mm_per_px(served: Served, u: float, v: float, d_px: float, z_mm: floa
     region's guard off: a size, not a pose); None where the map gives no finite point."""
     lengths = []
     for du, dv in ((0.5 * d_px, 0.0), (0.0, 0.5 * d_px)):
-        a = map_point(served, u - du, v - dv, z_mm, allow_outside=True)
-        b = map_point(served, u + du, v + dv, z_mm, allow_outside=True)
+        a = map_point(served, u - du, v - dv, z_mm, allow_outside=True, part_diameter_mm=0.0)
+        b = map_point(served, u + du, v + dv, z_mm, allow_outside=True, part_diameter_mm=0.0)
         if not (a.ok and b.ok):
             return None
         lengths.append(math.dist(a.xyz_mm, b.xyz_mm))

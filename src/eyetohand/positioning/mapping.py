@@ -66,8 +66,10 @@ def map_point(
     angle_deg: float | None = None,
     *,
     allow_outside: bool = False,
+    part_diameter_mm: float | None = None,
 ) -> PointResult:
-    """Map one image point (and image angle) with the calibration ``source`` serves now.
+    """Map one image point (and image angle) with the calibration ``source`` serves now;
+    ``part_diameter_mm``: ``Calibration.map``'s (a circular part's detected centre corrected).
 
     Never raises: every refusal is a :class:`PointResult` with its :class:`Status` and the library's
     reason."""
@@ -87,6 +89,7 @@ def map_point(
                 angle_deg=angle_deg,
                 allow_outside=allow_outside,
                 with_sigma=True,
+                part_diameter_mm=part_diameter_mm,
             )
     except InputError as exc:
         reason = exc.reason if exc.index is not None else str(exc)

@@ -157,7 +157,7 @@ class ModbusService:
         return None
 
     def respond(self, block: list[int], registers: list[int], start_address: int = 0) -> bool:
-        """Map the request ``block`` (registers 0..9) into ``registers`` unless its id was answered
+        """Map the request ``block`` (registers 0..11) into ``registers`` unless its id was answered
         last; True when it was mapped. The id goes in last."""
         req_id = block[R.REQUEST_ID] & 0xFFFF
         if req_id in (self.last_id, self.locating):
@@ -169,7 +169,7 @@ class ModbusService:
         self.locating = None
         if flags & ~R.FLAGS_KNOWN:
             res = PointResult(Status.BAD_INPUT, reason=R.RESERVED_FLAGS)
-        elif flags & R.FLAG_LOCATE and flags & (R.FLAG_ANGLE | R.FLAG_ALLOW):
+        elif flags & R.FLAG_LOCATE and flags & R.LOCATE_REFUSED:
             res = PointResult(Status.BAD_INPUT, reason=R.LOCATE_FLAGS)
         elif flags & R.FLAG_LOCATE:
             self.locating = req_id
@@ -180,7 +180,15 @@ class ModbusService:
             task.add_done_callback(self._tasks.discard)
             return True
         else:
-            res = map_point(src, req.u_px, req.v_px, req.z_mm, req.angle_deg, allow_outside=req.allow_outside)
+            res = map_point(
+                src,
+                req.u_px,
+                req.v_px,
+                req.z_mm,
+                req.angle_deg,
+                allow_outside=req.allow_outside,
+                part_diameter_mm=req.part_diameter_mm,
+            )
         self._write(req_id, res, None, registers, start_address)
         return True
 

@@ -13,6 +13,9 @@ object ``Calibration`` with
   calibrated region or heights, ``BadInvalidArgument`` for bad input, ``BadInvalidState`` with no
   calibration, ``BadInternalError`` otherwise — with the library's reason, the words the TCP line
   service sends after ``ERR``, as ``AdditionalInfo`` of every ``InputArgumentDiagnosticInfos`` entry;
+- the method ``ImageToRobotPart(u_px, v_px, z_mm, part_diameter_mm)``: ImageToRobot for a detected
+  circular part of that diameter (``Calibration.map``'s ``part_diameter_mm``: its centre corrected
+  for a calibration of circle centres; 0: the pixel is the point's own image);
 - the method ``Locate(dmin_mm, dmax_mm, z_mm) → (count, x_mm[], y_mm[], z_mm[], rz_deg[], sigma_mm[],
   outside)``: grab, find the round parts of diameter dmin..dmax mm (both NaN or 0: any size) at height
   ``z_mm`` (NaN: the calibration's own) and map them (:class:`eyetohand.positioning.locate.Locator`); count
@@ -49,6 +52,10 @@ INPUTS = (
     ("u_px", "image column (px)"),
     ("v_px", "image row (px)"),
     ("z_mm", "object height (mm); NaN: none"),
+)
+PART_INPUTS = (
+    *INPUTS,
+    ("part_diameter_mm", "the circular part's diameter (mm): its detected centre corrected; 0: a point"),
 )
 OUTPUTS = (("x_mm", "robot x"), ("y_mm", "robot y"), ("z_mm", "robot z"), ("sigma_mm", "predicted error"))
 LOCATE_INPUTS = (
@@ -189,6 +196,9 @@ class OpcUaService:
             idx, "ImageToRobot", self._image_to_robot, _arguments(INPUTS), _arguments(OUTPUTS)
         )
         await obj.add_method(
+            idx, "ImageToRobotPart", self._image_to_robot_part, _arguments(PART_INPUTS), _arguments(OUTPUTS)
+        )
+        await obj.add_method(
             idx, "Locate", self._locate, _arguments(LOCATE_INPUTS), _arguments(LOCATE_OUTPUTS)
         )
         self.server = server
@@ -231,17 +241,29 @@ class OpcUaService:
                 logging.getLogger(__name__).exception("OPC UA: refreshing the variables failed")
 
     async def _image_to_robot(self, parent, *args):
+        return self._mapped(args, INPUTS)
+
+    async def _image_to_robot_part(self, parent, *args):
+        return self._mapped(args, PART_INPUTS)
+
+    def _mapped(self, args, inputs):
         from asyncua import ua
 
         values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
-        if len(values) != 3 or not all(
+        if len(values) != len(inputs) or not all(
             isinstance(v, int | float) and not isinstance(v, bool) for v in values
         ):
-            return _refusal(Status.BAD_INPUT, "expected u_px, v_px, z_mm: three Double numbers", len(args))
-        u, v, z = (float(x) for x in values)
-        res = map_point(self.source(), u, v, None if math.isnan(z) else z)
+            names = ", ".join(name for name, _ in inputs)
+            return _refusal(
+                Status.BAD_INPUT,
+                f"expected {names}: {_COUNT[len(inputs)]} Double numbers",
+                len(args),
+            )
+        u, v, z = (float(x) for x in values[:3])
+        diameter = float(values[3]) if len(inputs) == 4 else None
+        res = map_point(self.source(), u, v, None if math.isnan(z) else z, part_diameter_mm=diameter)
         if not res.ok:
-            return _refusal(res.status, res.reason, 3)
+            return _refusal(res.status, res.reason, len(inputs))
         sigma = math.nan if res.sigma_mm is None else res.sigma_mm
         return [ua.Variant(float(x), ua.VariantType.Double) for x in (*res.xyz_mm, sigma)]
 
@@ -276,6 +298,9 @@ class OpcUaService:
             *(column(i) for i in range(5)),
             ua.Variant(int(res.outside), ua.VariantType.UInt32),
         ]
+
+
+_COUNT = {3: "three", 4: "four"}  # a method's inputs, as its refusal words them
 
 
 def _refusal(status: Status, reason: str, n_args: int):

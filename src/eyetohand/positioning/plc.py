@@ -93,7 +93,7 @@ class PlcServices:
             m = self.modbus
             who = "any local client" if m.allow_from is None else ", ".join(map(str, m.allow_from)) + " only"
             out.append(
-                f"Modbus: {m.host}:{m.port} maps requests (holding registers 0..9 -> 100..130, "
+                f"Modbus: {m.host}:{m.port} maps requests (holding registers 0..11 -> 100..130, "
                 f"{m.word_order} word order, {who}) with {what}"
             )
             if self.locate is not None:

@@ -6,8 +6,10 @@ S7 code expect) or low word first (``"little"``, as Rockwell's COP of a DINT int
 within a register the bytes are Modbus's own (big-endian), nothing to choose there.
 
 Request block (the PLC writes): 1–2 u (0.001 px), 3–4 v (0.001 px), 5–6 z (µm), 7–8 image angle
-(0.001 deg), 9 flags (bit 0 z given, bit 1 angle given, bit 2 allow outside), then **0 the request
-id** (uint16): writing an id other than the last one answered maps the request.
+(0.001 deg), 9 flags (bit 0 z given, bit 1 angle given, bit 2 allow outside, bit 4 part diameter
+given), 10–11 the circular part's diameter (µm: ``Calibration.map``'s ``part_diameter_mm``, with bit
+4), then **0 the request id** (uint16): writing an id other than the last one answered maps the
+request.
 Result block (the server writes): 101 status (:class:`~eyetohand.positioning.mapping.Status`), 102–103 x,
 104–105 y, 106–107 z (µm), 108–109 rz (0.001 deg), 110–111 σ (µm; -1: the calibration carries no
 uncertainty), 112 the calibration's version, 113–130 its name (ASCII, 2 characters a register,
@@ -29,16 +31,20 @@ from dataclasses import dataclass
 from eyetohand.positioning.mapping import PointResult, Status
 
 REQUEST_ID = 0
-U, V, Z, ANGLE, FLAGS = 1, 3, 5, 7, 9
-REQUEST_END = 10  # registers 0..9
+U, V, Z, ANGLE, FLAGS, DIAMETER = 1, 3, 5, 7, 9, 10
+REQUEST_END = 12  # registers 0..11
 RESULT_ID = 100
 STATUS, X, Y, ZZ, RZ, SIGMA, VERSION, NAME = 101, 102, 104, 106, 108, 110, 112, 113
 NAME_REGISTERS = 18  # 113..130: 36 characters
 RESULT_END = NAME + NAME_REGISTERS  # 131
-FLAG_Z, FLAG_ANGLE, FLAG_ALLOW, FLAG_LOCATE = 1, 2, 4, 8
-FLAGS_KNOWN = FLAG_Z | FLAG_ANGLE | FLAG_ALLOW | FLAG_LOCATE
-RESERVED_FLAGS = "flags: bits 4..15 are reserved and must be 0"  # status 3: a newer map's request?
-LOCATE_FLAGS = "flags: a LOCATE (bit 3) takes no angle (bit 1) and no allow outside (bit 2)"
+FLAG_Z, FLAG_ANGLE, FLAG_ALLOW, FLAG_LOCATE, FLAG_DIAMETER = 1, 2, 4, 8, 16
+FLAGS_KNOWN = FLAG_Z | FLAG_ANGLE | FLAG_ALLOW | FLAG_LOCATE | FLAG_DIAMETER
+RESERVED_FLAGS = "flags: bits 5..15 are reserved and must be 0"  # status 3: a newer map's request?
+LOCATE_FLAGS = (
+    "flags: a LOCATE (bit 3) takes no angle (bit 1), no allow outside (bit 2) and no part diameter "
+    "(bit 4: it measures each part's)"
+)
+LOCATE_REFUSED = FLAG_ANGLE | FLAG_ALLOW | FLAG_DIAMETER
 LOCATE_COUNT, LOCATE_OUTSIDE, PARTS = 200, 201, 202
 MAX_PARTS = 12  # 202..321: with the counts, 122 registers, within one read (125)
 PART_REGISTERS = 10  # x, y, z, rz, sigma: int32 each
@@ -79,7 +85,8 @@ def words_name(words) -> str:
 
 @dataclass(frozen=True)
 class Request:
-    """A decoded request block: pixels, and the height (mm) and angle (deg) when flagged as given."""
+    """A decoded request block: pixels, and the height (mm), angle (deg) and part diameter (mm) when
+    flagged as given."""
 
     request_id: int
     u_px: float
@@ -87,10 +94,11 @@ class Request:
     z_mm: float | None
     angle_deg: float | None
     allow_outside: bool
+    part_diameter_mm: float | None = None
 
 
 def decode_request(regs, word_order: str = "big") -> Request:
-    """Registers 0..9 (a sequence of 10 uint16) → :class:`Request`."""
+    """Registers 0..11 (a sequence of 12 uint16) → :class:`Request`."""
 
     def num(at: int) -> float:
         return words_int32(regs[at : at + 2], word_order) / SCALE
@@ -103,17 +111,21 @@ def decode_request(regs, word_order: str = "big") -> Request:
         num(Z) if flags & FLAG_Z else None,
         num(ANGLE) if flags & FLAG_ANGLE else None,
         bool(flags & FLAG_ALLOW),
+        num(DIAMETER) if flags & FLAG_DIAMETER else None,
     )
 
 
 def encode_request(req: Request, word_order: str = "big") -> list[int]:
-    """:class:`Request` → registers 0..9, as a PLC writes them (for tests and clients)."""
+    """:class:`Request` → registers 0..11, as a PLC writes them (for tests and clients)."""
     regs = [req.request_id & 0xFFFF]
     flags = 0
     for value, flag in ((req.u_px, 0), (req.v_px, 0), (req.z_mm, FLAG_Z), (req.angle_deg, FLAG_ANGLE)):
         regs += int32_words(round((value or 0.0) * SCALE), word_order)
         flags |= flag if value is not None else 0
-    return regs + [flags | (FLAG_ALLOW if req.allow_outside else 0)]
+    flags |= (FLAG_ALLOW if req.allow_outside else 0) | (
+        FLAG_DIAMETER if req.part_diameter_mm is not None else 0
+    )
+    return regs + [flags] + int32_words(round((req.part_diameter_mm or 0.0) * SCALE), word_order)
 
 
 def scaled(value: float | None, missing: int = 0) -> int:

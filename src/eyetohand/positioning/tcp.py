@@ -84,7 +84,7 @@ MISSING = {  # a command word of a service this server was not started with -> w
 }
 
 
-USAGE = "send u,v[,z][,a=ANGLE][,s=N][,t=DEG][,allow][,sigma] or VERSION"
+USAGE = "send u,v[,z][,a=ANGLE][,s=N][,t=DEG][,d=DIAMETER][,allow][,sigma] or VERSION"
 TOO_LONG = f"line longer than {MAX_LINE} bytes; closing"
 POLL_S = 0.25
 
@@ -128,10 +128,13 @@ def answer(cal: Calibration, line: bytes, replies: LineReplies = PLAIN_REPLIES) 
     ``u,v[,z]`` → ``x,y,z`` (mm). Optional words after the numbers, as ``apply`` and the HTTP API take
     them: ``a=ANGLE`` (the image angle, deg from +u towards +v) adds ``,rz``; ``s=N`` folds rz for a part
     symmetric under 360/N turns; ``t=DEG`` (the gripper's rz when aligned with the image's +u) makes rz
-    the gripper's command; ``sigma`` adds ``,sigma_mm``; ``allow`` maps a point outside the calibrated
-    region too, and such an answer ends with ``,OUTSIDE``. Numbers are plain decimals (``6_00`` is not
-    one, as in the library's loaders). Refusals: ``ERR <reason>`` (``ERR outside the calibrated region:
-    ...`` for a point beyond the margin).
+    the gripper's command; ``d=DIAMETER`` (the circular part's diameter, in the line's length unit as z)
+    corrects its detected centre for a calibration of circle centres (``Calibration.map``'s
+    ``part_diameter_mm``; 0: the pixel is the point's own image); ``sigma`` adds ``,sigma_mm``;
+    ``allow`` maps a point outside the calibrated region too, and such an answer ends with
+    ``,OUTSIDE``. Numbers are plain decimals (``6_00`` is not one, as in the library's loaders).
+    Refusals: ``ERR <reason>`` (``ERR outside the calibrated region: ...`` for a point beyond the
+    margin).
     """
     parts_b = line.split(b",")
     if 2 <= len(parts_b) <= 3 and b"_" not in line:  # the common line, numbers only: as the general path
@@ -179,7 +182,7 @@ def answer(cal: Calibration, line: bytes, replies: LineReplies = PLAIN_REPLIES) 
     return _mapped_line(cal, vals, opts, replies)
 
 
-_WORDS = {"a": "angle_deg", "s": "symmetry", "t": "tool_rz_offset_deg"}
+_WORDS = {"a": "angle_deg", "s": "symmetry", "t": "tool_rz_offset_deg", "d": "part_diameter_mm"}
 
 
 def _usage(what: str) -> Refusal:
@@ -211,6 +214,7 @@ def _mapped_line(cal: Calibration, vals: list[float], opts: dict, replies: LineR
                 symmetry=symmetry,
                 tool_rz_offset_deg=opts.get("tool_rz_offset_deg"),
                 with_sigma=want_sigma,
+                part_diameter_mm=replies.z_in(opts.get("part_diameter_mm")),  # the line's length unit
             )
     except InputError as exc:
         return replies.refused(exc)

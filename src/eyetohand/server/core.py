@@ -217,15 +217,24 @@ def map_points(
     tool_rz_offset_deg=None,
     allow_outside: bool = False,
     sigma: bool = True,
+    part_diameter_mm: float | list[float] | None = None,
 ):
     """(N, 2) px → the calibration's guarded :class:`~eyetohand.calibration.file.Mapped`, with the
-    request's ``z`` (None, a number, or one per point) and ``angles`` (one per point)."""
+    request's ``z`` (None, a number, or one per point), ``angles`` (one per point) and the part's
+    diameter (``Calibration.map``'s ``part_diameter_mm``)."""
     if isinstance(z, list):
         if len(z) != len(points):
             raise ApiError(
                 422, f"z: {len(z)} heights for {len(points)} points; give one, or one per point", "z"
             )
         z = np.asarray(z, float)
+    if isinstance(part_diameter_mm, list) and len(part_diameter_mm) != len(points):
+        raise ApiError(
+            422,
+            f"part_diameter_mm: {len(part_diameter_mm)} diameters for {len(points)} points; "
+            "give one, or one per point",
+            "part_diameter_mm",
+        )
     if angles is not None and len(angles) != len(points):
         raise ApiError(
             422, f"angles: {len(angles)} angles for {len(points)} points; give one per point", "angles"
@@ -240,6 +249,7 @@ def map_points(
                 tool_rz_offset_deg=tool_rz_offset_deg,
                 allow_outside=allow_outside,
                 with_sigma=sigma,
+                part_diameter_mm=part_diameter_mm,
             )
     except InputError as exc:
         raise ApiError(422, str(exc), exc.field_path or "z") from None

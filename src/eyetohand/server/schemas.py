@@ -16,7 +16,13 @@ from pydantic import (
 )
 from pydantic import Strict as StrictType
 
-from eyetohand.calibration import MAX_IMAGE_SIDE_PX, check_image_size, check_target_diameter, resolve_model
+from eyetohand.calibration import (
+    MAX_IMAGE_SIDE_PX,
+    check_image_size,
+    check_part_diameter,
+    check_target_diameter,
+    resolve_model,
+)
 from eyetohand.core import MAX_PAIRS, InputError, pair_count_refusal
 from eyetohand.geometry import check_symmetry
 from eyetohand.models import MODEL_CHOICES
@@ -147,6 +153,12 @@ TargetDiameter = Annotated[
     StrictType(),
     _library_rule(check_target_diameter),
     WithJsonSchema({"type": "number", "exclusiveMinimum": 0}),
+]
+PartDiameter = Annotated[
+    float,
+    StrictType(),
+    _library_rule(check_part_diameter),
+    WithJsonSchema({"type": "number", "minimum": 0}),
 ]
 Seed = Annotated[
     int,
@@ -289,6 +301,14 @@ class MapRequest(Strict):
         False, description="map points outside the calibrated region too (flagged inside=false)"
     )
     sigma: StrictBool = Field(True, description="compute each point's predicted error sigma_mm")
+    part_diameter_mm: PartDiameter | list[PartDiameter] | None = Field(
+        None,
+        description="the circular part's diameter (mm, whatever units says; one, or one per point): its "
+        "detected centres are "
+        "corrected for perspective as the calibration's circle centres were (0: the points are the "
+        "points' own images); a circle-centre calibration refuses detections without it where the bias "
+        "exceeds their predicted error",
+    )
     # checked by the route with every interface's words (eyetohand.core.output_units): any JSON value
     units: Any = Field(
         None,

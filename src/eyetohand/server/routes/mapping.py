@@ -218,12 +218,16 @@ def _map(cal: Calibration, req: MapRequest, pts: np.ndarray) -> Mapped:
             tool_rz_offset_deg=req.tool_rz_offset_deg,
             allow_outside=req.allow_outside,
             sigma=req.sigma,
+            part_diameter_mm=req.part_diameter_mm[sl]
+            if isinstance(req.part_diameter_mm, list)
+            else req.part_diameter_mm,
         )
 
     n = len(pts)
     if (
         n <= CHUNK_POINTS
         or (isinstance(req.z, list) and len(req.z) != n)
+        or (isinstance(req.part_diameter_mm, list) and len(req.part_diameter_mm) != n)
         or (req.angles is not None and len(req.angles) != n)
     ):
         return one(slice(None))
