@@ -1193,7 +1193,7 @@ def test_fast_points_parse_answers_as_the_schema_does():
     """Every body gets the points, options, status, message and field that MapRequest gives."""
     from pydantic import ValidationError
 
-    from eyetohand.server.core import ApiError
+    from eyetohand.server.errors import ApiError
     from eyetohand.server.responses import api_error_of_validation
     from eyetohand.server.routes import DuplicateKey, mapping, strict_json
     from eyetohand.server.schemas import MapRequest
@@ -1249,7 +1249,7 @@ def test_large_mapping_is_chunked_and_streamed_identically(client, monkeypatch):
     r = client.post("/api/calibrations/1/image-to-robot", content=orjson.dumps(body), headers=JSON_CT)
     assert r.status_code == 200
     req, pts = mapping.parse_map_body(orjson.dumps(body))
-    m = mapping.core.map_points(
+    m = mapping.map_points(
         cal,
         pts,
         req.z,

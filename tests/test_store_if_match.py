@@ -8,7 +8,7 @@ import pytest
 from fastapi import HTTPException
 
 from eyetohand.server import open_store
-from eyetohand.server.core import ApiError
+from eyetohand.server.errors import ApiError
 from eyetohand.server.routes import if_match_header
 from eyetohand.server.storage import Conflict, WeakTag
 

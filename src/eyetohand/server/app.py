@@ -21,7 +21,7 @@ from fastapi import FastAPI
 
 from eyetohand._version import __version__
 from eyetohand.core import AuthBackoff, TokenTable
-from eyetohand.server.core import Jobs
+from eyetohand.server.jobs import Jobs
 from eyetohand.server.middleware import BodyLimit, DatabaseGuard, HostGuard, SameOrigin, TokenGuard
 from eyetohand.server.plant import CellBeat, beat
 from eyetohand.server.responses import install_handlers

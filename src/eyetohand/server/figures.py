@@ -16,7 +16,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from typing import Any
 
-from eyetohand.server.core import ApiError
+from eyetohand.server.errors import ApiError
 
 RENDER_LOCK = threading.Lock()
 """One matplotlib render at a time (figures are separate, matplotlib's caches are shared)."""

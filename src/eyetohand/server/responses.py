@@ -12,7 +12,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from eyetohand.core import InputError
-from eyetohand.server.core import ApiError, input_error
+from eyetohand.server.errors import ApiError, input_error
 from eyetohand.server.storage import Ambiguous, Conflict, NameTaken, NotFound, StorageError
 
 

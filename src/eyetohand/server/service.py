@@ -16,12 +16,14 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from eyetohand.calibration import Calibration
-from eyetohand.core import PointPairs, TokenTable
-from eyetohand.server import core
-from eyetohand.server.core import ApiError, Fitted, Job, JobKind, Jobs
+from eyetohand.core import PointPairs, TokenTable, pairs_from_records
+from eyetohand.server.errors import ApiError
+from eyetohand.server.fitting import Fitted, fit
+from eyetohand.server.jobs import Job, JobKind, Jobs, finish_fit, fit_progress
 from eyetohand.server.schemas import FitOptions, ImagesCalibrate
 from eyetohand.server.signatures import SigningPolicy
 from eyetohand.server.storage import Record, Store, Version, require_match
+from eyetohand.server.summaries import summarize
 
 if TYPE_CHECKING:
     from eyetohand.server.follow import Follower
@@ -208,7 +210,7 @@ class Service:
         elif version is None:
             version = rec.current_version
         ver, cal = self.calibration(cal_id, version)
-        pairs = core.pairs_from_records(ver.pairs, source="pairs")  # every version has its pairs
+        pairs = pairs_from_records(ver.pairs, source="pairs")  # every version has its pairs
         check = _pairs_of(ver.check, "check")
         excluded = ver.request.get("exclude") or []
         d = {
@@ -221,7 +223,7 @@ class Service:
             "updated_utc": rec.updated_utc,
             "note": ver.note,
             "request": ver.request,
-            "summary": core.summarize(cal, pairs, check, excluded),
+            "summary": summarize(cal, pairs, check, excluded),
             **self._signature_view(ver),
         }
         if detail:
@@ -541,7 +543,7 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
         image_size=req.image_size,
         target_diameter_mm=req.target_diameter_mm,
     )
-    fitted = core.fit(fit_opts, core.fit_progress(job, req.model, req.optimizer, req.iterations))
+    fitted = fit(fit_opts, fit_progress(job, req.model, req.optimizer, req.iterations))
     fitted.request.update(
         source="images",
         poses=req.poses.name,
@@ -549,7 +551,7 @@ def _images_work(job: Job, req: ImagesCalibrate, poses_bytes: bytes, files: dict
         diameter_px=req.diameter_px,
         left_out=list(run["left_out"]),
     )
-    core.finish_fit(job, fitted, req.optimizer)
+    finish_fit(job, fitted, req.optimizer)
 
 
 def _file_field(exc) -> str:
@@ -562,7 +564,7 @@ def _file_field(exc) -> str:
 
 
 def _pairs_of(records: list[dict] | None, label: str) -> PointPairs | None:
-    return None if records is None else core.pairs_from_records(records, source=label)
+    return None if records is None else pairs_from_records(records, source=label)
 
 
 def _records(p: PointPairs | None) -> list[dict] | None:

@@ -10,7 +10,7 @@ from fastapi import Path as PathParam
 from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException
 
-from eyetohand.server.core import ApiError
+from eyetohand.server.errors import ApiError
 from eyetohand.server.service import Service
 from eyetohand.server.storage import weak_tag_refusal
 

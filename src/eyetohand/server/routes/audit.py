@@ -8,7 +8,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from eyetohand.server.core import ApiError
+from eyetohand.server.errors import ApiError
 from eyetohand.server.routes import StrictJsonRoute, Svc
 from eyetohand.server.stores import QueryError, audit_query
 

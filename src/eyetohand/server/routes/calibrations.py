@@ -11,8 +11,9 @@ from fastapi import APIRouter, Query, Request, Response
 from eyetohand.calibration import evaluate_pairs
 from eyetohand.core import InputError
 from eyetohand.reports import load_history
-from eyetohand.server import core, figures
-from eyetohand.server.core import ApiError
+from eyetohand.server import figures
+from eyetohand.server.errors import ApiError, input_error
+from eyetohand.server.fitting import to_pairs
 from eyetohand.server.routes import CalId, IfMatch, StrictJsonRoute, Svc, VersionQ
 from eyetohand.server.schemas import (
     CalibrationBrief,
@@ -163,11 +164,9 @@ def evaluate_calibration(cal_id: CalId, req: EvaluateRequest, svc: Svc, version:
     unless ``allow_outside``; a mixed-up convention named in ``warnings``."""
     _, cal = svc.calibration(cal_id, version)
     try:
-        return evaluate_pairs(
-            cal, core.to_pairs(req.pairs, "pairs"), allow_outside=req.allow_outside
-        ).to_dict()
+        return evaluate_pairs(cal, to_pairs(req.pairs, "pairs"), allow_outside=req.allow_outside).to_dict()
     except InputError as exc:
-        raise core.input_error(exc, "pairs") from None
+        raise input_error(exc, "pairs") from None
 
 
 @router.post("/api/calibrations/{cal_id}/verify")
@@ -175,7 +174,7 @@ def verify_calibration(cal_id: CalId, req: VerifyRequest, svc: Svc, version: Ver
     """Freshly measured pairs against the stored calibration: per-point errors, the camera's estimated
     motion since calibration and whether it is significant, pass/fail against ``tolerance_mm``; the
     result joins the calibration's history."""
-    return svc.verify(cal_id, core.to_pairs(req.pairs, "pairs"), req.tolerance_mm, version)
+    return svc.verify(cal_id, to_pairs(req.pairs, "pairs"), req.tolerance_mm, version)
 
 
 @router.get("/api/calibrations/{cal_id}/history")
@@ -260,5 +259,5 @@ def drift(cal_id: CalId, svc: Svc, request: Request, width: FigWidth = 800, limi
     try:
         png = figures.drift_png(entries, versions, width, limit_mm)
     except InputError as exc:
-        raise core.input_error(exc, "history") from None
+        raise input_error(exc, "history") from None
     return _png_response(png, {"X-Checks": str(len(entries))})

@@ -22,7 +22,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 
-from eyetohand.server.core import ApiError
+from eyetohand.server.errors import ApiError
 from eyetohand.server.routes import StrictJsonRoute
 from eyetohand.server.routes.page import STATIC_DIR
 

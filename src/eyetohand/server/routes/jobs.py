@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Response
 
-from eyetohand.server import core
+from eyetohand.server.fitting import to_pairs
 from eyetohand.server.routes import IfMatch, JobId, StrictJsonRoute, Svc
 from eyetohand.server.schemas import CalibrationOut, CompareRequest, FitOptions, JobCreated, JobOut, SaveJob
 
@@ -23,8 +23,8 @@ def start_fit(req: FitOptions, svc: Svc):
 @router.post("/api/jobs/compare", response_model=JobCreated, status_code=202)
 def start_compare(req: CompareRequest, svc: Svc):
     """Fit every model with every solver on the pairs and score each on the check pairs."""
-    pairs = core.to_pairs(req.pairs, "pairs")
-    check = core.to_pairs(req.check, "check")
+    pairs = to_pairs(req.pairs, "pairs")
+    check = to_pairs(req.check, "check")
     job = svc.jobs.compare_job(pairs, check, req.seed)
     return {"id": job.id, "kind": job.kind, "status": job.status}
 

@@ -26,12 +26,12 @@ from starlette.concurrency import run_in_threadpool
 
 from eyetohand.calibration import Calibration, Mapped
 from eyetohand.core import InputError, OutputUnits, output_units
-from eyetohand.server import core
-from eyetohand.server.core import ApiError
+from eyetohand.server.errors import ApiError
 from eyetohand.server.responses import api_error_of_validation
 from eyetohand.server.routes import CalId, DuplicateKey, JobId, StrictJsonRoute, VersionQ, strict_json
 from eyetohand.server.schemas import MAX_POINTS, MapRequest, MapResponse
 from eyetohand.server.signatures import job_waits_for_signature
+from eyetohand.server.summaries import map_points
 
 INLINE_BYTES = 64 * 1024
 INLINE_POINTS = 2000
@@ -199,7 +199,7 @@ def request_units(req: MapRequest) -> OutputUnits:
 
 
 def _map(cal: Calibration, req: MapRequest, pts: np.ndarray) -> Mapped:
-    """``core.map_points`` over the request; a large one in chunks written into the output arrays
+    """``map_points`` over the request; a large one in chunks written into the output arrays
     (each point's answer is its own: the same numbers). A refusal is re-done on the whole array, so
     it names the same point, with the same words, as one call would. Heights are given in the request's
     units (mm for the library: :meth:`OutputUnits.in_length`); the answer is in mm."""
@@ -209,7 +209,7 @@ def _map(cal: Calibration, req: MapRequest, pts: np.ndarray) -> Mapped:
         z = [units.in_length(v) for v in z] if isinstance(z, list) else units.in_length(z)
 
     def one(sl: slice) -> Mapped:
-        return core.map_points(
+        return map_points(
             cal,
             pts[sl],
             z[sl] if isinstance(z, list) else z,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from eyetohand.server import core
+from eyetohand.server.fitting import parse_text
 from eyetohand.server.routes import StrictJsonRoute
 from eyetohand.server.schemas import ParseRequest, ParseResponse
 
@@ -14,7 +14,7 @@ router = APIRouter(tags=["pairs"], route_class=StrictJsonRoute)
 @router.post("/api/pairs/parse", response_model=ParseResponse)
 def parse_pairs(req: ParseRequest):
     """Read CSV or JSON text of point pairs with the rules of `eyetohand calibrate`."""
-    p = core.parse_text(req.text, req.source, req.max_pairs)
+    p = parse_text(req.text, req.source, req.max_pairs)
     return {
         "source": p.source,
         "n": len(p),

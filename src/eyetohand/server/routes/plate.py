@@ -33,9 +33,10 @@ from eyetohand.calibration import (
 )
 from eyetohand.core import InputError, PointPairs
 from eyetohand.models import get_model
-from eyetohand.server.core import ApiError, summarize
+from eyetohand.server.errors import ApiError
 from eyetohand.server.routes import StrictJsonRoute, Svc
 from eyetohand.server.schemas import Finite, PairIn, Strict, UploadedFile
+from eyetohand.server.summaries import summarize
 from eyetohand.vision import PlateDetection, PlateNotFound, PlateSpec, annotate_plate, detect_plate
 
 router = APIRouter(tags=["plate"], route_class=StrictJsonRoute)

@@ -8,7 +8,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Path, Response
 
 from eyetohand.core import Role, current_actor
-from eyetohand.server.core import ApiError
+from eyetohand.server.errors import ApiError
 from eyetohand.server.routes import CalId, StrictJsonRoute, Svc
 from eyetohand.server.schemas import CalibrationOut
 
