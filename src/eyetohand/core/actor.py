@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import contextvars
 import enum
-import hmac
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -128,6 +127,8 @@ class TokenTable:
         """The holder of token ``given``, or None. Every token is compared, with no early exit, so
         the time taken does not tell which one came close."""
         raw = given.encode() if isinstance(given, str) else given
+        import hmac  # on first use: `eyetohand apply` loads no OpenSSL hashes (tests/test_startup_path.py)
+
         found = [actor for actor, t in self.entries if hmac.compare_digest(raw, t)]
         return found[0] if found else None
 
