@@ -19,27 +19,60 @@ from eyetohand.calibration.fields import CHANGED
 from eyetohand.calibration.touches import TOLERANCE_MM, Placement, Touch, place, snap
 from eyetohand.core import InputError, PointPairs
 from eyetohand.solve import placement_variance_mm2, rigid_jacobian
-from eyetohand.vision import PlateSpec
+from eyetohand.vision import PlateSpec, grid_spacing_px
 
 PROOF_TOL_MM = 1e-9
 
 
 @dataclass(frozen=True)
 class PlateImage:
-    """One image of the plate: its name, size (w, h) px, the points detected (N, 2) px."""
+    """One image of the plate: its name, size (w, h) px, the points detected (N, 2) px in the spec's
+    order — NaN for a point not seen (a ChArUco board seen in part)."""
 
     name: str
     image_size: tuple[int, int]
     uv_px: np.ndarray
 
+    @property
+    def seen(self) -> np.ndarray:
+        """(N,) bool: the points detected."""
+        return np.isfinite(self.uv_px).all(axis=1)
+
     def spacing_px(self, spec: PlateSpec) -> float:
-        g = self.uv_px.reshape(spec.rows, spec.cols, 2)
-        return float(
-            min(
-                np.linalg.norm(np.diff(g, axis=1), axis=-1).min(),
-                np.linalg.norm(np.diff(g, axis=0), axis=-1).min(),
-            )
-        )
+        return grid_spacing_px(spec, self.uv_px)
+
+    def to_dict(self, spec: PlateSpec) -> dict:
+        """The file's entry: name, size, the points seen; their ids only when not every point was."""
+        seen = self.seen
+        out = {"name": self.name, "image_size": list(self.image_size), "uv_px": self.uv_px[seen].tolist()}
+        if not seen.all():
+            ids = spec.ids()
+            out["ids"] = [ids[i] for i in np.flatnonzero(seen)]
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict, spec: PlateSpec, k: int) -> PlateImage:
+        """An entry of the file (``k``: its place, for the messages); ids, when given, name distinct
+        points of the plate in its numbering order, one per point."""
+        uv = np.asarray(d["uv_px"], float)
+        where = f"field 'plate.images[{k}]"
+        if "ids" in d:
+            ids = d["ids"]
+            if not isinstance(ids, list) or not all(isinstance(i, str) for i in ids):
+                raise InputError(f"{where}.ids' must be a list of point names (r{{row}}c{{col}})")
+            try:
+                idx = [spec.index_of(i) for i in ids]
+            except InputError as exc:
+                raise InputError(f"{where}.ids': {exc}") from None
+            if any(b <= a for a, b in zip(idx, idx[1:], strict=False)):
+                raise InputError(f"{where}.ids' must name distinct points in the plate's order (row by row)")
+        else:
+            idx = list(range(spec.n_points))
+        if uv.shape != (len(idx), 2) or not np.isfinite(uv).all():
+            raise InputError(f"{where}.uv_px' must be {len(idx)} points (u, v), one per id")
+        full = np.full((spec.n_points, 2), np.nan)
+        full[idx] = uv
+        return cls(str(d["name"]), (int(d["image_size"][0]), int(d["image_size"][1])), full)
 
 
 @dataclass(frozen=True)
@@ -76,13 +109,14 @@ class PlateRecord:
     def pairs(self, source: str = "plate corners") -> PointPairs:
         """The training pairs: every detected point with its plate point placed in the robot frame."""
         pts = self.spec.points_mm()
-        ids = self.spec.ids()
+        ids = np.array(self.spec.ids())
         one = len(self.images) == 1
         uv, xyz, names = [], [], []
         for img, pl in zip(self.images, self.placements, strict=True):
-            uv.append(img.uv_px)
-            xyz.append(pl.fit.apply(pts))
-            names += ids if one else [f"{pl.image + 1}:{i}" for i in ids]
+            seen = img.seen  # a ChArUco board seen in part: its corners seen
+            uv.append(img.uv_px[seen])
+            xyz.append(pl.fit.apply(pts[seen]))
+            names += list(ids[seen]) if one else [f"{pl.image + 1}:{i}" for i in ids[seen]]
         return PointPairs(np.vstack(uv), np.vstack(xyz), tuple(names), source=source)
 
     def placement_variance_mm2(self, xyz_mm: np.ndarray, n_coords: int) -> np.ndarray:
@@ -113,10 +147,7 @@ class PlateRecord:
     def to_dict(self) -> dict:
         return {
             "spec": self.spec.text,
-            "images": [
-                {"name": i.name, "image_size": list(i.image_size), "uv_px": i.uv_px.tolist()}
-                for i in self.images
-            ],
+            "images": [i.to_dict(self.spec) for i in self.images],
             "touches": [t.to_dict() for t in self.touches],
             "tolerance_mm": self.tolerance_mm,
             "touch_noise_mm": self.touch_noise_mm,
@@ -142,17 +173,7 @@ class PlateRecord:
             raise InputError("field 'plate' must be an object")
         try:
             spec = PlateSpec.parse(d["spec"])
-            images = [
-                PlateImage(
-                    str(i["name"]),
-                    (int(i["image_size"][0]), int(i["image_size"][1])),
-                    np.asarray(i["uv_px"], float),
-                )
-                for i in d["images"]
-            ]
-            for k, img in enumerate(images):
-                if img.uv_px.shape != (spec.n_points, 2):
-                    raise InputError(f"field 'plate.images[{k}].uv_px' must be {spec.n_points} points (u, v)")
+            images = [PlateImage.from_dict(i, spec, k) for k, i in enumerate(d["images"])]
             touches = [Touch.from_dict(t) for t in d["touches"]]
             noise = d["touch_noise_mm"]
             again = cls.build(
@@ -164,7 +185,7 @@ class PlateRecord:
             raise InputError(f"field 'plate' is malformed ({type(exc).__name__}: {exc})") from None
         want = again.to_dict()
         _same(want, d, "plate")
-        if fitted is None or len(fitted) != sum(len(i.uv_px) for i in images):
+        if fitted is None or len(fitted) != sum(int(i.seen.sum()) for i in images):
             raise InputError(f"field 'plate' does not rebuild the training pairs: {CHANGED}")
         pairs = again.pairs()
         if not (
