@@ -259,14 +259,11 @@ def simulate_plate(
         pts.max(axis=0) - pts.min(axis=0)
     )
     q[:, 2] = 0.0
-    if in_part:  # the check points seen: in the corners' seen area, clear of the cover
-        sp = pts[seen, :2]
-        q = q[
-            visible(q[:, :2])
-            & (q[:, :2] >= sp.min(axis=0)).all(axis=1)
-            & (q[:, :2] <= sp.max(axis=0)).all(axis=1)
-        ]
-        q = q[:n_check]
+    if in_part:  # the check points among the corners seen: in a square whose 4 corners are in view
+        cx = np.clip(np.floor(q[:, 0] / spec.pitch_mm), 0, spec.cols - 2).astype(int)
+        cy = np.clip(np.floor(q[:, 1] / spec.pitch_mm), 0, spec.rows - 2).astype(int)
+        k = cy * spec.cols + cx
+        q = q[seen[k] & seen[k + 1] & seen[k + spec.cols] & seen[k + spec.cols + 1]][:n_check]
     cw = pl.to_robot(q)
     cuv = cam.robot_to_image(cw)
     check = ["u,v,x,y,z,id"] + [
