@@ -254,7 +254,7 @@ def calibrate_detected(
             f"rigid-fit RMS {pl.fit.rms_mm:.3f} mm, touch noise {pl.noise_mm:.3f} mm "
             + ("given" if touch_noise_mm is not None else "from the residuals")
         )
-    return replace(cal, plate=record, notes=cal.notes + tuple(notes))
+    return replace(cal, plate=record.fitted(cal.model), notes=cal.notes + tuple(notes))
 
 
 __all__ = ["calibrate_detected", "calibrate_plate", "touches_again"]
