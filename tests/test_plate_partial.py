@@ -178,3 +178,20 @@ def test_record_built_from_detected_ids_and_reused_after_a_bump(partial):
     lost[c0] = np.nan
     with pytest.raises(InputError, match=f"corner {det.spec.ids()[c0]} is not seen in the new image"):
         touches_again(cal, det.spec, [PlateImage("plate.png", det.image_size, lost)])
+
+
+def test_a_whole_board_writes_no_ids():
+    """Every earlier plate file (a whole board) keeps its fields: ids only for a board seen in part."""
+    spec = PlateSpec.parse(SPEC)
+    uv = np.arange(108, dtype=float).reshape(54, 2)
+    whole = PlateImage("p.png", (2448, 2048), uv)
+    assert "ids" not in whole.to_dict(spec)
+    assert np.array_equal(PlateImage.from_dict(whole.to_dict(spec), spec, 0).uv_px, uv)
+    part = uv.copy()
+    part[[3, 7]] = np.nan
+    d = PlateImage("p.png", (2448, 2048), part).to_dict(spec)
+    assert len(d["uv_px"]) == 52 and "r0c3" not in d["ids"] and d["ids"][:3] == ["r0c0", "r0c1", "r0c2"]
+    back = PlateImage.from_dict(d, spec, 0).uv_px
+    assert np.array_equal(np.isnan(back), np.isnan(part)) and np.array_equal(
+        back[~np.isnan(back)], part[~np.isnan(part)]
+    )
