@@ -195,3 +195,47 @@ def test_a_whole_board_writes_no_ids():
     assert np.array_equal(np.isnan(back), np.isnan(part)) and np.array_equal(
         back[~np.isnan(back)], part[~np.isnan(part)]
     )
+
+
+def test_the_cli_calibrates_a_partial_board_and_refuses_too_few(tmp_path):
+    """As a user runs it (a real process): the partial board annotated and calibrated (exit 0); a crop
+    with too few corners refused in one error line with the library's words (exit 2)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from eyetohand.sim import write_plate_simulation
+
+    sim = simulate_plate(spec=SPEC, seed=3, touch_noise_mm=0.05, shift_mm=(100.0, 0.0))
+    write_plate_simulation(sim, tmp_path)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1] / "src"))
+
+    def run(*args):
+        cmd = [sys.executable, "-m", "eyetohand.cli", *args]
+        return subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
+
+    r = run(
+        "calibrate-plate",
+        "plate.png",
+        "--plate",
+        SPEC,
+        "--touches",
+        "touches.csv",
+        "--check",
+        "check.csv",
+        "--annotate",
+        "ann.png",
+        "-o",
+        "cal.json",
+    )
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "ann.png").stat().st_size > 0
+    assert len(Calibration.load(tmp_path / "cal.json").plate.images[0].to_dict(sim.spec)["ids"]) >= MIN_SEEN
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "few.png"), sim.image[:1000, :1100])
+    r = run("calibrate-plate", "few.png", "--plate", SPEC, "--touches", "touches.csv", "-o", "few.json")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert f"needs at least {MIN_SEEN} corners in 2 or more rows and columns" in r.stderr
+    assert not (tmp_path / "few.json").exists()
