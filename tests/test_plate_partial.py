@@ -239,3 +239,36 @@ def test_the_cli_calibrates_a_partial_board_and_refuses_too_few(tmp_path):
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
     assert f"needs at least {MIN_SEEN} corners in 2 or more rows and columns" in r.stderr
     assert not (tmp_path / "few.json").exists()
+
+
+def test_http_calibrates_a_partial_board_and_refuses_too_few_in_the_same_words(tmp_path, partial):
+    """POST /api/plate/calibrate (a real app in-process): a partial board answered with a file that proves
+    itself and keeps the ids; too few corners 422 naming images[0] in the library's words."""
+    import base64
+
+    import cv2
+    from fastapi.testclient import TestClient
+
+    from eyetohand.server.app import create_app
+
+    how, sim, det = partial
+
+    def body(img) -> dict:
+        png = cv2.imencode(".png", img)[1].tobytes()
+        return {
+            "plate": SPEC,
+            "images": [{"name": "plate.png", "data_base64": base64.b64encode(png).decode()}],
+            "touches": {
+                "name": "touches.csv",
+                "data_base64": base64.b64encode(sim.touches_csv.encode()).decode(),
+            },
+        }
+
+    with TestClient(create_app(tmp_path / "data")) as c:
+        r = c.post("/api/plate/calibrate", json=body(sim.image))
+        assert r.status_code == 200, r.text
+        cal = Calibration.from_dict(r.json()["calibration"], "answer")
+        assert cal.plate is not None and np.array_equal(cal.plate.images[0].seen, det.seen)
+        r = c.post("/api/plate/calibrate", json=body(np.ascontiguousarray(sim.image[:1000, :800])))
+        assert r.status_code == 422 and r.json()["field"] == "images[0]", r.text
+        assert f"needs at least {MIN_SEEN} corners in 2 or more rows and columns" in r.json()["error"]
