@@ -265,7 +265,11 @@ def _detect_charuco(g: np.ndarray, spec: PlateSpec, name: str, size) -> PlateDet
     if ids is not None and len(ids):
         uv[ids.ravel()] = corners.reshape(-1, 2)
     seen = np.isfinite(uv).all(axis=1)
-    if seen.sum() >= 2:
+    try:
+        spacing_ok = seen.sum() >= MIN_SEEN and grid_spacing_px(spec, uv) > 0
+    except InputError:  # no two neighbours seen: too few to refine, refused below
+        spacing_ok = False
+    if spacing_ok:
         uv[seen] = _subpixel(g, uv, spec)[seen]
         half = _window_px(uv, spec) + 1
         h, w = g.shape[:2]
