@@ -8,7 +8,8 @@ A spec is one string, ``KIND:COLSxROWS:PITCH_MM``:
 * ``circles:10x8:25`` — a symmetric grid of dark dots on a light plate, 25 mm apart;
 * ``charuco:9x6:20[:15]`` — a ChArUco board (OpenCV's ``CharucoBoard`` of 10 × 7 squares of 20 mm,
   ArUco markers of 15 mm — default 0.75 of a square — from ``DICT_5X5_1000``), counted in inner corners
-  as a chessboard; found by ``cv2.aruco.CharucoDetector``, every corner by its id;
+  as a chessboard; found by ``cv2.aruco.CharucoDetector``, every corner by its id — a board seen in part
+  (covered, partly out of view) is kept with the corners seen (the others NaN), :data:`MIN_SEEN` at least;
 * ``acircles:4x11:20`` — OpenCV's asymmetric grid: ``COLS`` dots per row, ``ROWS`` rows; a dot at
   ((2·c + r mod 2)·p, r·p), so dots of a row are 2p apart and neighbouring rows p apart (OpenCV's
   ``squareSize``). Both found by OpenCV's ``findCirclesGrid`` (blob centroids).
