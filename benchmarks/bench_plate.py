@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -86,7 +87,7 @@ def multi_placement(cells: int) -> None:
     """2-3 placements per cell (z 0 / 60 / 30 mm, the third tilted 3-8 deg), 4 touches each with
     0.1 mm noise: the camera model, and RMS(sigma_mm) / RMS(error) over every placement's check points."""
     spec = PlateSpec.parse("chessboard:9x6:12")
-    E, S = [], []
+    E, S, S_mean = [], [], []  # S_mean: sigma_mm with the earlier approximation (variances' mean / K)
     for seed in range(cells):
         rng = np.random.default_rng(seed)
         cell = Cell.default().with_values(
@@ -124,11 +125,24 @@ def multi_placement(cells: int) -> None:
             m = cal.map(check.uv_px, check.xyz_mm[:, 2], allow_outside=True)
             E.append(err_xy(m.xyz_mm[:, :2], check))
             S.append(m.sigma_mm)
-    e, sg = np.concatenate(E), np.concatenate(S)
+            base2 = cal.uncertainty.sigma_mm(cal.model, check.uv_px, check.xyz_mm[:, 2]) ** 2
+            mean_k = replace(cal.plate, response=None).placement_variance_mm2(m.xyz_mm, 2)
+            S_mean.append(np.sqrt(base2 + mean_k))
+    e, sg, sm = np.concatenate(E), np.concatenate(S), np.concatenate(S_mean)
     print(
         f"several placements ({cells} cells, model camera): check RMS {np.sqrt(np.mean(e**2)):.4f} mm, "
-        f"RMS(sigma_mm) / RMS(error) {np.sqrt(np.mean(sg**2) / np.mean(e**2)):.3f}"
+        f"RMS(sigma_mm) / RMS(error) {np.sqrt(np.mean(sg**2) / np.mean(e**2)):.3f} "
+        f"(variances' mean / K instead: {np.sqrt(np.mean(sm**2) / np.mean(e**2)):.3f})"
     )
+    q = sg / sm  # where the two disagree, which one the errors follow
+    for lo, hi in ((0.0, 0.85), (0.85, 1.15), (1.15, np.inf)):
+        k = (q >= lo) & (q < hi)
+        if k.any():
+            print(
+                f"  points with sigma / sigma(mean/K) in [{lo}, {hi}): {k.sum()}, RMS(error) / RMS(sigma) "
+                f"{np.sqrt(np.mean(e[k] ** 2) / np.mean(sg[k] ** 2)):.3f}, "
+                f"/ RMS(sigma(mean/K)) {np.sqrt(np.mean(e[k] ** 2) / np.mean(sm[k] ** 2)):.3f}"
+            )
 
 
 def main() -> int:

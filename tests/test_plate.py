@@ -108,9 +108,9 @@ def test_charuco_spec_and_detection_by_id():
     det = detect_plate(sim.image, "charuco:9x6:15")
     err = np.linalg.norm(det.uv_px - sim.true_uv_px, axis=1)  # numbered by the markers: one order only
     assert np.sqrt(np.mean(err**2)) < 0.05 and err.max() < 0.1  # 0.020 px measured
-    half = np.ascontiguousarray(sim.image[:, : sim.image.shape[1] // 2])
-    with pytest.raises(PlateNotFound, match=r"charuco:9x6:15:11.25 not found: saw \d+ of its 54 corners"):
-        detect_plate(half, "charuco:9x6:15")
+    corner = np.ascontiguousarray(sim.image[:1000, :800])  # a board seen in part: tests/test_plate_partial.py
+    with pytest.raises(PlateNotFound, match=r"charuco:9x6:15:11.25 not found: saw 1 of its 54 corners"):
+        detect_plate(corner, "charuco:9x6:15")
 
 
 def test_no_plate_is_named():

@@ -42,8 +42,8 @@ def _camera_from_plate(spec: PlateSpec, images: list[PlateImage]) -> tuple[dict,
     import cv2
 
     size = images[0].image_size
-    obj = [spec.points_mm().astype(np.float32)] * len(images)
-    img = [i.uv_px.astype(np.float32) for i in images]
+    obj = [spec.points_mm()[i.seen].astype(np.float32) for i in images]  # the points seen in each
+    img = [i.uv_px[i.seen].astype(np.float32) for i in images]
     w, h = size
     f0 = float(max(w, h)) * 2.0
     K0 = np.array([[f0, 0, (w - 1) / 2], [0, f0, (h - 1) / 2], [0, 0, 1]])
@@ -101,9 +101,11 @@ def touches_again(old: Calibration, spec: PlateSpec, found: list[PlateImage]) ->
         )
     out: list[Touch] = []
     moved = []
+    ids = spec.ids()
     for k, (img, before, pl) in enumerate(zip(found, rec.images, rec.placements, strict=True)):
-        uv = img.uv_px
-        d = float(np.median(np.linalg.norm(uv - before.uv_px, axis=1)))
+        uv = img.uv_px  # a ChArUco board seen in part: NaN where not seen, compared on the points in both
+        both = img.seen & before.seen
+        d = float(np.median(np.linalg.norm(uv[both] - before.uv_px[both], axis=1))) if both.any() else np.nan
         if spec.kind != "charuco":  # a board numbered from its other end
             d_rev = float(np.median(np.linalg.norm(uv[::-1] - before.uv_px, axis=1)))
             if d_rev < d:
@@ -115,7 +117,13 @@ def touches_again(old: Calibration, spec: PlateSpec, found: list[PlateImage]) ->
                 )
         moved.append(d)
         mine = [t for t in rec.touches if t.image == k]
-        out += [Touch(tuple(uv[c]), t.xyz_mm, k, t.id, t.line) for t, c in zip(mine, pl.corners, strict=True)]
+        for t, c in zip(mine, pl.corners, strict=True):
+            if not np.isfinite(uv[c]).all():
+                raise InputError(
+                    f"image {k + 1}: {t.where}'s {spec.what[:-1]} {ids[c]} is not seen in the new image: "
+                    "bring that part of the plate into view, or touch the corners again"
+                )
+            out.append(Touch((float(uv[c, 0]), float(uv[c, 1])), t.xyz_mm, k, t.id, t.line))
     note = (
         f"touches reused from the earlier calibration by corner; the plate's {spec.what} moved "
         + ", ".join(f"{m:.2f}" for m in moved)
@@ -221,7 +229,12 @@ def calibrate_detected(
         model = "homography-radial" if fit_height_plane(pairs.xyz_mm).one_height else "camera"
     cal = calibrate(pairs, model, check=check, image_size=found[0].image_size, loo=loo)
     notes = [
-        f"plate {spec.text}: {len(found)} image(s), {spec.n_points} {spec.what} each",
+        f"plate {spec.text}: {len(found)} image(s), "
+        + (
+            f"{spec.n_points} {spec.what} each"
+            if all(i.seen.all() for i in found)
+            else f"{', '.join(str(int(i.seen.sum())) for i in found)} of its {spec.n_points} {spec.what} seen"
+        ),
         "camera from the plate (OpenCV): f {:.1f} px, principal point ({:.1f}, {:.1f}) px, "
         "k1 {:.4g}, k2 {:.4g}, reprojection RMS {:.3f} px".format(
             cam["fx_px"], cam["cx_px"], cam["cy_px"], cam["k1"], cam["k2"], cam["reprojection_rms_px"]
@@ -241,7 +254,7 @@ def calibrate_detected(
             f"rigid-fit RMS {pl.fit.rms_mm:.3f} mm, touch noise {pl.noise_mm:.3f} mm "
             + ("given" if touch_noise_mm is not None else "from the residuals")
         )
-    return replace(cal, plate=record, notes=cal.notes + tuple(notes))
+    return replace(cal, plate=record.fitted(cal.model), notes=cal.notes + tuple(notes))
 
 
 __all__ = ["calibrate_detected", "calibrate_plate", "touches_again"]

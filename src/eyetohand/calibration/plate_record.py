@@ -11,35 +11,69 @@ every point alike (:meth:`PlateRecord.placement_variance_mm2`), which ``sigma_mm
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from eyetohand.calibration.fields import CHANGED
 from eyetohand.calibration.touches import TOLERANCE_MM, Placement, Touch, place, snap
 from eyetohand.core import InputError, PointPairs
-from eyetohand.solve import placement_variance_mm2, rigid_jacobian
-from eyetohand.vision import PlateSpec
+from eyetohand.models import Model
+from eyetohand.solve import fitted_columns, param_jacobian, placement_variance_mm2, rigid_jacobian
+from eyetohand.vision import PlateSpec, grid_spacing_px
 
 PROOF_TOL_MM = 1e-9
 
 
 @dataclass(frozen=True)
 class PlateImage:
-    """One image of the plate: its name, size (w, h) px, the points detected (N, 2) px."""
+    """One image of the plate: its name, size (w, h) px, the points detected (N, 2) px in the spec's
+    order — NaN for a point not seen (a ChArUco board seen in part)."""
 
     name: str
     image_size: tuple[int, int]
     uv_px: np.ndarray
 
+    @property
+    def seen(self) -> np.ndarray:
+        """(N,) bool: the points detected."""
+        return np.isfinite(self.uv_px).all(axis=1)
+
     def spacing_px(self, spec: PlateSpec) -> float:
-        g = self.uv_px.reshape(spec.rows, spec.cols, 2)
-        return float(
-            min(
-                np.linalg.norm(np.diff(g, axis=1), axis=-1).min(),
-                np.linalg.norm(np.diff(g, axis=0), axis=-1).min(),
-            )
-        )
+        return grid_spacing_px(spec, self.uv_px)
+
+    def to_dict(self, spec: PlateSpec) -> dict:
+        """The file's entry: name, size, the points seen; their ids only when not every point was."""
+        seen = self.seen
+        out = {"name": self.name, "image_size": list(self.image_size), "uv_px": self.uv_px[seen].tolist()}
+        if not seen.all():
+            ids = spec.ids()
+            out["ids"] = [ids[i] for i in np.flatnonzero(seen)]
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict, spec: PlateSpec, k: int) -> PlateImage:
+        """An entry of the file (``k``: its place, for the messages); ids, when given, name distinct
+        points of the plate in its numbering order, one per point."""
+        uv = np.asarray(d["uv_px"], float)
+        where = f"field 'plate.images[{k}]"
+        if "ids" in d:
+            ids = d["ids"]
+            if not isinstance(ids, list) or not all(isinstance(i, str) for i in ids):
+                raise InputError(f"{where}.ids' must be a list of point names (r{{row}}c{{col}})")
+            try:
+                idx = [spec.index_of(i) for i in ids]
+            except InputError as exc:
+                raise InputError(f"{where}.ids': {exc}") from None
+            if any(b <= a for a, b in zip(idx, idx[1:], strict=False)):
+                raise InputError(f"{where}.ids' must name distinct points in the plate's order (row by row)")
+        else:
+            idx = list(range(spec.n_points))
+        if uv.shape != (len(idx), 2) or not np.isfinite(uv).all():
+            raise InputError(f"{where}.uv_px' must be {len(idx)} points (u, v), one per id")
+        full = np.full((spec.n_points, 2), np.nan)
+        full[idx] = uv
+        return cls(str(d["name"]), (int(d["image_size"][0]), int(d["image_size"][1])), full)
 
 
 @dataclass(frozen=True)
@@ -52,6 +86,8 @@ class PlateRecord:
     tolerance_mm: float
     touch_noise_mm: float | None
     placements: tuple[Placement, ...]
+    model: Model | None = field(default=None, compare=False, repr=False)  # the map fitted (:meth:`fitted`)
+    response: np.ndarray | None = field(default=None, compare=False, repr=False)  # (D, 6 K)
 
     @classmethod
     def build(
@@ -76,19 +112,64 @@ class PlateRecord:
     def pairs(self, source: str = "plate corners") -> PointPairs:
         """The training pairs: every detected point with its plate point placed in the robot frame."""
         pts = self.spec.points_mm()
-        ids = self.spec.ids()
+        ids = np.array(self.spec.ids())
         one = len(self.images) == 1
         uv, xyz, names = [], [], []
         for img, pl in zip(self.images, self.placements, strict=True):
-            uv.append(img.uv_px)
-            xyz.append(pl.fit.apply(pts))
-            names += ids if one else [f"{pl.image + 1}:{i}" for i in ids]
+            seen = img.seen  # a ChArUco board seen in part: its corners seen
+            uv.append(img.uv_px[seen])
+            xyz.append(pl.fit.apply(pts[seen]))
+            names += list(ids[seen]) if one else [f"{pl.image + 1}:{i}" for i in ids[seen]]
         return PointPairs(np.vstack(uv), np.vstack(xyz), tuple(names), source=source)
+
+    def fitted(self, model: Model) -> PlateRecord:
+        """This record with the map fitted to its pairs: with several placements, each placement's rigid
+        error propagated through that fit (its linearised least squares: the parameters' response
+        ``(JᵀJ)⁺Jᵀ`` to the residuals each placement's small rigid change puts on its own pairs — their
+        robot x, y and, through the map's slope in z, their height). One placement moves every pair
+        alike, which the map follows: its rigid error as it is (the same numbers, measured)."""
+        if len(self.placements) == 1:
+            return replace(self, model=model, response=None)
+        pairs = self.pairs()
+        uv, xyz = pairs.uv_px, pairs.xyz_mm
+        cols = fitted_columns(model)
+        J = param_jacobian(model, uv, xyz[:, 2]).reshape(-1, model.n_covariance())[:, cols]
+        c = J.shape[0] // len(uv)
+        norms = np.linalg.norm(J, axis=0)
+        norms = np.where(norms > 0, norms, 1.0)
+        solve = np.linalg.pinv(J / norms, rcond=1e-10) / norms[:, None]  # (D', N c) as the fit's covariance
+        h = 1e-3  # mm: the map's slope in z at each pair (a pair's height is an input of the map)
+        at = [model.batch_image_to_robot(model.params[None], uv, xyz[:, 2] + d)[0][:, :c] for d in (h, -h)]
+        slope = (at[0] - at[1]) / (2 * h)  # (N, c)
+        parts, start = [], 0
+        for img, pl in zip(self.images, self.placements, strict=True):
+            n = int(img.seen.sum())
+            B = rigid_jacobian(xyz[start : start + n], pl.fit.centre_mm)  # (n, 3, 6)
+            moved = np.zeros((len(uv), c, 6))
+            moved[start : start + n] = B[:, :c] - slope[start : start + n, :, None] * B[:, 2:3]
+            w, V = np.linalg.eigh(0.5 * (pl.covariance + pl.covariance.T))  # PSD: no Cholesky
+            parts.append(solve @ moved.reshape(-1, 6) @ (V * np.sqrt(np.clip(w, 0.0, None))))
+            start += n
+        response = np.zeros((model.n_covariance(), 6 * len(parts)))
+        response[cols] = np.hstack(parts)
+        return replace(self, model=model, response=response)
+
+    def _moved(self, xyz_mm: np.ndarray, n_coords: int) -> np.ndarray | None:
+        """(N, n_coords, 6 K) how the touches' errors move the mapped points ``xyz_mm`` (their factor),
+        when the map is known and there are several placements; else None."""
+        if self.model is None or self.response is None:
+            return None
+        X = np.asarray(xyz_mm, float).reshape(-1, 3)
+        uv = self.model.robot_to_image(X)
+        return param_jacobian(self.model, uv, X[:, 2])[:, :n_coords] @ self.response
 
     def placement_variance_mm2(self, xyz_mm: np.ndarray, n_coords: int) -> np.ndarray:
         """(N,) the variance (mm²) the touches' noise puts on mapped points: one placement's rigid
-        error propagated to each point; with K placements the mean of theirs / K (the map is fitted
-        to all of them, each placement's error independent)."""
+        error propagated to each point; with K placements each one's propagated through the map's fit
+        (:meth:`fitted`; before it, the mean of theirs / K)."""
+        moved = self._moved(xyz_mm, n_coords)
+        if moved is not None:
+            return np.einsum("nck,nck->n", moved, moved)
         v = [placement_variance_mm2(p.covariance, p.fit.centre_mm, xyz_mm, n_coords) for p in self.placements]
         return np.mean(v, axis=0) / len(v)
 
@@ -103,6 +184,9 @@ class PlateRecord:
         """(2N, 6 P) ``F`` with ``F Fᵀ`` = :meth:`error_covariance_xy` (P placements): its low-rank form,
         for a solve that never forms the (2N)² matrix (verify's drift test on many pairs)."""
         X = np.asarray(xyz_mm, float).reshape(-1, 3)
+        moved = self._moved(X, 2)
+        if moved is not None:
+            return moved.reshape(2 * len(X), -1)
         parts = []
         for p in self.placements:
             B = rigid_jacobian(X, p.fit.centre_mm)[:, :2].reshape(2 * len(X), 6)
@@ -113,10 +197,7 @@ class PlateRecord:
     def to_dict(self) -> dict:
         return {
             "spec": self.spec.text,
-            "images": [
-                {"name": i.name, "image_size": list(i.image_size), "uv_px": i.uv_px.tolist()}
-                for i in self.images
-            ],
+            "images": [i.to_dict(self.spec) for i in self.images],
             "touches": [t.to_dict() for t in self.touches],
             "tolerance_mm": self.tolerance_mm,
             "touch_noise_mm": self.touch_noise_mm,
@@ -135,24 +216,15 @@ class PlateRecord:
         }
 
     @classmethod
-    def from_dict(cls, d: dict, fitted: PointPairs | None) -> PlateRecord:
+    def from_dict(cls, d: dict, fitted: PointPairs | None, model: Model | None = None) -> PlateRecord:
         """The record of a file, proven: the placements fitted again from the stored touches match
-        the stored ones and rebuild the stored training pairs (``fitted``), to 1e-9 mm."""
+        the stored ones and rebuild the stored training pairs (``fitted``), to 1e-9 mm; with the
+        file's ``model``, :meth:`fitted` to it."""
         if not isinstance(d, dict):
             raise InputError("field 'plate' must be an object")
         try:
             spec = PlateSpec.parse(d["spec"])
-            images = [
-                PlateImage(
-                    str(i["name"]),
-                    (int(i["image_size"][0]), int(i["image_size"][1])),
-                    np.asarray(i["uv_px"], float),
-                )
-                for i in d["images"]
-            ]
-            for k, img in enumerate(images):
-                if img.uv_px.shape != (spec.n_points, 2):
-                    raise InputError(f"field 'plate.images[{k}].uv_px' must be {spec.n_points} points (u, v)")
+            images = [PlateImage.from_dict(i, spec, k) for k, i in enumerate(d["images"])]
             touches = [Touch.from_dict(t) for t in d["touches"]]
             noise = d["touch_noise_mm"]
             again = cls.build(
@@ -164,7 +236,7 @@ class PlateRecord:
             raise InputError(f"field 'plate' is malformed ({type(exc).__name__}: {exc})") from None
         want = again.to_dict()
         _same(want, d, "plate")
-        if fitted is None or len(fitted) != sum(len(i.uv_px) for i in images):
+        if fitted is None or len(fitted) != sum(int(i.seen.sum()) for i in images):
             raise InputError(f"field 'plate' does not rebuild the training pairs: {CHANGED}")
         pairs = again.pairs()
         if not (
@@ -174,7 +246,7 @@ class PlateRecord:
             and pairs.ids == fitted.ids
         ):
             raise InputError(f"field 'plate' does not rebuild the training pairs (to 1e-9 mm): {CHANGED}")
-        return again
+        return again if model is None else again.fitted(model)
 
 
 def _same(want, given, path: str) -> None:

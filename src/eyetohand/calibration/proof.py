@@ -379,7 +379,7 @@ def _from_dict(cls, d: dict, ver: int) -> Calibration:
 
             pairs = extra["pairs"]
             extra["plate"] = PlateRecord.from_dict(
-                d["plate"], pairs if isinstance(pairs, PointPairs) else None
+                d["plate"], pairs if isinstance(pairs, PointPairs) else None, model
             )
     return cls(
         model=model,

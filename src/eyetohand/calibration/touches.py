@@ -172,7 +172,7 @@ def snap(touches: list[Touch], uv_px: np.ndarray, spacing_px: float, spec: Plate
     radius = snap_radius_px(spacing_px)
     out: list[int] = []
     for t in touches:
-        d = np.linalg.norm(uv_px - np.array(t.uv_px), axis=1)
+        d = np.nan_to_num(np.linalg.norm(uv_px - np.array(t.uv_px), axis=1), nan=np.inf)  # NaN: not seen
         i = int(np.argmin(d))
         if d[i] > radius:
             raise InputError(

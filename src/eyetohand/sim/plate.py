@@ -187,10 +187,19 @@ def simulate_plate(
     n_check: int = 20,
     seed: int | None = None,
     render: bool = True,
+    shift_mm: tuple[float, float] = (0.0, 0.0),
+    cover_px: tuple[float, float, float, float] | None = None,
 ) -> PlateSimulation:
     """One plate image in ``cell``, ``n_touches`` (3..4) touches of its corners A–D, ``n_check``
     check points on the plate (module docstring). ``render`` False: no image (``image`` None; the
-    studies that need only the truth)."""
+    studies that need only the truth).
+
+    A plate seen in part (a ChArUco board's use): ``shift_mm`` moves the plate along its own x, y from
+    the view's centre (part of it may leave the image), ``cover_px`` (u0, v0, u1, v1) blanks a rectangle
+    of the image (something lying on the plate). Then the corners A–D touched are the extreme ones of
+    those *visible* (:meth:`~eyetohand.vision.plate.PlateSpec.corner_labels`): the corner and the four
+    squares around it in the image, 2 px from its edges, clear of the cover; the check points are
+    visible points of the plate."""
     cell = Cell.default() if cell is None else cell
     spec = PlateSpec.parse(spec) if isinstance(spec, str) else spec
     if n_touches not in (3, 4):
@@ -200,14 +209,34 @@ def simulate_plate(
     cam = true_camera(cell)
     z = float(cell.values["belt"]["z_mm"]) if z_mm is None else float(z_mm)
     pl = place_plate(cam, spec, z, yaw_deg=yaw_deg, tilt_deg=tilt_deg)
+    in_part = cover_px is not None or tuple(shift_mm) != (0.0, 0.0)
+    if in_part:
+        pl = PlatePlacement(pl.R, pl.t_mm + pl.R @ np.array([shift_mm[0], shift_mm[1], 0.0], float))
     world = pl.to_robot(spec.points_mm())
     uv = cam.robot_to_image(world)
     lo, hi = spec.outline_mm()
     outline = np.array([[lo[0], lo[1], 0], [hi[0], lo[1], 0], [hi[0], hi[1], 0], [lo[0], hi[1], 0]])
-    if not cam.in_image(cam.robot_to_image(pl.to_robot(outline)), 2.0).all():
+    if not in_part and not cam.in_image(cam.robot_to_image(pl.to_robot(outline)), 2.0).all():
         raise InputError(
             f"plate {spec.text} does not fit in the camera's view at z = {z:g} mm: choose a smaller "
             "pitch or fewer points"
+        )
+
+    def visible(plate_xy: np.ndarray) -> np.ndarray:
+        """(..., 2) plate points → (...) bool: in the image 2 px from its edges, clear of the cover."""
+        p3 = np.concatenate([plate_xy, np.zeros(plate_xy.shape[:-1] + (1,))], axis=-1).reshape(-1, 3)
+        px = cam.robot_to_image(pl.to_robot(p3))
+        ok = np.asarray(cam.in_image(px, 2.0), bool)
+        if cover_px is not None:
+            u0, v0, u1, v1 = cover_px
+            ok &= ~((px[:, 0] >= u0 - 2) & (px[:, 0] <= u1 + 2) & (px[:, 1] >= v0 - 2) & (px[:, 1] <= v1 + 2))
+        return ok.reshape(plate_xy.shape[:-1])
+
+    around = np.stack(np.meshgrid(*[np.linspace(-1, 1, 5)] * 2), axis=-1).reshape(-1, 2) * spec.pitch_mm
+    seen = np.asarray(visible(spec.points_mm()[:, None, :2] + around[None]).all(axis=1), bool)
+    if seen.sum() < 3:
+        raise InputError(
+            f"plate {spec.text}: only {int(seen.sum())} of its corners in view, clear of the cover"
         )
     ss = np.random.SeedSequence(seed)
     rng_img, rng_touch, rng_check = (np.random.default_rng(s) for s in ss.spawn(3))
@@ -215,7 +244,10 @@ def simulate_plate(
     image = (
         render_plate(cam, spec, pl, blur_px=r["blur_px"], noise=r["noise"], rng=rng_img) if render else None
     )
-    labels = list(spec.corner_labels().items())[:n_touches]
+    if image is not None and cover_px is not None:
+        u0, v0, u1, v1 = (max(0, round(c)) for c in cover_px)
+        image[v0 : v1 + 1, u0 : u1 + 1] = round(BACKGROUND * (255 if image.dtype == np.uint8 else 65535))
+    labels = list(spec.corner_labels(seen).items())[:n_touches]
     idx = tuple(i for _, i in labels)
     xyz = world[list(idx)] + rng_touch.normal(0.0, touch_noise_mm, (len(idx), 3))
     rows = ["u,v,x,y,z,id"] + [
@@ -223,8 +255,15 @@ def simulate_plate(
         for (lab, i), p in zip(labels, xyz, strict=True)
     ]
     pts = spec.points_mm()
-    q = pts.min(axis=0) + rng_check.random((n_check, 3)) * (pts.max(axis=0) - pts.min(axis=0))
+    q = pts.min(axis=0) + rng_check.random((n_check * (20 if in_part else 1), 3)) * (
+        pts.max(axis=0) - pts.min(axis=0)
+    )
     q[:, 2] = 0.0
+    if in_part:  # the check points among the corners seen: in a square whose 4 corners are in view
+        cx = np.clip(np.floor(q[:, 0] / spec.pitch_mm), 0, spec.cols - 2).astype(int)
+        cy = np.clip(np.floor(q[:, 1] / spec.pitch_mm), 0, spec.rows - 2).astype(int)
+        k = cy * spec.cols + cx
+        q = q[seen[k] & seen[k + 1] & seen[k + spec.cols] & seen[k + spec.cols + 1]][:n_check]
     cw = pl.to_robot(q)
     cuv = cam.robot_to_image(cw)
     check = ["u,v,x,y,z,id"] + [

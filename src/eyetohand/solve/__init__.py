@@ -46,7 +46,13 @@ if TYPE_CHECKING:
         reference_pairs,
         rotations,
     )
-    from eyetohand.solve.uncertainty import Uncertainty, best_new_point, pair_leverage, param_jacobian
+    from eyetohand.solve.uncertainty import (
+        Uncertainty,
+        best_new_point,
+        fitted_columns,
+        pair_leverage,
+        param_jacobian,
+    )
 else:
     __getattr__, __dir__ = lazy_exports(
         __name__,
@@ -89,7 +95,13 @@ else:
                 "rotations",
             ),
             "placement": ("RigidFit", "placement_variance_mm2", "rigid_fit", "rigid_jacobian"),
-            "uncertainty": ("Uncertainty", "best_new_point", "pair_leverage", "param_jacobian"),
+            "uncertainty": (
+                "Uncertainty",
+                "best_new_point",
+                "fitted_columns",
+                "pair_leverage",
+                "param_jacobian",
+            ),
         },
     )
 
@@ -122,6 +134,7 @@ __all__ = [
     "huber_delta_mm",
     "mapped_residuals",
     "objective_values",
+    "fitted_columns",
     "pair_leverage",
     "param_jacobian",
     "placement_variance_mm2",

@@ -18,12 +18,14 @@ if TYPE_CHECKING:
         pairs_from_detections,
     )
     from eyetohand.vision.plate import (
+        MIN_SEEN,
         PlateDetection,
         PlateNotFound,
         PlateSpec,
         annotate_plate,
         charuco_board,
         detect_plate,
+        grid_spacing_px,
     )
     from eyetohand.vision.render import Target, render
     from eyetohand.vision.sources import (
@@ -41,13 +43,14 @@ else:
             "detect": ("Miss", "annotate", "detect_circles", "detect_target"),
             "images": ("ImageResult", "detect_images", "detect_poses", "load_poses", "pairs_from_detections"),
             "plate": (
+                "MIN_SEEN",
                 "PlateDetection",
                 "PlateNotFound",
                 "PlateSpec",
                 "annotate_plate",
                 "charuco_board",
-                "charuco_board",
                 "detect_plate",
+                "grid_spacing_px",
             ),
             "render": ("Target", "render"),
             "sources": (
@@ -66,6 +69,7 @@ __all__ = [
     "FolderSource",
     "GrabTimeout",
     "ImageResult",
+    "MIN_SEEN",
     "Miss",
     "PlateDetection",
     "PlateNotFound",
@@ -81,6 +85,7 @@ __all__ = [
     "detect_plate",
     "detect_poses",
     "detect_target",
+    "grid_spacing_px",
     "load_poses",
     "open_source",
     "pairs_from_detections",

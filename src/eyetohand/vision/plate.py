@@ -8,7 +8,8 @@ A spec is one string, ``KIND:COLSxROWS:PITCH_MM``:
 * ``circles:10x8:25`` — a symmetric grid of dark dots on a light plate, 25 mm apart;
 * ``charuco:9x6:20[:15]`` — a ChArUco board (OpenCV's ``CharucoBoard`` of 10 × 7 squares of 20 mm,
   ArUco markers of 15 mm — default 0.75 of a square — from ``DICT_5X5_1000``), counted in inner corners
-  as a chessboard; found by ``cv2.aruco.CharucoDetector``, every corner by its id;
+  as a chessboard; found by ``cv2.aruco.CharucoDetector``, every corner by its id — a board seen in part
+  (covered, partly out of view) is kept with the corners seen (the others NaN), :data:`MIN_SEEN` at least;
 * ``acircles:4x11:20`` — OpenCV's asymmetric grid: ``COLS`` dots per row, ``ROWS`` rows; a dot at
   ((2·c + r mod 2)·p, r·p), so dots of a row are 2p apart and neighbouring rows p apart (OpenCV's
   ``squareSize``). Both found by OpenCV's ``findCirclesGrid`` (blob centroids).
@@ -127,30 +128,76 @@ class PlateSpec:
         b = (1.0 if self.what == "dots" else 1.5) * self.pitch_mm if border_mm is None else border_mm
         return lo - b, hi + b
 
-    def corner_labels(self) -> dict[str, int]:
+    def corner_labels(self, seen: np.ndarray | None = None) -> dict[str, int]:
         """The four corners to touch, labelled A–D (clockwise from the first point as numbered), as
-        indices into :meth:`points_mm`."""
-        last_row = (self.rows - 1) * self.cols
-        return {"A": 0, "B": self.cols - 1, "C": self.n_points - 1, "D": last_row}
+        indices into :meth:`points_mm`. ``seen`` (N,) bool: only these points were found (a ChArUco
+        board seen in part); the labels go to the extreme *seen* points — A the least row + col, B the
+        greatest col − row, C the greatest row + col, D the greatest row − col (the first in numbering
+        order on a tie; a point already labelled is not labelled again). On a whole board these are
+        r0c0, r0c{last}, r{last}c{last}, r{last}c0."""
+        r, c = np.divmod(np.arange(self.n_points), self.cols)
+        mask = np.ones(self.n_points, bool) if seen is None else np.asarray(seen, bool).reshape(-1)
+        if mask.shape != (self.n_points,) or not mask.any():
+            raise InputError(f"plate {self.text}: no points seen to label")
+        out: dict[str, int] = {}
+        for label, score in (("A", -(r + c)), ("B", c - r), ("C", r + c), ("D", r - c)):
+            i = int(np.argmax(np.where(mask, score, np.iinfo(np.int64).min)))
+            if i not in out.values():
+                out[label] = i
+        return out
+
+    def index_of(self, point_id: str) -> int:
+        """The index (into :meth:`points_mm`) of a point named ``r{row}c{col}``; anything else refused."""
+        m = re.fullmatch(r"r(\d{1,3})c(\d{1,3})", point_id) if isinstance(point_id, str) else None
+        if m is None or int(m.group(1)) >= self.rows or int(m.group(2)) >= self.cols:
+            raise InputError(
+                f"{point_id!r} is not a point of plate {self.text} (r0c0 .. r{self.rows - 1}c{self.cols - 1})"
+            )
+        return int(m.group(1)) * self.cols + int(m.group(2))
+
+
+def grid_spacing_px(spec: PlateSpec, uv_px: np.ndarray) -> float:
+    """The smallest distance (px) between neighbouring points (along a row or a column) of the grid
+    as found, ``uv_px`` (N, 2) in the spec's order; a point not seen (NaN) has no neighbours."""
+    g = np.asarray(uv_px, float).reshape(spec.rows, spec.cols, 2)
+    d = np.concatenate(
+        [
+            np.linalg.norm(np.diff(g, axis=1), axis=-1).ravel(),
+            np.linalg.norm(np.diff(g, axis=0), axis=-1).ravel(),
+        ]
+    )
+    d = d[np.isfinite(d)]
+    if not d.size:
+        raise InputError(f"plate {spec.text}: no two neighbouring {spec.what} seen")
+    return float(d.min())
+
+
+MIN_SEEN = 12
+MIN_SEEN_WHY = (
+    "each corner gives 2 coordinates; the camera from the plate has 9 unknowns (f, k1, k2, the plate's "
+    "pose) and the map 10 (a homography, k1, k2), so 12 corners (24 coordinates) leave 14 to judge the fit"
+)
+"""A board seen in part (ChArUco) needs at least this many corners, in 2+ rows and 2+ columns."""
 
 
 @dataclass(frozen=True)
 class PlateDetection:
-    """The plate's points found in one image: ``uv_px`` (N, 2) in the spec's order, the image's size."""
+    """The plate's points found in one image: ``uv_px`` (N, 2) in the spec's order — a point not
+    seen (a ChArUco board seen in part) is NaN —, the image's size."""
 
     spec: PlateSpec
     uv_px: np.ndarray
     image_size: tuple[int, int]
     source: str
 
+    @property
+    def seen(self) -> np.ndarray:
+        """(N,) bool: the points found (all of them but on a ChArUco board seen in part)."""
+        return np.isfinite(self.uv_px).all(axis=1)
+
     def spacing_px(self) -> float:
         """The smallest distance (px) between neighbouring points of the grid as found."""
-        g = self.uv_px.reshape(self.spec.rows, self.spec.cols, 2)
-        d = [
-            np.linalg.norm(np.diff(g, axis=1), axis=-1).min(),
-            np.linalg.norm(np.diff(g, axis=0), axis=-1).min(),
-        ]
-        return float(min(d))
+        return grid_spacing_px(self.spec, self.uv_px)
 
 
 class PlateNotFound(InputError):
@@ -207,24 +254,43 @@ def charuco_board(spec: PlateSpec):
 
 
 def _detect_charuco(g: np.ndarray, spec: PlateSpec, name: str, size) -> PlateDetection:
-    """Every inner corner of a ChArUco plate, by id (its markers fix the numbering: no 180° ambiguity),
-    refined as a chessboard's; fewer is refused naming how many were seen."""
+    """The inner corners of a ChArUco plate seen, by id (its markers fix the numbering: no 180°
+    ambiguity; OpenCV interpolates a corner only between 2 markers it found), refined as a
+    chessboard's; a corner too near the image's edge for its refinement window is left out. A board
+    seen in part is kept (the corners not seen NaN) when at least :data:`MIN_SEEN` corners in 2+ rows
+    and 2+ columns remain; fewer is refused naming how many were seen, the minimum and why."""
     import cv2
 
     corners, ids, _, markers = cv2.aruco.CharucoDetector(charuco_board(spec)).detectBoard(g)
-    n = 0 if ids is None else len(ids)
-    if n != spec.n_points:
-        seen = np.zeros((0, 2)) if corners is None else corners.reshape(-1, 2).astype(float)
+    uv = np.full((spec.n_points, 2), np.nan)
+    if ids is not None and len(ids):
+        uv[ids.ravel()] = corners.reshape(-1, 2)
+    seen = np.isfinite(uv).all(axis=1)
+    try:
+        spacing_ok = seen.sum() >= MIN_SEEN and grid_spacing_px(spec, uv) > 0
+    except InputError:  # no two neighbours seen: too few to refine, refused below
+        spacing_ok = False
+    if spacing_ok:
+        uv[seen] = _subpixel(g, uv, spec)[seen]
+        half = _window_px(uv, spec) + 1
+        h, w = g.shape[:2]
+        inside = (uv >= half).all(axis=1) & (uv[:, 0] <= w - 1 - half) & (uv[:, 1] <= h - 1 - half)
+        uv[~inside] = np.nan
+        seen = inside
+    r, c = np.divmod(np.flatnonzero(seen), spec.cols)
+    n = int(seen.sum())
+    if n < MIN_SEEN or len(set(r)) < 2 or len(set(c)) < 2:
         n_markers = 0 if markers is None else len(markers)
+        rows_cols = f" in {len(set(r))} row(s) and {len(set(c))} column(s)" if n else ""
         raise PlateNotFound(
-            f"plate {spec.text} not found: saw {n} of its {spec.n_points} corners ({n_markers} markers of "
-            f"{CHARUCO_DICT}): is the whole plate in view, and its size and dictionary right?",
+            f"plate {spec.text} not found: saw {n} of its {spec.n_points} corners{rows_cols} "
+            f"({n_markers} markers of {CHARUCO_DICT}); a board seen in part needs at least {MIN_SEEN} "
+            f"corners in 2 or more rows and columns: {MIN_SEEN_WHY}. Is enough of the plate in view, "
+            "and its size and dictionary right?",
             source=name,
-            seen_px=seen,
+            seen_px=uv[seen],
         )
-    uv = np.empty((spec.n_points, 2))
-    uv[ids.ravel()] = corners.reshape(-1, 2)
-    return PlateDetection(spec, _subpixel(g, uv, spec), size, name)
+    return PlateDetection(spec, uv, size, name)
 
 
 def _find_chessboard(g: np.ndarray, spec: PlateSpec) -> np.ndarray | None:
@@ -242,24 +308,31 @@ def _find_chessboard(g: np.ndarray, spec: PlateSpec) -> np.ndarray | None:
     return None
 
 
-def _subpixel(g: np.ndarray, corners: np.ndarray, spec: PlateSpec) -> np.ndarray:
-    """Corners refined by ``cv2.cornerSubPix`` in a window of a quarter of the corner spacing (the
-    saddle's gradients; 0.019 px RMS on a rendered plate against 0.038 px for the SB detector alone
-    and 0.022 px with its CALIB_CB_ACCURACY, which costs 2.8 s on a 2448 × 2048 image)."""
-    import cv2
-
-    grid = corners.reshape(spec.rows, spec.cols, 2)
-    sp = min(
-        np.linalg.norm(np.diff(grid, axis=1), axis=-1).min(),
-        np.linalg.norm(np.diff(grid, axis=0), axis=-1).min(),
-    )
+def _window_px(corners: np.ndarray, spec: PlateSpec) -> int:
+    """The half-size (px) of ``cornerSubPix``'s window: a quarter of the corner spacing (inside the
+    marker margin on a ChArUco board), 2..25 px."""
     quarter = 0.25
     if spec.marker_mm is not None:  # a ChArUco square's marker starts (p - m) / 2 from its corners
         quarter = min(quarter, 0.8 * (spec.pitch_mm - spec.marker_mm) / 2 / spec.pitch_mm)
-    half = int(np.clip(sp * quarter, 2, 25))
+    return int(np.clip(grid_spacing_px(spec, corners) * quarter, 2, 25))
+
+
+def _subpixel(g: np.ndarray, corners: np.ndarray, spec: PlateSpec) -> np.ndarray:
+    """Corners (N, 2; NaN: not seen, left so) refined by ``cv2.cornerSubPix`` in a window of a quarter
+    of the corner spacing (the saddle's gradients; 0.019 px RMS on a rendered plate against 0.038 px
+    for the SB detector alone and 0.022 px with its CALIB_CB_ACCURACY, which costs 2.8 s on a
+    2448 × 2048 image)."""
+    import cv2
+
+    half = _window_px(corners, spec)
+    seen = np.isfinite(corners).all(axis=1)
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
-    out = cv2.cornerSubPix(g, corners.astype(np.float32).reshape(-1, 1, 2), (half, half), (-1, -1), crit)
-    return out.reshape(-1, 2).astype(float)
+    out = np.array(corners, float)
+    refined = cv2.cornerSubPix(
+        g, corners[seen].astype(np.float32).reshape(-1, 1, 2), (half, half), (-1, -1), crit
+    )
+    out[seen] = refined.reshape(-1, 2)
+    return out
 
 
 def detect_plate(image, spec: PlateSpec | str, name: str | None = None) -> PlateDetection:
@@ -322,9 +395,10 @@ def detect_plate(image, spec: PlateSpec | str, name: str | None = None) -> Plate
 
 
 def annotate_plate(image, spec: PlateSpec, uv_px: np.ndarray, *, found: bool = True) -> np.ndarray:
-    """A BGR copy of ``image`` with the points drawn: found, OpenCV's coloured grid, the first point
-    ringed and the four corners to touch labelled A–D with their ids; not found, the points seen as
-    red rings."""
+    """A BGR copy of ``image`` with the points drawn: found, OpenCV's coloured grid (a board seen in
+    part: the corners seen, NaN rows of ``uv_px`` being the others, as green rings), the four corners to
+    touch labelled A–D with their ids (:meth:`PlateSpec.corner_labels` of the points seen); not found,
+    the points seen as red rings."""
     import cv2
 
     g, _ = _grey8(image, "image")
@@ -335,9 +409,14 @@ def annotate_plate(image, spec: PlateSpec, uv_px: np.ndarray, *, found: bool = T
         for u, v in pts:
             cv2.circle(out, (round(u), round(v)), 6 * scale, (0, 0, 255), scale, cv2.LINE_AA)
         return out
-    cv2.drawChessboardCorners(out, (spec.cols, spec.rows), pts.astype(np.float32).reshape(-1, 1, 2), True)
+    seen = np.isfinite(pts).all(axis=1)
+    if seen.all():
+        cv2.drawChessboardCorners(out, (spec.cols, spec.rows), pts.astype(np.float32).reshape(-1, 1, 2), True)
+    else:  # a board seen in part: each corner seen ringed in green
+        for u, v in pts[seen]:
+            cv2.circle(out, (round(u), round(v)), 5 * scale, (0, 200, 0), scale, cv2.LINE_AA)
     ids = spec.ids()
-    for label, i in spec.corner_labels().items():
+    for label, i in spec.corner_labels(seen).items():
         u, v = pts[i]
         cv2.circle(out, (round(u), round(v)), 10 * scale, (0, 255, 255), 2 * scale, cv2.LINE_AA)
         at = (round(u) + 12 * scale, round(v) - 12 * scale)
@@ -361,6 +440,8 @@ def annotate_plate(image, spec: PlateSpec, uv_px: np.ndarray, *, found: bool = T
 __all__ = [
     "CHARUCO_DICT",
     "KINDS",
+    "MIN_SEEN",
+    "grid_spacing_px",
     "charuco_board",
     "PlateDetection",
     "PlateNotFound",
