@@ -91,15 +91,28 @@ def grab_plate(source, spec, keep_dir: Path, name: str) -> dict:
         "image_sha256": digest,
         "image_file": str(rel),
         "image_size": list(det.image_size),
-        "uv_px": det.uv_px.tolist(),
+        # a corner not seen (a ChArUco board seen in part) is null: the journal holds no NaN
+        "uv_px": [
+            [float(u), float(v)] if ok else None for (u, v), ok in zip(det.uv_px, det.seen, strict=True)
+        ],
     }
+
+
+def _uv(im: dict) -> np.ndarray:
+    """A placement's points (N, 2) px, NaN where not seen."""
+    return np.array([(np.nan, np.nan) if p is None else p for p in im["uv_px"]], float).reshape(-1, 2)
+
+
+def _labels(spec, im: dict) -> dict[str, int]:
+    """The corners to touch (A–D) among those seen in placement ``im`` (as ``--annotate`` labels them)."""
+    return spec.corner_labels(np.isfinite(_uv(im)).all(axis=1))
 
 
 def plate_reply(s: Session) -> list[str]:
     from eyetohand.vision import PlateSpec
 
     spec = PlateSpec.parse(s.begin["spec"])
-    return [str(spec.n_points), *spec.corner_labels()]
+    return [str(spec.n_points), *_labels(spec, s.images[-1])]
 
 
 def same_plate(s: Session, spec, name: str) -> bool:
@@ -107,15 +120,21 @@ def same_plate(s: Session, spec, name: str) -> bool:
     return s.begin.get("spec") == spec.text and s.name == name
 
 
-def _corner(spec, label: str) -> tuple[int, str]:
-    """The plate point (index) ``label`` names, and its canonical label (A–D or its id)."""
-    labels = spec.corner_labels()
+def _corner(spec, label: str, im: dict) -> tuple[int, str]:
+    """The plate point (index) ``label`` names in placement ``im``, and its canonical label (A–D or its
+    id); a corner not seen in the image is refused."""
+    labels = _labels(spec, im)
     key = label.strip()
     if key.upper() in labels:
         return labels[key.upper()], key.upper()
     ids = spec.ids()
     if key.lower() in ids:
         i = ids.index(key.lower())
+        if im["uv_px"][i] is None:
+            raise CommandError(
+                f"CAL TOUCH: corner {ids[i]} of {spec.text} is not seen in the plate's image "
+                "(covered or out of view): touch a corner that is"
+            )
         named = [k for k, v in labels.items() if v == i]
         return i, named[0] if named else key.lower()
     raise CommandError(
@@ -133,9 +152,9 @@ def touch(s: Session, args: list[str]) -> tuple[dict | None, list[str]]:
     if len(args) != 4:
         raise CommandError(f"{TOUCH_USAGE}; got {len(args)} fields")
     spec = PlateSpec.parse(s.begin["spec"])
-    i, label = _corner(spec, args[0])
-    xyz = line_numbers(args[1:], ("x", "y", "z"), f"CAL TOUCH {label}", "mm")
     image = len(s.images) - 1  # the latest placement's corners
+    i, label = _corner(spec, args[0], s.images[image])
+    xyz = line_numbers(args[1:], ("x", "y", "z"), f"CAL TOUCH {label}", "mm")
     uv = s.images[image]["uv_px"][i]
     for p in s.active():
         if p["corner"] != i or p.get("image", 0) != image:
@@ -174,7 +193,7 @@ def fit_plate(s: Session):
         PlateImage(
             f"{k + 1}:{Path(im['image_file']).name}",
             (int(im["image_size"][0]), int(im["image_size"][1])),
-            np.array(im["uv_px"], float).reshape(-1, 2),
+            _uv(im),
         )
         for k, im in enumerate(s.images)
     ]
@@ -212,7 +231,7 @@ def status(s: Session) -> dict:
         "image_size": latest["image_size"],
         "corners": [
             {"label": k, "id": spec.ids()[i], "u": uv[i][0], "v": uv[i][1]}
-            for k, i in spec.corner_labels().items()
+            for k, i in _labels(spec, latest).items()
         ],
         "poses": [],
         "points": [

@@ -96,8 +96,12 @@ def _png_base64(img: np.ndarray) -> str:
     return base64.b64encode(cv2.imencode(".png", img)[1].tobytes()).decode()
 
 
-def _pts(uv: np.ndarray) -> list[list[float]]:
-    return [[float(u), float(v)] for u, v in np.asarray(uv, float).reshape(-1, 2)]
+def _pts(uv: np.ndarray) -> list[list[float] | None]:
+    """Points as JSON: a point not seen (NaN: a ChArUco board seen in part) is null."""
+    return [
+        [float(u), float(v)] if np.isfinite(u) and np.isfinite(v) else None
+        for u, v in np.asarray(uv, float).reshape(-1, 2)
+    ]
 
 
 class PlateDetect(Strict):
@@ -146,9 +150,10 @@ def detect_plate_route(req: PlateDetect):
         "uv_px": _pts(det.uv_px),
         "labels": [
             {"label": k, "index": i, "id": ids[i], "u": float(det.uv_px[i, 0]), "v": float(det.uv_px[i, 1])}
-            for k, i in spec.corner_labels().items()
+            for k, i in spec.corner_labels(det.seen).items()
         ],
-        "outline_px": _pts(det.uv_px[_border(spec, len(ids))]),
+        "seen": int(det.seen.sum()),
+        "outline_px": [p for p in _pts(det.uv_px[_border(spec, len(ids))]) if p is not None],
         "spacing_px": spacing,
         "snap_radius_px": snap_radius_px(spacing),
     }
@@ -168,8 +173,10 @@ class PlateSnap(Strict):
     """Pixels (clicks) snapped to the corners ``detect`` found, by the fit's own rule."""
 
     plate: str = Field(max_length=100)
-    uv_px: list[tuple[Finite, Finite]] = Field(
-        min_length=6, max_length=40_000, description="the detected points, as detect answered them"
+    uv_px: list[tuple[Finite, Finite] | None] = Field(
+        min_length=6,
+        max_length=40_000,
+        description="the detected points, as detect answered them (null: not seen on a board seen in part)",
     )
     image_size: tuple[int, int] = Field(description="(width, height) px, as detect answered it")
     touches: list[TouchPixel] = Field(min_length=1, max_length=1000)
@@ -180,7 +187,7 @@ def snap_route(req: PlateSnap):
     """Each touch's pixel on its detected corner (index, id, pixel, distance), or 422 naming
     ``touches`` in the fit's words: no corner within the snap radius, or two touches on one corner."""
     spec = _spec(req.plate)
-    uv = np.asarray(req.uv_px, float)
+    uv = np.array([(np.nan, np.nan) if p is None else p for p in req.uv_px], float).reshape(-1, 2)
     if len(uv) != spec.n_points:
         raise ApiError(
             422, f"uv_px: {len(uv)} points, but plate {spec.text} has {spec.n_points} {spec.what}", "uv_px"

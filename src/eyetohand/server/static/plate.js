@@ -120,7 +120,7 @@ function plateShowView() {
   else if (im && im.det) {
     clearError("#plate-err");
     const d = im.det;
-    $("#plate-state").textContent = `${im.name}: ${d.uv_px.length} ${d.what} found (${d.plate}), spacing ${fmt(d.spacing_px, 1)} px; a click snaps within ${fmt(d.snap_radius_px, 1)} px`;
+    $("#plate-state").textContent = `${im.name}: ${d.seen < d.uv_px.length ? `${d.seen} of ` : ""}${d.uv_px.length} ${d.what} found (${d.plate}), spacing ${fmt(d.spacing_px, 1)} px; a click snaps within ${fmt(d.snap_radius_px, 1)} px`;
   }
   plateDraw();
 }
@@ -138,7 +138,7 @@ function plateDraw() {
   g.drawImage(im.bitmap, 0, 0, c.width, c.height);
   const k = 1 / plate.scale, r = Math.max(3, c.width / 300), lw = Math.max(1.5, c.width / 600);
   const P = ([u, v]) => [(u + 0.5) * k, (v + 0.5) * k];  // pixel centres (OpenCV) to canvas
-  c.dataset.found = im.det ? String(im.det.uv_px.length) : "0";
+  c.dataset.found = im.det ? String(im.det.seen) : "0";
   c.dataset.seen = im.err && im.err.seen_px ? String(im.err.seen_px.length) : "0";
   c.dataset.labels = im.det ? im.det.labels.map((l) => `${l.label} ${l.id}`).join(",") : "";
   if (!im.det) {  // what was seen: red rings (as --annotate draws a plate not found)
@@ -151,7 +151,7 @@ function plateDraw() {
   g.beginPath(); d.outline_px.forEach((p, i) => { const [x, y] = P(p); if (i) g.lineTo(x, y); else g.moveTo(x, y); }); g.closePath(); g.stroke();
   g.setLineDash([]);
   g.fillStyle = "#1f5fae";
-  for (const p of d.uv_px) { const [x, y] = P(p); g.beginPath(); g.arc(x, y, r, 0, 2 * Math.PI); g.fill(); }
+  for (const p of d.uv_px) { if (!p) continue; const [x, y] = P(p); g.beginPath(); g.arc(x, y, r, 0, 2 * Math.PI); g.fill(); }
   g.font = `bold ${Math.round(c.width / 45)}px system-ui, sans-serif`;
   g.lineJoin = "round";
   const label = (text, x, y, colour) => {
