@@ -1,6 +1,8 @@
+import os
 import re
 import shutil
 import sys
+import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -55,6 +57,27 @@ def chromium_page(width: int, height: int, *, allowed_console: str | None = None
             browser.close()
 
 
+@pytest.fixture
+def ram_path(tmp_path):
+    """A temporary folder in memory (the tmpfs at /dev/shm, with 64 MiB free) for a test that writes
+    thousands of small files, else ``tmp_path``: rewriting a 10 kB file on this machine's disk cost
+    1-2 ms (ext4 flushes a truncated file's blocks on close), a third of the tamper corpus's time."""
+    shm = Path("/dev/shm")
+    try:
+        vfs = os.statvfs(shm)
+        room = vfs.f_bavail * vfs.f_frsize if os.access(shm, os.W_OK) else 0
+    except OSError:
+        room = 0
+    if room < 64 * 2**20:
+        yield tmp_path
+        return
+    folder = Path(tempfile.mkdtemp(prefix="eyetohand-test-", dir=shm))
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 @pytest.fixture(scope="session")
 def paper_pairs():
     from eyetohand import load_pairs
@@ -96,25 +119,70 @@ NUMERIC_FILES = {
 }
 
 
-# Files whose tests assert latency or deadlines (p99 of a robot's lines under faults, slow-client
-# deadlines, a render's time): `make test` runs them on their own after the parallel run (`-m serial`),
-# so a test's timing never measures the other worker's load.
+# Tests that assert latency or deadlines (p99 of a robot's lines under faults, "within 1 s", slow-client
+# deadlines, a render's time) carry @pytest.mark.serial: `make test` runs them on their own after the
+# parallel run (`-m serial`), so a test's timing never measures the other worker's load. The rest of
+# their files (refusals, atomicity, the same words everywhere: no clock in the assertion; every server
+# on a port the system picks) runs in the parallel phase. SERIAL_FILES: files serial as a whole (the
+# shared PostgreSQL store stopped and killed under load).
 SERIAL_FILES = {
-    "test_faults.py",
-    "test_truth_tcp.py",
-    "test_truth_http.py",
-    "test_render.py",
     "test_store_faults.py",
 }
 
 # The long studies (many seeds, many sessions: their assertion is a statistic) carry @pytest.mark.long
 # in their files: `make test` leaves them out, `make test-long` (and so .ci/run) runs them.
 
+# The files that take longest, heaviest first: `make test` hands whole files to its two workers
+# (--dist loadfile) in collection order (--no-loadscope-reorder; xdist's own order, most tests first,
+# started test_tamper and test_first_day last and left one worker idle for minutes), so the heaviest
+# start first and the small ones fill the end (longest-processing-time-first scheduling). Seconds of
+# test time per file, from `pytest -n 2 --dist loadfile -m "not serial and not long" --junitxml=…`
+# at load ~10 on 2 cores (docs/performance.md): only their order matters. A file not listed runs after
+# these, in collection order; a stale figure costs only balance, never a result.
+HEAVY_FILES = {
+    "test_server.py": 324,
+    "test_tamper.py": 167,
+    "test_first_day.py": 137,
+    "test_robot_programs.py": 131,
+    "test_diff.py": 117,
+    "test_plate.py": 112,
+    "test_detect.py": 112,
+    "test_report.py": 89,
+    "test_collect.py": 79,
+    "test_browser.py": 76,
+    "test_pick_programs.py": 65,
+    "test_pair_cap.py": 61,
+    "test_opcua_security.py": 58,
+    "test_sim.py": 45,
+    "test_circles.py": 41,
+    "test_cli_plate.py": 40,
+    "test_speed_paths.py": 39,
+    "test_images_cli.py": 36,
+    "test_first_day_trips.py": 35,
+    "test_browser_layout.py": 33,
+    "test_browser_collect.py": 32,
+    "test_plate_http.py": 32,
+    "test_locate.py": 29,
+    "test_one_point.py": 26,
+    "test_store_serve.py": 25,
+    "test_browser_trust.py": 24,
+    "test_plc.py": 24,
+    "test_startup_path.py": 19,
+    "test_store.py": 18,
+    "test_aravis.py": 18,
+    "test_auth_backoff.py": 18,
+    "test_figure_routes.py": 17,
+    "test_browser_diff.py": 17,
+    "test_belt_protocol.py": 16,
+}
+
 
 def pytest_collection_modifyitems(items):
-    """The numeric marker on NUMERIC_FILES' tests. And: Schemathesis (4.x) names each API operation's case
-    of a test (``test_fuzz_no_server_errors[POST /api/…]``) but gives all of them the test's node id.
-    pytest-xdist schedules a file's tests by node id (``make test``'s ``--dist loadfile``), so it ran
+    """HEAVY_FILES' tests first, heaviest file first (each file's tests in their order; the rest after,
+    in collection order). The numeric marker on NUMERIC_FILES' tests, the serial one on SERIAL_FILES'.
+    And: Schemathesis (4.x) names each API operation's case of a test
+    (``test_fuzz_no_server_errors[POST /api/…]``) but gives all of them the test's node id. pytest-xdist
+    schedules a file's tests by node id (``make test``'s ``--dist loadfile``), so it ran
     one of the 30: each gets its name's id back."""
     for item in items:
         if item.path.name in NUMERIC_FILES:
@@ -130,3 +198,4 @@ def pytest_collection_modifyitems(items):
                 item._id = coerce_node_id(nodeid)
             else:
                 item._nodeid = nodeid
+    items.sort(key=lambda item: -HEAVY_FILES.get(item.path.name, 0))  # stable: each file's order kept
