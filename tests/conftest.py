@@ -1,6 +1,7 @@
 import os
 import re
 import shutil
+import signal
 import sys
 import tempfile
 from contextlib import contextmanager
@@ -55,6 +56,22 @@ def chromium_page(width: int, height: int, *, allowed_console: str | None = None
             yield page
         finally:
             browser.close()
+
+
+@pytest.fixture(autouse=True)
+def _sigint_handler_restored():
+    """Ctrl-C's handler put back after each test. The CLI ignores SIGINT once it has reported an
+    interrupt (cli._interrupted: the process is ending); called in-process by a test, that outlived
+    the test, and a later test on the same worker that raises SIGINT saw nothing happen:
+    test_first_day_trips' ctrl-c test then failed with "'NoneType' object is not subscriptable" in
+    some orders of the parallel run (reproduced by ignoring SIGINT before it)."""
+    before = signal.getsignal(signal.SIGINT)
+    yield
+    if signal.getsignal(signal.SIGINT) is not before and before is not None:
+        try:
+            signal.signal(signal.SIGINT, before)
+        except ValueError:  # not the main thread: nothing to restore from here
+            pass
 
 
 @pytest.fixture
