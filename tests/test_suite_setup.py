@@ -42,3 +42,27 @@ def test_collection_puts_the_heaviest_files_first():
     items += [Item(heavier, "e"), Item("test_unlisted.py", "f")]
     conftest.pytest_collection_modifyitems(items)
     assert [i.name for i in items] == ["d", "e", "c", "b", "a", "f"]
+
+
+@pytest.mark.parametrize(
+    ("markexpr", "only"),
+    [
+        ("serial and not long", True),
+        ("serial", True),
+        ("not serial and not long", False),
+        ("serial or numeric", False),
+        ("long", False),
+        ("", False),
+        ("serial and (", False),  # unreadable: collect everything, pytest then says why
+    ],
+)
+def test_the_serial_phase_collects_only_files_with_serial_tests(markexpr, only):
+    assert conftest.selects_only_serial(markexpr) is only
+
+
+def test_every_file_with_a_serial_test_is_collected_by_the_serial_phase():
+    """The files the serial phase keeps are those that name the mark: a file marked serial as a whole
+    (SERIAL_FILES) or one with a serial test in it."""
+    kept = {p.name for p in TESTS.glob("test_*.py") if "mark.serial" in p.read_text()} | conftest.SERIAL_FILES
+    assert {"test_faults.py", "test_truth_tcp.py", "test_truth_http.py", "test_render.py"} <= kept
+    assert "test_store_faults.py" in kept and "test_server.py" not in kept
