@@ -153,44 +153,37 @@ SERIAL_FILES = {
 # (--dist loadfile) in collection order (--no-loadscope-reorder; xdist's own order, most tests first,
 # started test_tamper and test_first_day last and left one worker idle for minutes), so the heaviest
 # start first and the small ones fill the end (longest-processing-time-first scheduling). Seconds of
-# test time per file, from `pytest -n 2 --dist loadfile -m "not serial and not long" --junitxml=…`
-# at load ~10 on 2 cores (docs/performance.md): only their order matters. A file not listed runs after
-# these, in collection order; a stale figure costs only balance, never a result.
+# test time per file, from `pytest -n 2 --dist loadfile --no-loadscope-reorder -m "not serial and not
+# long" --junitxml=…` at load 4-7 on 2 cores (test_browser_trust's without a 30 s timeout it hit;
+# docs/performance.md): only their order matters. The files that wait on servers and robots
+# (test_first_day, test_robot_programs) keep their time on a quiet machine, the CPU-bound ones shrink.
+# A file not listed runs after these, in collection order; a stale figure costs balance, never a result.
 HEAVY_FILES = {
-    "test_server.py": 324,
-    "test_tamper.py": 167,
-    "test_first_day.py": 137,
-    "test_robot_programs.py": 131,
-    "test_diff.py": 117,
-    "test_plate.py": 112,
-    "test_detect.py": 112,
-    "test_report.py": 89,
-    "test_collect.py": 79,
-    "test_browser.py": 76,
-    "test_pick_programs.py": 65,
-    "test_pair_cap.py": 61,
-    "test_opcua_security.py": 58,
-    "test_sim.py": 45,
-    "test_circles.py": 41,
-    "test_cli_plate.py": 40,
-    "test_speed_paths.py": 39,
-    "test_images_cli.py": 36,
-    "test_first_day_trips.py": 35,
-    "test_browser_layout.py": 33,
-    "test_browser_collect.py": 32,
-    "test_plate_http.py": 32,
-    "test_locate.py": 29,
-    "test_one_point.py": 26,
-    "test_store_serve.py": 25,
-    "test_browser_trust.py": 24,
+    "test_first_day.py": 127,
+    "test_robot_programs.py": 126,
+    "test_server.py": 94,
+    "test_tamper.py": 85,
+    "test_collect.py": 77,
+    "test_report.py": 63,
+    "test_detect.py": 43,
+    "test_browser.py": 41,
+    "test_diff.py": 39,
+    "test_opcua_security.py": 36,
+    "test_truth_http.py": 35,
+    "test_pair_cap.py": 34,
+    "test_plate.py": 34,
+    "test_pick_programs.py": 27,
     "test_plc.py": 24,
-    "test_startup_path.py": 19,
-    "test_store.py": 18,
-    "test_aravis.py": 18,
-    "test_auth_backoff.py": 18,
-    "test_figure_routes.py": 17,
-    "test_browser_diff.py": 17,
-    "test_belt_protocol.py": 16,
+    "test_truth_tcp.py": 23,
+    "test_store_serve.py": 19,
+    "test_figure_routes.py": 16,
+    "test_aravis.py": 15,
+    "test_first_day_trips.py": 15,
+    "test_browser_trust.py": 15,
+    "test_auth_backoff.py": 14,
+    "test_browser_collect.py": 13,
+    "test_cli_plate.py": 13,
+    "test_browser_layout.py": 12,
 }
 
 
