@@ -62,7 +62,9 @@ systemd-analyze:
 # PYTEST_PARALLEL=` runs everything serially. docs/performance.md has the suite's times.
 # The long studies (marker `long`: many seeds, many sessions) are left out of `make test` and run by
 # `make test-long`, which .ci/run runs after it: every test runs in CI.
-PYTEST_PARALLEL ?= -n auto --dist loadfile
+# --no-loadscope-reorder: the files in tests/conftest.py's order (HEAVY_FILES first), not xdist's
+# (most tests first), so the longest files start first and none is left to run alone at the end.
+PYTEST_PARALLEL ?= -n auto --dist loadfile --no-loadscope-reorder
 
 test: $(STAMP) aravis postgres browser systemd-analyze
 	$(BIN)/ruff check src tests benchmarks

@@ -1,6 +1,9 @@
+import os
 import re
 import shutil
+import signal
 import sys
+import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -55,6 +58,43 @@ def chromium_page(width: int, height: int, *, allowed_console: str | None = None
             browser.close()
 
 
+@pytest.fixture(autouse=True)
+def _sigint_handler_restored():
+    """Ctrl-C's handler put back after each test. The CLI ignores SIGINT once it has reported an
+    interrupt (cli._interrupted: the process is ending); called in-process by a test, that outlived
+    the test, and a later test on the same worker that raises SIGINT saw nothing happen:
+    test_first_day_trips' ctrl-c test then failed with "'NoneType' object is not subscriptable" in
+    some orders of the parallel run (reproduced by ignoring SIGINT before it)."""
+    before = signal.getsignal(signal.SIGINT)
+    yield
+    if signal.getsignal(signal.SIGINT) is not before and before is not None:
+        try:
+            signal.signal(signal.SIGINT, before)
+        except ValueError:  # not the main thread: nothing to restore from here
+            pass
+
+
+@pytest.fixture
+def ram_path(tmp_path):
+    """A temporary folder in memory (the tmpfs at /dev/shm, with 64 MiB free) for a test that writes
+    thousands of small files, else ``tmp_path``: rewriting a 10 kB file on this machine's disk cost
+    1-2 ms (ext4 flushes a truncated file's blocks on close), a third of the tamper corpus's time."""
+    shm = Path("/dev/shm")
+    try:
+        vfs = os.statvfs(shm)
+        room = vfs.f_bavail * vfs.f_frsize if os.access(shm, os.W_OK) else 0
+    except OSError:
+        room = 0
+    if room < 64 * 2**20:
+        yield tmp_path
+        return
+    folder = Path(tempfile.mkdtemp(prefix="eyetohand-test-", dir=shm))
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 @pytest.fixture(scope="session")
 def paper_pairs():
     from eyetohand import load_pairs
@@ -96,25 +136,95 @@ NUMERIC_FILES = {
 }
 
 
-# Files whose tests assert latency or deadlines (p99 of a robot's lines under faults, slow-client
-# deadlines, a render's time): `make test` runs them on their own after the parallel run (`-m serial`),
-# so a test's timing never measures the other worker's load.
+# Tests that assert latency or deadlines (p99 of a robot's lines under faults, "within 1 s", slow-client
+# deadlines, a render's time) carry @pytest.mark.serial: `make test` runs them on their own after the
+# parallel run (`-m serial`), so a test's timing never measures the other worker's load. The rest of
+# their files (refusals, atomicity, the same words everywhere: no clock in the assertion; every server
+# on a port the system picks) runs in the parallel phase. SERIAL_FILES: files serial as a whole (the
+# shared PostgreSQL store stopped and killed under load).
 SERIAL_FILES = {
-    "test_faults.py",
-    "test_truth_tcp.py",
-    "test_truth_http.py",
-    "test_render.py",
     "test_store_faults.py",
 }
 
 # The long studies (many seeds, many sessions: their assertion is a statistic) carry @pytest.mark.long
 # in their files: `make test` leaves them out, `make test-long` (and so .ci/run) runs them.
 
+# The files that take longest, heaviest first: `make test` hands whole files to its two workers
+# (--dist loadfile) in collection order (--no-loadscope-reorder; xdist's own order, most tests first,
+# started test_tamper and test_first_day last and left one worker idle for minutes), so the heaviest
+# start first and the small ones fill the end (longest-processing-time-first scheduling). Seconds of
+# test time per file, from `pytest -n 2 --dist loadfile --no-loadscope-reorder -m "not serial and not
+# long" --junitxml=…` at load 4-7 on 2 cores (test_browser_trust's without a 30 s timeout it hit;
+# docs/performance.md): only their order matters. The files that wait on servers and robots
+# (test_first_day, test_robot_programs) keep their time on a quiet machine, the CPU-bound ones shrink.
+# A file not listed runs after these, in collection order; a stale figure costs balance, never a result.
+HEAVY_FILES = {
+    "test_first_day.py": 127,
+    "test_robot_programs.py": 126,
+    "test_server.py": 94,
+    "test_tamper.py": 85,
+    "test_collect.py": 77,
+    "test_report.py": 63,
+    "test_detect.py": 43,
+    "test_browser.py": 41,
+    "test_diff.py": 39,
+    "test_opcua_security.py": 36,
+    "test_truth_http.py": 35,
+    "test_pair_cap.py": 34,
+    "test_plate.py": 34,
+    "test_pick_programs.py": 27,
+    "test_plc.py": 24,
+    "test_truth_tcp.py": 23,
+    "test_store_serve.py": 19,
+    "test_figure_routes.py": 16,
+    "test_aravis.py": 15,
+    "test_first_day_trips.py": 15,
+    "test_browser_trust.py": 15,
+    "test_auth_backoff.py": 14,
+    "test_browser_collect.py": 13,
+    "test_cli_plate.py": 13,
+    "test_browser_layout.py": 12,
+}
+
+
+def selects_only_serial(markexpr: str) -> bool:
+    """Does ``-m markexpr`` select only tests marked serial (make test's second phase: "serial and not
+    long")? True when it is false for a test without the mark, whatever its other marks (all of them
+    or none); False for no expression, or one pytest cannot read."""
+    if not markexpr.strip():
+        return False
+    try:
+        from _pytest.mark.expression import Expression
+
+        expr = Expression.compile(markexpr)
+        return not any(
+            expr.evaluate(lambda name, /, **kw: name != "serial" and others)  # noqa: B023
+            for others in (True, False)
+        )
+    except Exception:  # noqa: BLE001  (another pytest's expression API: collect everything, as before)
+        return False
+
+
+def pytest_ignore_collect(collection_path, config):
+    """The serial phase (``-m "serial and not long"``) imports only the test files that can hold a
+    serial test (SERIAL_FILES, or "mark.serial" in the file): importing all ~95 to select 15 tests
+    cost 12.7 s of its CPU, these 5 files 3.5 s (load ~6)."""
+    name = collection_path.name
+    if not (name.startswith("test_") and name.endswith(".py")):
+        return None
+    if not selects_only_serial(config.option.markexpr or ""):
+        return None
+    if name in SERIAL_FILES or "mark.serial" in collection_path.read_text(encoding="utf-8"):
+        return None
+    return True
+
 
 def pytest_collection_modifyitems(items):
-    """The numeric marker on NUMERIC_FILES' tests. And: Schemathesis (4.x) names each API operation's case
-    of a test (``test_fuzz_no_server_errors[POST /api/…]``) but gives all of them the test's node id.
-    pytest-xdist schedules a file's tests by node id (``make test``'s ``--dist loadfile``), so it ran
+    """HEAVY_FILES' tests first, heaviest file first (each file's tests in their order; the rest after,
+    in collection order). The numeric marker on NUMERIC_FILES' tests, the serial one on SERIAL_FILES'.
+    And: Schemathesis (4.x) names each API operation's case of a test
+    (``test_fuzz_no_server_errors[POST /api/…]``) but gives all of them the test's node id. pytest-xdist
+    schedules a file's tests by node id (``make test``'s ``--dist loadfile``), so it ran
     one of the 30: each gets its name's id back."""
     for item in items:
         if item.path.name in NUMERIC_FILES:
@@ -130,3 +240,4 @@ def pytest_collection_modifyitems(items):
                 item._id = coerce_node_id(nodeid)
             else:
                 item._nodeid = nodeid
+    items.sort(key=lambda item: -HEAVY_FILES.get(item.path.name, 0))  # stable: each file's order kept

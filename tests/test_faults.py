@@ -15,6 +15,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 from helpers import PAPER, ServeProcess, records
 
@@ -39,6 +40,7 @@ def start_serve(data: Path, *extra: str, preexec=None) -> ServeProcess:
     return ServeProcess(data, "--calibration", "cal 0", *extra, log_level="error", preexec=preexec)
 
 
+@pytest.mark.serial  # counts the writes acknowledged in 0.8-1.4 s: runs alone (tests/conftest.py)
 def test_kill_9_during_writes_loses_no_acknowledged_change(tmp_path):
     data = tmp_path / "data"
     seed(data)
@@ -90,6 +92,7 @@ db.execute("COMMIT")
 """
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_a_foreign_write_lock_gives_503_while_mapping_keeps_answering(tmp_path):
     data = tmp_path / "data"
     seed(data)
@@ -149,6 +152,7 @@ def test_a_foreign_write_lock_gives_503_while_mapping_keeps_answering(tmp_path):
         srv.stop()
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_a_huge_body_is_refused_while_the_robot_keeps_being_served(tmp_path):
     """A 63 MiB body of pairs is refused before it is parsed (413 JSON), and TCP answers meanwhile."""
     data = tmp_path / "data"
@@ -239,6 +243,7 @@ def test_a_write_past_the_file_size_limit_fails_cleanly(tmp_path):
         after.close()
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_idle_connections_from_another_address_do_not_lock_the_robot_out(paper_pairs):
     from eyetohand import calibrate
 

@@ -56,6 +56,7 @@ def test_levenberg_marquardt_is_least_squares_lm_bit_for_bit(case):
     ours = levenberg_marquardt(fun, start.params, jac)
     assert ours.nfev == theirs.nfev
     assert ours.message == theirs.message
+    assert ours.converged is (theirs.status > 0)  # least_squares' status: 0 = out of evaluations
     np.testing.assert_array_equal(ours.x.view(np.int64), theirs.x.view(np.int64))
     np.testing.assert_array_equal(ours.fun, theirs.fun)
     assert np.abs(ours.x - start.params).max() > 0  # it moved: a fit, not the start handed back
@@ -68,6 +69,24 @@ def test_levenberg_marquardt_is_least_squares_lm_bit_for_bit(case):
 def test_levenberg_marquardt_refuses_a_start_it_cannot_evaluate():
     with pytest.raises(ValueError, match="Residuals are not finite in the initial point"):
         levenberg_marquardt(lambda p: np.array([np.nan, p[0]]), np.zeros(1), lambda p: np.ones((2, 1)))
+
+
+def test_a_fit_out_of_evaluations_says_so_in_a_flag_as_least_squares_status_does():
+    """x**k has its minimum at 0 but LM's steps shrink x by a fixed fraction: no tolerance is met before
+    the 100 D evaluations run out. ``converged`` is False exactly where least_squares' status is 0,
+    True on the same problem with k = 1 (one step), so no caller reads the words to know."""
+    for k, converged in ((1, True), (3, False), (21, False)):
+
+        def fun(x, k=k):
+            return np.array([x[0] ** k, 1e-3 * x[1]])
+
+        def jac(x, k=k):
+            return np.array([[k * x[0] ** (k - 1), 0.0], [0.0, 1e-3]])
+
+        theirs = least_squares(fun, [1.0, 1.0], jac=jac, method="lm", x_scale="jac")
+        ours = levenberg_marquardt(fun, np.array([1.0, 1.0]), jac)
+        assert ours.converged is converged is (theirs.status > 0), (k, theirs.status)
+        assert ours.nfev == theirs.nfev and (converged or ours.nfev == 200)
 
 
 def test_levenberg_marquardt_words_are_least_squares_words_for_every_minpack_code():

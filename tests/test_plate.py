@@ -345,6 +345,7 @@ def _cell_errors(seed: int):
     return np.linalg.norm((m.xyz_mm - check.xyz_mm)[:, :2], axis=1), m.sigma_mm
 
 
+@pytest.mark.long  # a study: a statistic pooled over 100 simulated cells (make test-long runs it)
 def test_sigma_is_calibrated_over_simulated_cells():
     """100 cells (tilt 0-10 deg, any yaw, 3 or 4 touches with 0.1 mm noise, corners with 0.02 px):
     RMS(sigma_mm) / RMS(check error) pooled. Blocks of 100 cells measured 0.96-1.13 (5 blocks);

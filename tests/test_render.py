@@ -150,6 +150,7 @@ def test_any_opencv_style_camera_renders_the_same(small_cam):
     assert ta.ellipse_centre_px == pytest.approx(tb.ellipse_centre_px)
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_full_size_render_time():
     """2448×2048 with a 60 mm strip across the view: well under two seconds (measured ~0.4 s)."""
     cam = Camera.looking_down((2448, 2048), tilt_deg=8.0)

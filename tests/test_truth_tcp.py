@@ -50,6 +50,7 @@ def until(fn, timeout_s: float, step_s: float = 0.01):
 # ------------------------------------------------------------------ 1. fresh however busy the collector
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_a_deleted_calibration_is_refused_within_1_s_while_32_clients_keep_the_camera_busy(tmp_path):
     """32 clients send CAL POINT back to back (each a grab of the sim: camera); the calibration is
     deleted over HTTP: mapping lines refuse within 1 s (before: up to the whole command queue's time,
@@ -60,6 +61,7 @@ def test_a_deleted_calibration_is_refused_within_1_s_while_32_clients_keep_the_c
     assert out["busy"] > 0  # the queue is bounded: the surplus is refused, not queued
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_a_new_version_is_in_force_within_1_s_while_the_collector_is_busy(tmp_path):
     data = tmp_path / "data"
     seed(data)
@@ -99,6 +101,7 @@ def test_a_new_version_is_in_force_within_1_s_while_the_collector_is_busy(tmp_pa
 # ------------------------------------------------------------------ 5. the database file is the truth
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_tcp_refuses_while_the_database_file_is_deleted_or_replaced(tmp_path):
     data = tmp_path / "data"
     seed(data)
@@ -207,6 +210,7 @@ def test_collection_and_check_use_the_calibration_the_mapping_lines_serve(tmp_pa
 # ------------------------------------------------------------------ 8. no client starves another
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_a_pipelining_client_that_never_reads_does_not_delay_another(tmp_path):
     """200 idle sockets from 127.0.0.2-.5 and a client pipelining mapping lines without reading its
     answers: another client's mapping lines keep p99 < 50 ms (the target; alone 1.7 ms, before the fix a
@@ -219,12 +223,14 @@ def test_a_pipelining_client_that_never_reads_does_not_delay_another(tmp_path):
     assert out["max_ms"] < 1000, out  # before: 4755 ms, one burst of the pipeliner's lines
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_the_robot_address_is_served_whatever_idles_elsewhere(tmp_path):
     out = probe_lockout(tmp_path, per_addr=64, extra=("--robot-address", "127.0.0.1"))
     assert out["idle_sockets"] == 256
     assert out["robot_reply"].count(",") == 2, out
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_sockets_that_never_send_a_line_are_closed_after_the_grace(tmp_path):
     seed(tmp_path / "data")
     srv = serve(tmp_path, "--calibration", "cell1", "--tcp-first-line", "1")
@@ -294,6 +300,7 @@ def test_cal_and_belt_on_a_server_without_camera_or_conveyor_say_what_is_missing
         srv.stop()
 
 
+@pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
 def test_a_corrupt_image_in_a_folder_camera_is_a_decode_error_not_a_timeout(tmp_path):
     shots = tmp_path / "shots"
     shots.mkdir()

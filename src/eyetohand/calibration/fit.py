@@ -12,8 +12,10 @@ the homography and the affine map); between models that do not (dlt3d with its s
 its lens) Vuong's non-nested likelihood-ratio test, penalised by Schwarz's term, takes its place at
 the same level. "Lowest held-out score wins" alone took a lens model on a lens-free cell in
 2–24 % of trials (docs/limit.md). A candidate is considered only when the pairs give at least 8 more
-equations than it has unknowns (2n ≥ unknowns + 8), so that its held-out score means something;
-the report says why each candidate was or was not taken. The chosen model's held-out residuals are
+equations than it has unknowns (2n ≥ unknowns + 8), so that its held-out score means something,
+and when the pairs' geometry can determine its numbers (``Model.unobservable``: the camera's depth,
+which a height span too small for its distance and pixel noise does not show); the report says why
+each candidate was or was not taken. The chosen model's held-out residuals are
 reused as the calibration's leave-one-out statistics (not computed twice).
 
 Leave-one-out without n refits (:func:`loo_gauss_newton`), for the least-squares objective (``l2``)
@@ -483,6 +485,10 @@ def _select(pairs: PointPairs, solver: Solver, objective: Objective, *, image_si
         if 2 * n < k + SPARE_EQUATIONS:
             need = -(-(k + SPARE_EQUATIONS) // 2)
             cands.append(Candidate(cls.name, k, why=f"needs at least {need} pairs, have {n}"))
+            continue
+        why = cls.unobservable(pairs.uv_px, pairs.xyz_mm, image_size=image_size)
+        if why is not None:  # enough pairs, but not the geometry its numbers need (a camera's depth)
+            cands.append(Candidate(cls.name, k, why=why))
             continue
         try:
             full, _ = fit_model(pairs, cls, cv_opt, objective, image_size=image_size, seed=seed)

@@ -26,17 +26,21 @@ _MESSAGES = {
     4: "`gtol` termination condition is satisfied.",
     5: "The maximum number of function evaluations is exceeded.",
 }
+CONVERGED = frozenset({1, 2, 3, 4})  # MINPACK's codes for a tolerance met (5: out of evaluations)
 
 
 @dataclass(frozen=True)
 class LMResult:
     """``x`` the solution, ``fun`` its residuals, ``nfev`` MINPACK's evaluation count, ``message``
-    why it stopped (least_squares' words)."""
+    why it stopped (least_squares' words), ``converged`` whether a tolerance stopped it (False: it ran
+    out of evaluations, ``100 D``, or MINPACK refused its input): a caller decides on this, never on
+    the words."""
 
     x: np.ndarray
     fun: np.ndarray
     nfev: int
     message: str
+    converged: bool
 
 
 def _last(fn: Callable[[np.ndarray], np.ndarray]) -> Callable[[np.ndarray], np.ndarray]:
@@ -86,4 +90,4 @@ def levenberg_marquardt(
         diag=None,
     )
     words = _MESSAGES.get(ier, f"MINPACK code {ier}")
-    return LMResult(np.asarray(x, float), info["fvec"], int(info["nfev"]), words)
+    return LMResult(np.asarray(x, float), info["fvec"], int(info["nfev"]), words, ier in CONVERGED)

@@ -286,6 +286,13 @@ class Model(ABC):
         return None
 
     @classmethod
+    def unobservable(cls, uv_px, xyz_mm, *, image_size=None) -> str | None:
+        """Why pairs enough in number still cannot determine this model's numbers (one line, for the
+        ``auto`` report: it then does not offer the model), or None. A check before any fit, for the
+        models whose fit would otherwise crawl along an unobservable direction; None by default."""
+        return None
+
+    @classmethod
     def leave_one_out(cls, uv_px, xyz_mm, *, image_size=None) -> np.ndarray | None:
         """Held-out residuals (N, 3) mm of the least-squares (``lm``) fits without each pair, by the
         model's own warm-started refits, for the models that have them; None otherwise (the caller

@@ -34,6 +34,7 @@ then refine all parameters on the robot-space residuals (the paper's equation 16
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from types import MappingProxyType
 
 import numpy as np
@@ -197,6 +198,26 @@ class PinholeCamera(Model):
             meta["aspect_z"] = aspect_z
         return cls(params, meta)
 
+    @classmethod
+    def unobservable(cls, uv_px, xyz_mm, *, image_size=None) -> str | None:
+        """Why the pairs cannot show the camera's depth (:func:`depth_test`: the perspective of the
+        pairs' linear projection within ``DEPTH_Z`` standard errors of none), or None. Without it the
+        focal length and the distance are one number seen twice, and the reprojection fits crawl along
+        that ridge to their evaluation limit (66 fits, 8 s on 16 pairs at two heights 1 mm apart)."""
+        xyz = np.asarray(xyz_mm, float)
+        if len(xyz) < cls.min_pairs:
+            return None  # the count is refused elsewhere, in its own words
+        test = pairs_depth_test(uv_px, xyz)
+        if test is None or test.p_value < DEPTH_ALPHA:
+            return None
+        return (
+            f"model '{cls.name}': these pairs do not show the camera's depth (their perspective is within "
+            f"{DEPTH_Z:g} standard errors of none: chi-square {test.chi2:.3g} on 3 degrees of freedom, "
+            f"p = {test.p_value:.2g}; heights span {np.ptp(xyz[:, 2]):.3g} mm seen from about "
+            f"{test.distance_mm:.3g} mm with {test.noise_px:.2g} px of noise), so its focal length and "
+            "distance cannot be told apart; pairs over a taller height span would show it"
+        )
+
     def __init__(self, params, constants=None, diagnostics=None):
         consts = dict(constants or {})
         if diagnostics is None and "aspect" not in consts:  # files written before fy was estimated
@@ -322,9 +343,84 @@ class PinholeCamera(Model):
 ASPECT_Z = 3.0  # "auto": fy/fx − 1 must exceed this many standard errors for a free aspect ratio
 
 
+# "auto" offers the camera only where the pairs show its depth: the perspective of their linear
+# projection differs from none (an orthographic view) by DEPTH_Z standard errors, the two-sided
+# normal level of ASPECT_Z's test, taken as the chi-square level of the three-number perspective
+DEPTH_Z = 3.0
+DEPTH_ALPHA = math.erfc(DEPTH_Z / math.sqrt(2.0))  # 0.0027
+
+
+@dataclass(frozen=True)
+class DepthTest:
+    """:func:`depth_test`'s answer: the Wald ``chi2`` (3 degrees of freedom) of "no perspective", its
+    ``p_value``, the distance ``distance_mm`` to the pairs' centroid along the view and the pixel
+    noise ``noise_px`` it was measured against."""
+
+    chi2: float
+    p_value: float
+    distance_mm: float
+    noise_px: float
+
+
+def depth_test(uv: np.ndarray, rel: np.ndarray, P: np.ndarray) -> DepthTest | None:
+    """Does the projection ``P`` (3×4, robot points ``rel`` relative to their centroid → pixels ``uv``)
+    show depth? Written ``uv = A·(X, 1) / (1 + q·X)``, an orthographic view is q = 0, and |q| is one
+    over the distance to the centroid along the view: q's component along z is the magnification that
+    changes with the height span, its x, y components the in-plane perspective of a tilted view. The
+    Wald statistic ``qᵀ cov(q)⁻¹ q`` on the reprojection fit's covariance (σ² from its residuals,
+    2n − 11 degrees of freedom) is chi-square with 3 degrees of freedom under q = 0. None when P
+    leaves no residual degrees of freedom or its Jacobian is singular."""
+    n = len(uv)
+    if 2 * n <= 11 or P[2, 3] == 0:
+        return None
+    P = P / P[2, 3]
+    Xh = np.column_stack([rel, np.ones(n)])
+    w = 1.0 + rel @ P[2, :3]
+    proj = (Xh @ P[:2].T) / w[:, None]
+    r = (proj - uv).ravel()
+    s2 = float(r @ r) / (2 * n - 11)
+    J3 = np.zeros((n, 2, 11))  # d(proj)/d(A row 1, A row 2, q)
+    J3[:, 0, 0:4] = Xh / w[:, None]
+    J3[:, 1, 4:8] = Xh / w[:, None]
+    J3[:, :, 8:11] = -proj[:, :, None] * rel[:, None, :] / w[:, None, None]
+    J = J3.reshape(2 * n, 11)
+    scale = np.linalg.norm(J, axis=0)
+    if not (np.isfinite(J).all() and (scale > 0).all()):
+        return None
+    Js = J / scale
+    try:
+        cov_q = np.linalg.inv(Js.T @ Js)[8:, 8:] / np.outer(scale[8:], scale[8:])  # per unit σ²
+        q = P[2, :3]
+        chi2 = float(q @ np.linalg.solve(cov_q, q)) / s2 if s2 > 0 else math.inf
+    except np.linalg.LinAlgError:
+        return None
+    norm_q = float(np.linalg.norm(q))
+    return DepthTest(chi2, chi2_tail_3(chi2), 1.0 / norm_q if norm_q > 0 else math.inf, math.sqrt(s2))
+
+
+def chi2_tail_3(x: float) -> float:
+    """P(χ² > x) with 3 degrees of freedom, in closed form (SciPy's ``chi2.sf(x, 3)``)."""
+    if math.isinf(x):
+        return 0.0
+    return math.erfc(math.sqrt(x / 2.0)) + math.sqrt(2.0 * x / math.pi) * math.exp(-x / 2.0)
+
+
+def pairs_depth_test(uv_px, xyz_mm) -> DepthTest | None:
+    """:func:`depth_test` of the pairs' normalised DLT (the camera's linear start); None where the
+    DLT is refused (coplanar pairs: the camera's fit then says so itself)."""
+    uv = np.asarray(uv_px, float)
+    rel = np.asarray(xyz_mm, float) - np.mean(xyz_mm, axis=0)
+    try:
+        P_n, T_uv, T3, _ = dlt_projection(uv, rel, PinholeCamera.name, what="a pinhole camera with lens")
+    except InputError:
+        return None
+    return depth_test(uv, rel, np.linalg.inv(T_uv) @ P_n @ T3)
+
+
 def _fit_reprojection(uv, rel, starts, square: bool):
-    """Levenberg–Marquardt on the image reprojection error from each start; the best as
-    (mean squared residual, start label, parameters) or None."""
+    """Levenberg–Marquardt on the image reprojection error from each start; the best converged fit as
+    (mean squared residual, start label, parameters) or None. A start whose fit ran out of evaluations
+    (``LMResult.converged`` False) is dropped: it stopped somewhere along a ridge, not at a minimum."""
     best = None
     for label, full0 in starts:
         full0 = np.array(full0, float)
@@ -338,6 +434,8 @@ def _fit_reprojection(uv, rel, starts, square: bool):
                 lambda p: fun_batch(p[None])[0], p0, lambda p: batch_jacobian(fun_batch, p)
             )
         except ValueError:
+            continue
+        if not sol.converged:
             continue
         cost = float(np.mean(sol.fun**2)) if np.isfinite(sol.fun).all() else np.inf
         if np.isfinite(cost) and (best is None or cost < best[0]):
