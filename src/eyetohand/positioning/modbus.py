@@ -23,7 +23,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from eyetohand.positioning import registers as R
-from eyetohand.positioning.locate import NO_CAMERA, LocateResult, refused
+from eyetohand.positioning.locate import LocateResult, no_camera
 from eyetohand.positioning.mapping import PointResult, Status, map_point
 from eyetohand.positioning.served import Served
 
@@ -188,7 +188,7 @@ class ModbusService:
         """A LOCATE in a worker thread, then its answer written (unless a newer request came)."""
         any_size = dmin == 0 and dmax == 0
         if self.locate is None:
-            result: LocateResult = refused(Status.CAMERA, NO_CAMERA)
+            result: LocateResult = no_camera()
         else:
             result = await asyncio.to_thread(
                 self.locate, None if any_size else dmin, None if any_size else dmax, z

@@ -18,7 +18,8 @@ object ``Calibration`` with
   ``z_mm`` (NaN: the calibration's own) and map them (:class:`eyetohand.positioning.locate.Locator`); count
   and outside UInt32, the arrays Double of ``count`` elements (σ -1 without uncertainty); the parts
   outside the calibrated region are omitted and counted in ``outside``. Refusals as ImageToRobot's,
-  and ``BadResourceUnavailable`` without an image (no camera served, or the grab timed out).
+  ``BadResourceUnavailable`` without an image (the grab timed out) and ``BadNotSupported`` on a server
+  started without a camera (the words of :data:`eyetohand.positioning.locate.NO_CAMERA`).
 
 Without ``token`` the server takes anonymous sessions (for loopback; ``eyetohand serve`` refuses
 another address without one); with it, only user :data:`USER` with the token as password. With a
@@ -38,7 +39,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from eyetohand.core import AuthBackoff
-from eyetohand.positioning.locate import NO_CAMERA, refused
+from eyetohand.positioning.locate import no_camera
 from eyetohand.positioning.mapping import Status, map_point
 from eyetohand.positioning.served import Served
 
@@ -73,6 +74,7 @@ CODES = {
     Status.NO_CALIBRATION: "BadInvalidState",
     Status.INTERNAL: "BadInternalError",
     Status.CAMERA: "BadResourceUnavailable",
+    Status.NOT_SERVED: "BadNotSupported",
 }
 
 
@@ -260,7 +262,7 @@ class OpcUaService:
         if (dmin is None and dmax is None) or (dmin == 0 and dmax == 0):
             dmin = dmax = None
         if self.locate is None:
-            res = refused(Status.CAMERA, NO_CAMERA)
+            res = no_camera()
         else:
             res = await asyncio.to_thread(self.locate, dmin, dmax, z)
         if not res.ok:

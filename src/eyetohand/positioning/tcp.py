@@ -43,6 +43,7 @@ from eyetohand.cell import (
 )
 from eyetohand.core import MM_DEG, AuthBackoff, InputError, OutputUnits
 from eyetohand.geometry import check_symmetry
+from eyetohand.positioning.locate import NO_CAMERA
 from eyetohand.positioning.served import FixedCalibration, Served
 
 MAX_LINE = 256
@@ -71,6 +72,7 @@ thousands of lines in one read must not hold every other client for seconds)."""
 MISSING = {  # a command word of a service this server was not started with -> why it is refused
     "CAL": "no camera: start eyetohand serve with --camera URI to use CAL",
     "BELT": "no conveyor: start eyetohand serve with --conveyor FILE to use BELT",
+    "LOCATE": NO_CAMERA.reason,  # the words Modbus and OPC UA give too (positioning/locate.py)
 }
 
 
