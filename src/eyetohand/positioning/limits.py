@@ -37,13 +37,19 @@ QUIET_S = 10.0
 BACKLOG = 64
 """Each listener's accept backlog: connections the kernel queues before they take a file handle;
 asyncio accepts up to this many in one turn before any is refused (counted in :func:`file_budget`)."""
-RESERVE_FILES = 160
+RESERVE_FILES = 192
 """File handles kept for everything but the listeners' connections: the store (SQLite and its WAL, one
 per thread), log files, the camera, the event loops' own handles."""
 WANT_FILES = 8192
 """The soft RLIMIT_NOFILE asked for at start (never above the hard limit): the shipped systemd unit sets
 ``LimitNOFILE=8192``."""
 MIN_TOTAL = 8  # below this a listener is useless: serve refuses to start (raise the limit)
+FIRST_S = 10.0
+"""A connection that sends nothing this long after connecting is closed (Modbus, OPC UA; the TCP line's
+``--tcp-first-line``, HTTP's head deadline are the same rule)."""
+IDLE_S = 300.0
+"""A Modbus connection that sends nothing this long is closed (the TCP line's idle limit; a PLC that
+polls keeps its connection, one that was switched off does not hold it)."""
 
 
 @dataclass(frozen=True)
@@ -56,6 +62,15 @@ class Limit:
     def scaled(self, factor: float) -> Limit:
         total = max(MIN_TOTAL, int(self.total * factor))
         return Limit(total, min(self.per_address, total))
+
+
+#: each listener's bound before :func:`file_budget` fits them to the process's file handles
+LIMITS = {
+    "http": Limit(256, 64),
+    "tcp": Limit(256, 64),  # the TCP line's MAX_CLIENTS, MAX_PER_PEER (and ROBOT_SLOTS beyond)
+    "modbus": Limit(64, 16),
+    "opcua": Limit(64, 16),
+}
 
 
 class Connection(Protocol):
@@ -188,9 +203,14 @@ class Guarded(asyncio.Protocol):
     needs its framing: the TCP line does that itself)."""
 
     def __init__(
-        self, inner: asyncio.BaseProtocol, slots: Slots, first_s: float | None, idle_s: float | None
+        self,
+        inner: asyncio.BaseProtocol,
+        slots: Slots,
+        first_s: float | None,
+        idle_s: float | None,
+        on_refused: Callable[[], object] | None = None,
     ):
-        self.inner, self.slots = inner, slots
+        self.inner, self.slots, self.on_refused = inner, slots, on_refused
         self.first_s, self.idle_s = first_s, idle_s
         self.transport: Any = None
         self.address = "?"
@@ -207,6 +227,8 @@ class Guarded(asyncio.Protocol):
         self.last_active = loop.time()
         if self.slots.admit(self.address, self) is not None:
             transport.abort()  # no lingering close: the handle is back at once
+            if self.on_refused is not None:  # the library forgets the protocol it made
+                self.on_refused()
             return
         self.admitted = True
         self.inner.connection_made(transport)
