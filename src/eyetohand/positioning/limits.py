@@ -328,8 +328,10 @@ def file_budget(
     ``wanted`` listeners into it: their totals are scaled down (never up) so that their sum, a
     :data:`BACKLOG` each and :data:`RESERVE_FILES` stay below the soft limit, counting the handles
     open now. Raises :class:`FileBudgetError` when even :data:`MIN_TOTAL` each does not fit."""
-    import resource
-
+    try:
+        import resource
+    except ImportError:  # Windows: no RLIMIT_NOFILE (its handle limit is far above these)
+        return FileBudget(-1, -1, 0, dict(wanted))
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if raise_limit:
         target = want_files if hard == resource.RLIM_INFINITY else min(want_files, hard)
