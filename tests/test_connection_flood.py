@@ -177,7 +177,7 @@ def test_the_soft_limit_is_raised_toward_the_hard_one(tmp_path):
     r = _serve_under("1024:4096", tmp_path)
     line = next(x for x in r.stdout.splitlines() if x.startswith("connections:"))
     assert "file handles: limit 4096 (hard 4096)" in line, line
-    assert "http 256 (64/address), tcp 256 (64/address), modbus 64 (16/address), opcua 64" in line, line
+    assert "http 256 (256/address), tcp 256 (64/address), modbus 64 (16/address), opcua 64" in line, line
 
 
 def test_too_few_file_handles_refuse_to_start_with_one_line(tmp_path):

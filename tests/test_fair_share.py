@@ -24,6 +24,9 @@ class Fake:
         self.last_active = t
         self.closed: Refusal | None = None
 
+    def evictable(self) -> bool:
+        return True
+
     def evict(self, reason: Refusal) -> None:
         self.closed = reason
 
@@ -154,3 +157,28 @@ def test_a_new_address_gets_a_place_in_a_full_command_pool(paper_pairs):
             srv.close()
 
     asyncio.run(asyncio.wait_for(run(), 30))
+
+
+def test_replace_own_serves_the_newest_and_spares_requests_at_work():
+    """HTTP's rule: an address at its bound has its own longest idle connection replaced by the new
+    one; a connection whose request the server works on is never closed for another."""
+
+    class Working(Fake):
+        def evictable(self) -> bool:
+            return False
+
+    slots = Slots("test", Limit(total=4, per_address=2), replace_own=True)
+    old, busy = Fake(1.0), Working(0.5)
+    assert slots.admit("10.0.0.1", busy) is None and slots.admit("10.0.0.1", old) is None
+    new = Fake(2.0)
+    assert slots.admit("10.0.0.1", new) is None  # at its bound: replaces its longest idle evictable one
+    assert old.closed is not None and "a newer connection from the same address" in old.closed.reason
+    assert busy.closed is None
+    assert slots.admit("10.0.0.1", Fake(3.0)) is None and new.closed is not None
+    strict = Slots("test", Limit(total=4, per_address=1))  # the TCP line: refused, nothing closed
+    first = Fake(1.0)
+    assert strict.admit("10.0.0.1", first) is None
+    assert strict.admit("10.0.0.1", Fake(2.0)).code is ErrorCode.BUSY and first.closed is None
+    only_busy = Slots("test", Limit(total=1, per_address=1), replace_own=True)
+    assert only_busy.admit("10.0.0.1", Working(1.0)) is None
+    assert only_busy.admit("10.0.0.1", Fake(2.0)).code is ErrorCode.BUSY

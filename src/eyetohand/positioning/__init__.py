@@ -15,6 +15,7 @@ from eyetohand.core import lazy_exports
 if TYPE_CHECKING:
     from eyetohand.positioning.limits import (
         BACKLOG,
+        HTTP_BUSY,
         LIMITS,
         FileBudget,
         FileBudgetError,
@@ -46,6 +47,7 @@ else:
         {
             "limits": (
                 "BACKLOG",
+                "HTTP_BUSY",
                 "LIMITS",
                 "FileBudget",
                 "FileBudgetError",
@@ -75,6 +77,7 @@ else:
     )
 
 __all__ = [
+    "HTTP_BUSY",
     "BACKLOG",
     "LIMITS",
     "FileBudget",

@@ -66,7 +66,7 @@ class Limit:
 
 #: each listener's bound before :func:`file_budget` fits them to the process's file handles
 LIMITS = {
-    "http": Limit(256, 64),
+    "http": Limit(256, 256),  # one address may be a proxy, or a script's 80 requests: the fair share only
     "tcp": Limit(256, 64),  # the TCP line's MAX_CLIENTS, MAX_PER_PEER (and ROBOT_SLOTS beyond)
     "modbus": Limit(64, 16),
     "opcua": Limit(64, 16),
@@ -74,9 +74,12 @@ LIMITS = {
 
 
 class Connection(Protocol):
-    """What :class:`Slots` needs of a connection: when it last received, and how to close it."""
+    """What :class:`Slots` needs of a connection: when it last received, whether it may be closed for
+    another (not while the server works on its request), and how to close it."""
 
     last_active: float
+
+    def evictable(self) -> bool: ...
 
     def evict(self, reason: Refusal) -> None: ...
 
@@ -110,7 +113,10 @@ class StormLog:
 class Slots:
     """The connections of one listener (module docstring). Not thread-safe: used on its listener's
     event loop only. ``reserved``: addresses served beyond ``total`` (up to ``reserved_slots``
-    connections: ``--robot-address``)."""
+    connections: ``--robot-address``). ``replace_own``: an address at its bound (or a full listener
+    no other address can give a slot of) has its own longest idle connection replaced by the new one
+    (HTTP: the newest request of a proxy or a script is served, a stale keep-alive or a stalled head
+    makes way), else the new one is refused."""
 
     def __init__(
         self,
@@ -119,9 +125,10 @@ class Slots:
         *,
         reserved: frozenset[str] = frozenset(),
         reserved_slots: int = 0,
+        replace_own: bool = False,
         clock: Callable[[], float] = time.monotonic,
     ):
-        self.what, self.limit = what, limit
+        self.what, self.limit, self.replace_own = what, limit, replace_own
         self.reserved, self.reserved_slots = reserved, reserved_slots
         self.by_address: dict[str, dict[Connection, None]] = {}
         self.count = 0
@@ -147,8 +154,9 @@ class Slots:
         held = self.by_address.get(address)
         n = len(held) if held else 0
         if n >= self.limit.per_address:
-            return _busy(f"busy: {self.limit.per_address} connections from {address} already")
-        if self.count >= self.limit.total and not self._evict_for(n):
+            if not self._evict(address, n - 1, own=True):
+                return _busy(f"busy: {self.limit.per_address} connections from {address} already")
+        elif self.count >= self.limit.total and not self._evict_for(address, n):
             return _busy("busy: too many clients, try again later")
         if held is None:
             held = self.by_address[address] = {}
@@ -156,17 +164,32 @@ class Slots:
         self.count += 1
         return None
 
-    def _evict_for(self, n: int) -> bool:
-        """Free a slot for an address holding ``n``: the least recently active connection of the address
-        holding the most, when that is at least ``n + 2`` (after the swap it still holds more)."""
-        heavy_addr, heavy = max(self.by_address.items(), key=lambda kv: len(kv[1]))
-        if len(heavy) < n + 2:
-            return False  # every address holds about as many: the share is fair already
-        victim = min(heavy, key=lambda c: c.last_active)
-        self._drop(heavy_addr, victim)
+    def _evict_for(self, address: str, n: int) -> bool:
+        """Free a slot for ``address`` holding ``n``: the longest idle connection of the address holding
+        the most, when that is at least ``n + 2`` (after the swap it still holds more); else, with
+        ``replace_own``, ``address``'s own longest idle one."""
+        for heavy_addr, heavy in sorted(self.by_address.items(), key=lambda kv: -len(kv[1])):
+            if len(heavy) < n + 2:
+                break  # every address holds about as many: the share is fair already
+            if self._evict(heavy_addr, n + 1, own=False):
+                return True
+        return self._evict(address, n - 1, own=True)
+
+    def _evict(self, address: str, at_least: int, *, own: bool) -> bool:
+        """Close the longest idle evictable connection of ``address`` if it holds more than
+        ``at_least``; ``own``: for a newer connection from that address (only with ``replace_own``)."""
+        held = self.by_address.get(address)
+        if not held or len(held) <= at_least or (own and not self.replace_own):
+            return False
+        whom = "a newer connection from the same address" if own else "another address"
+        free = [c for c in held if c.evictable()]
+        if not free:
+            return False
+        victim = min(free, key=lambda c: c.last_active)
+        self._drop(address, victim)
         self.evicted += 1
-        self.log.refused(f"closed the longest idle of {heavy_addr}'s connections for a fair share")
-        victim.evict(_busy(f"busy: this connection's slot went to another address ({self.what}); closing"))
+        self.log.refused(f"closed the longest idle of {address}'s connections for {whom}")
+        victim.evict(_busy(f"busy: this connection's slot went to {whom} ({self.what}); closing"))
         return True
 
     def release(self, address: str, conn: Connection) -> None:
@@ -209,8 +232,12 @@ class Guarded(asyncio.Protocol):
         first_s: float | None,
         idle_s: float | None,
         on_refused: Callable[[], object] | None = None,
+        goodbye: bytes = b"",
+        waiting: Callable[[Any], bool] | None = None,
     ):
+        self.waiting = waiting  # whether ``inner`` waits for its client (None: always): evictable then
         self.inner, self.slots, self.on_refused = inner, slots, on_refused
+        self.goodbye = goodbye  # sent to a refused connection before it is closed (HTTP: a 503)
         self.first_s, self.idle_s = first_s, idle_s
         self.transport: Any = None
         self.address = "?"
@@ -226,7 +253,11 @@ class Guarded(asyncio.Protocol):
         loop = asyncio.get_running_loop()
         self.last_active = loop.time()
         if self.slots.admit(self.address, self) is not None:
-            transport.abort()  # no lingering close: the handle is back at once
+            if self.goodbye:
+                transport.write(self.goodbye)
+                transport.close()
+            else:
+                transport.abort()  # no lingering close: the handle is back at once
             if self.on_refused is not None:  # the library forgets the protocol it made
                 self.on_refused()
             return
@@ -280,19 +311,36 @@ class Guarded(asyncio.Protocol):
             return
         self.transport.close()
 
+    def evictable(self) -> bool:
+        return self.waiting is None or self.waiting(self.inner)
+
     def evict(self, reason: Refusal) -> None:
         if self.transport is not None:
             self.transport.close()
 
 
+_BUSY_BODY = b'{"error": "busy: too many connections, try again later"}'
+HTTP_BUSY = (
+    b"HTTP/1.1 503 Service Unavailable\r\nRetry-After: 1\r\nContent-Type: application/json\r\n"
+    b"Content-Length: %d\r\nConnection: close\r\n\r\n%s" % (len(_BUSY_BODY), _BUSY_BODY)
+)
+"""What a refused HTTP connection is sent before it is closed (the API's error body)."""
+
+
 def guarded_factory(
-    factory: Callable[..., Any], slots: Slots, first_s: float | None, idle_s: float | None
+    factory: Callable[..., Any],
+    slots: Slots,
+    first_s: float | None,
+    idle_s: float | None,
+    goodbye: bytes = b"",
+    waiting: Callable[[Any], bool] | None = None,
 ) -> Callable[..., Guarded]:
     """``factory`` (an asyncio protocol factory, called with whatever it is called with) whose
-    protocols are :class:`Guarded`."""
+    protocols are :class:`Guarded` (``goodbye``: sent to a refused connection; ``waiting(protocol)``:
+    whether it waits for its client, so that it may be closed for another)."""
 
     def make(*args: Any, **kwargs: Any) -> Guarded:
-        return Guarded(factory(*args, **kwargs), slots, first_s, idle_s)
+        return Guarded(factory(*args, **kwargs), slots, first_s, idle_s, goodbye=goodbye, waiting=waiting)
 
     return make
 

@@ -642,6 +642,9 @@ class _Client:
         self.server, self.writer = server, writer
         self.last_active = asyncio.get_running_loop().time()
 
+    def evictable(self) -> bool:
+        return True  # (a command running goes on in its worker; its answer finds the line closed)
+
     def evict(self, reason: Refusal) -> None:
         self.writer.write(self.server._refusal(self.writer, reason.code, reason.reason))
         self.writer.transport.close()  # the reading task sees the end of the stream and ends

@@ -475,7 +475,7 @@ def connection_budget(cfg: ServeConfig) -> FileBudget:
 async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     import uvicorn
 
-    from eyetohand.positioning import BACKLOG, Slots, guarded_factory, quiet_accept_errors
+    from eyetohand.positioning import BACKLOG, HTTP_BUSY, Slots, guarded_factory, quiet_accept_errors
 
     budget = connection_budget(cfg)
     quiet_accept_errors(asyncio.get_running_loop(), "HTTP")
@@ -522,8 +522,9 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     from eyetohand.server.protocol import GuardedH11Protocol  # head and body deadlines (slowloris)
 
     # uvicorn calls Config.http (a class or any factory) with its keywords for each connection
+    slots = Slots(f"HTTP {cfg.host}:{port}", budget.limits["http"], replace_own=True)
     http = guarded_factory(
-        GuardedH11Protocol, Slots(f"HTTP {cfg.host}:{port}", budget.limits["http"]), None, None
+        GuardedH11Protocol, slots, None, None, goodbye=HTTP_BUSY, waiting=GuardedH11Protocol.waiting
     )
     config = uvicorn.Config(
         app, log_level=cfg.log_level, timeout_graceful_shutdown=5, http=cast(Any, http), backlog=BACKLOG
