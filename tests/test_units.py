@@ -225,5 +225,5 @@ def test_the_transport_refusals_carry_their_codes(tmp_path):
     # words that once decided a code now decide nothing: only the Refusal's code does
     assert ur.wire(b"ERR no calibration to map with\n") == b"(-1,0,0,0,0,0)\n"
     assert ur.wire(b"ERR busy: too many clients\n", "CAL") == b"(-1,0,0,0)\n"
-    assert set(MISSING) == {"CAL", "BELT"}
+    assert set(MISSING) == {"CAL", "BELT", "LOCATE"}
     assert len(set(UR_ERROR_CODES.values())) == len(ErrorCode)  # one number per kind

@@ -1,6 +1,7 @@
 """Rank 6: the positioning transports — what a robot or PLC asks the served calibration, over the TCP
 line protocol (:mod:`.tcp`), Modbus TCP (:mod:`.modbus`, its register map :mod:`.registers`) and OPC UA
-(:mod:`.opcua`), and LOCATE (:mod:`.locate`: grab, find the round parts, map each), all over one
+(:mod:`.opcua`), their connection bounds (:mod:`.limits`), and LOCATE (:mod:`.locate`: grab, find
+the round parts, map each), all over one
 protocol-independent mapping call (:func:`.mapping.map_point`) of what the server serves (one
 :class:`.served.Served` protocol: the calibration, its problem, its identity). pymodbus and asyncua
 load only when a server starts. docs/plc.md, docs/server.md."""
@@ -12,6 +13,18 @@ from typing import TYPE_CHECKING
 from eyetohand.core import lazy_exports
 
 if TYPE_CHECKING:
+    from eyetohand.positioning.limits import (
+        BACKLOG,
+        HTTP_BUSY,
+        LIMITS,
+        FileBudget,
+        FileBudgetError,
+        Limit,
+        Slots,
+        file_budget,
+        guarded_factory,
+        quiet_accept_errors,
+    )
     from eyetohand.positioning.locate import LocateResult, Locator, Part, check_range, locate_parts
     from eyetohand.positioning.mapping import PointResult, Status, map_point
     from eyetohand.positioning.modbus import ModbusService, parse_allow, peer_allowed
@@ -32,6 +45,18 @@ else:
     __getattr__, __dir__ = lazy_exports(
         __name__,
         {
+            "limits": (
+                "BACKLOG",
+                "HTTP_BUSY",
+                "LIMITS",
+                "FileBudget",
+                "FileBudgetError",
+                "Limit",
+                "Slots",
+                "file_budget",
+                "guarded_factory",
+                "quiet_accept_errors",
+            ),
             "locate": ("LocateResult", "Locator", "Part", "check_range", "locate_parts"),
             "mapping": ("PointResult", "Status", "map_point"),
             "modbus": ("ModbusService", "parse_allow", "peer_allowed"),
@@ -52,6 +77,16 @@ else:
     )
 
 __all__ = [
+    "HTTP_BUSY",
+    "BACKLOG",
+    "LIMITS",
+    "FileBudget",
+    "FileBudgetError",
+    "Limit",
+    "Slots",
+    "file_budget",
+    "guarded_factory",
+    "quiet_accept_errors",
     "ServerCertificate",
     "reachable_addresses",
     "FIRST_LINE_S",

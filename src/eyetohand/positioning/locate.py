@@ -45,6 +45,7 @@ from eyetohand.cell import (
     UR_OK,
     CommandError,
     ErrorCode,
+    Refusal,
     ascii_reason,
     line_numbers,
     ur_line,
@@ -57,11 +58,15 @@ from eyetohand.positioning.served import Served
 DIAMETER_WINDOW = (0.7, 1.4)  # the detector's size window around its hint (vision.detect)
 NO_SIGMA = -1.0  # sigma of a calibration without uncertainty, on every interface
 USAGE = "expected LOCATE [dmin_mm,dmax_mm[,z_mm]] or LOCATE NEXT"
-NO_CAMERA = "LOCATE needs a camera: serve with --camera URI"
+NO_CAMERA = Refusal(ErrorCode.NOT_SERVED, "no camera: start eyetohand serve with --camera URI to use LOCATE")
+"""LOCATE on a server started without ``--camera``: one refusal, the same words on every interface (the
+TCP line's ``ERR``, ``-17`` in ``ur``; Modbus status 7; OPC UA ``BadNotSupported`` with these words), as
+CAL and BELT are refused without their device (:data:`eyetohand.positioning.tcp.MISSING`)."""
 #: a refusal's status -> its kind, for reply formats that send a number (the ``ur`` one)
 CODES = {
     Status.NO_CALIBRATION: ErrorCode.NO_CALIBRATION,
     Status.CAMERA: ErrorCode.TIMEOUT,
+    Status.NOT_SERVED: ErrorCode.NOT_SERVED,
 }
 
 
@@ -95,6 +100,11 @@ class LocateResult:
 
 def refused(status: Status, reason: str) -> LocateResult:
     return LocateResult(status, reason=ascii_reason(reason, MAX_REASON))
+
+
+def no_camera() -> LocateResult:
+    """The LOCATE of a server without a camera: :data:`NO_CAMERA` as a result (Modbus, OPC UA)."""
+    return refused(Status.NOT_SERVED, NO_CAMERA.reason)
 
 
 def check_range(dmin_mm: float | None, dmax_mm: float | None) -> str | None:
@@ -215,7 +225,7 @@ class Locator:
         if why:
             return refused(Status.BAD_INPUT, why)
         if self.source is None:
-            return refused(Status.CAMERA, NO_CAMERA)
+            return no_camera()
         with self._lock:
             try:
                 image, _ = self.source.grab()
@@ -271,4 +281,13 @@ class Locator:
         return f"ERR {ascii_reason(reason, MAX_REASON)}"
 
 
-__all__ = ["Locator", "LocateResult", "NO_SIGMA", "Part", "check_range", "locate_parts"]
+__all__ = [
+    "NO_CAMERA",
+    "NO_SIGMA",
+    "Locator",
+    "LocateResult",
+    "Part",
+    "check_range",
+    "locate_parts",
+    "no_camera",
+]

@@ -30,7 +30,8 @@ class Status(IntEnum):
     BAD_INPUT = 3  # an input the library refuses (an angle beyond its limit, a non-finite number)
     NO_CALIBRATION = 4  # nothing to map with: none served yet, deleted, or unusable
     INTERNAL = 5  # anything else (a bug): the reason names the exception
-    CAMERA = 6  # LOCATE only: no image (no camera served, or the grab timed out)
+    CAMERA = 6  # LOCATE only: no image (the grab timed out, or the camera failed)
+    NOT_SERVED = 7  # LOCATE only: the server was started without a camera (--camera)
 
 
 @dataclass(frozen=True)

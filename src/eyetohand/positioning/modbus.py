@@ -13,6 +13,15 @@ LOCATE's answer, now stale, is dropped (its id never echoed).
 Modbus has no authentication: on an address other than loopback the server answers only the
 clients given by ``allow_from`` (addresses or networks; this machine's loopback is always allowed)
 and closes every other connection at once. pymodbus is imported only when a server starts.
+
+Connections are bounded (:mod:`.limits`): at most ``limit.total`` (64 by default, fewer when the
+process has few file handles) and ``limit.per_address`` from one address, shared fairly; one that
+sends nothing for :data:`~.limits.FIRST_S` after connecting, or nothing for ``idle_s`` later, is
+closed (pymodbus 3.16 keeps an idle connection for ever). pymodbus builds its listener in
+``ModbusProtocol.__init__`` as ``loop.create_server(self.handle_new_connection, …)``
+(``pymodbus/transport/transport.py``): :class:`ModbusService` overrides that factory to wrap each
+connection's protocol in :class:`~.limits.Guarded`, and gives ``create_server`` a backlog of
+:data:`~.limits.BACKLOG`.
 """
 
 from __future__ import annotations
@@ -20,10 +29,12 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any
 
 from eyetohand.positioning import registers as R
-from eyetohand.positioning.locate import NO_CAMERA, LocateResult, refused
+from eyetohand.positioning.limits import BACKLOG, FIRST_S, IDLE_S, LIMITS, Guarded, Limit, Slots
+from eyetohand.positioning.locate import LocateResult, no_camera
 from eyetohand.positioning.mapping import PointResult, Status, map_point
 from eyetohand.positioning.served import Served
 
@@ -74,6 +85,9 @@ class ModbusService:
         word_order: str = "big",
         allow_from: list | None = None,
         locate: Callable[..., Any] | None = None,
+        limit: Limit = LIMITS["modbus"],
+        idle_s: float = IDLE_S,
+        first_s: float = FIRST_S,
     ):
         if word_order not in R.WORD_ORDERS:
             raise ValueError(f"word order must be one of {', '.join(R.WORD_ORDERS)}, got {word_order!r}")
@@ -89,6 +103,8 @@ class ModbusService:
         self.last_id = 0  # the id answered last: 0 until the first request
         self.answered = 0
         self.refused_peers = 0
+        self.slots = Slots(f"Modbus {host}:{port}", limit)
+        self.idle_s, self.first_s = idle_s, first_s
         self.server: Any = None
 
     async def start(self) -> None:
@@ -103,13 +119,24 @@ class ModbusService:
                 peer = transport.get_extra_info("peername")
                 if not peer_allowed(str(peer[0]) if peer else "", service.allow_from):
                     service.refused_peers += 1
-                    transport.close()
+                    self.transport = transport
+                    self.close()  # closes it and drops it from the listener's active_connections
                     return
                 super().connection_made(transport)
 
         class Server(ModbusTcpServer):
+            def __init__(self, *args, **kwargs) -> None:
+                super().__init__(*args, **kwargs)
+                # the listener is create_server(handle_new_connection, host, port, …) partial: + backlog
+                self.call_create = partial(self.call_create, backlog=BACKLOG)  # type: ignore[call-arg]
+
             def callback_new_connection(self):
                 return Handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+            def handle_new_connection(self):  # the listener's protocol factory
+                inner = super().handle_new_connection()
+                forget = partial(self.active_connections.pop, inner.unique_id, None)
+                return Guarded(inner, service.slots, service.first_s, service.idle_s, on_refused=forget)
 
         regs = DataType.REGISTERS
         ident = self.source().identity()
@@ -140,6 +167,7 @@ class ModbusService:
         self.server = Server(device, address=(self.host, self.port))
         await self.server.serve_forever(background=True)
         self.port = self.server.transport.sockets[0].getsockname()[1]
+        self.slots.what = self.slots.log.what = f"Modbus {self.host}:{self.port}"
 
     async def close(self) -> None:
         if self.server is not None:
@@ -196,7 +224,7 @@ class ModbusService:
         """A LOCATE in a worker thread, then its answer written (unless a newer request came)."""
         any_size = dmin == 0 and dmax == 0
         if self.locate is None:
-            result: LocateResult = refused(Status.CAMERA, NO_CAMERA)
+            result: LocateResult = no_camera()
         else:
             result = await asyncio.to_thread(
                 self.locate, None if any_size else dmin, None if any_size else dmax, z

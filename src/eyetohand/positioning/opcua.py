@@ -21,7 +21,8 @@ object ``Calibration`` with
   ``z_mm`` (NaN: the calibration's own) and map them (:class:`eyetohand.positioning.locate.Locator`); count
   and outside UInt32, the arrays Double of ``count`` elements (σ -1 without uncertainty); the parts
   outside the calibrated region are omitted and counted in ``outside``. Refusals as ImageToRobot's,
-  and ``BadResourceUnavailable`` without an image (no camera served, or the grab timed out).
+  ``BadResourceUnavailable`` without an image (the grab timed out) and ``BadNotSupported`` on a server
+  started without a camera (the words of :data:`eyetohand.positioning.locate.NO_CAMERA`).
 
 Without ``token`` the server takes anonymous sessions (for loopback; ``eyetohand serve`` refuses
 another address without one); with it, only user :data:`USER` with the token as password. With a
@@ -29,6 +30,15 @@ another address without one); with it, only user :data:`USER` with the token as 
 and SignAndEncrypt; a client off loopback is then accepted only on a secured channel with its password
 protected (SignAndEncrypt, or Sign with the user token encrypted with the server's certificate, as
 the Sign endpoints ask); a None channel only from loopback. Without one: None only (docs/plc.md).
+
+Connections are bounded (:mod:`.limits`): at most ``limit.total`` and ``limit.per_address`` from one
+address, shared fairly; one that sends nothing for :data:`~.limits.FIRST_S`, or that has not activated
+a session that long after connecting (a ``HEL`` and nothing more: asyncua's own watchdog,
+``InternalServer.max_pending_activation_seconds``), or that sends nothing for longer than the longest
+session timeout asyncua grants (``max_session_timeout_ms``) plus a minute, is closed. asyncua 2.1
+listens with ``create_server(BinaryServer._make_protocol, host, port)`` inside ``Server.start()``
+(``asyncua/server/binary_server_asyncio.py``); :func:`_guard_listener` replaces that listener, once
+started, by one on the same address whose protocols are :class:`~.limits.Guarded` around asyncua's.
 """
 
 from __future__ import annotations
@@ -40,7 +50,8 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from eyetohand.core import AuthBackoff, TokenTable
-from eyetohand.positioning.locate import NO_CAMERA, refused
+from eyetohand.positioning.limits import BACKLOG, FIRST_S, LIMITS, Limit, Slots, guarded_factory
+from eyetohand.positioning.locate import no_camera
 from eyetohand.positioning.mapping import Status, map_point
 from eyetohand.positioning.served import Served
 
@@ -79,6 +90,7 @@ CODES = {
     Status.NO_CALIBRATION: "BadInvalidState",
     Status.INTERNAL: "BadInternalError",
     Status.CAMERA: "BadResourceUnavailable",
+    Status.NOT_SERVED: "BadNotSupported",
 }
 
 
@@ -141,7 +153,11 @@ class OpcUaService:
         auth_backoff: AuthBackoff | None = None,
         security: Security | None = None,
         store_reachable: Callable[[], bool | None] | None = None,
+        limit: Limit = LIMITS["opcua"],
+        first_s: float = FIRST_S,
     ):
+        self.slots = Slots(f"OPC UA {host}:{port}", limit)
+        self.first_s = first_s  # nothing, or no session activated, this long after connecting: closed
         self.source = source
         self.store_reachable = store_reachable  # cheap: read every REFRESH_S
         self.security = security  # the certificate for the Sign / SignAndEncrypt endpoints
@@ -168,6 +184,8 @@ class OpcUaService:
         users = _user_manager(self.token, self.auth_backoff) if self.token else None
         server = Server(user_manager=users)
         await server.init()
+        server.iserver.max_connections = self.slots.limit.total + 1  # ours count (and share) them first
+        server.iserver.max_pending_activation_seconds = self.first_s  # HEL, and no session, this long
         server.set_endpoint(self.url)
         server.set_server_name("eyetohand")
         sec = self.security
@@ -206,6 +224,7 @@ class OpcUaService:
         await server.start()
         assert server.bserver is not None  # started
         self.port = server.bserver.port
+        await _guard_listener(server, self.host, self.port, self.slots, self.first_s)
         self._task = asyncio.get_running_loop().create_task(self._refresh_loop())
 
     async def close(self) -> None:
@@ -281,7 +300,7 @@ class OpcUaService:
         if (dmin is None and dmax is None) or (dmin == 0 and dmax == 0):
             dmin = dmax = None
         if self.locate is None:
-            res = refused(Status.CAMERA, NO_CAMERA)
+            res = no_camera()
         else:
             res = await asyncio.to_thread(self.locate, dmin, dmax, z)
         if not res.ok:
@@ -301,6 +320,20 @@ class OpcUaService:
 
 
 _COUNT = {3: "three", 4: "four"}  # a method's inputs, as its refusal words them
+
+
+async def _guard_listener(server: Any, host: str, port: int, slots: Slots, first_s: float) -> None:
+    """Listen on ``host:port`` with asyncua's protocol factory behind ``slots`` and the deadlines (module
+    docstring) instead of the listener ``server.start()`` made (asyncua offers no hook for it)."""
+    bserver = server.bserver
+    idle_s = server.iserver.max_session_timeout_ms / 1000 + 60.0
+    factory = guarded_factory(bserver._make_protocol, slots, first_s, idle_s)
+    old = bserver._server
+    old.close()
+    await old.wait_closed()
+    loop = asyncio.get_running_loop()
+    bserver._server = await loop.create_server(factory, host, port, backlog=BACKLOG, reuse_address=True)
+    slots.what = slots.log.what = f"OPC UA {host}:{port}"
 
 
 def _refusal(status: Status, reason: str, n_args: int):

@@ -11,10 +11,11 @@ every interface."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from eyetohand.core import AuthBackoff, TokenTable
+from eyetohand.positioning.limits import LIMITS, Limit
 from eyetohand.positioning.modbus import ModbusService
 from eyetohand.positioning.opcua import OpcUaService
 from eyetohand.positioning.opcua_cert import ServerCertificate
@@ -25,7 +26,8 @@ from eyetohand.positioning.tcp import POLL_S
 class PlcServices:
     """The Modbus server on ``modbus`` and/or the OPC UA server on ``opcua`` ((host, port) each, or
     None), as ``eyetohand serve`` parsed and checked them. ``store_reachable()``: whether the store
-    of calibrations can be read now (OPC UA's ``StoreState``; :class:`~.opcua.OpcUaService`)."""
+    of calibrations can be read now (OPC UA's ``StoreState``; :class:`~.opcua.OpcUaService`);
+    ``limits``: their connections (:func:`~.limits.file_budget`)."""
 
     def __init__(
         self,
@@ -40,6 +42,7 @@ class PlcServices:
         auth_backoff: AuthBackoff | None = None,
         security: ServerCertificate | None = None,
         store_reachable: Callable[[], bool | None] | None = None,
+        limits: Mapping[str, Limit] = LIMITS,
     ):
         self.security = security  # OPC UA's certificate (positioning/opcua_cert.py)
         self.source = source
@@ -47,7 +50,14 @@ class PlcServices:
         self.modbus = (
             None
             if modbus is None
-            else ModbusService(source, *modbus, word_order=word_order, allow_from=allow_from, locate=locate)
+            else ModbusService(
+                source,
+                *modbus,
+                word_order=word_order,
+                allow_from=allow_from,
+                locate=locate,
+                limit=limits["modbus"],
+            )
         )
         self.opcua = (
             None
@@ -60,6 +70,7 @@ class PlcServices:
                 auth_backoff=auth_backoff,
                 security=security,
                 store_reachable=store_reachable,
+                limit=limits["opcua"],
             )
         )
         self.starting = ""  # the server being started (an OSError names it)

@@ -6,9 +6,13 @@ line per line, in order. Lines longer than :data:`MAX_LINE` bytes are refused an
 closed (the stream cannot be trusted after that). With a token, the first line must be
 ``AUTH <token>`` (answered ``OK``; anything else gets ``ERR`` and the connection closes), within
 ``auth_s`` seconds; without a token an ``AUTH`` line is answered ``OK`` (nothing to check). Idle
-connections close after ``idle_s`` seconds; at most ``max_clients``
-connections are served at once and at most ``max_per_peer`` from one address (others get
-``ERR busy`` and are closed), so idle sockets from one local process cannot lock the robot out.
+connections close after ``idle_s`` seconds; at most ``max_clients`` connections are served at once
+and at most ``max_per_peer`` from one address (others get ``ERR busy`` and are closed), shared fairly
+(:class:`eyetohand.positioning.limits.Slots`): when all are taken, a connection from an address
+holding fewer takes the slot of the longest idle connection of the address holding the most, so idle
+sockets from a few addresses cannot lock the robot out. The command pool is shared the same way: with
+:data:`MAX_PENDING` commands waiting, one from an address with fewer waiting takes the place of the
+newest not yet started of the address with the most (that one is answered ``ERR busy``).
 A last line cut off by the end of the stream (no newline) is not answered: it may be incomplete.
 Wrong tokens are held back per source address (``auth_backoff``, :class:`eyetohand.core.AuthBackoff`).
 
@@ -25,7 +29,7 @@ import contextvars
 import math
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import cast
 
 import numpy as np
@@ -53,6 +57,8 @@ from eyetohand.core import (
     current_actor,
 )
 from eyetohand.geometry import check_symmetry
+from eyetohand.positioning.limits import BACKLOG, Limit, Slots
+from eyetohand.positioning.locate import NO_CAMERA
 from eyetohand.positioning.served import FixedCalibration, Served
 
 MAX_LINE = 256
@@ -81,6 +87,7 @@ thousands of lines in one read must not hold every other client for seconds)."""
 MISSING = {  # a command word of a service this server was not started with -> why it is refused
     "CAL": "no camera: start eyetohand serve with --camera URI to use CAL",
     "BELT": "no conveyor: start eyetohand serve with --conveyor FILE to use BELT",
+    "LOCATE": NO_CAMERA.reason,  # the words Modbus and OPC UA give too (positioning/locate.py)
 }
 
 
@@ -306,27 +313,58 @@ class LineServer:
         )  # ('' is in any string: a command named '' takes the empty line, as before)
         self.busy_replies = {k.upper(): f for k, f in (busy_replies or {}).items()}
         self.max_pending = max_pending
-        self.pending = 0
+        self._queued: dict[Future, str] = {}  # the commands waiting or running -> their address
         self._pool: ThreadPoolExecutor | None = None
-        self.max_per_peer = max_per_peer
         self.auth_s = auth_s
-        self.per_peer: dict[str, int] = {}
         # every named token (AUTH with any; the connection then acts as its holder: the audit names it)
         self.tokens = TokenTable.of(token)
         self.command_roles = {k.upper(): r for k, r in (command_roles or {}).items()}
         self.host = host
         self.port = port
-        self.max_clients = max_clients
         self.idle_s = idle_s
         self.first_line_s = first_line_s
         self.robot_addresses = frozenset(robot_addresses)
-        self.clients = 0
-        self.robots = 0
+        self.slots = Slots(
+            f"TCP {host}:{port}",
+            Limit(max_clients, max_per_peer),
+            reserved=self.robot_addresses,
+            reserved_slots=ROBOT_SLOTS,
+        )
         self.server: asyncio.AbstractServer | None = None
 
+    @property
+    def max_clients(self) -> int:
+        return self.slots.limit.total
+
+    @property
+    def max_per_peer(self) -> int:
+        return self.slots.limit.per_address
+
+    @property
+    def clients(self) -> int:
+        """Connections served now (beside the robot's reserved ones)."""
+        return self.slots.count
+
+    @property
+    def robots(self) -> int:
+        return self.slots.robots
+
+    @property
+    def per_peer(self) -> dict[str, int]:
+        """Connections served now per source address."""
+        return {a: len(c) for a, c in self.slots.by_address.items()}
+
+    @property
+    def pending(self) -> int:
+        """Commands waiting for a worker or running."""
+        return len(self._queued)
+
     async def start(self) -> None:
-        self.server = await asyncio.start_server(self._client, self.host, self.port, limit=MAX_LINE)
+        self.server = await asyncio.start_server(
+            self._client, self.host, self.port, limit=MAX_LINE, backlog=BACKLOG
+        )
         self.port = self.server.sockets[0].getsockname()[1]
+        self.slots.what = self.slots.log.what = f"TCP {self.host}:{self.port}"
         self._poller = _Poller(self, self.poll_s)
 
     def wake(self) -> None:
@@ -373,50 +411,52 @@ class LineServer:
         if self.server is not None:
             self.server.close()
 
-    def _admit(self, addr: str) -> Refusal | None:
-        """Take a slot for a new connection from ``addr``, or the refusal of it."""
-        if addr in self.robot_addresses:
-            if self.robots >= ROBOT_SLOTS:
-                return _busy(f"busy: {ROBOT_SLOTS} connections from the robot's address {addr} already")
-            self.robots += 1
-            return None
-        if self.clients >= self.max_clients:
-            return _busy("busy: too many clients, try again later")
-        if self.per_peer.get(addr, 0) >= self.max_per_peer:
-            return _busy(f"busy: {self.max_per_peer} connections from {addr} already")
-        self.clients += 1
-        self.per_peer[addr] = self.per_peer.get(addr, 0) + 1
-        return None
-
-    def _release(self, addr: str) -> None:
-        if addr in self.robot_addresses:
-            self.robots -= 1
-            return
-        self.clients -= 1
-        left = self.per_peer.get(addr, 1) - 1
-        if left > 0:
-            self.per_peer[addr] = left
-        else:
-            self.per_peer.pop(addr, None)
-
-    async def _command(self, word: str, line: bytes) -> bytes:
-        """A CAL/BELT command's reply, run on the command pool; refused at once when it is full."""
+    async def _command(self, word: str, line: bytes, addr: str) -> bytes:
+        """A CAL/BELT command's reply, run on the command pool; refused at once when it is full and
+        no address holds two more places than ``addr`` (:meth:`_take_place`)."""
         handler = self.commands[word]
-        if self.pending >= self.max_pending:
-            reason = f"busy: {self.pending} commands are waiting for the camera or conveyor; try again later"
-            busy = self.busy_replies.get(word)
-            reply = busy(reason) if busy is not None else self.replies.refusal_line(_busy(reason), word)
-        else:
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(COMMAND_WORKERS, thread_name_prefix="eyetohand-cmd")
-            self.pending += 1
-            try:
-                loop = asyncio.get_running_loop()
-                ctx = contextvars.copy_context()  # the command acts as the connection's token holder
-                text = line.decode("ascii", "replace")
-                reply = await loop.run_in_executor(self._pool, ctx.run, handler, text)
-            finally:
-                self.pending -= 1
+        if len(self._queued) >= self.max_pending and not self._take_place(addr):
+            return self._busy_reply(
+                word, f"busy: {self.pending} commands are waiting for the camera or conveyor; try again later"
+            )
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(COMMAND_WORKERS, thread_name_prefix="eyetohand-cmd")
+        ctx = contextvars.copy_context()  # the command acts as the connection's token holder
+        fut = self._pool.submit(ctx.run, handler, line.decode("ascii", "replace"))
+        self._queued[fut] = addr
+        try:
+            reply = await asyncio.wrap_future(fut)
+        except asyncio.CancelledError:
+            task = asyncio.current_task()
+            if not fut.cancelled() or (task is not None and task.cancelling()):
+                raise  # the server is closing
+            return self._busy_reply(
+                word, "busy: this command's place went to another address's; try again later"
+            )
+        finally:
+            self._queued.pop(fut, None)
+        return reply.encode("ascii", "replace") + b"\n"
+
+    def _take_place(self, addr: str) -> bool:
+        """Free a place in the full command pool for ``addr``: cancel the newest command not yet
+        started of the address with the most waiting, when that is at least two more than ``addr``'s
+        (its own task answers it ``ERR busy``)."""
+        held: dict[str, list[Future]] = {}
+        for f, a in self._queued.items():
+            held.setdefault(a, []).append(f)
+        mine = len(held.get(addr, ()))
+        for futs in sorted(held.values(), key=len, reverse=True):
+            if len(futs) < mine + 2:
+                return False
+            for f in reversed(futs):
+                if f.cancel():  # not started yet
+                    del self._queued[f]
+                    return True
+        return False
+
+    def _busy_reply(self, word: str, reason: str) -> bytes:
+        busy = self.busy_replies.get(word)
+        reply = busy(reason) if busy is not None else self.replies.refusal_line(_busy(reason), word)
         return reply.encode("ascii", "replace") + b"\n"
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -424,7 +464,8 @@ class LineServer:
             writer = cast(asyncio.StreamWriter, _Worded(writer, self.replies))
         peer = writer.get_extra_info("peername")
         addr = str(peer[0]) if isinstance(peer, tuple) and peer else "?"
-        refused = self._admit(addr)
+        client = _Client(self, writer)
+        refused = self.slots.admit(addr, client)
         if refused is not None:
             writer.write(self.replies.refusal(refused))
             await _close(writer)
@@ -436,17 +477,19 @@ class LineServer:
             if actor is None:
                 return
             with acting_as(actor):
-                await self._serve_lines(reader, writer, lines)
+                await self._serve_lines(reader, writer, lines, client, addr)
         except (ConnectionError, asyncio.CancelledError):
             pass
         finally:
-            self._release(addr)
+            self.slots.release(addr, client)
             await _close(writer)
 
-    async def _serve_lines(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines) -> None:
+    async def _serve_lines(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, lines, client: _Client, addr: str
+    ) -> None:
         spoken = bool(self.tokens)  # AUTH was the first line
         burst = 0
-        idle = _IdleLimit()
+        idle = _IdleLimit(client)
         # a mapping line (a digit, sign or point first) names no command: its word is not looked up
         worded = isinstance(writer, _Worded) or self._numeric_words
         try:
@@ -488,7 +531,7 @@ class LineServer:
                     elif word in self.commands and (why := self._role_refusal(word)) is not None:
                         writer.write(self._refusal(writer, ErrorCode.AUTH, why))
                     elif word in self.commands:
-                        writer.write(await self._command(word, line))
+                        writer.write(await self._command(word, line, addr))
                     elif word in MISSING:
                         writer.write(self._refusal(writer, ErrorCode.NOT_SERVED, MISSING[word]))
                     else:
@@ -577,7 +620,8 @@ class _IdleLimit:
     cancels the reading task — as ``asyncio.timeout`` does: a cancellation from elsewhere (the server
     closing) stays a cancellation."""
 
-    def __init__(self) -> None:
+    def __init__(self, client: _Client) -> None:
+        self.client = client  # its last_active moves with every read (the fair share's "longest idle")
         self.loop = asyncio.get_running_loop()
         self.task = asyncio.current_task()
         self.deadline = 0.0
@@ -598,7 +642,9 @@ class _IdleLimit:
 
     async def read(self, reader: asyncio.StreamReader, wait_s: float) -> bytes | None:
         """Up to 4096 bytes (b"" at the end of the stream), or None when none came within ``wait_s``."""
-        self.deadline = self.loop.time() + wait_s
+        now = self.loop.time()
+        self.client.last_active = now
+        self.deadline = now + wait_s
         if self.timer is None:
             self.timer = self.loop.call_at(self.deadline, self._fire)
         elif self.timer.when() > self.deadline:  # a shorter wait than the armed one
@@ -619,6 +665,24 @@ class _IdleLimit:
         if self.timer is not None:
             self.timer.cancel()
             self.timer = None
+
+
+class _Client:
+    """A connection as :class:`~eyetohand.positioning.limits.Slots` sees it: when it last read, and
+    how it is closed when its slot goes to another address (``ERR busy: …``, then closed)."""
+
+    __slots__ = ("server", "writer", "last_active")
+
+    def __init__(self, server: LineServer, writer: asyncio.StreamWriter):
+        self.server, self.writer = server, writer
+        self.last_active = asyncio.get_running_loop().time()
+
+    def evictable(self) -> bool:
+        return True  # (a command running goes on in its worker; its answer finds the line closed)
+
+    def evict(self, reason: Refusal) -> None:
+        self.writer.write(self.server._refusal(self.writer, reason.code, reason.reason))
+        self.writer.transport.close()  # the reading task sees the end of the stream and ends
 
 
 class _Worded:

@@ -38,6 +38,11 @@ class GuardedH11Protocol(H11Protocol):
         super().connection_made(transport)
         self._arm("head", self.head_timeout_s)
 
+    def waiting(self) -> bool:
+        """Whether the connection waits for its client (a head or a body), not for the app's answer:
+        then it may be closed for another connection (positioning/limits.py)."""
+        return self._phase != "app"
+
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
         super().connection_lost(exc)

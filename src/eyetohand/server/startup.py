@@ -14,14 +14,16 @@ import socket
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from eyetohand.core import AuthBackoff, InputError, Role, current_actor
 from eyetohand.server.config import ServeConfig, ServeError, is_loopback, parse_hostport
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
     from eyetohand.cell import BeltProtocol, Collector
-    from eyetohand.positioning import LineServer, Locator, LoopThread, PlcServices, Served
+    from eyetohand.positioning import FileBudget, Limit, LineServer, Locator, LoopThread, PlcServices, Served
     from eyetohand.server.service import Service
     from eyetohand.server.storage import Store
     from eyetohand.server.stored import SameFile
@@ -365,14 +367,24 @@ def one_calibration(server_fn, wanted: str | None) -> dict:
 
 
 def tcp_options(
-    cfg: ServeConfig, commands: dict, busy_replies: dict, backoff: AuthBackoff | None = None
+    cfg: ServeConfig,
+    commands: dict,
+    busy_replies: dict,
+    backoff: AuthBackoff | None = None,
+    limits: Mapping[str, Limit] | None = None,
 ) -> dict:
     """The LineServer's options from ``serve``'s: the token, the command handlers, their busy replies,
-    the robot's reserved addresses, the first-line grace, the reply format and units, and the
-    failed-AUTH backoff (shared with HTTP and OPC UA)."""
+    the robot's reserved addresses, the first-line grace, the reply format and units, the
+    failed-AUTH backoff (shared with HTTP and OPC UA) and its connections (``limits["tcp"]``)."""
     from eyetohand.positioning import FIRST_LINE_S
 
+    bound = (
+        {}
+        if limits is None
+        else {"max_clients": limits["tcp"].total, "max_per_peer": limits["tcp"].per_address}
+    )
     return {
+        **bound,
         "token": cfg.token_table or None,
         "command_roles": {"CAL": Role.OPERATOR},  # a viewer maps and locates, never collects
         "commands": commands,
@@ -420,6 +432,7 @@ class _Started:
     locator: Locator | None = None
     plc: PlcServices | None = None
     plc_loop: LoopThread | None = None
+    budget: FileBudget | None = None  # the listeners' connections within the process's file handles
     app: Any = None  # the FastAPI app
     service: Service | None = None  # the app's (its store followed: /api/health, OPC UA StoreState)
 
@@ -449,15 +462,33 @@ class _Started:
                 part.close()
 
 
+def connection_budget(cfg: ServeConfig) -> FileBudget:
+    """The soft RLIMIT_NOFILE raised toward the hard one, and the connections of the listeners ``cfg``
+    asks for fitted within it (:func:`eyetohand.positioning.limits.file_budget`); too few handles is a
+    :class:`ServeError` saying how to raise them."""
+    from eyetohand.positioning import LIMITS, FileBudgetError, file_budget
+
+    given = {"http": True, "tcp": cfg.tcp is not None, "modbus": cfg.modbus is not None}
+    given["opcua"] = cfg.opcua is not None
+    try:
+        return file_budget({k: LIMITS[k] for k, on in given.items() if on})
+    except FileBudgetError as exc:
+        raise ServeError(str(exc)) from None
+
+
 async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     import uvicorn
 
+    from eyetohand.positioning import BACKLOG, HTTP_BUSY, Slots, guarded_factory, quiet_accept_errors
+
+    budget = connection_budget(cfg)
+    quiet_accept_errors(asyncio.get_running_loop(), "HTTP")
     http_sock = bind_http(cfg.host, cfg.port)
     # the database is created only at a first start: later, a missing one is an error, never a new one
     ref = store_ref(cfg, data_dir)
     fresh_db = not ref.exists()
     data_dir = Path(data_dir)
-    run = _Started(loops)
+    run = _Started(loops, budget=budget)
     if cfg.tcp or cfg.plc_wanted:
         run.served, run.store, run.same_file = _served_calibration(
             cfg, ref, cfg.camera, http_sock, create=fresh_db
@@ -476,6 +507,7 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
             auth_backoff=run.backoff,
             data_dir=data_dir,
             store_reachable=run.store_reachable,
+            limits=budget.limits,
         )
         loops.append(run.plc_loop)
 
@@ -492,10 +524,16 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     print(f"workbench: http://{cfg.host}:{port}/  (API docs: /docs; data: {data_dir})", flush=True)
     if (access := cfg.access_line()) is not None:
         print(access, flush=True)
+    print(budget.line(), flush=True)
     from eyetohand.server.protocol import GuardedH11Protocol  # head and body deadlines (slowloris)
 
+    # uvicorn calls Config.http (a class or any factory) with its keywords for each connection
+    slots = Slots(f"HTTP {cfg.host}:{port}", budget.limits["http"], replace_own=True)
+    http = guarded_factory(
+        GuardedH11Protocol, slots, None, None, goodbye=HTTP_BUSY, waiting=GuardedH11Protocol.waiting
+    )
     config = uvicorn.Config(
-        app, log_level=cfg.log_level, timeout_graceful_shutdown=5, http=GuardedH11Protocol
+        app, log_level=cfg.log_level, timeout_graceful_shutdown=5, http=cast(Any, http), backlog=BACKLOG
     )
     # after Config (it configures uvicorn's loggers): Ctrl-C while the app starts cancels uvicorn's
     # lifespan task, which it logs as an ERROR with two tracebacks; the command ends with one line
@@ -510,7 +548,7 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
 async def _start_tcp(cfg: ServeConfig, run: _Started, data_dir: Path, ref, http_sock, fresh_db: bool) -> None:
     """Start the line service (and its CAL, BELT and LOCATE commands) on a loop of its own: the robot's
     lines never wait behind HTTP work. Prints its start-up lines; a refusal closes ``http_sock``."""
-    from eyetohand.positioning import LineServer, LoopThread
+    from eyetohand.positioning import LineServer, LoopThread, quiet_accept_errors
 
     assert cfg.tcp is not None and run.served is not None  # _served_calibration ran for --tcp
     host, port = cfg.tcp
@@ -519,6 +557,7 @@ async def _start_tcp(cfg: ServeConfig, run: _Started, data_dir: Path, ref, http_
     busy_replies: dict[str, Callable[[str], str]] = {}
     run.tcp_loop = LoopThread()
     run.loops.append(run.tcp_loop)
+    quiet_accept_errors(run.tcp_loop.loop, "TCP")
     try:
         if cfg.camera:
             _open_collection(cfg, run, data_dir, ref, http_sock, fresh_db, commands, busy_replies)
@@ -531,7 +570,10 @@ async def _start_tcp(cfg: ServeConfig, run: _Started, data_dir: Path, ref, http_
             run.store.close()
         raise ServeError(str(exc).splitlines()[0]) from None
     run.line_server = LineServer(
-        run.served, host, port, **tcp_options(cfg, commands, busy_replies, run.backoff)
+        run.served,
+        host,
+        port,
+        **tcp_options(cfg, commands, busy_replies, run.backoff, run.budget.limits if run.budget else None),
     )
     try:
         await run.tcp_loop.call(run.line_server.start())
@@ -615,13 +657,21 @@ async def _start_plc(
     auth_backoff: AuthBackoff | None = None,
     data_dir: Path | None = None,
     store_reachable: Callable[[], bool | None] | None = None,
+    limits: Mapping[str, Limit] | None = None,
 ):
     """Start ``--modbus`` / ``--opcua`` on a loop of their own, mapping with ``current()`` (the TCP
     service's served calibration when there is one, else ``served``, followed by polling when
     ``poll``; ``store_reachable()``: OPC UA's ``StoreState``); print their start-up lines. Returns
     (the services, their loop). OPC UA's certificate:
     ``--opcua-cert/--opcua-key``, else the one in ``data_dir``/opcua (created at the first start)."""
-    from eyetohand.positioning import LoopThread, PlcServices, ServerCertificate, reachable_addresses
+    from eyetohand.positioning import (
+        LIMITS,
+        LoopThread,
+        PlcServices,
+        ServerCertificate,
+        quiet_accept_errors,
+        reachable_addresses,
+    )
 
     security = cfg.opcua_security
     if cfg.opcua is not None and security is None and data_dir is not None:
@@ -644,8 +694,10 @@ async def _start_plc(
         auth_backoff=auth_backoff,
         security=security,
         store_reachable=store_reachable,
+        limits=LIMITS if limits is None else limits,
     )
     plc_loop = LoopThread("eyetohand-plc")
+    quiet_accept_errors(plc_loop.loop, "Modbus/OPC UA")
     try:
         await plc_loop.call(plc.start(poll=poll))
     except OSError as exc:
