@@ -11,7 +11,7 @@ import urllib.error
 import urllib.parse
 import urllib.request
 
-from eyetohand.cli.common import CliError
+from eyetohand.cli.common import CliError, emit_json
 
 TIMEOUT_S = 30.0
 
@@ -98,6 +98,11 @@ def cmd_sign(args) -> int:
         version = api.call("GET", f"/api/calibrations/{cal_id}")["version"]
     out = api.call("POST", f"/api/calibrations/{cal_id}/versions/{int(version)}/sign")
     sig = out.get("signature") or {}
+    if args.json:
+        emit_json(
+            {"calibration_id": cal_id, "name": out["name"], "version": out["version"], "signature": sig}
+        )
+        return 0
     print(
         f"signed calibration {out['name']!r} version {out['version']} as {sig.get('signed_by')} at "
         f"{sig.get('signed_utc')} (key {sig.get('key_id')})"
@@ -123,4 +128,5 @@ def register(sub) -> None:
         default=None,
         help="a file holding your token (role signer) on one line; default $EYETOHAND_TOKEN",
     )
+    p.add_argument("--json", action="store_true", help="print JSON (the version and its signature)")
     p.set_defaults(func=cmd_sign)
