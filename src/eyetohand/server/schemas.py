@@ -493,6 +493,11 @@ class VersionBrief(BaseModel):
     train_rms_mm: float
     check_rms_mm: float | None
     signature: SignatureOut | None = None
+    waiting: str | None = Field(
+        None,
+        description="serve --require-signed and this version is not signed with the server's key: why it "
+        "is not mapped with, in the words every interface refuses with (None: it may be mapped with)",
+    )
 
 
 class VersionList(BaseModel):
@@ -558,6 +563,11 @@ class ErrorOut(BaseModel):
     line: int | None = Field(None, description="line of the pasted/uploaded text, when it is about one")
 
 
+class SigningMeta(BaseModel):
+    key_id: str | None = Field(description="the id of the server's --sign-key (None: it cannot sign)")
+    required: bool = Field(description="serve --require-signed: only signed versions are mapped with")
+
+
 class Meta(BaseModel):
     version: str
     models: list[str]
@@ -566,6 +576,7 @@ class Meta(BaseModel):
     presets: dict[str, dict[str, Any]]
     limits: dict[str, int]
     auth: bool
+    signing: SigningMeta
 
 
 # ---------------------------------------------------------------- calibration from uploaded images

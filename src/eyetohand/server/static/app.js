@@ -1039,7 +1039,26 @@ async function openSaved(id, version) {
   $("#sec-result").scrollIntoView({ behavior: "smooth" });
 }
 
+// who signed a version and when; the version in force that waits for a signature (serve
+// --require-signed) says so in the server's words, an older unsigned one just "unsigned"
+function signatureCell(v, current) {
+  const s = v.signature;
+  if (s) return td(`signed by ${s.signed_by}, ${s.signed_utc.replace("T", " ").slice(0, 19)}` + (s.origin === "sign" ? "" : ` (${s.origin})`), "text signed");
+  if (v.waiting && current) return td(v.waiting, "text warn waiting");
+  return td(v.waiting ? "unsigned: not mapped with" : "unsigned", "text unsigned");
+}
+
+// POST …/versions/{v}/sign with the page's token: the server refuses a token that is not a signer's
+// (403), a version signed already (409); its words are shown under the history
+async function signVersion(id, version) {
+  clearError("#versions-err");
+  const r = await api("POST", `/api/calibrations/${id}/versions/${version}/sign`);
+  if (!r.ok) { showError("#versions-err", r.data); return; }
+  await showVersions(id);
+}
+
 async function showVersions(id) {
+  clearError("#versions-err");
   const r = await api("GET", `/api/calibrations/${id}/versions`);
   if (!r.ok) { showError("#saved-err", r.data); return; }
   const d = r.data;
@@ -1060,10 +1079,17 @@ async function showVersions(id) {
     tr.appendChild(td(fmt(v.fitness_mm, 5)));
     tr.appendChild(td(fmt(v.train_rms_mm)));
     tr.appendChild(td(fmt(v.check_rms_mm)));
+    tr.appendChild(signatureCell(v, v.version === d.current_version));
     const acts = el("td", { class: "text" });
     const open = el("button", { type: "button", class: "link" }, "open");
     open.addEventListener("click", () => openSaved(id, v.version));
     acts.appendChild(open);
+    // a signer signs with the server's key (the server says whether it has one); its token decides
+    if (!v.signature && state.meta.signing.key_id) {
+      const sb = el("button", { type: "button", class: "link sign" }, "sign");
+      sb.addEventListener("click", () => signVersion(id, v.version));
+      acts.appendChild(sb);
+    }
     if (v.version !== d.current_version) {
       const rb = el("button", { type: "button", class: "link" }, "roll back to this");
       rb.addEventListener("click", async () => {
