@@ -424,6 +424,12 @@ class Summary(BaseModel):
     seed: int | None
     uses_z: bool
     plane_z_mm: float | None
+    circle_diameter_mm: float | None = Field(
+        None,
+        description="the calibration maps the centres of circles of this diameter (fitted with "
+        "target_diameter_mm: its file's image_points): a detection is mapped with its part's "
+        "part_diameter_mm; None: image points as detected",
+    )
     n_pairs: int
     excluded_ids: list[str]
     notes: list[str]
@@ -481,6 +487,9 @@ class CalibrationBrief(BaseModel):
     fitness_mm: float | None
     train_rms_mm: float
     check_rms_mm: float | None
+    circle_diameter_mm: float | None = Field(
+        None, description="the current version maps the centres of circles of this diameter (see Summary)"
+    )
 
 
 class VersionBrief(BaseModel):

@@ -802,6 +802,21 @@ function refreshMapSources(select) {
   if (state.job && state.result) s.appendChild(el("option", { value: "job" }, "last fit (unsaved result)"));
   for (const c of state.saved) s.appendChild(el("option", { value: `cal:${c.id}` }, `${c.name} (id ${c.id}, v${c.current_version})`));
   if ([...s.options].some((o) => o.value === prev)) s.value = prev;
+  showDiameterField();
+}
+
+// The circle diameter whose centres the chosen calibration maps (fitted with a target diameter), or
+// null: image points as detected. Such a calibration maps a detection with its part's diameter.
+function mapCircleDiameter() {
+  const src = $("#map-source").value;
+  if (src === "job") return state.result ? state.result.circle_diameter_mm ?? null : null;
+  const c = state.saved.find((x) => `cal:${x.id}` === src);
+  return c ? c.circle_diameter_mm ?? null : null;
+}
+function showDiameterField() {
+  const d = mapCircleDiameter();
+  $("#map-diameter-box").hidden = d === null;
+  $("#map-diameter-hint").textContent = d === null ? "" : `it maps the centres of ${d} mm circles`;
 }
 
 const MAP_EMPTY = "x – mm, y – mm, z – mm";
@@ -824,6 +839,7 @@ function mapError(err) {
   else if (f.startsWith("angles")) mark("#map-angle");
   else if (f.startsWith("symmetry")) mark("#map-symmetry");
   else if (f.startsWith("tool_rz")) mark("#map-tool");
+  else if (f.endsWith("part_diameter_mm")) mark("#map-diameter");
   else if (f === "points[0][0]") mark("#map-u");
   else if (f === "points[0][1]") mark("#map-v");
 }
@@ -839,6 +855,10 @@ async function mapPoint() {
   if (z !== "") body.z = Number(z);  // the server refuses a z off a single-height calibration's plane
   if (a !== "") body.angles = [Number(a)];
   const sym = $("#map-symmetry").value, tool = $("#map-tool").value;
+  // the part's diameter, where the calibration maps circle centres; left empty the server refuses a
+  // detection whose bias exceeds its predicted error, in its own words (shown as they come)
+  const dia = $("#map-diameter").value;
+  if (!$("#map-diameter-box").hidden && dia !== "") body.part_diameter_mm = Number(dia);
   if (sym !== "" && sym !== "1") body.symmetry = Number(sym);
   if (tool !== "") body.tool_rz_offset_deg = Number(tool);
   const path = src === "job" ? `/api/jobs/${state.job}/image-to-robot` : `/api/calibrations/${src.slice(4)}/image-to-robot`;
@@ -1203,6 +1223,7 @@ async function init() {
   $("#save-new").addEventListener("click", () => saveResult(false));
   $("#save-version").addEventListener("click", () => saveResult(true));
   $("#map-go").addEventListener("click", mapPoint);
+  $("#map-source").addEventListener("change", showDiameterField);
   $("#compare-go").addEventListener("click", compareMethods);
   $("#saved-compare").addEventListener("click", compareSaved);
   renumber();
