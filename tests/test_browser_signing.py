@@ -12,7 +12,7 @@ import urllib.error
 import urllib.request
 
 from conftest import chromium_page
-from helpers import workbench_thread
+from helpers import keep_screenshot, workbench_thread
 from test_diff import FLAT, moved_cell
 
 from eyetohand import calibrate
@@ -96,6 +96,9 @@ def test_signing_in_the_workbench(tmp_path):
         assert rows[2]["signature"] == waits["error"], rows  # the version in force: the server's words
         assert rows[1]["signature"].startswith("signed by sam, 20"), rows
         assert "sign" in rows[2]["buttons"] and "sign" not in rows[1]["buttons"], rows
+        shot = tmp_path / "signing_history.png"
+        page.locator("#versions-block").screenshot(path=str(shot))
+        keep_screenshot(shot)
 
         # the map form refuses with the same words
         page.select_option("#map-source", f"cal:{rec.id}")

@@ -1063,9 +1063,9 @@ async function openSaved(id, version) {
 // --require-signed) says so in the server's words, an older unsigned one just "unsigned"
 function signatureCell(v, current) {
   const s = v.signature;
-  if (s) return td(`signed by ${s.signed_by}, ${s.signed_utc.replace("T", " ").slice(0, 19)}` + (s.origin === "sign" ? "" : ` (${s.origin})`), "text signed");
-  if (v.waiting && current) return td(v.waiting, "text warn waiting");
-  return td(v.waiting ? "unsigned: not mapped with" : "unsigned", "text unsigned");
+  if (s) return td(`signed by ${s.signed_by}, ${s.signed_utc.replace("T", " ").slice(0, 19)}` + (s.origin === "sign" ? "" : ` (${s.origin})`), "text sig signed");
+  if (v.waiting && current) return td(v.waiting, "text sig warn waiting");
+  return td(v.waiting ? "unsigned: not mapped with" : "unsigned", "text sig unsigned");
 }
 
 // POST …/versions/{v}/sign with the page's token: the server refuses a token that is not a signer's
