@@ -3,7 +3,8 @@ against a real server process (issue 37, p37's CAL PLATE / CAL TOUCH / CAL END):
 sim:…`` shows a rendered chessboard (``SIM PLATE``, as a person lays the plate down); the robot's line
 opens the session and touches corners with the simulation's readings. The page must show the image the
 collection kept with A–D drawn at the corners the server found (the reply's pixels), which of them the
-robot touched, update as it touches another, and the fit after CAL END."""
+robot touched, update as it touches another, follow a second placement (the plate raised and tilted:
+its own image and corners) and show the fit of both after CAL END."""
 
 from __future__ import annotations
 
@@ -59,8 +60,8 @@ def test_the_collection_page_shows_the_robots_plate_session(serve, tmp_path):
     rng = np.random.default_rng(11)
     link = TcpLink("127.0.0.1", srv.tcp_port)
 
-    def touch(label: str) -> tuple[float, float]:
-        xyz = world_mm[labels[label]] + rng.normal(0, 0.05, 3)
+    def touch(label: str, world: np.ndarray = world_mm) -> tuple[float, float]:
+        xyz = world[labels[label]] + rng.normal(0, 0.05, 3)
         reply = link.send(f"CAL TOUCH {label},{xyz[0]:.4f},{xyz[1]:.4f},{xyz[2]:.4f}")
         assert reply.startswith("OK "), reply
         _, u, v = reply.removeprefix("OK ").split(",")
@@ -122,12 +123,38 @@ def test_the_collection_page_shows_the_robots_plate_session(serve, tmp_path):
         )
         assert all(m["cls"] == "corner touched" for m in _corner_marks(page).values())
 
+        # a second placement (the plate 40 mm higher, tilted 4 deg): its own image and corners, no touch yet
+        first_href = page.get_attribute("#plate-svg image", "href")
+        sim2 = simulate_plate(load_cell(cell), spec, seed=PLATE_SEED, render=False, z_mm=40.0, tilt_deg=4.0)
+        assert link.send(f"SIM PLATE {SPEC},{PLATE_SEED},40,4").startswith("OK 54")
+        assert link.send(f"CAL PLATE {SPEC},cell1,2") == "OK 54,A,B,C,D"
+        expect(page.locator("#plate-count")).to_have_text(
+            "placement 2 · 0 of 4 corners touched", timeout=10_000
+        )
+        page.wait_for_function(
+            "(old) => (document.querySelector('#plate-svg image').getAttribute('href') || old) !== old",
+            arg=first_href,
+        )
+        marks = _corner_marks(page)
+        assert all(m["cls"] == "corner todo" for m in marks.values()), marks
+        for k, i in labels.items():
+            assert (
+                np.hypot(marks[k]["u"] - sim2.true_uv_px[i, 0], marks[k]["v"] - sim2.true_uv_px[i, 1]) < 1.0
+            )
+        world2 = sim2.placement.to_robot(spec.points_mm())
+        touch("A", world2)
+        expect(page.locator("#plate-count")).to_have_text(
+            "placement 2 · 1 of 4 corners touched", timeout=10_000
+        )
+        for k in "BCD":
+            touch(k, world2)
+
         end = link.send("CAL END")
-        assert end.startswith("OK "), end
+        assert end.startswith("OK camera,8,"), end
         model, n, rms, worst = end.removeprefix("OK ").split(",")
         expect(page.locator("#fit")).to_have_text(
             re.compile(
-                rf"^{re.escape(model)}: 4 touches, touch rms {float(rms):.4f} mm, max {float(worst):.4f} mm"
+                rf"^{re.escape(model)}: 8 touches, touch rms {float(rms):.4f} mm, max {float(worst):.4f} mm"
             ),
             timeout=10_000,
         )
