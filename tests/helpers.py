@@ -141,15 +141,16 @@ class ServeProcess:
 
 
 @contextmanager
-def workbench_thread(data_dir: Path, token: str | None = None) -> Iterator[str]:
-    """The workbench app (``create_app``) served by uvicorn in a thread on a free loopback port, for
-    the browser tests; yields its base URL and stops it on exit."""
+def workbench_thread(data_dir: Path, token=None, **app_options) -> Iterator[str]:
+    """The workbench app (``create_app``; ``token`` and ``app_options`` passed on, e.g. ``sign_key``)
+    served by uvicorn in a thread on a free loopback port, for the browser tests; yields its base URL
+    and stops it on exit."""
     import uvicorn
 
     from eyetohand.server.app import LOOPBACK_HOSTS, create_app
 
     port = free_port()
-    app = create_app(data_dir, token=token, allowed_hosts=LOOPBACK_HOSTS)
+    app = create_app(data_dir, token=token, allowed_hosts=LOOPBACK_HOSTS, **app_options)
     srv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
     th = threading.Thread(target=srv.run, daemon=True)
     th.start()

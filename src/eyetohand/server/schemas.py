@@ -424,6 +424,12 @@ class Summary(BaseModel):
     seed: int | None
     uses_z: bool
     plane_z_mm: float | None
+    circle_diameter_mm: float | None = Field(
+        None,
+        description="the calibration maps the centres of circles of this diameter (fitted with "
+        "target_diameter_mm: its file's image_points): a detection is mapped with its part's "
+        "part_diameter_mm; None: image points as detected",
+    )
     n_pairs: int
     excluded_ids: list[str]
     notes: list[str]
@@ -481,6 +487,9 @@ class CalibrationBrief(BaseModel):
     fitness_mm: float | None
     train_rms_mm: float
     check_rms_mm: float | None
+    circle_diameter_mm: float | None = Field(
+        None, description="the current version maps the centres of circles of this diameter (see Summary)"
+    )
 
 
 class VersionBrief(BaseModel):
@@ -493,6 +502,11 @@ class VersionBrief(BaseModel):
     train_rms_mm: float
     check_rms_mm: float | None
     signature: SignatureOut | None = None
+    waiting: str | None = Field(
+        None,
+        description="serve --require-signed and this version is not signed with the server's key: why it "
+        "is not mapped with, in the words every interface refuses with (None: it may be mapped with)",
+    )
 
 
 class VersionList(BaseModel):
@@ -558,6 +572,11 @@ class ErrorOut(BaseModel):
     line: int | None = Field(None, description="line of the pasted/uploaded text, when it is about one")
 
 
+class SigningMeta(BaseModel):
+    key_id: str | None = Field(description="the id of the server's --sign-key (None: it cannot sign)")
+    required: bool = Field(description="serve --require-signed: only signed versions are mapped with")
+
+
 class Meta(BaseModel):
     version: str
     models: list[str]
@@ -566,6 +585,7 @@ class Meta(BaseModel):
     presets: dict[str, dict[str, Any]]
     limits: dict[str, int]
     auth: bool
+    signing: SigningMeta
 
 
 # ---------------------------------------------------------------- calibration from uploaded images

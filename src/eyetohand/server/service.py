@@ -248,6 +248,8 @@ class Service:
                     "etag": rec.etag,
                     "updated_utc": rec.updated_utc,
                     **{k: b[k] for k in ("model", "optimizer", "fitness_mm", "train_rms_mm", "check_rms_mm")},
+                    # the fit record PointKind.of_fit reads (proven when stored): circle centres or not
+                    "circle_diameter_mm": ver.calibration["fit"].get("target_diameter_mm"),
                 }
             )
         return rows

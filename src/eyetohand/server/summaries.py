@@ -91,6 +91,7 @@ def summarize(cal: Calibration, pairs: PointPairs, check: PointPairs | None, exc
         "seed": fit.seed,
         "uses_z": bool(cal.model.uses_z),
         "plane_z_mm": cal.model.plane_z_mm,
+        "circle_diameter_mm": cal.image_points.circle_diameter_mm,
         "n_pairs": len(kept),
         "excluded_ids": list(excluded),
         "notes": list(cal.notes),

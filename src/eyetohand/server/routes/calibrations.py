@@ -92,7 +92,14 @@ def delete_calibration(cal_id: CalId, svc: Svc, if_match: IfMatch = None):
 def list_versions(cal_id: CalId, svc: Svc, response: Response):
     rec = svc.store.get(cal_id)
     signed = {n: sig.to_dict() for n, sig in svc.store.signatures(cal_id).items()}
-    versions = [{**v.brief(), "signature": signed.get(v.version)} for v in svc.store.versions(cal_id)]
+    versions = [
+        {
+            **v.brief(),
+            "signature": signed.get(v.version),
+            "waiting": svc.signing.refusal(svc.store, rec.name, v),
+        }
+        for v in svc.store.versions(cal_id)
+    ]
     current = versions[-1]["version"] if versions else rec.current_version
     if current != rec.current_version:  # a version was added between the two reads: name that one
         rec = svc.store.get(cal_id)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
+from pathlib import Path
 from typing import Annotated
 
 import numpy as np
@@ -232,6 +233,29 @@ def collect_status(request: Request) -> dict:
     st["live"] = view.live
     st["frames"] = view.frames
     return st
+
+
+@router.get("/api/collect/plate.jpg", responses={200: {"content": {"image/jpeg": {}}}})
+def plate_image(request: Request, width: Width = 960):
+    """The open plate session's image (``CAL PLATE``, its latest placement) as the collection kept it,
+    as a JPEG ``width`` px wide (never enlarged); the status's ``corners`` are in its pixels. 404 when
+    no plate session is open."""
+    import cv2
+
+    view = _view(request)
+    st = view.collector.status()
+    if st.get("kind") != "plate":
+        raise ApiError(404, "no plate session: the robot opens one with CAL PLATE <spec>")
+    root = Path(view.collector.dir).resolve()
+    path = (root / st["image_file"]).resolve()
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_relative_to(root) else None
+    if img is None:
+        raise ApiError(404, f"the plate session's image {st['image_file']} cannot be read")
+    if width < img.shape[1]:
+        h = max(1, round(img.shape[0] * width / img.shape[1]))
+        img = cv2.resize(img, (width, h), interpolation=cv2.INTER_AREA)
+    jpg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])[1].tobytes()
+    return Response(jpg, media_type="image/jpeg", headers={"Cache-Control": "no-store"})
 
 
 def _drop(request: Request, n: int, keep: bool) -> dict:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from eyetohand._version import __version__
+from eyetohand.calibration import key_id
 from eyetohand.models import MODEL_CHOICES
 from eyetohand.server.routes import StrictJsonRoute, Svc
 from eyetohand.server.schemas import (
@@ -63,4 +64,8 @@ async def meta(svc: Svc):
             "max_pso_work": lim.max_pso_work,
         },
         "auth": svc.auth,
+        "signing": {
+            "key_id": None if svc.sign_key is None else key_id(svc.sign_key),
+            "required": svc.require_signed,
+        },
     }

@@ -802,6 +802,21 @@ function refreshMapSources(select) {
   if (state.job && state.result) s.appendChild(el("option", { value: "job" }, "last fit (unsaved result)"));
   for (const c of state.saved) s.appendChild(el("option", { value: `cal:${c.id}` }, `${c.name} (id ${c.id}, v${c.current_version})`));
   if ([...s.options].some((o) => o.value === prev)) s.value = prev;
+  showDiameterField();
+}
+
+// The circle diameter whose centres the chosen calibration maps (fitted with a target diameter), or
+// null: image points as detected. Such a calibration maps a detection with its part's diameter.
+function mapCircleDiameter() {
+  const src = $("#map-source").value;
+  if (src === "job") return state.result ? state.result.circle_diameter_mm ?? null : null;
+  const c = state.saved.find((x) => `cal:${x.id}` === src);
+  return c ? c.circle_diameter_mm ?? null : null;
+}
+function showDiameterField() {
+  const d = mapCircleDiameter();
+  $("#map-diameter-box").hidden = d === null;
+  $("#map-diameter-hint").textContent = d === null ? "" : `it maps the centres of ${d} mm circles`;
 }
 
 const MAP_EMPTY = "x – mm, y – mm, z – mm";
@@ -824,6 +839,7 @@ function mapError(err) {
   else if (f.startsWith("angles")) mark("#map-angle");
   else if (f.startsWith("symmetry")) mark("#map-symmetry");
   else if (f.startsWith("tool_rz")) mark("#map-tool");
+  else if (f.endsWith("part_diameter_mm")) mark("#map-diameter");
   else if (f === "points[0][0]") mark("#map-u");
   else if (f === "points[0][1]") mark("#map-v");
 }
@@ -839,6 +855,10 @@ async function mapPoint() {
   if (z !== "") body.z = Number(z);  // the server refuses a z off a single-height calibration's plane
   if (a !== "") body.angles = [Number(a)];
   const sym = $("#map-symmetry").value, tool = $("#map-tool").value;
+  // the part's diameter, where the calibration maps circle centres; left empty the server refuses a
+  // detection whose bias exceeds its predicted error, in its own words (shown as they come)
+  const dia = $("#map-diameter").value;
+  if (!$("#map-diameter-box").hidden && dia !== "") body.part_diameter_mm = Number(dia);
   if (sym !== "" && sym !== "1") body.symmetry = Number(sym);
   if (tool !== "") body.tool_rz_offset_deg = Number(tool);
   const path = src === "job" ? `/api/jobs/${state.job}/image-to-robot` : `/api/calibrations/${src.slice(4)}/image-to-robot`;
@@ -1039,7 +1059,26 @@ async function openSaved(id, version) {
   $("#sec-result").scrollIntoView({ behavior: "smooth" });
 }
 
+// who signed a version and when; the version in force that waits for a signature (serve
+// --require-signed) says so in the server's words, an older unsigned one just "unsigned"
+function signatureCell(v, current) {
+  const s = v.signature;
+  if (s) return td(`signed by ${s.signed_by}, ${s.signed_utc.replace("T", " ").slice(0, 19)}` + (s.origin === "sign" ? "" : ` (${s.origin})`), "text sig signed");
+  if (v.waiting && current) return td(v.waiting, "text sig warn waiting");
+  return td(v.waiting ? "unsigned: not mapped with" : "unsigned", "text sig unsigned");
+}
+
+// POST …/versions/{v}/sign with the page's token: the server refuses a token that is not a signer's
+// (403), a version signed already (409); its words are shown under the history
+async function signVersion(id, version) {
+  clearError("#versions-err");
+  const r = await api("POST", `/api/calibrations/${id}/versions/${version}/sign`);
+  if (!r.ok) { showError("#versions-err", r.data); return; }
+  await showVersions(id);
+}
+
 async function showVersions(id) {
+  clearError("#versions-err");
   const r = await api("GET", `/api/calibrations/${id}/versions`);
   if (!r.ok) { showError("#saved-err", r.data); return; }
   const d = r.data;
@@ -1060,10 +1099,17 @@ async function showVersions(id) {
     tr.appendChild(td(fmt(v.fitness_mm, 5)));
     tr.appendChild(td(fmt(v.train_rms_mm)));
     tr.appendChild(td(fmt(v.check_rms_mm)));
+    tr.appendChild(signatureCell(v, v.version === d.current_version));
     const acts = el("td", { class: "text" });
     const open = el("button", { type: "button", class: "link" }, "open");
     open.addEventListener("click", () => openSaved(id, v.version));
     acts.appendChild(open);
+    // a signer signs with the server's key (the server says whether it has one); its token decides
+    if (!v.signature && state.meta.signing.key_id) {
+      const sb = el("button", { type: "button", class: "link sign" }, "sign");
+      sb.addEventListener("click", () => signVersion(id, v.version));
+      acts.appendChild(sb);
+    }
     if (v.version !== d.current_version) {
       const rb = el("button", { type: "button", class: "link" }, "roll back to this");
       rb.addEventListener("click", async () => {
@@ -1177,6 +1223,7 @@ async function init() {
   $("#save-new").addEventListener("click", () => saveResult(false));
   $("#save-version").addEventListener("click", () => saveResult(true));
   $("#map-go").addEventListener("click", mapPoint);
+  $("#map-source").addEventListener("change", showDiameterField);
   $("#compare-go").addEventListener("click", compareMethods);
   $("#saved-compare").addEventListener("click", compareSaved);
   renumber();

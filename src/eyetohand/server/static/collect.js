@@ -77,7 +77,7 @@ function renderStatus(st) {
       d.diameter_px === undefined ? "" : Number(d.diameter_px).toFixed(2),
       d.score === undefined ? "" : Number(d.score).toFixed(2),
       d.rms_px === undefined || d.rms_px === null ? "" : Number(d.rms_px).toFixed(3),
-      Number(p.still_shift_px).toFixed(3)]) {
+      p.still_shift_px === undefined ? "" : Number(p.still_shift_px).toFixed(3)]) {
       const td = document.createElement("td");
       td.textContent = v;
       tr.appendChild(td);
@@ -95,13 +95,76 @@ function renderStatus(st) {
     return tr;
   }));
   const r = st.result;
-  $("#fit").textContent = r ? `${r.model}: ${r.n} points, leave-one-out rms ${f4(r.loo_rms_mm)} mm, max ${f4(r.loo_max_mm)} mm (${r.utc})`
-    : "no fit yet (CAL END)";
+  const fitText = !r ? "no fit yet (CAL END)"
+    : st.kind === "plate" ? `${r.model}: ${r.n} touches, touch rms ${f4(r.touch_rms_mm)} mm, max ${f4(r.touch_max_mm)} mm`
+      : `${r.model}: ${r.n} points, leave-one-out rms ${f4(r.loo_rms_mm)} mm, max ${f4(r.loo_max_mm)} mm (${r.utc})`;
+  $("#fit").textContent = fitText;
+  renderPlate(st);
   $("#fit").className = r ? "" : "muted";
   $("#check-count").textContent = st.checks.length ? String(st.checks.length) : "";
   $("#checks").textContent = st.checks.length
     ? st.checks.slice(-5).map((c) => `${c.utc}: error ${f4(c.error_mm)} mm (dx ${f4(c.dx_mm)}, dy ${f4(c.dy_mm)})`).join(" · ")
     : "none";
+}
+
+// A robot's plate session (CAL PLATE … CAL TOUCH … CAL END): the image the collection kept, drawn in an
+// SVG in its own pixels (the status's corners are in them), each corner A-D marked and whether the robot
+// touched it on this placement; the image is fetched again only when the session's image changes.
+const SVG = "http://www.w3.org/2000/svg";
+let plateShown = null;  // the image file the SVG shows
+function svgEl(tag, attrs) {
+  const e = document.createElementNS(SVG, tag);
+  for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, String(v));
+  return e;
+}
+async function renderPlate(st) {
+  const block = $("#plate-block");
+  if (st.kind !== "plate") { block.hidden = true; plateShown = null; return; }
+  block.hidden = false;
+  $("#plate-spec").textContent = st.plate;
+  const touches = new Map();
+  for (const p of st.points) if (!p.dropped && p.placement === st.placements) touches.set(String(p.corner_id), p);
+  const done = st.corners.filter((c) => touches.has(String(c.id))).length;
+  $("#plate-count").textContent = `placement ${st.placements} · ${done} of ${st.corners.length} corners touched`;
+  const [w, h] = st.image_size;
+  const svg = $("#plate-svg");
+  svg.setAttribute("viewBox", `0 0 ${w} ${h}`);
+  const r = Math.max(8, Math.min(w, h) / 40), font = Math.max(14, Math.min(w, h) / 22);
+  const marks = st.corners.map((c) => {
+    const t = touches.get(String(c.id));
+    const g = svgEl("g", { class: "corner " + (t ? "touched" : "todo"), "data-label": c.label });
+    g.appendChild(svgEl("circle", { cx: c.u, cy: c.v, r }));
+    const label = svgEl("text", { x: c.u + r * 1.2, y: c.v - r * 1.2, "font-size": font });
+    label.textContent = c.label + (t ? " ✓" : "");
+    g.appendChild(label);
+    return g;
+  });
+  let img = svg.querySelector("image");
+  if (!img) { img = svgEl("image", { x: 0, y: 0 }); }
+  img.setAttribute("width", w); img.setAttribute("height", h);
+  svg.replaceChildren(img, ...marks);
+  $("#plate-corners tbody").replaceChildren(...st.corners.map((c) => {
+    const t = touches.get(String(c.id));
+    const tr = document.createElement("tr");
+    tr.className = t ? "touched" : "";
+    tr.dataset.label = c.label;
+    const text = t ? `#${t.n} at ${t.xyz_mm.map(f4).join(", ")} mm` : "not yet";
+    for (const v of [c.label, c.id, Number(c.u).toFixed(2), Number(c.v).toFixed(2), text]) {
+      const td = document.createElement("td");
+      td.textContent = v;
+      tr.appendChild(td);
+    }
+    return tr;
+  }));
+  if (plateShown === st.image_file) return;
+  plateShown = st.image_file;
+  const resp = await api(`/api/collect/plate.jpg?width=${Math.min(1600, viewWidth())}`);
+  if (!resp.ok) { showError((await resp.json()).error); plateShown = null; return; }
+  const url = URL.createObjectURL(await resp.blob());
+  const old = img.getAttribute("href");
+  img.setAttribute("href", url);
+  img.dataset.file = st.image_file;
+  if (old) URL.revokeObjectURL(old);
 }
 
 async function refreshStatus() {
