@@ -365,7 +365,8 @@ def test_the_bound_address_and_allowed_hosts_are_served(tmp_path):
 def test_half_sent_requests_are_closed_while_a_normal_client_is_served(server):
     srv, _ = server
     slow: list[socket.socket] = []
-    t0 = time.monotonic()
+    opened: list[float] = []  # when each connect returned: a burst past the listen backlog (64) waits
+    # for the client's SYN retransmit (~1 s), so each socket's ~15 s runs from its own connect
     try:
         for i in range(500):
             s = socket.create_connection(("127.0.0.1", srv.http_port), timeout=5)
@@ -377,6 +378,7 @@ def test_half_sent_requests_are_closed_while_a_normal_client_is_served(server):
             else:  # a head that never ends
                 s.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
             slow.append(s)
+            opened.append(time.monotonic())
         start = time.monotonic()
         with httpx.Client(base_url=srv.url, timeout=5) as c:
             assert c.get("/api/calibrations").status_code == 200
@@ -385,8 +387,8 @@ def test_half_sent_requests_are_closed_while_a_normal_client_is_served(server):
             )
         assert time.monotonic() - start < 3
         closed = 0
-        for s in slow:
-            s.settimeout(max(0.1, t0 + 16 - time.monotonic()))
+        for s, t_open in zip(slow, opened, strict=True):
+            s.settimeout(max(0.1, t_open + 16 - time.monotonic()))
             try:
                 data = s.recv(4096)
                 while data:  # an answer (408/400) is fine, then the close
