@@ -21,6 +21,7 @@ UA): how many connections, from whom, for how long, and how many file handles th
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import errno
 import logging
 import os
@@ -35,8 +36,13 @@ LOG = logging.getLogger("eyetohand.connections")
 QUIET_S = 10.0
 """A burst of refusals ends after this long without one (the next refusal is logged again)."""
 BACKLOG = 64
-"""Each listener's accept backlog: connections the kernel queues before they take a file handle;
-asyncio accepts up to this many in one turn before any is refused (counted in :func:`file_budget`)."""
+"""Each listener's least accept backlog: connections the kernel queues before they take a file handle;
+asyncio accepts up to this many in one turn before any is refused (counted in :func:`file_budget`). A
+burst of connects beyond it waits for the client's SYN retransmit (~1 s), so :func:`file_budget` gives
+each listener more where the handles allow (:data:`MAX_BACKLOG`)."""
+MAX_BACKLOG = 512
+"""The most a listener's backlog is raised to: an eighth of the handles left per listener, between
+:data:`BACKLOG` (1024 handles) and this (about 250 under the unit's 8192)."""
 RESERVE_FILES = 192
 """File handles kept for everything but the listeners' connections: the store (SQLite and its WAL, one
 per thread), log files, the camera, the event loops' own handles."""
@@ -54,14 +60,16 @@ polls keeps its connection, one that was switched off does not hold it)."""
 
 @dataclass(frozen=True)
 class Limit:
-    """One listener's bound: at most ``total`` connections, at most ``per_address`` from one address."""
+    """One listener's bound: at most ``total`` connections, at most ``per_address`` from one address;
+    ``backlog``: its listen (and accept-per-turn) backlog."""
 
     total: int
     per_address: int
+    backlog: int = BACKLOG
 
     def scaled(self, factor: float) -> Limit:
         total = max(MIN_TOTAL, int(self.total * factor))
-        return Limit(total, min(self.per_address, total))
+        return Limit(total, min(self.per_address, total), self.backlog)
 
 
 #: each listener's bound before :func:`file_budget` fits them to the process's file handles
@@ -358,7 +366,9 @@ class FileBudget:
 
     def line(self) -> str:
         """The start-up line that says it."""
-        each = ", ".join(f"{k} {v.total} ({v.per_address}/address)" for k, v in self.limits.items())
+        each = ", ".join(
+            f"{k} {v.total} ({v.per_address}/address, backlog {v.backlog})" for k, v in self.limits.items()
+        )
         return (
             f"connections: {each}; file handles: limit {self.soft} (hard {self.hard}), "
             f"{self.open_at_start} open at start, {RESERVE_FILES} reserved"
@@ -391,16 +401,21 @@ def file_budget(
                 pass
     open_now = _open_files()
     limit = soft if soft != resource.RLIM_INFINITY else 1 << 20
-    room = limit - open_now - RESERVE_FILES - BACKLOG * len(wanted)
+    n = max(1, len(wanted))
+    backlog = max(BACKLOG, min(MAX_BACKLOG, (limit - open_now - RESERVE_FILES) // (8 * n)))
+    room = limit - open_now - RESERVE_FILES - backlog * len(wanted)
     asked = sum(w.total for w in wanted.values())
     if room < MIN_TOTAL * len(wanted):
         raise FileBudgetError(
             f"too few file handles: limit {soft} (hard {hard}), {open_now} open, {RESERVE_FILES} reserved "
-            f"and {BACKLOG} per listener leave {room} for {len(wanted)} listeners; raise it "
+            f"and {backlog} per listener leave {room} for {len(wanted)} listeners; raise it "
             f"(systemd: LimitNOFILE=8192; a shell: ulimit -n 8192)"
         )
     factor = min(1.0, room / asked) if asked else 1.0
-    limits = {k: (w if factor >= 1.0 else w.scaled(factor)) for k, w in wanted.items()}
+    limits = {
+        k: dataclasses.replace(w if factor >= 1.0 else w.scaled(factor), backlog=backlog)
+        for k, w in wanted.items()
+    }
     return FileBudget(int(soft), int(hard), open_now, limits)
 
 

@@ -20,8 +20,8 @@ sends nothing for :data:`~.limits.FIRST_S` after connecting, or nothing for ``id
 closed (pymodbus 3.16 keeps an idle connection for ever). pymodbus builds its listener in
 ``ModbusProtocol.__init__`` as ``loop.create_server(self.handle_new_connection, …)``
 (``pymodbus/transport/transport.py``): :class:`ModbusService` overrides that factory to wrap each
-connection's protocol in :class:`~.limits.Guarded`, and gives ``create_server`` a backlog of
-:data:`~.limits.BACKLOG`.
+connection's protocol in :class:`~.limits.Guarded`, and gives ``create_server`` the backlog of
+its ``limit`` (:data:`~.limits.BACKLOG` at least).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from functools import partial
 from typing import Any
 
 from eyetohand.positioning import registers as R
-from eyetohand.positioning.limits import BACKLOG, FIRST_S, IDLE_S, LIMITS, Guarded, Limit, Slots
+from eyetohand.positioning.limits import FIRST_S, IDLE_S, LIMITS, Guarded, Limit, Slots
 from eyetohand.positioning.locate import LocateResult, no_camera
 from eyetohand.positioning.mapping import PointResult, Status, map_point
 from eyetohand.positioning.served import Served
@@ -124,11 +124,13 @@ class ModbusService:
                     return
                 super().connection_made(transport)
 
+        backlog = self.slots.limit.backlog
+
         class Server(ModbusTcpServer):
             def __init__(self, *args, **kwargs) -> None:
                 super().__init__(*args, **kwargs)
                 # the listener is create_server(handle_new_connection, host, port, …) partial: + backlog
-                self.call_create = partial(self.call_create, backlog=BACKLOG)  # type: ignore[call-arg]
+                self.call_create = partial(self.call_create, backlog=backlog)  # type: ignore[call-arg]
 
             def callback_new_connection(self):
                 return Handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)

@@ -50,7 +50,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from eyetohand.core import AuthBackoff, TokenTable
-from eyetohand.positioning.limits import BACKLOG, FIRST_S, LIMITS, Limit, Slots, guarded_factory
+from eyetohand.positioning.limits import FIRST_S, LIMITS, Limit, Slots, guarded_factory
 from eyetohand.positioning.locate import no_camera
 from eyetohand.positioning.mapping import Status, map_point
 from eyetohand.positioning.served import Served
@@ -332,7 +332,9 @@ async def _guard_listener(server: Any, host: str, port: int, slots: Slots, first
     old.close()
     await old.wait_closed()
     loop = asyncio.get_running_loop()
-    bserver._server = await loop.create_server(factory, host, port, backlog=BACKLOG, reuse_address=True)
+    bserver._server = await loop.create_server(
+        factory, host, port, backlog=slots.limit.backlog, reuse_address=True
+    )
     slots.what = slots.log.what = f"OPC UA {host}:{port}"
 
 

@@ -286,6 +286,7 @@ class LineServer:
         port: int,
         *,
         max_clients: int = MAX_CLIENTS,
+        backlog: int = BACKLOG,
         idle_s: float = IDLE_S,
         token: str | TokenTable | None = None,
         command_roles: dict[str, Role] | None = None,
@@ -324,9 +325,10 @@ class LineServer:
         self.idle_s = idle_s
         self.first_line_s = first_line_s
         self.robot_addresses = frozenset(robot_addresses)
+        self.backlog = backlog
         self.slots = Slots(
             f"TCP {host}:{port}",
-            Limit(max_clients, max_per_peer),
+            Limit(max_clients, max_per_peer, backlog),
             reserved=self.robot_addresses,
             reserved_slots=ROBOT_SLOTS,
         )
@@ -361,7 +363,7 @@ class LineServer:
 
     async def start(self) -> None:
         self.server = await asyncio.start_server(
-            self._client, self.host, self.port, limit=MAX_LINE, backlog=BACKLOG
+            self._client, self.host, self.port, limit=MAX_LINE, backlog=self.backlog
         )
         self.port = self.server.sockets[0].getsockname()[1]
         self.slots.what = self.slots.log.what = f"TCP {self.host}:{self.port}"

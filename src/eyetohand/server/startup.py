@@ -381,7 +381,11 @@ def tcp_options(
     bound = (
         {}
         if limits is None
-        else {"max_clients": limits["tcp"].total, "max_per_peer": limits["tcp"].per_address}
+        else {
+            "max_clients": limits["tcp"].total,
+            "max_per_peer": limits["tcp"].per_address,
+            "backlog": limits["tcp"].backlog,
+        }
     )
     return {
         **bound,
@@ -479,7 +483,7 @@ def connection_budget(cfg: ServeConfig) -> FileBudget:
 async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     import uvicorn
 
-    from eyetohand.positioning import BACKLOG, HTTP_BUSY, Slots, guarded_factory, quiet_accept_errors
+    from eyetohand.positioning import HTTP_BUSY, Slots, guarded_factory, quiet_accept_errors
 
     budget = connection_budget(cfg)
     quiet_accept_errors(asyncio.get_running_loop(), "HTTP")
@@ -533,7 +537,11 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
         GuardedH11Protocol, slots, None, None, goodbye=HTTP_BUSY, waiting=GuardedH11Protocol.waiting
     )
     config = uvicorn.Config(
-        app, log_level=cfg.log_level, timeout_graceful_shutdown=5, http=cast(Any, http), backlog=BACKLOG
+        app,
+        log_level=cfg.log_level,
+        timeout_graceful_shutdown=5,
+        http=cast(Any, http),
+        backlog=slots.limit.backlog,
     )
     # after Config (it configures uvicorn's loggers): Ctrl-C while the app starts cancels uvicorn's
     # lifespan task, which it logs as an ERROR with two tracebacks; the command ends with one line
