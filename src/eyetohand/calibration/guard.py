@@ -11,6 +11,8 @@ numbers, and leave everything else to :func:`map_points`. :class:`~eyetohand.cal
 from __future__ import annotations
 
 import dataclasses
+import functools
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -122,8 +124,15 @@ def map_points(
     checks everything and names every refusal (:meth:`Calibration.map
     <eyetohand.calibration.Calibration.map>` says what each option does)."""
     if part_diameter_mm is not None or cal.image_points.circle_diameter_mm is not None:
-        opts = {"angle_deg": angle_deg, "allow_outside": allow_outside, "symmetry": symmetry}
-        return _map_detections(cal, uv_px, z, part_diameter_mm, with_sigma, tool_rz_offset_deg, opts)
+        guarded = functools.partial(
+            _guarded,
+            cal,
+            angle_deg=angle_deg,
+            allow_outside=allow_outside,
+            symmetry=symmetry,
+            tool_rz_offset_deg=tool_rz_offset_deg,
+        )
+        return _map_detections(cal, uv_px, z, part_diameter_mm, with_sigma, guarded)
     return _guarded(
         cal,
         uv_px,
@@ -209,12 +218,15 @@ def _guarded(
     return Mapped(uv, xyz, rz, _sigma(cal, uv, xyz, with_sigma), inside, outside)
 
 
-def _map_detections(cal: Calibration, uv_px, z, part_diameter_mm, with_sigma: bool, tool_rz, opts) -> Mapped:
+def _map_detections(
+    cal: Calibration, uv_px, z, part_diameter_mm, with_sigma: bool, guarded: Callable[..., Mapped]
+) -> Mapped:
     """:func:`map_points` with a part's diameter, or of a circle-centre calibration: the pixels
-    made the points the calibration maps first (:mod:`~eyetohand.calibration.points`), or refused."""
+    made the points the calibration maps first (:mod:`~eyetohand.calibration.points`), or refused.
+    ``guarded(uv, z, with_sigma=…)``: :func:`_guarded` with the request's other options."""
     d = check_part_diameter(part_diameter_mm)
     if d is not None and not np.any(d):  # the pixels are the points' own images: as given, no rule
-        return _guarded(cal, uv_px, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
+        return guarded(uv_px, z, with_sigma=with_sigma)
     uv = as_uv(uv_px)
     if isinstance(d, np.ndarray) and len(d) != len(uv):
         raise InputError(
@@ -222,16 +234,16 @@ def _map_detections(cal: Calibration, uv_px, z, part_diameter_mm, with_sigma: bo
         )
     zz = None if z is None else np.broadcast_to(np.asarray(z, float), (len(uv),))
     if zz is not None and not np.isfinite(zz).all():  # refused by the guard, in its words
-        return _guarded(cal, uv, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
+        return guarded(uv, z, with_sigma=with_sigma)
     if d is None:  # a circle-centre calibration fed detections as given: mapped only where that is harmless
-        m = _guarded(cal, uv, z, tool_rz_offset_deg=tool_rz, with_sigma=True, **opts)
+        m = guarded(uv, z, with_sigma=True)
         mix_refusal(cal, uv, zz, m.xyz_mm, m.sigma_mm)
         return m if with_sigma else dataclasses.replace(m, sigma_mm=None)
     rows = np.flatnonzero(np.broadcast_to(d, (len(uv),)) > 0)  # 0: that point as given
     centres = uv.copy()
     dd = d[rows] if isinstance(d, np.ndarray) else d
     centres[rows] = corrected_at_use(cal, uv[rows], None if zz is None else zz[rows], dd, rows)
-    m = _guarded(cal, centres, z, tool_rz_offset_deg=tool_rz, with_sigma=with_sigma, **opts)
+    m = guarded(centres, z, with_sigma=with_sigma)
     return dataclasses.replace(m, uv_px=uv)  # answered for the detections as given
 
 
