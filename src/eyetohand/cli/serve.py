@@ -38,6 +38,25 @@ def cmd_serve(args) -> int:
     return 0
 
 
+def token_file_lines(path: str, expected: str) -> list[tuple[int, str]]:
+    """The lines of token file ``path`` that say something (numbered from 1; blank lines and ``#``
+    comments left out), read with its 4096-byte bound; refused in one line naming ``--token-file``
+    (``expected``: what the caller wants in it). Shared by ``serve`` and ``sign``."""
+    from eyetohand.cli.common import CliError
+
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read(4097)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CliError(
+            f"--token-file {path}: cannot read it ({getattr(exc, 'strerror', None) or exc})"
+        ) from None
+    if len(text) > 4096:
+        raise CliError(f"--token-file {path}: larger than 4096 bytes; {expected}")
+    lines = [(n, ln.strip()) for n, ln in enumerate(text.splitlines(), 1)]
+    return [(n, ln) for n, ln in lines if ln and not ln.startswith("#")]
+
+
 def read_token_file(path: str, given: bool) -> dict[str, str]:
     """The named tokens in ``path`` (their roles left out): see :func:`read_token_roles`."""
     return read_token_roles(path, given)[0]
@@ -57,17 +76,7 @@ def read_token_roles(path: str, given: bool) -> tuple[dict[str, str], dict]:
 
     if given:
         raise CliError("--token-file: give the token once: --token-file, or --token / EYETOHAND_TOKEN")
-    try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read(4097)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CliError(
-            f"--token-file {path}: cannot read it ({getattr(exc, 'strerror', None) or exc})"
-        ) from None
-    if len(text) > 4096:
-        raise CliError(f"--token-file {path}: larger than 4096 bytes; expected lines 'name:token'")
-    lines = [(n, ln.strip()) for n, ln in enumerate(text.splitlines(), 1)]
-    lines = [(n, ln) for n, ln in lines if ln and not ln.startswith("#")]
+    lines = token_file_lines(path, "expected lines 'name:token'")
     if not lines:
         raise CliError(f"--token-file {path}: expected one line holding the token, or lines 'name:token'")
     if len(lines) == 1 and ":" not in lines[0][1]:

@@ -12,6 +12,7 @@ import urllib.parse
 import urllib.request
 
 from eyetohand.cli.common import CliError, emit_json
+from eyetohand.cli.serve import token_file_lines
 
 TIMEOUT_S = 30.0
 
@@ -25,19 +26,11 @@ def own_token(path: str | None) -> str:
                 "sign: give your token: --token-file FILE (one line: the token) or EYETOHAND_TOKEN"
             )
         return token
-    try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read(4097)
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CliError(
-            f"--token-file {path}: cannot read it ({getattr(exc, 'strerror', None) or exc})"
-        ) from None
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
-    if len(lines) != 1 or len(text) > 4096:
-        raise CliError(
-            f"--token-file {path}: expected one line holding your token (not the server's token file)"
-        )
-    return lines[0]
+    expected = "expected one line holding your token (not the server's token file)"
+    lines = token_file_lines(path, expected)
+    if len(lines) != 1:
+        raise CliError(f"--token-file {path}: {expected}")
+    return lines[0][1]
 
 
 class Api:
