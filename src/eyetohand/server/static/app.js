@@ -784,7 +784,11 @@ async function saveResult(asVersion) {
   if (state.plateFit && !state.job) { await savePlateFit(asVersion, body.note); return; }  // plate.js
   const r = await api("POST", `/api/jobs/${state.job}/save`, body, asVersion ? body.calibration_id : undefined);
   if (!r.ok) { showError("#save-err", r.data, "#sec-save"); return; }
-  const d = r.data;
+  await showSaved(r.data);
+}
+
+// the result section after a save (a job's fit here, a plate fit in plate.js): its name, trust map, lists
+async function showSaved(d) {
   $("#save-state").textContent = `saved as “${d.name}” (id ${d.id}) version ${d.version}`;
   state.resultSaved = { id: d.id, name: d.name, version: d.version };
   setResultTitle();

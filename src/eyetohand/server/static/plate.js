@@ -333,14 +333,8 @@ async function savePlateFit(asVersion, note) {
   const body = { ...state.plateRequest, name, note: note || `plate ${state.plateFit.plate.spec}` };
   const r = await api("POST", "/api/plate/calibrate", body);
   if (!r.ok) { showError("#save-err", r.data, "#sec-save"); return; }
-  const d = r.data.stored;
-  state.plateFit.stored = d;
-  $("#save-state").textContent = `saved as “${d.name}” (id ${d.id}) version ${d.version}`;
-  state.resultSaved = { id: d.id, name: d.name, version: d.version };
-  setResultTitle();
-  showTrustMap(state.resultSaved);
-  await refreshSaved();
-  refreshMapSources(`cal:${d.id}`);
+  state.plateFit.stored = r.data.stored;
+  await showSaved(r.data.stored);
 }
 
 // ------------------------------------------------------------------ wiring
