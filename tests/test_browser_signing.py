@@ -153,6 +153,16 @@ def test_signing_in_the_workbench(tmp_path):
         page.goto(url)
         _use_token(page, TOKENS["sam"])
         page.wait_for_selector("#saved-table tbody tr")
+        # the list reloaded unchanged (the token given again) keeps its rows and their ticks: a rebuild
+        # between a click's press and release lost the click (CI: the history never opened)
+        page.check("#saved-table input.pick")
+        mark = "() => { for (const s of ['#saved-table tbody tr', '#save-target option'])"
+        mark += " document.querySelector(s).dataset.mark = 'kept'; }"
+        page.evaluate(mark)
+        _use_token(page, TOKENS["sam"])  # the reload ran once the save target's options are new
+        page.wait_for_function("() => !document.querySelector('#save-target option').dataset.mark")
+        assert page.evaluate("() => document.querySelector('#saved-table tbody tr').dataset.mark") == "kept"
+        assert page.is_checked("#saved-table input.pick")
         page.locator("#saved-table button", has_text="history").first.click()
         page.wait_for_function("() => document.querySelectorAll('#versions-table tbody tr').length === 2")
         rows = _version_rows(page)

@@ -18,6 +18,7 @@ const state = {
   imageFiles: new Map(),  // file name -> File, for the thumbnails
   thumbs: 0,
   etags: {},          // calibration id -> ETag of the state this page last saw (sent as If-Match)
+  savedListed: null,  // the stored list (JSON) the saved table shows
 };
 const MAX_THUMBS = 48;
 
@@ -944,13 +945,19 @@ async function refreshSaved() {
   if (!r.ok) { showError("#saved-err", r.data); return; }
   state.saved = r.data;
   for (const c of r.data) state.etags[c.id] = c.etag;
+  // the same list as the one shown keeps its rows: a rebuild between a click's press and release lost
+  // the click (two refreshes in flight after a token change) and unticked the boxes
+  const listed = JSON.stringify(r.data);
+  const rebuild = listed !== state.savedListed;
+  state.savedListed = listed;
   const tb = $("#saved-table tbody");
-  tb.innerHTML = "";
+  if (rebuild) tb.innerHTML = "";
   const target = $("#save-target");
   const prevTarget = target.value;
   target.innerHTML = "";
   for (const c of r.data) {
     target.appendChild(el("option", { value: c.id }, `${c.name} (id ${c.id})`));
+    if (!rebuild) continue;
     const tr = el("tr", { "data-id": c.id });
     const cb = el("input", { type: "checkbox", class: "pick", value: c.id, "aria-label": `pick ${c.name}` });
     const c0 = el("td"); c0.appendChild(cb); tr.appendChild(c0);
