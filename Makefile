@@ -60,8 +60,11 @@ systemd-analyze:
 # built once); the tests that assert latency or deadlines (marker `serial`, tests/conftest.py) run
 # afterwards on their own, so no timing measures the other worker's load. `make test
 # PYTEST_PARALLEL=` runs everything serially. docs/performance.md has the suite's times.
-# The long studies (marker `long`: many seeds, many sessions) are left out of `make test` and run by
-# `make test-long`, which .ci/run runs after it: every test runs in CI.
+# The long ones (marker `long`: the studies of many seeds or sessions, and the end-to-end runs that
+# take 4 s or more alone: the first-day guide, the tamper corpus, the API fuzzer, a browser flow, a
+# server killed and restarted) are left out of `make test` and run by `make test-long` (parallel, then
+# its serial ones alone), which .ci/run runs after it: every test runs in CI. docs/performance.md
+# lists them and the times.
 # --no-loadscope-reorder: the files in tests/conftest.py's order (HEAVY_FILES first), not xdist's
 # (most tests first), so the longest files start first and none is left to run alone at the end.
 PYTEST_PARALLEL ?= -n auto --dist loadfile --no-loadscope-reorder
@@ -73,8 +76,9 @@ test: $(STAMP) aravis postgres browser systemd-analyze
 	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -m "not serial and not long"
 	$(BIN)/python -m pytest -m "serial and not long"
 
-test-long: $(STAMP)
-	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -m long
+test-long: $(STAMP) aravis postgres browser
+	$(BIN)/python -m pytest $(PYTEST_PARALLEL) -m "long and not serial"
+	$(BIN)/python -m pytest -m "long and serial"
 
 # The stated floors, tested: a second venv with every `>=` floor of pyproject.toml pinned exactly
 # (.ci/floors.py), and the tests that reach each floored package (NumPy, SciPy, OpenCV, Matplotlib

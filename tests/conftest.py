@@ -146,44 +146,45 @@ SERIAL_FILES = {
     "test_store_faults.py",
 }
 
-# The long studies (many seeds, many sessions: their assertion is a statistic) carry @pytest.mark.long
-# in their files: `make test` leaves them out, `make test-long` (and so .ci/run) runs them.
+# The long ones carry @pytest.mark.long in their files: the studies (many seeds, many sessions: their
+# assertion is a statistic) and the end-to-end runs of 4 s or more alone (the first-day guide, the
+# tamper corpus, the API fuzzer, the browser flows, servers killed and restarted, floods). `make test`
+# leaves them out, `make test-long` (and so .ci/run) runs them: in parallel, then its serial ones alone.
 
 # The files that take longest, heaviest first: `make test` hands whole files to its two workers
 # (--dist loadfile) in collection order (--no-loadscope-reorder; xdist's own order, most tests first,
 # started test_tamper and test_first_day last and left one worker idle for minutes), so the heaviest
 # start first and the small ones fill the end (longest-processing-time-first scheduling). Seconds of
-# test time per file, from `pytest -n 2 --dist loadfile --no-loadscope-reorder -m "not serial and not
-# long" --junitxml=…` at load 4-7 on 2 cores (test_browser_trust's without a 30 s timeout it hit;
-# docs/performance.md): only their order matters. The files that wait on servers and robots
-# (test_first_day, test_robot_programs) keep their time on a quiet machine, the CPU-bound ones shrink.
+# test time per file (setup + call + teardown), from `pytest -n 2 --dist loadfile --no-loadscope-reorder
+# -m "not serial and not long" --durations=0` at load ~3 on 2 cores, after the end-to-end runs of 4 s or
+# more became `long` (docs/performance.md): only their order matters.
 # A file not listed runs after these, in collection order; a stale figure costs balance, never a result.
 HEAVY_FILES = {
-    "test_first_day.py": 127,
-    "test_robot_programs.py": 126,
-    "test_server.py": 94,
-    "test_tamper.py": 85,
-    "test_collect.py": 77,
-    "test_report.py": 63,
-    "test_detect.py": 43,
-    "test_browser.py": 41,
-    "test_diff.py": 39,
-    "test_opcua_security.py": 36,
-    "test_truth_http.py": 35,
-    "test_pair_cap.py": 34,
-    "test_plate.py": 34,
-    "test_pick_programs.py": 27,
-    "test_plc.py": 24,
-    "test_truth_tcp.py": 23,
-    "test_store_serve.py": 19,
-    "test_figure_routes.py": 16,
-    "test_aravis.py": 15,
-    "test_first_day_trips.py": 15,
-    "test_browser_trust.py": 15,
-    "test_auth_backoff.py": 14,
-    "test_browser_collect.py": 13,
-    "test_cli_plate.py": 13,
-    "test_browser_layout.py": 12,
+    "test_robot_programs.py": 34,
+    "test_server.py": 18,
+    "test_first_day_trips.py": 14,
+    "test_detect.py": 14,
+    "test_report.py": 14,
+    "test_collect.py": 13,
+    "test_truth_http.py": 12,
+    "test_pick_programs.py": 12,
+    "test_browser.py": 11,
+    "test_cli_plate.py": 11,
+    "test_plate.py": 10,
+    "test_aravis.py": 10,
+    "test_locate.py": 9,
+    "test_browser_layout.py": 9,
+    "test_plc.py": 8,
+    "test_opcua_security.py": 8,
+    "test_store_serve.py": 8,
+    "test_plate_workbench_http.py": 7,
+    "test_diff.py": 7,
+    "test_auth_backoff.py": 7,
+    "test_truth_tcp.py": 7,
+    "test_plate_partial.py": 6,
+    "test_plate_http.py": 6,
+    "test_browser_plate.py": 6,
+    "test_speed_paths.py": 6,
 }
 
 

@@ -256,6 +256,7 @@ def test_no_camera_at_all_and_no_aravis_are_input_errors(monkeypatch):
         open_source("aravis:x")
 
 
+@pytest.mark.long
 def test_a_stopped_camera_gives_grab_timeout():
     with fake_camera("STOP") as (net, cameras):
 

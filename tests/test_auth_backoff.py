@@ -128,6 +128,7 @@ def judged_now(attempt) -> None:
         time.sleep(0.02)
 
 
+@pytest.mark.long
 def test_tcp_auth_is_held_back_and_the_right_token_works_from_elsewhere(server):
     def attempt() -> int:
         reply = tcp_auth(server.tcp_port, "a-wrong-guess", source="127.0.0.4")

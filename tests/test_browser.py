@@ -52,6 +52,7 @@ def section_numbers(page) -> list[str]:
         .filter((s) => !s.hidden).map((s) => s.querySelector('h2 .num').textContent)""")
 
 
+@pytest.mark.long
 def test_paper_preset_in_the_workbench(server, page, tmp_path):
     from playwright.sync_api import expect
 
@@ -192,6 +193,7 @@ def fit_done(page, timeout=90_000):
     expect(page.locator("#job-status")).to_have_text("done", timeout=timeout)
 
 
+@pytest.mark.long
 def test_curves_map_box_and_narrow_screen(server, page, tmp_path):
     """LM and PSO curves drawn, the map box's guarded answers and refusals, no sideways scroll at 800 px."""
     from playwright.sync_api import expect
@@ -393,6 +395,7 @@ THUMB_PIXELS_JS = """(c) => {
 }"""
 
 
+@pytest.mark.long
 def test_calibrate_from_uploaded_images(server, page, tmp_path, capsys):
     """Upload a poses CSV and 9 rendered images (+ one blank image it names): the detections per
     image (one not found, its reason shown), the fit, the save; screenshots at 1280 and 800 px."""

@@ -53,6 +53,7 @@ def frame_number(page) -> int:
     return int(v or 0)
 
 
+@pytest.mark.long
 def test_collection_view_follows_the_robot(serve, page, tmp_path):
     from playwright.sync_api import expect
 

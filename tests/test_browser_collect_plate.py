@@ -49,6 +49,7 @@ def _corner_marks(page) -> dict[str, dict]:
     return {m["label"]: m for m in marks}
 
 
+@pytest.mark.long
 def test_the_collection_page_shows_the_robots_plate_session(serve, tmp_path):
     from playwright.sync_api import expect
 

@@ -112,6 +112,7 @@ def test_saved_calibrations_reachable(server, tmp_path, size):
         assert not page.problems, page.problems
 
 
+@pytest.mark.long
 def test_long_operations_show_the_time_left(server, tmp_path):
     """A PSO fit and a comparison: a progress bar and an estimate of the time left while they run."""
     from helpers import PAPER

@@ -12,6 +12,7 @@ import urllib.error
 import urllib.request
 
 import numpy as np
+import pytest
 from conftest import chromium_page
 from helpers import workbench_thread
 from synth import detect_rendered, limit_view, plane_grid
@@ -52,6 +53,7 @@ def _map_on_page(page, u_px: float, v_px: float, diameter: str | None = None) ->
     )
 
 
+@pytest.mark.long
 def test_the_mapping_form_takes_the_parts_diameter(tmp_path):
     cam = limit_view(25.0, 800.0, SIZE)
     train = plane_grid(cam, 5, 0.1, 0.9)

@@ -10,6 +10,7 @@ import re
 
 import cv2
 import numpy as np
+import pytest
 from conftest import chromium_page
 from helpers import workbench_thread
 
@@ -38,6 +39,7 @@ def _wait_state(page, text: str) -> None:
     )
 
 
+@pytest.mark.long
 def test_plate_flow_upload_touch_fit_save(tmp_path):
     sim = simulate_plate(spec=SPEC, seed=7, touch_noise_mm=0.05)
     img = tmp_path / "plate.png"
@@ -177,6 +179,7 @@ def test_importing_a_file_keeps_its_bytes(tmp_path):
         assert page.problems == []
 
 
+@pytest.mark.long
 def test_two_placements_each_touched_on_its_own_image(tmp_path):
     """Two images of one plate (on the table, z 0; on a 60 mm block, yawed): the second image's touches
     are clicked on it (the view switched), the fit uses both placements (model camera: several heights)."""

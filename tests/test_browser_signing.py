@@ -11,6 +11,7 @@ import json
 import urllib.error
 import urllib.request
 
+import pytest
 from conftest import chromium_page
 from helpers import keep_screenshot, workbench_thread
 from test_diff import FLAT, moved_cell
@@ -62,6 +63,7 @@ def _use_token(page, token: str) -> None:
     page.dispatch_event("#token", "change")
 
 
+@pytest.mark.long
 def test_signing_in_the_workbench(tmp_path):
     data = tmp_path / "data"
     store = Store(data, create=True)

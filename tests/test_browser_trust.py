@@ -77,6 +77,7 @@ def backdate(data_dir, cid: int) -> None:
             )
 
 
+@pytest.mark.long
 def test_trust_map_in_result_and_drift_in_history(server, tmp_path):
     from playwright.sync_api import expect
 

@@ -141,6 +141,7 @@ class _LineHandler(socketserver.StreamRequestHandler):
             self.wfile.write((self.server.collector.handle(raw.decode("ascii")) + "\n").encode())
 
 
+@pytest.mark.long
 def test_folder_collection_over_tcp_matches_sim(run_sim, rect, cell_file, tmp_path):
     """folder: source, images written by the robot side after each POINT, over a loopback socket
     with CR LF lines: the same images as the sim: run, hence the same calibration."""
@@ -468,6 +469,7 @@ def stored(data, name="cell1"):
         st.close()
 
 
+@pytest.mark.long
 def test_serve_collects_over_tcp_with_the_robot_client(
     tmp_path, cell_file, rect, run_sim, check_pairs, offline
 ):
@@ -537,6 +539,7 @@ def test_serve_collects_over_tcp_with_the_robot_client(
         srv.stop()
 
 
+@pytest.mark.long
 def test_serve_killed_after_12_points_resumes(tmp_path, cell_file, rect, run_sim):
     """kill -9 of the server process after 12 of 25 points, restart on the same data, the robot runs
     its program again: 25 points and the same calibration as an uninterrupted run."""

@@ -44,6 +44,7 @@ def served(tmp_path_factory):
 
 
 @pytest.mark.parametrize("names", [LISTENERS, ("opcua",), ("modbus",), ("tcp",), ("http",)], ids="+".join)
+@pytest.mark.long
 def test_1000_idle_sockets_leave_every_interface_mapping(served, names):
     srv, uv = served
     assert srv.ports.keys() == set(LISTENERS)
@@ -85,6 +86,7 @@ def _closed_within(sock: socket.socket, seconds: float) -> float:
     return time.monotonic() - t
 
 
+@pytest.mark.long
 def test_modbus_closes_silent_and_idle_connections_and_keeps_a_polling_one():
     """Modbus: a socket that never sends is closed after first_s, one idle after a request after
     idle_s (pymodbus alone kept both for ever: still open after 150 s); a client that keeps asking is
@@ -127,6 +129,7 @@ def test_modbus_closes_silent_and_idle_connections_and_keeps_a_polling_one():
     asyncio.run(asyncio.wait_for(run(), 60))
 
 
+@pytest.mark.long
 def test_opcua_closes_hel_only_and_silent_connections():
     """OPC UA: a socket that sends HEL and nothing more (no session) and one that sends nothing are
     closed after first_s (before: held until max_connections, 1000, took every file handle)."""

@@ -41,6 +41,7 @@ def start_serve(data: Path, *extra: str, preexec=None) -> ServeProcess:
 
 
 @pytest.mark.serial  # counts the writes acknowledged in 0.8-1.4 s: runs alone (tests/conftest.py)
+@pytest.mark.long
 def test_kill_9_during_writes_loses_no_acknowledged_change(tmp_path):
     data = tmp_path / "data"
     seed(data)
@@ -93,6 +94,7 @@ db.execute("COMMIT")
 
 
 @pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
+@pytest.mark.long
 def test_a_foreign_write_lock_gives_503_while_mapping_keeps_answering(tmp_path):
     data = tmp_path / "data"
     seed(data)
@@ -153,6 +155,7 @@ def test_a_foreign_write_lock_gives_503_while_mapping_keeps_answering(tmp_path):
 
 
 @pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
+@pytest.mark.long
 def test_a_huge_body_is_refused_while_the_robot_keeps_being_served(tmp_path):
     """A 63 MiB body of pairs is refused before it is parsed (413 JSON), and TCP answers meanwhile."""
     data = tmp_path / "data"

@@ -73,6 +73,7 @@ def test_guide_blocks_follow_the_rules():
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_the_first_day_guide_runs_in_the_virtual_cell(tmp_path):
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()

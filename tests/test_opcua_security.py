@@ -110,6 +110,7 @@ def served(tmp_path_factory):
         srv.stop()
 
 
+@pytest.mark.long
 def test_the_certificate_is_made_once_privately_and_every_policy_is_offered(served):
     from asyncua import Client
 

@@ -87,6 +87,7 @@ def collection(tmp_path_factory):
     return pairs, csv
 
 
+@pytest.mark.long
 def test_a_collection_of_20000_pairs_is_calibrated_evaluated_and_verified(collection, tmp_path, capsys):
     pairs, csv = collection
     back = load_pairs(csv)

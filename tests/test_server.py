@@ -329,6 +329,7 @@ def test_body_limit_gives_413(tmp_path):
         assert r.status_code == 200
 
 
+@pytest.mark.long
 def test_a_million_points_work_and_more_get_413(client):
     create(client, "big")
     rng = np.random.default_rng(0)
@@ -484,6 +485,7 @@ def fuzz_data():
 
 @schema.parametrize()
 @settings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck))
+@pytest.mark.long
 def test_fuzz_no_server_errors(case, fuzz_data):
     """Schemathesis: requests generated from the OpenAPI schema (valid and not) never get a 5xx."""
     response = case.call()
@@ -622,6 +624,7 @@ def test_mapping_uses_the_cache_and_sees_new_versions(client, monkeypatch):
     assert client.post("/api/calibrations/1/image-to-robot", json=body).status_code == 404
 
 
+@pytest.mark.long
 def test_delete_while_workers_fill_the_cache(tmp_path):
     import sys
     import threading

@@ -12,6 +12,7 @@ import sys
 import time
 
 import httpx
+import pytest
 from fastapi.testclient import TestClient
 from helpers import PAPER, ServeProcess, records, src_env
 from pymodbus.client import ModbusTcpClient
@@ -97,6 +98,7 @@ def until(check, timeout_s: float = 5.0):
         time.sleep(0.1)
 
 
+@pytest.mark.long
 def test_signing_is_an_act_and_require_signed_covers_what_is_served(tmp_path):
     key = tmp_path / "cell.key"
     key.write_bytes(b"0123456789abcdef0123456789abcdef")

@@ -114,6 +114,7 @@ def _consistent(url: str) -> tuple[list[int], list]:
         s.close()
 
 
+@pytest.mark.long
 def test_database_restart_under_load_then_kill_9_mid_write(tmp_path, pg_cluster, pg_url, cal_files):
     store = open_store(pg_url)
     store.create("cell", {"source": "import"}, cal_files[0], [], None)
@@ -169,6 +170,7 @@ def test_database_restart_under_load_then_kill_9_mid_write(tmp_path, pg_cluster,
     assert len(versions) - 1 in (len(office.acknowledged), len(office.acknowledged) + 1)
 
 
+@pytest.mark.long
 def test_opcua_says_when_the_store_is_unreachable_and_keeps_mapping(tmp_path, pg_cluster, pg_url, cal_files):
     """OPC UA's ``StoreState`` (asyncua's own Client against a real serve): ``Connected``, then
     ``Unreachable`` while the database is stopped — ``State`` stays ``Ready`` and ImageToRobot still

@@ -133,6 +133,7 @@ def _ask(port: int, line: str) -> str:
         return s.makefile().readline().strip()
 
 
+@pytest.mark.long
 def test_serve_on_postgresql_follows_a_version_written_elsewhere(tmp_path, pg_url, cal_files):
     """`serve --store postgresql://…` maps robot lines with the stored calibration; a new version
     written by another process (here: this test's own connection) is answered within 2 s."""

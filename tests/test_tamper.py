@@ -193,6 +193,7 @@ def _interfaces(path: Path, pairs_csv: Path, tmp: Path):
 
 
 @pytest.mark.parametrize("name", ["affine", "homography", "dlt3d"])
+@pytest.mark.long
 def test_every_mutation_is_refused_or_harmless(files, name, tmp_path, ram_path, capsys):
     orig_path = files[name]
     doc = json.loads(orig_path.read_text())

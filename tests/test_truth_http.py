@@ -362,6 +362,7 @@ def test_the_bound_address_and_allowed_hosts_are_served(tmp_path):
 
 
 @pytest.mark.serial  # asserts a latency or deadline: runs alone (tests/conftest.py)
+@pytest.mark.long
 def test_half_sent_requests_are_closed_while_a_normal_client_is_served(server):
     srv, _ = server
     slow: list[socket.socket] = []

@@ -181,6 +181,7 @@ def _follow(a: Interfaces, want, what: str) -> dict[str, float]:
 
 
 @pytest.mark.parametrize("kind", ["data folder", "postgresql"])
+@pytest.mark.long
 def test_every_interface_of_a_follows_what_b_writes(tmp_path, cal_dicts, kind, request):
     """On one ``--data`` folder (the default SQLite store), and on one PostgreSQL database (``--store``:
     the plant's shared store; each process has its own data folder there)."""
