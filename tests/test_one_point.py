@@ -206,6 +206,23 @@ def test_one_point_equals_many_for_any_float(name, u, v):
 
 
 @pytest.mark.parametrize("name", list(MODELS))
+def test_a_pixel_far_out_is_refused_without_a_runtime_warning(name):
+    """A huge pixel (its squared distance to the hull overflows) is refused as outside the region, by
+    one point and by many, and the caller sees the refusal only: no numpy RuntimeWarning (CI printed
+    "overflow encountered in square" from the region's distance)."""
+    import warnings
+
+    s = steep(name)
+    q = [float(s.inside[0]), float(s.inside[1])]
+    for u, v in ((1e200, 500.0), (500.0, -1e300), (1.7e308, 1.7e308)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            for rows in ([[u, v]], [q, [u, v]]):
+                with pytest.raises(InputError, match="outside the calibrated region"):
+                    s.cal.image_to_robot(np.array(rows), s.z)
+
+
+@pytest.mark.parametrize("name", list(MODELS))
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_a_non_finite_pixel_is_refused_alike(name, bad):
     s = steep(name)

@@ -668,10 +668,14 @@ def _outside_distance(hull: np.ndarray, uv: np.ndarray) -> np.ndarray:
     u, v = uv[:, 0], uv[:, 1]
     inside = np.ones(len(uv), bool)
     least = np.full(len(uv), np.inf)
-    for k in range(len(a)):  # K edges, each vectorised over the N points
-        ru, rv = u - a[k, 0], v - a[k, 1]
-        inside &= e[k, 0] * rv - e[k, 1] * ru >= 0  # > 0: left of the edge (inside)
-        t = np.clip((ru * e[k, 0] + rv * e[k, 1]) / ee[k], 0.0, 1.0)
-        du, dv = u - (a[k, 0] + t * e[k, 0]), v - (a[k, 1] + t * e[k, 1])
-        least = np.minimum(least, du**2 + dv**2)
+    # a pixel far out (1e200) overflows the products to ±inf (inf − inf: NaN, never inside): fmin skips
+    # a NaN edge, so its distance is inf or a huge number, refused as outside, and the caller sees no
+    # RuntimeWarning; for finite products fmin is minimum, bit for bit
+    with np.errstate(over="ignore", invalid="ignore"):
+        for k in range(len(a)):  # K edges, each vectorised over the N points
+            ru, rv = u - a[k, 0], v - a[k, 1]
+            inside &= e[k, 0] * rv - e[k, 1] * ru >= 0  # > 0: left of the edge (inside)
+            t = np.clip((ru * e[k, 0] + rv * e[k, 1]) / ee[k], 0.0, 1.0)
+            du, dv = u - (a[k, 0] + t * e[k, 0]), v - (a[k, 1] + t * e[k, 1])
+            least = np.fmin(least, du**2 + dv**2)
     return np.where(inside, 0.0, np.sqrt(least))
