@@ -188,10 +188,10 @@ HEAVY_FILES = {
 }
 
 
-def selects_only_serial(markexpr: str) -> bool:
-    """Does ``-m markexpr`` select only tests marked serial (make test's second phase: "serial and not
-    long")? True when it is false for a test without the mark, whatever its other marks (all of them
-    or none); False for no expression, or one pytest cannot read."""
+def _marks_decide(markexpr: str, mark: str, present: bool) -> bool:
+    """Is ``-m markexpr`` false for every test whose mark ``mark`` is ``present`` (True: it carries it;
+    False: it does not), whatever its other marks (all of them or none)? False for no expression, or
+    one pytest cannot read."""
     if not markexpr.strip():
         return False
     try:
@@ -199,21 +199,39 @@ def selects_only_serial(markexpr: str) -> bool:
 
         expr = Expression.compile(markexpr)
         return not any(
-            expr.evaluate(lambda name, /, **kw: name != "serial" and others)  # noqa: B023
+            expr.evaluate(lambda name, /, **kw: present if name == mark else others)  # noqa: B023
             for others in (True, False)
         )
     except Exception:  # noqa: BLE001  (another pytest's expression API: collect everything, as before)
         return False
 
 
+def selects_only_serial(markexpr: str) -> bool:
+    """Does ``-m markexpr`` select only tests marked serial (make test's second phase: "serial and not
+    long")? True when it is false for a test without the mark, whatever its other marks."""
+    return _marks_decide(markexpr, "serial", present=False)
+
+
+def leaves_out_long(markexpr: str) -> bool:
+    """Does ``-m markexpr`` leave out every test marked long (make test's "not serial and not long")?"""
+    return _marks_decide(markexpr, "long", present=True)
+
+
 def pytest_ignore_collect(collection_path, config):
-    """The serial phase (``-m "serial and not long"``) imports only the test files that can hold a
-    serial test (SERIAL_FILES, or "mark.serial" in the file): importing all ~95 to select 15 tests
-    cost 12.7 s of its CPU, these 5 files 3.5 s (load ~6)."""
+    """Files whose tests cannot be selected are not imported. The serial phase (``-m "serial and not
+    long"``) imports only the test files that can hold a serial test (SERIAL_FILES, or "mark.serial" in
+    the file): importing all ~95 to select 15 tests cost 12.7 s of its CPU, these 5 files 3.5 s (load
+    ~6). A run that leaves out the long tests skips the files that are long as a whole (``pytestmark =
+    pytest.mark.long``): test_server_fuzz.py's schema, built from the app, cost ~2 s of each worker."""
     name = collection_path.name
     if not (name.startswith("test_") and name.endswith(".py")):
         return None
-    if not selects_only_serial(config.option.markexpr or ""):
+    markexpr = config.option.markexpr or ""
+    if leaves_out_long(markexpr) and "\npytestmark = pytest.mark.long\n" in collection_path.read_text(
+        encoding="utf-8"
+    ):
+        return True
+    if not selects_only_serial(markexpr):
         return None
     if name in SERIAL_FILES or "mark.serial" in collection_path.read_text(encoding="utf-8"):
         return None

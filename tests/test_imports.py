@@ -11,6 +11,7 @@ that is not counted as an edge of the importer (every module would then depend o
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -100,7 +101,11 @@ def imports_of(name: str) -> dict[str, int]:
     return found
 
 
-GRAPH = {name: imports_of(name) for name in MODULES}
+@functools.cache
+def graph() -> dict[str, dict[str, int]]:
+    """Each module's imports (module → line), read once when a test asks (not at collection: every
+    pytest worker imports this file, and test_layers/test_conveyor_modules import it)."""
+    return {name: imports_of(name) for name in MODULES}
 
 
 def find_cycles(graph: dict[str, dict[str, int]]) -> list[list[str]]:
@@ -165,16 +170,16 @@ def _shortest_cycle(graph: dict[str, dict[str, int]], start: str, members: set[s
 
 
 def _describe(cycle: list[str]) -> str:
-    steps = [f"{a} (line {GRAPH[a][b]})" for a, b in zip(cycle, cycle[1:], strict=False)]
+    steps = [f"{a} (line {graph()[a][b]})" for a, b in zip(cycle, cycle[1:], strict=False)]
     return " -> ".join(steps + [cycle[-1]])
 
 
 def test_the_graph_is_read():
     """The parser sees the package: known imports are found (a broken resolver would find none)."""
-    assert f"{PACKAGE}.core.errors" in GRAPH[f"{PACKAGE}.core.pairs"]
-    assert f"{PACKAGE}.core" in GRAPH[f"{PACKAGE}.reports.report"]
-    assert f"{PACKAGE}.core" in GRAPH[f"{PACKAGE}.sim.cell"]
-    assert f"{PACKAGE}.models._rows" in GRAPH[f"{PACKAGE}.models.base"]  # the compiled module, by its stub
+    assert f"{PACKAGE}.core.errors" in graph()[f"{PACKAGE}.core.pairs"]
+    assert f"{PACKAGE}.core" in graph()[f"{PACKAGE}.reports.report"]
+    assert f"{PACKAGE}.core" in graph()[f"{PACKAGE}.sim.cell"]
+    assert f"{PACKAGE}.models._rows" in graph()[f"{PACKAGE}.models.base"]  # the compiled module, by its stub
     assert CLI in MODULES
 
 
@@ -187,7 +192,7 @@ def test_find_cycles_reports_a_cycle():
 
 
 def test_no_import_cycle():
-    cycles = find_cycles(GRAPH)
+    cycles = find_cycles(graph())
     on_cycles = sorted({m for c in cycles for m in c})
     assert not cycles, (
         "import cycles:\n"
@@ -199,10 +204,10 @@ def test_no_import_cycle():
 
 def test_only_the_cli_imports_the_cli():
     bad = [
-        f"{name} line {GRAPH[name][t]} imports {t}"
-        for name in sorted(GRAPH)
+        f"{name} line {graph()[name][t]} imports {t}"
+        for name in sorted(graph())
         if not (name == CLI or name.startswith(CLI + "."))
-        for t in GRAPH[name]
+        for t in graph()[name]
         if t == CLI or t.startswith(CLI + ".")
     ]
     assert not bad, "library modules importing the CLI:\n" + "\n".join(bad)

@@ -3,21 +3,16 @@
 from __future__ import annotations
 
 import asyncio
-import atexit
 import csv
 import json
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import orjson
 import pytest
-import schemathesis
 from fastapi.testclient import TestClient
 from helpers import PAPER, ServeProcess, records
-from hypothesis import HealthCheck, settings
 
 from eyetohand import InputError, load_pairs
 from eyetohand.calibration.file import Calibration
@@ -463,36 +458,6 @@ async def _tcp_session(cal):
         writer.close()
     finally:
         srv.close()
-
-
-# ---------------------------------------------------------------------- fuzzing
-
-
-FUZZ_DIR = Path(tempfile.mkdtemp(prefix="eyetohand-fuzz-"))
-atexit.register(shutil.rmtree, FUZZ_DIR, ignore_errors=True)  # also when the fuzz test is deselected
-FUZZ_APP = create_app(FUZZ_DIR, max_pso_work=3000, max_pending_jobs=2)
-schema = schemathesis.openapi.from_asgi("/openapi.json", FUZZ_APP)
-
-
-@pytest.fixture(scope="module")
-def fuzz_data():
-    create(TestClient(FUZZ_APP), "seed")  # one stored calibration, so that id 1 exists
-    yield
-    FUZZ_APP.state.jobs.shutdown()
-    FUZZ_APP.state.store.close()
-    shutil.rmtree(FUZZ_DIR, ignore_errors=True)
-
-
-@schema.parametrize()
-@settings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck))
-@pytest.mark.long
-def test_fuzz_no_server_errors(case, fuzz_data):
-    """Schemathesis: requests generated from the OpenAPI schema (valid and not) never get a 5xx."""
-    response = case.call()
-    assert response.status_code < 500, (case.method, case.path, response.status_code, response.text[:300])
-    if response.status_code >= 400:
-        body = response.json()
-        assert isinstance(body.get("error"), str) and body["error"], body
 
 
 # ---------------------------------------------------------------------- the real command

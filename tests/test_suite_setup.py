@@ -66,3 +66,36 @@ def test_every_file_with_a_serial_test_is_collected_by_the_serial_phase():
     kept = {p.name for p in TESTS.glob("test_*.py") if "mark.serial" in p.read_text()} | conftest.SERIAL_FILES
     assert {"test_faults.py", "test_truth_tcp.py", "test_truth_http.py", "test_render.py"} <= kept
     assert "test_store_faults.py" in kept and "test_server.py" not in kept
+
+
+@pytest.mark.parametrize(
+    ("markexpr", "out"),
+    [
+        ("not serial and not long", True),
+        ("serial and not long", True),
+        ("not long", True),
+        ("long", False),
+        ("long and not serial", False),
+        ("not serial", False),
+        ("numeric", False),
+        ("", False),
+        ("not long and (", False),  # unreadable: collect everything, pytest then says why
+    ],
+)
+def test_a_run_without_the_long_tests_knows_it(markexpr, out):
+    assert conftest.leaves_out_long(markexpr) is out
+
+
+def test_a_file_long_as_a_whole_is_not_imported_by_make_test():
+    """test_server_fuzz.py (long as a whole) is not collected by make test's phases, and is by
+    make test-long's; a file with only some long tests (test_server.py) is collected by all."""
+
+    class Config:
+        class option:
+            markexpr = ""
+
+    fuzz, server = TESTS / "test_server_fuzz.py", TESTS / "test_server.py"
+    for markexpr, skipped in (("not serial and not long", True), ("long and not serial", None), ("", None)):
+        Config.option.markexpr = markexpr
+        assert conftest.pytest_ignore_collect(fuzz, Config) is skipped, markexpr
+        assert conftest.pytest_ignore_collect(server, Config) is None, markexpr
