@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 from eyetohand.calibration import Calibration, load_sign_key
-from eyetohand.cell import BeltProtocol, Collector, LineReplies
+from eyetohand.cell import Collector, LineReplies
 from eyetohand.core import AuthBackoff, InputError, Role, current_actor, output_units
 from eyetohand.positioning import (
     FIRST_LINE_S,
@@ -52,6 +52,7 @@ from eyetohand.vision import open_source
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
+    from eyetohand.cell import BeltProtocol
     from eyetohand.positioning import FileBudget, Limit, Served
     from eyetohand.server.service import Service
     from eyetohand.server.storage import Store
@@ -257,7 +258,7 @@ def allowed_hosts(cfg: ServeConfig) -> list[str] | None:
     """The Host names HTTP answers: on a loopback address the loopback names, the bound address and
     every ``--allow-host``; elsewhere any (None) unless ``--allow-host`` names them (then those, the
     bound address and the loopback names)."""
-    from eyetohand.server.app import LOOPBACK_HOSTS  # FastAPI: called only as the app is built
+    from eyetohand.server.app import LOOPBACK_HOSTS  # FastAPI: loaded with the app, never on a refused option
 
     extra = [h.strip().lower() for h in cfg.allow_hosts if h.strip()]
     if not is_loopback(cfg.host) and not extra:
@@ -513,7 +514,7 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     if line_server is not None:  # a change the store notifies reaches the robots' lines at once
         run.service.change_listeners.append(lambda _cal_id: line_server.wake())
     if run.collector is not None:
-        from eyetohand.server.routes.collect import CameraView  # FastAPI: only with the app (a camera)
+        from eyetohand.server.routes.collect import CameraView  # FastAPI: loaded with the app above
 
         app.state.collect = CameraView(run.collector, run.source)
     port = http_sock.getsockname()[1]
@@ -713,6 +714,9 @@ def add_locate(commands: dict, source, served, cfg: ServeConfig):
 
 def open_belt(cfg: ServeConfig, source, data_dir: Path):
     """The BELT commands' protocol over ``--conveyor`` (its refusals in the line service's format)."""
+    # the conveyor (cell.conveyor: its file, fit and report, ~15 modules): only with --conveyor
+    from eyetohand.cell import BeltProtocol
+
     return BeltProtocol(
         cfg.conveyor,
         source=source,
