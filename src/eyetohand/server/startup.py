@@ -7,26 +7,55 @@ The command itself (its options) is :mod:`eyetohand.cli.serve`."""
 from __future__ import annotations
 
 import asyncio
+import datetime as dt
+import hashlib
 import importlib.util
 import ipaddress
 import logging
+import os
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
-from eyetohand.core import AuthBackoff, InputError, Role, current_actor
+from eyetohand.calibration import Calibration, load_sign_key
+from eyetohand.cell import Collector, LineReplies
+from eyetohand.core import AuthBackoff, InputError, Role, current_actor, output_units
+from eyetohand.positioning import (
+    FIRST_LINE_S,
+    HTTP_BUSY,
+    LIMITS,
+    FileBudgetError,
+    FixedCalibration,
+    LineServer,
+    Locator,
+    LoopThread,
+    PendingCalibration,
+    PlcServices,
+    ServerCertificate,
+    Slots,
+    file_budget,
+    guarded_factory,
+    parse_allow,
+    quiet_accept_errors,
+    reachable_addresses,
+)
+from eyetohand.server.audit import acting_as
 from eyetohand.server.config import ServeConfig, ServeError, is_loopback, parse_hostport
+from eyetohand.server.plant import CellBeat
+from eyetohand.server.storage import Ambiguous, NotFound, StorageError
+from eyetohand.server.stored import SameFile, StoredCalibration, collection_rule, served_for_check
+from eyetohand.server.stores import StoreRef, StoreRefError, open_store
+from eyetohand.vision import open_source
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
-    from eyetohand.cell import BeltProtocol, Collector
-    from eyetohand.positioning import FileBudget, Limit, LineServer, Locator, LoopThread, PlcServices, Served
+    from eyetohand.cell import BeltProtocol
+    from eyetohand.positioning import FileBudget, Limit, Served
     from eyetohand.server.service import Service
     from eyetohand.server.storage import Store
-    from eyetohand.server.stored import SameFile
 
 
 def check_options(args) -> ServeConfig:
@@ -87,8 +116,6 @@ def check_options(args) -> ServeConfig:
     if args.calibration:
         path = calibration_path(args.calibration)
         if path is not None:
-            from eyetohand.positioning import FixedCalibration
-
             try:
                 args.calibration_file = signed_file(FixedCalibration, path, args)
             except InputError as exc:
@@ -98,8 +125,6 @@ def check_options(args) -> ServeConfig:
 
 def check_store_option(args) -> None:
     """``--store URL``: a reference this program can open (docs/store.md)."""
-    from eyetohand.server.stores import StoreRef, StoreRefError
-
     given = getattr(args, "store", None)
     if given:
         try:
@@ -114,17 +139,12 @@ def check_store_option(args) -> None:
 
 def store_ref(cfg: ServeConfig, data_dir):
     """The store ``serve`` uses: ``--store``, else the SQLite database in the data folder."""
-    from eyetohand.server.stores import StoreRef
-
     return StoreRef.parse(cfg.store or data_dir)
 
 
 def open_store_or_refuse(ref, cfg: ServeConfig, *, create: bool, http_sock=None):
     """The store ``ref`` names; a store that cannot be opened (unreachable, a newer schema, psycopg
     missing) is one :class:`ServeError` line naming it (``http_sock`` closed first)."""
-    from eyetohand.server.storage import StorageError
-    from eyetohand.server.stores import StoreRefError, open_store
-
     try:
         return open_store(ref, cfg.db_wait_s, create=create)
     except (StorageError, StoreRefError) as exc:
@@ -137,8 +157,6 @@ def check_line_options(args) -> None:
     """``--reply-format``, ``--units``, ``--angle-units``: the TCP line service's words and units
     (``args.output_units``); refused without ``--tcp`` (Modbus registers are in µm and 0.001 deg, OPC UA
     in mm and deg whatever these say: docs/plc.md)."""
-    from eyetohand.core import output_units
-
     units, angle = getattr(args, "units", None), getattr(args, "angle_units", None)
     try:
         args.output_units = output_units(units, angle)
@@ -169,8 +187,6 @@ def check_plc_options(args) -> None:
         if given and importlib.util.find_spec(package) is None:
             raise ServeError(f"{flag} needs the {package} package: pip install 'eyetohand[plc]'")
     if modbus:
-        from eyetohand.positioning import parse_allow
-
         host, _ = parse_hostport(modbus, "--modbus")
         try:
             nets = parse_allow(allow.split(",")) if allow else []
@@ -208,8 +224,6 @@ def check_opcua_certificate(args, opcua: str | None) -> None:
     if bool(cert) != bool(key):
         raise ServeError("--opcua-cert and --opcua-key go together: the certificate and its private key")
     if cert and key:
-        from eyetohand.positioning import ServerCertificate
-
         try:
             args.opcua_security = ServerCertificate.from_files(cert, key)
         except InputError as exc:
@@ -224,8 +238,6 @@ def check_signing_options(args) -> None:
     args.sign_key_bytes = None
     path = getattr(args, "sign_key", None)
     if path is not None:
-        from eyetohand.calibration import load_sign_key
-
         try:
             args.sign_key_bytes = load_sign_key(path)
         except InputError as exc:
@@ -236,10 +248,6 @@ def check_signing_options(args) -> None:
 
 def signed_file(fixed_cls, path, args):
     """``--calibration FILE`` loaded with the signature rules (``fixed_cls``: FixedCalibration)."""
-    import hashlib
-
-    from eyetohand.calibration import Calibration
-
     p = Path(path)
     key = getattr(args, "sign_key_bytes", None)
     cal = Calibration.load(p, sign_key=key, require_signed=bool(getattr(args, "require_signed", False)))
@@ -250,7 +258,7 @@ def allowed_hosts(cfg: ServeConfig) -> list[str] | None:
     """The Host names HTTP answers: on a loopback address the loopback names, the bound address and
     every ``--allow-host``; elsewhere any (None) unless ``--allow-host`` names them (then those, the
     bound address and the loopback names)."""
-    from eyetohand.server.app import LOOPBACK_HOSTS
+    from eyetohand.server.app import LOOPBACK_HOSTS  # FastAPI: loaded with the app, never on a refused option
 
     extra = [h.strip().lower() for h in cfg.allow_hosts if h.strip()]
     if not is_loopback(cfg.host) and not extra:
@@ -269,9 +277,6 @@ def calibration_path(ref: str):
     Unambiguous by its form: ``file:PATH``, or a value ending in ``.json`` or containing a path
     separator, is a file; ``id:N`` is the stored calibration with id N; ``name:NAME`` (or any other
     value) is a stored calibration's name (digits alone: the id, refused when another's name)."""
-    import os
-    from pathlib import Path
-
     if ref.startswith("file:"):
         return Path(ref[5:])
     if ref.lower().startswith(("id:", "name:")):
@@ -285,7 +290,6 @@ def store_save_fn(store, on_saved=None, user: str = "robot"):
     """``save_fn(name, cal)`` for the Collector: a new version of calibration ``name`` in the
     server's database (a new calibration when the name is new), audited as ``cal_end`` by the TCP
     connection's token holder (its ``AUTH``), else ``user``; ``on_saved(record, cal)`` after."""
-    from eyetohand.server.audit import acting_as
 
     def save(name: str, cal) -> None:
         actor = current_actor()
@@ -316,8 +320,6 @@ def store_check_fn(store, user: str):
     ``check`` (its point and error in the note) by the connection's token holder, else ``user``. The
     record is in the collection's history file already: a store that cannot be written now is logged,
     the robot still gets its answer."""
-    from eyetohand.server.audit import acting_as
-    from eyetohand.server.storage import StorageError
 
     def on_check(rec: dict) -> None:
         found = store.by_name(rec["name"]) if rec.get("name") else None
@@ -346,7 +348,6 @@ def tcp_user(cfg: ServeConfig) -> str:
 
 def store_load_fn(store):
     """``load_fn(name) -> Calibration | None`` for the Collector: the current stored version."""
-    from eyetohand.calibration import Calibration
 
     def load(name: str):
         rec = store.by_name(name)
@@ -361,8 +362,6 @@ def store_load_fn(store):
 def one_calibration(server_fn, wanted: str | None) -> dict:
     """The Collector's options that make mapping lines and CAL CHECK use one calibration (docs/collection.md):
     BEGIN only for the served one (with ``--calibration``), CHECK checks what the mapping lines use."""
-    from eyetohand.server.stored import collection_rule, served_for_check
-
     return {"begin_rule": collection_rule(server_fn, wanted), "served_fn": served_for_check(server_fn)}
 
 
@@ -376,8 +375,6 @@ def tcp_options(
     """The LineServer's options from ``serve``'s: the token, the command handlers, their busy replies,
     the robot's reserved addresses, the first-line grace, the reply format and units, the
     failed-AUTH backoff (shared with HTTP and OPC UA) and its connections (``limits["tcp"]``)."""
-    from eyetohand.positioning import FIRST_LINE_S
-
     bound = (
         {}
         if limits is None
@@ -470,8 +467,6 @@ def connection_budget(cfg: ServeConfig) -> FileBudget:
     """The soft RLIMIT_NOFILE raised toward the hard one, and the connections of the listeners ``cfg``
     asks for fitted within it (:func:`eyetohand.positioning.limits.file_budget`); too few handles is a
     :class:`ServeError` saying how to raise them."""
-    from eyetohand.positioning import LIMITS, FileBudgetError, file_budget
-
     given = {"http": True, "tcp": cfg.tcp is not None, "modbus": cfg.modbus is not None}
     given["opcua"] = cfg.opcua is not None
     try:
@@ -481,9 +476,7 @@ def connection_budget(cfg: ServeConfig) -> FileBudget:
 
 
 async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
-    import uvicorn
-
-    from eyetohand.positioning import HTTP_BUSY, Slots, guarded_factory, quiet_accept_errors
+    import uvicorn  # uvicorn: only once every option is checked and every service refused or started
 
     budget = connection_budget(cfg)
     quiet_accept_errors(asyncio.get_running_loop(), "HTTP")
@@ -521,7 +514,7 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     if line_server is not None:  # a change the store notifies reaches the robots' lines at once
         run.service.change_listeners.append(lambda _cal_id: line_server.wake())
     if run.collector is not None:
-        from eyetohand.server.routes.collect import CameraView
+        from eyetohand.server.routes.collect import CameraView  # FastAPI: loaded with the app above
 
         app.state.collect = CameraView(run.collector, run.source)
     port = http_sock.getsockname()[1]
@@ -529,7 +522,8 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
     if (access := cfg.access_line()) is not None:
         print(access, flush=True)
     print(budget.line(), flush=True)
-    from eyetohand.server.protocol import GuardedH11Protocol  # head and body deadlines (slowloris)
+    # uvicorn's h11 protocol, with head and body deadlines (slowloris): only once the app is built
+    from eyetohand.server.protocol import GuardedH11Protocol
 
     # uvicorn calls Config.http (a class or any factory) with its keywords for each connection
     slots = Slots(f"HTTP {cfg.host}:{port}", budget.limits["http"], replace_own=True)
@@ -556,8 +550,6 @@ async def _run_serve(cfg: ServeConfig, data_dir, loops: list) -> None:
 async def _start_tcp(cfg: ServeConfig, run: _Started, data_dir: Path, ref, http_sock, fresh_db: bool) -> None:
     """Start the line service (and its CAL, BELT and LOCATE commands) on a loop of its own: the robot's
     lines never wait behind HTTP work. Prints its start-up lines; a refusal closes ``http_sock``."""
-    from eyetohand.positioning import LineServer, LoopThread, quiet_accept_errors
-
     assert cfg.tcp is not None and run.served is not None  # _served_calibration ran for --tcp
     host, port = cfg.tcp
     what = run.served.describe()
@@ -614,10 +606,8 @@ def _open_collection(
 ) -> None:
     """``--camera``: the camera, the CAL collection (saving into the store, after which the mapping lines
     serve what it saved) and LOCATE, added to ``commands``."""
-    import eyetohand.sim  # noqa: F401  (the interfaces offer the virtual cell's sim: camera)
-    from eyetohand.cell import Collector
-    from eyetohand.server.stored import SameFile, StoredCalibration
-    from eyetohand.vision import open_source
+    # eyetohand.sim (the virtual cell, ~20 modules): only with --camera; it offers the sim: camera
+    import eyetohand.sim  # noqa: F401
 
     assert cfg.camera is not None and run.tcp_loop is not None
     run.source = open_source(cfg.camera)
@@ -672,15 +662,6 @@ async def _start_plc(
     ``poll``; ``store_reachable()``: OPC UA's ``StoreState``); print their start-up lines. Returns
     (the services, their loop). OPC UA's certificate:
     ``--opcua-cert/--opcua-key``, else the one in ``data_dir``/opcua (created at the first start)."""
-    from eyetohand.positioning import (
-        LIMITS,
-        LoopThread,
-        PlcServices,
-        ServerCertificate,
-        quiet_accept_errors,
-        reachable_addresses,
-    )
-
     security = cfg.opcua_security
     if cfg.opcua is not None and security is None and data_dir is not None:
         try:
@@ -722,8 +703,7 @@ def add_locate(commands: dict, source, served, cfg: ServeConfig):
     """The camera's :class:`~eyetohand.cell.Locator`, its line command ``LOCATE`` added to
     ``commands`` (and, for a ``sim:`` camera, ``SIM``: parts on the virtual table). ``served()``: the
     calibration in force, read at every LOCATE."""
-    from eyetohand.positioning import Locator
-    from eyetohand.sim import SimSource, sim_command
+    from eyetohand.sim import SimSource, sim_command  # eyetohand.sim: only with --camera
 
     locator = Locator(source, served, reply_format=cfg.reply_format, units=cfg.units)
     commands["LOCATE"] = locator.handle
@@ -734,7 +714,8 @@ def add_locate(commands: dict, source, served, cfg: ServeConfig):
 
 def open_belt(cfg: ServeConfig, source, data_dir: Path):
     """The BELT commands' protocol over ``--conveyor`` (its refusals in the line service's format)."""
-    from eyetohand.cell import BeltProtocol, LineReplies
+    # the conveyor (cell.conveyor: its file, fit and report, ~15 modules): only with --conveyor
+    from eyetohand.cell import BeltProtocol
 
     return BeltProtocol(
         cfg.conveyor,
@@ -764,10 +745,6 @@ def cell_heartbeat(cfg: ServeConfig, http_sock, source_fn):
     """The plant view's heartbeat of this serve (:class:`~eyetohand.server.plant.CellBeat`): its
     HTTP address and what its robots are answered with now (``source_fn()``: the served calibration,
     None for the workbench alone)."""
-    import datetime as dt
-
-    from eyetohand.server.plant import CellBeat
-
     started = dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds")
     url = f"http://{cfg.host}:{http_sock.getsockname()[1]}"
 
@@ -785,9 +762,7 @@ def _make_app(cfg: ServeConfig, ref, fresh_db: bool, http_sock, source_fn, backo
     """The workbench's app on the store ``ref`` (beating as :func:`cell_heartbeat`; ``backoff``: failed
     tokens per address, shared with TCP and OPC UA); a store that cannot be opened is one
     :class:`ServeError` line (exit 2)."""
-    from eyetohand.server.app import create_app
-    from eyetohand.server.storage import StorageError
-    from eyetohand.server.stores import StoreRefError
+    from eyetohand.server.app import create_app  # FastAPI: only once the options are checked
 
     try:
         return create_app(
@@ -818,10 +793,6 @@ def _served_calibration(
     check_options), a stored calibration (followed), or none yet (with a camera, a collection creates
     it). A refusal closes ``http_sock`` and raises :class:`ServeError`. ``create``: the database may be
     created (a first start only)."""
-    from eyetohand.positioning import PendingCalibration
-    from eyetohand.server.storage import Ambiguous, NotFound, StorageError
-    from eyetohand.server.stored import SameFile, StoredCalibration
-
     fixed = cfg.calibration_file  # a file, proved intact by check_options
     if fixed is not None:
         return fixed, None, None
