@@ -6,27 +6,47 @@ Needs the ``fastapi`` and ``uvicorn`` packages. ``create_app(data_dir, token=Non
 
 from __future__ import annotations
 
-from eyetohand.server.audit import DEFAULT_TOKEN_NAME
-from eyetohand.server.startup import check_options, serve
-from eyetohand.server.storage import StorageError, default_data_dir
-from eyetohand.server.stores import (
-    QueryError,
-    StoreRef,
-    StoreRefError,
-    audit_query,
-    copy_store,
-    open_store,
-    store_digest,
-)
-from eyetohand.server.versions import stored_calibration
+from typing import TYPE_CHECKING
 
+from eyetohand.core import lazy_exports
 
-def create_app(*args, **kwargs):
-    """See :func:`eyetohand.server.app.create_app` (imported lazily: FastAPI loads only when used)."""
-    from eyetohand.server.app import create_app as _create_app
-
-    return _create_app(*args, **kwargs)
-
+if TYPE_CHECKING:
+    from eyetohand.server.app import create_app
+    from eyetohand.server.audit import DEFAULT_TOKEN_NAME
+    from eyetohand.server.startup import check_options, serve
+    from eyetohand.server.storage import StorageError, default_data_dir
+    from eyetohand.server.stores import (
+        QueryError,
+        StoreRef,
+        StoreRefError,
+        audit_query,
+        copy_store,
+        open_store,
+        store_digest,
+    )
+    from eyetohand.server.versions import stored_calibration
+else:
+    # each name loads its module on first use (PEP 562): `eyetohand audit` or `store copy` never loads
+    # serve's start-up wiring, and FastAPI loads only with create_app
+    __getattr__, __dir__ = lazy_exports(
+        __name__,
+        {
+            "app": ("create_app",),
+            "audit": ("DEFAULT_TOKEN_NAME",),
+            "startup": ("check_options", "serve"),
+            "storage": ("StorageError", "default_data_dir"),
+            "stores": (
+                "QueryError",
+                "StoreRef",
+                "StoreRefError",
+                "audit_query",
+                "copy_store",
+                "open_store",
+                "store_digest",
+            ),
+            "versions": ("stored_calibration",),
+        },
+    )
 
 __all__ = [
     "DEFAULT_TOKEN_NAME",
