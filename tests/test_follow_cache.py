@@ -103,3 +103,26 @@ def test_a_change_before_the_first_poll_is_followed(two, cals):
         assert hit is None or hit[0] == 2, f"version {hit[0]} cached after version 2 was written"
     finally:
         held.set()
+
+
+def test_a_read_the_follower_reported_on_is_read_again_and_kept(two):
+    """The follower's report of a change the read had already seen (an import just before the first
+    mapping: under load the two meet) left the version in force out of the cache, so the next mapping
+    read the store, and with the store down then the robot got 503 (a clean clone's CI run failed so once:
+    tests/test_store_serve.py's unreachable database). The read is made again and its result kept."""
+    svc, _other, cid = two
+    real_version = svc.store.version
+    reads: list[int] = []
+
+    def reported_during(*args, **kwargs):
+        ver = real_version(*args, **kwargs)
+        reads.append(ver.version)
+        if len(reads) == 1:
+            svc.refresh(cid)  # the follower's report arrives while the request reads
+        return ver
+
+    svc.store.version = reported_during
+    assert svc.calibration(cid)[0].version == 1
+    assert reads == [1, 1]  # read again once the generation had moved
+    hit = svc.cached(cid)
+    assert hit is not None and hit[0] == 1  # in the cache: what maps while the store is down

@@ -28,6 +28,10 @@ from eyetohand.server.summaries import summarize
 if TYPE_CHECKING:
     from eyetohand.server.follow import Follower
 
+# reads of one calibration before it is returned uncached: a change noticed during each of them (a
+# store written to that fast) is rare, and the caller still gets what the last read said
+_READS = 3
+
 
 @dataclass(frozen=True)
 class Limits:
@@ -110,23 +114,29 @@ class Service:
         return self.out(cal_id, version)
 
     def calibration(self, cal_id: int, version: int | None = None) -> tuple[Version, Calibration]:
-        """The stored version and its decoded calibration (decoded once, then cached). Blocking."""
-        with self._lock:
-            gen = self._generation.get(cal_id, 0)
-        ver = self.store.version(cal_id, version)
-        key = (cal_id, ver.version)
-        with self._lock:
-            cal = self._by_version.get(key)
-        if cal is None:
-            cal = Calibration.from_dict(ver.calibration, f"calibration {cal_id} version {ver.version}")
-        with self._lock:
-            if self._generation.get(cal_id, 0) == gen:  # no write since the read: safe to keep
-                self._by_version[key] = cal
-                self._by_version.move_to_end(key)
-                while len(self._by_version) > self.CACHE_SIZE:
-                    self._by_version.popitem(last=False)
-                if version is None:
-                    self._current[cal_id] = (ver.version, cal)
+        """The stored version and its decoded calibration (decoded once, then cached). A change
+        noticed while it was read (the generation moved: a write here, or the follower's report of
+        one) makes it read again, so that what is cached is read after the change: kept uncached, the
+        version in force was read from the store on the next request, and a store that went down then
+        refused the robot (503) — the cache is what maps while the store is down. Blocking."""
+        for _ in range(_READS):
+            with self._lock:
+                gen = self._generation.get(cal_id, 0)
+            ver = self.store.version(cal_id, version)
+            key = (cal_id, ver.version)
+            with self._lock:
+                known = self._by_version.get(key)
+            where = f"calibration {cal_id} version {ver.version}"
+            cal = known if known is not None else Calibration.from_dict(ver.calibration, where)
+            with self._lock:
+                if self._generation.get(cal_id, 0) == gen:  # no write since the read: safe to keep
+                    self._by_version[key] = cal
+                    self._by_version.move_to_end(key)
+                    while len(self._by_version) > self.CACHE_SIZE:
+                        self._by_version.popitem(last=False)
+                    if version is None:
+                        self._current[cal_id] = (ver.version, cal)
+                    break
         return ver, cal
 
     def refresh(self, cal_id: int) -> None:
