@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from conftest import chromium_page
 from helpers import workbench_thread
 from test_diff import FLAT, moved_cell
@@ -20,6 +21,7 @@ def _cal_json(cell, seed: int) -> dict:
     return json.loads(calibrate(sim.pairs, model="homography", check=sim.check, loo=False).to_json())
 
 
+@pytest.mark.long
 def test_compare_two_versions_in_the_workbench(tmp_path):
     data = tmp_path / "data"
     store = Store(data, create=True)

@@ -24,6 +24,7 @@ def server(tmp_path):
         yield url
 
 
+@pytest.mark.long
 def test_api_docs_render_in_the_browser(server, tmp_path):
     from playwright.sync_api import expect
 

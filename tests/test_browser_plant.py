@@ -6,12 +6,14 @@ calibration meanwhile. Fails, never skips, when Chromium is missing."""
 from __future__ import annotations
 
 import httpx
+import pytest
 from conftest import chromium_page
 from helpers import PAPER, keep_screenshot, records, workbench_thread
 
 PAIRS = records(PAPER / "calibration_points.csv")
 
 
+@pytest.mark.long
 def test_plant_page_makes_a_version_current_with_if_match(tmp_path, paper_pairs):
     from eyetohand import calibrate
     from eyetohand.core import PointPairs

@@ -142,6 +142,7 @@ def test_plate_flow_upload_touch_fit_save(tmp_path):
         assert page.problems == []
 
 
+@pytest.mark.long
 def test_a_point_pair_fit_shows_its_expected_accuracy(tmp_path):
     sim = simulate(plan="grid:5x5", seed=3, n_check=10)
     (tmp_path / "pairs.csv").write_text(sim.pairs.to_csv_text())

@@ -707,6 +707,7 @@ def test_epson_spel(tmp_path, cell_file):
 # ---- robot_client.py ---------------------------------------------------------------------------------
 
 
+@pytest.mark.long
 def test_robot_client_documented_negative_rect(tmp_path, cell_file):
     """The form ``--rect -40,570,60,650`` (a value that starts with '-'; README's rectangle no longer
     does) is accepted; its corner (-40,650) is outside this cell's view, so 8 of 9 are recorded. The
