@@ -61,10 +61,11 @@ systemd-analyze:
 # afterwards on their own, so no timing measures the other worker's load. `make test
 # PYTEST_PARALLEL=` runs everything serially. docs/performance.md has the suite's times.
 # The long ones (marker `long`: the studies of many seeds or sessions, and the end-to-end runs that
-# take 4 s or more alone: the first-day guide, the tamper corpus, the API fuzzer, a browser flow, a
-# server killed and restarted) are left out of `make test` and run by `make test-long` (parallel, then
-# its serial ones alone), which .ci/run runs after it: every test runs in CI. docs/performance.md
-# lists them and the times.
+# take about 4 s or more alone, 3.5 s for a browser flow: the first-day guide, the tamper corpus, the
+# API fuzzer, browser flows, servers killed and restarted) are left out of `make test` and run by
+# `make test-long` (parallel, then its serial ones alone), which .ci/run runs after it: every test
+# runs in CI. The robot programs' replays and the real photographs stay in `make test` (each its
+# counterpart's test). docs/performance.md lists them and the times.
 # --no-loadscope-reorder: the files in tests/conftest.py's order (HEAVY_FILES first), not xdist's
 # (most tests first), so the longest files start first and none is left to run alone at the end.
 PYTEST_PARALLEL ?= -n auto --dist loadfile --no-loadscope-reorder

@@ -147,7 +147,7 @@ SERIAL_FILES = {
 }
 
 # The long ones carry @pytest.mark.long in their files: the studies (many seeds, many sessions: their
-# assertion is a statistic) and the end-to-end runs of 4 s or more alone (the first-day guide, the
+# assertion is a statistic) and the end-to-end runs of about 4 s or more alone (the first-day guide, the
 # tamper corpus, the API fuzzer, the browser flows, servers killed and restarted, floods). `make test`
 # leaves them out, `make test-long` (and so .ci/run) runs them: in parallel, then its serial ones alone.
 
