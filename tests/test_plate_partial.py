@@ -272,3 +272,62 @@ def test_http_calibrates_a_partial_board_and_refuses_too_few_in_the_same_words(t
         r = c.post("/api/plate/calibrate", json=body(np.ascontiguousarray(sim.image[:1000, :800])))
         assert r.status_code == 422 and r.json()["field"] == "images[0]", r.text
         assert f"needs at least {MIN_SEEN} corners in 2 or more rows and columns" in r.json()["error"]
+
+
+def test_simulate_makes_a_board_seen_in_part_from_the_command_line(tmp_path, board_px, capsys):
+    """``eyetohand simulate --plate SPEC --plate-cover U0,V0,U1,V1`` / ``--plate-shift-mm DX,DY``: the
+    library's cover and shift from the command line (the same touches as the library's session of that
+    seed), calibrated by ``calibrate-plate``; a malformed value exits 2 with one line naming it."""
+    from eyetohand.cli import main
+
+    u0, v0, u1, v1 = _middle_third(board_px)
+    cover = f"{u0:.1f},{v0:.1f},{u1:.1f},{v1:.1f}"
+    for flags, kwargs in (
+        (["--plate-cover", cover], {"cover_px": (round(u0, 1), v0, round(u1, 1), v1)}),
+        (["--plate-shift-mm", "100,0"], {"shift_mm": (100.0, 0.0)}),
+    ):
+        out = tmp_path / flags[0].strip("-")
+        args = [
+            "simulate",
+            "--plate",
+            SPEC,
+            *flags,
+            "--seed",
+            "3",
+            "--touch-noise-mm",
+            "0.05",
+            "--out",
+            str(out),
+        ]
+        assert main(args) == 0, capsys.readouterr().err
+        lib = simulate_plate(spec=SPEC, seed=3, touch_noise_mm=0.05, render=False, **kwargs)
+        assert (out / "touches.csv").read_text() == lib.touches_csv, flags
+        code = main(
+            [
+                "calibrate-plate",
+                str(out / "plate.png"),
+                "--plate",
+                SPEC,
+                "--touches",
+                str(out / "touches.csv"),
+            ]
+            + ["--check", str(out / "check.csv"), "-o", str(out / "cal.json")]
+        )
+        assert code == 0, capsys.readouterr().err
+        assert (
+            MIN_SEEN <= len(Calibration.load(out / "cal.json").plate.images[0].to_dict(lib.spec)["ids"]) < 54
+        )
+    capsys.readouterr()
+    for flags, words in (
+        (["--plate-cover", "1,2,3"], "--plate-cover: expected 4 comma-separated numbers"),
+        (["--plate-cover", "900,10,500,20"], "plate cover: expected a rectangle u0,v0,u1,v1 px with u0 < u1"),
+        (["--plate-shift-mm", "5,nan"], "--plate-shift-mm: 'nan' must be a finite number"),
+        (["--plate-shift-mm", "5"], "--plate-shift-mm: expected 2 comma-separated numbers"),
+    ):
+        out = tmp_path / "bad"
+        assert main(["simulate", "--plate", SPEC, *flags, "--out", str(out)]) == 2, flags
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and words in err, err
+        assert not out.exists()
+    assert main(["simulate", "--plate-cover", cover, "--out", str(tmp_path / "no")]) == 2
+    assert "--plate-cover goes with --plate SPEC" in capsys.readouterr().err

@@ -116,11 +116,22 @@ def parse_plan(text: str) -> Plan:
     raise InputError(f"plan {text!r} not understood; expected {VALID_FORMS}")
 
 
-def parse_numbers(text: str, what: str, *, positive: bool = False, example: str = "150,200") -> list[float]:
-    """A comma-separated list of numbers (``--heights 150,200``); errors name ``what``."""
+def parse_numbers(
+    text: str,
+    what: str,
+    *,
+    positive: bool = False,
+    example: str = "150,200",
+    count: int | None = None,
+    distinct: bool = True,
+) -> list[float]:
+    """A comma-separated list of numbers (``--heights 150,200``); errors name ``what``. ``count``: exactly
+    that many (a point, a rectangle); ``distinct`` False: repeats allowed (``0,0``)."""
     items = [t.strip() for t in str(text).split(",")]
     if not items or any(t == "" for t in items):
         raise InputError(f"{what}: expected comma-separated numbers (e.g. {example}), got {text!r}")
+    if count is not None and len(items) != count:
+        raise InputError(f"{what}: expected {count} comma-separated numbers (e.g. {example}), got {text!r}")
     out = []
     for t in items:
         try:
@@ -130,6 +141,6 @@ def parse_numbers(text: str, what: str, *, positive: bool = False, example: str 
         if not np.isfinite(v) or (positive and v <= 0):
             raise InputError(f"{what}: {t!r} must be a finite{' positive' if positive else ''} number")
         out.append(v)
-    if len(set(out)) != len(out):
+    if distinct and len(set(out)) != len(out):
         raise InputError(f"{what}: repeated value in {text!r}")
     return out

@@ -80,10 +80,23 @@ def cmd_calibrate_plate(args) -> int:
 
 def cmd_simulate_plate(args) -> int:
     """``simulate --plate SPEC --touches N --out DIR``."""
+    from eyetohand.cell import parse_numbers
     from eyetohand.sim import load_cell, simulate_plate, write_plate_simulation
 
     if not args.out:
         raise InputError("simulate: give --out DIR")
+    shift = (0.0, 0.0)
+    if args.plate_shift_mm is not None:
+        dx, dy = parse_numbers(
+            args.plate_shift_mm, "--plate-shift-mm", example="100,0", count=2, distinct=False
+        )
+        shift = (dx, dy)
+    cover = None
+    if args.plate_cover is not None:
+        u0, v0, u1, v1 = parse_numbers(
+            args.plate_cover, "--plate-cover", example="800,0,1300,2047", count=4, distinct=False
+        )
+        cover = (u0, v0, u1, v1)
     sim = simulate_plate(
         load_cell(args.config),
         args.plate,
@@ -91,6 +104,8 @@ def cmd_simulate_plate(args) -> int:
         touch_noise_mm=args.touch_noise_mm,
         n_check=args.check,
         seed=args.seed,
+        shift_mm=shift,
+        cover_px=cover,
     )
     files = write_plate_simulation(sim, args.out)
     if args.json:

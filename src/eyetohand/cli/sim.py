@@ -40,8 +40,13 @@ def cmd_simulate(args) -> int:
         from eyetohand.cli.plate import cmd_simulate_plate
 
         return cmd_simulate_plate(args)
-    if args.touches is not None:
-        raise InputError("simulate: --touches goes with --plate SPEC")
+    for given, option in (
+        (args.touches, "--touches"),
+        (args.plate_shift_mm, "--plate-shift-mm"),
+        (args.plate_cover, "--plate-cover"),
+    ):
+        if given is not None:
+            raise InputError(f"simulate: {option} goes with --plate SPEC")
     if not args.out:
         raise InputError("simulate: give --out DIR (or --write-config FILE to write the default cell)")
     cell = load_cell(args.config)
@@ -212,6 +217,16 @@ def register(sub) -> None:
         type=float,
         default=0.05,
         help="with --plate: the pointer's noise per axis (default 0.05)",
+    )
+    p.add_argument(
+        "--plate-shift-mm",
+        metavar="DX,DY",
+        help="with --plate: move the plate along its own x, y from the view's centre (part may leave view)",
+    )
+    p.add_argument(
+        "--plate-cover",
+        metavar="U0,V0,U1,V1",
+        help="with --plate: blank this rectangle of the image (px), as a part lying on the plate",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(func=cmd_simulate)

@@ -206,6 +206,17 @@ def simulate_plate(
         raise InputError(f"touches: expected 3 or 4 (the plate's corners A-D), got {n_touches!r}")
     if not (math.isfinite(touch_noise_mm) and touch_noise_mm >= 0):
         raise InputError(f"touch noise: expected a number of mm >= 0, got {touch_noise_mm!r}")
+    if len(shift_mm) != 2 or not all(math.isfinite(float(c)) for c in shift_mm):
+        raise InputError(f"plate shift: expected 2 finite numbers of mm (dx, dy), got {tuple(shift_mm)!r}")
+    if cover_px is not None and (
+        len(cover_px) != 4
+        or not all(math.isfinite(float(c)) for c in cover_px)
+        or not (cover_px[0] < cover_px[2] and cover_px[1] < cover_px[3])
+    ):
+        raise InputError(
+            "plate cover: expected a rectangle u0,v0,u1,v1 px with u0 < u1 and v0 < v1, "
+            f"got {tuple(cover_px)!r}"
+        )
     cam = true_camera(cell)
     z = float(cell.values["belt"]["z_mm"]) if z_mm is None else float(z_mm)
     pl = place_plate(cam, spec, z, yaw_deg=yaw_deg, tilt_deg=tilt_deg)
