@@ -185,14 +185,6 @@ class Collector:
         )
 
     @property
-    def still_tol_px(self) -> float:
-        return self.grabber.still_tol_px
-
-    @property
-    def detect_options(self) -> dict:
-        return self.grabber.detect_options
-
-    @property
     def last_grab(self) -> tuple | None:
         """(image, Detection, utc) of the last POINT/CHECK grab (the workbench's live view)."""
         return self.grabber.last_grab

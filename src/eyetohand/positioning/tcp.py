@@ -335,10 +335,6 @@ class LineServer:
         self.server: asyncio.AbstractServer | None = None
 
     @property
-    def max_clients(self) -> int:
-        return self.slots.limit.total
-
-    @property
     def max_per_peer(self) -> int:
         return self.slots.limit.per_address
 
