@@ -384,17 +384,21 @@ def test_verify_counts_the_touches_error_as_no_motion():
     assert alarms <= 1  # 0.1 % each under no motion
 
 
-def test_several_placements_give_the_full_camera(tmp_path):
-    """Two placements (the table, a 60 mm block, one tilted): the camera model, which maps other
-    heights; touches name their image; the file proves both placements on load."""
-    spec = "chessboard:9x6:12"
+def two_placements(touch_noise_mm: float):
+    """Two placements of a 9x6:12 chessboard (the table, a 60 mm block, one tilted), rendered-free
+    corners with 0.02 px noise and their touches (``touch_noise_mm``): the simulations and the camera
+    fitted from both (tests/test_plate_sigma.py uses it too)."""
     sims = [
         simulate_plate(
-            spec=spec, z_mm=0.0, yaw_deg=10, tilt_deg=0.3, seed=1, render=False, touch_noise_mm=0.02
-        ),
-        simulate_plate(
-            spec=spec, z_mm=60.0, yaw_deg=-25, tilt_deg=6.0, seed=2, render=False, touch_noise_mm=0.02
-        ),
+            spec="chessboard:9x6:12",
+            z_mm=z,
+            yaw_deg=yaw,
+            tilt_deg=tilt,
+            seed=seed,
+            render=False,
+            touch_noise_mm=touch_noise_mm,
+        )
+        for z, yaw, tilt, seed in ((0.0, 10, 0.3, 1), (60.0, -25, 6.0, 2))
     ]
     rng = np.random.default_rng(0)
     found = [
@@ -405,7 +409,13 @@ def test_several_placements_give_the_full_camera(tmp_path):
     for k, s in enumerate(sims):
         lines += [f"p{k}.png," + ",".join(r.split(",")[:5]) for r in s.touches_csv.splitlines()[1:] if r]
     touches = touches_from_text("\n".join(lines) + "\n", "t.csv", ["p0.png", "p1.png"])
-    cal = calibrate_detected(sims[0].spec, found, touches)
+    return sims, calibrate_detected(sims[0].spec, found, touches)
+
+
+def test_several_placements_give_the_full_camera(tmp_path):
+    """Two placements (the table, a 60 mm block, one tilted): the camera model, which maps other
+    heights; touches name their image; the file proves both placements on load."""
+    sims, cal = two_placements(touch_noise_mm=0.02)
     assert cal.model_name == "camera" and len(cal.plate.placements) == 2
     cam = sims[0].camera
     uv = np.array([[1100.0, 950.0], [1400.0, 1150.0], [1224.0, 1024.0]])

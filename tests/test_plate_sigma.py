@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from test_plate import two_placements
 
 from eyetohand.calibration import Calibration, calibrate
 from eyetohand.calibration.plate import calibrate_detected
@@ -20,29 +21,8 @@ from eyetohand.solve import param_jacobian
 SPEC = "chessboard:9x6:12"
 
 
-def _two_placements():
-    sims = [
-        simulate_plate(
-            spec=SPEC, z_mm=0.0, yaw_deg=10, tilt_deg=0.3, seed=1, render=False, touch_noise_mm=0.1
-        ),
-        simulate_plate(
-            spec=SPEC, z_mm=60.0, yaw_deg=-25, tilt_deg=6.0, seed=2, render=False, touch_noise_mm=0.1
-        ),
-    ]
-    rng = np.random.default_rng(0)
-    found = [
-        PlateImage(f"p{k}.png", s.camera.image_size, s.true_uv_px + rng.normal(0, 0.02, s.true_uv_px.shape))
-        for k, s in enumerate(sims)
-    ]
-    lines = ["image,u,v,x,y,z"]
-    for k, s in enumerate(sims):
-        lines += [f"p{k}.png," + ",".join(r.split(",")[:5]) for r in s.touches_csv.splitlines()[1:] if r]
-    touches = touches_from_text("\n".join(lines) + "\n", "t.csv", ["p0.png", "p1.png"])
-    return sims, calibrate_detected(sims[0].spec, found, touches)
-
-
 def test_each_placements_error_moves_the_map_as_a_refit_does(tmp_path):
-    sims, cal = _two_placements()
+    sims, cal = two_placements(touch_noise_mm=0.1)
     rec = cal.plate
     assert cal.model_name == "camera" and rec.response is not None and rec.response.shape[1] == 12
     uv = np.array([[1000.0, 900.0], [1400.0, 1150.0], [1224.0, 1024.0]])
