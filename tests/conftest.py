@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from helpers import PAPER  # noqa: E402  (the tests' shared paths; tests import PAPER from here too)
+from helpers import PAPER, SMALL_CELL_TOML  # noqa: E402  (the tests' shared paths; tests import PAPER from here too)
 from pg import pg_cluster, pg_url, store_url  # noqa: E402, F401  (a throwaway PostgreSQL server: tests/pg.py)
 
 # Debian's Chromium for the browser tests (make test installs it), with the flags this closed network needs
@@ -93,6 +93,15 @@ def ram_path(tmp_path):
         yield folder
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def cell_file(tmp_path_factory):
+    """The small virtual cell (helpers.SMALL_CELL_TOML) as a file, for a module's ``sim:`` camera and
+    robot; a module with a cell of its own defines its own ``cell_file``."""
+    path = tmp_path_factory.mktemp("cell") / "cell.toml"
+    path.write_text(SMALL_CELL_TOML)
+    return path
 
 
 @pytest.fixture(scope="session")

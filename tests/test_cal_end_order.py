@@ -10,7 +10,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import SMALL_CELL_TOML, view_square_mm
+from helpers import view_square_mm
 
 from eyetohand.cell.collect import Collector
 from eyetohand.cell.journal import JsonlJournal
@@ -58,13 +58,6 @@ class Versions:
     def load(self, name):
         mine = [c for n, c in self.saved if n == name]
         return mine[-1] if mine else None
-
-
-@pytest.fixture(scope="module")
-def cell_file(tmp_path_factory):
-    path = tmp_path_factory.mktemp("cell") / "cell.toml"
-    path.write_text(SMALL_CELL_TOML)
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,6 @@ import json
 
 import numpy as np
 import pytest
-from helpers import SMALL_CELL_TOML
 
 from eyetohand.calibration import Calibration
 from eyetohand.cell.collect import Collector
@@ -19,13 +18,6 @@ from eyetohand.vision.sources import open_source
 SPEC = "chessboard:9x6:15"
 PLATE_SEED = 1
 NOISE_MM = 0.05
-
-
-@pytest.fixture(scope="module")
-def cell_file(tmp_path_factory):
-    path = tmp_path_factory.mktemp("cell") / "cell.toml"
-    path.write_text(SMALL_CELL_TOML)
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ import time
 import cv2
 import numpy as np
 import pytest
-from helpers import ROBOTS, SMALL_CELL_TOML, ServeProcess, src_env, view_square_mm
+from helpers import ROBOTS, ServeProcess, src_env, view_square_mm
 
 from eyetohand.calibration.file import Calibration
 from eyetohand.cell.collect import Collector, plan_poses
@@ -31,16 +31,8 @@ from eyetohand.vision.sources import FolderSource, GrabTimeout, open_source
 sys.path.insert(0, str(ROBOTS))
 from robot_client import FolderCamera, TcpLink, VirtualRobot  # noqa: E402
 
-CELL = SMALL_CELL_TOML
 Z = 150.0
 SEED = 5
-
-
-@pytest.fixture(scope="module")
-def cell_file(tmp_path_factory):
-    path = tmp_path_factory.mktemp("cell") / "cell.toml"
-    path.write_text(CELL)
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -26,26 +26,18 @@ import time
 
 import numpy as np
 import pytest
-from helpers import ROBOTS, SMALL_CELL_TOML, ServeProcess, src_env, view_square_mm
+from helpers import ROBOTS, ServeProcess, src_env, view_square_mm
 
 from eyetohand.positioning import registers as R
 
 sys.path.insert(0, str(ROBOTS))
 from robot_client import TcpLink, VirtualRobot  # noqa: E402
 
-CELL = SMALL_CELL_TOML
 SEED = 5
 Z = 150.0
 DIAMETER = 10.0
 RANGE = "8,12"
 NOISE_PX = 0.1  # the cell's detection.pixel_noise_px
-
-
-@pytest.fixture(scope="module")
-def cell_file(tmp_path_factory):
-    path = tmp_path_factory.mktemp("cell") / "cell.toml"
-    path.write_text(CELL)
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -14,8 +14,7 @@ from __future__ import annotations
 import re
 
 import numpy as np
-import pytest
-from helpers import ROBOTS, SMALL_CELL_TOML, ServeProcess
+from helpers import ROBOTS, ServeProcess
 from test_robot_programs import Wire, one, ur_socket_read_ascii_float, ur_str_of_float
 
 from eyetohand.calibration import Calibration
@@ -26,13 +25,6 @@ from eyetohand.vision import PlateSpec
 REL = "ur/eyetohand_plate.script"
 PLATE_SEED = 1
 NOISE_MM = 0.05
-
-
-@pytest.fixture(scope="module")
-def cell_file(tmp_path_factory):
-    path = tmp_path_factory.mktemp("cell") / "cell.toml"
-    path.write_text(SMALL_CELL_TOML)
-    return path
 
 
 class Program:

@@ -31,9 +31,8 @@ from functools import partial
 from pathlib import Path
 
 import pytest
-from helpers import ROBOTS, SMALL_CELL_TOML, ServeProcess, src_env
+from helpers import ROBOTS, ServeProcess, src_env
 
-CELL = SMALL_CELL_TOML
 SEED = 5
 PLAN = "grid:3x3"
 # The programs' rectangle (0,570)-(70,650) at z 150 lies inside this cell's view: all 9 poses are
@@ -41,13 +40,6 @@ PLAN = "grid:3x3"
 # 80 characters) is taken by test_abb_rapid_skips_a_pose_outside_the_view with the old rectangle.
 N_RECORDED, N_SKIPPED = 9, 0
 OUTSIDE_RECT = "-40,570,60,650"  # its corner (-40,650) is cut by the image border here
-
-
-@pytest.fixture(scope="module")
-def cell_file(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("cell") / "cell.toml"
-    path.write_text(CELL)
-    return path
 
 
 def serve(tmp_path: Path, cell_file: Path, *extra: str) -> ServeProcess:
