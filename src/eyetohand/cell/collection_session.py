@@ -15,6 +15,7 @@ from eyetohand.core import InputError
 
 POSE_MATCH_MM = 0.01
 REPEAT_MATCH_MM = 1e-3
+REPEAT_MATCH_DEG = 1e-3  # a resent line carries the same reading: its angle to the same 0.001 deg
 NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 
 
@@ -114,13 +115,13 @@ def parse_point(args: list[str]) -> tuple[list[float], float, bool]:
 
 
 def repeat_reply(s: Session, xyz: list[float], angle: float) -> list[str] | None:
-    """The reply of a point already recorded at this pose and angle (1 µm): a robot retrying."""
+    """The reply of a point already recorded at this pose (1 µm) and angle (0.001 deg): a robot retrying."""
     for k, p in enumerate(s.points):
         if p.get("dropped"):
             continue
         if (
             max(abs(a - b) for a, b in zip(p["xyz_mm"], xyz, strict=True)) <= REPEAT_MATCH_MM
-            and abs(p["angle_deg"] - angle) <= REPEAT_MATCH_MM
+            and abs(p["angle_deg"] - angle) <= REPEAT_MATCH_DEG
         ):
             return [str(k + 1), _f(p["u"]), _f(p["v"])]
     return None
